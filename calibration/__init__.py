@@ -1,0 +1,1 @@
+"""Calibration of the rig cameras (RGB chessboard/ChArUco, e2calib, extrinsics)."""

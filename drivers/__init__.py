@@ -1,0 +1,34 @@
+"""Device interfaces (one per device kind) and the backends that implement them."""
+
+from drivers.base import (
+    AcquisitionStats,
+    Capability,
+    CameraSettings,
+    Device,
+    DeviceInfo,
+    EventPacket,
+    EventSensor,
+    EventSensorSettings,
+    PulseBatch,
+    RgbCamera,
+    Trigger,
+    TriggerSettings,
+)
+from drivers.registry import open_device, register_backend
+
+__all__ = [
+    "AcquisitionStats",
+    "CameraSettings",
+    "Capability",
+    "Device",
+    "DeviceInfo",
+    "EventPacket",
+    "EventSensor",
+    "EventSensorSettings",
+    "PulseBatch",
+    "RgbCamera",
+    "Trigger",
+    "TriggerSettings",
+    "open_device",
+    "register_backend",
+]

@@ -1,0 +1,1 @@
+"""Event processing and the 4D supervision pipeline that reads takes."""

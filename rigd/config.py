@@ -1,0 +1,150 @@
+"""Rig configuration: which devices, by which spec, with which settings.
+
+Loaded from TOML, JSON or YAML; every error names the file and the field.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.base import CameraSettings, EventSensorSettings, TriggerSettings
+from rigd.core.errors import ConfigError
+
+_NAME = r"^[A-Za-z][A-Za-z0-9_-]{0,31}$"
+
+
+class CameraConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(pattern=_NAME, description="Name in the take (`frames/<name>`).")
+    spec: str = Field(description="Backend spec, e.g. `sim://default/cam0` or `genicam://SERIAL`.")
+    settings: CameraSettings = Field(default_factory=CameraSettings)
+
+
+class EventSensorConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(pattern=_NAME, description="Name in the take (`events/<name>`).")
+    spec: str = Field(description="Backend spec, e.g. `sim://default/ev0` or `file://rec.raw`.")
+    settings: EventSensorSettings = Field(default_factory=EventSensorSettings)
+
+
+class TriggerConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    spec: str = Field(description="Trigger box port or spec, e.g. `/dev/ttyACM0`.")
+    settings: TriggerSettings = Field(default_factory=TriggerSettings)
+
+
+class WriterConfig(BaseModel):
+    """How takes are written; compression is a measured choice (see bench/)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    event_compression: Literal["none", "lz4", "zstd", "gzip"] = "lz4"
+    frame_compression: Literal["none", "lz4", "zstd", "gzip"] = "none"
+    event_chunk: int = Field(1 << 18, ge=1024, description="Events per HDF5 chunk.")
+    queue_items: int = Field(256, ge=4, description="Bound of the acquisition -> writer queue.")
+    queue_put_timeout_s: float = Field(
+        2.0, gt=0, description="How long an acquisition thread waits on a full queue before counting a drop."
+    )
+
+
+class RigConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "rig"
+    trigger: TriggerConfig
+    cameras: list[CameraConfig] = Field(default_factory=list)
+    event_sensors: list[EventSensorConfig] = Field(default_factory=list)
+    writer: WriterConfig = Field(default_factory=WriterConfig)
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> RigConfig:
+        names = [c.name for c in self.cameras] + [s.name for s in self.event_sensors]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"device names must be unique; repeated: {', '.join(dupes)}")
+        if not names:
+            raise ValueError("a rig needs at least one camera or event sensor")
+        return self
+
+    @classmethod
+    def load(cls, path: str | Path) -> RigConfig:
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"cannot read rig config {p}: {exc.strerror}") from exc
+        suffix = p.suffix.lower()
+        try:
+            data: Any
+            if suffix == ".toml":
+                data = tomllib.loads(text)
+            elif suffix == ".json":
+                data = json.loads(text)
+            elif suffix in (".yaml", ".yml"):
+                import yaml
+
+                data = yaml.safe_load(text)
+            else:
+                raise ConfigError(f"rig config {p}: unknown extension {suffix!r} (use .toml, .json or .yaml)")
+        except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"rig config {p} is not valid {suffix[1:].upper()}: {exc}") from exc
+        except Exception as exc:
+            if exc.__class__.__module__.startswith("yaml"):
+                raise ConfigError(f"rig config {p} is not valid YAML: {exc}") from exc
+            raise
+        return cls.from_data(data, source=str(p))
+
+    @classmethod
+    def from_data(cls, data: Any, source: str = "<config>") -> RigConfig:
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            lines = []
+            for err in exc.errors():
+                where = ".".join(str(x) for x in err["loc"]) or "(top level)"
+                lines.append(f"  {where}: {err['msg']}")
+            raise ConfigError(f"rig config {source} is invalid:\n" + "\n".join(lines)) from None
+
+
+def default_sim_rig(world: str = "default", seed: int = 0, pixel_format: str = "rgb8") -> RigConfig:
+    """The built-in simulated rig of the paper: 3 RGB cameras, 2 event sensors, one trigger.
+
+    Clock offsets and drifts differ per device (within +-100 ppm) so the sync engine has
+    real work to do; the trigger edges jitter by 2 us.
+    """
+    clocks = {
+        "cam0": (1_503_311, 80.0),
+        "cam1": (73_005_123, -60.0),
+        "cam2": (9_120_007, 35.0),
+        "ev0": (412_775, -95.0),
+        "ev1": (5_600_900, 100.0),
+    }
+
+    def spec(name: str, extra: str = "") -> str:
+        off, ppm = clocks[name]
+        return f"sim://{world}/{name}?offset_us={off}&drift_ppm={ppm}&seed={seed}{extra}"
+
+    return RigConfig(
+        name="sim-rig",
+        trigger=TriggerConfig(
+            spec=f"sim://{world}/trigger?drift_ppm=12&jitter_us=2&seed={seed}",
+            settings=TriggerSettings(rate_hz=30.0, pulse_width_us=1000),
+        ),
+        cameras=[
+            CameraConfig(
+                name=n,
+                spec=spec(n),
+                settings=CameraSettings(exposure_us=8000, pixel_format=pixel_format),  # type: ignore[arg-type]
+            )
+            for n in ("cam0", "cam1", "cam2")
+        ],
+        event_sensors=[EventSensorConfig(name=n, spec=spec(n)) for n in ("ev0", "ev1")],
+    )

@@ -1,0 +1,36 @@
+"""The small core of data types every package imports (and which imports none of them)."""
+
+from rigd.core.errors import (
+    ConfigError,
+    DeviceError,
+    DeviceTimeoutError,
+    EventDataError,
+    ProtocolError,
+    RigdError,
+    SyncError,
+    TakeError,
+    TakeFormatError,
+    BackendUnavailableError,
+)
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.frames import Frame
+from rigd.core.timebase import ClockFit, ClockMap, fit_clock_map
+
+__all__ = [
+    "BackendUnavailableError",
+    "ClockFit",
+    "ClockMap",
+    "ConfigError",
+    "DeviceError",
+    "DeviceTimeoutError",
+    "EventArray",
+    "EventDataError",
+    "Frame",
+    "ProtocolError",
+    "RigdError",
+    "SyncError",
+    "TakeError",
+    "TakeFormatError",
+    "TriggerEvents",
+    "fit_clock_map",
+]

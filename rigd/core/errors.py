@@ -1,0 +1,41 @@
+"""Error hierarchy: callers catch the narrowest class that lets them act."""
+
+
+class RigdError(Exception):
+    """Base of every error rigd raises on purpose."""
+
+
+class ConfigError(RigdError):
+    """A rig config or device spec is invalid; the message names the field."""
+
+
+class DeviceError(RigdError):
+    """A device failed, refused a command or could not be opened."""
+
+
+class BackendUnavailableError(DeviceError):
+    """The backend for a spec needs an optional library that is not installed."""
+
+
+class DeviceTimeoutError(DeviceError):
+    """A device did not answer within its deadline."""
+
+
+class ProtocolError(DeviceError):
+    """A device answered with an error reply or bytes that break its protocol."""
+
+
+class EventDataError(RigdError):
+    """Event arrays with wrong dtypes, lengths or values."""
+
+
+class SyncError(RigdError):
+    """Device clocks could not be mapped to the rig timebase."""
+
+
+class TakeError(RigdError):
+    """A take could not be written or read."""
+
+
+class TakeFormatError(TakeError):
+    """A take file violates the schema; the message names the HDF5 path."""

@@ -1,0 +1,136 @@
+"""Event arrays: struct-of-arrays with int64 microsecond time.
+
+Polarity in memory is int8 +1/-1 (signed arithmetic on it is natural); the take file
+stores it as uint8 1/0, the DSEC convention, so existing loaders read it unchanged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rigd.core.errors import EventDataError
+
+_EVENT_DTYPES = {"x": np.uint16, "y": np.uint16, "p": np.int8, "t": np.int64}
+_TRIGGER_DTYPES = {"t": np.int64, "p": np.uint8, "channel": np.uint8}
+
+
+def _check_columns(obj: Any, dtypes: dict[str, Any], kind: str) -> None:
+    n = None
+    for name, dt in dtypes.items():
+        arr = getattr(obj, name)
+        if not isinstance(arr, np.ndarray) or arr.ndim != 1:
+            raise EventDataError(f"{kind}.{name} must be a 1-D numpy array")
+        if arr.dtype != dt:
+            raise EventDataError(f"{kind}.{name} has dtype {arr.dtype}, expected {np.dtype(dt)}")
+        if n is None:
+            n = arr.shape[0]
+        elif arr.shape[0] != n:
+            raise EventDataError(f"{kind}.{name} has {arr.shape[0]} entries, expected {n}")
+
+
+@dataclass(frozen=True, slots=True)
+class EventArray:
+    """Change-detection events of one sensor, in one clock (device or rig)."""
+
+    x: NDArray[np.uint16]
+    y: NDArray[np.uint16]
+    p: NDArray[np.int8]
+    t: NDArray[np.int64]
+
+    def __post_init__(self) -> None:
+        _check_columns(self, _EVENT_DTYPES, "EventArray")
+
+    @classmethod
+    def empty(cls) -> EventArray:
+        return cls(
+            np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.int8), np.empty(0, np.int64)
+        )
+
+    @classmethod
+    def from_arrays(cls, x: Any, y: Any, p: Any, t: Any) -> EventArray:
+        """Cast from any integer arrays, checking ranges instead of wrapping silently.
+
+        Polarity may be given as 0/1 or -1/+1; 0 means OFF.
+        """
+        x64, y64, p64 = (np.asarray(a, dtype=np.int64) for a in (x, y, p))
+        t_arr = np.asarray(t)
+        if t_arr.dtype.kind == "f":
+            raise EventDataError("event time must be integer microseconds, got floating point")
+        t64 = t_arr.astype(np.int64, copy=False)
+        for name, arr in (("x", x64), ("y", y64)):
+            if arr.size and (arr.min() < 0 or arr.max() > np.iinfo(np.uint16).max):
+                raise EventDataError(f"event {name} out of uint16 range")
+        if p64.size and not np.isin(p64, (-1, 0, 1)).all():
+            raise EventDataError("event polarity must be in {-1, 0, 1}")
+        pol = np.where(p64 > 0, 1, -1).astype(np.int8)
+        return cls(x64.astype(np.uint16), y64.astype(np.uint16), pol, t64)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def __getitem__(self, key: slice | NDArray[Any]) -> EventArray:
+        return EventArray(self.x[key], self.y[key], self.p[key], self.t[key])
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.x.nbytes + self.y.nbytes + self.p.nbytes + self.t.nbytes)
+
+    def is_time_sorted(self) -> bool:
+        return bool(self.t.size < 2 or (np.diff(self.t) >= 0).all())
+
+    def with_time(self, t: NDArray[np.int64]) -> EventArray:
+        return EventArray(self.x, self.y, self.p, t)
+
+    @staticmethod
+    def concatenate(parts: Sequence[EventArray]) -> EventArray:
+        if not parts:
+            return EventArray.empty()
+        return EventArray(
+            np.concatenate([e.x for e in parts]),
+            np.concatenate([e.y for e in parts]),
+            np.concatenate([e.p for e in parts]),
+            np.concatenate([e.t for e in parts]),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class TriggerEvents:
+    """External-trigger edges latched by an event sensor: p is 1 rising, 0 falling."""
+
+    t: NDArray[np.int64]
+    p: NDArray[np.uint8]
+    channel: NDArray[np.uint8]
+
+    def __post_init__(self) -> None:
+        _check_columns(self, _TRIGGER_DTYPES, "TriggerEvents")
+
+    @classmethod
+    def empty(cls) -> TriggerEvents:
+        return cls(np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.uint8))
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def __getitem__(self, key: slice | NDArray[Any]) -> TriggerEvents:
+        return TriggerEvents(self.t[key], self.p[key], self.channel[key])
+
+    def rising(self, channel: int | None = None) -> TriggerEvents:
+        mask = self.p == 1
+        if channel is not None:
+            mask &= self.channel == channel
+        return self[mask]
+
+    @staticmethod
+    def concatenate(parts: Sequence[TriggerEvents]) -> TriggerEvents:
+        if not parts:
+            return TriggerEvents.empty()
+        return TriggerEvents(
+            np.concatenate([e.t for e in parts]),
+            np.concatenate([e.p for e in parts]),
+            np.concatenate([e.channel for e in parts]),
+        )

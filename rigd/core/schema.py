@@ -1,0 +1,85 @@
+"""The take file schema: version, HDF5 layout names, and the sync report model.
+
+The layout is documented in docs/take-format.md; this module is its single source in code,
+so the writer, the reader and the validator cannot drift apart.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+SCHEMA_NAME = "rigd.take"
+#: Major changes break readers; minor ones only add datasets or attributes.
+SCHEMA_VERSION = "1.0"
+
+EVENTS_GROUP = "events"
+FRAMES_GROUP = "frames"
+TRIGGER_GROUP = "trigger"
+SYNC_GROUP = "sync"
+CONFIG_DATASET = "config_json"
+
+TAKE_STATUS = Literal["recording", "complete", "failed"]
+TIME_DOMAIN = Literal["device", "rig"]
+
+
+class DeviceSync(BaseModel):
+    """How one device clock was tied to the rig clock, and what it missed."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: str
+    kind: Literal["rgb_camera", "event_sensor"]
+    device_ref_us: int
+    rig_ref_us: int
+    rate: float
+    frac_us: float = 0.0
+    drift_ppm: float = Field(description="Device clock rate against the rig clock, ppm (+: device fast).")
+    n_matched: int = Field(description="Pulses this device saw and that were matched to a box pulse.")
+    residual_rms_us: float
+    residual_max_us: float
+    missing_pulses: list[int] = Field(
+        default_factory=list, description="Box pulse indices this device has no observation of."
+    )
+    dropped_frames: list[int] = Field(
+        default_factory=list,
+        description="Frame counter values missing from the delivered frames (lost in device or transport).",
+    )
+    unmatched_observations: int = Field(
+        0, description="Device trigger observations (frames / trigger-in edges) matched to no box pulse."
+    )
+
+
+class LossRecord(BaseModel):
+    """Data the host lost or refused; never dropped without one of these."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: str
+    what: Literal["frames", "events", "triggers", "pulses"]
+    count: int
+    reason: str
+    t_first_us: int | None = Field(None, description="Device time of the first lost item, when known.")
+    t_last_us: int | None = None
+
+
+class SyncReport(BaseModel):
+    """The take's sync report: rig timebase facts, per-device fits, and all losses."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: str = SCHEMA_VERSION
+    rate_hz: float
+    n_pulses: int = Field(description="Pulses the trigger box reported emitting.")
+    t_first_pulse_us: int | None
+    t_last_pulse_us: int | None
+    pulses_missing_from_box_log: list[int] = Field(
+        default_factory=list, description="Pulse indices absent from the box's reported timestamps."
+    )
+    pulses_seen_by_no_device: list[int] = Field(
+        default_factory=list, description="Pulses the box reported but no device observed."
+    )
+    devices: dict[str, DeviceSync] = Field(default_factory=dict)
+    losses: list[LossRecord] = Field(default_factory=list)
+    warnings: list[str] = Field(default_factory=list)
