@@ -114,7 +114,13 @@ class RigConfig(BaseModel):
             raise ConfigError(f"rig config {source} is invalid:\n" + "\n".join(lines)) from None
 
 
-def default_sim_rig(world: str = "default", seed: int = 0, pixel_format: str = "rgb8") -> RigConfig:
+def default_sim_rig(
+    world: str = "default",
+    seed: int = 0,
+    pixel_format: str = "rgb8",
+    resolution: tuple[int, int] = (1280, 720),
+    rate_hz: float = 30.0,
+) -> RigConfig:
     """The built-in simulated rig of the paper: 3 RGB cameras, 2 event sensors, one trigger.
 
     Clock offsets and drifts differ per device (within +-100 ppm) so the sync engine has
@@ -128,15 +134,19 @@ def default_sim_rig(world: str = "default", seed: int = 0, pixel_format: str = "
         "ev1": (5_600_900, 100.0),
     }
 
-    def spec(name: str, extra: str = "") -> str:
+    width, height = resolution
+
+    def spec(name: str) -> str:
         off, ppm = clocks[name]
-        return f"sim://{world}/{name}?offset_us={off}&drift_ppm={ppm}&seed={seed}{extra}"
+        return (
+            f"sim://{world}/{name}?offset_us={off}&drift_ppm={ppm}&seed={seed}&width={width}&height={height}"
+        )
 
     return RigConfig(
         name="sim-rig",
         trigger=TriggerConfig(
             spec=f"sim://{world}/trigger?drift_ppm=12&jitter_us=2&seed={seed}",
-            settings=TriggerSettings(rate_hz=30.0, pulse_width_us=1000),
+            settings=TriggerSettings(rate_hz=rate_hz, pulse_width_us=min(1000, int(2e5 / rate_hz))),
         ),
         cameras=[
             CameraConfig(

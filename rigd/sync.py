@@ -1,0 +1,239 @@
+"""Sync engine: tie every device clock to the rig clock through the trigger pulses.
+
+Each device saw (some of) the box's pulses in its own clock: a camera as the exposure
+start of one frame per pulse, an event sensor as rising trigger-in edges. Matching those
+observations to box pulse indices is done in two stages. A coarse stage uses host receive
+times (millisecond-accurate, latency >= 0) to find which pulse each observation belongs
+to, which only needs the host latency spread to stay under half a trigger period; a fine
+stage fits offset + drift on the matched pairs and re-matches with that fit, so drift over
+hours does not break the matching. Nothing is fixed silently: missing pulses, frame counter
+gaps and unmatched observations all go into the report.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rigd.core.errors import SyncError
+from rigd.core.schema import DeviceSync, LossRecord, SyncReport
+from rigd.core.timebase import ClockFit, ClockMap, fit_clock_map
+
+log = logging.getLogger(__name__)
+
+#: Observations further than this many robust sigmas from the fit are treated as unmatched.
+_OUTLIER_SIGMAS = 8.0
+#: Floor of the fine matching tolerance, so a few-us jitter never unmatches a good pulse.
+_MIN_TOLERANCE_US = 50.0
+
+
+@dataclass(slots=True)
+class PulseLog:
+    """Pulses as the trigger box reported them (rig time)."""
+
+    index: NDArray[np.int64]
+    t_us: NDArray[np.int64]
+    host_time_ns: NDArray[np.int64]
+    n_emitted: int
+    """Pulse count the box reports at STOP; indices 0..n_emitted-1 should all be present."""
+
+
+@dataclass(slots=True)
+class DeviceObservations:
+    """Trigger observations of one device, in the order they were delivered."""
+
+    name: str
+    kind: Literal["rgb_camera", "event_sensor"]
+    t_device_us: NDArray[np.int64]
+    host_time_ns: NDArray[np.int64]
+    frame_counter: NDArray[np.int64] | None = None
+
+
+@dataclass(slots=True)
+class DeviceMatch:
+    pulse_index: NDArray[np.int64]
+    """Box pulse index per observation, -1 where unmatched."""
+    fit: ClockFit | None
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass(slots=True)
+class SyncResult:
+    maps: dict[str, ClockMap]
+    observation_pulse_index: dict[str, NDArray[np.int64]]
+    report: SyncReport
+
+
+def _assign(pred_rig: NDArray[np.float64], pulse_t: NDArray[np.int64], tol_us: float) -> NDArray[np.int64]:
+    """Position in `pulse_t` of the nearest pulse within tol of each prediction, else -1.
+
+    When two observations claim one pulse, the closer keeps it.
+    """
+    n = pulse_t.size
+    out = np.full(pred_rig.size, -1, np.int64)
+    if n == 0 or pred_rig.size == 0:
+        return out
+    pos = np.searchsorted(pulse_t, pred_rig)
+    lo = np.clip(pos - 1, 0, n - 1)
+    hi = np.clip(pos, 0, n - 1)
+    d_lo = np.abs(pred_rig - pulse_t[lo])
+    d_hi = np.abs(pred_rig - pulse_t[hi])
+    best = np.where(d_hi < d_lo, hi, lo)
+    dist = np.minimum(d_lo, d_hi)
+    ok = dist <= tol_us
+    out[ok] = best[ok]
+    # Resolve duplicate claims: keep the closest observation for each pulse.
+    claimed = np.flatnonzero(ok)
+    if claimed.size:
+        order = np.lexsort((dist[claimed], out[claimed]))
+        c_sorted = claimed[order]
+        p_sorted = out[c_sorted]
+        dup = np.empty(p_sorted.size, bool)
+        dup[0] = False
+        dup[1:] = p_sorted[1:] == p_sorted[:-1]
+        out[c_sorted[dup]] = -1
+    return out
+
+
+def _host_to_rig(pulses: PulseLog) -> ClockMap:
+    """Coarse host-monotonic -> rig map from when the box's pulse records arrived."""
+    host_us = pulses.host_time_ns // 1000
+    fit = fit_clock_map(host_us, pulses.t_us, fit_drift=pulses.t_us.size >= 10)
+    # Host receive time lags the pulse by a latency >= 0. The least-squares line sits at the
+    # mean latency; shift it onto the fastest arrivals so it maps a host time to the rig time
+    # at which the host received something.
+    fastest = float(np.percentile(fit.residuals_us, 5)) if fit.n else 0.0
+    m = fit.map
+    return ClockMap(m.device_ref_us, m.rig_ref_us, m.rate, m.frac_us - fastest)
+
+
+def match_device(
+    obs: DeviceObservations, pulses: PulseLog, period_us: float, host_to_rig: ClockMap
+) -> DeviceMatch:
+    """Match one device's observations to box pulses and fit its clock map."""
+    n_obs = obs.t_device_us.size
+    warnings: list[str] = []
+    if n_obs == 0 or pulses.t_us.size == 0:
+        what = "no trigger observations" if n_obs == 0 else "no box pulses"
+        return DeviceMatch(np.full(n_obs, -1, np.int64), None, [f"{obs.name}: {what}; clock not fitted"])
+    d = obs.t_device_us.astype(np.int64)
+    # Coarse: c = (rig estimate from host time) - device time = offset + drift*d + latency.
+    est_rig = host_to_rig.to_rig_float(obs.host_time_ns // 1000)
+    c = est_rig - d.astype(np.float64)
+    x = (d - d[0]).astype(np.float64)
+    if n_obs >= 10 and np.ptp(x) > 0:
+        slope, icpt = np.polyfit(x, c, 1)
+    else:
+        slope, icpt = 0.0, float(np.mean(c))
+    resid = c - (slope * x + icpt)
+    icpt += float(np.percentile(resid, 5))  # latency only ever adds: follow the fast arrivals
+    pred = d.astype(np.float64) + slope * x + icpt
+    pos = _assign(pred, pulses.t_us, period_us / 2.0)
+    fit: ClockFit | None = None
+    for _ in range(3):
+        ok = pos >= 0
+        if ok.sum() < 1:
+            break
+        fit = fit_clock_map(d[ok], pulses.t_us[pos[ok]], fit_drift=ok.sum() >= 3)
+        sigma = 1.4826 * float(np.median(np.abs(fit.residuals_us))) if fit.n >= 5 else 0.0
+        tol = max(_MIN_TOLERANCE_US, _OUTLIER_SIGMAS * sigma)
+        tol = min(tol, period_us / 4.0)
+        new_pos = _assign(fit.map.to_rig_float(d), pulses.t_us, tol)
+        if np.array_equal(new_pos, pos):
+            break
+        pos = new_pos
+    if fit is None:
+        warnings.append(f"{obs.name}: no observation matched a box pulse; clock not fitted")
+        return DeviceMatch(np.full(n_obs, -1, np.int64), None, warnings)
+    ok = pos >= 0
+    fit = fit_clock_map(d[ok], pulses.t_us[pos[ok]], fit_drift=ok.sum() >= 3)
+    index = np.where(ok, pulses.index[np.clip(pos, 0, None)], -1).astype(np.int64)
+    return DeviceMatch(index, fit, warnings)
+
+
+def _counter_gaps(counters: NDArray[np.int64]) -> list[int]:
+    if counters.size < 2:
+        return []
+    c = np.unique(counters)
+    full = np.arange(c[0], c[-1] + 1, dtype=np.int64)
+    return [int(v) for v in np.setdiff1d(full, c, assume_unique=True)]
+
+
+def synchronize(
+    pulses: PulseLog,
+    observations: list[DeviceObservations],
+    rate_hz: float,
+    losses: list[LossRecord] | None = None,
+) -> SyncResult:
+    """Fit every device clock to the rig clock and write down everything that is missing."""
+    if pulses.index.size and np.any(np.diff(pulses.index) <= 0):
+        raise SyncError("box pulse indices are not strictly increasing")
+    period_us = 1e6 / rate_hz
+    expected = np.arange(pulses.n_emitted, dtype=np.int64)
+    missing_from_log = [int(i) for i in np.setdiff1d(expected, pulses.index)]
+    warnings: list[str] = []
+    if missing_from_log:
+        warnings.append(f"{len(missing_from_log)} pulse(s) absent from the box's timestamp log")
+    host_map = _host_to_rig(pulses) if pulses.t_us.size else ClockMap.identity()
+    maps: dict[str, ClockMap] = {}
+    obs_index: dict[str, NDArray[np.int64]] = {}
+    devices: dict[str, DeviceSync] = {}
+    seen = np.zeros(max(pulses.n_emitted, int(pulses.index.max(initial=-1)) + 1), bool)
+    for obs in observations:
+        m = match_device(obs, pulses, period_us, host_map)
+        warnings.extend(m.warnings)
+        obs_index[obs.name] = m.pulse_index
+        matched = m.pulse_index[m.pulse_index >= 0]
+        seen[matched] = True
+        if m.fit is None:
+            # Keep the data usable and say loudly how its time was derived.
+            cmap = _fallback_map(obs, host_map)
+            warnings.append(f"{obs.name}: times mapped with the coarse host clock (ms accuracy)")
+            rms = mx = float("nan")
+        else:
+            cmap, rms, mx = m.fit.map, m.fit.rms_us, m.fit.max_abs_us
+        maps[obs.name] = cmap
+        dropped = _counter_gaps(obs.frame_counter) if obs.frame_counter is not None else []
+        devices[obs.name] = DeviceSync(
+            device=obs.name,
+            kind=obs.kind,
+            device_ref_us=cmap.device_ref_us,
+            rig_ref_us=cmap.rig_ref_us,
+            rate=cmap.rate,
+            frac_us=cmap.frac_us,
+            drift_ppm=cmap.drift_ppm,
+            n_matched=int(matched.size),
+            residual_rms_us=rms,
+            residual_max_us=mx,
+            missing_pulses=[int(i) for i in np.setdiff1d(expected, matched)],
+            dropped_frames=dropped,
+            unmatched_observations=int((m.pulse_index < 0).sum()),
+        )
+        if dropped:
+            warnings.append(f"{obs.name}: {len(dropped)} frame(s) lost (counter gaps)")
+    unseen = [int(i) for i in expected if not seen[i]] if observations else []
+    if unseen:
+        warnings.append(f"{len(unseen)} pulse(s) seen by no device: {unseen[:10]}")
+    report = SyncReport(
+        rate_hz=rate_hz,
+        n_pulses=pulses.n_emitted,
+        t_first_pulse_us=int(pulses.t_us[0]) if pulses.t_us.size else None,
+        t_last_pulse_us=int(pulses.t_us[-1]) if pulses.t_us.size else None,
+        pulses_missing_from_box_log=missing_from_log,
+        pulses_seen_by_no_device=unseen,
+        devices=devices,
+        losses=list(losses or []),
+        warnings=warnings,
+    )
+    return SyncResult(maps, obs_index, report)
+
+
+def _fallback_map(obs: DeviceObservations, host_map: ClockMap) -> ClockMap:
+    if obs.t_device_us.size == 0:
+        return ClockMap.identity()
+    rig = host_map.to_rig(obs.host_time_ns // 1000)
+    return fit_clock_map(obs.t_device_us, rig, fit_drift=False).map
