@@ -1,0 +1,545 @@
+"""Simulated trigger-box firmware on a pseudo-terminal.
+
+The box speaks the protocol of docs/trigger-protocol.md on the master side of a pty; the
+host opens the slave (`port_path`) with pyserial exactly as it would open a USB-serial box,
+so the real driver (`drivers.serial_trigger`) is what the tests exercise. The box clock is
+a `DeviceClock` registered in the world as "trigger": it is the rig timebase.
+
+Pulse k of a run is scheduled at box time b_k = t0 + round(k * 1e6 / rate); the box reports
+b_k, while the physical edge leaves at the true time of b_k plus Gaussian jitter the box
+cannot know. The schedule is computed, never measured, so OS sleep error never leaks into
+timestamps (a late wake-up only delays the report).
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import re
+import select
+import threading
+import time
+import tty
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
+from rigd.core.errors import ConfigError
+
+if TYPE_CHECKING:
+    from drivers.registry import DeviceSpec
+    from drivers.serial_trigger import SerialTrigger
+
+log = logging.getLogger(__name__)
+
+VENDOR = "rigd-sim"
+MODEL = "trigbox-sim"
+FIRMWARE = "1.0.0"
+
+#: Lead between START and pulse 0, in box microseconds: time to reply and arm the timer.
+START_LEAD_US = 20_000
+#: Longest host->box line accepted, excluding the newline.
+MAX_LINE = 64
+#: Pulse records kept for readback (`TS?`).
+RING_SIZE = 65536
+#: Most records one `TS?` returns.
+MAX_TS_COUNT = 64
+MAX_RATE_HZ = 10_000.0
+MIN_RATE_HZ = 0.001
+MAX_WIDTH_US = 1_000_000
+MAX_PULSES = 2**31 - 1
+
+_RATE_RE = re.compile(r"^\d{1,5}(\.\d{1,6})?$")
+_UINT_RE = re.compile(r"^\d{1,10}$")
+#: Bytes the garbage fault may inject: never '$', '*' or newline, so framing survives.
+_GARBAGE_BYTES = bytes(b for b in range(256) if b not in b"$*\n")
+_CORRUPT_CHARS = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789#=-. "
+
+IDLE, ARMED, RUNNING = "IDLE", "ARMED", "RUNNING"
+
+
+def checksum(payload: bytes) -> int:
+    """NMEA-style XOR of the payload bytes (between '$' and '*')."""
+    x = 0
+    for b in payload:
+        x ^= b
+    return x
+
+
+def frame(payload: str) -> bytes:
+    """A box->host line: `$<payload>*HH\\n`."""
+    data = payload.encode("ascii")
+    return b"$" + data + b"*%02X\n" % checksum(data)
+
+
+class _CommandError(Exception):
+    """An `ERR <code> <message>` reply to send back."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(f"{code} {message}")
+        self.code = code
+        self.message = message
+
+
+class SimTriggerBox:
+    """Trigger-box firmware running in two threads on the master side of a pty."""
+
+    def __init__(
+        self,
+        world: SimWorld,
+        *,
+        offset_us: float = 0.0,
+        drift_ppm: float = 0.0,
+        jitter_us: float = 0.0,
+        drop_pulses: Iterable[int] = (),
+        garbage_every: int = 0,
+        boot_ms: int = 50,
+        seed: int = 0,
+    ) -> None:
+        if jitter_us < 0 or garbage_every < 0 or boot_ms < 0:
+            raise ConfigError("sim trigger box: jitter_us, garbage_every and boot_ms must be >= 0")
+        self.world = world
+        self.clock = DeviceClock(offset_us, drift_ppm)
+        world.register_clock("trigger", self.clock)
+        self.jitter_us = float(jitter_us)
+        self.drop_pulses = frozenset(int(i) for i in drop_pulses)
+        self.garbage_every = int(garbage_every)
+        self.boot_ms = int(boot_ms)
+        self.seed = int(seed)
+        #: Test switch: while True the box reads commands but never answers (a hung box).
+        self.mute = False
+        #: Test switch: swallow this many next replies (a reply lost on the wire).
+        self.drop_replies = 0
+        self._jitter_rng = np.random.default_rng([self.seed, 0])
+        self._garbage_rng = np.random.default_rng([self.seed, 1])
+
+        self._lock = threading.Lock()  # state, ring buffer and the tx side of the pty
+        self._state = IDLE
+        self._rate_hz = 30.0
+        self._width_us = 1000
+        self._count = 0
+        self._target = 0
+        self._t0 = -1
+        self._ring = np.zeros(RING_SIZE, np.int64)
+        self._lines_sent = 0
+        self.tx_dropped = 0
+        self.commands_received = 0
+        self.booted = threading.Event()
+
+        self._stop = threading.Event()
+        self._run_stop = threading.Event()
+        self._scheduler: threading.Thread | None = None
+        self._closed = False
+
+        self._master, self._slave = os.openpty()
+        # Raw on both ends: no echo of what the box writes, no CR/LF translation, even
+        # before the host has opened and configured the slave.
+        tty.setraw(self._master)
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.port_path = os.ttyname(self._slave)
+        self._boot_deadline = time.monotonic() + self.boot_ms / 1000.0
+        self._reader = threading.Thread(target=self._read_loop, name=f"trigbox-rx-{world.name}", daemon=True)
+        self._reader.start()
+        log.info("sim trigger box for world %r on %s", world.name, self.port_path)
+
+    # ---------------------------------------------------------------- clock, state
+    def box_now(self) -> int:
+        """The box's free-running microsecond counter now."""
+        return self.clock.stamp(self.world.now_us())
+
+    @property
+    def state(self) -> str:
+        with self._lock:
+            return self._state
+
+    @property
+    def count(self) -> int:
+        with self._lock:
+            return self._count
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # ---------------------------------------------------------------- tx
+    def _send_locked(self, payload: str) -> None:
+        """Write one framed line (caller holds the lock); drop it if the host stops reading."""
+        data = frame(payload)
+        self._lines_sent += 1
+        if self.garbage_every and self._lines_sent % self.garbage_every == 0:
+            data = self._corrupt(data)
+        view = memoryview(data)
+        deadline = time.monotonic() + 0.05
+        while view:
+            try:
+                n = os.write(self._master, view)
+                view = view[n:]
+            except BlockingIOError:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self.tx_dropped += 1
+                    log.warning("trigger box %s: host not reading, line dropped: %r", self.port_path, payload)
+                    return
+                select.select([], [self._master], [], remaining)
+            except OSError as exc:
+                if self._closed:
+                    return
+                log.error("trigger box %s: write failed: %s", self.port_path, exc)
+                raise
+
+    def _corrupt(self, data: bytes) -> bytes:
+        """Garbage fault: random prefix bytes, and sometimes one wrong character inside."""
+        rng = self._garbage_rng
+        n = int(rng.integers(1, 7))
+        prefix = bytes(_GARBAGE_BYTES[int(i)] for i in rng.integers(0, len(_GARBAGE_BYTES), n))
+        if rng.random() < 0.5:
+            star = data.rindex(b"*")
+            pos = int(rng.integers(1, star))
+            old = data[pos]
+            choices = [c for c in _CORRUPT_CHARS if c != old]
+            new = choices[int(rng.integers(0, len(choices)))]
+            data = data[:pos] + bytes([new]) + data[pos + 1 :]
+        return prefix + data
+
+    # ---------------------------------------------------------------- rx
+    def _read_loop(self) -> None:
+        buf = bytearray()
+        discarding = False
+        while not self._stop.is_set():
+            timeout = 0.05
+            if not self.booted.is_set():
+                until_boot = self._boot_deadline - time.monotonic()
+                if until_boot <= 0:
+                    with self._lock:
+                        self._send_locked(f"READY {MODEL} {FIRMWARE}")
+                    self.booted.set()
+                    log.debug("trigger box %s booted", self.port_path)
+                else:
+                    timeout = min(timeout, until_boot)
+            try:
+                ready, _, _ = select.select([self._master], [], [], timeout)
+                if not ready:
+                    continue
+                chunk = os.read(self._master, 4096)
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                if self._stop.is_set() or exc.errno == errno.EBADF:
+                    return
+                if exc.errno == errno.EIO:  # no slave fd open: cannot happen while we hold one
+                    time.sleep(0.01)
+                    continue
+                log.error("trigger box %s: read failed: %s", self.port_path, exc)
+                raise
+            if not self.booted.is_set():
+                continue  # still booting: the UART is not listening yet
+            for byte in chunk:
+                if byte == 0x0A:
+                    line = bytes(buf)
+                    buf.clear()
+                    if discarding:
+                        discarding = False
+                        self._reply_error(_CommandError("TOOLONG", f"line exceeds {MAX_LINE} bytes"), None)
+                    else:
+                        self._handle_line(line)
+                elif not discarding:
+                    buf.append(byte)
+                    if len(buf) > MAX_LINE + 1:  # +1 tolerates a trailing CR
+                        buf.clear()
+                        discarding = True
+
+    def _reply(self, lines: list[str], tag: int | None) -> None:
+        if self.mute:
+            return
+        if self.drop_replies > 0:
+            self.drop_replies -= 1
+            log.debug("trigger box %s: dropping reply %r (test switch)", self.port_path, lines)
+            return
+        suffix = f" #{tag}" if tag is not None else ""
+        with self._lock:
+            for line in lines:
+                self._send_locked(line + suffix)
+
+    def _reply_error(self, err: _CommandError, tag: int | None) -> None:
+        log.debug("trigger box %s: ERR %s %s", self.port_path, err.code, err.message)
+        self._reply([f"ERR {err.code} {err.message}"], tag)
+
+    def _handle_line(self, raw: bytes) -> None:
+        self.commands_received += 1
+        if raw.endswith(b"\r"):
+            raw = raw[:-1]
+        if not raw:
+            return
+        tag: int | None = None
+        try:
+            if len(raw) > MAX_LINE:
+                raise _CommandError("TOOLONG", f"line exceeds {MAX_LINE} bytes")
+            for col, b in enumerate(raw):
+                if not 0x20 <= b <= 0x7E:
+                    raise _CommandError("BADCHAR", f"byte 0x{b:02X} at column {col} is not printable ASCII")
+            text = raw.decode("ascii")
+            if text.startswith("$"):
+                text = text[1:]
+            if "*" in text:
+                text, hh = text.rsplit("*", 1)
+                if not re.fullmatch(r"[0-9A-Fa-f]{2}", hh) or int(hh, 16) != checksum(text.encode()):
+                    raise _CommandError("CHECKSUM", f"checksum *{hh} does not match the line")
+            tokens = text.split()
+            if tokens and tokens[-1].startswith("#"):
+                tag_text = tokens.pop()[1:]
+                if not _UINT_RE.match(tag_text) or int(tag_text) > 65535:
+                    raise _CommandError("BADARG", f"tag #{tag_text} is not an integer 0..65535")
+                tag = int(tag_text)
+            if not tokens:
+                raise _CommandError("UNKNOWN", "empty command")
+            self._reply(self._dispatch(tokens[0].upper(), tokens[1:]), tag)
+        except _CommandError as err:
+            self._reply_error(err, tag)
+
+    # ---------------------------------------------------------------- commands
+    def _dispatch(self, cmd: str, args: list[str]) -> list[str]:
+        handler = _COMMANDS.get(cmd)
+        if handler is None:
+            raise _CommandError("UNKNOWN", f"unknown command {cmd[:16]!r}")
+        name, min_args, max_args = handler
+        if not min_args <= len(args) <= max_args:
+            want = str(min_args) if min_args == max_args else f"{min_args}..{max_args}"
+            raise _CommandError("BADARG", f"{cmd} takes {want} argument(s), got {len(args)}")
+        result: list[str] = getattr(self, name)(args)
+        return result
+
+    def _cmd_ping(self, args: list[str]) -> list[str]:
+        return ["PONG"]
+
+    def _cmd_id(self, args: list[str]) -> list[str]:
+        return [f"ID {VENDOR} {MODEL} SIM{self.seed:04d} {FIRMWARE}"]
+
+    def _cmd_rate(self, args: list[str]) -> list[str]:
+        text = args[0]
+        if not _RATE_RE.match(text) or not MIN_RATE_HZ <= float(text) <= MAX_RATE_HZ:
+            raise _CommandError(
+                "BADARG", f"rate {text[:16]!r} not a decimal in {MIN_RATE_HZ}..{MAX_RATE_HZ:g} Hz"
+            )
+        with self._lock:
+            if self._state == RUNNING:
+                raise _CommandError("STATE", "RATE not allowed while RUNNING")
+            self._rate_hz = float(text)
+            return [f"OK RATE {self._rate_hz:.6f}"]
+
+    def _cmd_width(self, args: list[str]) -> list[str]:
+        text = args[0]
+        if not _UINT_RE.match(text) or not 1 <= int(text) <= MAX_WIDTH_US:
+            raise _CommandError("BADARG", f"width {text[:16]!r} not an integer in 1..{MAX_WIDTH_US} us")
+        with self._lock:
+            if self._state == RUNNING:
+                raise _CommandError("STATE", "WIDTH not allowed while RUNNING")
+            self._width_us = int(text)
+            return [f"OK WIDTH {self._width_us}"]
+
+    def _cmd_arm(self, args: list[str]) -> list[str]:
+        with self._lock:
+            if self._state == RUNNING:
+                raise _CommandError("STATE", "ARM not allowed while RUNNING")
+            self._state = ARMED
+            self._count = 0
+            self._target = 0
+            self._t0 = -1
+            return ["OK ARM"]
+
+    def _cmd_start(self, args: list[str]) -> list[str]:
+        target = 0
+        if args:
+            if not _UINT_RE.match(args[0]) or not 1 <= int(args[0]) <= MAX_PULSES:
+                raise _CommandError(
+                    "BADARG", f"pulse count {args[0][:16]!r} not an integer in 1..{MAX_PULSES}"
+                )
+            target = int(args[0])
+        with self._lock:
+            if self._state != ARMED:
+                raise _CommandError("STATE", f"START needs ARMED, box is {self._state}")
+            period = 1e6 / self._rate_hz
+            if self._width_us >= period:
+                raise _CommandError("BADARG", f"width {self._width_us} us >= period {period:.1f} us")
+            self._t0 = self.box_now() + START_LEAD_US
+            self._target = target
+            self._state = RUNNING
+            self._run_stop = threading.Event()
+            self._scheduler = threading.Thread(
+                target=self._pulse_loop,
+                args=(self._t0, self._rate_hz, self._width_us, target, self._run_stop),
+                name=f"trigbox-pulses-{self.world.name}",
+                daemon=True,
+            )
+            self._scheduler.start()
+            return [f"OK START {self._t0} {target}"]
+
+    def _cmd_stop(self, args: list[str]) -> list[str]:
+        self._halt_scheduler()
+        with self._lock:
+            if self._state != IDLE:
+                self._state = IDLE
+            return [f"OK STOP {self._count}"]
+
+    def _cmd_count(self, args: list[str]) -> list[str]:
+        with self._lock:
+            return [f"COUNT {self._count}"]
+
+    def _cmd_status(self, args: list[str]) -> list[str]:
+        with self._lock:
+            return [
+                f"STATUS {self._state} count={self._count} target={self._target} "
+                f"rate={self._rate_hz:.6f} width={self._width_us} t0={self._t0}"
+            ]
+
+    def _cmd_clock(self, args: list[str]) -> list[str]:
+        return [f"CLOCK {self.box_now()}"]
+
+    def _cmd_ts(self, args: list[str]) -> list[str]:
+        first_text, count_text = args
+        if not _UINT_RE.match(first_text):
+            raise _CommandError("BADARG", f"first index {first_text[:16]!r} not a non-negative integer")
+        if not _UINT_RE.match(count_text) or not 1 <= int(count_text) <= MAX_TS_COUNT:
+            raise _CommandError("BADARG", f"count {count_text[:16]!r} not an integer in 1..{MAX_TS_COUNT}")
+        first, count = int(first_text), int(count_text)
+        with self._lock:
+            lo = max(first, self._count - RING_SIZE)
+            hi = min(first + count, self._count)
+            lines = [f"T {k} {int(self._ring[k % RING_SIZE])}" for k in range(lo, hi)]
+        return [*lines, f"OK TS {len(lines)}"]
+
+    # ---------------------------------------------------------------- pulses
+    def _halt_scheduler(self) -> None:
+        sched = self._scheduler
+        self._run_stop.set()
+        if sched is not None and sched is not threading.current_thread():
+            sched.join()
+        self._scheduler = None
+
+    def _pulse_loop(self, t0: int, rate_hz: float, width_us: int, target: int, stop: threading.Event) -> None:
+        k = 0
+        try:
+            while not target or k < target:
+                b_k = t0 + round(k * 1e6 / rate_hz)
+                true_us = self.clock.true_at(b_k)
+                if not self.world.sleep_until(true_us, stop):
+                    return
+                jitter = float(self._jitter_rng.normal(0.0, self.jitter_us)) if self.jitter_us else 0.0
+                edge = true_us + jitter
+                delivered = k not in self.drop_pulses
+                if delivered:
+                    self.world.wire.fire(Edge(rising=True, true_us=edge, pulse_index=k))
+                    self.world.wire.fire(Edge(rising=False, true_us=edge + width_us, pulse_index=k))
+                self.world.truth.add_pulse(k, b_k, edge, delivered)
+                with self._lock:
+                    if stop.is_set():  # STOP raced the edge: the pulse went out, report it
+                        log.debug("trigger box %s: pulse %d fired as STOP arrived", self.port_path, k)
+                    self._ring[k % RING_SIZE] = b_k
+                    self._count = k + 1
+                    self._send_locked(f"P {k} {b_k}")
+                    if target and self._count >= target:
+                        self._state = IDLE
+                        self._send_locked(f"END {self._count}")
+                k += 1
+        except Exception:
+            log.exception("trigger box %s: pulse scheduler failed at pulse %d", self.port_path, k)
+            with self._lock:
+                self._state = IDLE
+            raise
+
+    # ---------------------------------------------------------------- lifecycle
+    def close(self) -> None:
+        """Stop both threads and close the pty. Idempotent."""
+        if self._closed:
+            return
+        self._stop.set()
+        self._run_stop.set()
+        self._reader.join()
+        sched = self._scheduler
+        if sched is not None:
+            sched.join()
+        self._closed = True
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError as exc:
+                log.warning("trigger box %s: closing fd %d: %s", self.port_path, fd, exc)
+        log.info("sim trigger box on %s closed", self.port_path)
+
+    def __enter__(self) -> SimTriggerBox:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_COMMANDS: dict[str, tuple[str, int, int]] = {
+    "PING": ("_cmd_ping", 0, 0),
+    "ID?": ("_cmd_id", 0, 0),
+    "RATE": ("_cmd_rate", 1, 1),
+    "WIDTH": ("_cmd_width", 1, 1),
+    "ARM": ("_cmd_arm", 0, 0),
+    "START": ("_cmd_start", 0, 1),
+    "STOP": ("_cmd_stop", 0, 0),
+    "COUNT?": ("_cmd_count", 0, 0),
+    "STATUS?": ("_cmd_status", 0, 0),
+    "CLOCK?": ("_cmd_clock", 0, 0),
+    "TS?": ("_cmd_ts", 2, 2),
+}
+
+_SIM_PARAMS = {"offset_us", "drift_ppm", "jitter_us", "drop_pulses", "garbage_every", "boot_ms", "seed"}
+_BOX_KEY = "trigger_box"
+
+
+class _BoxSlot:
+    """Per-world holder, so a closed box can be replaced by a fresh one."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.box: SimTriggerBox | None = None
+
+
+def _slot(world: SimWorld) -> _BoxSlot:
+    slot = world.resource(_BOX_KEY, _BoxSlot)
+    assert isinstance(slot, _BoxSlot)
+    return slot
+
+
+def find_trigger_box(world: SimWorld) -> SimTriggerBox | None:
+    """The world's trigger box (open or last closed), for tests to reach faults and state."""
+    return _slot(world).box
+
+
+def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
+    """Start a sim box for the spec's world and open it with the real serial driver."""
+    from drivers.serial_trigger import SerialTrigger
+
+    spec.check_params(_SIM_PARAMS)
+    seed = spec.int_param("seed", 0)
+    world = get_world(spec.location or "default", seed)
+    slot = _slot(world)
+    with slot.lock:
+        if slot.box is not None and not slot.box.closed:
+            raise ConfigError(
+                f"device spec {spec.raw!r}: world {world.name!r} already has an open trigger box "
+                f"on {slot.box.port_path}"
+            )
+        box = SimTriggerBox(
+            world,
+            offset_us=spec.float_param("offset_us", 0.0),
+            drift_ppm=spec.float_param("drift_ppm", 0.0),
+            jitter_us=spec.float_param("jitter_us", 0.0),
+            drop_pulses=spec.int_list_param("drop_pulses"),
+            garbage_every=spec.int_param("garbage_every", 0),
+            boot_ms=spec.int_param("boot_ms", 50),
+            seed=seed,
+        )
+        slot.box = box
+    try:
+        return SerialTrigger(box.port_path, spec=spec.raw, on_close=box.close)
+    except BaseException:
+        box.close()
+        raise
