@@ -117,7 +117,7 @@ class RigConfig(BaseModel):
 def default_sim_rig(
     world: str = "default",
     seed: int = 0,
-    pixel_format: str = "rgb8",
+    pixel_format: Literal["mono8", "rgb8"] = "rgb8",
     resolution: tuple[int, int] = (1280, 720),
     rate_hz: float = 30.0,
 ) -> RigConfig:
@@ -152,7 +152,7 @@ def default_sim_rig(
             CameraConfig(
                 name=n,
                 spec=spec(n),
-                settings=CameraSettings(exposure_us=8000, pixel_format=pixel_format),  # type: ignore[arg-type]
+                settings=CameraSettings(exposure_us=8000, pixel_format=pixel_format),
             )
             for n in ("cam0", "cam1", "cam2")
         ],

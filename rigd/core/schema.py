@@ -27,7 +27,7 @@ TIME_DOMAIN = Literal["device", "rig"]
 class DeviceSync(BaseModel):
     """How one device clock was tied to the rig clock, and what it missed."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
 
     device: str
     kind: Literal["rgb_camera", "event_sensor"]
@@ -67,7 +67,8 @@ class LossRecord(BaseModel):
 class SyncReport(BaseModel):
     """The take's sync report: rig timebase facts, per-device fits, and all losses."""
 
-    model_config = ConfigDict(extra="forbid")
+    # NaN marks "not fitted"; keep it a NaN through JSON instead of turning it into null.
+    model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
 
     schema_version: str = SCHEMA_VERSION
     rate_hz: float

@@ -1,0 +1,139 @@
+"""Take inspection for people: a validated summary and a contact sheet of frames and events."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from rigd.core.errors import TakeError
+from rigd.take.reader import Take, TakeSummary
+from rigd.take.validate import validate_take
+
+log = logging.getLogger(__name__)
+
+#: Width the contact sheet is kept under, and the height of one row of tiles.
+_MAX_SHEET_WIDTH = 2000
+_MAX_TILE_HEIGHT = 270
+#: Events accumulated into one event image.
+_EVENT_WINDOW_US = 10_000
+_LABEL_BAR = 18
+
+
+def summarize(path: str | Path) -> TakeSummary:
+    """Summary of a take with its validation problems; one that cannot be opened raises TakeError."""
+    problems = validate_take(path)
+    with Take(path) as take:
+        summary = take.summary()
+    summary.problems = problems
+    return summary
+
+
+def _to_bgr8(img: NDArray[np.generic]) -> NDArray[np.uint8]:
+    a = np.asarray(img)
+    if a.dtype != np.uint8:
+        hi = float(np.percentile(a, 99.5)) if a.size else 1.0
+        a = np.clip(a.astype(np.float32) * (255.0 / max(hi, 1.0)), 0, 255).astype(np.uint8)
+    if a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1):
+        gray = a.reshape(a.shape[0], a.shape[1])
+        return np.asarray(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+    # Frames are stored RGB (rgb8); OpenCV writes BGR.
+    rgb = np.ascontiguousarray(a[:, :, :3])
+    return np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), dtype=np.uint8)
+
+
+def event_image(
+    x: NDArray[np.uint16], y: NDArray[np.uint16], p: NDArray[np.int8], width: int, height: int
+) -> NDArray[np.uint8]:
+    """BGR image of event counts: ON red, OFF blue, scaled to the 99th percentile count."""
+    n_px = width * height
+    idx = y.astype(np.int64) * width + x.astype(np.int64)
+    on = np.bincount(idx[p > 0], minlength=n_px)[:n_px]
+    off = np.bincount(idx[p <= 0], minlength=n_px)[:n_px]
+    nz = np.concatenate([on[on > 0], off[off > 0]])
+    scale = 255.0 / max(float(np.percentile(nz, 99)) if nz.size else 1.0, 1.0)
+    img = np.zeros((height, width, 3), np.uint8)
+    img[..., 2] = np.clip(on.reshape(height, width) * scale, 0, 255).astype(np.uint8)
+    img[..., 0] = np.clip(off.reshape(height, width) * scale, 0, 255).astype(np.uint8)
+    return img
+
+
+def _tile(img: NDArray[np.uint8], width: int, height: int, label: str) -> NDArray[np.uint8]:
+    """Fit img into width x height (letterboxed) under a label bar."""
+    h, w = img.shape[:2]
+    s = min(width / w, height / h)
+    nw, nh = max(1, round(w * s)), max(1, round(h * s))
+    small = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_NEAREST)
+    out = np.zeros((height + _LABEL_BAR, width, 3), np.uint8)
+    y0, x0 = _LABEL_BAR + (height - nh) // 2, (width - nw) // 2
+    out[y0 : y0 + nh, x0 : x0 + nw] = small
+    cv2.putText(out, label, (3, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -> Path:
+    """Contact sheet: one row per camera (n frames spread over the take) and one per event
+    sensor (10 ms event images at the same rig times). Returns the PNG path."""
+    if n_frames < 1:
+        raise TakeError(f"n_frames must be >= 1, got {n_frames}")
+    out = Path(out_png)
+    with Take(path) as take:
+        rig = take.time_domain == "rig"
+        spans: list[tuple[int, int]] = []
+        for cam in take.cameras:
+            ts = take.frames(cam).timestamps_us
+            if ts.size:
+                spans.append((int(ts[0]), int(ts[-1])))
+        for sen in take.event_sensors:
+            span = take.event_span(sen)
+            if span:
+                spans.append(span)
+        if not spans:
+            raise TakeError(f"{take.path}: nothing to draw: no frames and no events")
+        t0, t1 = min(s[0] for s in spans), max(s[1] for s in spans)
+        # n times evenly inside the span, away from the ragged start and end.
+        times = np.linspace(t0, t1, n_frames + 2)[1:-1].astype(np.int64)
+        tile_w = max(32, _MAX_SHEET_WIDTH // n_frames)
+        shapes = [take.frames(c).shape for c in take.cameras] + [
+            take.geometry(s)[::-1] for s in take.event_sensors
+        ]
+        aspect = max(sh[0] / sh[1] for sh in shapes)
+        tile_h = max(24, min(_MAX_TILE_HEIGHT, round(tile_w * aspect)))
+        rows: list[NDArray[np.uint8]] = []
+        domain = "rig" if rig else "device"
+        for cam in take.cameras:
+            fs = take.frames(cam)
+            tiles = []
+            for t in times:
+                if len(fs) == 0:
+                    tiles.append(_tile(np.zeros((8, 8, 3), np.uint8), tile_w, tile_h, f"{cam}: no frames"))
+                    continue
+                # Without rig time cameras cannot be aligned: spread over each one's own frames.
+                k = fs.nearest(int(t)) if rig else int((t - t0) * (len(fs) - 1) // max(t1 - t0, 1))
+                fr = fs[k]
+                label = f"{cam} #{k} t={fr.t_exposure_start_us / 1e6:.3f}s ({domain})"
+                tiles.append(_tile(_to_bgr8(fr.image), tile_w, tile_h, label))
+            rows.append(np.hstack(tiles))
+        for sen in take.event_sensors:
+            width, height = take.geometry(sen)
+            tiles = []
+            for t in times:
+                if rig:
+                    ev = take.events(sen, int(t) - _EVENT_WINDOW_US // 2, int(t) + _EVENT_WINDOW_US // 2)
+                else:
+                    n = take.event_count(sen)
+                    k = int((t - t0) * max(n - 1, 0) // max(t1 - t0, 1))
+                    ev = take.events_by_index(sen, k, k + 100_000)
+                img = event_image(ev.x, ev.y, ev.p, width, height)
+                label = f"{sen} t={int(t) / 1e6:.3f}s {len(ev)} ev ({domain})"
+                tiles.append(_tile(img, tile_w, tile_h, label))
+            rows.append(np.hstack(tiles))
+    sheet = np.vstack(rows)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), sheet):
+        raise TakeError(f"could not write contact sheet {out}")
+    log.info("contact sheet %s: %dx%d", out, sheet.shape[1], sheet.shape[0])
+    return out

@@ -1,0 +1,480 @@
+"""Read-only access to take files for training jobs.
+
+Nothing here loads a whole event dataset unless asked for all of it: time windows are
+narrowed with the DSEC `ms_to_idx` index and finished with a binary search on the few
+milliseconds of `t` around each edge.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self, overload
+
+import h5py
+import hdf5plugin  # noqa: F401  (registers the LZ4 / Zstd filters with h5py)
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from drivers.base import PulseBatch
+from rigd.core.errors import TakeError, TakeFormatError
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.frames import Frame
+from rigd.core.schema import (
+    CONFIG_DATASET,
+    EVENTS_GROUP,
+    FRAMES_GROUP,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    SYNC_GROUP,
+    TRIGGER_GROUP,
+    LossRecord,
+    SyncReport,
+)
+
+log = logging.getLogger(__name__)
+
+#: Events read per step by iter_events (bounded memory, few HDF5 calls).
+_READ_BLOCK = 1 << 20
+#: Raw-data chunk cache per open file: holds a few compressed event chunks across windows.
+_CHUNK_CACHE_BYTES = 64 << 20
+
+
+class CameraSummary(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    frames: int
+    fps: float | None = Field(description="Mean frame rate over the take (rig clock when finalized).")
+    shape: list[int]
+    dtype: str
+    t_first_us: int | None
+    t_last_us: int | None
+    dropped_frames: int | None = Field(description="Frame counter gaps from the sync report.")
+    missing_pulses: int | None
+    sync_rms_us: float | None
+    sync_max_us: float | None
+
+
+class EventSensorSummary(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    events: int
+    event_rate_hz: float | None = Field(description="Mean events per second over the span.")
+    t_first_us: int | None
+    t_last_us: int | None
+    span_us: int
+    width: int
+    height: int
+    triggers: int
+    missing_pulses: int | None
+    sync_rms_us: float | None
+    sync_max_us: float | None
+
+
+class TakeSummary(BaseModel):
+    """Everything a person checks first about a take, JSON-serialisable."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    path: str
+    take_id: str
+    status: str
+    schema_version: str
+    time_domain: str
+    failure_reason: str | None = None
+    cameras: dict[str, CameraSummary]
+    event_sensors: dict[str, EventSensorSummary]
+    pulses: int
+    pulses_seen_by_no_device: list[int] = Field(default_factory=list)
+    losses: list[LossRecord] = Field(default_factory=list)
+    warnings: list[str] = Field(default_factory=list)
+    problems: list[str] = Field(default_factory=list, description="Validation problems (rigd.inspect).")
+
+
+def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
+    value = obj.attrs.get(key, default)
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _finite(v: float | None) -> float | None:
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+class FrameSeries(Sequence[Frame]):
+    """The frames of one camera; images are read one at a time on indexing."""
+
+    def __init__(self, take: Take, name: str, group: h5py.Group) -> None:
+        self._take = take
+        self.name = name
+        self._g = group
+        self._images: h5py.Dataset = group["images"]
+        self._n = int(self._images.shape[0])
+        self._ts: NDArray[np.int64] | None = None
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self._images.shape[1:])
+
+    @property
+    def timestamps_us(self) -> NDArray[np.int64]:
+        """Exposure start of every frame, in the take's time domain (rig once finalized)."""
+        if self._ts is None:
+            self._ts = np.asarray(self._g["t_exposure_start_us"][: self._n], dtype=np.int64)
+        return self._ts
+
+    @overload
+    def __getitem__(self, i: int) -> Frame: ...
+    @overload
+    def __getitem__(self, i: slice) -> Sequence[Frame]: ...
+    def __getitem__(self, i: int | slice) -> Frame | Sequence[Frame]:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(self._n))]
+        k = int(i) + self._n if int(i) < 0 else int(i)
+        if not 0 <= k < self._n:
+            raise IndexError(f"frame {i} out of range for {self._n} frames of camera {self.name!r}")
+        g = self._g
+        return Frame(
+            image=self._images[k],
+            t_exposure_start_us=int(self.timestamps_us[k]),
+            exposure_us=int(g["exposure_us"][k]),
+            frame_counter=int(g["frame_counter"][k]),
+            host_time_ns=int(g["host_time_ns"][k]),
+            pulse_index=int(g["pulse_index"][k]),
+        )
+
+    def index_at(self, t_us: int) -> int:
+        """Index of the last frame whose exposure started at or before t_us; -1 if none."""
+        self._take._require_rig(f"/{FRAMES_GROUP}/{self.name}")
+        return int(np.searchsorted(self.timestamps_us, int(t_us), side="right")) - 1
+
+    def nearest(self, t_us: int) -> int:
+        """Index of the frame whose exposure start is closest to t_us (earlier one on ties)."""
+        self._take._require_rig(f"/{FRAMES_GROUP}/{self.name}")
+        ts = self.timestamps_us
+        if ts.size == 0:
+            raise TakeError(f"{self._take.path}: camera {self.name!r} has no frames")
+        j = int(np.searchsorted(ts, int(t_us), side="left"))
+        if j == 0:
+            return 0
+        if j == ts.size:
+            return j - 1
+        return j - 1 if int(t_us) - int(ts[j - 1]) <= int(ts[j]) - int(t_us) else j
+
+
+class Take:
+    """An open take file (read-only). Use as a context manager or call close()."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._f = h5py.File(self.path, "r", rdcc_nbytes=_CHUNK_CACHE_BYTES, rdcc_nslots=10007)
+        except (OSError, ValueError) as exc:
+            raise TakeError(f"cannot open take {self.path}: {exc}") from exc
+        try:
+            self._check_header()
+        except BaseException:
+            self._f.close()
+            raise
+        self._t_offset: dict[str, int] = {}
+
+    def _check_header(self) -> None:
+        f = self._f
+        schema = _attr_str(f, "schema")
+        if schema != SCHEMA_NAME:
+            raise TakeFormatError(f"{self.path}: /: attr schema is {schema!r}, expected {SCHEMA_NAME!r}")
+        major = _attr_str(f, "schema_version").split(".")[0]
+        if major != SCHEMA_VERSION.split(".")[0]:
+            raise TakeFormatError(
+                f"{self.path}: /: schema_version {self.schema_version!r} is not readable by this rigd "
+                f"(reads {SCHEMA_VERSION.split('.')[0]}.x)"
+            )
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    # -- metadata ----------------------------------------------------------------------
+    @property
+    def status(self) -> str:
+        return _attr_str(self._f, "status")
+
+    @property
+    def schema_version(self) -> str:
+        return _attr_str(self._f, "schema_version")
+
+    @property
+    def take_id(self) -> str:
+        return _attr_str(self._f, "take_id")
+
+    @property
+    def time_domain(self) -> str:
+        return _attr_str(self._f, "time_domain")
+
+    @property
+    def config(self) -> dict[str, Any]:
+        raw = self._dataset(CONFIG_DATASET)[()]
+        text = raw.decode("utf-8") if isinstance(raw, bytes) else str(raw)
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise TakeFormatError(f"{self.path}: /{CONFIG_DATASET} is not valid JSON: {exc}") from exc
+        if not isinstance(data, dict):
+            raise TakeFormatError(f"{self.path}: /{CONFIG_DATASET} is not a JSON object")
+        return data
+
+    @property
+    def sync_report(self) -> SyncReport | None:
+        """The sync report, or None for a take that was never finalized."""
+        node = self._f.get(f"{SYNC_GROUP}/report_json")
+        if node is None:
+            return None
+        raw = node[()]
+        text = raw.decode("utf-8") if isinstance(raw, bytes) else str(raw)
+        try:
+            return SyncReport.model_validate_json(text)
+        except ValidationError as exc:
+            raise TakeFormatError(f"{self.path}: /{SYNC_GROUP}/report_json does not parse: {exc}") from exc
+
+    @property
+    def cameras(self) -> list[str]:
+        return sorted(self._f.get(FRAMES_GROUP, {}).keys())
+
+    @property
+    def event_sensors(self) -> list[str]:
+        return sorted(self._f.get(EVENTS_GROUP, {}).keys())
+
+    def _dataset(self, hpath: str) -> h5py.Dataset:
+        node = self._f.get(hpath)
+        if not isinstance(node, h5py.Dataset):
+            raise TakeFormatError(f"{self.path}: /{hpath} is missing or not a dataset")
+        return node
+
+    def _sensor_group(self, sensor: str) -> h5py.Group:
+        g = self._f.get(f"{EVENTS_GROUP}/{sensor}")
+        if not isinstance(g, h5py.Group):
+            raise TakeError(f"{self.path}: no event sensor {sensor!r} (has {self.event_sensors})")
+        return g
+
+    def _require_rig(self, hpath: str) -> None:
+        if self.time_domain != "rig":
+            raise TakeError(
+                f"{self.path}: {hpath}: time queries need rig time, but this take was never finalized "
+                f"(status {self.status!r}, times are still in each device's own clock)"
+            )
+
+    def _offset(self, sensor: str) -> int:
+        if sensor not in self._t_offset:
+            g = self._sensor_group(sensor)
+            self._t_offset[sensor] = int(g["t_offset"][()]) if "t_offset" in g else 0
+        return self._t_offset[sensor]
+
+    # -- events ------------------------------------------------------------------------
+    def _read_events(self, g: h5py.Group, lo: int, hi: int, t_offset: int) -> EventArray:
+        t = np.asarray(g["t"][lo:hi], dtype=np.int64) + np.int64(t_offset)
+        p = g["p"][lo:hi].astype(np.int8) * np.int8(2) - np.int8(1)
+        return EventArray(g["x"][lo:hi], g["y"][lo:hi], p, t)
+
+    def _first_index(self, g: h5py.Group, ms_to_idx: h5py.Dataset, rel: int, n: int) -> int:
+        """First event index with t (relative to t_offset) >= rel: ms_to_idx bracket, then search."""
+        n_ms = int(ms_to_idx.shape[0])
+        ms_lo = rel // 1000
+        lo = 0 if ms_lo < 0 else (n if ms_lo >= n_ms else int(ms_to_idx[ms_lo]))
+        ms_hi = -(-rel // 1000)
+        ms_hi = max(ms_hi, 0)
+        hi = n if ms_hi >= n_ms else int(ms_to_idx[ms_hi])
+        if lo >= hi:
+            return lo
+        t = g["t"][lo:hi]
+        return lo + int(np.searchsorted(t, rel, side="left"))
+
+    def event_count(self, sensor: str) -> int:
+        return int(self._sensor_group(sensor)["t"].shape[0])
+
+    def geometry(self, sensor: str) -> tuple[int, int]:
+        """(width, height) of an event sensor."""
+        g = self._sensor_group(sensor)
+        return int(g.attrs["width"]), int(g.attrs["height"])
+
+    def events_by_index(self, sensor: str, start: int, stop: int) -> EventArray:
+        """Events [start, stop) by position; works in either time domain."""
+        g = self._sensor_group(sensor)
+        n = int(g["t"].shape[0])
+        lo, hi = max(0, min(start, n)), max(0, min(stop, n))
+        return self._read_events(g, lo, max(lo, hi), self._offset(sensor))
+
+    def events(self, sensor: str, t_start_us: int | None = None, t_end_us: int | None = None) -> EventArray:
+        """Events with t_start_us <= t < t_end_us (rig us); no bounds returns all of them.
+
+        Without bounds this also works on a never-finalized take (times then in device clock).
+        """
+        g = self._sensor_group(sensor)
+        n = int(g["t"].shape[0])
+        if t_start_us is None and t_end_us is None:
+            return self._read_events(g, 0, n, self._offset(sensor))
+        lo, hi = self._index_range(sensor, t_start_us, t_end_us)
+        return self._read_events(g, lo, hi, self._offset(sensor))
+
+    def _index_range(self, sensor: str, t_start_us: int | None, t_end_us: int | None) -> tuple[int, int]:
+        g = self._sensor_group(sensor)
+        self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
+        if "ms_to_idx" not in g:
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/ms_to_idx is missing")
+        ms = g["ms_to_idx"]
+        n = int(g["t"].shape[0])
+        off = self._offset(sensor)
+        lo = 0 if t_start_us is None else self._first_index(g, ms, int(t_start_us) - off, n)
+        hi = n if t_end_us is None else self._first_index(g, ms, int(t_end_us) - off, n)
+        return lo, max(lo, hi)
+
+    def iter_events(
+        self, sensor: str, window_us: int, t_start_us: int | None = None, t_end_us: int | None = None
+    ) -> Iterator[EventArray]:
+        """Consecutive windows [t0 + k*w, t0 + (k+1)*w) (possibly empty) up to the last event.
+
+        t0 defaults to the first event. Reads sequentially in large blocks, so iterating a
+        whole take costs about one pass over the file.
+        """
+        if window_us <= 0:
+            raise TakeError(f"{self.path}: window_us must be positive, got {window_us}")
+        g = self._sensor_group(sensor)
+        self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
+        n = int(g["t"].shape[0])
+        off = self._offset(sensor)
+        if n == 0:
+            return
+        start = int(g["t"][0]) + off if t_start_us is None else int(t_start_us)
+        end = int(g["t"][n - 1]) + off + 1 if t_end_us is None else int(t_end_us)
+        pos, stop = self._index_range(sensor, start, end)
+        buf = EventArray.empty()
+        w0 = start
+        while w0 < end:
+            w1 = min(w0 + int(window_us), end)
+            while pos < stop and (len(buf) == 0 or int(buf.t[-1]) < w1):
+                nxt = min(pos + _READ_BLOCK, stop)
+                buf = EventArray.concatenate([buf, self._read_events(g, pos, nxt, off)])
+                pos = nxt
+            k = int(np.searchsorted(buf.t, w1, side="left"))
+            yield buf[:k]
+            buf = buf[k:]
+            w0 = w1
+
+    def triggers(self, sensor: str) -> TriggerEvents:
+        """Trigger-in edges of a sensor (rig time once finalized; device time in `t_device`)."""
+        g = self._sensor_group(sensor)
+        tg = g.get("trigger")
+        if not isinstance(tg, h5py.Group):
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/trigger is missing")
+        return TriggerEvents(
+            np.asarray(tg["t"][...], dtype=np.int64),
+            np.asarray(tg["p"][...], dtype=np.uint8),
+            np.asarray(tg["channel"][...], dtype=np.uint8),
+        )
+
+    def pulses(self) -> PulseBatch:
+        g = self._f.get(f"{TRIGGER_GROUP}/pulses")
+        if not isinstance(g, h5py.Group):
+            raise TakeFormatError(f"{self.path}: /{TRIGGER_GROUP}/pulses is missing")
+        return PulseBatch(
+            np.asarray(g["index"][...], dtype=np.int64),
+            np.asarray(g["t_us"][...], dtype=np.int64),
+            np.asarray(g["host_time_ns"][...], dtype=np.int64),
+        )
+
+    def frames(self, camera: str) -> FrameSeries:
+        g = self._f.get(f"{FRAMES_GROUP}/{camera}")
+        if not isinstance(g, h5py.Group):
+            raise TakeError(f"{self.path}: no camera {camera!r} (has {self.cameras})")
+        return FrameSeries(self, camera, g)
+
+    def event_span(self, sensor: str) -> tuple[int, int] | None:
+        """(first, last) event time in the take's time domain, or None without events."""
+        g = self._sensor_group(sensor)
+        n = int(g["t"].shape[0])
+        if n == 0:
+            return None
+        off = self._offset(sensor)
+        return int(g["t"][0]) + off, int(g["t"][n - 1]) + off
+
+    # -- summary -----------------------------------------------------------------------
+    def summary(self) -> TakeSummary:
+        """Counts, rates and sync quality; reads only metadata, first/last times and the report."""
+        report = self.sync_report
+        devs = report.devices if report else {}
+        cams: dict[str, CameraSummary] = {}
+        for name in self.cameras:
+            fs = self.frames(name)
+            ts = fs.timestamps_us
+            fps = (
+                (ts.size - 1) / ((int(ts[-1]) - int(ts[0])) / 1e6) if ts.size > 1 and ts[-1] > ts[0] else None
+            )
+            d = devs.get(name)
+            cams[name] = CameraSummary(
+                frames=len(fs),
+                fps=fps,
+                shape=list(fs.shape),
+                dtype=str(self._f[f"{FRAMES_GROUP}/{name}/images"].dtype),
+                t_first_us=int(ts[0]) if ts.size else None,
+                t_last_us=int(ts[-1]) if ts.size else None,
+                dropped_frames=len(d.dropped_frames) if d else None,
+                missing_pulses=len(d.missing_pulses) if d else None,
+                sync_rms_us=_finite(d.residual_rms_us) if d else None,
+                sync_max_us=_finite(d.residual_max_us) if d else None,
+            )
+        sens: dict[str, EventSensorSummary] = {}
+        for name in self.event_sensors:
+            g = self._sensor_group(name)
+            n = int(g["t"].shape[0])
+            span = self.event_span(name)
+            span_us = span[1] - span[0] if span else 0
+            d = devs.get(name)
+            tg = g.get("trigger")
+            sens[name] = EventSensorSummary(
+                events=n,
+                event_rate_hz=n / (span_us / 1e6) if span_us > 0 else None,
+                t_first_us=span[0] if span else None,
+                t_last_us=span[1] if span else None,
+                span_us=span_us,
+                width=int(g.attrs.get("width", 0)),
+                height=int(g.attrs.get("height", 0)),
+                triggers=int(tg["t"].shape[0]) if isinstance(tg, h5py.Group) and "t" in tg else 0,
+                missing_pulses=len(d.missing_pulses) if d else None,
+                sync_rms_us=_finite(d.residual_rms_us) if d else None,
+                sync_max_us=_finite(d.residual_max_us) if d else None,
+            )
+        pulses_node = self._f.get(f"{TRIGGER_GROUP}/pulses/index")
+        reason = self._f.attrs.get("failure_reason")
+        return TakeSummary(
+            path=str(self.path),
+            take_id=self.take_id,
+            status=self.status,
+            schema_version=self.schema_version,
+            time_domain=self.time_domain,
+            failure_reason=None if reason is None else str(reason),
+            cameras=cams,
+            event_sensors=sens,
+            pulses=int(pulses_node.shape[0]) if isinstance(pulses_node, h5py.Dataset) else 0,
+            pulses_seen_by_no_device=list(report.pulses_seen_by_no_device) if report else [],
+            losses=list(report.losses) if report else [],
+            warnings=list(report.warnings) if report else [],
+        )
+
+
+def open_take(path: str | Path) -> Take:
+    """Open a take read-only; raises TakeError naming the file if it cannot."""
+    return Take(path)

@@ -1,0 +1,309 @@
+"""Schema validation of take files: a list of problems, each naming the HDF5 path.
+
+Large datasets are scanned in blocks, so validating a multi-hour take needs constant
+memory. A file that cannot be read at all yields one problem, never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import h5py
+import hdf5plugin  # noqa: F401  (registers the LZ4 / Zstd filters with h5py)
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import ValidationError
+
+from rigd.core.schema import (
+    CONFIG_DATASET,
+    EVENTS_GROUP,
+    FRAMES_GROUP,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    SYNC_GROUP,
+    TRIGGER_GROUP,
+    SyncReport,
+)
+
+log = logging.getLogger(__name__)
+
+_BLOCK = 1 << 20
+_ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")
+_EVENT_DTYPES = {"x": np.uint16, "y": np.uint16, "p": np.uint8, "t": np.int64}
+_TRIGGER_DTYPES = {"t": np.int64, "p": np.uint8, "channel": np.uint8, "t_device": np.int64}
+_FRAME_SERIES = (
+    "t_exposure_start_us",
+    "t_exposure_start_device_us",
+    "exposure_us",
+    "frame_counter",
+    "pulse_index",
+    "host_time_ns",
+)
+_PULSE_SERIES = ("index", "t_us", "host_time_ns")
+
+
+def _text(value: Any) -> str:
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
+class _Validator:
+    def __init__(self, path: Path, f: h5py.File) -> None:
+        self.path = path
+        self.f = f
+        self.problems: list[str] = []
+
+    def add(self, hpath: str, msg: str) -> None:
+        self.problems.append(f"{self.path}: {hpath}: {msg}")
+
+    @contextmanager
+    def reading(self, hpath: str) -> Iterator[None]:
+        """Turn a read failure (corrupt chunk, missing filter, odd types) into a problem."""
+        try:
+            yield
+        except (OSError, ValueError, TypeError, KeyError) as exc:
+            self.add(hpath, f"cannot be read: {type(exc).__name__}: {exc}")
+
+    def dataset(self, hpath: str, dtype: Any | None = None, ndim: int | None = 1) -> h5py.Dataset | None:
+        node = self.f.get(hpath)
+        if node is None:
+            self.add(f"/{hpath}", "missing")
+            return None
+        if not isinstance(node, h5py.Dataset):
+            self.add(f"/{hpath}", "is not a dataset")
+            return None
+        if dtype is not None and node.dtype != np.dtype(dtype):
+            self.add(f"/{hpath}", f"dtype {node.dtype}, expected {np.dtype(dtype)}")
+            return None
+        if ndim is not None and node.ndim != ndim:
+            self.add(f"/{hpath}", f"has {node.ndim} dimensions, expected {ndim}")
+            return None
+        return node
+
+    def group(self, hpath: str) -> h5py.Group | None:
+        node = self.f.get(hpath)
+        if not isinstance(node, h5py.Group):
+            self.add(f"/{hpath}", "missing group" if node is None else "is not a group")
+            return None
+        return node
+
+    def equal_lengths(self, hpath: str, dsets: dict[str, h5py.Dataset | None]) -> None:
+        lengths = {k: int(d.shape[0]) for k, d in dsets.items() if d is not None}
+        if len(set(lengths.values())) > 1:
+            desc = ", ".join(f"{k}={n}" for k, n in lengths.items())
+            self.add(f"/{hpath}", f"datasets have unequal lengths ({desc})")
+
+    # -- checks ------------------------------------------------------------------------
+    def run(self) -> None:
+        f = self.f
+        attrs = {k: _text(f.attrs[k]) for k in _ROOT_ATTRS if k in f.attrs}
+        for k in _ROOT_ATTRS:
+            if k not in attrs:
+                self.add("/", f"missing attribute {k!r}")
+        if "schema" in attrs and attrs["schema"] != SCHEMA_NAME:
+            self.add("/", f"attribute schema is {attrs['schema']!r}, expected {SCHEMA_NAME!r}")
+        if "schema_version" in attrs:
+            major = attrs["schema_version"].split(".")[0]
+            if major != SCHEMA_VERSION.split(".")[0]:
+                self.add(
+                    "/", f"schema_version {attrs['schema_version']!r} is not {SCHEMA_VERSION.split('.')[0]}.x"
+                )
+        status = attrs.get("status")
+        domain = attrs.get("time_domain")
+        if status is not None and status not in ("recording", "complete", "failed"):
+            self.add("/", f"status {status!r} is not recording, complete or failed")
+        if domain is not None and domain not in ("device", "rig"):
+            self.add("/", f"time_domain {domain!r} is not device or rig")
+        if status == "complete" and domain != "rig":
+            self.add("/", f"status is complete but time_domain is {domain!r}, expected 'rig'")
+        if "finalize_started_utc" in f.attrs:
+            self.add("/", "finalize was interrupted: stored times may be partly mapped to rig time")
+        rig = domain == "rig"
+        self.check_config()
+        ev = f.get(EVENTS_GROUP)
+        if self.group(EVENTS_GROUP) is not None and isinstance(ev, h5py.Group):
+            for name in ev:
+                with self.reading(f"/{EVENTS_GROUP}/{name}"):
+                    self.check_sensor(name, rig)
+        fr = f.get(FRAMES_GROUP)
+        if self.group(FRAMES_GROUP) is not None and isinstance(fr, h5py.Group):
+            for name in fr:
+                with self.reading(f"/{FRAMES_GROUP}/{name}"):
+                    self.check_camera(name)
+        with self.reading(f"/{TRIGGER_GROUP}/pulses"):
+            self.check_pulses()
+        if status == "complete":
+            with self.reading(f"/{SYNC_GROUP}/report_json"):
+                self.check_report()
+
+    def check_config(self) -> None:
+        ds = self.dataset(CONFIG_DATASET, ndim=0)
+        if ds is None:
+            return
+        with self.reading(f"/{CONFIG_DATASET}"):
+            data = json.loads(_text(ds[()]))
+            if not isinstance(data, dict):
+                self.add(f"/{CONFIG_DATASET}", "is not a JSON object")
+
+    def check_report(self) -> None:
+        ds = self.dataset(f"{SYNC_GROUP}/report_json", ndim=0)
+        if ds is None:
+            return
+        try:
+            SyncReport.model_validate_json(_text(ds[()]))
+        except ValidationError as exc:
+            self.add(f"/{SYNC_GROUP}/report_json", f"does not parse as a SyncReport: {exc}")
+
+    def check_sensor(self, name: str, rig: bool) -> None:
+        base = f"{EVENTS_GROUP}/{name}"
+        g = self.group(base)
+        if g is None:
+            return
+        dims: dict[str, int] = {}
+        for key in ("width", "height"):
+            if key not in g.attrs:
+                self.add(f"/{base}", f"missing attribute {key!r}")
+            else:
+                value = int(g.attrs[key])
+                if value <= 0:
+                    self.add(f"/{base}", f"attribute {key} is {value}, expected > 0")
+                else:
+                    dims[key] = value
+        cols = {k: self.dataset(f"{base}/{k}", dt) for k, dt in _EVENT_DTYPES.items()}
+        self.equal_lengths(base, cols)
+        off = self.dataset(f"{base}/t_offset", np.int64, ndim=0)
+        ms = self.dataset(f"{base}/ms_to_idx", np.uint64) if rig or "ms_to_idx" in g else None
+        tg = self.group(f"{base}/trigger")
+        if tg is not None:
+            trig = {k: self.dataset(f"{base}/trigger/{k}", dt) for k, dt in _TRIGGER_DTYPES.items()}
+            self.equal_lengths(f"{base}/trigger", trig)
+        if any(d is None for d in cols.values()) or len({int(d.shape[0]) for d in cols.values() if d}) != 1:
+            return
+        self.scan_events(base, cols, dims, ms if off is not None else None)
+
+    def scan_events(
+        self,
+        base: str,
+        cols: dict[str, h5py.Dataset | None],
+        dims: dict[str, int],
+        ms: h5py.Dataset | None,
+    ) -> None:
+        """One blockwise pass: t order, geometry, polarity values, and the ms_to_idx index."""
+        t_ds, x_ds, y_ds, p_ds = (cols[k] for k in ("t", "x", "y", "p"))
+        assert t_ds is not None
+        assert x_ds is not None
+        assert y_ds is not None
+        assert p_ds is not None
+        n = int(t_ds.shape[0])
+        found: set[str] = set()
+        prev: int | None = None
+        n_ms = int(ms.shape[0]) if ms is not None else 0
+        if ms is not None:
+            last = int(t_ds[n - 1]) if n else -1
+            expect = last // 1000 + 1 if last >= 0 else 0
+            if n_ms != expect:
+                self.add(f"/{base}/ms_to_idx", f"has {n_ms} entries, expected {expect} (last t {last} us)")
+                ms = None
+        ms_next = 0
+        for start in range(0, n, _BLOCK):
+            stop = min(start + _BLOCK, n)
+            t: NDArray[np.int64] = t_ds[start:stop]
+            if "t" not in found:
+                if prev is not None and int(t[0]) < prev:
+                    found.add("t")
+                    self.add(f"/{base}/t", f"decreases at index {start} ({int(t[0])} < {prev})")
+                bad = np.flatnonzero(t[1:] < t[:-1])
+                if bad.size and "t" not in found:
+                    i = int(bad[0]) + 1
+                    found.add("t")
+                    self.add(f"/{base}/t", f"decreases at index {start + i} ({int(t[i])} < {int(t[i - 1])})")
+            prev = int(t[-1])
+            for axis, ds, key in (("x", x_ds, "width"), ("y", y_ds, "height")):
+                if axis in found or key not in dims:
+                    continue
+                arr = ds[start:stop]
+                if int(arr.max()) >= dims[key]:
+                    i = int(np.argmax(arr >= dims[key]))
+                    found.add(axis)
+                    self.add(
+                        f"/{base}/{axis}",
+                        f"value {int(arr[i])} at index {start + i} outside {key} {dims[key]}",
+                    )
+            if "p" not in found:
+                p = p_ds[start:stop]
+                if int(p.max()) > 1:
+                    found.add("p")
+                    i = int(np.argmax(p > 1))
+                    self.add(f"/{base}/p", f"value {int(p[i])} at index {start + i}, expected 0 or 1")
+            if ms is not None and "t" not in found and "ms" not in found:
+                ms_hi = min(int(t[-1]) // 1000 + 1, n_ms) if t[-1] >= 0 else 0
+                while ms_next < ms_hi:
+                    hi = min(ms_next + _BLOCK, ms_hi)
+                    want = np.searchsorted(t, np.arange(ms_next, hi, dtype=np.int64) * 1000) + start
+                    have = ms[ms_next:hi].astype(np.int64)
+                    wrong = np.flatnonzero(have != want)
+                    if wrong.size:
+                        i = int(wrong[0])
+                        found.add("ms")
+                        self.add(
+                            f"/{base}/ms_to_idx",
+                            f"entry {ms_next + i} is {int(have[i])}, expected {int(want[i])} "
+                            f"(first index with t >= {(ms_next + i) * 1000} us)",
+                        )
+                        break
+                    ms_next = hi
+
+    def check_camera(self, name: str) -> None:
+        base = f"{FRAMES_GROUP}/{name}"
+        g = self.group(base)
+        if g is None:
+            return
+        for key in ("height", "width"):
+            if key not in g.attrs:
+                self.add(f"/{base}", f"missing attribute {key!r}")
+        images = self.dataset(f"{base}/images", ndim=None)
+        if images is not None and images.ndim not in (3, 4):
+            self.add(f"/{base}/images", f"has {images.ndim} dimensions, expected 3 (N,H,W) or 4 (N,H,W,C)")
+            images = None
+        series: dict[str, h5py.Dataset | None] = {
+            k: self.dataset(f"{base}/{k}", np.int64) for k in _FRAME_SERIES
+        }
+        self.equal_lengths(base, {"images": images, **series})
+        for key in ("t_exposure_start_us", "t_exposure_start_device_us"):
+            ds = series[key]
+            if ds is None:
+                continue
+            ts = ds[...]
+            bad = np.flatnonzero(ts[1:] < ts[:-1])
+            if bad.size:
+                i = int(bad[0]) + 1
+                self.add(f"/{base}/{key}", f"decreases at frame {i} ({int(ts[i])} < {int(ts[i - 1])})")
+
+    def check_pulses(self) -> None:
+        base = f"{TRIGGER_GROUP}/pulses"
+        if self.group(base) is None:
+            return
+        dsets: dict[str, h5py.Dataset | None] = {
+            k: self.dataset(f"{base}/{k}", np.int64) for k in _PULSE_SERIES
+        }
+        self.equal_lengths(base, dsets)
+
+
+def validate_take(path: str | Path) -> list[str]:
+    """Problems found in a take file, each naming the file and HDF5 path; [] if it is valid."""
+    p = Path(path)
+    try:
+        f = h5py.File(p, "r")
+    except (OSError, ValueError) as exc:
+        return [f"{p}: cannot be opened as an HDF5 file: {exc}"]
+    with f:
+        v = _Validator(p, f)
+        with v.reading("/"):
+            v.run()
+    if v.problems:
+        log.info("take %s: %d problem(s)", p, len(v.problems))
+    return v.problems
