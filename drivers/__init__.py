@@ -2,8 +2,8 @@
 
 from drivers.base import (
     AcquisitionStats,
-    Capability,
     CameraSettings,
+    Capability,
     Device,
     DeviceInfo,
     EventPacket,

@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 _OUTLIER_SIGMAS = 8.0
 #: Floor of the fine matching tolerance, so a few-us jitter never unmatches a good pulse.
 _MIN_TOLERANCE_US = 50.0
+#: Largest device-vs-rig clock drift the coarse stage allows for (crystals: < 100 ppm).
+_MAX_DRIFT_PPM = 500.0
 
 
 @dataclass(slots=True)
@@ -111,6 +113,36 @@ def _host_to_rig(pulses: PulseLog) -> ClockMap:
     return ClockMap(m.device_ref_us, m.rig_ref_us, m.rate, m.frac_us - fastest)
 
 
+def _coarse_offset(
+    d: NDArray[np.int64],
+    c: NDArray[np.float64],
+    pulse_t: NDArray[np.int64],
+    period_us: float,
+    window_us: float,
+) -> float | None:
+    """Device -> rig offset (rig = device + offset) good to well under half a period.
+
+    Candidates pair the first observation with each box pulse near the host estimate; each
+    is scored by how many observations of the first window land on a pulse. Latency is
+    never negative, so an offset above min(c) is impossible; among the best candidates the
+    one with the least implied latency wins. This tolerates host latency spreads of many
+    periods (a loaded host) as long as the fastest arrival is prompt.
+    """
+    upper = float(c.min()) + 2_000.0
+    lower = upper - max(2e6, 40 * period_us)
+    lo_k, hi_k = np.searchsorted(pulse_t, [d[0] + lower, d[0] + upper])
+    if hi_k <= lo_k:
+        return None
+    offsets = (pulse_t[lo_k:hi_k] - d[0]).astype(np.float64)
+    in_win = d[d - d[0] <= window_us].astype(np.float64)
+    tol = period_us / 4.0
+    scores = np.empty(offsets.size, np.int64)
+    for i, off in enumerate(offsets):  # a few dozen candidates, each vectorized
+        scores[i] = int((_assign(in_win + off, pulse_t, tol) >= 0).sum())
+    best = scores == scores.max()
+    return float(offsets[best].max())
+
+
 def match_device(
     obs: DeviceObservations, pulses: PulseLog, period_us: float, host_to_rig: ClockMap
 ) -> DeviceMatch:
@@ -121,36 +153,45 @@ def match_device(
         what = "no trigger observations" if n_obs == 0 else "no box pulses"
         return DeviceMatch(np.full(n_obs, -1, np.int64), None, [f"{obs.name}: {what}; clock not fitted"])
     d = obs.t_device_us.astype(np.int64)
-    # Coarse: c = (rig estimate from host time) - device time = offset + drift*d + latency.
-    est_rig = host_to_rig.to_rig_float(obs.host_time_ns // 1000)
-    c = est_rig - d.astype(np.float64)
-    x = (d - d[0]).astype(np.float64)
-    if n_obs >= 10 and np.ptp(x) > 0:
-        slope, icpt = np.polyfit(x, c, 1)
-    else:
-        slope, icpt = 0.0, float(np.mean(c))
-    resid = c - (slope * x + icpt)
-    icpt += float(np.percentile(resid, 5))  # latency only ever adds: follow the fast arrivals
-    pred = d.astype(np.float64) + slope * x + icpt
-    pos = _assign(pred, pulses.t_us, period_us / 2.0)
+    # c = (rig time the host received it) - device time = offset + latency (+ drift * t).
+    c = host_to_rig.to_rig_float(obs.host_time_ns // 1000) - d.astype(np.float64)
+    # Window over which +-_MAX_DRIFT_PPM keeps a fixed offset within a quarter period.
+    window = max(period_us, 0.25 * period_us / (_MAX_DRIFT_PPM * 1e-6))
+    off = _coarse_offset(d, c[d - d[0] <= window], pulses.t_us, period_us, window)
+    if off is None:
+        warnings.append(f"{obs.name}: no box pulse near its observations; clock not fitted")
+        return DeviceMatch(np.full(n_obs, -1, np.int64), None, warnings)
+    span = float(d[-1] - d[0])
     fit: ClockFit | None = None
-    for _ in range(3):
+    pos = np.full(n_obs, -1, np.int64)
+    while True:
+        # Grow the matched span geometrically, predicting with the fit of the span before.
+        win = d - d[0] <= window
+        pred = fit.map.to_rig_float(d[win]) if fit is not None else d[win] + off
+        pos[:] = -1
+        pos[win] = _assign(pred, pulses.t_us, period_us / 4.0)
         ok = pos >= 0
-        if ok.sum() < 1:
+        if not ok.any():
             break
         fit = fit_clock_map(d[ok], pulses.t_us[pos[ok]], fit_drift=ok.sum() >= 3)
-        sigma = 1.4826 * float(np.median(np.abs(fit.residuals_us))) if fit.n >= 5 else 0.0
-        tol = max(_MIN_TOLERANCE_US, _OUTLIER_SIGMAS * sigma)
-        tol = min(tol, period_us / 4.0)
-        new_pos = _assign(fit.map.to_rig_float(d), pulses.t_us, tol)
-        if np.array_equal(new_pos, pos):
+        if window >= span:
             break
-        pos = new_pos
+        window *= 4.0
     if fit is None:
         warnings.append(f"{obs.name}: no observation matched a box pulse; clock not fitted")
         return DeviceMatch(np.full(n_obs, -1, np.int64), None, warnings)
+    for _ in range(3):  # fine re-matching at a tolerance set by the residuals
+        sigma = 1.4826 * float(np.median(np.abs(fit.residuals_us))) if fit.n >= 5 else 0.0
+        tol = min(max(_MIN_TOLERANCE_US, _OUTLIER_SIGMAS * sigma), period_us / 4.0)
+        new_pos = _assign(fit.map.to_rig_float(d), pulses.t_us, tol)
+        ok = new_pos >= 0
+        if not ok.any():
+            break
+        fit = fit_clock_map(d[ok], pulses.t_us[new_pos[ok]], fit_drift=ok.sum() >= 3)
+        if np.array_equal(new_pos, pos):
+            break
+        pos = new_pos
     ok = pos >= 0
-    fit = fit_clock_map(d[ok], pulses.t_us[pos[ok]], fit_drift=ok.sum() >= 3)
     index = np.where(ok, pulses.index[np.clip(pos, 0, None)], -1).astype(np.int64)
     return DeviceMatch(index, fit, warnings)
 

@@ -1,6 +1,7 @@
 """The small core of data types every package imports (and which imports none of them)."""
 
 from rigd.core.errors import (
+    BackendUnavailableError,
     ConfigError,
     DeviceError,
     DeviceTimeoutError,
@@ -10,7 +11,6 @@ from rigd.core.errors import (
     SyncError,
     TakeError,
     TakeFormatError,
-    BackendUnavailableError,
 )
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame

@@ -22,6 +22,7 @@ CONFIG_DATASET = "config_json"
 
 TAKE_STATUS = Literal["recording", "complete", "failed"]
 TIME_DOMAIN = Literal["device", "rig"]
+LossKind = Literal["frames", "events", "triggers", "pulses"]
 
 
 class DeviceSync(BaseModel):
@@ -57,7 +58,7 @@ class LossRecord(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     device: str
-    what: Literal["frames", "events", "triggers", "pulses"]
+    what: LossKind
     count: int
     reason: str
     t_first_us: int | None = Field(None, description="Device time of the first lost item, when known.")

@@ -46,7 +46,9 @@ class ClockMap:
         flat_in, flat_out = t.reshape(-1), out.reshape(-1)
         for i in range(0, flat_in.size, _BLOCK):
             d = (flat_in[i : i + _BLOCK] - self.device_ref_us).astype(np.float64)
-            flat_out[i : i + _BLOCK] = np.rint(d * self.rate + self.frac_us).astype(np.int64) + self.rig_ref_us
+            flat_out[i : i + _BLOCK] = (
+                np.rint(d * self.rate + self.frac_us).astype(np.int64) + self.rig_ref_us
+            )
         return out
 
     def to_device(self, rig_us: ArrayLike) -> NDArray[np.int64]:

@@ -1,0 +1,327 @@
+"""Simulated machine-vision camera: one exposure per rising trigger edge, like a GenICam camera.
+
+The wire callback runs on the trigger box's thread, so it only latches the exposure (frame
+counter, device timestamp) and queues it; a worker renders the scene at mid-exposure, waits
+for the exposure to end, and puts the frame into a bounded on-camera buffer. Frames lost to
+a full buffer or to the `drop_frames` transport fault are counted and logged in the ground
+truth, and show as gaps in the frame counter, as on real cameras.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.base import AcquisitionStats, CameraSettings, Capability, DeviceInfo, RgbCamera
+from drivers.registry import DeviceSpec
+from firmware_sim.scene import Scene, View
+from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
+from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.frames import Frame
+
+log = logging.getLogger(__name__)
+
+_CAPABILITIES = frozenset(
+    {
+        Capability.HARDWARE_TRIGGER,
+        Capability.FREE_RUN,
+        Capability.FRAME_COUNTER,
+        Capability.DEVICE_TIMESTAMPS,
+        Capability.EXPOSURE_CONTROL,
+        Capability.COLOR,
+    }
+)
+#: Exposure at which the rendered image has its nominal brightness.
+_NOMINAL_EXPOSURE_US = 8000
+
+
+@dataclass(frozen=True, slots=True)
+class CameraParams:
+    """What a camera spec may set."""
+
+    width: int = 1280
+    height: int = 720
+    pixel_format: str = "rgb8"
+    buffer_frames: int = 32
+    drop_frames: frozenset[int] = field(default_factory=frozenset)
+
+
+@dataclass(frozen=True, slots=True)
+class _Exposure:
+    counter: int
+    true_us: float
+    device_us: int
+    exposure_us: int
+
+
+_STOP = object()
+
+
+class SimRgbCamera(RgbCamera):
+    """A global-shutter camera in a `SimWorld`, with its own drifting clock."""
+
+    def __init__(
+        self,
+        world: SimWorld,
+        name: str,
+        scene: Scene,
+        clock: DeviceClock,
+        params: CameraParams | None = None,
+        spec: str = "",
+    ) -> None:
+        p = params or CameraParams()
+        if p.pixel_format not in ("mono8", "rgb8"):
+            raise ConfigError(f"camera {name}: pixel format {p.pixel_format!r} (use mono8 or rgb8)")
+        if p.buffer_frames < 1:
+            raise ConfigError(f"camera {name}: buffer_frames must be >= 1, got {p.buffer_frames}")
+        self._world, self._name, self._scene, self._clock, self._p = world, name, scene, clock, p
+        self._view: View = scene.view(name, p.width, p.height)
+        self._info = DeviceInfo(
+            kind="rgb_camera",
+            spec=spec or f"sim://{world.name}/{name}",
+            vendor="rigd-sim",
+            model="SimRgbCamera",
+            serial=f"{world.name}/{name}",
+            firmware="sim-1",
+        )
+        self._settings = CameraSettings()
+        world.register_clock(name, clock)
+        self._lock = threading.Lock()
+        self._started = False
+        self._closed = False
+        self._next_counter = 0
+        self._jobs: queue.SimpleQueue[_Exposure | object] = queue.SimpleQueue()
+        self._frames: queue.Queue[Frame] = queue.Queue(maxsize=p.buffer_frames)
+        self._worker: threading.Thread | None = None
+        self._free_run: threading.Thread | None = None
+        self._stop_free_run = threading.Event()
+        self._error: BaseException | None = None
+        self._delivered = 0
+        self._dropped = 0
+        self._counts = {"exposures": 0, "buffer_overflow": 0, "transport_dropped": 0}
+        self._unsubscribe = world.wire.subscribe(self._on_edge)
+
+    # --- Device ---------------------------------------------------------------------------
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self._info
+
+    @property
+    def capabilities(self) -> frozenset[Capability]:
+        return _CAPABILITIES
+
+    @property
+    def clock(self) -> DeviceClock:
+        return self._clock
+
+    @property
+    def pixel_format(self) -> str:
+        return self._settings.pixel_format or self._p.pixel_format
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        if self.pixel_format == "mono8":
+            return (self._p.height, self._p.width)
+        return (self._p.height, self._p.width, 3)
+
+    @property
+    def frame_dtype(self) -> np.dtype[np.generic]:
+        return np.dtype(np.uint8)
+
+    def configure(self, settings: CameraSettings) -> None:
+        self._check_open()
+        if self._started:
+            raise DeviceError(f"camera {self._name}: configure while started; stop it first")
+        self._settings = settings.model_copy()
+
+    def start(self) -> None:
+        self._check_open()
+        if self._started:
+            raise DeviceError(f"camera {self._name} is already started")
+        self._error = None
+        self._worker = threading.Thread(target=self._work, name=f"sim-cam-{self._name}", daemon=True)
+        self._worker.start()
+        with self._lock:
+            self._next_counter = 0
+            self._started = True
+        if self._settings.trigger_mode == "free_run":
+            self._stop_free_run.clear()
+            self._free_run = threading.Thread(
+                target=self._run_free, name=f"sim-cam-{self._name}-freerun", daemon=True
+            )
+            self._free_run.start()
+        log.info("camera %s started (%s)", self._name, self._settings.trigger_mode)
+
+    def stop(self) -> None:
+        with self._lock:
+            was_started, self._started = self._started, False
+        if not was_started:
+            return
+        if self._free_run is not None:
+            self._stop_free_run.set()
+            self._free_run.join()
+            self._free_run = None
+        # Exposures already triggered still complete and are delivered.
+        self._jobs.put(_STOP)
+        if self._worker is not None:
+            self._worker.join()
+            self._worker = None
+        log.info("camera %s stopped; %s", self._name, self.stats())
+        if self._error is not None:
+            raise DeviceError(f"camera {self._name}: worker failed: {self._error!r}") from self._error
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        try:
+            self.stop()
+        finally:
+            self._unsubscribe()
+            self._closed = True
+
+    def read_frame(self, timeout_s: float) -> Frame | None:
+        self._check_open()
+        try:
+            frame = self._frames.get(timeout=timeout_s) if timeout_s > 0 else self._frames.get_nowait()
+        except queue.Empty:
+            return None
+        with self._lock:
+            self._delivered += 1
+        return frame
+
+    def stats(self) -> AcquisitionStats:
+        with self._lock:
+            return AcquisitionStats(
+                delivered=self._delivered, device_dropped=self._dropped, extra=dict(self._counts)
+            )
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DeviceError(f"camera {self._name} is closed")
+
+    # --- exposure -------------------------------------------------------------------------
+
+    def _on_edge(self, edge: Edge) -> None:
+        """Runs on the trigger box's thread: latch the exposure, never render here."""
+        if not edge.rising:
+            return
+        with self._lock:
+            if not self._started or self._settings.trigger_mode != "hardware":
+                return
+            self._expose(edge.true_us)
+
+    def _expose(self, true_us: float) -> None:
+        """Start an exposure at a true time; the caller holds the lock."""
+        job = _Exposure(self._next_counter, true_us, self._clock.stamp(true_us), self._settings.exposure_us)
+        self._next_counter += 1
+        self._counts["exposures"] += 1
+        self._jobs.put(job)
+
+    def _run_free(self) -> None:
+        """Free-run: exposures every 1/fps seconds of the camera's own clock."""
+        period_dev = 1e6 / self._settings.free_run_fps
+        dev0 = self._clock.at(self._world.now_us())
+        k = 0
+        while True:
+            t_true = self._clock.true_at(dev0 + k * period_dev)
+            if not self._world.sleep_until(t_true, self._stop_free_run):
+                return
+            with self._lock:
+                if not self._started:
+                    return
+                self._expose(t_true)
+            k += 1
+
+    def _work(self) -> None:
+        try:
+            while True:
+                job = self._jobs.get()
+                if not isinstance(job, _Exposure):
+                    return
+                self._deliver(job)
+        except Exception as exc:  # the thread must not die silently: stop() re-raises it
+            log.exception("camera %s: worker failed", self._name)
+            self._error = exc
+
+    def _render(self, job: _Exposure) -> NDArray[np.uint8]:
+        gray = self.pixel_format == "mono8"
+        img = self._scene.render(self._view, job.true_us + job.exposure_us / 2.0, gray=gray)
+        gain = (job.exposure_us / _NOMINAL_EXPOSURE_US) * 10.0 ** (self._settings.gain_db / 20.0)
+        if abs(gain - 1.0) > 1e-3:
+            img = np.asarray(cv2.convertScaleAbs(img, alpha=gain), dtype=np.uint8)
+        return img
+
+    def _deliver(self, job: _Exposure) -> None:
+        truth = self._world.truth
+        if job.counter in self._p.drop_frames:
+            # Lost in transport: the exposure happened, the host never sees it.
+            with self._lock:
+                self._dropped += 1
+                self._counts["transport_dropped"] += 1
+            truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
+            log.debug("camera %s: frame %d dropped (fault injection)", self._name, job.counter)
+            return
+        image = self._render(job)
+        # A frame leaves the sensor only once its exposure is over.
+        self._world.sleep_until(job.true_us + job.exposure_us)
+        frame = Frame(
+            image=image,
+            t_exposure_start_us=job.device_us,
+            exposure_us=job.exposure_us,
+            frame_counter=job.counter,
+            host_time_ns=time.monotonic_ns(),
+        )
+        try:
+            self._frames.put_nowait(frame)
+        except queue.Full:
+            with self._lock:
+                self._dropped += 1
+                self._counts["buffer_overflow"] += 1
+            truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
+            log.warning("camera %s: frame buffer full, frame %d dropped", self._name, job.counter)
+            return
+        truth.add_frame(self._name, job.counter, job.true_us, delivered=True)
+
+
+def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
+    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=`."""
+    spec.check_params(
+        {"offset_us", "drift_ppm", "seed", "width", "height", "format", "buffer_frames", "drop_frames"}
+    )
+    name = spec.path.strip("/")
+    if not name:
+        raise ConfigError(f"device spec {spec.raw!r}: no device name in the path (sim://<world>/<name>)")
+    fmt = spec.param("format", "rgb8")
+    if fmt not in ("mono8", "rgb8"):
+        raise ConfigError(f"device spec {spec.raw!r}: format={fmt!r} (use mono8 or rgb8)")
+    params = CameraParams(
+        width=spec.int_param("width", 1280),
+        height=spec.int_param("height", 720),
+        pixel_format=fmt,
+        buffer_frames=spec.int_param("buffer_frames", 32),
+        drop_frames=frozenset(spec.int_list_param("drop_frames")),
+    )
+    for field_name, ok in (
+        ("width", 0 < params.width <= 65535),
+        ("height", 0 < params.height <= 65535),
+        ("buffer_frames", params.buffer_frames >= 1),
+    ):
+        if not ok:
+            raise ConfigError(
+                f"device spec {spec.raw!r}: {field_name}={spec.params[field_name]!r} out of range"
+            )
+    seed = spec.int_param("seed", 0)
+    world = get_world(spec.location or "default", seed)
+    scene = world.resource("scene", lambda: Scene(seed=seed))
+    if not isinstance(scene, Scene):
+        raise ConfigError(f"device spec {spec.raw!r}: world {world.name!r} holds no Scene")
+    clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
+    return SimRgbCamera(world, name, scene, clock, params, spec.raw)

@@ -1,0 +1,180 @@
+"""The `rigd` command line."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from rigd import __version__
+from rigd.config import RigConfig, default_sim_rig
+from rigd.core.errors import RigdError
+
+app = typer.Typer(
+    help="Capture daemon for a hybrid RGB + event-camera rig.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+console = Console(stderr=True)
+out = Console(width=120) if not sys.stdout.isatty() else Console()
+
+
+@app.callback()
+def _main(
+    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More log output.")] = 0,
+) -> None:
+    level = logging.WARNING - 10 * min(verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def _fail(exc: Exception) -> typer.Exit:
+    console.print(f"[bold red]error:[/] {exc}")
+    return typer.Exit(code=2)
+
+
+@app.command()
+def capture(
+    config: Annotated[
+        Path | None, typer.Option("--config", "-c", help="Rig config (TOML/JSON/YAML); default: the sim rig.")
+    ] = None,
+    duration: Annotated[float, typer.Option("--duration", "-d", help="Seconds of trigger pulses.")] = 5.0,
+    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Directory for the take.")] = Path("takes"),
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
+) -> None:
+    """Capture one take; with no --config, from the built-in simulated rig."""
+    from rigd.capture import Progress as CaptureProgress
+    from rigd.capture import run_capture
+    from rigd.inspect import summarize
+
+    try:
+        rig = RigConfig.load(config) if config else default_sim_rig()
+    except RigdError as exc:
+        raise _fail(exc) from exc
+    total = max(1, round(duration * rig.trigger.settings.rate_hz))
+    with Progress(
+        TextColumn("[bold]capturing[/]"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("pulses  {task.fields[detail]}"),
+        TimeRemainingColumn(),
+        console=console,
+        disable=json_out or not console.is_terminal,
+    ) as bar:
+        task = bar.add_task("capture", total=total, detail="")
+
+        def on_progress(p: CaptureProgress) -> None:
+            ev = sum(p.events.values())
+            bar.update(task, completed=p.pulses, detail=f"{ev / 1e6:.1f} Mev  queue {p.queue_depth}")
+
+        try:
+            result = run_capture(rig, out_dir, duration, on_progress=on_progress)
+        except RigdError as exc:
+            raise _fail(exc) from exc
+    summary = summarize(result.path)
+    if json_out:
+        out.print_json(summary.model_dump_json())
+        return
+    typer.echo(f"take: {result.path}")
+    _print_summary(summary)
+    out.print(
+        f"wrote {result.bytes_written / 1e6:.1f} MB in {result.wall_s:.1f} s "
+        f"({result.bytes_written / 1e6 / max(result.wall_s, 1e-9):.1f} MB/s)"
+    )
+
+
+@app.command()
+def inspect(
+    take: Annotated[Path, typer.Argument(help="Take file (.h5).")],
+    json_out: Annotated[bool, typer.Option("--json", help="Machine-readable summary.")] = False,
+    thumbnails: Annotated[
+        Path | None, typer.Option("--thumbnails", help="Write a contact sheet of frames and event images.")
+    ] = None,
+) -> None:
+    """Validate a take against the schema and print its summary."""
+    from rigd.inspect import summarize, write_thumbnails
+
+    if not take.exists():
+        raise _fail(FileNotFoundError(f"no such take: {take}"))
+    try:
+        summary = summarize(take)
+        if thumbnails is not None:
+            write_thumbnails(take, thumbnails)
+    except RigdError as exc:
+        raise _fail(exc) from exc
+    if json_out:
+        out.print_json(summary.model_dump_json())
+    else:
+        _print_summary(summary)
+        if thumbnails is not None:
+            out.print(f"thumbnails: {thumbnails}")
+    if summary.problems:
+        raise typer.Exit(code=1)
+
+
+@app.command("default-config")
+def default_config() -> None:
+    """Print the built-in simulated rig config, a starting point for a real one."""
+    out.print_json(default_sim_rig().model_dump_json())
+
+
+@app.command()
+def version() -> None:
+    """Print the rigd version."""
+    out.print(__version__)
+
+
+def _print_summary(summary: object) -> None:
+    data = json.loads(summary.model_dump_json())  # type: ignore[attr-defined]
+    out.print(f"status: {data.get('status')}   schema {data.get('schema_version')}")
+    cams = Table("camera", "frames", "fps", "shape", "dropped", "missing pulses", "sync rms us", "max us")
+    cams.columns[3].no_wrap = True
+    for name, c in data.get("cameras", {}).items():
+        cams.add_row(
+            name,
+            str(c.get("frames")),
+            f"{c.get('fps') or 0:.2f}",
+            "x".join(str(v) for v in c.get("shape", [])),
+            str(c.get("dropped_frames")),
+            str(c.get("missing_pulses")),
+            _fmt(c.get("sync_rms_us")),
+            _fmt(c.get("sync_max_us")),
+        )
+    out.print(cams)
+    sens = Table("sensor", "events", "Mev/s", "triggers", "missing pulses", "sync rms us", "max us")
+    for name, s in data.get("event_sensors", {}).items():
+        sens.add_row(
+            name,
+            f"{s.get('events'):,}",
+            f"{(s.get('event_rate_hz') or 0) / 1e6:.3f}",
+            str(s.get("triggers")),
+            str(s.get("missing_pulses")),
+            _fmt(s.get("sync_rms_us")),
+            _fmt(s.get("sync_max_us")),
+        )
+    out.print(sens)
+    for key in ("pulses", "pulses_seen_by_no_device", "losses", "warnings", "problems"):
+        if data.get(key):
+            out.print(f"{key}: {data[key]}")
+
+
+def _fmt(v: object) -> str:
+    return f"{v:.2f}" if isinstance(v, int | float) else "-"
+
+
+def main() -> None:
+    try:
+        app()
+    except KeyboardInterrupt:
+        console.print("interrupted")
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

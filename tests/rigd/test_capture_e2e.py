@@ -1,0 +1,122 @@
+"""End to end: `run_capture` on the simulated rig, scored against the simulator's truth."""
+
+from __future__ import annotations
+
+import json
+import uuid
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from firmware_sim.world import GroundTruth, get_world
+from rigd.capture import CaptureResult, run_capture
+from rigd.cli import app
+from rigd.config import RigConfig, default_sim_rig
+from rigd.core.timebase import ClockMap
+from rigd.take.reader import Take
+
+RES = (320, 180)
+
+
+def _rig(world: str, **faults: str) -> RigConfig:
+    cfg = default_sim_rig(world=world, resolution=RES, pixel_format="mono8")
+    if "trigger" in faults:
+        cfg.trigger.spec += "&" + faults["trigger"]
+    for cam in cfg.cameras:
+        if cam.name in faults:
+            cam.spec += "&" + faults[cam.name]
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def faulty_capture(tmp_path_factory: pytest.TempPathFactory) -> tuple[CaptureResult, GroundTruth]:
+    world = f"e2e-{uuid.uuid4().hex[:8]}"
+    cfg = _rig(world, trigger="drop_pulses=7,31", cam1="drop_frames=4,20")
+    res = run_capture(cfg, tmp_path_factory.mktemp("takes"), 2.0)
+    return res, get_world(world).truth
+
+
+def _truth_rig(truth: GroundTruth, device: str, t_device: np.ndarray) -> np.ndarray:
+    dev, box = truth.clocks[device], truth.clocks["trigger"]
+    true_us = (t_device.astype(np.float64) - dev.offset_us) / dev.rate
+    return box.offset_us + true_us * box.rate
+
+
+def test_take_has_every_frame_and_events(faulty_capture: tuple[CaptureResult, GroundTruth]) -> None:
+    res, _ = faulty_capture
+    with Take(res.path) as take:
+        assert take.status == "complete"
+        for cam in ("cam0", "cam2"):
+            assert abs(len(take.frames(cam)) - 58) <= 1  # 60 pulses, 2 dropped by the box
+        assert len(take.frames("cam1")) == 56  # and 2 frames lost in transport
+        for sensor in ("ev0", "ev1"):
+            ev = take.events(sensor)
+            assert len(ev) > 1000
+            assert ev.t.dtype == np.int64
+            assert (np.diff(ev.t) >= 0).all()
+        for cam in take.cameras:
+            assert (np.diff(take.frames(cam).timestamps_us) > 0).all()
+
+
+def test_injected_faults_are_reported(faulty_capture: tuple[CaptureResult, GroundTruth]) -> None:
+    res, _ = faulty_capture
+    rep = res.report
+    assert rep.n_pulses == 60
+    assert rep.pulses_seen_by_no_device == [7, 31]
+    cam1 = rep.devices["cam1"]
+    assert cam1.dropped_frames == [4, 20]
+    for name in ("cam0", "cam2", "ev0", "ev1"):
+        assert rep.devices[name].missing_pulses == [7, 31]
+        assert rep.devices[name].dropped_frames == []
+
+
+def test_sync_accuracy_against_ground_truth(faulty_capture: tuple[CaptureResult, GroundTruth]) -> None:
+    res, truth = faulty_capture
+    with Take(res.path) as take:
+        for cam in take.cameras:
+            fr = take.frames(cam)
+            with h5py.File(res.path, "r") as f:
+                counters = f[f"frames/{cam}/frame_counter"][:]
+            true_by_counter = {c: t for c, t, _ in truth.frames[cam]}
+            box = truth.clocks["trigger"]
+            expected = np.array([box.at(true_by_counter[int(c)]) for c in counters])
+            err = fr.timestamps_us - expected
+            assert np.sqrt(np.mean(err**2)) <= 1.0, cam
+        for sensor in take.event_sensors:
+            d = res.report.devices[sensor]
+            cmap = ClockMap(d.device_ref_us, d.rig_ref_us, d.rate, d.frac_us)
+            t_rig = take.events(sensor).t
+            t_dev = cmap.to_device(t_rig)
+            err = t_rig - _truth_rig(truth, sensor, t_dev)
+            assert np.sqrt(np.mean(err**2)) <= 1.0, sensor
+            assert abs(d.drift_ppm - truth.clocks[sensor].drift_ppm + truth.clocks["trigger"].drift_ppm) < 5
+
+
+def test_cli_capture_and_inspect_json(tmp_path: Path) -> None:
+    cfg = _rig(f"cli-{uuid.uuid4().hex[:8]}")
+    cfg_path = tmp_path / "rig.json"
+    cfg_path.write_text(cfg.model_dump_json())
+    runner = CliRunner()
+    r = runner.invoke(app, ["capture", "--config", str(cfg_path), "--duration", "1", "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    take_path = next(tmp_path.glob("*.h5"))
+    assert str(take_path) in r.output
+    r = runner.invoke(app, ["inspect", str(take_path), "--json"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.output)
+    assert summary["status"] == "complete"
+    thumbs = tmp_path / "sheet.png"
+    r = runner.invoke(app, ["inspect", str(take_path), "--thumbnails", str(thumbs)])
+    assert r.exit_code == 0, r.output
+    assert thumbs.stat().st_size > 1000
+
+
+def test_bad_config_is_a_clear_error(tmp_path: Path) -> None:
+    bad = tmp_path / "rig.toml"
+    bad.write_text('name = "x"\n[trigger]\nspec = "sim://w/trigger"\nsettings = { rate_hz = -3 }\n')
+    r = CliRunner().invoke(app, ["capture", "--config", str(bad), "--out", str(tmp_path)])
+    assert r.exit_code == 2
+    assert "trigger.settings.rate_hz" in r.output
