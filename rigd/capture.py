@@ -60,6 +60,9 @@ class CaptureResult:
     events: dict[str, int]
     bytes_written: int
     wall_s: float
+    """Whole run: opening devices to closing the take."""
+    capture_s: float
+    """From the trigger's START until the writer had written everything."""
 
 
 @dataclass(slots=True)
@@ -125,7 +128,9 @@ class _Pipeline:
                 self.errors.append(exc)
 
     # -- acquisition threads -------------------------------------------------------------
-    def _put(self, device: str, what: LossKind, item: Any, t_range: tuple[int, int] | None, count: int) -> None:
+    def _put(
+        self, device: str, what: LossKind, item: Any, t_range: tuple[int, int] | None, count: int
+    ) -> None:
         try:
             self.queue.put(item, timeout=self.config.writer.queue_put_timeout_s)
         except queue.Full:
@@ -322,6 +327,7 @@ def run_capture(
         for sen in pipe.sensors.values():
             sen.start()
         pipe.trigger.arm()
+        t_start = time.monotonic()
         pipe.trigger.start(n_pulses)
         log.info("capturing %d pulses at %.3f Hz into %s", n_pulses, rate, path)
         _wait_for_pulses(pipe, n_pulses, rate, on_progress)
@@ -339,6 +345,7 @@ def run_capture(
         pipe.queue.put(_STOP)
         writer_thread.join()
         writer_thread = None
+        capture_s = time.monotonic() - t_start
         if pipe.errors:
             raise pipe.errors[0]
         result = _finalize(pipe, emitted, rate)
@@ -351,6 +358,7 @@ def run_capture(
             dict(pipe.events),
             path.stat().st_size,
             time.monotonic() - t_wall,
+            capture_s,
         )
     except BaseException as exc:
         pipe.stop_acq.set()
