@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 SCHEMA_NAME = "rigd.take"
@@ -19,6 +20,28 @@ FRAMES_GROUP = "frames"
 TRIGGER_GROUP = "trigger"
 SYNC_GROUP = "sync"
 CONFIG_DATASET = "config_json"
+
+ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")
+#: `events/<sensor>/<name>`: p is stored as uint8 1/0 (DSEC), not the in-memory int8 +1/-1.
+EVENT_DTYPES: dict[str, type[np.generic]] = {"x": np.uint16, "y": np.uint16, "p": np.uint8, "t": np.int64}
+#: `events/<sensor>/trigger/<name>`
+TRIGGER_DTYPES: dict[str, type[np.generic]] = {
+    "t": np.int64,
+    "p": np.uint8,
+    "channel": np.uint8,
+    "t_device": np.int64,
+}
+#: `frames/<camera>/<name>`, all int64, one entry per frame.
+FRAME_SERIES = (
+    "t_exposure_start_us",
+    "t_exposure_start_device_us",
+    "exposure_us",
+    "frame_counter",
+    "pulse_index",
+    "host_time_ns",
+)
+#: `trigger/pulses/<name>`, all int64.
+PULSE_SERIES = ("index", "t_us", "host_time_ns")
 
 TAKE_STATUS = Literal["recording", "complete", "failed"]
 TIME_DOMAIN = Literal["device", "rig"]

@@ -21,11 +21,16 @@ from pydantic import ValidationError
 
 from rigd.core.schema import (
     CONFIG_DATASET,
+    EVENT_DTYPES,
     EVENTS_GROUP,
+    FRAME_SERIES,
     FRAMES_GROUP,
+    PULSE_SERIES,
+    ROOT_ATTRS,
     SCHEMA_NAME,
     SCHEMA_VERSION,
     SYNC_GROUP,
+    TRIGGER_DTYPES,
     TRIGGER_GROUP,
     SyncReport,
 )
@@ -33,18 +38,6 @@ from rigd.core.schema import (
 log = logging.getLogger(__name__)
 
 _BLOCK = 1 << 20
-_ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")
-_EVENT_DTYPES = {"x": np.uint16, "y": np.uint16, "p": np.uint8, "t": np.int64}
-_TRIGGER_DTYPES = {"t": np.int64, "p": np.uint8, "channel": np.uint8, "t_device": np.int64}
-_FRAME_SERIES = (
-    "t_exposure_start_us",
-    "t_exposure_start_device_us",
-    "exposure_us",
-    "frame_counter",
-    "pulse_index",
-    "host_time_ns",
-)
-_PULSE_SERIES = ("index", "t_us", "host_time_ns")
 
 
 def _text(value: Any) -> str:
@@ -100,8 +93,8 @@ class _Validator:
     # -- checks ------------------------------------------------------------------------
     def run(self) -> None:
         f = self.f
-        attrs = {k: _text(f.attrs[k]) for k in _ROOT_ATTRS if k in f.attrs}
-        for k in _ROOT_ATTRS:
+        attrs = {k: _text(f.attrs[k]) for k in ROOT_ATTRS if k in f.attrs}
+        for k in ROOT_ATTRS:
             if k not in attrs:
                 self.add("/", f"missing attribute {k!r}")
         if "schema" in attrs and attrs["schema"] != SCHEMA_NAME:
@@ -173,13 +166,13 @@ class _Validator:
                     self.add(f"/{base}", f"attribute {key} is {value}, expected > 0")
                 else:
                     dims[key] = value
-        cols = {k: self.dataset(f"{base}/{k}", dt) for k, dt in _EVENT_DTYPES.items()}
+        cols = {k: self.dataset(f"{base}/{k}", dt) for k, dt in EVENT_DTYPES.items()}
         self.equal_lengths(base, cols)
         off = self.dataset(f"{base}/t_offset", np.int64, ndim=0)
         ms = self.dataset(f"{base}/ms_to_idx", np.uint64) if rig or "ms_to_idx" in g else None
         tg = self.group(f"{base}/trigger")
         if tg is not None:
-            trig = {k: self.dataset(f"{base}/trigger/{k}", dt) for k, dt in _TRIGGER_DTYPES.items()}
+            trig = {k: self.dataset(f"{base}/trigger/{k}", dt) for k, dt in TRIGGER_DTYPES.items()}
             self.equal_lengths(f"{base}/trigger", trig)
         if any(d is None for d in cols.values()) or len({int(d.shape[0]) for d in cols.values() if d}) != 1:
             return
@@ -270,7 +263,7 @@ class _Validator:
             self.add(f"/{base}/images", f"has {images.ndim} dimensions, expected 3 (N,H,W) or 4 (N,H,W,C)")
             images = None
         series: dict[str, h5py.Dataset | None] = {
-            k: self.dataset(f"{base}/{k}", np.int64) for k in _FRAME_SERIES
+            k: self.dataset(f"{base}/{k}", np.int64) for k in FRAME_SERIES
         }
         self.equal_lengths(base, {"images": images, **series})
         for key in ("t_exposure_start_us", "t_exposure_start_device_us"):
@@ -288,7 +281,7 @@ class _Validator:
         if self.group(base) is None:
             return
         dsets: dict[str, h5py.Dataset | None] = {
-            k: self.dataset(f"{base}/{k}", np.int64) for k in _PULSE_SERIES
+            k: self.dataset(f"{base}/{k}", np.int64) for k in PULSE_SERIES
         }
         self.equal_lengths(base, dsets)
 

@@ -30,11 +30,15 @@ from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import (
     CONFIG_DATASET,
+    EVENT_DTYPES,
     EVENTS_GROUP,
+    FRAME_SERIES,
     FRAMES_GROUP,
+    PULSE_SERIES,
     SCHEMA_NAME,
     SCHEMA_VERSION,
     SYNC_GROUP,
+    TRIGGER_DTYPES,
     TRIGGER_GROUP,
     SyncReport,
 )
@@ -53,15 +57,6 @@ _SMALL_CHUNK = 4096
 _MS_STEP = 1 << 20
 #: gzip level: 1 keeps write speed usable; with the shuffle filter it loses little ratio.
 _GZIP_LEVEL = 1
-
-_FRAME_SERIES = (
-    "t_exposure_start_us",
-    "t_exposure_start_device_us",
-    "exposure_us",
-    "frame_counter",
-    "pulse_index",
-    "host_time_ns",
-)
 
 
 def compression_options(codec: str, *, shuffle: bool) -> dict[str, Any]:
@@ -127,7 +122,7 @@ class _CameraSink:
     series: dict[str, h5py.Dataset]
     n_frames: int = 0
     n_series_written: int = 0
-    buf: dict[str, list[int]] = field(default_factory=lambda: {k: [] for k in _FRAME_SERIES})
+    buf: dict[str, list[int]] = field(default_factory=lambda: {k: [] for k in FRAME_SERIES})
     stats: DeviceWriteStats = field(default_factory=lambda: DeviceWriteStats("rgb_camera"))
 
 
@@ -181,9 +176,7 @@ class TakeWriter:
         f.create_group(SYNC_GROUP)
         trig = f.create_group(TRIGGER_GROUP)
         pulses = trig.create_group("pulses")
-        self._pulse_ds = {
-            k: self._series(pulses, k, np.int64, self._small_opts) for k in ("index", "t_us", "host_time_ns")
-        }
+        self._pulse_ds = {k: self._series(pulses, k, np.int64, self._small_opts) for k in PULSE_SERIES}
         self._pulse_parts: list[PulseBatch] = []
         self._n_pulse_buffered = 0
         self._n_pulses_written = 0
@@ -246,7 +239,7 @@ class TakeWriter:
             chunks=(1, *shape),
             **self._frame_opts,
         )
-        series = {k: self._series(g, k, np.int64, self._small_opts) for k in _FRAME_SERIES}
+        series = {k: self._series(g, k, np.int64, self._small_opts) for k in FRAME_SERIES}
         series["t_exposure_start_us"].attrs["units"] = "us"
         self._cameras[name] = _CameraSink(name, g, shape, dt, images, series)
 
@@ -261,17 +254,11 @@ class TakeWriter:
         self._info_attrs(g, info, settings_json)
         g.attrs["width"], g.attrs["height"] = int(width), int(height)
         chunk = self._cfg.event_chunk
-        ds = {
-            k: self._series(g, k, dt, self._ev_opts, chunk)
-            for k, dt in (("x", np.uint16), ("y", np.uint16), ("p", np.uint8), ("t", np.int64))
-        }
+        ds = {k: self._series(g, k, dt, self._ev_opts, chunk) for k, dt in EVENT_DTYPES.items()}
         # 0 while recording: t holds device time as is. Finalize sets the real offset.
         g.create_dataset("t_offset", data=np.int64(0))
         tg = g.create_group("trigger")
-        trig = {
-            k: self._series(tg, k, dt, self._small_opts)
-            for k, dt in (("t", np.int64), ("p", np.uint8), ("channel", np.uint8), ("t_device", np.int64))
-        }
+        trig = {k: self._series(tg, k, dt, self._small_opts) for k, dt in TRIGGER_DTYPES.items()}
         self._events[name] = _EventSink(name, g, int(width), int(height), ds, trig)
 
     # -- appends -----------------------------------------------------------------------
@@ -430,7 +417,7 @@ class TakeWriter:
             return
         parts = self._pulse_parts
         start = self._n_pulses_written
-        for key in ("index", "t_us", "host_time_ns"):
+        for key in PULSE_SERIES:
             data = np.concatenate([np.asarray(getattr(b, key), dtype=np.int64) for b in parts])
             _append(self._pulse_ds[key], start, data)
         self._n_pulses_written += self._n_pulse_buffered
