@@ -246,3 +246,8 @@ class Trigger(Device):
     @abc.abstractmethod
     def clock_us(self) -> int:
         """The trigger source's clock now (rig time)."""
+
+    def link_stats(self) -> dict[str, int]:
+        """Counters of the link to the trigger source (corrupt lines, retries, recovered
+        pulses); written into the take so a noisy cable is visible afterwards."""
+        return {}

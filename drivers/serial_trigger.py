@@ -378,6 +378,9 @@ class SerialTrigger(Trigger):
         with self._state_lock:
             return dict(self._stats)
 
+    def link_stats(self) -> dict[str, int]:
+        return self.stats
+
     @property
     def missing_indices(self) -> list[int]:
         """Pulse indices of the current run that could not be recovered."""

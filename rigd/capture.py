@@ -451,6 +451,8 @@ def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
             )
         )
     result = synchronize(pulses, observations, rate, pipe.losses)
+    if pipe.trigger is not None:
+        result.report.trigger_link = pipe.trigger.link_stats()
     frame_index = {name: result.observation_pulse_index[name] for name in pipe.cameras}
     pipe.writer.finalize(result.maps, frame_index, result.report)
     log.info("take %s finalized: %s", pipe.path, json.dumps(pipe.frames))

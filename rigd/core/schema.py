@@ -107,4 +107,7 @@ class SyncReport(BaseModel):
     )
     devices: dict[str, DeviceSync] = Field(default_factory=dict)
     losses: list[LossRecord] = Field(default_factory=list)
+    trigger_link: dict[str, int] = Field(
+        default_factory=dict, description="Counters of the host-trigger box link (corrupt lines, retries)."
+    )
     warnings: list[str] = Field(default_factory=list)

@@ -34,7 +34,7 @@ def _rig(world: str, **faults: str) -> RigConfig:
 @pytest.fixture(scope="module")
 def faulty_capture(tmp_path_factory: pytest.TempPathFactory) -> tuple[CaptureResult, GroundTruth]:
     world = f"e2e-{uuid.uuid4().hex[:8]}"
-    cfg = _rig(world, trigger="drop_pulses=7,31", cam1="drop_frames=4,20")
+    cfg = _rig(world, trigger="drop_pulses=7,31&garbage_every=15", cam1="drop_frames=4,20")
     res = run_capture(cfg, tmp_path_factory.mktemp("takes"), 2.0)
     return res, get_world(world).truth
 
@@ -65,6 +65,10 @@ def test_injected_faults_are_reported(faulty_capture: tuple[CaptureResult, Groun
     res, _ = faulty_capture
     rep = res.report
     assert rep.n_pulses == 60
+    # Garbage on the serial line was seen, and every pulse record it hit was read back.
+    assert rep.trigger_link["corrupt_lines"] > 0
+    assert rep.trigger_link["unrecovered_pulses"] == 0
+    assert rep.pulses_missing_from_box_log == []
     assert rep.pulses_seen_by_no_device == [7, 31]
     cam1 = rep.devices["cam1"]
     assert cam1.dropped_frames == [4, 20]
