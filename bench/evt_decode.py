@@ -38,13 +38,17 @@ def build_events(tiles: int) -> tuple[EventArray, TriggerEvents]:
         rng = np.random.default_rng(0)
         n = 200_000
         t = np.sort(rng.integers(0, 10_000, n))
-        base = EventArray.from_arrays(rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n), t)
+        base = EventArray.from_arrays(
+            rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n), t
+        )
     t0 = int(base.t[0])
     span = int(base.t[-1]) - t0 + 1
     parts = [base.with_time(base.t - t0 + k * span) for k in range(tiles)]
     events = EventArray.concatenate(parts)
     trig_t = np.arange(0, tiles * span, 1000, dtype=np.int64)
-    triggers = TriggerEvents(trig_t, (np.arange(trig_t.size) % 2).astype(np.uint8), np.zeros(trig_t.size, np.uint8))
+    triggers = TriggerEvents(
+        trig_t, (np.arange(trig_t.size) % 2).astype(np.uint8), np.zeros(trig_t.size, np.uint8)
+    )
     return events, triggers
 
 
@@ -87,7 +91,13 @@ def main() -> None:
 
     encode_evt3(events[:1000], triggers[:1])  # compile outside the timing (cache=True anyway)
     read_raw(path)
-    rows.append(("rigd read_raw (whole file)", best_time(lambda: check(len(read_raw(path)[1].events), "rigd"), args.repeat), ""))
+    rows.append(
+        (
+            "rigd read_raw (whole file)",
+            best_time(lambda: check(len(read_raw(path)[1].events), "rigd"), args.repeat),
+            "",
+        )
+    )
 
     def chunked() -> None:
         total = 0
@@ -97,13 +107,21 @@ def main() -> None:
 
     rows.append(("rigd RawReader (1 MiB chunks)", best_time(chunked, args.repeat), ""))
     rows.append(
-        ("rigd StreamDecoder.feed (bytes in RAM)", best_time(lambda: StreamDecoder("evt3").feed(body), args.repeat), "")
+        (
+            "rigd StreamDecoder.feed (bytes in RAM)",
+            best_time(lambda: StreamDecoder("evt3").feed(body), args.repeat),
+            "",
+        )
     )
     try:
         import evt3 as evt3_pkg
 
         rows.append(
-            ("evt3 (PyPI) decode_file", best_time(lambda: check(len(evt3_pkg.decode_file(str(path))), "evt3"), args.repeat), "")
+            (
+                "evt3 (PyPI) decode_file",
+                best_time(lambda: check(len(evt3_pkg.decode_file(str(path))), "evt3"), args.repeat),
+                "",
+            )
         )
     except ImportError:
         rows.append(("evt3 (PyPI)", float("nan"), "not installed"))

@@ -1,0 +1,47 @@
+"""Prophesee EVT 2.0 / 2.1 / 3.0 codec, RAW and DAT files (numba kernels, OpenEB semantics).
+
+Imports only numpy, numba and rigd.core, so the daemon, the simulator and the tools share one
+decoder and one encoder.
+"""
+
+from drivers.evt.dat import DatHeader, read_dat, write_dat
+from drivers.evt.errors import KIND_NAMES, EvtDecodeError
+from drivers.evt.evt2 import Evt2Encoder, encode_evt2
+from drivers.evt.evt3 import Evt3Encoder, encode_evt3
+from drivers.evt.evt21 import Evt21Encoder, encode_evt21
+from drivers.evt.raw import (
+    FORMATS,
+    Decoded,
+    RawHeader,
+    RawReader,
+    StreamDecoder,
+    decode_bytes,
+    encode,
+    parse_raw_header,
+    read_raw,
+    write_raw,
+)
+
+__all__ = [
+    "FORMATS",
+    "KIND_NAMES",
+    "DatHeader",
+    "Decoded",
+    "Evt2Encoder",
+    "Evt3Encoder",
+    "Evt21Encoder",
+    "EvtDecodeError",
+    "RawHeader",
+    "RawReader",
+    "StreamDecoder",
+    "decode_bytes",
+    "encode",
+    "encode_evt2",
+    "encode_evt3",
+    "encode_evt21",
+    "parse_raw_header",
+    "read_dat",
+    "read_raw",
+    "write_dat",
+    "write_raw",
+]

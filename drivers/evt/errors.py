@@ -1,0 +1,44 @@
+"""Decode-error type and the names of the violations the EVT decoders count or raise.
+
+The numba kernels cannot raise rich exceptions, so they report a small integer code and the
+byte position of the offending word; this module maps codes to stable names that appear both
+in `StreamDecoder.stats` (tolerant mode) and in `EvtDecodeError.kind` (strict mode).
+"""
+
+from __future__ import annotations
+
+from rigd.core.errors import EventDataError
+
+# Codes shared by every kernel; index into the kernels' int64 stats array.
+OK = 0
+NON_MONOTONIC_TIME_HIGH = 1
+VECTOR_WITHOUT_BASE = 2
+OUT_OF_RANGE_XY = 3
+UNKNOWN_TYPE = 4
+TRUNCATED = 5
+BEFORE_TIME_HIGH = 6
+EVENT_WITHOUT_Y = 7
+N_CODES = 8
+
+KIND_NAMES: dict[int, str] = {
+    NON_MONOTONIC_TIME_HIGH: "non_monotonic_time_high",
+    VECTOR_WITHOUT_BASE: "vector_without_base",
+    OUT_OF_RANGE_XY: "out_of_range_xy",
+    UNKNOWN_TYPE: "unknown_type",
+    TRUNCATED: "truncated",
+    BEFORE_TIME_HIGH: "before_time_high",
+    EVENT_WITHOUT_Y: "event_without_y",
+}
+
+# Kinds that strict mode does NOT raise on: a stream joined mid-way (before its first TIME_HIGH)
+# is how every live capture starts, so OpenEB silently skips those words; we skip and count them.
+NON_FATAL_KINDS = frozenset({BEFORE_TIME_HIGH})
+
+
+class EvtDecodeError(EventDataError):
+    """An EVT byte stream violates its format; `offset` is the absolute byte offset of the word."""
+
+    def __init__(self, message: str, *, offset: int, kind: str) -> None:
+        super().__init__(message)
+        self.offset = offset
+        self.kind = kind

@@ -1,0 +1,435 @@
+"""Prophesee RAW byte streams and files: the streaming decoder, header parsing and writing.
+
+`StreamDecoder` is the one decoding path for files, replayed streams and live cameras: it accepts
+byte chunks cut anywhere (mid-word, mid-vector, across TIME_HIGH), carries the partial word and
+the format state between calls, and runs the numba kernels over whole words. Its memory is one
+output batch per call, so files of any size decode in constant memory through `RawReader`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any, BinaryIO, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.evt import evt2, evt3, evt21
+from drivers.evt.errors import KIND_NAMES, N_CODES, TRUNCATED, EvtDecodeError
+from rigd.core.errors import EventDataError
+from rigd.core.events import EventArray, TriggerEvents
+
+log = logging.getLogger(__name__)
+
+EvtFormat = Literal["evt2", "evt21", "evt21_le", "evt3"]
+FORMATS: tuple[str, ...] = ("evt2", "evt21", "evt21_le", "evt3")
+
+
+@dataclass(frozen=True, slots=True)
+class Decoded:
+    """Events and trigger edges decoded from one piece of a stream."""
+
+    events: EventArray
+    triggers: TriggerEvents
+
+    @staticmethod
+    def empty() -> Decoded:
+        return Decoded(EventArray.empty(), TriggerEvents.empty())
+
+    @staticmethod
+    def concatenate(parts: list[Decoded]) -> Decoded:
+        return Decoded(
+            EventArray.concatenate([d.events for d in parts]),
+            TriggerEvents.concatenate([d.triggers for d in parts]),
+        )
+
+
+class _Out:
+    """Growable output buffers handed to the kernels; grown (never per event) when nearly full."""
+
+    def __init__(self, n_events: int, n_triggers: int) -> None:
+        self.x = np.empty(n_events, np.uint16)
+        self.y = np.empty(n_events, np.uint16)
+        self.p = np.empty(n_events, np.int8)
+        self.t = np.empty(n_events, np.int64)
+        self.tt = np.empty(n_triggers, np.int64)
+        self.tp = np.empty(n_triggers, np.uint8)
+        self.tc = np.empty(n_triggers, np.uint8)
+        self.n = 0
+        self.nt = 0
+
+    def grow(self, min_free: int) -> None:
+        if self.x.shape[0] - self.n <= min_free:
+            size = max(2 * self.x.shape[0], self.n + 2 * min_free + 1024)
+            for name in ("x", "y", "p", "t"):
+                old = getattr(self, name)
+                new = np.empty(size, old.dtype)
+                new[: self.n] = old[: self.n]
+                setattr(self, name, new)
+        if self.tt.shape[0] - self.nt <= 0:
+            size = 2 * self.tt.shape[0] + 64
+            for name in ("tt", "tp", "tc"):
+                old = getattr(self, name)
+                new = np.empty(size, old.dtype)
+                new[: self.nt] = old[: self.nt]
+                setattr(self, name, new)
+
+    def result(self) -> Decoded:
+        n, nt = self.n, self.nt
+        return Decoded(
+            EventArray(self.x[:n], self.y[:n], self.p[:n], self.t[:n]),
+            TriggerEvents(self.tt[:nt], self.tp[:nt], self.tc[:nt]),
+        )
+
+
+class StreamDecoder:
+    """Incremental decoder of one EVT byte stream.
+
+    strict=False skips what violates the format, counts it in `stats` by kind and goes on;
+    strict=True raises `EvtDecodeError` naming the absolute byte offset (`offset` = where the
+    stream starts in its file, e.g. the RAW header size) and the violation. After an error the
+    decoder must not be fed again. Events outside width x height are violations too (a header
+    that lies about geometry must not produce impossible pixels).
+    """
+
+    def __init__(
+        self,
+        fmt: str,
+        *,
+        width: int = 1280,
+        height: int = 720,
+        strict: bool = False,
+        offset: int = 0,
+    ) -> None:
+        if fmt not in FORMATS:
+            raise EventDataError(f"unknown EVT format {fmt!r}; expected one of {FORMATS}")
+        if not (0 < width <= 2048 and 0 < height <= 2048):
+            raise EventDataError(f"sensor geometry {width}x{height} outside 1..2048")
+        self.fmt = fmt
+        self.width = int(width)
+        self.height = int(height)
+        self.strict = bool(strict)
+        mod: Any = {"evt2": evt2, "evt3": evt3, "evt21": evt21, "evt21_le": evt21}[fmt]
+        self._word = int(mod.WORD_BYTES)
+        self._max_per_word = int(mod.MAX_EVENTS_PER_WORD)
+        self._state = mod.new_decoder_state()
+        # kernels read native words; EVT 2.1 words are read as two u32 halves (layout-dependent)
+        self._dtype = np.dtype({2: "<u2", 4: "<u4", 8: "<u4"}[self._word])
+        self._step = 2 if self._word == 8 else 1
+        kernel = mod.decode_kernel
+        if fmt.startswith("evt21"):
+            swapped = fmt == "evt21"
+
+            def _call(*args: Any) -> tuple[int, int, int, int]:
+                return kernel(*args, swapped)
+
+            self._kernel: Callable[..., tuple[int, int, int, int]] = _call
+        else:
+            self._kernel = kernel
+        self._stats = np.zeros(N_CODES, np.int64)
+        self._pending = b""
+        self._base = int(offset)
+        self.bytes_consumed = 0
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """Skipped items by kind (events for pixel-level kinds, words otherwise)."""
+        return {name: int(self._stats[code]) for code, name in KIND_NAMES.items()}
+
+    def _run(self, raw: NDArray[np.uint8], out: _Out, abs_start: int) -> None:
+        if raw.ctypes.data % self._word:
+            raw = raw.copy()  # chunk cut mid-word left the body unaligned; one memcpy
+        buf = raw.view(self._dtype)
+        pos, end = 0, buf.shape[0] // self._step
+        ws = self._word
+        while pos < end:
+            pos, out.n, out.nt, err = self._kernel(
+                buf, pos, end, self._state,
+                out.x, out.y, out.p, out.t, out.n,
+                out.tt, out.tp, out.tc, out.nt,
+                self._stats, self.width, self.height, self.strict,
+            )  # fmt: skip
+            if err:
+                word = bytes(raw[pos * ws : (pos + 1) * ws])[::-1].hex()
+                off = abs_start + pos * ws
+                kind = KIND_NAMES[err]
+                self.bytes_consumed = off - self._base
+                raise EvtDecodeError(
+                    f"{self.fmt}: {kind} at byte offset {off} (word 0x{word})", offset=off, kind=kind
+                )
+            if pos < end:
+                out.grow(self._max_per_word)
+
+    def feed(self, data: bytes | bytearray | memoryview) -> Decoded:
+        """Decode the next chunk; any trailing partial word is kept for the next call."""
+        arr = np.frombuffer(data, np.uint8) if len(data) else np.empty(0, np.uint8)
+        ws = self._word
+        total = len(self._pending) + arr.shape[0]
+        nwords = total // ws
+        if nwords == 0:
+            self._pending += arr.tobytes()
+            return Decoded.empty()
+        cap_events = min(nwords * self._max_per_word, max(nwords * ws, 256)) + self._max_per_word + 1
+        out = _Out(cap_events, 16 + nwords // 64)
+        start = self._base + self.bytes_consumed
+        if self._pending:
+            need = ws - len(self._pending)
+            head = np.frombuffer(self._pending + arr[:need].tobytes(), np.uint8)
+            self._run(head, out, start)
+            arr = arr[need:]
+            start += ws
+            self._pending = b""
+        whole = (arr.shape[0] // ws) * ws
+        if whole:
+            self._run(arr[:whole], out, start)
+        self._pending = arr[whole:].tobytes()
+        self.bytes_consumed += nwords * ws
+        return out.result()
+
+    def finish(self) -> Decoded:
+        """End of stream: a leftover partial word is a truncation (raised or counted)."""
+        if self._pending:
+            off = self._base + self.bytes_consumed
+            n = len(self._pending)
+            self._pending = b""
+            if self.strict:
+                raise EvtDecodeError(
+                    f"{self.fmt}: truncated: stream ends with {n} byte(s) of a {self._word}-byte word "
+                    f"at byte offset {off}",
+                    offset=off,
+                    kind=KIND_NAMES[TRUNCATED],
+                )
+            self._stats[TRUNCATED] += 1
+            log.warning("%s stream ends with %d byte(s) of a partial word at offset %d", self.fmt, n, off)
+        return Decoded.empty()
+
+    def log_stats(self) -> None:
+        """Report skipped items once, so tolerant decoding is never silent."""
+        skipped = {k: v for k, v in self.stats.items() if v}
+        if skipped:
+            log.warning("%s decode skipped items: %s", self.fmt, skipped)
+
+
+def decode_bytes(
+    data: bytes | bytearray | memoryview,
+    fmt: str,
+    *,
+    width: int = 1280,
+    height: int = 720,
+    strict: bool = False,
+) -> Decoded:
+    """Decode a complete in-memory stream (no header)."""
+    dec = StreamDecoder(fmt, width=width, height=height, strict=strict)
+    out = dec.feed(data)
+    dec.finish()
+    dec.log_stats()
+    return out
+
+
+# ---------------------------------------------------------------- RAW header
+
+_FORMAT_NAMES = {"EVT3": "evt3", "EVT2": "evt2", "EVT21": "evt21"}
+_EVT_VERSIONS = {"3.0": "evt3", "2.0": "evt2", "2.1": "evt21"}
+# (plugin / sensor name fragment, width, height) for old headers without geometry
+_SENSOR_GEOMETRY = (
+    ("gen3", 640, 480),
+    ("gen4", 1280, 720),
+    ("imx636", 1280, 720),
+    ("imx646", 1280, 720),
+    ("genx320", 320, 320),
+    ("imx8", 320, 320),
+)
+
+
+@dataclass(slots=True)
+class RawHeader:
+    """Parsed `% key value` header of a RAW file; `fields` keeps every line's key and value."""
+
+    fmt: str = "evt3"
+    width: int = 1280
+    height: int = 720
+    fields: dict[str, str] = field(default_factory=dict)
+    size: int = 0  # header bytes in the file (where the event stream starts)
+
+    @property
+    def serial_number(self) -> str | None:
+        return self.fields.get("serial_number")
+
+    def to_bytes(self) -> bytes:
+        """New-style header (with `% evt` kept for old readers), ending in `% end`."""
+        name = {"evt3": "EVT3", "evt2": "EVT2", "evt21": "EVT21", "evt21_le": "EVT21"}[self.fmt]
+        version = {"evt3": "3.0", "evt2": "2.0", "evt21": "2.1", "evt21_le": "2.1"}[self.fmt]
+        fmt_line = f"{name};height={self.height};width={self.width}"
+        if self.fmt == "evt21_le":
+            fmt_line += ";endianness=little"
+        lines = [f"% evt {version}", f"% format {fmt_line}", f"% geometry {self.width}x{self.height}"]
+        skip = {"evt", "format", "geometry", "end"}
+        lines += [f"% {k} {v}".rstrip() for k, v in self.fields.items() if k not in skip]
+        lines.append("% end")
+        return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def _read_header_lines(f: BinaryIO) -> tuple[list[str], int]:
+    lines: list[str] = []
+    while True:
+        start = f.tell()
+        if f.read(1) != b"%":
+            f.seek(start)
+            break
+        raw = b"%" + f.readline()
+        try:
+            text = raw.decode("ascii")
+        except UnicodeDecodeError:
+            f.seek(start)  # a binary word that happens to start with '%'
+            break
+        if not text.endswith("\n") or any(not (c.isprintable() or c in "\r\n\t") for c in text):
+            f.seek(start)
+            break
+        text = text.rstrip("\r\n")
+        lines.append(text)
+        if text.strip() == "% end":
+            break
+    return lines, f.tell()
+
+
+def parse_raw_header(f: BinaryIO) -> RawHeader:
+    """Read the header at the current position; leaves `f` at the first stream byte."""
+    lines, size = _read_header_lines(f)
+    fields: dict[str, str] = {}
+    for line in lines:
+        body = line[1:].strip()
+        if not body:
+            continue
+        key, _, value = body.partition(" ")
+        fields[key] = value.strip()
+    hdr = RawHeader(fields=fields, size=size)
+    width = height = None
+    fmt = None
+    if "format" in fields:
+        parts = fields["format"].split(";")
+        fmt = _FORMAT_NAMES.get(parts[0].strip().upper())
+        params = dict(p.split("=", 1) for p in parts[1:] if "=" in p)
+        if fmt == "evt21" and params.get("endianness", "").lower() == "little":
+            fmt = "evt21_le"
+        if "width" in params and "height" in params:
+            width, height = int(params["width"]), int(params["height"])
+    if fmt is None and "evt" in fields:
+        fmt = _EVT_VERSIONS.get(fields["evt"])
+    if width is None and "geometry" in fields and "x" in fields["geometry"]:
+        gw, _, gh = fields["geometry"].partition("x")
+        width, height = int(gw), int(gh)
+    if width is None:
+        sensor = " ".join(
+            fields.get(k, "") for k in ("plugin_name", "sensor_generation", "system_ID")
+        ).lower()
+        for frag, w, h in _SENSOR_GEOMETRY:
+            if frag in sensor:
+                width, height = w, h
+                break
+    if fmt is None:
+        log.warning("RAW header names no known format (%s); assuming EVT 3.0", fields.get("format"))
+        fmt = "evt3"
+    hdr.fmt = fmt
+    if width is not None and height is not None:
+        hdr.width, hdr.height = width, height
+    return hdr
+
+
+class RawReader:
+    """Iterate a RAW file as decoded chunks of `chunk_bytes` input bytes, in constant memory."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        chunk_bytes: int = 1 << 20,
+        *,
+        strict: bool = False,
+        fmt: str | None = None,
+        width: int | None = None,
+        height: int | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self._f: BinaryIO = self.path.open("rb")
+        try:
+            self.header = parse_raw_header(self._f)
+        except (ValueError, OSError):
+            self._f.close()
+            raise
+        if fmt is not None:
+            self.header.fmt = fmt
+        self.chunk_bytes = max(1, int(chunk_bytes))
+        self.decoder = StreamDecoder(
+            self.header.fmt,
+            width=width or self.header.width,
+            height=height or self.header.height,
+            strict=strict,
+            offset=self.header.size,
+        )
+
+    def __iter__(self) -> Iterator[Decoded]:
+        try:
+            while True:
+                chunk = self._f.read(self.chunk_bytes)
+                if not chunk:
+                    break
+                yield self.decoder.feed(chunk)
+            self.decoder.finish()
+            self.decoder.log_stats()
+        finally:
+            self.close()
+
+    @property
+    def stats(self) -> dict[str, int]:
+        return self.decoder.stats
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> RawReader:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def read_raw(path: str | Path, *, strict: bool = False, fmt: str | None = None) -> tuple[RawHeader, Decoded]:
+    """Decode a whole RAW file."""
+    with Path(path).open("rb") as f:
+        hdr = parse_raw_header(f)
+        data = f.read()
+    if fmt is not None:
+        hdr.fmt = fmt
+    dec = StreamDecoder(hdr.fmt, width=hdr.width, height=hdr.height, strict=strict, offset=hdr.size)
+    out = dec.feed(data)
+    dec.finish()
+    dec.log_stats()
+    return hdr, out
+
+
+def encode(fmt: str, events: EventArray, triggers: TriggerEvents | None = None) -> bytes:
+    """One-shot encoding in any supported format."""
+    if fmt == "evt3":
+        return evt3.encode_evt3(events, triggers)
+    if fmt == "evt2":
+        return evt2.encode_evt2(events, triggers)
+    if fmt in ("evt21", "evt21_le"):
+        return evt21.encode_evt21(events, triggers, little_endian=fmt == "evt21_le")
+    raise EventDataError(f"unknown EVT format {fmt!r}")
+
+
+def write_raw(
+    path: str | Path, header: RawHeader, events: EventArray, triggers: TriggerEvents | None = None
+) -> None:
+    """Write a RAW file that OpenEB and `read_raw` decode back to the same events."""
+    if len(events) and (int(events.x.max()) >= header.width or int(events.y.max()) >= header.height):
+        raise EventDataError(f"events exceed the header geometry {header.width}x{header.height}")
+    payload = encode(header.fmt, events, triggers)
+    with Path(path).open("wb") as f:
+        f.write(header.to_bytes())
+        f.write(payload)
