@@ -76,6 +76,20 @@ class EventSensorSettings(BaseModel):
 
     trigger_in_channel: int = Field(0, ge=0, le=255)
     enable_trigger_in: bool = True
+    sync_mode: Literal["standalone", "master", "slave"] = Field(
+        "standalone",
+        description="Camera synchronization: a slave takes its clock from the master over the sync cable.",
+    )
+    sync_master: str | None = Field(
+        None, description="For a slave: the rig name of the event sensor whose clock it shares."
+    )
+    biases: dict[str, int] = Field(
+        default_factory=dict, description="Sensor biases by name, e.g. bias_diff_on."
+    )
+    roi: tuple[int, int, int, int] | None = Field(None, description="(x, y, width, height) window, or None.")
+    erc_rate_ev_s: float | None = Field(
+        None, gt=0, description="Event rate controller limit, events/s; dropped events are counted."
+    )
 
 
 class TriggerSettings(BaseModel):

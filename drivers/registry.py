@@ -29,6 +29,8 @@ ENTRY_POINT_GROUP = "rigd.backends"
 
 _BUILTIN: dict[tuple[str, str], str] = {
     ("trigger", "serial"): "drivers.serial_trigger:open_serial_trigger",
+    ("event_sensor", "file"): "drivers.file_event_sensor:open_file_event_sensor",
+    ("event_sensor", "prophesee"): "drivers.prophesee:open_prophesee_sensor",
 }
 _registered: dict[tuple[str, str], Factory | str] = {}
 

@@ -8,8 +8,13 @@ each pixel's reference level. A pixel crossing k thresholds in one sub-step emit
 at times linearly interpolated between the two renders. No noise, no refractory period:
 the full pixel model comes later.
 
-Trigger-in edges are latched in the sensor clock and delivered with the events of the
-slice they fall in; packets go into a bounded buffer whose overflows are counted.
+The sensor talks like a Prophesee camera: each slice's events and trigger-in edges are
+encoded into an EVT 3.0 byte stream (time-ordered, trigger edges interleaved), and the host
+side is the production `drivers.evt_stream.EvtStreamSensor`, which decodes it. The generator
+runs `GENERATION_LAG_US` behind true time so the trigger box's edges for a slice are latched
+before the slice is encoded; an edge later than that cannot be placed in the time-ordered
+stream and is counted (`triggers_late`), never dropped silently. Buffers go into a bounded
+queue whose overflows are counted.
 """
 
 from __future__ import annotations
@@ -29,10 +34,10 @@ from drivers.base import (
     AcquisitionStats,
     Capability,
     DeviceInfo,
-    EventPacket,
-    EventSensor,
     EventSensorSettings,
 )
+from drivers.evt import Evt3Encoder
+from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
 from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, lin_log, log_lut
 from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
@@ -455,8 +460,15 @@ class SensorParams:
     buffer_packets: int = 1024
 
 
-class SimEventSensor(EventSensor):
-    """An ideal event sensor in a `SimWorld`, with its own drifting clock and trigger-in."""
+#: How far behind true time the generator encodes, so trigger edges are in before their slice.
+GENERATION_LAG_US = 20_000
+
+
+class SimEventSensor:
+    """An ideal event sensor in a `SimWorld`, with its own drifting clock and trigger-in.
+
+    A `drivers.evt_stream.ByteSource`: it hands out EVT 3.0 buffers, as a camera would.
+    """
 
     def __init__(
         self,
@@ -489,14 +501,22 @@ class SimEventSensor(EventSensor):
         self._lock = threading.Lock()
         self._accepting = False
         self._pending: list[tuple[float, int]] = []
-        self._packets: queue.Queue[EventPacket] = queue.Queue(maxsize=p.buffer_packets)
+        self._packets: queue.Queue[tuple[bytes, int]] = queue.Queue(maxsize=p.buffer_packets)
+        self._encoder = Evt3Encoder()
+        self._encoded_until_us = -math.inf
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self._closed = False
-        self._delivered = 0
         self._events_lost = 0
-        self._counts = {"packets_dropped": 0, "triggers_dropped": 0, "events_generated": 0, "triggers": 0}
+        self._counts = {
+            "packets_dropped": 0,
+            "triggers_dropped": 0,
+            "triggers_late": 0,
+            "events_generated": 0,
+            "triggers": 0,
+            "bytes": 0,
+        }
         self._cpu_s = 0.0
         self._unsubscribe = world.wire.subscribe(self._on_edge)
 
@@ -513,6 +533,10 @@ class SimEventSensor(EventSensor):
     @property
     def geometry(self) -> tuple[int, int]:
         return self._p.width, self._p.height
+
+    @property
+    def evt_format(self) -> str:
+        return "evt3"
 
     @property
     def clock(self) -> DeviceClock:
@@ -533,6 +557,17 @@ class SimEventSensor(EventSensor):
         self._check_open()
         if self._thread is not None:
             raise DeviceError(f"event sensor {self._name} is already started")
+        if self._settings.sync_mode == "slave":
+            # A slave counts time on its master's clock (the sync cable): share that clock.
+            master = self._settings.sync_master
+            clocks = self._world.truth.clocks
+            if master is None or master not in clocks:
+                raise ConfigError(
+                    f"event sensor {self._name}: sync master {master!r} is not a device of world "
+                    f"{self._world.name!r} (sim device names must match the rig names)"
+                )
+            self._clock = clocks[master]
+            self._world.register_clock(self._name, self._clock)
         t_start = self._world.now_us()
         last_log = lin_log(self._scene.render_intensity(self._view, t_start))
         self._stop.clear()
@@ -569,7 +604,7 @@ class SimEventSensor(EventSensor):
             self._unsubscribe()
             self._closed = True
 
-    def read_events(self, timeout_s: float) -> EventPacket | None:
+    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
         self._check_open()
         try:
             first = (
@@ -585,22 +620,14 @@ class SimEventSensor(EventSensor):
                 parts.append(self._packets.get_nowait())
             except queue.Empty:
                 break
-        if len(parts) == 1:
-            packet = first
-        else:
-            packet = EventPacket(
-                EventArray.concatenate([q.events for q in parts]),
-                TriggerEvents.concatenate([q.triggers for q in parts]),
-                parts[-1].host_time_ns,
-            )
-        with self._lock:
-            self._delivered += len(packet.events)
-        return packet
+        return b"".join(b for b, _ in parts), parts[-1][1]
 
     def stats(self) -> AcquisitionStats:
         with self._lock:
             return AcquisitionStats(
-                delivered=self._delivered, device_dropped=self._events_lost, extra=dict(self._counts)
+                delivered=self._counts["events_generated"] - self._events_lost,
+                device_dropped=self._events_lost,
+                extra=dict(self._counts),
             )
 
     def _check_open(self) -> None:
@@ -612,8 +639,17 @@ class SimEventSensor(EventSensor):
     def _on_edge(self, edge: Edge) -> None:
         """Runs on the trigger box's thread: only latch the edge."""
         with self._lock:
-            if self._accepting and self._settings.enable_trigger_in:
-                self._pending.append((edge.true_us, 1 if edge.rising else 0))
+            if not (self._accepting and self._settings.enable_trigger_in):
+                return
+            if edge.true_us < self._encoded_until_us:
+                self._counts["triggers_late"] += 1
+                log.warning(
+                    "event sensor %s: trigger edge at true %.0f us arrived after its slice was encoded",
+                    self._name,
+                    edge.true_us,
+                )
+                return
+            self._pending.append((edge.true_us, 1 if edge.rising else 0))
 
     def _take_triggers(self, t_end_us: float | None) -> TriggerEvents:
         """Pending edges before `t_end_us` (all of them when None), stamped in the sensor clock."""
@@ -641,12 +677,18 @@ class SimEventSensor(EventSensor):
         cpu0 = time.thread_time()
         try:
             while True:
-                stopping = self._stop.wait(max(0.0, (t_prev + SLICE_US - self._world.now_us()) * 1e-6))
-                t_now = self._world.now_us()
+                wake = t_prev + SLICE_US + GENERATION_LAG_US
+                stopping = self._stop.wait(max(0.0, (wake - self._world.now_us()) * 1e-6))
+                # At stop everything up to now goes out: no later edge can belong to it.
+                t_now = self._world.now_us() - (0 if stopping else GENERATION_LAG_US)
+                if t_now <= t_prev and not stopping:
+                    continue
                 buf = generate_events(
                     self._scene, self._view, last_log, ref, self._p.threshold, t_prev, t_now, self._clock
                 )
                 events = buf.to_array()
+                with self._lock:
+                    self._encoded_until_us = t_now
                 triggers = self._take_triggers(None if stopping else t_now)
                 self._emit(events, triggers)
                 self._cpu_s = time.thread_time() - cpu0
@@ -660,9 +702,9 @@ class SimEventSensor(EventSensor):
     def _emit(self, events: EventArray, triggers: TriggerEvents) -> None:
         if len(events) == 0 and len(triggers) == 0:
             return
-        packet = EventPacket(events, triggers, time.monotonic_ns())
+        payload = self._encoder.encode(events, triggers)
         try:
-            self._packets.put_nowait(packet)
+            self._packets.put_nowait((payload, time.monotonic_ns()))
         except queue.Full:
             with self._lock:
                 self._events_lost += len(events)
@@ -677,9 +719,10 @@ class SimEventSensor(EventSensor):
         with self._lock:
             self._counts["events_generated"] += len(events)
             self._counts["triggers"] += len(triggers)
+            self._counts["bytes"] += len(payload)
 
 
-def open_sim_event_sensor(spec: DeviceSpec) -> SimEventSensor:
+def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
     """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=`."""
     spec.check_params({"offset_us", "drift_ppm", "seed", "width", "height", "threshold", "buffer_packets"})
     name = spec.path.strip("/")
@@ -707,4 +750,4 @@ def open_sim_event_sensor(spec: DeviceSpec) -> SimEventSensor:
                 f"device spec {spec.raw!r}: {field_name}={spec.params[field_name]!r} out of range"
             )
     clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
-    return SimEventSensor(world, name, scene, clock, params, spec.raw)
+    return EvtStreamSensor(SimEventSensor(world, name, scene, clock, params, spec.raw))

@@ -413,17 +413,39 @@ def _drain_wait(pipe: _Pipeline, rate: float) -> None:
 
 
 def _record_device_losses(pipe: _Pipeline) -> None:
-    devices: dict[str, Any] = {**pipe.cameras, **pipe.sensors}
+    """Turn device-side counters into loss records: what the device lost, what the host's
+    decoder had to skip, and trigger edges that could not be delivered in order."""
+    devices: dict[str, RgbCamera | EventSensor] = {**pipe.cameras, **pipe.sensors}
     for name, dev in devices.items():
         stats = dev.stats()
+        is_cam = name in pipe.cameras
         if stats.device_dropped:
-            what = "frames" if name in pipe.cameras else "events"
             pipe.losses.append(
                 LossRecord(
                     device=name,
-                    what=what,
+                    what="frames" if is_cam else "events",
                     count=stats.device_dropped,
                     reason="lost inside the device or its transport (device counters)",
+                )
+            )
+        skipped = {k.removeprefix("decoder_skipped_"): v for k, v in stats.extra.items() if v}
+        skipped = {k: v for k, v in skipped.items() if f"decoder_skipped_{k}" in stats.extra}
+        if skipped:
+            pipe.losses.append(
+                LossRecord(
+                    device=name,
+                    what="events",
+                    count=sum(skipped.values()),
+                    reason=f"EVT decoder skipped invalid data: {skipped}",
+                )
+            )
+        if stats.extra.get("triggers_late"):
+            pipe.losses.append(
+                LossRecord(
+                    device=name,
+                    what="triggers",
+                    count=stats.extra["triggers_late"],
+                    reason="trigger edges arrived after their part of the stream was sent",
                 )
             )
 
@@ -450,7 +472,12 @@ def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
                 name, "rgb_camera" if is_cam else "event_sensor", t, host, counter if is_cam else None
             )
         )
-    result = synchronize(pulses, observations, rate, pipe.losses)
+    slaves = {
+        s.name: s.settings.sync_master
+        for s in pipe.config.event_sensors
+        if s.settings.sync_mode == "slave" and s.settings.sync_master is not None
+    }
+    result = synchronize(pulses, observations, rate, pipe.losses, shares_clock_with=slaves)
     if pipe.trigger is not None:
         result.report.trigger_link = pipe.trigger.link_stats()
     frame_index = {name: result.observation_pulse_index[name] for name in pipe.cameras}

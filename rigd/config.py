@@ -72,6 +72,19 @@ class RigConfig(BaseModel):
             raise ValueError(f"device names must be unique; repeated: {', '.join(dupes)}")
         if not names:
             raise ValueError("a rig needs at least one camera or event sensor")
+        modes = {s.name: s.settings.sync_mode for s in self.event_sensors}
+        for sen in self.event_sensors:
+            st = sen.settings
+            if st.sync_mode == "slave":
+                if st.sync_master is None:
+                    raise ValueError(f"event sensor {sen.name}: sync_mode slave needs sync_master")
+                if modes.get(st.sync_master) != "master":
+                    raise ValueError(
+                        f"event sensor {sen.name}: sync_master {st.sync_master!r} is not an event "
+                        "sensor of this rig in sync_mode master"
+                    )
+            elif st.sync_master is not None:
+                raise ValueError(f"event sensor {sen.name}: sync_master is only for sync_mode slave")
         return self
 
     @classmethod

@@ -209,8 +209,14 @@ def synchronize(
     observations: list[DeviceObservations],
     rate_hz: float,
     losses: list[LossRecord] | None = None,
+    shares_clock_with: dict[str, str] | None = None,
 ) -> SyncResult:
-    """Fit every device clock to the rig clock and write down everything that is missing."""
+    """Fit every device clock to the rig clock and write down everything that is missing.
+
+    `shares_clock_with` maps a slave device to its master (same clock over a sync cable): a
+    slave without trigger observations of its own takes its master's map.
+    """
+    shared = shares_clock_with or {}
     if pulses.index.size and np.any(np.diff(pulses.index) <= 0):
         raise SyncError("box pulse indices are not strictly increasing")
     period_us = 1e6 / rate_hz
@@ -224,19 +230,28 @@ def synchronize(
     obs_index: dict[str, NDArray[np.int64]] = {}
     devices: dict[str, DeviceSync] = {}
     seen = np.zeros(max(pulses.n_emitted, int(pulses.index.max(initial=-1)) + 1), bool)
+    matches = {obs.name: match_device(obs, pulses, period_us, host_map) for obs in observations}
     for obs in observations:
-        m = match_device(obs, pulses, period_us, host_map)
-        warnings.extend(m.warnings)
+        m = matches[obs.name]
         obs_index[obs.name] = m.pulse_index
         matched = m.pulse_index[m.pulse_index >= 0]
         seen[matched] = True
-        if m.fit is None:
+        master = shared.get(obs.name)
+        master_fit = matches[master].fit if master in matches else None
+        clock_from: Literal["own_pulses", "master", "host"] = "own_pulses"
+        if m.fit is not None:
+            warnings.extend(m.warnings)
+            cmap, rms, mx = m.fit.map, m.fit.rms_us, m.fit.max_abs_us
+        elif master_fit is not None:
+            cmap, rms, mx = master_fit.map, master_fit.rms_us, master_fit.max_abs_us
+            clock_from = "master"
+        else:
             # Keep the data usable and say loudly how its time was derived.
+            warnings.extend(m.warnings)
             cmap = _fallback_map(obs, host_map)
             warnings.append(f"{obs.name}: times mapped with the coarse host clock (ms accuracy)")
             rms = mx = float("nan")
-        else:
-            cmap, rms, mx = m.fit.map, m.fit.rms_us, m.fit.max_abs_us
+            clock_from = "host"
         maps[obs.name] = cmap
         dropped = _counter_gaps(obs.frame_counter) if obs.frame_counter is not None else []
         devices[obs.name] = DeviceSync(
@@ -250,9 +265,14 @@ def synchronize(
             n_matched=int(matched.size),
             residual_rms_us=rms,
             residual_max_us=mx,
-            missing_pulses=[int(i) for i in np.setdiff1d(expected, matched)],
+            # A slave reading its master's clock without trigger-in is not missing pulses.
+            missing_pulses=[]
+            if clock_from == "master" and obs.t_device_us.size == 0
+            else [int(i) for i in np.setdiff1d(expected, matched)],
             dropped_frames=dropped,
             unmatched_observations=int((m.pulse_index < 0).sum()),
+            shares_clock_with=master,
+            clock_from=clock_from,
         )
         if dropped:
             warnings.append(f"{obs.name}: {len(dropped)} frame(s) lost (counter gaps)")

@@ -73,6 +73,12 @@ class DeviceSync(BaseModel):
     unmatched_observations: int = Field(
         0, description="Device trigger observations (frames / trigger-in edges) matched to no box pulse."
     )
+    shares_clock_with: str | None = Field(
+        None, description="Master whose clock this device runs on (camera synchronization), if any."
+    )
+    clock_from: Literal["own_pulses", "master", "host"] = Field(
+        "own_pulses", description="What the map was fitted on: its own pulses, its master's, the host clock."
+    )
 
 
 class LossRecord(BaseModel):

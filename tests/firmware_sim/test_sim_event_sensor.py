@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from drivers.base import EventPacket, EventSensorSettings
+from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
 from firmware_sim.event_sensor import (
     EventBuffer,
-    SimEventSensor,
     generate_events,
     generate_events_kernel,
     open_sim_event_sensor,
@@ -116,13 +116,13 @@ def world_name() -> Iterator[str]:
     reset_world(name)
 
 
-def open_ev(world: str, extra: str = "") -> SimEventSensor:
+def open_ev(world: str, extra: str = "") -> EvtStreamSensor:
     return open_sim_event_sensor(
         DeviceSpec.parse(f"sim://{world}/ev0?offset_us=412775&drift_ppm=-95&width=320&height=180{extra}")
     )
 
 
-def drain(sensor: SimEventSensor) -> list[EventPacket]:
+def drain(sensor: EvtStreamSensor) -> list[EventPacket]:
     out = []
     while (p := sensor.read_events(0.05)) is not None:
         out.append(p)
@@ -173,10 +173,10 @@ def test_trigger_in_edges_are_stamped_in_the_sensor_clock(world_name: str) -> No
         packets = drain(sensor)
     trig = TriggerEvents.concatenate([p.triggers for p in packets])
     expected = sorted([(t, 1) for t in rising] + [(t + 500.0, 0) for t in rising])
-    assert trig.t.tolist() == [sensor.clock.stamp(t) for t, _ in expected]
+    assert trig.t.tolist() == [sensor.source.clock.stamp(t) for t, _ in expected]
     assert trig.p.tolist() == [p for _, p in expected]
     assert (trig.channel == 3).all()
-    assert get_world(world_name).truth.clocks["ev0"] is sensor.clock
+    assert get_world(world_name).truth.clocks["ev0"] is sensor.source.clock
 
 
 def test_trigger_in_can_be_disabled(world_name: str) -> None:

@@ -15,6 +15,7 @@ from firmware_sim.world import GroundTruth, get_world
 from rigd.capture import CaptureResult, run_capture
 from rigd.cli import app
 from rigd.config import RigConfig, default_sim_rig
+from rigd.core.errors import ConfigError
 from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take
 
@@ -124,3 +125,39 @@ def test_bad_config_is_a_clear_error(tmp_path: Path) -> None:
     r = CliRunner().invoke(app, ["capture", "--config", str(bad), "--out", str(tmp_path)])
     assert r.exit_code == 2
     assert "trigger.settings.rate_hz" in r.output
+
+
+def test_master_slave_event_sensors_share_a_clock(tmp_path: Path) -> None:
+    world = f"ms-{uuid.uuid4().hex[:8]}"
+    cfg = _rig(world)
+    cfg.cameras = cfg.cameras[:1]
+    ev0, ev1 = cfg.event_sensors
+    ev0.settings.sync_mode = "master"
+    ev1.settings.sync_mode = "slave"
+    ev1.settings.sync_master = "ev0"
+    ev1.settings.enable_trigger_in = False  # the slave has no trigger cable, only the sync cable
+    res = run_capture(RigConfig.model_validate(cfg.model_dump()), tmp_path, 1.0)
+    rep = res.report
+    assert rep.devices["ev1"].shares_clock_with == "ev0"
+    assert rep.devices["ev1"].clock_from == "master"
+    assert rep.devices["ev1"].missing_pulses == []
+    assert rep.devices["ev0"].clock_from == "own_pulses"
+    truth = get_world(world).truth
+    with Take(res.path) as take:
+        assert len(take.triggers("ev1")) == 0
+        t_rig = take.events("ev1").t
+        assert len(t_rig) > 1000
+        d = rep.devices["ev1"]
+        t_dev = ClockMap(d.device_ref_us, d.rig_ref_us, d.rate, d.frac_us).to_device(t_rig)
+        err = t_rig - _truth_rig(truth, "ev1", t_dev)
+        assert np.sqrt(np.mean(err**2)) <= 1.0
+        cfg_back = RigConfig.model_validate(take.config)
+        assert cfg_back.event_sensors[1].settings.sync_mode == "slave"
+
+
+def test_slave_without_master_is_rejected() -> None:
+    cfg = _rig("unused").model_dump()
+    cfg["event_sensors"][1]["settings"]["sync_mode"] = "slave"
+    cfg["event_sensors"][1]["settings"]["sync_master"] = "ev0"
+    with pytest.raises(ConfigError, match="not an event sensor of this rig in sync_mode master"):
+        RigConfig.from_data(cfg)

@@ -1,0 +1,236 @@
+"""`file://PATH.raw` (or `.dat`) replay as an event sensor.
+
+The file is decoded by the production EVT decoder in chunks of constant size. Replay runs as
+fast as the reader asks (`pace=0`) or paced against the host clock (`pace=1` is real time,
+`pace=0.5` half speed). With `loop=1` the recording starts over at its end, each pass shifted
+by the recording's span plus one microsecond so time keeps increasing.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from drivers.base import (
+    AcquisitionStats,
+    Capability,
+    DeviceInfo,
+    EventPacket,
+    EventSensor,
+    EventSensorSettings,
+)
+from drivers.evt import Decoded, RawReader, parse_raw_header, read_dat
+from drivers.registry import DeviceSpec
+from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.events import TriggerEvents
+
+log = logging.getLogger(__name__)
+
+_CAPS = frozenset({Capability.DEVICE_TIMESTAMPS, Capability.TRIGGER_IN})
+
+
+class FileEventSensor(EventSensor):
+    """Replays a RAW or DAT recording through the EventSensor interface."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        pace: float = 0.0,
+        loop: bool = False,
+        chunk_bytes: int = 1 << 20,
+        strict: bool = False,
+        spec: str = "",
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ConfigError(f"event file {self.path} does not exist")
+        if pace < 0 or not np.isfinite(pace):
+            raise ConfigError(f"event file {self.path}: pace must be >= 0, got {pace}")
+        self.pace, self.loop, self.chunk_bytes, self.strict = pace, loop, chunk_bytes, strict
+        self._is_dat = self.path.suffix.lower() == ".dat"
+        if self._is_dat:
+            hdr, ev = read_dat(self.path, strict=strict)
+            if hdr.width and hdr.height:
+                self._geometry = (hdr.width, hdr.height)
+            elif len(ev):  # old DAT files carry no geometry: the smallest that holds the data
+                self._geometry = (int(ev.x.max()) + 1, int(ev.y.max()) + 1)
+            else:
+                raise ConfigError(f"event file {self.path}: no geometry in the header and no events")
+            self._fmt, serial, fields = "dat", "", dict(hdr.fields)
+        else:
+            with self.path.open("rb") as f:
+                raw_hdr = parse_raw_header(f)
+            self._geometry = (raw_hdr.width, raw_hdr.height)
+            self._fmt, serial, fields = raw_hdr.fmt, raw_hdr.serial_number or "", raw_hdr.fields
+        self.header_fields = fields
+        self._info = DeviceInfo(
+            kind="event_sensor",
+            spec=spec or f"file://{self.path}",
+            vendor="file",
+            model=fields.get("camera_integrator_name", "") + " " + fields.get("plugin_name", ""),
+            serial=serial,
+            firmware=f"format={self._fmt}",
+        )
+        self._settings = EventSensorSettings()
+        self._chunks: Iterator[Decoded] | None = None
+        self._reader: RawReader | None = None
+        self._pending = Decoded.empty()
+        self._shift = 0
+        self._span = 0
+        self._first_t: int | None = None
+        self._t0_host = 0.0
+        self._passes = 0
+        self._delivered = 0
+        self._exhausted = False
+        self._closed = False
+
+    # -- Device ---------------------------------------------------------------------------
+    @property
+    def info(self) -> DeviceInfo:
+        return self._info
+
+    @property
+    def capabilities(self) -> frozenset[Capability]:
+        return _CAPS
+
+    @property
+    def geometry(self) -> tuple[int, int]:
+        return self._geometry
+
+    @property
+    def evt_format(self) -> str:
+        return self._fmt
+
+    def configure(self, settings: EventSensorSettings) -> None:
+        self._check_open()
+        if self._chunks is not None:
+            raise DeviceError(f"event file sensor {self.path}: configure while started; stop it first")
+        self._settings = settings.model_copy()
+
+    def start(self) -> None:
+        self._check_open()
+        self._open_pass()
+        self._t0_host = time.monotonic()
+
+    def stop(self) -> None:
+        self._close_reader()
+
+    def close(self) -> None:
+        self._close_reader()
+        self._closed = True
+
+    def stats(self) -> AcquisitionStats:
+        extra = {"passes": self._passes}
+        if self._reader is not None:
+            extra.update({f"decoder_skipped_{k}": v for k, v in self._reader.stats.items()})
+        return AcquisitionStats(delivered=self._delivered, device_dropped=0, extra=extra)
+
+    # -- replay ---------------------------------------------------------------------------
+    def _open_pass(self) -> None:
+        self._close_reader()
+        self._passes += 1
+        if self._is_dat:
+            _, ev = read_dat(self.path, strict=self.strict)
+            self._chunks = iter([Decoded(ev, TriggerEvents.empty())])
+        else:
+            self._reader = RawReader(self.path, self.chunk_bytes, strict=self.strict)
+            self._chunks = iter(self._reader)
+        self._exhausted = False
+
+    def _close_reader(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+        self._reader, self._chunks = None, None
+
+    def _next_chunk(self) -> bool:
+        """Append the next decoded chunk to the pending buffer; False at the very end."""
+        while True:
+            if self._chunks is None:
+                return False
+            chunk = next(self._chunks, None)
+            if chunk is None:
+                if not self.loop or self._first_t is None:
+                    self._exhausted = True
+                    return False
+                self._shift += self._span + 1
+                self._open_pass()
+                continue
+            ev, tr = chunk.events, chunk.triggers
+            if len(ev) == 0 and len(tr) == 0:
+                continue
+            if self._first_t is None:
+                self._first_t = _first_time(chunk)
+            last = max(int(a[-1]) for a in (ev.t, tr.t) if len(a))
+            if self._passes == 1:
+                self._span = max(self._span, last - self._first_t)
+            if self._shift:
+                ev = ev.with_time(ev.t + self._shift)
+                tr = TriggerEvents(tr.t + self._shift, tr.p, tr.channel)
+            self._pending = Decoded.concatenate([self._pending, Decoded(ev, tr)])
+            return True
+
+    def read_events(self, timeout_s: float) -> EventPacket | None:
+        self._check_open()
+        if self._chunks is None and not len(self._pending.events) and not len(self._pending.triggers):
+            return None
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        while True:
+            if not len(self._pending.events) and not len(self._pending.triggers) and not self._next_chunk():
+                return None
+            if self.pace == 0 or self._first_t is None:
+                out, self._pending = self._pending, Decoded.empty()
+                return self._packet(out)
+            due = self._first_t + int((time.monotonic() - self._t0_host) * 1e6 * self.pace)
+            out, rest = _split(self._pending, due)
+            if len(out.events) or len(out.triggers):
+                self._pending = rest
+                return self._packet(out)
+            t_next = _first_time(rest)
+            wait = (t_next - due) / 1e6 / self.pace
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            time.sleep(max(0.0, min(wait, left)))
+
+    def _packet(self, d: Decoded) -> EventPacket:
+        self._delivered += len(d.events)
+        return EventPacket(d.events, d.triggers, time.monotonic_ns())
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DeviceError(f"event file sensor {self.path} is closed")
+
+
+def _first_time(d: Decoded) -> int:
+    return min(int(a[0]) for a in (d.events.t, d.triggers.t) if len(a))
+
+
+def _split(d: Decoded, t_due: int) -> tuple[Decoded, Decoded]:
+    """Events and triggers with t <= t_due, and the rest."""
+    ie = int(np.searchsorted(d.events.t, t_due, side="right"))
+    it = int(np.searchsorted(d.triggers.t, t_due, side="right"))
+    return (
+        Decoded(d.events[:ie], d.triggers[:it]),
+        Decoded(d.events[ie:], d.triggers[it:]),
+    )
+
+
+def open_file_event_sensor(spec: DeviceSpec) -> FileEventSensor:
+    """Factory for `file:///abs/path.raw?pace=1&loop=1&strict=0` (also `.dat`)."""
+    spec.check_params({"pace", "loop", "strict", "chunk_bytes"})
+    path = (spec.location + spec.path) if spec.location else spec.path
+    if not path:
+        raise ConfigError(f"device spec {spec.raw!r}: no file path")
+    return FileEventSensor(
+        path,
+        pace=spec.float_param("pace", 0.0),
+        loop=bool(spec.int_param("loop", 0)),
+        strict=bool(spec.int_param("strict", 0)),
+        chunk_bytes=spec.int_param("chunk_bytes", 1 << 20),
+        spec=spec.raw,
+    )

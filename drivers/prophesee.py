@@ -1,0 +1,192 @@
+"""`prophesee://SERIAL` through OpenEB's Python HAL (`metavision_hal`), when installed.
+
+The HAL hands out raw EVT buffers (`I_EventsStream.get_latest_raw_data`); they go through
+`EvtStreamSensor`, i.e. rigd's own decoder, exactly like the simulated sensor's stream. The
+HAL facilities used for configuration (trigger-in, camera synchronization, biases, ROI, ERC)
+are optional per camera model: asking for one the camera lacks is a ConfigError naming it.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from typing import Any
+
+from drivers.base import AcquisitionStats, Capability, DeviceInfo, EventSensorSettings
+from drivers.evt_stream import EvtStreamSensor
+from drivers.registry import DeviceSpec
+from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
+
+log = logging.getLogger(__name__)
+
+_FORMATS = {"EVT3": "evt3", "EVT2": "evt2", "EVT21": "evt21", "EVT2.1": "evt21", "EVT3.0": "evt3"}
+_CAPS = frozenset({Capability.TRIGGER_IN, Capability.DEVICE_TIMESTAMPS})
+
+
+def _import_hal() -> Any:
+    try:
+        import metavision_hal
+    except ImportError as exc:
+        raise BackendUnavailableError(
+            "prophesee:// needs OpenEB's Python bindings (module metavision_hal), which are not "
+            "installed. Install OpenEB (https://github.com/prophesee-ai/openeb, with Python bindings) "
+            "and make sure `python -c 'import metavision_hal'` works in this environment."
+        ) from exc
+    return metavision_hal
+
+
+class PropheseeSource:
+    """ByteSource over a live camera opened with the HAL."""
+
+    def __init__(self, serial: str, *, buffers: int = 256, spec: str = "") -> None:
+        hal = _import_hal()
+        self._hal = hal
+        device = hal.DeviceDiscovery.open(serial)
+        if device is None:
+            raise DeviceError(
+                f"no Prophesee camera with serial {serial!r} (prophesee:// with empty serial opens the first)"
+            )
+        self._device = device
+        geom = device.get_i_geometry()
+        self._geometry = (int(geom.get_width()), int(geom.get_height()))
+        ident = device.get_i_hw_identification()
+        self._serial = str(ident.get_serial()) if ident is not None else serial
+        fmt = "EVT3"
+        if ident is not None and hasattr(ident, "get_current_data_encoding_format"):
+            fmt = str(ident.get_current_data_encoding_format()).upper()
+        if fmt not in _FORMATS:
+            raise DeviceError(f"camera {self._serial} streams {fmt}, which rigd does not decode")
+        self._fmt = _FORMATS[fmt]
+        self._info = DeviceInfo(
+            kind="event_sensor",
+            spec=spec or f"prophesee://{serial}",
+            vendor="Prophesee",
+            model=str(ident.get_sensor_info())
+            if ident is not None and hasattr(ident, "get_sensor_info")
+            else "",
+            serial=self._serial,
+            firmware=f"format={self._fmt}",
+        )
+        self._stream = device.get_i_events_stream()
+        self._buffers: queue.Queue[tuple[bytes, int]] = queue.Queue(maxsize=buffers)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lost_buffers = 0
+        self._lost_bytes = 0
+        self._error: BaseException | None = None
+        self.settings = EventSensorSettings()
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self._info
+
+    @property
+    def capabilities(self) -> frozenset[Capability]:
+        return _CAPS
+
+    @property
+    def geometry(self) -> tuple[int, int]:
+        return self._geometry
+
+    @property
+    def evt_format(self) -> str:
+        return self._fmt
+
+    def _facility(self, getter: str, what: str) -> Any:
+        fac = getattr(self._device, getter)()
+        if fac is None:
+            raise ConfigError(f"camera {self._serial} has no {what} facility ({getter})")
+        return fac
+
+    def configure(self, settings: EventSensorSettings) -> None:
+        self.settings = settings.model_copy()
+        if settings.enable_trigger_in:
+            trig = self._facility("get_i_trigger_in", "trigger-in")
+            if not trig.enable(settings.trigger_in_channel):
+                raise ConfigError(
+                    f"camera {self._serial}: trigger-in channel {settings.trigger_in_channel} refused"
+                )
+        if settings.sync_mode != "standalone":
+            sync = self._facility("get_i_camera_synchronization", "camera synchronization")
+            ok = sync.set_mode_master() if settings.sync_mode == "master" else sync.set_mode_slave()
+            if not ok:
+                raise ConfigError(f"camera {self._serial}: sync mode {settings.sync_mode} refused")
+        if settings.biases:
+            biases = self._facility("get_i_ll_biases", "bias")
+            for name, value in settings.biases.items():
+                if not biases.set(name, int(value)):
+                    raise ConfigError(f"camera {self._serial}: bias {name}={value} refused")
+        if settings.roi is not None:
+            roi = self._facility("get_i_roi", "ROI")
+            x, y, w, h = settings.roi
+            roi.set_window(self._hal.I_ROI.Window(x, y, w, h))
+            roi.enable(True)
+        if settings.erc_rate_ev_s is not None:
+            erc = self._facility("get_i_erc_module", "event rate controller")
+            erc.enable(True)
+            erc.set_cd_event_rate(int(settings.erc_rate_ev_s))
+
+    def start(self) -> None:
+        self._stop.clear()
+        self._stream.start()
+        self._thread = threading.Thread(target=self._pump, name=f"prophesee-{self._serial}", daemon=True)
+        self._thread.start()
+
+    def _pump(self) -> None:
+        try:
+            while not self._stop.is_set():
+                if self._stream.poll_buffer() < 0:
+                    time.sleep(0.001)
+                    continue
+                data = self._stream.get_latest_raw_data()
+                if data is None or len(data) == 0:
+                    continue
+                item = (bytes(data), time.monotonic_ns())
+                try:
+                    self._buffers.put_nowait(item)
+                except queue.Full:
+                    self._lost_buffers += 1
+                    self._lost_bytes += len(item[0])
+                    log.warning("camera %s: host buffer full, a raw buffer was lost", self._serial)
+        except Exception as exc:  # surfaced by stop()/read_bytes, never swallowed
+            log.exception("camera %s: streaming failed", self._serial)
+            self._error = exc
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        self._stream.stop()
+        if self._error is not None:
+            raise DeviceError(f"camera {self._serial}: streaming failed: {self._error!r}") from self._error
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self.stop()
+
+    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
+        if self._error is not None:
+            raise DeviceError(f"camera {self._serial}: streaming failed: {self._error!r}") from self._error
+        try:
+            return self._buffers.get(timeout=timeout_s) if timeout_s > 0 else self._buffers.get_nowait()
+        except queue.Empty:
+            return None
+
+    def stats(self) -> AcquisitionStats:
+        extra = {"buffers_lost": self._lost_buffers, "bytes_lost": self._lost_bytes}
+        erc = self._device.get_i_erc_module()
+        if erc is not None and hasattr(erc, "get_count_period"):
+            extra["erc_enabled"] = int(bool(erc.is_enabled()))
+        # Events inside lost buffers are unknown until decoded: count what is known, the bytes.
+        return AcquisitionStats(delivered=0, device_dropped=self._lost_buffers, extra=extra)
+
+
+def open_prophesee_sensor(spec: DeviceSpec) -> EvtStreamSensor:
+    """Factory for `prophesee://SERIAL?buffers=256` (empty serial: the first camera found)."""
+    spec.check_params({"buffers", "strict"})
+    serial = spec.location or spec.path.strip("/")
+    source = PropheseeSource(serial, buffers=spec.int_param("buffers", 256), spec=spec.raw)
+    return EvtStreamSensor(source, strict=bool(spec.int_param("strict", 0)))

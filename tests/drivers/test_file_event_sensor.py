@@ -1,0 +1,116 @@
+"""`file://` replay of real RAW/DAT recordings through the production decoder."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.base import EventPacket, EventSensorSettings
+from drivers.evt import RawHeader, read_raw, write_raw
+from drivers.registry import open_device
+from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.events import EventArray, TriggerEvents
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
+pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")
+
+
+def _drain(sensor: object, timeout: float = 0.2) -> list[EventPacket]:
+    out = []
+    while (p := sensor.read_events(timeout)) is not None:  # type: ignore[attr-defined]
+        out.append(p)
+    return out
+
+
+@pytest.mark.parametrize(
+    ("name", "count", "first", "last"),
+    [
+        ("evt3_gen41_sample.raw", 219_596, 11_718_656, 11_727_457),
+        ("evt2_gen3_sample.raw", 539_481, 1_317_888, 1_367_888),
+        ("evt3_pedestrians.raw", 5_000, 5_840_504, 5_885_714),
+    ],
+)
+def test_fast_replay_gives_every_event(name: str, count: int, first: int, last: int) -> None:
+    sensor = open_device("event_sensor", f"file://{DATA / name}?chunk_bytes=4093")
+    sensor.start()
+    packets = _drain(sensor, 0.0)
+    sensor.stop()
+    ev = EventArray.concatenate([p.events for p in packets])
+    assert len(ev) == count
+    assert (int(ev.t[0]), int(ev.t[-1])) == (first, last)
+    assert sensor.stats().delivered == count
+    w, h = sensor.geometry
+    assert int(ev.x.max()) < w
+    assert int(ev.y.max()) < h
+
+
+def test_dat_replay() -> None:
+    sensor = open_device("event_sensor", f"file://{DATA / 'dat_ncars_sample.dat'}")
+    sensor.start()
+    ev = EventArray.concatenate([p.events for p in _drain(sensor, 0.0)])
+    assert len(ev) == 4_407
+
+
+def test_paced_replay_releases_events_no_earlier_than_their_time(tmp_path: Path) -> None:
+    # 200 ms of synthetic events, replayed in real time.
+    t = np.arange(0, 200_000, 50, dtype=np.int64) + 1_000
+    ev = EventArray.from_arrays(t % 640, (t // 640) % 480, np.where(t % 100 == 0, 1, 0), t)
+    path = tmp_path / "rec.raw"
+    write_raw(path, RawHeader(fmt="evt3", width=640, height=480), ev)
+    sensor = open_device("event_sensor", f"file://{path}?pace=1")
+    start = time.monotonic()
+    sensor.start()
+    seen = 0
+    while (p := sensor.read_events(0.5)) is not None:
+        elapsed_us = (time.monotonic() - start) * 1e6
+        # Nothing may be released before its time has come on the host clock.
+        assert int(p.events.t[-1]) - int(t[0]) <= elapsed_us + 1_000
+        seen += len(p.events)
+    assert seen == len(ev)
+    assert time.monotonic() - start >= 0.19
+
+
+def test_loop_keeps_time_increasing(tmp_path: Path) -> None:
+    t = np.arange(100, 10_100, 100, dtype=np.int64)
+    ev = EventArray.from_arrays(np.zeros_like(t), np.zeros_like(t), np.ones_like(t), t)
+    trig = TriggerEvents(np.array([150], np.int64), np.array([1], np.uint8), np.array([0], np.uint8))
+    path = tmp_path / "loop.raw"
+    write_raw(path, RawHeader(fmt="evt3", width=64, height=64), ev, trig)
+    sensor = open_device("event_sensor", f"file://{path}?loop=1")
+    sensor.start()
+    packets = [sensor.read_events(0.1) for _ in range(40)]
+    sensor.stop()
+    all_t = np.concatenate([p.events.t for p in packets if p is not None])
+    assert len(all_t) > 3 * len(t)
+    assert (np.diff(all_t) > 0).all()
+    trig_t = np.concatenate([p.triggers.t for p in packets if p is not None])
+    assert (np.diff(trig_t) > 0).all()
+    assert len(trig_t) >= 3
+    assert sensor.stats().extra["passes"] >= 4
+
+
+def test_same_events_as_whole_file_decode() -> None:
+    path = DATA / "evt3_gen41_sample.raw"
+    _, whole = read_raw(path)
+    sensor = open_device("event_sensor", f"file://{path}?chunk_bytes=777")
+    sensor.start()
+    ev = EventArray.concatenate([p.events for p in _drain(sensor, 0.0)])
+    for col in ("x", "y", "p", "t"):
+        np.testing.assert_array_equal(getattr(ev, col), getattr(whole.events, col))
+
+
+def test_errors_name_the_problem(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        open_device("event_sensor", f"file://{tmp_path / 'nope.raw'}")
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        open_device("event_sensor", f"file://{DATA / 'evt3_pedestrians.raw'}?speed=2")
+    sensor = open_device("event_sensor", f"file://{DATA / 'evt3_pedestrians.raw'}")
+    sensor.start()
+    with pytest.raises(DeviceError, match="configure while started"):
+        sensor.configure(EventSensorSettings())
+    sensor.close()
+    with pytest.raises(DeviceError, match="closed"):
+        sensor.read_events(0.0)

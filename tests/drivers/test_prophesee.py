@@ -1,0 +1,136 @@
+"""`prophesee://` backend: the clear error without OpenEB, and the real code path against a
+stand-in HAL module that streams a real recording's raw EVT3 buffers."""
+
+from __future__ import annotations
+
+import sys
+import types
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.base import EventSensorSettings
+from drivers.evt import parse_raw_header, read_raw
+from drivers.registry import open_device
+from rigd.core.errors import BackendUnavailableError, ConfigError
+from rigd.core.events import EventArray
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
+
+
+def test_missing_openeb_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "metavision_hal", None)  # import fails as if not installed
+    with pytest.raises(BackendUnavailableError, match=r"metavision_hal.*not installed"):
+        open_device("event_sensor", "prophesee://00050423")
+
+
+class _Facility:
+    def __init__(self, log: list[tuple[str, Any]], name: str) -> None:
+        self._log, self._name = log, name
+
+    def __getattr__(self, method: str) -> Any:
+        def call(*args: Any) -> bool:
+            self._log.append((f"{self._name}.{method}", args))
+            return True
+
+        return call
+
+
+class _Stream:
+    def __init__(self, payload: bytes, chunk: int) -> None:
+        self._chunks = [payload[i : i + chunk] for i in range(0, len(payload), chunk)]
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def poll_buffer(self) -> int:
+        return 1 if self._chunks else -1
+
+    def get_latest_raw_data(self) -> np.ndarray:
+        return np.frombuffer(self._chunks.pop(0), np.uint8)
+
+
+def _fake_hal(payload: bytes, calls: list[tuple[str, Any]], *, has_roi: bool = True) -> types.ModuleType:
+    class Device:
+        def get_i_geometry(self) -> Any:
+            return types.SimpleNamespace(get_width=lambda: 1280, get_height=lambda: 720)
+
+        def get_i_hw_identification(self) -> Any:
+            return types.SimpleNamespace(
+                get_serial=lambda: "00050423",
+                get_current_data_encoding_format=lambda: "EVT3",
+                get_sensor_info=lambda: "IMX636",
+            )
+
+        def get_i_events_stream(self) -> _Stream:
+            return _Stream(payload, 4093)
+
+        def get_i_trigger_in(self) -> Any:
+            return _Facility(calls, "trigger_in")
+
+        def get_i_camera_synchronization(self) -> Any:
+            return _Facility(calls, "sync")
+
+        def get_i_ll_biases(self) -> Any:
+            return _Facility(calls, "biases")
+
+        def get_i_roi(self) -> Any:
+            return _Facility(calls, "roi") if has_roi else None
+
+        def get_i_erc_module(self) -> Any:
+            return _Facility(calls, "erc")
+
+    hal = types.ModuleType("metavision_hal")
+    hal.DeviceDiscovery = types.SimpleNamespace(open=lambda serial: Device())  # type: ignore[attr-defined]
+    hal.I_ROI = types.SimpleNamespace(Window=lambda *a: a)  # type: ignore[attr-defined]
+    return hal
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")
+def test_hal_buffers_go_through_rigd_decoder(monkeypatch: pytest.MonkeyPatch) -> None:
+    path = DATA / "evt3_gen41_sample.raw"
+    with path.open("rb") as f:
+        parse_raw_header(f)
+        payload = f.read()
+    calls: list[tuple[str, Any]] = []
+    monkeypatch.setitem(sys.modules, "metavision_hal", _fake_hal(payload, calls))
+    sensor = open_device("event_sensor", "prophesee://00050423")
+    assert sensor.info.serial == "00050423"
+    assert sensor.geometry == (1280, 720)
+    sensor.configure(
+        EventSensorSettings(
+            trigger_in_channel=0,
+            sync_mode="master",
+            biases={"bias_diff_on": 12},
+            roi=(0, 0, 640, 360),
+            erc_rate_ev_s=20e6,
+        )
+    )
+    names = [c[0] for c in calls]
+    for expected in (
+        "trigger_in.enable",
+        "sync.set_mode_master",
+        "biases.set",
+        "roi.set_window",
+        "erc.set_cd_event_rate",
+    ):
+        assert expected in names
+    sensor.start()
+    packets = []
+    while (p := sensor.read_events(0.3)) is not None:
+        packets.append(p)
+    sensor.close()
+    ev = EventArray.concatenate([p.events for p in packets])
+    _, whole = read_raw(path)
+    np.testing.assert_array_equal(ev.t, whole.events.t)
+    np.testing.assert_array_equal(ev.x, whole.events.x)
+
+
+def test_missing_facility_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "metavision_hal", _fake_hal(b"", [], has_roi=False))
+    sensor = open_device("event_sensor", "prophesee://00050423")
+    with pytest.raises(ConfigError, match="no ROI facility"):
+        sensor.configure(EventSensorSettings(roi=(0, 0, 10, 10)))
