@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from importlib import metadata
 from pathlib import Path
 from typing import Annotated
 
@@ -22,6 +23,7 @@ app = typer.Typer(
     no_args_is_help=True,
     pretty_exceptions_enable=False,
 )
+log = logging.getLogger(__name__)
 console = Console(stderr=True)
 out = Console(width=120) if not sys.stdout.isatty() else Console()
 
@@ -130,6 +132,18 @@ def version() -> None:
     out.print(__version__)
 
 
+def _add_plugin_commands() -> None:
+    """Commands other packages contribute through the `rigd.commands` entry points (the
+    simulator's `simulate-events`), loaded without importing those packages by name."""
+    for ep in metadata.entry_points(group="rigd.commands"):
+        try:
+            command = ep.load()
+        except ImportError as exc:
+            log.warning("command %s unavailable: %s", ep.name, exc)
+            continue
+        app.command(ep.name)(command)
+
+
 def _print_summary(summary: object) -> None:
     data = json.loads(summary.model_dump_json())  # type: ignore[attr-defined]
     out.print(f"status: {data.get('status')}   schema {data.get('schema_version')}")
@@ -166,6 +180,9 @@ def _print_summary(summary: object) -> None:
 
 def _fmt(v: object) -> str:
     return f"{v:.2f}" if isinstance(v, int | float) else "-"
+
+
+_add_plugin_commands()
 
 
 def main() -> None:

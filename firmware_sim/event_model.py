@@ -1,0 +1,453 @@
+"""The event-camera pixel model: frames (linear or log intensity) in, change events out.
+
+Each pixel keeps a reference log level (the level at its last event). Between two input
+frames at t_prev and t the pixel's (optionally low-passed) log level is taken to move
+linearly, and every crossing of reference + m * C_on (ON) or reference - m * C_off (OFF)
+gives one event at the interpolated time of that crossing. Events of the step
+(t_prev, t] are therefore timestamped *inside* it (no one-frame shift as in v2e), several
+per pixel when the change spans several thresholds. See docs/event-simulator.md.
+
+Non-idealities, each off unless configured (the scene decides what it needs):
+
+* threshold mismatch: per-pixel C_on, C_off ~ N(C, sigma), drawn once from the seed;
+* refractory period: a crossing less than `refractory_us` after the pixel's last event
+  is not emitted, but the reference still advances (the pixel is held in reset);
+* photoreceptor low-pass: first-order filter on the log level whose cutoff grows with
+  the intensity (dark pixels are slow), as in v2e;
+* leak: the reference drifts down by `leak_rate_hz * C_on` per second, so a static pixel
+  emits ON events at `leak_rate_hz` (random phase per pixel);
+* shot noise: Poisson events of random polarity at `shot_noise_rate_hz` per pixel;
+* hot pixels: a fixed random subset fires ON events at `hot_pixel_rate_hz`.
+
+The per-pixel work is one numba kernel (nogil, so simulators in different threads run in
+parallel); noise draws are vectorized numpy with a generator seeded by (seed, step), so
+the same seed and frames give the same events whatever the threading.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Literal
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from rigd.core.events import EventArray
+
+log = logging.getLogger(__name__)
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: A change counts as a crossing when it reaches the threshold within this fraction of it:
+#: float32 log frames carry ~1e-7 relative error, so a ramp of exactly k*C must give k events.
+CROSSING_TOLERANCE = 1e-5
+#: Reference intensity (DN) that the model's parameters are expressed in: inputs are scaled
+#: so that their full scale maps to this (an 8-bit white).
+FULL_SCALE_DN = 255.0
+
+
+class PixelModelConfig(BaseModel):
+    """Parameters of the pixel model; every noise term is off by default."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    threshold: float = Field(0.3, gt=0, description="Contrast threshold C (log units), ON and OFF.")
+    threshold_on: float | None = Field(None, gt=0, description="ON threshold; defaults to `threshold`.")
+    threshold_off: float | None = Field(None, gt=0, description="OFF threshold; defaults to `threshold`.")
+    sigma: float = Field(0.0, ge=0, description="Std of the per-pixel threshold mismatch (log units).")
+    min_threshold: float = Field(
+        0.01, gt=0, description="Mismatched thresholds are clipped to at least this (log units)."
+    )
+    refractory_us: int = Field(0, ge=0, description="Dead time after an event, us.")
+    lowpass: bool = Field(False, description="Photoreceptor low-pass filter on the log level.")
+    lowpass_cutoff_hz: float = Field(
+        300.0, gt=0, description="Low-pass 3 dB cutoff at full-scale intensity, Hz (scales with intensity)."
+    )
+    lowpass_min_fraction: float = Field(
+        0.01, gt=0, le=1, description="Cutoff never drops below this fraction of `lowpass_cutoff_hz`."
+    )
+    leak_rate_hz: float = Field(0.0, ge=0, description="Leak (ON) events per pixel per second.")
+    shot_noise_rate_hz: float = Field(0.0, ge=0, description="Shot-noise events per pixel per second.")
+    hot_pixel_fraction: float = Field(0.0, ge=0, le=1, description="Fraction of pixels that are hot.")
+    hot_pixel_rate_hz: float = Field(100.0, ge=0, description="Event rate of a hot pixel, Hz.")
+    input_kind: Literal["linear", "log"] = Field(
+        "linear", description="linear: intensity frames (any dtype); log: frames already lin-log'ed."
+    )
+    full_scale: float | None = Field(
+        None, gt=0, description="Input value of white; None: 255 for uint8/float, 65535 for uint16."
+    )
+    log_eps_dn: float = Field(1.0, gt=0, description="Offset added before the log, DN of 255.")
+    lin_log_knee_dn: float = Field(
+        20.0, gt=0, description="Below this (DN of 255, offset included) the log is linear."
+    )
+    seed: int = Field(0, ge=0, description="Seed of every random draw (mismatch, noise).")
+
+    @model_validator(mode="after")
+    def _check(self) -> PixelModelConfig:
+        if self.lin_log_knee_dn < self.log_eps_dn:
+            raise ValueError(
+                f"lin_log_knee_dn ({self.lin_log_knee_dn}) must be >= log_eps_dn ({self.log_eps_dn})"
+            )
+        return self
+
+    @property
+    def c_on(self) -> float:
+        return self.threshold_on if self.threshold_on is not None else self.threshold
+
+    @property
+    def c_off(self) -> float:
+        return self.threshold_off if self.threshold_off is not None else self.threshold
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _to_log(v: float, is_log: bool, scale: float, eps: float, knee: float) -> tuple[float, float]:
+    """(log level, linear intensity in DN) of one input value; lin-log as in firmware_sim.scene."""
+    log_knee = math.log(knee)
+    if is_log:
+        lv = v
+        inten = math.exp(lv) - eps if lv >= log_knee else (lv - log_knee) * knee + knee - eps
+        return lv, max(inten, 0.0)
+    inten = max(v * scale, 0.0)
+    u = inten + eps
+    if u >= knee:
+        return math.log(u), inten
+    return log_knee + (u - knee) / knee, inten
+
+
+@njit(nogil=True, cache=True)
+def init_state_kernel(  # pragma: no cover - numba
+    frame: F32,
+    is_log: bool,
+    scale: float,
+    eps: float,
+    knee: float,
+    level: F64,
+    ref: F64,
+    ref_offset: F64,
+) -> None:
+    """Set the level and the reference (level - ref_offset) of every pixel from the first frame."""
+    h, w = frame.shape
+    for i in range(h):
+        for j in range(w):
+            lv, _ = _to_log(frame[i, j], is_log, scale, eps, knee)
+            level[i, j] = lv
+            ref[i, j] = lv - ref_offset[i, j]
+
+
+@njit(nogil=True, cache=True)
+def step_kernel(  # pragma: no cover - numba
+    frame: F32,
+    is_log: bool,
+    scale: float,
+    eps: float,
+    knee: float,
+    level: F64,
+    ref: F64,
+    thr_on: F64,
+    thr_off: F64,
+    last_t: I64,
+    leak_rate_hz: float,
+    lowpass: bool,
+    lowpass_hz: float,
+    lowpass_min: float,
+    refractory_us: int,
+    t0: int,
+    t1: int,
+    start: int,
+    out_x: NDArray[np.uint16],
+    out_y: NDArray[np.uint16],
+    out_p: NDArray[np.int8],
+    out_t: I64,
+    n_out: int,
+) -> tuple[int, int]:
+    """Events of every pixel for the step (t0, t1], in raster order; updates the state in place.
+
+    Per pixel: new level (low-passed if asked), d(s) = level(s) - ref(s) linear in the
+    step fraction s (ref drifts down by the leak), one event per crossing of +m*C_on or
+    -m*C_off at t0 + s*(t1 - t0) rounded to the us and kept inside (t0, t1]. The state of
+    a pixel changes only with its events, so when the outputs are full the kernel stops
+    before that pixel and returns (n_out, its flat index) for the caller to grow and
+    resume; (n_out, h*w) when done.
+    """
+    h, w = frame.shape
+    dt = float(t1 - t0)
+    dt_s = dt * 1e-6
+    tol = 1.0 - CROSSING_TOLERANCE
+    for idx in range(start, h * w):
+        i = idx // w
+        j = idx - i * w
+        lv, inten = _to_log(frame[i, j], is_log, scale, eps, knee)
+        lp = level[i, j]
+        if lowpass:
+            frac = max(inten / 255.0, lowpass_min)
+            tau = 1.0 / (2.0 * math.pi * lowpass_hz * frac)
+            a = 1.0 - math.exp(-dt_s / tau)
+            ln = lp + a * (lv - lp)
+        else:
+            ln = lv
+        r = ref[i, j]
+        con = thr_on[i, j]
+        coff = thr_off[i, j]
+        drift = leak_rate_hz * con * dt_s
+        d0 = lp - r
+        d1 = ln - r + drift
+        k = 0
+        sign = 0
+        c = con
+        if d1 >= con * tol:
+            k = max(1, int(d1 / con + CROSSING_TOLERANCE))
+            sign = 1
+        elif d1 <= -coff * tol:
+            k = max(1, int(-d1 / coff + CROSSING_TOLERANCE))
+            sign = -1
+            c = coff
+        if k > 0:
+            if n_out + k > out_x.shape[0]:
+                return n_out, idx
+            slope = d1 - d0
+            lt = last_t[i, j]
+            for m in range(1, k + 1):
+                target = sign * m * c
+                s = (target - d0) / slope if slope != 0.0 else 1.0
+                s = min(max(s, 0.0), 1.0)
+                te = t0 + int(s * dt + 0.5)  # s * dt >= 0: truncation rounds to nearest
+                te = min(max(te, t0 + 1), t1)
+                if te - lt < refractory_us:
+                    continue
+                out_x[n_out] = j
+                out_y[n_out] = i
+                out_p[n_out] = sign
+                out_t[n_out] = te
+                n_out += 1
+                lt = te
+            last_t[i, j] = lt
+            r += sign * k * c
+        level[i, j] = ln
+        ref[i, j] = r - drift
+    return n_out, h * w
+
+
+@njit(nogil=True, cache=True)
+def _counting_sort(  # pragma: no cover - numba
+    x: NDArray[np.uint16], y: NDArray[np.uint16], p: NDArray[np.int8], t: I64, t_lo: int, span: int
+) -> tuple[NDArray[np.uint16], NDArray[np.uint16], NDArray[np.int8], I64]:
+    """Stable sort by t of events whose times lie in [t_lo, t_lo + span)."""
+    n = t.shape[0]
+    counts = np.zeros(span + 1, np.int64)
+    for i in range(n):
+        counts[t[i] - t_lo + 1] += 1
+    for b in range(1, span + 1):
+        counts[b] += counts[b - 1]
+    ox = np.empty(n, np.uint16)
+    oy = np.empty(n, np.uint16)
+    op = np.empty(n, np.int8)
+    ot = np.empty(n, np.int64)
+    for i in range(n):
+        b = t[i] - t_lo
+        dst = counts[b]
+        counts[b] += 1
+        ox[dst] = x[i]
+        oy[dst] = y[i]
+        op[dst] = p[i]
+        ot[dst] = t[i]
+    return ox, oy, op, ot
+
+
+def sort_by_time(
+    x: NDArray[np.uint16], y: NDArray[np.uint16], p: NDArray[np.int8], t: I64, t_lo: int, t_hi: int
+) -> EventArray:
+    """Events sorted by time (stable), as new arrays; all t must lie in [t_lo, t_hi].
+
+    Counting sort when the time span is not much larger than the event count (the usual
+    case for short steps), else numpy's stable argsort.
+    """
+    n = t.shape[0]
+    if n == 0:
+        return EventArray.empty()
+    span = t_hi - t_lo + 1
+    if span <= 8 * n + 4096:
+        return EventArray(*_counting_sort(x, y, p, t, t_lo, span))
+    order = np.argsort(t, kind="stable")
+    return EventArray(x[order], y[order], p[order], t[order])
+
+
+class EventSimulator:
+    """Per-pixel state of one simulated sensor and the step that turns a new frame into events.
+
+    `step(frame, t_us)` takes the frame at time t_us (strictly after the previous one)
+    and returns the events of (t_prev, t_us], sorted by time. The first call only sets
+    the state and returns no events. Memory is constant: the state (about 40 bytes per
+    pixel) plus an output buffer that grows to the largest step seen.
+    """
+
+    def __init__(self, width: int, height: int, config: PixelModelConfig | None = None) -> None:
+        if not (0 < width <= 65536 and 0 < height <= 65536):
+            raise ValueError(f"EventSimulator: geometry {width}x{height} out of range (1..65536)")
+        self.width, self.height = int(width), int(height)
+        self.config = config if config is not None else PixelModelConfig()
+        cfg = self.config
+        shape = (self.height, self.width)
+        rng = np.random.default_rng([cfg.seed, 0])
+        self.thr_on = np.full(shape, cfg.c_on, np.float64)
+        self.thr_off = np.full(shape, cfg.c_off, np.float64)
+        if cfg.sigma > 0:
+            self.thr_on += rng.normal(0.0, cfg.sigma, shape)
+            self.thr_off += rng.normal(0.0, cfg.sigma, shape)
+            np.maximum(self.thr_on, cfg.min_threshold, out=self.thr_on)
+            np.maximum(self.thr_off, cfg.min_threshold, out=self.thr_off)
+        n_pix = self.width * self.height
+        n_hot = round(cfg.hot_pixel_fraction * n_pix)
+        self.hot_pixels: I64 = np.sort(rng.choice(n_pix, size=n_hot, replace=False)).astype(np.int64)
+        # Leak phase: each pixel starts somewhere in its leak cycle, else all would fire at once.
+        self._ref_offset = (
+            rng.uniform(0.0, 1.0, shape) * self.thr_on if cfg.leak_rate_hz > 0 else np.zeros(shape)
+        )
+        self.level = np.zeros(shape, np.float64)
+        self.ref = np.zeros(shape, np.float64)
+        self.last_t = np.full(shape, np.iinfo(np.int64).min // 2, np.int64)
+        self.t_us: int | None = None
+        self.n_steps = 0
+        self._cap = max(4096, n_pix // 8)
+        self._bx = np.empty(self._cap, np.uint16)
+        self._by = np.empty(self._cap, np.uint16)
+        self._bp = np.empty(self._cap, np.int8)
+        self._bt = np.empty(self._cap, np.int64)
+        self._dtype: np.dtype[np.generic] | None = None
+        log.debug(
+            "EventSimulator %dx%d: C_on %.3f C_off %.3f sigma %.3f, %d hot pixels",
+            self.width,
+            self.height,
+            cfg.c_on,
+            cfg.c_off,
+            cfg.sigma,
+            n_hot,
+        )
+
+    @property
+    def initialized(self) -> bool:
+        return self.t_us is not None
+
+    def _prepare(self, frame: NDArray[np.generic], t_us: int) -> tuple[F32, float]:
+        """Check one input frame and return it as float32 with the scale of its values to DN."""
+        arr = np.asarray(frame)
+        where = f"EventSimulator step {self.n_steps} (t={t_us} us)"
+        if arr.shape != (self.height, self.width):
+            raise ValueError(
+                f"{where}: frame has shape {arr.shape}, expected ({self.height}, {self.width}) "
+                "(one channel; convert colour frames to gray first)"
+            )
+        if arr.dtype.kind not in "uif" or arr.dtype == np.bool_:
+            raise ValueError(f"{where}: frame dtype {arr.dtype} is not numeric")
+        cfg = self.config
+        if cfg.input_kind == "log":
+            scale = 1.0
+        else:
+            full = cfg.full_scale
+            if full is None:
+                full = float(np.iinfo(arr.dtype).max) if arr.dtype.kind in "ui" else FULL_SCALE_DN
+                if arr.dtype.kind in "ui" and arr.dtype.itemsize == 1:
+                    full = 255.0
+            scale = FULL_SCALE_DN / full
+        f32 = np.ascontiguousarray(arr, dtype=np.float32)
+        if arr.dtype.kind == "f" and not np.isfinite(f32).all():
+            raise ValueError(f"{where}: frame has NaN or infinite values")
+        return f32, scale
+
+    def reset(self) -> None:
+        """Forget the time and the levels; the next step starts a new stream (same thresholds)."""
+        self.t_us = None
+        self.last_t.fill(np.iinfo(np.int64).min // 2)
+
+    def step(self, frame: NDArray[np.generic], t_us: int) -> EventArray:
+        """Events of (previous t, t_us] given the frame at t_us; none on the first call."""
+        t = int(t_us)
+        f32, scale = self._prepare(frame, t)
+        cfg = self.config
+        args = (cfg.input_kind == "log", scale, cfg.log_eps_dn, cfg.lin_log_knee_dn)
+        if self.t_us is None:
+            init_state_kernel(f32, *args, self.level, self.ref, self._ref_offset)
+            self.t_us = t
+            self.n_steps += 1
+            return EventArray.empty()
+        t0 = self.t_us
+        if t <= t0:
+            raise ValueError(
+                f"EventSimulator step {self.n_steps}: time {t} us is not after the previous frame's "
+                f"{t0} us (frame times must increase strictly)"
+            )
+        n, idx, n_pix = 0, 0, self.width * self.height
+        while True:
+            n, idx = step_kernel(
+                f32,
+                *args,
+                self.level,
+                self.ref,
+                self.thr_on,
+                self.thr_off,
+                self.last_t,
+                cfg.leak_rate_hz,
+                cfg.lowpass,
+                cfg.lowpass_cutoff_hz,
+                cfg.lowpass_min_fraction,
+                cfg.refractory_us,
+                t0,
+                t,
+                idx,
+                self._bx,
+                self._by,
+                self._bp,
+                self._bt,
+                n,
+            )
+            if idx >= n_pix:
+                break
+            self._grow(n)
+        x, y, p, tt = self._bx[:n], self._by[:n], self._bp[:n], self._bt[:n]
+        noise = self._noise(t0, t)
+        if noise is not None:
+            x = np.concatenate([x, noise.x])
+            y = np.concatenate([y, noise.y])
+            p = np.concatenate([p, noise.p])
+            tt = np.concatenate([tt, noise.t])
+        self.t_us = t
+        self.n_steps += 1
+        return sort_by_time(x, y, p, tt, t0 + 1, t)
+
+    def _grow(self, n: int) -> None:
+        self._cap *= 2
+        for name in ("_bx", "_by", "_bp", "_bt"):
+            old = getattr(self, name)
+            new = np.empty(self._cap, old.dtype)
+            new[:n] = old[:n]
+            setattr(self, name, new)
+        log.debug("EventSimulator: event buffer grown to %d", self._cap)
+
+    def _noise(self, t0: int, t1: int) -> EventArray | None:
+        """Shot-noise and hot-pixel events of (t0, t1], unsorted; None when both are off."""
+        cfg = self.config
+        shot = cfg.shot_noise_rate_hz > 0
+        hot = cfg.hot_pixel_rate_hz > 0 and self.hot_pixels.size > 0
+        if not (shot or hot):
+            return None
+        rng = np.random.default_rng([cfg.seed, 1, self.n_steps])
+        dt = t1 - t0
+        dt_s = dt * 1e-6
+        idx_parts: list[I64] = []
+        pol_parts: list[NDArray[np.int8]] = []
+        if shot:
+            n = int(rng.poisson(cfg.shot_noise_rate_hz * dt_s * self.width * self.height))
+            idx_parts.append(rng.integers(0, self.width * self.height, n, dtype=np.int64))
+            pol_parts.append((rng.integers(0, 2, n, dtype=np.int8) * 2 - 1).astype(np.int8))
+        if hot:
+            counts = rng.poisson(cfg.hot_pixel_rate_hz * dt_s, self.hot_pixels.size)
+            idx_parts.append(np.repeat(self.hot_pixels, counts))
+            pol_parts.append(np.ones(int(counts.sum()), np.int8))
+        idx = np.concatenate(idx_parts)
+        t = t0 + 1 + rng.integers(0, dt, idx.size, dtype=np.int64)
+        y, x = np.divmod(idx, self.width)
+        return EventArray(x.astype(np.uint16), y.astype(np.uint16), np.concatenate(pol_parts), t)
