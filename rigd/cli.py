@@ -15,6 +15,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from rigd import __version__
+from rigd.commands.calibrate import calibrate_app
 from rigd.config import RigConfig, default_sim_rig
 from rigd.core.errors import RigdError
 
@@ -120,6 +121,42 @@ def inspect(
         raise typer.Exit(code=1)
 
 
+@app.command("convert")
+def convert_cmd(
+    src: Annotated[Path, typer.Argument(help="Input: .raw/.dat recording or .h5 take.")],
+    dst: Annotated[Path, typer.Argument(help="Output: .h5 take or .raw/.dat recording.")],
+    sensor: Annotated[str | None, typer.Option("--sensor", help="Event sensor name in the take.")] = None,
+    fmt: Annotated[
+        str, typer.Option("--format", help="EVT format of a .raw output: evt3, evt2, evt21.")
+    ] = "evt3",
+    strict: Annotated[bool, typer.Option("--strict", help="Stop at the first invalid word.")] = False,
+) -> None:
+    """Convert a RAW/DAT recording to a take, or a take's event sensor to RAW/DAT."""
+    from rigd.convert import convert
+
+    if not src.exists():
+        raise _fail(FileNotFoundError(f"no such file: {src}"))
+    with Progress(
+        TextColumn("[bold]converting[/]"),
+        TextColumn("{task.completed:,} events"),
+        console=console,
+        disable=not console.is_terminal,
+    ) as bar:
+        task = bar.add_task("convert", total=None)
+        try:
+            n = convert(
+                src,
+                dst,
+                sensor=sensor,
+                fmt=fmt,
+                strict=strict,
+                on_progress=lambda k: bar.update(task, completed=k),
+            )
+        except RigdError as exc:
+            raise _fail(exc) from exc
+    out.print(f"{dst}: {n:,} events")
+
+
 @app.command("default-config")
 def default_config() -> None:
     """Print the built-in simulated rig config, a starting point for a real one."""
@@ -183,6 +220,7 @@ def _fmt(v: object) -> str:
 
 
 _add_plugin_commands()
+app.add_typer(calibrate_app, name="calibrate", help="Calibrate cameras and event sensors.")
 
 
 def main() -> None:

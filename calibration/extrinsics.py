@@ -1,0 +1,345 @@
+# ruff: noqa: N802, N803, N806  (K, R, T, J follow the notation of the calibration literature)
+"""Rig extrinsics: every camera's pose in one rig frame from simultaneous board views.
+
+A "view" is one trigger pulse: the board seen at the same instant by several cameras. Each
+(camera, view) detection gives the board's pose in that camera by PnP; chaining them through views
+shared with already-posed cameras initialises every camera's pose relative to the reference
+camera (the rig frame). Then one Levenberg-Marquardt problem (scipy.optimize.least_squares,
+trust-region) refines all camera poses and all board poses together on the reprojection error of
+every corner in every camera, with each camera's intrinsics held fixed at their calibrated values.
+Parameter uncertainty is sigma^2 (J^T J)^-1 at the solution, sigma^2 the residual variance; it
+does not include the intrinsics' own uncertainty.
+
+Convention: a camera's (R, t) maps rig coordinates into that camera, x_cam = R x_rig + t; the
+reference camera has R = I, t = 0; t in metres. The camera centre in the rig is -R^T t.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from calibration.boards import BoardSpec, Detection
+from calibration.errors import CalibrationError
+from calibration.intrinsics import IntrinsicsResult
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+#: Initial relative-pose estimates further than this from the consensus are dropped (wrong corner order).
+_INIT_OUTLIER_DEG = 10.0
+
+
+class CameraPose(BaseModel):
+    """One camera's pose in the rig frame with one-sigma uncertainties."""
+
+    camera: str
+    R: list[list[float]]
+    t: list[float]
+    rvec: list[float]
+    center_m: list[float]
+    rot_std_deg: list[float]
+    t_std_m: list[float]
+    rms_px: float
+    n_views: int
+
+
+class RigResult(BaseModel):
+    reference: str
+    board: str
+    cameras: list[CameraPose]
+    rms_px: float
+    per_view_rms_px: dict[str, float]
+    n_views: int
+    warnings: list[str] = []
+
+    def pose(self, camera: str) -> tuple[F64, F64]:
+        """(R, t) of `camera`; CalibrationError when it is not in the rig."""
+        for c in self.cameras:
+            if c.camera == camera:
+                return np.asarray(c.R, np.float64), np.asarray(c.t, np.float64)
+        raise CalibrationError(f"camera {camera!r} not in the rig ({[c.camera for c in self.cameras]})")
+
+    def relative(self, a: str, b: str) -> tuple[F64, F64]:
+        """(R, t) taking camera a's coordinates into camera b's (what cv2.stereoCalibrate returns)."""
+        Ra, ta = self.pose(a)
+        Rb, tb = self.pose(b)
+        R = Rb @ Ra.T
+        return R, tb - R @ ta
+
+
+def _to_T(rvec: F64, tvec: F64) -> F64:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
+    T[:3, 3] = np.asarray(tvec, np.float64).ravel()
+    return T
+
+
+def _from_T(T: F64) -> tuple[F64, F64]:
+    return np.asarray(cv2.Rodrigues(T[:3, :3])[0], np.float64).ravel(), T[:3, 3].copy()
+
+
+def _inv(T: F64) -> F64:
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def _rot_angle_deg(Ra: F64, Rb: F64) -> float:
+    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))
+
+
+def _mean_T(Ts: Sequence[F64]) -> F64:
+    """Chordal mean of rotations (SVD projection of the summed matrices), median of translations."""
+    U, _, Vt = np.linalg.svd(sum(T[:3, :3] for T in Ts))
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.median(np.stack([T_[:3, 3] for T_ in Ts]), axis=0)
+    return T
+
+
+def _pnp(d: Detection, intr: IntrinsicsResult) -> F64:
+    K, dist = intr.camera_matrix(), intr.dist_coeffs()
+    ok, rvec, tvec = cv2.solvePnP(d.object_points, d.image_points, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise CalibrationError(f"camera {intr.camera}, view {d.name}: PnP failed")
+    rvec, tvec = cv2.solvePnPRefineLM(d.object_points, d.image_points, K, dist, rvec, tvec)
+    return _to_T(np.asarray(rvec, np.float64).ravel(), np.asarray(tvec, np.float64).ravel())
+
+
+def _flipped(d: Detection) -> Detection:
+    """The same chessboard detection with the corner order rotated by 180 degrees."""
+    return Detection(
+        d.name, d.image_size, d.image_points[::-1].copy(), d.ids, d.object_points, d.edge_width_px
+    )
+
+
+@dataclass
+class _Obs:
+    cam: int
+    view: int
+    det: Detection
+
+
+def calibrate_rig(
+    intrinsics: Mapping[str, IntrinsicsResult],
+    views: Mapping[str, Mapping[str, Detection]],
+    board: BoardSpec,
+    reference: str | None = None,
+) -> RigResult:
+    """Poses of all cameras in the rig frame of `reference` (default: the first camera).
+
+    `views` maps a view id (pulse index, file stem) to the detections of the cameras that saw the
+    board at that instant. Views seen by a single camera only add nothing and are skipped.
+    """
+    cams = list(intrinsics)
+    if len(cams) < 2:
+        raise CalibrationError(f"rig calibration needs at least 2 cameras, got {cams}")
+    ref = reference or cams[0]
+    if ref not in intrinsics:
+        raise CalibrationError(f"reference camera {ref!r} has no intrinsics (have {cams})")
+    cams = [ref] + [c for c in cams if c != ref]
+    warnings: list[str] = []
+    used = {
+        vid: {c: d for c, d in dets.items() if c in intrinsics and d.n >= 6} for vid, dets in views.items()
+    }
+    used = {vid: dets for vid, dets in used.items() if len(dets) >= 2}
+    if not used:
+        raise CalibrationError(f"no view shows the board in two or more of the cameras {cams}")
+    unknown = sorted({c for dets in views.values() for c in dets} - set(intrinsics))
+    if unknown:
+        warnings.append(f"detections of cameras without intrinsics ignored: {unknown}")
+
+    # Board pose per (camera, view) by PnP; camera poses by chaining from the reference.
+    T_cb: dict[tuple[str, str], F64] = {}
+    for vid, dets in used.items():
+        for c, d in dets.items():
+            T_cb[c, vid] = _pnp(d, intrinsics[c])
+    T_c0: dict[str, F64] = {ref: np.eye(4)}
+    progress = True
+    while progress and len(T_c0) < len(cams):
+        progress = False
+        for c in cams:
+            if c in T_c0:
+                continue
+            est: list[tuple[str, F64]] = []
+            for vid, dets in used.items():
+                if c not in dets:
+                    continue
+                for p in dets:
+                    if p in T_c0:
+                        est.append((vid, T_cb[c, vid] @ _inv(T_cb[p, vid]) @ T_c0[p]))
+                        break
+            if not est:
+                continue
+            mean = _mean_T([T for _, T in est])
+            for vid, T in est:
+                ang = _rot_angle_deg(T[:3, :3], mean[:3, :3])
+                if ang <= _INIT_OUTLIER_DEG:
+                    continue
+                d = used[vid][c]
+                flip_T = (
+                    _pnp(_flipped(d), intrinsics[c])
+                    if d.is_complete(board) and board.kind == "chessboard"
+                    else None
+                )
+                p = next(p for p in used[vid] if p in T_c0)
+                if (
+                    flip_T is not None
+                    and _rot_angle_deg((flip_T @ _inv(T_cb[p, vid]) @ T_c0[p])[:3, :3], mean[:3, :3])
+                    <= _INIT_OUTLIER_DEG
+                ):
+                    log.info("camera %s, view %s: corner order flipped to match the rig", c, vid)
+                    used[vid][c] = _flipped(d)
+                    T_cb[c, vid] = flip_T
+                else:
+                    warnings.append(
+                        f"camera {c}, view {vid}: pose disagrees with the others by {ang:.1f} deg; dropped"
+                    )
+                    del used[vid][c]
+            good = [
+                T_cb[c, v] @ _inv(T_cb[p, v]) @ T_c0[p]
+                for v, dets in used.items()
+                if c in dets
+                for p in [next((q for q in dets if q in T_c0), None)]
+                if p is not None
+            ]
+            T_c0[c] = _mean_T(good) if good else mean
+            progress = True
+    missing = [c for c in cams if c not in T_c0]
+    if missing:
+        raise CalibrationError(f"cameras {missing} share no board view with the reference chain from {ref}")
+    used = {vid: dets for vid, dets in used.items() if len(dets) >= 2}
+    vids = list(used)
+
+    # Board poses in the rig frame: mean over the cameras that saw each view.
+    T_0b = [_mean_T([_inv(T_c0[c]) @ T_cb[c, vid] for c in used[vid]]) for vid in vids]
+    obs = [_Obs(cams.index(c), i, d) for i, vid in enumerate(vids) for c, d in used[vid].items()]
+    Ks = [intrinsics[c].camera_matrix() for c in cams]
+    dists = [intrinsics[c].dist_coeffs() for c in cams]
+    nc = len(cams) - 1
+
+    def unpack(x: F64) -> tuple[list[F64], list[F64]]:
+        cam_T = [np.eye(4)] + [_to_T(x[6 * i : 6 * i + 3], x[6 * i + 3 : 6 * i + 6]) for i in range(nc)]
+        off = 6 * nc
+        view_T = [
+            _to_T(x[off + 6 * j : off + 6 * j + 3], x[off + 6 * j + 3 : off + 6 * j + 6])
+            for j in range(len(vids))
+        ]
+        return cam_T, view_T
+
+    def residuals(x: F64) -> F64:
+        cam_T, view_T = unpack(x)
+        out = []
+        for o in obs:
+            rvec, tvec = _from_T(cam_T[o.cam] @ view_T[o.view])
+            proj, _ = cv2.projectPoints(
+                o.det.object_points.reshape(-1, 1, 3), rvec, tvec, Ks[o.cam], dists[o.cam]
+            )
+            out.append((proj.reshape(-1, 2) - o.det.image_points).ravel())
+        return np.concatenate(out)
+
+    x0 = np.concatenate(
+        [np.concatenate(_from_T(T_c0[c])) for c in cams[1:]] + [np.concatenate(_from_T(T)) for T in T_0b]
+    )
+    m = sum(2 * o.det.n for o in obs)
+    sparsity = lil_matrix((m, x0.size), dtype=int)
+    row = 0
+    for o in obs:
+        rows = slice(row, row + 2 * o.det.n)
+        if o.cam > 0:
+            sparsity[rows, 6 * (o.cam - 1) : 6 * o.cam] = 1
+        sparsity[rows, 6 * nc + 6 * o.view : 6 * nc + 6 * o.view + 6] = 1
+        row += 2 * o.det.n
+    sol = least_squares(
+        residuals,
+        x0,
+        jac_sparsity=sparsity,
+        method="trf",
+        x_scale="jac",
+        xtol=1e-10,
+        ftol=1e-10,
+        gtol=1e-10,
+        max_nfev=500,
+    )
+    if not sol.success:
+        warnings.append(f"joint refinement did not converge: {sol.message}")
+    r = sol.fun
+    dof = m - x0.size
+    if dof <= 0:
+        raise CalibrationError(f"rig problem underdetermined: {m} residuals for {x0.size} parameters")
+    sigma2 = float(r @ r) / dof
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
+    JtJ = J.T @ J
+    try:
+        cov = sigma2 * np.linalg.inv(JtJ)
+    except np.linalg.LinAlgError as exc:
+        raise CalibrationError("rig problem is degenerate (singular normal matrix); add views") from exc
+
+    cam_T, _ = unpack(sol.x)
+    r2 = r.reshape(-1, 2)
+    poses: list[CameraPose] = []
+    per_cam_sq: dict[int, list[F64]] = {i: [] for i in range(len(cams))}
+    per_view_sq: dict[int, list[F64]] = {j: [] for j in range(len(vids))}
+    row = 0
+    for o in obs:
+        sq = (r2[row : row + o.det.n] ** 2).sum(axis=1)
+        per_cam_sq[o.cam].append(sq)
+        per_view_sq[o.view].append(sq)
+        row += o.det.n
+    for i, c in enumerate(cams):
+        rvec, tvec = _from_T(cam_T[i])
+        if i == 0:
+            rstd, tstd = np.zeros(3), np.zeros(3)
+        else:
+            var = np.diag(cov)[6 * (i - 1) : 6 * i]
+            rstd, tstd = np.degrees(np.sqrt(var[:3])), np.sqrt(var[3:])
+        R = cam_T[i][:3, :3]
+        sq_all = np.concatenate(per_cam_sq[i]) if per_cam_sq[i] else np.zeros(1)
+        poses.append(
+            CameraPose(
+                camera=c,
+                R=R.tolist(),
+                t=tvec.tolist(),
+                rvec=rvec.tolist(),
+                center_m=(-R.T @ tvec).tolist(),
+                rot_std_deg=rstd.tolist(),
+                t_std_m=tstd.tolist(),
+                rms_px=float(math.sqrt(sq_all.mean())),
+                n_views=len(per_cam_sq[i]),
+            )
+        )
+        log.info(
+            "camera %s: t=%s m (std %s), RMS %.3f px",
+            c,
+            np.round(tvec, 4),
+            np.round(tstd, 5),
+            poses[-1].rms_px,
+        )
+    if len(vids) < 5:
+        warnings.append(f"only {len(vids)} shared views; the extrinsics rest on few board poses")
+    for w in warnings:
+        log.warning("%s", w)
+    return RigResult(
+        reference=ref,
+        board=str(board),
+        cameras=poses,
+        rms_px=float(math.sqrt(float(r @ r) / (m / 2))),
+        per_view_rms_px={vids[j]: float(math.sqrt(np.concatenate(v).mean())) for j, v in per_view_sq.items()},
+        n_views=len(vids),
+        warnings=warnings,
+    )

@@ -1,0 +1,559 @@
+# ruff: noqa: N803, N806  (K, R, T, J follow the notation of the calibration literature)
+"""Intrinsic calibration with lens-model selection, outlier-view rejection and uncertainty.
+
+Procedure (course notes: Zhang's closed form, then Levenberg-Marquardt, both inside
+cv2.calibrateCamera): detect the board in every image, drop blurred views, pick the lens model by
+k-fold cross-validation over views, calibrate, reject views whose error is far above the others
+(one at a time, re-calibrating in between), and report parameter standard deviations plus
+warnings about degenerate view sets. "A complex camera model may not be always better": a richer
+model is kept only when it predicts *held-out* views better than the simpler one by a margin, since
+its in-sample RMS always goes down.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, Field
+
+from calibration.boards import DEFAULT_MAX_EDGE_WIDTH_PX, BoardSpec, Detection, detect, load_image
+from calibration.errors import CalibrationError, NoBoardFoundError
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LensModel:
+    """A distortion model as a set of cv2.calibrateCamera flags; `params` are its free terms."""
+
+    name: str
+    flags: int
+    params: tuple[str, ...]
+    n_coeffs: int  # length of the OpenCV distortion vector it produces
+
+    @property
+    def n_params(self) -> int:
+        return 4 + len(self.params)
+
+
+_RAT = cv2.CALIB_RATIONAL_MODEL
+#: From simplest to richest; selection walks this list.
+LENS_MODELS: tuple[LensModel, ...] = (
+    LensModel("k1k2", cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST, ("k1", "k2"), 5),
+    LensModel("k1k2k3", cv2.CALIB_ZERO_TANGENT_DIST, ("k1", "k2", "k3"), 5),
+    LensModel("k1k2+tangential", cv2.CALIB_FIX_K3, ("k1", "k2", "p1", "p2"), 5),
+    LensModel("k1k2k3+tangential", 0, ("k1", "k2", "p1", "p2", "k3"), 5),
+    LensModel("rational", _RAT, ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), 8),
+    LensModel(
+        "rational+thin_prism",
+        _RAT | cv2.CALIB_THIN_PRISM_MODEL,
+        ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4"),
+        12,
+    ),
+)
+MODELS_BY_NAME = {m.name: m for m in LENS_MODELS}
+#: Order of cv2.calibrateCameraExtended's stdDeviationsIntrinsics.
+_STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
+_DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
+
+#: A richer model must lower the cross-validated RMS by this fraction to be kept.
+CV_MARGIN = 0.02
+#: Fewest usable views for cross-validation (each training set needs 3+ views).
+MIN_VIEWS_FOR_CV = 5
+RECOMMENDED_VIEWS = 10
+#: Outlier views: RMS above max(OUTLIER_MEDIAN_FACTOR * median, median + OUTLIER_MAD_SIGMAS * sigma_MAD).
+OUTLIER_MEDIAN_FACTOR = 2.5
+OUTLIER_MAD_SIGMAS = 5.0
+#: Median board area (fraction of the image) below which the board is called small.
+SMALL_BOARD_FRAC = 0.04
+_TERM = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+
+
+class ViewResult(BaseModel):
+    """One view kept in the calibration: its error, pose and per-corner residuals (pixels)."""
+
+    name: str
+    rms_px: float
+    n_points: int
+    rvec: list[float]
+    tvec: list[float]
+    tilt_deg: float = Field(description="angle between the board normal and the optical axis")
+    board_area_frac: float = Field(description="convex hull of the corners / image area")
+    edge_width_px: float | None = None
+    ids: list[int]
+    image_points: list[list[float]]
+    residuals: list[list[float]] = Field(description="projected minus detected, per corner")
+
+
+class RejectedView(BaseModel):
+    name: str
+    reason: str
+
+
+class ModelScore(BaseModel):
+    """Cross-validation result of one lens model."""
+
+    model: str
+    n_params: int
+    train_rms_px: float | None
+    cv_rms_px: float | None
+    note: str = ""
+
+
+class IntrinsicsResult(BaseModel):
+    """Intrinsic calibration of one camera. `dist` is in OpenCV order (k1 k2 p1 p2 k3 [k4 k5 k6
+    [s1 s2 s3 s4]]); `std_devs` holds one standard deviation of every free parameter."""
+
+    camera: str
+    board: str
+    image_size: tuple[int, int]
+    model: str
+    K: list[list[float]]
+    dist: list[float]
+    rms_px: float
+    std_devs: dict[str, float]
+    views: list[ViewResult]
+    rejected: list[RejectedView] = []
+    warnings: list[str] = []
+    model_scores: list[ModelScore] = []
+
+    def camera_matrix(self) -> F64:
+        return np.asarray(self.K, np.float64)
+
+    def dist_coeffs(self) -> F64:
+        return np.asarray(self.dist, np.float64)
+
+    def summary(self) -> dict[str, object]:
+        """The result without per-corner data: what `--json` prints."""
+        d = self.model_dump(exclude={"views"})
+        d["per_view_rms_px"] = {v.name: v.rms_px for v in self.views}
+        return d
+
+
+@dataclass
+class _Fit:
+    rms: float
+    K: F64
+    dist: F64
+    rvecs: list[F64]
+    tvecs: list[F64]
+    std: F64
+    per_view: F64
+
+
+def _obj(d: Detection) -> NDArray[np.float32]:
+    return d.object_points.astype(np.float32).reshape(-1, 1, 3)
+
+
+def _img(d: Detection) -> NDArray[np.float32]:
+    return d.image_points.astype(np.float32).reshape(-1, 1, 2)
+
+
+def _fit(dets: Sequence[Detection], size: tuple[int, int], model: LensModel) -> _Fit:
+    """cv2.calibrateCameraExtended with the model's flags; CalibrationError if OpenCV refuses."""
+    try:
+        rms, K, dist, rvecs, tvecs, std, _, per_view = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
+            [_obj(d) for d in dets],
+            [_img(d) for d in dets],
+            size,
+            None,  # OpenCV allocates K and dist itself
+            None,
+            flags=model.flags,
+            criteria=_TERM,
+        )
+    except cv2.error as exc:
+        names = ", ".join(d.name for d in dets[:5])
+        raise CalibrationError(
+            f"OpenCV could not calibrate model {model.name} from {len(dets)} views ({names}...): {exc.err}"
+        ) from exc
+    dist = np.asarray(dist, np.float64).ravel()
+    dist = np.concatenate([dist, np.zeros(max(0, model.n_coeffs - dist.size))])[: model.n_coeffs]
+    return _Fit(
+        float(rms),
+        np.asarray(K, np.float64),
+        dist,
+        [np.asarray(r, np.float64).ravel() for r in rvecs],
+        [np.asarray(t, np.float64).ravel() for t in tvecs],
+        np.asarray(std, np.float64).ravel(),
+        np.asarray(per_view, np.float64).ravel(),
+    )
+
+
+def _residuals(d: Detection, K: F64, dist: F64, rvec: F64, tvec: F64) -> F64:
+    proj, _ = cv2.projectPoints(d.object_points.reshape(-1, 1, 3), rvec, tvec, K, dist)
+    return np.asarray(proj.reshape(-1, 2) - d.image_points, np.float64)
+
+
+def _heldout_sq_errors(d: Detection, K: F64, dist: F64) -> F64:
+    """Squared residuals of a view not used for fitting: its pose comes from PnP with the fitted
+    intrinsics, so only the lens model is being judged."""
+    ok, rvec, tvec = cv2.solvePnP(d.object_points, d.image_points, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise CalibrationError(f"view {d.name}: PnP failed on a held-out view")
+    rvec, tvec = cv2.solvePnPRefineLM(d.object_points, d.image_points, K, dist, rvec, tvec)
+    res = _residuals(d, K, dist, np.asarray(rvec, np.float64).ravel(), np.asarray(tvec, np.float64).ravel())
+    return np.asarray((res**2).sum(axis=1), np.float64)
+
+
+def cross_validate(
+    dets: Sequence[Detection], size: tuple[int, int], model: LensModel, folds: int = 5
+) -> float:
+    """RMS reprojection error (px) of held-out views, k-fold over views (view i in fold i % k)."""
+    k = min(folds, len(dets))
+    sq: list[F64] = []
+    for f in range(k):
+        train = [d for i, d in enumerate(dets) if i % k != f]
+        test = [d for i, d in enumerate(dets) if i % k == f]
+        fit = _fit(train, size, model)
+        sq.extend(_heldout_sq_errors(d, fit.K, fit.dist) for d in test)
+    return float(math.sqrt(np.concatenate(sq).mean()))
+
+
+def select_model(
+    dets: Sequence[Detection], size: tuple[int, int], candidates: Sequence[LensModel] = LENS_MODELS
+) -> tuple[LensModel, list[ModelScore]]:
+    """Walk the candidates from simple to rich; keep a richer model only when its cross-validated
+    RMS beats the kept one's by CV_MARGIN. Models OpenCV cannot fit are scored None with the reason."""
+    scores: list[ModelScore] = []
+    best: LensModel | None = None
+    best_cv = math.inf
+    for model in sorted(candidates, key=lambda m: m.n_params):
+        n_obs = 2 * sum(d.n for d in dets)
+        if n_obs < 3 * (model.n_params + 6 * len(dets)):
+            scores.append(
+                ModelScore(
+                    model=model.name,
+                    n_params=model.n_params,
+                    train_rms_px=None,
+                    cv_rms_px=None,
+                    note="too few corners for this many parameters",
+                )
+            )
+            continue
+        try:
+            train = _fit(dets, size, model).rms
+            cv_rms = cross_validate(dets, size, model)
+        except CalibrationError as exc:
+            log.warning("model %s not scored: %s", model.name, exc)
+            scores.append(
+                ModelScore(
+                    model=model.name,
+                    n_params=model.n_params,
+                    train_rms_px=None,
+                    cv_rms_px=None,
+                    note=str(exc),
+                )
+            )
+            continue
+        kept = best is None or cv_rms < best_cv * (1.0 - CV_MARGIN)
+        scores.append(
+            ModelScore(
+                model=model.name,
+                n_params=model.n_params,
+                train_rms_px=train,
+                cv_rms_px=cv_rms,
+                note="kept" if kept else "",
+            )
+        )
+        log.info(
+            "model %s: train RMS %.4f px, held-out RMS %.4f px%s",
+            model.name,
+            train,
+            cv_rms,
+            " (kept)" if kept else "",
+        )
+        if kept:
+            best, best_cv = model, cv_rms
+    if best is None:
+        raise CalibrationError(f"no lens model could be fitted to {len(dets)} views")
+    for s in scores:
+        if s.note == "kept" and s.model != best.name:
+            s.note = "superseded"
+    for s in scores:
+        if s.model == best.name:
+            s.note = "chosen"
+    return best, scores
+
+
+def _tilt_deg(rvec: F64) -> float:
+    R, _ = cv2.Rodrigues(rvec)
+    return float(math.degrees(math.acos(min(1.0, abs(float(R[2, 2]))))))
+
+
+def _hull_frac(d: Detection) -> float:
+    hull = cv2.convexHull(d.image_points.astype(np.float32))
+    return float(cv2.contourArea(hull)) / float(d.image_size[0] * d.image_size[1])
+
+
+def _coverage_frac(dets: Sequence[Detection], size: tuple[int, int], cells: int = 8) -> float:
+    """Fraction of an 8x8 grid of image cells that hold at least one detected corner."""
+    w, h = size
+    hit = np.zeros((cells, cells), bool)
+    for d in dets:
+        cx = np.clip((d.image_points[:, 0] / w * cells).astype(int), 0, cells - 1)
+        cy = np.clip((d.image_points[:, 1] / h * cells).astype(int), 0, cells - 1)
+        hit[cy, cx] = True
+    return float(hit.mean())
+
+
+def max_distortion_px(K: F64, dist: F64, size: tuple[int, int]) -> float:
+    """Largest shift (px) the lens model applies along the image border: undistort border points
+    and compare (a quick measure of how strong the distortion is)."""
+    w, h = size
+    xs = np.linspace(0, w - 1, 33)
+    ys = np.linspace(0, h - 1, 33)
+    border = np.concatenate(
+        [
+            np.stack([xs, np.zeros_like(xs)], 1),
+            np.stack([xs, np.full_like(xs, h - 1)], 1),
+            np.stack([np.zeros_like(ys), ys], 1),
+            np.stack([np.full_like(ys, w - 1), ys], 1),
+        ]
+    )
+    und = cv2.undistortPoints(border.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+    return float(np.linalg.norm(und - border, axis=1).max())
+
+
+def _degeneracy_warnings(
+    dets: Sequence[Detection], fit: _Fit, size: tuple[int, int], model: LensModel
+) -> list[str]:
+    warnings: list[str] = []
+    n = len(dets)
+    if n < RECOMMENDED_VIEWS:
+        warnings.append(
+            f"only {n} usable views; {RECOMMENDED_VIEWS}-20 are recommended, so parameters are poorly "
+            "constrained (model selection and outlier rejection are limited too)"
+        )
+    tilts = [_tilt_deg(r) for r in fit.rvecs]
+    if max(tilts) < 15.0:
+        warnings.append(
+            f"all views are nearly fronto-parallel (largest board tilt {max(tilts):.1f} deg): focal length "
+            "and distance cannot be told apart; tilt the board 20-45 deg in several directions"
+        )
+    areas = [_hull_frac(d) for d in dets]
+    if float(np.median(areas)) < SMALL_BOARD_FRAC:
+        warnings.append(
+            f"the board is small in the image (median {100 * float(np.median(areas)):.1f} % of the image "
+            "area): move it closer so that corners constrain the distortion"
+        )
+    cov = _coverage_frac(dets, size)
+    if cov < 0.5:
+        warnings.append(
+            f"corners cover only {100 * cov:.0f} % of the image (8x8 cells): the image edges, where "
+            "distortion is largest, are extrapolated; show the board near the borders and corners"
+        )
+    shift = max_distortion_px(fit.K, fit.dist, size)
+    if shift > 0.05 * math.hypot(*size):
+        warnings.append(
+            f"strong distortion: the model moves the image border by up to {shift:.0f} px; check the "
+            "undistorted image (a fisheye model may fit this lens better)"
+        )
+    fx_std = _std_map(fit, model).get("fx", 0.0)
+    if fx_std > 0.01 * fit.K[0, 0]:
+        warnings.append(f"focal length uncertain: fx std {fx_std:.2f} px > 1 % of fx; add tilted views")
+    return warnings
+
+
+def _std_map(fit: _Fit, model: LensModel) -> dict[str, float]:
+    free = {"fx", "fy", "cx", "cy", *model.params}
+    return {n: float(fit.std[i]) for i, n in enumerate(_STD_NAMES) if n in free and i < fit.std.size}
+
+
+def _outlier_limit(rms: F64) -> float:
+    med = float(np.median(rms))
+    mad = float(np.median(np.abs(rms - med))) * 1.4826
+    return max(OUTLIER_MEDIAN_FACTOR * med, med + OUTLIER_MAD_SIGMAS * mad)
+
+
+def calibrate_intrinsics(
+    detections: Sequence[Detection],
+    board: BoardSpec,
+    camera: str = "cam0",
+    model: str = "auto",
+    max_edge_width_px: float = DEFAULT_MAX_EDGE_WIDTH_PX,
+    reject_outliers: bool = True,
+    rejected: Sequence[RejectedView] = (),
+    warnings: Sequence[str] = (),
+) -> IntrinsicsResult:
+    """Calibrate one camera from board detections (see the module docstring for the steps).
+
+    `model` is "auto" (cross-validated selection) or a name from LENS_MODELS. `rejected` and
+    `warnings` from the detection stage are carried into the result.
+    """
+    rej = list(rejected)
+    warn = list(warnings)
+    if not detections:
+        raise NoBoardFoundError(
+            f"camera {camera}: board {board} was not found in any image"
+            + (f" ({len(rej)} images tried)" if rej else "")
+        )
+    sizes = {d.image_size for d in detections}
+    if len(sizes) != 1:
+        raise CalibrationError(f"camera {camera}: images have different sizes {sorted(sizes)}")
+    size = next(iter(sizes))
+    usable: list[Detection] = []
+    for d in detections:
+        if d.n < 6:
+            rej.append(RejectedView(name=d.name, reason=f"only {d.n} corners detected (need 6)"))
+        elif math.isfinite(d.edge_width_px) and d.edge_width_px > max_edge_width_px:
+            rej.append(
+                RejectedView(
+                    name=d.name,
+                    reason=f"blurred: edge width {d.edge_width_px:.1f} px > {max_edge_width_px:.1f} px "
+                    "(motion blur or focus)",
+                )
+            )
+        else:
+            usable.append(d)
+    if len(usable) < 2:
+        raise CalibrationError(
+            f"camera {camera}: {len(usable)} usable view(s) of {board}; need at least 2 "
+            f"(rejected: {'; '.join(f'{r.name}: {r.reason}' for r in rej) or 'none'})"
+        )
+
+    scores: list[ModelScore] = []
+    if model != "auto":
+        if model not in MODELS_BY_NAME:
+            raise CalibrationError(f"unknown lens model {model!r}; choose from {', '.join(MODELS_BY_NAME)}")
+        lens = MODELS_BY_NAME[model]
+    elif len(usable) < MIN_VIEWS_FOR_CV:
+        lens = LENS_MODELS[0]
+        warn.append(
+            f"{len(usable)} views are too few for cross-validated model selection "
+            f"(need {MIN_VIEWS_FOR_CV}); using the simplest model {lens.name}"
+        )
+    else:
+        lens, scores = select_model(usable, size)
+
+    fit = _fit(usable, size, lens)
+    while reject_outliers and len(usable) > max(MIN_VIEWS_FOR_CV, 3):
+        limit = _outlier_limit(fit.per_view)
+        worst = int(np.argmax(fit.per_view))
+        if fit.per_view[worst] <= limit:
+            break
+        bad = usable.pop(worst)
+        reason = (
+            f"reprojection RMS {fit.per_view[worst]:.3f} px > limit {limit:.3f} px "
+            f"(median {float(np.median(fit.per_view)):.3f} px): wrong corners, blur or a moved board"
+        )
+        log.info("camera %s: rejecting view %s: %s", camera, bad.name, reason)
+        rej.append(RejectedView(name=bad.name, reason=reason))
+        fit = _fit(usable, size, lens)
+
+    warn.extend(_degeneracy_warnings(usable, fit, size, lens))
+    views = []
+    for d, rv, tv, e in zip(usable, fit.rvecs, fit.tvecs, fit.per_view, strict=True):
+        res = _residuals(d, fit.K, fit.dist, rv, tv)
+        views.append(
+            ViewResult(
+                name=d.name,
+                rms_px=float(e),
+                n_points=d.n,
+                rvec=rv.tolist(),
+                tvec=tv.tolist(),
+                tilt_deg=_tilt_deg(rv),
+                board_area_frac=_hull_frac(d),
+                edge_width_px=d.edge_width_px if math.isfinite(d.edge_width_px) else None,
+                ids=d.ids.tolist(),
+                image_points=d.image_points.tolist(),
+                residuals=res.tolist(),
+            )
+        )
+    for w in warn:
+        log.warning("camera %s: %s", camera, w)
+    return IntrinsicsResult(
+        camera=camera,
+        board=str(board),
+        image_size=size,
+        model=lens.name,
+        K=fit.K.tolist(),
+        dist=fit.dist.tolist(),
+        rms_px=fit.rms,
+        std_devs=_std_map(fit, lens),
+        views=views,
+        rejected=rej,
+        warnings=warn,
+        model_scores=scores,
+    )
+
+
+def detect_images(
+    paths: Sequence[str | Path], board: BoardSpec
+) -> tuple[list[Detection], list[RejectedView], list[str]]:
+    """Detect the board in image files: detections, rejected files (board not found) and warnings
+    (board partly outside). A file that cannot be read or has another size raises, naming it."""
+    dets: list[Detection] = []
+    rej: list[RejectedView] = []
+    warn: list[str] = []
+    size: tuple[int, int] | None = None
+    for p in paths:
+        img = load_image(p)
+        this = (int(img.shape[1]), int(img.shape[0]))
+        if size is not None and this != size:
+            raise CalibrationError(f"{p}: image size {this} differs from the first image's {size}")
+        size = this
+        d = detect(img, board, name=Path(p).name)
+        if d is None:
+            rej.append(
+                RejectedView(
+                    name=Path(p).name,
+                    reason=f"board {board} not found (not in view, partly outside the image, or too blurred)",
+                )
+            )
+            continue
+        near = (d.image_points < 3).any(axis=1) | (d.image_points > np.array(this) - 4).any(axis=1)
+        if not d.is_complete(board) or near.any():
+            warn.append(
+                f"{Path(p).name}: board partly outside the image ({d.n} of {board.n_corners} corners seen"
+                f"{', some at the border' if near.any() else ''})"
+            )
+        dets.append(d)
+    if rej and len(rej) > len(dets):
+        warn.append(f"board not found in {len(rej)} of {len(rej) + len(dets)} images; check the board spec")
+    return dets, rej, warn
+
+
+def calibrate_images(
+    paths: Sequence[str | Path],
+    board: BoardSpec,
+    camera: str = "cam0",
+    model: str = "auto",
+    max_edge_width_px: float = DEFAULT_MAX_EDGE_WIDTH_PX,
+) -> IntrinsicsResult:
+    """Detect and calibrate from image files; NoBoardFoundError names the files when none shows it."""
+    if not paths:
+        raise CalibrationError(f"camera {camera}: no images given")
+    dets, rej, warn = detect_images(paths, board)
+    if not dets:
+        shown = ", ".join(str(Path(p).name) for p in list(paths)[:5])
+        raise NoBoardFoundError(
+            f"camera {camera}: board {board} not found in any of {len(paths)} images ({shown}"
+            f"{'...' if len(paths) > 5 else ''}); check the inner-corner count of the spec"
+        )
+    return calibrate_intrinsics(
+        dets,
+        board,
+        camera=camera,
+        model=model,
+        max_edge_width_px=max_edge_width_px,
+        rejected=rej,
+        warnings=warn,
+    )
+
+
+def undistort(
+    image: NDArray[np.generic], result: IntrinsicsResult, alpha: float = 0.0
+) -> NDArray[np.generic]:
+    """The image undistorted with the calibration (alpha 0: only valid pixels, 1: all pixels)."""
+    K, dist = result.camera_matrix(), result.dist_coeffs()
+    newK, _ = cv2.getOptimalNewCameraMatrix(K, dist, result.image_size, alpha)
+    return np.asarray(cv2.undistort(np.asarray(image, np.uint8), K, dist, None, newK))

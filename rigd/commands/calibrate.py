@@ -1,0 +1,198 @@
+"""`rigd calibrate ...`: intrinsics from image files, rig extrinsics from image sets or a take.
+
+This module is the one place that joins the calibration library with takes (the layering rule
+keeps `calibration` free of rigd.take). Register with `app.add_typer(calibrate_app, name="calibrate")`.
+Exit code 2 on a RigdError, with the message on stderr; `--json` prints the result on stdout.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import re
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.console import Console
+
+from calibration.boards import BoardSpec, Detection, detect, load_image, parse_board
+from calibration.extrinsics import RigResult, calibrate_rig
+from calibration.intrinsics import (
+    IntrinsicsResult,
+    RejectedView,
+    calibrate_images,
+    calibrate_intrinsics,
+    detect_images,
+)
+from calibration.io import dumps_summary, write_json, write_kalibr_camchain, write_opencv_yaml, write_result
+from calibration.report import write_report
+from rigd.core.errors import RigdError
+
+log = logging.getLogger(__name__)
+
+calibrate_app = typer.Typer(help="Calibrate cameras: intrinsics, rig extrinsics.", no_args_is_help=True)
+_err = Console(stderr=True)
+
+BoardOpt = Annotated[str, typer.Option("--board", "-b", help="Board spec, e.g. chessboard:9x6:0.025.")]
+OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output file: .yaml/.yml/.xml (OpenCV) or .json.")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout.")]
+ReportOpt = Annotated[Path | None, typer.Option("--report", help="Write an HTML report here.")]
+ModelOpt = Annotated[
+    str, typer.Option("--model", help="Lens model, or 'auto' for cross-validated selection.")
+]
+
+
+def _fail(exc: Exception) -> typer.Exit:
+    _err.print(f"[bold red]error:[/] {exc}")
+    return typer.Exit(code=2)
+
+
+def _warn(result: IntrinsicsResult | RigResult) -> None:
+    for w in result.warnings:
+        _err.print(f"[yellow]warning:[/] {w}")
+    for r in getattr(result, "rejected", []):
+        _err.print(f"[yellow]rejected:[/] {r.name}: {r.reason}")
+
+
+@calibrate_app.command("intrinsics")
+def intrinsics_cmd(
+    images: Annotated[list[Path], typer.Argument(help="Images of the board (one camera).")],
+    board: BoardOpt,
+    out: OutOpt,
+    json_out: JsonOpt = False,
+    report: ReportOpt = None,
+    camera: Annotated[str, typer.Option("--camera", help="Camera name stored in the result.")] = "cam0",
+    model: ModelOpt = "auto",
+) -> None:
+    """Intrinsics of one camera from image files, with lens-model selection."""
+    try:
+        spec = parse_board(board)
+        result = calibrate_images(images, spec, camera=camera, model=model)
+        write_result(result, out)
+        if report is not None:
+            write_report(report, [result], samples={camera: load_image(images[0])})
+    except RigdError as exc:
+        raise _fail(exc) from exc
+    _warn(result)
+    if json_out:
+        typer.echo(dumps_summary(result))
+    else:
+        _err.print(
+            f"{camera}: model {result.model}, RMS {result.rms_px:.4f} px, {len(result.views)} views -> {out}"
+        )
+
+
+def _view_key(path: str, index: int) -> str:
+    """View id of an image file: the last number in its stem (left07.png -> 07), else its index."""
+    nums = re.findall(r"\d+", Path(path).stem)
+    return nums[-1].lstrip("0") or "0" if nums else str(index)
+
+
+def _parse_camera_globs(cameras: list[str]) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for item in cameras:
+        name, sep, pattern = item.partition("=")
+        if not sep or not name or not pattern:
+            raise typer.BadParameter(f"{item!r}: expected NAME=GLOB, e.g. left='imgs/left*.png'")
+        files = sorted(glob.glob(pattern))
+        if not files:
+            raise typer.BadParameter(f"{item!r}: no file matches {pattern!r}")
+        out[name] = files
+    return out
+
+
+def _rig_from_images(
+    spec: BoardSpec, sets: dict[str, list[str]], model: str
+) -> tuple[dict[str, IntrinsicsResult], dict[str, dict[str, Detection]]]:
+    intr: dict[str, IntrinsicsResult] = {}
+    views: dict[str, dict[str, Detection]] = {}
+    for cam, files in sets.items():
+        dets, rej, warn = detect_images(files, spec)
+        keys = {Path(f).name: _view_key(f, i) for i, f in enumerate(files)}
+        intr[cam] = calibrate_intrinsics(dets, spec, camera=cam, model=model, rejected=rej, warnings=warn)
+        for d in dets:
+            views.setdefault(keys[d.name], {})[cam] = d
+    return intr, views
+
+
+def _rig_from_take(
+    spec: BoardSpec, take_path: Path, model: str
+) -> tuple[dict[str, IntrinsicsResult], dict[str, dict[str, Detection]]]:
+    """Detect the board in every frame of every camera of a take; frames of one trigger pulse
+    (same pulse_index) form one view."""
+    from rigd.take.reader import open_take
+
+    intr: dict[str, IntrinsicsResult] = {}
+    views: dict[str, dict[str, Detection]] = {}
+    with open_take(take_path) as take:
+        for cam in take.cameras:
+            series = take.frames(cam)
+            dets: list[Detection] = []
+            rej: list[RejectedView] = []
+            for i in range(len(series)):
+                frame = series[i]
+                key = str(frame.pulse_index if frame.pulse_index >= 0 else i)
+                d = detect(np.asarray(frame.image), spec, name=f"{cam}#{key}")
+                if d is None:
+                    rej.append(RejectedView(name=f"{cam}#{key}", reason=f"board {spec} not found"))
+                    continue
+                dets.append(d)
+                views.setdefault(key, {})[cam] = d
+            if not dets:
+                log.warning("take %s: board not found in any frame of camera %s", take_path, cam)
+                continue
+            intr[cam] = calibrate_intrinsics(dets, spec, camera=cam, model=model, rejected=rej)
+    return intr, views
+
+
+@calibrate_app.command("rig")
+def rig_cmd(
+    board: BoardOpt,
+    out: OutOpt,
+    take: Annotated[Path | None, typer.Argument(help="Take whose frames show the board.")] = None,
+    camera: Annotated[
+        list[str] | None, typer.Option("--camera", "-c", help="NAME=GLOB image set of one camera (repeat).")
+    ] = None,
+    reference: Annotated[
+        str | None, typer.Option("--reference", help="Camera defining the rig frame.")
+    ] = None,
+    kalibr: Annotated[
+        Path | None, typer.Option("--kalibr", help="Also write a Kalibr camchain YAML.")
+    ] = None,
+    json_out: JsonOpt = False,
+    report: ReportOpt = None,
+    model: ModelOpt = "auto",
+) -> None:
+    """Intrinsics of every camera and their poses in one rig frame, from simultaneous board views.
+
+    Views are matched by trigger pulse (take) or by the last number in the file names (image sets).
+    """
+    if (take is None) == (not camera):
+        raise _fail(ValueError("give either a TAKE or --camera NAME=GLOB sets (at least two)"))
+    try:
+        spec = parse_board(board)
+        if take is not None:
+            intr, views = _rig_from_take(spec, take, model)
+        else:
+            intr, views = _rig_from_images(spec, _parse_camera_globs(camera or []), model)
+        rig = calibrate_rig(intr, views, spec, reference=reference)
+        if out.suffix.lower() == ".json":
+            write_json(rig, out)
+        else:
+            write_opencv_yaml(intr, out, rig)
+        if kalibr is not None:
+            write_kalibr_camchain(intr, kalibr, rig)
+        if report is not None:
+            write_report(report, list(intr.values()), rig)
+    except RigdError as exc:
+        raise _fail(exc) from exc
+    for r in intr.values():
+        _warn(r)
+    _warn(rig)
+    if json_out:
+        typer.echo(dumps_summary(rig))
+    else:
+        for c in rig.cameras:
+            _err.print(f"{c.camera}: t={np.round(c.t, 4).tolist()} m, RMS {c.rms_px:.3f} px")
