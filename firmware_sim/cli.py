@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from firmware_sim.event_model import PixelModelConfig
-from firmware_sim.frames_to_events import FramesToEvents, open_source, simulate_to_take
+from firmware_sim.frames_to_events import FramesToEvents, open_source, simulate_to_raw, simulate_to_take
 from rigd.core.errors import RigdError
 
 log = logging.getLogger(__name__)
@@ -63,7 +63,9 @@ def simulate_events(
     input_path: Annotated[
         Path, typer.Argument(metavar="INPUT", help="Video file, image folder, or take (.h5) with RGB frames.")
     ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Take file to create (must not exist).")],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Take (.h5) or EVT3 RAW (.raw) to create.")
+    ],
     fps: Annotated[
         float | None, typer.Option("--fps", help="Input frame rate (required for image folders).")
     ] = None,
@@ -132,7 +134,12 @@ def simulate_events(
             progress.update(task, advance=1, events=counts["events"], sub=res.n_substeps)
 
         try:
-            summary = simulate_to_take(source, out, f2e, with_frames=with_frames, on_step=on_step)
+            if out.suffix.lower() == ".raw":
+                if with_frames:
+                    raise ValueError("--with-frames needs a take (.h5) output, not .raw")
+                summary = simulate_to_raw(source, out, f2e, on_step=on_step)
+            else:
+                summary = simulate_to_take(source, out, f2e, with_frames=with_frames, on_step=on_step)
         except (ValueError, OSError, RigdError) as exc:
             console.print(f"[bold red]error:[/] {exc}")
             raise typer.Exit(code=2) from exc

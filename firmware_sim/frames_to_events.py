@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.base import DeviceInfo
+from drivers.evt import Evt3Encoder, RawHeader
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from rigd.config import WriterConfig
 from rigd.core.events import EventArray
@@ -489,6 +490,47 @@ def simulate_to_take(
         outp,
         summary.wall_s,
     )
+    return summary
+
+
+def simulate_to_raw(
+    source: FrameSource,
+    out: str | Path,
+    f2e: FramesToEvents,
+    *,
+    on_step: Callable[[StepResult], None] | None = None,
+) -> SimulationSummary:
+    """Like `simulate_to_take`, but write the EVT 3.0 byte stream a Prophesee camera would, as
+    a RAW file (streaming: the encoder keeps its state between frames)."""
+    outp = Path(out)
+    if outp.exists():
+        raise ValueError(f"{outp} exists; not overwriting")
+    w, h = f2e.size
+    summary = SimulationSummary(outp)
+    t_start = time.perf_counter()
+    encoder = Evt3Encoder()
+    header = RawHeader(fmt="evt3", width=w, height=h, fields={"camera_integrator_name": "rigd-sim"})
+    try:
+        with outp.open("wb") as f:
+            f.write(header.to_bytes())
+            for frame, t_us in source.frames:
+                res = f2e.push(frame, t_us)
+                f.write(encoder.encode(res.events))
+                summary.frames += 1
+                summary.events += len(res.events)
+                if len(res.events):
+                    if summary.t_first_us is None:
+                        summary.t_first_us = int(res.events.t[0])
+                    summary.t_last_us = int(res.events.t[-1])
+                if on_step is not None:
+                    on_step(res)
+        if summary.frames == 0:
+            raise ValueError(f"{source.description}: no frames")
+    finally:
+        source.close()
+    summary.substeps_total = f2e.substeps_total
+    summary.substeps_max = f2e.substeps_max
+    summary.wall_s = time.perf_counter() - t_start
     return summary
 
 

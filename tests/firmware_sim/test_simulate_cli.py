@@ -127,3 +127,25 @@ def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: P
     with open_take(out) as take:
         assert take.event_sensors == ["ev0"]
         assert len(take.events("ev0")) > 0
+
+
+def test_simulate_to_evt3_raw_decodes_to_the_take_events(tmp_path: Path) -> None:
+    from drivers.evt import read_raw
+
+    folder = make_folder(tmp_path)
+    args = ["simulate-events", str(folder), "--fps", "30", "--seed", "2", "--out"]
+    assert CliRunner().invoke(app, [*args, str(tmp_path / "ev.h5")]).exit_code == 0
+    res = CliRunner().invoke(app, [*args, str(tmp_path / "ev.raw")])
+    assert res.exit_code == 0, res.output
+    hdr, dec = read_raw(tmp_path / "ev.raw", strict=True)
+    with open_take(tmp_path / "ev.h5") as take:
+        ref = take.events("ev0")
+    assert (hdr.width, hdr.height) == take_geometry(tmp_path / "ev.h5")
+    np.testing.assert_array_equal(dec.events.t, ref.t)
+    np.testing.assert_array_equal(dec.events.x, ref.x)
+    np.testing.assert_array_equal(dec.events.p, ref.p)
+
+
+def take_geometry(path: Path) -> tuple[int, int]:
+    with open_take(path) as take:
+        return take.geometry("ev0")
