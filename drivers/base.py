@@ -53,6 +53,10 @@ class DeviceInfo(BaseModel):
     model: str = ""
     serial: str = ""
     firmware: str = ""
+    facts: dict[str, str] = Field(
+        default_factory=dict,
+        description="Backend facts worth keeping with the data (stream format, sensor generation, ...).",
+    )
 
 
 class CameraSettings(BaseModel):

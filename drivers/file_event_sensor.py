@@ -75,6 +75,7 @@ class FileEventSensor(EventSensor):
             model=fields.get("camera_integrator_name", "") + " " + fields.get("plugin_name", ""),
             serial=serial,
             firmware=f"format={self._fmt}",
+            facts={"evt_format": self._fmt, **{f"header.{k}": v for k, v in fields.items()}},
         )
         self._settings = EventSensorSettings()
         self._chunks: Iterator[Decoded] | None = None

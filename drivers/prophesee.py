@@ -68,6 +68,11 @@ class PropheseeSource:
             else "",
             serial=self._serial,
             firmware=f"format={self._fmt}",
+            facts={
+                "evt_format": self._fmt,
+                "width": str(self._geometry[0]),
+                "height": str(self._geometry[1]),
+            },
         )
         self._stream = device.get_i_events_stream()
         self._buffers: queue.Queue[tuple[bytes, int]] = queue.Queue(maxsize=buffers)

@@ -495,6 +495,7 @@ class SimEventSensor:
             model="SimEventSensor",
             serial=f"{world.name}/{name}",
             firmware="sim-1",
+            facts={"evt_format": "evt3", "pixel_model": "ideal", "threshold": str(p.threshold)},
         )
         self._settings = EventSensorSettings()
         world.register_clock(name, clock)

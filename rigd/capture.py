@@ -93,6 +93,7 @@ class _Pipeline:
         self.obs: dict[str, _Observations] = {}
         self.frames: dict[str, int] = {c.name: 0 for c in config.cameras}
         self.events: dict[str, int] = {s.name: 0 for s in config.event_sensors}
+        self.device_counters: dict[str, dict[str, int]] = {}
         self.trigger_channel = {s.name: s.settings.trigger_in_channel for s in config.event_sensors}
         self.pulses: list[PulseBatch] = []
         self.trigger: Trigger | None = None
@@ -418,6 +419,11 @@ def _record_device_losses(pipe: _Pipeline) -> None:
     devices: dict[str, RgbCamera | EventSensor] = {**pipe.cameras, **pipe.sensors}
     for name, dev in devices.items():
         stats = dev.stats()
+        pipe.device_counters[name] = {
+            "delivered": stats.delivered,
+            "device_dropped": stats.device_dropped,
+            **stats.extra,
+        }
         is_cam = name in pipe.cameras
         if stats.device_dropped:
             pipe.losses.append(
@@ -478,6 +484,7 @@ def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
         if s.settings.sync_mode == "slave" and s.settings.sync_master is not None
     }
     result = synchronize(pulses, observations, rate, pipe.losses, shares_clock_with=slaves)
+    result.report.device_counters = pipe.device_counters
     if pipe.trigger is not None:
         result.report.trigger_link = pipe.trigger.link_stats()
     frame_index = {name: result.observation_pulse_index[name] for name in pipe.cameras}

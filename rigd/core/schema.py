@@ -113,6 +113,9 @@ class SyncReport(BaseModel):
     )
     devices: dict[str, DeviceSync] = Field(default_factory=dict)
     losses: list[LossRecord] = Field(default_factory=list)
+    device_counters: dict[str, dict[str, int]] = Field(
+        default_factory=dict, description="Each device's own counters at the end (delivered, dropped, ...)."
+    )
     trigger_link: dict[str, int] = Field(
         default_factory=dict, description="Counters of the host-trigger box link (corrupt lines, retries)."
     )

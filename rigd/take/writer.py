@@ -206,7 +206,8 @@ class TakeWriter:
     @staticmethod
     def _info_attrs(obj: h5py.HLObject, info: DeviceInfo, settings_json: str | None) -> None:
         for key, value in info.model_dump().items():
-            obj.attrs[key] = value
+            if isinstance(value, str):  # scalar identity fields as plain attributes
+                obj.attrs[key] = value
         obj.attrs["info_json"] = info.model_dump_json()
         if settings_json is not None:
             obj.attrs["settings_json"] = settings_json

@@ -66,6 +66,8 @@ def test_injected_faults_are_reported(faulty_capture: tuple[CaptureResult, Groun
     res, _ = faulty_capture
     rep = res.report
     assert rep.n_pulses == 60
+    assert rep.device_counters["cam1"]["transport_dropped"] == 2
+    assert rep.device_counters["ev0"]["bytes_decoded"] > 0
     # Garbage on the serial line was seen, and every pulse record it hit was read back.
     assert rep.trigger_link["corrupt_lines"] > 0
     assert rep.trigger_link["unrecovered_pulses"] == 0
