@@ -55,12 +55,66 @@ def cttz(typingctx: object, x: types.Integer) -> object:
     return sig, codegen
 
 
+@intrinsic
+def ctpop(typingctx: object, x: types.Integer) -> object:
+    """Population count (one instruction, vectorisable)."""
+    sig = x(x)
+
+    def codegen(context: object, builder: ir.IRBuilder, signature: object, args: list[ir.Value]) -> ir.Value:
+        return builder.ctpop(args[0])
+
+    return sig, codegen
+
+
 def new_decoder_state() -> NDArray[np.int64]:
     """Fresh decoder state: no time base, no y, no vector base."""
     st = np.zeros(STATE_SIZE, np.int64)
     st[_ST_Y] = -1
     st[_ST_BASE] = -1
     return st
+
+
+@njit(nogil=True, cache=True)
+def output_bound(buf: NDArray[np.uint16]) -> tuple[int, int]:
+    """Upper bound on (events, trigger events) that `decode_kernel` emits for these words: ADDR_X
+    words plus the set bits of vector masks, and EXT_TRIGGER words (exact for valid streams). One
+    vectorised pass, so outputs can be allocated once at their final size."""
+    ne = 0
+    nt = 0
+    for i in range(buf.shape[0]):
+        w = np.uint32(buf[i])
+        typ = w >> 12
+        m = w & np.uint32(0xFFF if typ == 4 else (0xFF if typ == 5 else 0))
+        ne += np.int64(ctpop(m)) + np.int64(typ == 2)
+        nt += np.int64(typ == 10)
+    return ne, nt
+
+
+_NOBASE = 1 << 40  # vector base while none was given (any vector then fails the x check)
+_NOY = 0xFFFF  # y while none was given (>= any height, so events fail the y check)
+_BIG = 1 << 50
+_FAST_TYPES = (0x0, 0x2, 0x3, 0x4, 0x5, 0x6)
+
+
+def _type_row(t: int) -> list[int]:
+    """Per-type constants of the fast loop: [is-ADDR_X mask, highest x offset for the range check
+    (+BIG: slow type, -BIG: emits nothing), vector bits, ADDR_Y mask, TIME_LOW bits,
+    VECT_BASE_X mask, vector step, pad]."""
+    hi = {0x4: 11, 0x5: 7, 0x2: 0}.get(t, -_BIG if t in _FAST_TYPES else _BIG)
+    return [
+        -1 if t == 0x2 else 0,
+        hi,
+        {0x4: 0xFFF, 0x5: 0xFF}.get(t, 0),
+        -1 if t == 0x0 else 0,
+        0xFFF if t == 0x6 else 0,
+        -1 if t == 0x3 else 0,
+        {0x4: 12, 0x5: 8}.get(t, 0),
+        0,
+    ]
+
+
+_TAB = np.array([_type_row(t) for t in range(16)], np.int64)
+_U64 = np.uint64  # unsigned indices: no negative-index wrap-around code in the loop
 
 
 @njit(nogil=True, cache=True)
@@ -84,67 +138,76 @@ def decode_kernel(
     strict: bool,
 ) -> tuple[int, int, int, int]:
     """Decode words buf[pos:end] (word indices); stop early when outputs are nearly full or on a
-    strict-mode violation (then pos is the offending word). Returns (pos, n, nt, error_code)."""
+    strict-mode violation (then pos is the offending word). Returns (pos, n, nt, error_code).
+
+    The inner loop handles the words that make up ~all of a valid stream (ADDR_Y, ADDR_X,
+    VECT_BASE_X, VECT_12, VECT_8, TIME_LOW) without a data-dependent branch: per-type masks come
+    from `_TAB`, every word stores one (possibly dummy) event at n and advances n by whether it
+    emitted, and state updates are masked merges. One sign test routes a word to the slow path
+    when it could violate the format (no TIME_HIGH yet, no/out-of-range y, x beyond the width,
+    vector without base) or is a rare type; the slow path is the reference per-word semantics.
+    """
     cap = ox.shape[0] - 12
     tcap = tt.shape[0]
     started = st[0]
     loop = st[1]
     th = st[2]
-    tl = st[3]
     y = st[4]
-    base = st[5]
+    base = st[5] if st[5] >= 0 else _NOBASE
     vpol = st[6]
-    tbase = (loop << 24) | (th << 12)
-    err = 0
+    tcur = (loop << 24) | (th << 12) | st[3]
     wm1 = width - 1
-    hm1 = height - 1
-    # hot counters live in registers, flushed to stats at the end (no store per word)
-    c_oor = 0
-    c_early = 0
-    c_noy = 0
+    err = 0
     while pos < end:
-        if n > cap or nt >= tcap:
-            break
-        w = np.int64(buf[pos])
-        typ = w >> 12
-        if (0x4D >> typ) & 1:
-            # ADDR_Y / ADDR_X / VECT_BASE_X / TIME_LOW: ~90% of real words. Handled without a
-            # data-dependent branch (arithmetic selects): the type sequence is unpredictable, and
-            # a mispredict per word would cost more than the few extra operations.
-            v = w & 0x7FF
-            is_y = np.int64(typ == 0x0)
-            is_x = np.int64(typ == 0x2)
-            is_b = np.int64(typ == 0x3)
-            is_tl = np.int64(typ == 0x6)
-            polv = ((w >> 10) & 2) - 1
-            ox[n] = v
-            oy[n] = y
-            op[n] = polv
-            ot[n] = tbase | tl
-            ready = is_x & started & np.int64(y >= 0)
-            inside = np.int64(v <= wm1) & np.int64(y <= hm1)
-            n += ready & inside
-            bad = ready & (1 - inside)
-            c_oor += bad
-            c_early += is_x & (1 - started)
-            c_noy += is_x & started & np.int64(y < 0)
-            y += (v - y) * is_y
-            tl += ((w & 0xFFF) - tl) * is_tl
-            base += (v - base) * is_b
-            vpol += (polv - vpol) * is_b
-            if strict and (bad | (is_x & started & np.int64(y < 0))):
-                err = 3 if bad else 7
+        # fast loop: words that cannot violate the format (checked by one sign test)
+        yk = y if y >= 0 else _NOY
+        hlim = height - 1 if started else -1
+        while pos < end:
+            if n > cap:
                 break
+            w = np.int64(buf[_U64(pos)])
+            typ = w >> 12
+            v = w & 0x7FF
+            mx = _TAB[typ, 0]
+            ebase = (base & ~mx) | (v & mx)
+            if ((hlim - yk) | (wm1 - (ebase + _TAB[typ, 1]))) < 0:
+                break
+            polv = ((w >> 10) & 2) - 1
+            emask = (w & _TAB[typ, 2]) | (mx & 1)
+            un = _U64(n)
+            ox[un] = ebase + cttz(emask)
+            oy[un] = yk
+            op[un] = (vpol & ~mx) | (polv & mx)
+            ot[un] = tcur
+            n += np.int64(emask != 0)
+            rest = emask & (emask - 1)
+            while rest != 0:
+                un = _U64(n)
+                ox[un] = base + cttz(rest)
+                oy[un] = yk
+                op[un] = vpol
+                ot[un] = tcur
+                n += 1
+                rest &= rest - 1
+            my = _TAB[typ, 3]
+            mb = _TAB[typ, 5]
+            mtl = _TAB[typ, 4]
+            yk = (yk & ~my) | (v & my)
+            tcur = (tcur & ~mtl) | (w & mtl)
+            vpol = (vpol & ~mb) | (polv & mb)
+            base = (base & ~mb) + ((v & mb) + _TAB[typ, 6])
             pos += 1
-            continue
-        if typ == 0x4 or typ == 0x5:  # VECT_12 / VECT_8
-            if typ == 0x4:
-                mask = w & 0xFFF
-                step = 12
-            else:
-                mask = w & 0xFF
-                step = 8
-            if base < 0:
+        y = -1 if yk == _NOY else yk
+        if pos >= end or n > cap:
+            break
+        # ---- slow path: one word, original semantics for every type
+        w = np.int64(buf[_U64(pos)])
+        typ = w >> 12
+        v = w & 0x7FF
+        if typ == 0x4 or typ == 0x5:
+            step = 12 if typ == 0x4 else 8
+            mask = w & 0xFFF if typ == 0x4 else w & 0xFF
+            if base >= _NOBASE:
                 stats[2] += 1
                 if strict:
                     err = 2
@@ -159,40 +222,27 @@ def decode_kernel(
                     break
                 base += step
             else:
-                if y >= height or base + step > width:
-                    # slow path: check each set bit against the geometry
-                    bad = False
-                    m = mask
-                    x = base
-                    while m != 0:
-                        if (m & 1) != 0:
-                            if x >= width or y >= height:
-                                stats[3] += 1
-                                bad = True
-                            else:
-                                ox[n] = x
-                                oy[n] = y
-                                op[n] = vpol
-                                ot[n] = tbase | tl
-                                n += 1
-                        m >>= 1
-                        x += 1
-                    if bad and strict:
-                        err = 3
-                        break
-                else:
-                    t = tbase | tl
-                    m = mask
-                    while m != 0:
-                        ox[n] = base + cttz(m)
-                        oy[n] = y
-                        op[n] = vpol
-                        ot[n] = t
-                        n += 1
-                        m &= m - 1
+                bad = False
+                m = mask
+                x = base
+                while m != 0:
+                    if (m & 1) != 0:
+                        if x >= width or y >= height:
+                            stats[3] += 1
+                            bad = True
+                        else:
+                            ox[_U64(n)] = x
+                            oy[_U64(n)] = y
+                            op[_U64(n)] = vpol
+                            ot[_U64(n)] = tcur
+                            n += 1
+                    m >>= 1
+                    x += 1
+                if bad and strict:
+                    err = 3
+                    break
                 base += step
-        elif typ == 0x2:  # EVT_ADDR_X
-            x = w & 0x7FF
+        elif typ == 0x2:
             if started == 0:
                 stats[6] += 1
             elif y < 0:
@@ -200,49 +250,51 @@ def decode_kernel(
                 if strict:
                     err = 7
                     break
-            elif x >= width or y >= height:
+            elif v >= width or y >= height:
                 stats[3] += 1
                 if strict:
                     err = 3
                     break
             else:
-                ox[n] = x
-                oy[n] = y
-                op[n] = 1 if (w & 0x800) != 0 else -1
-                ot[n] = tbase | tl
+                ox[_U64(n)] = v
+                oy[_U64(n)] = y
+                op[_U64(n)] = 1 if (w & 0x800) != 0 else -1
+                ot[_U64(n)] = tcur
                 n += 1
-        elif typ == 0x0:  # EVT_ADDR_Y (bit 11: master/slave system type, ignored)
-            y = w & 0x7FF
-        elif typ == 0x6:  # EVT_TIME_LOW
-            tl = w & 0xFFF
-        elif typ == 0x3:  # VECT_BASE_X
-            base = w & 0x7FF
+        elif typ == 0x0:
+            y = v
+        elif typ == 0x6:
+            tcur = (tcur & ~0xFFF) | (w & 0xFFF)
+        elif typ == 0x3:
+            base = v
             vpol = 1 if (w & 0x800) != 0 else -1
-        elif typ == 0x8:  # EVT_TIME_HIGH
-            v = w & 0xFFF
-            if started != 0 and v < th:
-                if th - v >= 2048:
+        elif typ == 0x8:
+            v12 = w & 0xFFF
+            th_ok = True
+            if started != 0 and v12 < th:
+                if th - v12 >= 2048:
                     loop += 1
                 else:
                     stats[1] += 1
                     if strict:
                         err = 1
                         break
-                    pos += 1
-                    continue
-            started = 1
-            th = v
-            tl = 0
-            tbase = (loop << 24) | (th << 12)
-        elif typ == 0xA:  # EXT_TRIGGER
+                    th_ok = False
+            if th_ok:
+                started = 1
+                th = v12
+                tcur = (loop << 24) | (th << 12)
+        elif typ == 0xA:
             if started == 0:
                 stats[6] += 1
             else:
-                tt[nt] = tbase | tl
+                if nt >= tcap:
+                    break
+                tt[nt] = tcur
                 tp[nt] = w & 1
                 tc[nt] = (w >> 8) & 0xF
                 nt += 1
-        elif typ == 0x7 or typ == 0xE or typ == 0xF:  # CONTINUED_4 / OTHERS / CONTINUED_12
+        elif typ == 0x7 or typ == 0xE or typ == 0xF:
             pass
         else:
             stats[4] += 1
@@ -250,15 +302,12 @@ def decode_kernel(
                 err = 4
                 break
         pos += 1
-    stats[3] += c_oor
-    stats[6] += c_early
-    stats[7] += c_noy
     st[0] = started
     st[1] = loop
     st[2] = th
-    st[3] = tl
+    st[3] = tcur & 0xFFF
     st[4] = y
-    st[5] = base
+    st[5] = base if base < _NOBASE else -1
     st[6] = vpol
     return pos, n, nt, err
 

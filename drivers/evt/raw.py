@@ -9,6 +9,7 @@ output batch per call, so files of any size decode in constant memory through `R
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -130,6 +131,8 @@ class StreamDecoder:
             self._kernel: Callable[..., tuple[int, int, int, int]] = _call
         else:
             self._kernel = kernel
+        # optional counting pass sizing the outputs exactly (EVT 3.0)
+        self._bound: Callable[[NDArray[Any]], tuple[int, int]] | None = getattr(mod, "output_bound", None)
         self._stats = np.zeros(N_CODES, np.int64)
         self._pending = b""
         self._base = int(offset)
@@ -143,7 +146,9 @@ class StreamDecoder:
     def _run(self, raw: NDArray[np.uint8], out: _Out, abs_start: int) -> None:
         if raw.ctypes.data % self._word:
             raw = raw.copy()  # chunk cut mid-word left the body unaligned; one memcpy
-        buf = raw.view(self._dtype)
+        self._run_words(raw, raw.view(self._dtype), out, abs_start)
+
+    def _run_words(self, raw: NDArray[np.uint8], buf: NDArray[Any], out: _Out, abs_start: int) -> None:
         pos, end = 0, buf.shape[0] // self._step
         ws = self._word
         while pos < end:
@@ -164,7 +169,7 @@ class StreamDecoder:
             if pos < end:
                 out.grow(self._max_per_word)
 
-    def feed(self, data: bytes | bytearray | memoryview) -> Decoded:
+    def feed(self, data: bytes | bytearray | memoryview | NDArray[np.uint8]) -> Decoded:
         """Decode the next chunk; any trailing partial word is kept for the next call."""
         arr = np.frombuffer(data, np.uint8) if len(data) else np.empty(0, np.uint8)
         ws = self._word
@@ -173,19 +178,30 @@ class StreamDecoder:
         if nwords == 0:
             self._pending += arr.tobytes()
             return Decoded.empty()
-        cap_events = min(nwords * self._max_per_word, max(nwords * ws, 256)) + self._max_per_word + 1
-        out = _Out(cap_events, 16 + nwords // 64)
         start = self._base + self.bytes_consumed
+        head = None
         if self._pending:
             need = ws - len(self._pending)
             head = np.frombuffer(self._pending + arr[:need].tobytes(), np.uint8)
-            self._run(head, out, start)
             arr = arr[need:]
+        whole = (arr.shape[0] // ws) * ws
+        body = arr[:whole]
+        if body.ctypes.data % ws:
+            body = body.copy()  # chunk cut mid-word left the body unaligned; one memcpy
+        words = body.view(self._dtype)
+        if self._bound is not None:
+            # exact-size outputs from a cheap counting pass: no growth, no over-allocation
+            ne, ntr = self._bound(words)
+            out = _Out(ne + 2 * self._max_per_word + 1, ntr + 2)
+        else:
+            cap_events = min(nwords * self._max_per_word, max(nwords * ws, 256)) + self._max_per_word + 1
+            out = _Out(cap_events, 16 + nwords // 64)
+        if head is not None:
+            self._run(head, out, start)
             start += ws
             self._pending = b""
-        whole = (arr.shape[0] // ws) * ws
         if whole:
-            self._run(arr[:whole], out, start)
+            self._run_words(body, words, out, start)
         self._pending = arr[whole:].tobytes()
         self.bytes_consumed += nwords * ws
         return out.result()
@@ -402,7 +418,13 @@ def read_raw(path: str | Path, *, strict: bool = False, fmt: str | None = None) 
     """Decode a whole RAW file."""
     with Path(path).open("rb") as f:
         hdr = parse_raw_header(f)
-        data = f.read()
+        # read straight into an aligned numpy buffer: no bytes object, no re-copy of the body
+        data = np.empty(max(0, os.fstat(f.fileno()).st_size - hdr.size), np.uint8)
+        got = f.readinto(data.data)
+        data = data[:got]
+        rest = f.read()  # the file grew while being read: keep the tail too
+        if rest:
+            data = np.concatenate([data, np.frombuffer(rest, np.uint8)])
     if fmt is not None:
         hdr.fmt = fmt
     dec = StreamDecoder(hdr.fmt, width=hdr.width, height=hdr.height, strict=strict, offset=hdr.size)
