@@ -63,9 +63,7 @@ def simulate_events(
     input_path: Annotated[
         Path, typer.Argument(metavar="INPUT", help="Video file, image folder, or take (.h5) with RGB frames.")
     ],
-    out: Annotated[
-        Path, typer.Option("--out", "-o", help="Take (.h5) or EVT3 RAW (.raw) to create.")
-    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Take (.h5) or EVT3 RAW (.raw) to create.")],
     fps: Annotated[
         float | None, typer.Option("--fps", help="Input frame rate (required for image folders).")
     ] = None,
