@@ -1,0 +1,132 @@
+"""BAF: exact agreement with a literal brute-force reading of the rule, streaming, extremes."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.typing import NDArray
+
+from reconstruction.filters import BackgroundActivityFilter, background_activity_filter
+from rigd.core.events import EventArray
+
+
+def brute_force(
+    ev: EventArray, radius: int, window: int, support: int, metric: str, update_on_drop: bool
+) -> NDArray[np.bool_]:
+    """O(n^2) reading of the definition in reconstruction.filters (test-only Python loop)."""
+    x, y, p, t = (a.astype(np.int64) for a in (ev.x, ev.y, ev.p, ev.t))
+    keep = np.zeros(len(ev), bool)
+    for i in range(len(ev)):
+        pixels = set()
+        for k in range(i):
+            if p[k] != p[i] or (x[k] == x[i] and y[k] == y[i]):
+                continue
+            if not update_on_drop and not keep[k]:
+                continue
+            dx, dy = abs(x[k] - x[i]), abs(y[k] - y[i])
+            near = max(dx, dy) <= radius if metric == "chebyshev" else dx * dx + dy * dy <= radius**2
+            if near and t[i] - t[k] <= window:
+                pixels.add((x[k], y[k]))
+        keep[i] = len(pixels) >= support
+    return keep
+
+
+@st.composite
+def event_streams(draw: st.DrawFn) -> tuple[EventArray, int, int]:
+    w = draw(st.integers(1, 12))
+    h = draw(st.integers(1, 12))
+    n = draw(st.integers(0, 120))
+    x = draw(st.lists(st.integers(0, w - 1), min_size=n, max_size=n))
+    y = draw(st.lists(st.integers(0, h - 1), min_size=n, max_size=n))
+    p = draw(st.lists(st.sampled_from([-1, 1]), min_size=n, max_size=n))
+    dt = draw(
+        st.lists(st.integers(0, 25) | st.sampled_from([2**30 - 1, 2**30, 5 * 10**9]), min_size=n, max_size=n)
+    )
+    t0 = draw(st.sampled_from([0, 10_000_000_000]))
+    t = t0 + np.cumsum(np.asarray(dt, np.int64))
+    return EventArray.from_arrays(x, y, p, t), w, h
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    data=event_streams(),
+    radius=st.integers(1, 3),
+    window=st.integers(0, 40),
+    support=st.integers(0, 3),
+    metric=st.sampled_from(["chebyshev", "euclidean"]),
+    update_on_drop=st.booleans(),
+)
+def test_matches_brute_force(
+    data: tuple[EventArray, int, int],
+    radius: int,
+    window: int,
+    support: int,
+    metric: str,
+    update_on_drop: bool,
+) -> None:
+    ev, w, h = data
+    baf = BackgroundActivityFilter(
+        w,
+        h,
+        radius_px=radius,
+        window_us=window,
+        min_support=support,
+        metric=metric,  # type: ignore[arg-type]
+        update_on_drop=update_on_drop,
+    )
+    got = baf.mask(ev)
+    want = brute_force(ev, radius, window, support, metric, update_on_drop)
+    np.testing.assert_array_equal(got, want)
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=event_streams(), cuts=st.lists(st.integers(0, 120), max_size=5))
+def test_chunked_equals_whole(data: tuple[EventArray, int, int], cuts: list[int]) -> None:
+    ev, w, h = data
+    whole = BackgroundActivityFilter(w, h).mask(ev)
+    baf = BackgroundActivityFilter(w, h)
+    bounds = [0, *sorted(min(c, len(ev)) for c in cuts), len(ev)]
+    parts = [baf.mask(ev[a:b]) for a, b in itertools.pairwise(bounds)]
+    np.testing.assert_array_equal(np.concatenate(parts) if parts else np.zeros(0, bool), whole)
+
+
+def test_paper_defaults_keep_edges_drop_isolated() -> None:
+    # A vertical edge sweeping right, one column per 5 us: events after the first columns have support.
+    cols = np.repeat(np.arange(20), 10)
+    rows = np.tile(np.arange(10), 20)
+    t = cols * 5
+    edge = EventArray.from_arrays(cols, rows, np.ones_like(cols), t)
+    kept = background_activity_filter(edge, 64, 64)
+    assert len(kept) >= 0.9 * len(edge)
+    # Isolated noise: far apart in space or time.
+    rng = np.random.default_rng(0)
+    n = 500
+    noise = EventArray.from_arrays(
+        rng.integers(0, 640, n), rng.integers(0, 480, n), rng.choice([-1, 1], n), np.arange(n) * 1000
+    )
+    assert len(background_activity_filter(noise, 640, 480)) == 0
+
+
+def test_extremes() -> None:
+    baf = BackgroundActivityFilter(8, 8)
+    assert len(baf.filter(EventArray.empty())) == 0
+    single = EventArray.from_arrays([3], [3], [1], [10**10])
+    assert len(baf.filter(single)) == 0
+    # all at one timestamp, a 100x burst on a 3x3 block: everything after the first pixels is supported
+    xs, ys = np.meshgrid(np.arange(3), np.arange(3))
+    burst = EventArray.from_arrays(
+        np.tile(xs.ravel(), 100), np.tile(ys.ravel(), 100), np.ones(900, int), np.full(900, 10**10 + 5)
+    )
+    m = baf.mask(burst)
+    assert m[9:].all()
+    assert not m[0]
+    with pytest.raises(ValueError, match="previous chunk"):
+        baf.mask(EventArray.from_arrays([0], [0], [1], [0]))
+    with pytest.raises(ValueError, match="sorted"):
+        BackgroundActivityFilter(8, 8).mask(EventArray.from_arrays([0, 0], [0, 0], [1, 1], [5, 1]))
+    with pytest.raises(ValueError, match="outside"):
+        BackgroundActivityFilter(8, 8).mask(EventArray.from_arrays([8], [0], [1], [5]))
