@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from drivers.evt import RawHeader, RawReader, StreamDecoder, encode_evt2, encode_evt3, read_raw, write_raw
+from drivers.evt import raw as raw_mod
 from rigd.core.events import EventArray, TriggerEvents
 
 log = logging.getLogger(__name__)
@@ -97,8 +98,17 @@ def main() -> None:
             total += len(d.events)
         check(total, "rigd chunked")
 
+    def reference_kernel() -> None:
+        # the branch-free state machine alone (evt3.decode_kernel), without evt3_fast's loop
+        raw_mod.USE_EVT3_FAST = False
+        try:
+            check(len(read_raw(path)[1].events), "rigd reference kernel")
+        finally:
+            raw_mod.USE_EVT3_FAST = True
+
     decoders: list[tuple[str, Callable[[], Any] | None, str]] = [
         ("rigd read_raw (whole file)", lambda: check(len(read_raw(path)[1].events), "rigd"), ""),
+        ("rigd read_raw, reference kernel only", reference_kernel, ""),
         ("rigd RawReader (1 MiB chunks)", chunked, ""),
         ("rigd StreamDecoder.feed (bytes in RAM)", lambda: StreamDecoder("evt3").feed(body), ""),
     ]

@@ -19,7 +19,7 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt import evt2, evt3, evt21
+from drivers.evt import evt2, evt3, evt3_fast, evt21
 from drivers.evt.errors import KIND_NAMES, N_CODES, TRUNCATED, EvtDecodeError
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 
 EvtFormat = Literal["evt2", "evt21", "evt21_le", "evt3"]
 FORMATS: tuple[str, ...] = ("evt2", "evt21", "evt21_le", "evt3")
+# EVT 3.0 kernel: branchy clean-stretch loop with the reference state machine as fallback
+# (evt3_fast); False selects the reference `evt3.decode_kernel` alone (tests, benchmarks)
+USE_EVT3_FAST = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,7 +124,7 @@ class StreamDecoder:
         # kernels read native words; EVT 2.1 words are read as two u32 halves (layout-dependent)
         self._dtype = np.dtype({2: "<u2", 4: "<u4", 8: "<u4"}[self._word])
         self._step = 2 if self._word == 8 else 1
-        kernel = mod.decode_kernel
+        kernel: Any = evt3_fast.decode_kernel if fmt == "evt3" and USE_EVT3_FAST else mod.decode_kernel
         if fmt.startswith("evt21"):
             swapped = fmt == "evt21"
 

@@ -1,0 +1,254 @@
+"""The fast EVT 3.0 kernel (evt3_fast) is indistinguishable from the reference state machine."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from drivers.evt import Evt3Encoder, EvtDecodeError, StreamDecoder, evt3, evt3_fast, parse_raw_header, raw
+from drivers.evt.raw import _Out
+from rigd.core.events import EventArray, TriggerEvents
+
+DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real Prophesee recordings not found at {DATA}")
+SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+KERNELS = {"ref": evt3.decode_kernel, "fast": evt3_fast.decode_kernel}
+
+Result = tuple[EventArray, TriggerEvents, dict[str, int], tuple[int, str] | None, list[int]]
+
+
+def _body(name: str) -> bytes:
+    with (DATA / name).open("rb") as f:
+        parse_raw_header(f)
+        return f.read()
+
+
+def _decode(
+    data: bytes,
+    kernel: str,
+    sizes: list[int] | None = None,
+    *,
+    strict: bool = False,
+    w: int = 1280,
+    h: int = 720,
+) -> Result:
+    """Decode through StreamDecoder with the chosen kernel; chunked when `sizes` is given."""
+    dec = StreamDecoder("evt3", width=w, height=h, strict=strict)
+    dec._kernel = KERNELS[kernel]
+    parts = []
+    error = None
+    sizes = sizes or [max(1, len(data))]
+    pos = i = 0
+    try:
+        while pos < len(data):
+            k = sizes[i % len(sizes)]
+            parts.append(dec.feed(memoryview(data)[pos : pos + k]))
+            pos += k
+            i += 1
+        dec.finish()
+    except EvtDecodeError as exc:
+        error = (exc.offset, exc.kind)
+    ev = EventArray.concatenate([d.events for d in parts]) if parts else EventArray.empty()
+    tr = TriggerEvents.concatenate([d.triggers for d in parts]) if parts else TriggerEvents.empty()
+    return ev, tr, dec.stats, error, dec._state.tolist()
+
+
+def _assert_same(a: Result, b: Result) -> None:
+    for x, y in ((a[0], b[0]), (a[1], b[1])):
+        assert len(x) == len(y)
+        for name in x.__slots__:  # type: ignore[union-attr]
+            np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=name)
+    assert a[2] == b[2]  # skip counts by kind
+    assert a[3] == b[3]  # strict: offset and kind of the error
+    assert a[4] == b[4]  # outgoing decoder state
+
+
+def _stream(rng: np.random.Generator, n: int, n_trig: int, loops: int, pieces: int) -> bytes:
+    """Encoder output (vectors, ADDR_X, triggers) spanning `loops` 2^24 us roll-overs, encoded in
+    `pieces` calls of one streaming encoder."""
+    span = (loops + 1) * (1 << 24) + int(rng.integers(1, 1 << 24))
+    t = np.sort(rng.integers(0, span, n))
+    burst = rng.random(n) < 0.6
+    t = np.maximum.accumulate(np.where(burst, np.r_[t[:1], t[:-1]], t))
+    same = burst & (np.r_[-1, t[:-1]] == t)
+    y = np.where(same, np.r_[0, rng.integers(0, 720, n)[:-1]], rng.integers(0, 720, n))
+    # x clustered near both edges too, so vectors reach past the width (fallback) now and then
+    x = np.where(rng.random(n) < 0.2, rng.integers(1260, 1280, n), rng.integers(0, 1280, n))
+    x = np.where(same, np.minimum(np.r_[0, x[:-1]] + rng.integers(1, 14, n), 1279), x)
+    ev = EventArray.from_arrays(x, y, rng.integers(0, 2, n), t)
+    order = np.lexsort((ev.x, ev.p, ev.y, ev.t))
+    ev = ev[order]
+    tt = np.sort(rng.integers(0, span, n_trig)).astype(np.int64)
+    tr = TriggerEvents(
+        tt, rng.integers(0, 2, n_trig).astype(np.uint8), rng.integers(0, 16, n_trig).astype(np.uint8)
+    )
+    enc = Evt3Encoder()
+    cuts = np.linspace(0, span, pieces + 1).astype(np.int64)
+    out = []
+    for lo, hi in itertools.pairwise(cuts):
+        last = hi == cuts[-1]
+        e = ev[(ev.t >= lo) & ((ev.t < hi) | last)]
+        r = tr[(tr.t >= lo) & ((tr.t < hi) | last)]
+        out.append(enc.encode(e, r))
+    return b"".join(out)
+
+
+# ------------------------------------------------------------------ production wiring
+
+
+def test_production_path_uses_fast_kernel() -> None:
+    assert raw.USE_EVT3_FAST
+    assert StreamDecoder("evt3")._kernel is evt3_fast.decode_kernel
+
+
+# ------------------------------------------------------------------ real files
+
+
+@needs_data
+@pytest.mark.parametrize("name", ["evt3_gen41_sample.raw", "evt3_pedestrians.raw"])
+def test_real_files(name: str) -> None:
+    body = _body(name)
+    ref = _decode(body, "ref")
+    _assert_same(_decode(body, "fast"), ref)
+    for sizes in ([1], [3, 4097, 7], [65536]):
+        _assert_same(
+            _decode(body[:200_000] if sizes == [1] else body, "fast", sizes),
+            _decode(body[:200_000] if sizes == [1] else body, "ref"),
+        )
+    # a smaller geometry turns part of the file into out-of-range events: fallback path
+    _assert_same(_decode(body, "fast", w=640, h=480), _decode(body, "ref", w=640, h=480))
+    _assert_same(
+        _decode(body, "fast", w=640, h=480, strict=True), _decode(body, "ref", w=640, h=480, strict=True)
+    )
+
+
+@needs_data
+@pytest.mark.parametrize("name", ["evt3_gen41_sample.raw", "evt3_pedestrians.raw"])
+def test_real_files_match_pypi_evt3(name: str) -> None:
+    evt3_pkg = pytest.importorskip("evt3", reason="evt3 PyPI package not installed")
+    ref = evt3_pkg.decode_file(str(DATA / name))
+    ev = _decode(_body(name), "fast")[0]
+    np.testing.assert_array_equal(ev.x, ref.x)
+    np.testing.assert_array_equal(ev.y, ref.y)
+    np.testing.assert_array_equal(ev.p, ref.polarity.astype(np.int8) * 2 - 1)
+    np.testing.assert_array_equal(ev.t, ref.timestamp.astype(np.int64))
+
+
+# ------------------------------------------------------------------ encoder streams
+
+
+@SETTINGS
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(0, 600),
+    n_trig=st.integers(0, 20),
+    loops=st.integers(0, 4),
+    pieces=st.integers(1, 4),
+    sizes=st.lists(st.integers(1, 300), min_size=1, max_size=6),
+)
+def test_encoder_streams(seed: int, n: int, n_trig: int, loops: int, pieces: int, sizes: list[int]) -> None:
+    data = _stream(np.random.default_rng(seed), n, n_trig, loops, pieces)
+    ref = _decode(data, "ref", strict=True)
+    assert ref[3] is None
+    _assert_same(_decode(data, "fast", strict=True), ref)
+    _assert_same(_decode(data, "fast", sizes, strict=True), ref)
+    _assert_same(_decode(data, "fast", sizes), _decode(data, "ref", sizes))
+
+
+# ------------------------------------------------------------------ dirty input
+
+
+@SETTINGS
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n_mut=st.integers(1, 40),
+    cut=st.booleans(),
+    geometry=st.sampled_from([(1280, 720), (640, 480), (1270, 715)]),
+    sizes=st.lists(st.integers(1, 500), min_size=1, max_size=4),
+)
+def test_dirty_input_falls_back(
+    seed: int, n_mut: int, cut: bool, geometry: tuple[int, int], sizes: list[int]
+) -> None:
+    """Mutated words (unknown types, small TIME_HIGH falls, bad x/y, vectors without base, words
+    before the first TIME_HIGH): tolerant skip counts, strict error offsets and events unchanged."""
+    rng = np.random.default_rng(seed)
+    buf = np.frombuffer(_stream(rng, 400, 5, 2, 2), "<u2").copy()
+    if buf.size:
+        idx = rng.integers(0, buf.size, n_mut)
+        kind = rng.integers(0, 4, n_mut)
+        rand = rng.integers(0, 1 << 16, n_mut)
+        # random words, random types on kept payloads, or bit flips
+        buf[idx] = np.where(
+            kind == 0,
+            rand,
+            np.where(kind == 1, (rand & 0xF000) | (buf[idx] & 0xFFF), buf[idx] ^ (1 << (rand % 16))),
+        )
+        if cut:
+            buf = buf[int(rng.integers(0, buf.size)) :]
+    data = buf.tobytes()
+    w, h = geometry
+    for strict in (False, True):
+        ref = _decode(data, "ref", strict=strict, w=w, h=h)
+        _assert_same(_decode(data, "fast", strict=strict, w=w, h=h), ref)
+        _assert_same(
+            _decode(data, "fast", sizes, strict=strict, w=w, h=h),
+            _decode(data, "ref", sizes, strict=strict, w=w, h=h),
+        )
+
+
+def test_hand_made_violations() -> None:
+    words = [
+        0x6001, 0x0005, 0x2007,  # before TIME_HIGH
+        0x8064, 0x4FFF, 0x2003,  # vector without base, event without y
+        0x0002, 0x3010, 0x4003, 0x2900,  # ok vector; x 0x100 beyond a 200-wide sensor
+        0x805A, 0x2008,  # small TIME_HIGH fall
+        0x1234, 0x9000, 0xB000,  # unknown types
+        0x7000, 0xE000, 0xF000,  # ignored types
+        0x03FF, 0x2001, 0x0003, 0x30BE, 0x4FFF,  # y beyond height; vector reaching past width
+        0xA301, 0x8BB8, 0x8005, 0x2009,  # trigger, roll-over
+    ]  # fmt: skip
+    data = np.array(words, "<u2").tobytes()
+    for strict in (False, True):
+        for sizes in (None, [1], [3], [5]):
+            ref = _decode(data, "ref", sizes, strict=strict, w=200, h=100)
+            _assert_same(_decode(data, "fast", sizes, strict=strict, w=200, h=100), ref)
+    assert sum(_decode(data, "ref", w=200, h=100)[2].values()) > 5
+
+
+# ------------------------------------------------------------------ output capacity
+
+
+def _run_small(data: bytes, kernel: Callable[..., tuple[int, int, int, int]]) -> tuple[Any, ...]:
+    """StreamDecoder's growth loop with tiny initial outputs: the kernel stops when nearly full."""
+    words = np.frombuffer(data, "<u2")
+    out = _Out(13, 1)
+    stt = evt3.new_decoder_state()
+    stats = np.zeros(8, np.int64)
+    pos = 0
+    calls = 0
+    while pos < words.size:
+        pos, out.n, out.nt, err = kernel(
+            words, pos, words.size, stt, out.x, out.y, out.p, out.t, out.n,
+            out.tt, out.tp, out.tc, out.nt, stats, 1280, 720, False,
+        )  # fmt: skip
+        assert err == 0
+        calls += 1
+        out.grow(12)
+    r = out.result()
+    return r.events.x, r.events.y, r.events.p, r.events.t, r.triggers.t, r.triggers.channel, stt, stats
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_growing_outputs(seed: int) -> None:
+    data = _stream(np.random.default_rng(seed), 3000, 200, 2, 3)
+    a = _run_small(data, evt3.decode_kernel)
+    b = _run_small(data, evt3_fast.decode_kernel)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
