@@ -29,8 +29,11 @@ ENTRY_POINT_GROUP = "rigd.backends"
 
 _BUILTIN: dict[tuple[str, str], str] = {
     ("trigger", "serial"): "drivers.serial_trigger:open_serial_trigger",
+    ("trigger", "hid"): "drivers.serial_trigger:open_hid_trigger",
     ("event_sensor", "file"): "drivers.file_event_sensor:open_file_event_sensor",
     ("event_sensor", "prophesee"): "drivers.prophesee:open_prophesee_sensor",
+    ("rgb_camera", "genicam"): "drivers.genicam_camera:open_genicam_camera",
+    ("rgb_camera", "v4l2"): "drivers.v4l2_camera:open_v4l2_camera",
 }
 _registered: dict[tuple[str, str], Factory | str] = {}
 

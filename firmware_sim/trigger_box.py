@@ -1,4 +1,4 @@
-"""Simulated trigger-box firmware on a pseudo-terminal.
+"""Simulated trigger-box firmware on a pseudo-terminal (or a socket pair, for HID).
 
 The box speaks the protocol of docs/trigger-protocol.md on the master side of a pty; the
 host opens the slave (`port_path`) with pyserial exactly as it would open a USB-serial box,
@@ -9,6 +9,10 @@ Pulse k of a run is scheduled at box time b_k = t0 + round(k * 1e6 / rate); the 
 b_k, while the physical edge leaves at the true time of b_k plus Gaussian jitter the box
 cannot know. The schedule is computed, never measured, so OS sleep error never leaks into
 timestamps (a late wake-up only delays the report).
+
+With `link="socket"` the firmware talks over one end of a socket pair instead of a pty;
+`host_socket` is the other end, a plain byte pipe that `firmware_sim.hid_box` packs into
+HID reports, so the same firmware serves the HID transport.
 """
 
 from __future__ import annotations
@@ -18,11 +22,12 @@ import logging
 import os
 import re
 import select
+import socket
 import threading
 import time
 import tty
 from collections.abc import Iterable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -98,6 +103,7 @@ class SimTriggerBox:
         garbage_every: int = 0,
         boot_ms: int = 50,
         seed: int = 0,
+        link: Literal["pty", "socket"] = "pty",
     ) -> None:
         if jitter_us < 0 or garbage_every < 0 or boot_ms < 0:
             raise ConfigError("sim trigger box: jitter_us, garbage_every and boot_ms must be >= 0")
@@ -134,13 +140,21 @@ class SimTriggerBox:
         self._scheduler: threading.Thread | None = None
         self._closed = False
 
-        self._master, self._slave = os.openpty()
-        # Raw on both ends: no echo of what the box writes, no CR/LF translation, even
-        # before the host has opened and configured the slave.
-        tty.setraw(self._master)
-        tty.setraw(self._slave)
+        #: Host end of the socket link (None on a pty: the host opens `port_path`).
+        self.host_socket: socket.socket | None = None
+        self._box_socket: socket.socket | None = None
+        if link == "socket":
+            self._box_socket, self.host_socket = socket.socketpair()
+            self._master = self._slave = self._box_socket.fileno()
+            self.port_path = f"socket:{world.name}"
+        else:
+            self._master, self._slave = os.openpty()
+            # Raw on both ends: no echo of what the box writes, no CR/LF translation, even
+            # before the host has opened and configured the slave.
+            tty.setraw(self._master)
+            tty.setraw(self._slave)
+            self.port_path = os.ttyname(self._slave)
         os.set_blocking(self._master, False)
-        self.port_path = os.ttyname(self._slave)
         self._boot_deadline = time.monotonic() + self.boot_ms / 1000.0
         self._reader = threading.Thread(target=self._read_loop, name=f"trigbox-rx-{world.name}", daemon=True)
         self._reader.start()
@@ -230,11 +244,17 @@ class SimTriggerBox:
             except OSError as exc:
                 if self._stop.is_set() or exc.errno == errno.EBADF:
                     return
+                if exc.errno == errno.ECONNRESET:  # socket link: the host end is gone
+                    time.sleep(0.01)
+                    continue
                 if exc.errno == errno.EIO:  # no slave fd open: cannot happen while we hold one
                     time.sleep(0.01)
                     continue
                 log.error("trigger box %s: read failed: %s", self.port_path, exc)
                 raise
+            if not chunk:  # socket link whose host end shut down: nothing more will come
+                time.sleep(0.01)
+                continue
             if not self.booted.is_set():
                 continue  # still booting: the UART is not listening yet
             for byte in chunk:
@@ -462,11 +482,15 @@ class SimTriggerBox:
         if sched is not None:
             sched.join()
         self._closed = True
-        for fd in (self._master, self._slave):
-            try:
-                os.close(fd)
-            except OSError as exc:
-                log.warning("trigger box %s: closing fd %d: %s", self.port_path, fd, exc)
+        if self._box_socket is not None and self.host_socket is not None:
+            self._box_socket.close()
+            self.host_socket.close()
+        else:
+            for fd in (self._master, self._slave):
+                try:
+                    os.close(fd)
+                except OSError as exc:
+                    log.warning("trigger box %s: closing fd %d: %s", self.port_path, fd, exc)
         log.info("sim trigger box on %s closed", self.port_path)
 
     def __enter__(self) -> SimTriggerBox:
@@ -490,7 +514,16 @@ _COMMANDS: dict[str, tuple[str, int, int]] = {
     "TS?": ("_cmd_ts", 2, 2),
 }
 
-_SIM_PARAMS = {"offset_us", "drift_ppm", "jitter_us", "drop_pulses", "garbage_every", "boot_ms", "seed"}
+_SIM_PARAMS = {
+    "offset_us",
+    "drift_ppm",
+    "jitter_us",
+    "drop_pulses",
+    "garbage_every",
+    "boot_ms",
+    "seed",
+    "transport",
+}
 _BOX_KEY = "trigger_box"
 
 
@@ -514,10 +547,17 @@ def find_trigger_box(world: SimWorld) -> SimTriggerBox | None:
 
 
 def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
-    """Start a sim box for the spec's world and open it with the real serial driver."""
+    """Start a sim box for the spec's world and open it with the real driver.
+
+    `transport=serial` (default): the box on a pty, opened with pyserial. `transport=hid`:
+    the box behind a fake hidapi device (firmware_sim.hid_box), opened with HidTransport.
+    """
     from drivers.serial_trigger import SerialTrigger
 
     spec.check_params(_SIM_PARAMS)
+    transport = spec.param("transport", "serial")
+    if transport not in ("serial", "hid"):
+        raise ConfigError(f"device spec {spec.raw!r}: transport={transport!r}; use serial or hid")
     seed = spec.int_param("seed", 0)
     world = get_world(spec.location or "default", seed)
     slot = _slot(world)
@@ -536,9 +576,18 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
             garbage_every=spec.int_param("garbage_every", 0),
             boot_ms=spec.int_param("boot_ms", 50),
             seed=seed,
+            link="socket" if transport == "hid" else "pty",
         )
         slot.box = box
     try:
+        if transport == "hid":
+            from drivers.serial_trigger import HidTransport
+            from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidDevice, attach, box_serial
+
+            attach(box)
+            name = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/{box_serial(box)}"
+            link = HidTransport(FakeHidDevice(box), name)
+            return SerialTrigger(transport=link, spec=spec.raw, on_close=box.close)
         return SerialTrigger(box.port_path, spec=spec.raw, on_close=box.close)
     except BaseException:
         box.close()

@@ -1,8 +1,14 @@
-"""The real serial trigger driver against the simulated box on a pty."""
+"""The real trigger driver against the simulated box, over both transports.
+
+Every protocol test runs twice: over serial (the box on a pty, pyserial) and over raw HID
+(the box behind a fake hidapi device, 64-byte reports). Serial- or HID-only tests say so.
+"""
 
 from __future__ import annotations
 
 import os
+import re
+import sys
 import time
 from collections.abc import Iterator
 from uuid import uuid4
@@ -10,12 +16,29 @@ from uuid import uuid4
 import numpy as np
 import pytest
 
+from drivers import serial_trigger
 from drivers.base import Capability, PulseBatch, TriggerSettings
 from drivers.registry import DeviceSpec, open_device
-from drivers.serial_trigger import SerialTrigger, TriggerBoxError, open_serial_trigger
+from drivers.serial_trigger import (
+    HidTransport,
+    SerialTrigger,
+    TransportError,
+    TriggerBoxError,
+    hid_payload,
+    hid_report,
+    open_serial_trigger,
+    parse_hid_address,
+)
+from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidApi, attach
 from firmware_sim.trigger_box import SimTriggerBox, find_trigger_box, open_sim_trigger
 from firmware_sim.world import SimWorld, get_world, reset_world
-from rigd.core.errors import ConfigError, DeviceError, DeviceTimeoutError, ProtocolError
+from rigd.core.errors import (
+    BackendUnavailableError,
+    ConfigError,
+    DeviceError,
+    DeviceTimeoutError,
+    ProtocolError,
+)
 
 
 def _name() -> str:
@@ -29,10 +52,22 @@ def world_name() -> Iterator[str]:
     reset_world(name)
 
 
-def _open(world_name: str, query: str = "") -> tuple[SerialTrigger, SimTriggerBox, SimWorld]:
-    trig = open_sim_trigger(
-        DeviceSpec.parse(f"sim://{world_name}/trigger?{query}" if query else f"sim://{world_name}/trigger")
-    )
+@pytest.fixture(params=["serial", "hid"])
+def transport(request: pytest.FixtureRequest) -> str:
+    """The link the protocol suite runs over."""
+    return str(request.param)
+
+
+def _spec(world_name: str, query: str = "", transport: str = "serial") -> str:
+    if transport != "serial":
+        query = f"{query}&transport={transport}" if query else f"transport={transport}"
+    return f"sim://{world_name}/trigger?{query}" if query else f"sim://{world_name}/trigger"
+
+
+def _open(
+    world_name: str, query: str = "", transport: str = "serial"
+) -> tuple[SerialTrigger, SimTriggerBox, SimWorld]:
+    trig = open_sim_trigger(DeviceSpec.parse(_spec(world_name, query, transport)))
     world = get_world(world_name)
     box = find_trigger_box(world)
     assert box is not None
@@ -58,23 +93,23 @@ def _run(trig: SerialTrigger, n: int, rate_hz: float = 1000.0, width_us: int = 1
     return t0, batch
 
 
-def test_handshake_waits_for_boot_without_fixed_sleep(world_name: str) -> None:
+def test_handshake_waits_for_boot_without_fixed_sleep(world_name: str, transport: str) -> None:
     t = time.monotonic()
-    trig, box, _ = _open(world_name, "boot_ms=400")
+    trig, box, _ = _open(world_name, "boot_ms=400", transport)
     took = time.monotonic() - t
     try:
         assert 0.39 <= took < 1.0  # answered as soon as the box booted, not after a fixed sleep
         assert trig.info.kind == "trigger"
         assert (trig.info.vendor, trig.info.model, trig.info.firmware) == ("rigd-sim", "trigbox-sim", "1.0.0")
-        assert trig.info.spec == f"sim://{world_name}/trigger?boot_ms=400"
+        assert trig.info.spec == _spec(world_name, "boot_ms=400", transport)
         assert trig.capabilities == {Capability.PULSE_TIMESTAMPS, Capability.PULSE_COUNT}
     finally:
         trig.close()
     assert box.closed  # closing the trigger closes the sim box
 
 
-def test_run_reports_every_pulse_with_box_timestamps(world_name: str) -> None:
-    trig, box, world = _open(world_name, "drift_ppm=12&jitter_us=2&offset_us=777")
+def test_run_reports_every_pulse_with_box_timestamps(world_name: str, transport: str) -> None:
+    trig, box, world = _open(world_name, "drift_ppm=12&jitter_us=2&offset_us=777", transport)
     try:
         t0, batch = _run(trig, 50)
         assert batch.index.tolist() == list(range(50))
@@ -95,8 +130,8 @@ def test_run_reports_every_pulse_with_box_timestamps(world_name: str) -> None:
         trig.close()
 
 
-def test_garbage_fault_counted_and_pulses_recovered(world_name: str) -> None:
-    trig, _, world = _open(world_name, "garbage_every=5&seed=4")
+def test_garbage_fault_counted_and_pulses_recovered(world_name: str, transport: str) -> None:
+    trig, _, world = _open(world_name, "garbage_every=5&seed=4", transport)
     try:
         t0, batch = _run(trig, 150, rate_hz=1000.0)
         assert batch.index.tolist() == list(range(150))
@@ -112,8 +147,8 @@ def test_garbage_fault_counted_and_pulses_recovered(world_name: str) -> None:
         trig.close()
 
 
-def test_unrecoverable_pulses_stay_visible(world_name: str) -> None:
-    trig, box, _ = _open(world_name, "garbage_every=3&seed=2")
+def test_unrecoverable_pulses_stay_visible(world_name: str, transport: str) -> None:
+    trig, box, _ = _open(world_name, "garbage_every=3&seed=2", transport)
     try:
         trig.reply_timeout_s = 0.05
         trig.configure(TriggerSettings(rate_hz=2000.0, pulse_width_us=10))
@@ -136,8 +171,8 @@ def test_unrecoverable_pulses_stay_visible(world_name: str) -> None:
         trig.close()
 
 
-def test_err_reply_raises_protocol_error(world_name: str) -> None:
-    trig, _, _ = _open(world_name)
+def test_err_reply_raises_protocol_error(world_name: str, transport: str) -> None:
+    trig, _, _ = _open(world_name, transport=transport)
     try:
         with pytest.raises(TriggerBoxError) as exc_info:
             trig.start(5)  # not ARMED
@@ -170,8 +205,8 @@ def test_silent_port_times_out_naming_port_and_command() -> None:
         os.close(slave)
 
 
-def test_hung_box_times_out(world_name: str) -> None:
-    trig, box, _ = _open(world_name)
+def test_hung_box_times_out(world_name: str, transport: str) -> None:
+    trig, box, _ = _open(world_name, transport=transport)
     try:
         trig.reply_timeout_s = 0.2
         box.mute = True
@@ -183,8 +218,8 @@ def test_hung_box_times_out(world_name: str) -> None:
         trig.close()
 
 
-def test_box_gone_surfaces_as_device_error(world_name: str) -> None:
-    trig, box, _ = _open(world_name)
+def test_box_gone_surfaces_as_device_error(world_name: str, transport: str) -> None:
+    trig, box, _ = _open(world_name, transport=transport)
     try:
         box.close()
         trig.reply_timeout_s = 0.1
@@ -194,8 +229,8 @@ def test_box_gone_surfaces_as_device_error(world_name: str) -> None:
         trig.close()
 
 
-def test_start_reply_lost_is_resolved_from_status(world_name: str) -> None:
-    trig, box, _ = _open(world_name)
+def test_start_reply_lost_is_resolved_from_status(world_name: str, transport: str) -> None:
+    trig, box, _ = _open(world_name, transport=transport)
     try:
         trig.reply_timeout_s = 0.2
         trig.configure(TriggerSettings(rate_hz=1000.0, pulse_width_us=10))
@@ -211,8 +246,8 @@ def test_start_reply_lost_is_resolved_from_status(world_name: str) -> None:
         trig.close()
 
 
-def test_sim_open_twice_in_one_world_is_refused(world_name: str) -> None:
-    trig, _, _ = _open(world_name)
+def test_sim_open_twice_in_one_world_is_refused(world_name: str, transport: str) -> None:
+    trig, _, _ = _open(world_name, transport=transport)
     try:
         with pytest.raises(ConfigError, match="already has an open trigger box"):
             open_sim_trigger(DeviceSpec.parse(f"sim://{world_name}/trigger"))
@@ -220,7 +255,7 @@ def test_sim_open_twice_in_one_world_is_refused(world_name: str) -> None:
             open_sim_trigger(DeviceSpec.parse(f"sim://{_name()}/trigger?jiter_us=2"))
     finally:
         trig.close()
-    trig2, box2, _ = _open(world_name)  # a closed box is replaced by a fresh one
+    trig2, box2, _ = _open(world_name, transport=transport)  # a closed box is replaced by a fresh one
     trig2.close()
     assert box2.closed
 
@@ -243,7 +278,7 @@ def test_open_serial_specs(world_name: str) -> None:
             trig = open_device("trigger", spec)
             try:
                 assert isinstance(trig, SerialTrigger)
-                assert trig.info.spec == spec
+                assert trig.info.spec == spec  # (generous reply timeout: CI machines are shared)
                 assert trig.pulse_count() == 0
             finally:
                 trig.close()
@@ -254,3 +289,123 @@ def test_open_serial_specs(world_name: str) -> None:
             open_device("trigger", "/dev/does-not-exist-rigd")
     finally:
         box.close()
+
+
+def test_unplug_mid_run_is_reported_not_a_crash(world_name: str, transport: str) -> None:
+    trig, box, _ = _open(world_name, transport=transport)
+    try:
+        trig.configure(TriggerSettings(rate_hz=1000.0, pulse_width_us=100))
+        trig.arm()
+        trig.start()
+        assert len(trig.read_pulses(0.5)) > 0
+        box.close()  # the cable is pulled: the link goes away under the reader thread
+        deadline = time.monotonic() + 2.0
+        with pytest.raises(TransportError, match=rf"{re.escape(trig.port)} disconnected"):  # noqa: PT012
+            while time.monotonic() < deadline:
+                trig.read_pulses(0.05)
+        with pytest.raises(DeviceError, match="disconnected"):
+            trig.pulse_count()
+    finally:
+        trig.close()  # no STOP to a box that is gone, no exception
+    trig.close()
+
+
+# ---------------------------------------------------------------- HID only
+def test_hid_report_framing() -> None:
+    assert hid_report(b"PING #1*2E\n") == bytes([11]) + b"PING #1*2E\n" + bytes(52)
+    assert len(hid_report(b"x" * 63)) == 64
+    with pytest.raises(ValueError, match="at most 63"):
+        hid_report(b"x" * 64)
+    assert hid_payload(hid_report(b"abc")) == b"abc"
+    assert hid_payload(bytes([64]) + bytes(63)) is None  # impossible length byte
+    assert hid_payload(b"") == b""
+
+
+class _RecordingHid:
+    def __init__(self, reports: list[bytes]) -> None:
+        self.written: list[bytes] = []
+        self.reports = reports
+        self.closed = 0
+
+    def read(self, max_length: int, timeout_ms: int = 0) -> list[int]:
+        return list(self.reports.pop(0)) if self.reports else []
+
+    def write(self, buff: bytes | list[int]) -> int:
+        self.written.append(bytes(buff))
+        return len(buff)
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def test_hid_transport_splits_long_writes_and_drops_bad_reports() -> None:
+    dev = _RecordingHid([hid_report(b"$PONG"), bytes([200]) + bytes(63), hid_report(b"*50\n")])
+    link = HidTransport(dev, "hid://1209:0001/X")
+    link.write(b"A" * 100)
+    assert [len(r) for r in dev.written] == [65, 65]  # report ID 0 + 64 bytes, twice
+    assert all(r[0] == 0 for r in dev.written)
+    assert dev.written[0][1] == 63
+    assert dev.written[1][1] == 37
+    assert b"".join(r[2 : 2 + r[1]] for r in dev.written) == b"A" * 100
+    assert link.read(0.01) == b"$PONG"
+    assert link.read(0.01) == b""  # length byte 200: dropped, counted
+    assert link.bad_reports == 1
+    assert link.read(0.01) == b"*50\n"
+    assert link.read(0.01) == b""
+    link.close()
+    link.close()
+    assert dev.closed == 1
+    with pytest.raises(TransportError, match="closed"):
+        link.read(0.01)
+
+
+@pytest.mark.parametrize(
+    ("spec", "expected"),
+    [
+        ("hid://16c0:0486", (0x16C0, 0x0486, None)),
+        ("hid://16C0:0486/ABC123", (0x16C0, 0x0486, "ABC123")),
+        ("hid://1209:0001/SIM0000?reply_timeout_s=2", (0x1209, 0x0001, "SIM0000")),
+    ],
+)
+def test_hid_address_parsing(spec: str, expected: tuple[int, int, str | None]) -> None:
+    assert parse_hid_address(DeviceSpec.parse(spec)) == expected
+
+
+@pytest.mark.parametrize("spec", ["hid://16c0", "hid://xyz:0486", "hid://16c0:10000", "hid:///dev/hidraw0"])
+def test_hid_address_errors_name_the_spec(spec: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(spec)):
+        parse_hid_address(DeviceSpec.parse(spec))
+
+
+def test_open_hid_spec_through_registry(world_name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`hid://VID:PID/SERIAL` through open_device, with the fake hidapi module in place of `hid`."""
+    monkeypatch.setattr(serial_trigger, "_import_hid", lambda: FakeHidApi)
+    box = SimTriggerBox(get_world(world_name), boot_ms=0, seed=7, link="socket")
+    try:
+        attach(box)
+        spec = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/SIM0007?reply_timeout_s=2"
+        trig = open_device("trigger", spec)
+        try:
+            assert isinstance(trig, SerialTrigger)
+            assert trig.info.spec == spec  # (generous reply timeout: CI machines are shared)
+            assert trig.info.serial == "SIM0007"
+            assert trig.port == "hid://1209:0001/SIM0007"
+            _, batch = _run(trig, 5)
+            assert batch.index.tolist() == [0, 1, 2, 3, 4]
+        finally:
+            trig.close()
+        assert not box.closed  # a real device: closing the driver leaves the box alone
+        with pytest.raises(DeviceError, match=r"hid://1209:0001/NOPE.*serial numbers present: SIM0007"):
+            open_device("trigger", "hid://1209:0001/NOPE")
+        with pytest.raises(DeviceError, match=r"hid://16c0:0486: no such HID device.*plugged in"):
+            open_device("trigger", "hid://16c0:0486")
+        with pytest.raises(ConfigError, match="unknown parameter"):
+            open_device("trigger", "hid://1209:0001?baud=9600")
+    finally:
+        box.close()
+
+
+def test_hid_without_hidapi_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "hid", None)  # makes `import hid` raise ImportError
+    with pytest.raises(BackendUnavailableError, match="pip install hidapi"):
+        open_device("trigger", "hid://16c0:0486")

@@ -1,4 +1,5 @@
-"""The Trigger contract against the simulated box, opened through the `sim://` entry point."""
+"""The Trigger contract against the simulated box, opened through the `sim://` entry point,
+over both transports: serial (pty) and raw HID (fake hidapi device, 64-byte reports)."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ from tests.contracts.trigger_contract import TriggerContract
 
 
 class TestSimSerialTrigger(TriggerContract):
-    @pytest.fixture
-    def trigger(self) -> Iterator[Trigger]:
-        trig = open_device("trigger", f"sim://t-{uuid4().hex}/trigger?jitter_us=2")
+    @pytest.fixture(params=["serial", "hid"])
+    def trigger(self, request: pytest.FixtureRequest) -> Iterator[Trigger]:
+        trig = open_device("trigger", f"sim://t-{uuid4().hex}/trigger?jitter_us=2&transport={request.param}")
         yield trig
         trig.close()

@@ -1,0 +1,257 @@
+"""`v4l2:///dev/videoN?width=&height=&fps=&fourcc=` through OpenCV's V4L2 capture, free-running.
+
+UVC cameras have no trigger input: they run on their own clock and frames get **host**
+timestamps (monotonic clock at reception, minus nothing: the exposure start is unknown to
+within a frame period). The camera therefore advertises FREE_RUN only, never
+HARDWARE_TRIGGER, and says `sync: software` in `DeviceInfo.facts`, so the take records that
+its frames were matched to trigger pulses by host time, not by a wire.
+
+A grabber thread reads continuously while started (V4L2 drops the oldest buffers when the
+reader is late: counted from gaps in OpenCV's frame position where the driver reports it).
+"""
+
+from __future__ import annotations
+
+import collections
+import importlib
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from drivers.base import AcquisitionStats, CameraSettings, Capability, DeviceInfo, RgbCamera
+from drivers.registry import DeviceSpec
+from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
+from rigd.core.frames import Frame
+
+log = logging.getLogger(__name__)
+
+_PARAMS = {"width", "height", "fps", "fourcc", "buffers"}
+#: Frames kept for the reader before the oldest is dropped (counted).
+DEFAULT_QUEUE = 64
+
+
+def parse_v4l2_spec(spec: DeviceSpec) -> dict[str, Any]:
+    """Validated node and capture parameters of a v4l2:// spec (no device needed)."""
+    spec.check_params(_PARAMS)
+    node = spec.path
+    if spec.location or not node.startswith("/dev/"):
+        raise ConfigError(f"device spec {spec.raw!r}: use v4l2:///dev/videoN (three slashes)")
+    fourcc = spec.param("fourcc", "")
+    if fourcc and len(fourcc) != 4:
+        raise ConfigError(f"device spec {spec.raw!r}: fourcc must be 4 characters (MJPG, YUYV, ...)")
+    out: dict[str, Any] = {
+        "node": node,
+        "width": spec.int_param("width", 0),
+        "height": spec.int_param("height", 0),
+        "fps": spec.float_param("fps", 0.0),
+        "fourcc": fourcc,
+        "buffers": spec.int_param("buffers", DEFAULT_QUEUE),
+    }
+    if out["width"] < 0 or out["height"] < 0 or out["fps"] < 0 or out["buffers"] < 1:
+        raise ConfigError(f"device spec {spec.raw!r}: width, height, fps must be >= 0 and buffers >= 1")
+    return out
+
+
+def to_rgb(image: np.ndarray[Any, Any], cv2: Any) -> np.ndarray[Any, Any]:
+    """OpenCV delivers BGR; takes store RGB."""
+    if image.ndim == 3 and image.shape[2] == 3:
+        return np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+    return image
+
+
+def to_mono(image: np.ndarray[Any, Any], cv2: Any) -> np.ndarray[Any, Any]:
+    if image.ndim == 3:
+        return np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    return image
+
+
+class V4l2Camera(RgbCamera):
+    """A UVC camera through cv2.VideoCapture(node, cv2.CAP_V4L2); free-run only."""
+
+    def __init__(
+        self, spec: DeviceSpec, *, capture: Any | None = None, cv2_module: Any | None = None
+    ) -> None:
+        p = parse_v4l2_spec(spec)
+        self._spec = spec
+        self.node: str = p["node"]
+        try:
+            self._cv2 = cv2_module if cv2_module is not None else importlib.import_module("cv2")
+        except ImportError as exc:
+            raise BackendUnavailableError(
+                f"v4l2:// needs OpenCV ({exc}): pip install opencv-contrib-python-headless"
+            ) from exc
+        cv2 = self._cv2
+        cap = capture if capture is not None else cv2.VideoCapture(self.node, cv2.CAP_V4L2)
+        if not cap.isOpened():
+            raise DeviceError(
+                f"cannot open V4L2 camera {self.node}: OpenCV could not open it (busy, no permission "
+                "- are you in group video? - or not a capture node; `rigd devices`, `rigd doctor`)"
+            )
+        self._cap = cap
+        if p["fourcc"]:
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*p["fourcc"]))
+        if p["width"]:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, p["width"])
+        if p["height"]:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, p["height"])
+        if p["fps"]:
+            cap.set(cv2.CAP_PROP_FPS, p["fps"])
+        self._width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        self._height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if self._width <= 0 or self._height <= 0:
+            cap.release()
+            raise DeviceError(f"V4L2 camera {self.node}: driver reports no frame size")
+        self._queue_len: int = p["buffers"]
+        self._settings = CameraSettings(trigger_mode="free_run")
+        self._frames: collections.deque[Frame] = collections.deque()
+        self._cond = threading.Condition()
+        self._running = False
+        self._closed = False
+        self._thread: threading.Thread | None = None
+        self._delivered = 0
+        self._dropped = 0
+        self._read_failures = 0
+        self._counter = 0
+        self._error: str | None = None
+        self._info = DeviceInfo(
+            kind="rgb_camera",
+            spec=spec.raw,
+            vendor="",
+            model=_sysfs_name(self.node),
+            facts={
+                "sync": "software",
+                "timestamps": "host monotonic clock at reception",
+                "backend": f"opencv-v4l2 {getattr(cv2, '__version__', '?')}",
+            },
+        )
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self._info
+
+    @property
+    def capabilities(self) -> frozenset[Capability]:
+        return frozenset({Capability.FREE_RUN, Capability.COLOR, Capability.EXPOSURE_CONTROL})
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        if self._settings.pixel_format == "mono8":
+            return (self._height, self._width)
+        return (self._height, self._width, 3)
+
+    @property
+    def frame_dtype(self) -> np.dtype[np.generic]:
+        return np.dtype(np.uint8)
+
+    def configure(self, settings: CameraSettings) -> None:
+        if self._closed:
+            raise DeviceError(f"V4L2 camera {self.node} is closed")
+        if self._running:
+            raise DeviceError(f"V4L2 camera {self.node}: configure while acquiring; stop() first")
+        if settings.trigger_mode == "hardware":
+            raise ConfigError(
+                f"V4L2 camera {self.node} has no trigger input: use trigger_mode = 'free_run' "
+                "(its frames are matched to pulses by host time; sync is software-only)"
+            )
+        cv2, cap = self._cv2, self._cap
+        cap.set(cv2.CAP_PROP_FPS, settings.free_run_fps)
+        # UVC exposure is in 100 us units with auto-exposure off (V4L2 manual mode = 1).
+        cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)
+        if not cap.set(cv2.CAP_PROP_EXPOSURE, max(1, round(settings.exposure_us / 100))):
+            log.warning("V4L2 camera %s: exposure not settable through OpenCV; use v4l2-ctl", self.node)
+        if settings.gain_db:
+            cap.set(cv2.CAP_PROP_GAIN, settings.gain_db)
+        self._settings = settings
+
+    def start(self) -> None:
+        if self._closed:
+            raise DeviceError(f"V4L2 camera {self.node} is closed")
+        if self._running:
+            return
+        self._running = True
+        self._thread = threading.Thread(target=self._grab_loop, name=f"v4l2-{self.node}", daemon=True)
+        self._thread.start()
+
+    def _grab_loop(self) -> None:
+        cv2 = self._cv2
+        failures = 0
+        while self._running:
+            ok, image = self._cap.read()
+            host_ns = time.monotonic_ns()
+            if not ok or image is None:
+                failures += 1
+                self._read_failures += 1
+                if failures >= 20:  # ~ a second of nothing: unplugged
+                    self._error = f"V4L2 camera {self.node}: no frames (unplugged?)"
+                    log.error("%s", self._error)
+                    self._running = False
+                    break
+                time.sleep(0.05)
+                continue
+            failures = 0
+            image = to_mono(image, cv2) if self._settings.pixel_format == "mono8" else to_rgb(image, cv2)
+            frame = Frame(
+                image=image,
+                t_exposure_start_us=host_ns // 1000 - self._settings.exposure_us,
+                exposure_us=self._settings.exposure_us,
+                frame_counter=self._counter,
+                host_time_ns=host_ns,
+            )
+            self._counter += 1
+            with self._cond:
+                if len(self._frames) >= self._queue_len:
+                    self._frames.popleft()
+                    self._dropped += 1
+                self._frames.append(frame)
+                self._delivered += 1
+                self._cond.notify_all()
+
+    def stop(self) -> None:
+        self._running = False
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=2.0)
+        self._thread = None
+
+    def read_frame(self, timeout_s: float) -> Frame | None:
+        with self._cond:
+            if not self._frames and self._running:
+                self._cond.wait_for(
+                    lambda: bool(self._frames) or not self._running, timeout=max(0.0, timeout_s)
+                )
+            if self._frames:
+                return self._frames.popleft()
+        if self._error is not None:
+            raise DeviceError(self._error)
+        return None
+
+    def stats(self) -> AcquisitionStats:
+        with self._cond:
+            return AcquisitionStats(
+                delivered=self._delivered,
+                device_dropped=self._dropped,
+                extra={"read_failures": self._read_failures, "host_queue_dropped": self._dropped},
+            )
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self.stop()
+        self._closed = True
+        self._cap.release()
+
+
+def _sysfs_name(node: str) -> str:
+    try:
+        with open(f"/sys/class/video4linux/{node.rsplit('/', 1)[-1]}/name", encoding="utf-8") as f:
+            return f.read().strip()
+    except OSError:
+        return ""
+
+
+def open_v4l2_camera(spec: DeviceSpec) -> V4l2Camera:
+    """Factory for `v4l2:///dev/videoN?width=1280&height=720&fps=30&fourcc=MJPG`."""
+    return V4l2Camera(spec)

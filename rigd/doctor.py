@@ -1,0 +1,573 @@
+"""`rigd doctor`: what on this machine will stop a take, each as OK / WARN / FAIL with the fix.
+
+Every reading (usbfs limit, free disk, write speed, clock source, groups, ...) comes from a
+`Readings` object of provider functions, so tests simulate a too-small usbfs limit or a slow
+disk without touching the machine; `Readings.system()` reads the real one. Checks never
+raise: a reading that fails becomes a WARN saying it could not be read.
+
+Sizes are estimates from the rig config: a frame is width x height x (1 for mono8, 3
+otherwise) bytes (width/height from the spec's query, else `DEFAULT_FRAME`), an event is
+`EVENT_BYTES` in the take at `DEFAULT_EVENT_RATE` unless the sensor's ERC caps it lower.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import grp
+import importlib.util
+import logging
+import os
+import pwd
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from drivers.discovery import Discovery, discover
+from drivers.registry import DeviceSpec
+from rigd.config import RigConfig
+from rigd.core.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+Status = Literal["OK", "WARN", "FAIL"]
+
+#: Frame size assumed when a camera spec does not say (a common 2.3 MP machine-vision sensor).
+DEFAULT_FRAME = (1920, 1200)
+#: Event rate assumed per sensor when its ERC does not cap it (busy scene, events/s).
+DEFAULT_EVENT_RATE = 10e6
+#: Bytes per event in a take: x, y uint16, p uint8, t int64 (before compression).
+EVENT_BYTES = 13
+#: Buffers a userspace USB camera driver (Aravis U3V, libusb) keeps queued per camera.
+USB_BUFFERS_PER_CAMERA = 16
+#: usbfs memory a Prophesee EVK's libusb transfers take (bulk transfer ring).
+USBFS_MB_PER_EVENT_SENSOR = 64
+#: GigE Vision streams need large socket buffers or the kernel drops packets at line rate.
+GIGE_RMEM_MIN = 32 * 1024 * 1024
+RECOMMENDED_USBFS_MB = 1000
+GROUPS = {"dialout": "serial trigger boxes", "video": "V4L2 cameras", "plugdev": "USB/HID devices"}
+GOOD_CLOCKSOURCES = {"tsc", "arch_sys_counter", "kvm-clock", "hyperv_clocksource_tsc_page"}
+
+
+@dataclass(frozen=True, slots=True)
+class Check:
+    name: str
+    status: Status
+    message: str
+    fix: str = ""
+
+    def line(self) -> str:
+        text = f"{self.status:<4} {self.name}: {self.message}"
+        return f"{text}\n     -> {self.fix}" if self.fix and self.status != "OK" else text
+
+
+@dataclass(frozen=True, slots=True)
+class NodeAccess:
+    exists: bool
+    readable: bool
+    writable: bool
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        return int(Path(path).read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _clocksource() -> tuple[str, list[str]] | None:
+    base = Path("/sys/devices/system/clocksource/clocksource0")
+    try:
+        current = (base / "current_clocksource").read_text().strip()
+        available = (base / "available_clocksource").read_text().split()
+    except OSError:
+        return None
+    return current, available
+
+
+def _user_groups() -> set[str]:
+    names = set()
+    for gid in os.getgroups():
+        try:
+            names.add(grp.getgrgid(gid).gr_name)
+        except KeyError:
+            continue
+    try:  # membership granted since login only shows in the group database
+        user = pwd.getpwuid(os.getuid()).pw_name
+        names |= {g.gr_name for g in grp.getgrall() if user in g.gr_mem}
+    except KeyError:
+        pass
+    return names
+
+
+def _node_access(path: str) -> NodeAccess:
+    exists = os.path.exists(path)
+    return NodeAccess(exists, exists and os.access(path, os.R_OK), exists and os.access(path, os.W_OK))
+
+
+def _udev_rules() -> list[str]:
+    found: list[str] = []
+    for d in ("/etc/udev/rules.d", "/lib/udev/rules.d", "/usr/lib/udev/rules.d"):
+        try:
+            found += [os.path.join(d, f) for f in os.listdir(d) if "rigd" in f]
+        except OSError:
+            continue
+    return found
+
+
+def _free_disk(path: Path) -> int:
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return shutil.disk_usage(p).free
+
+
+def measure_write_mb_s(path: Path, size_mb: int = 64) -> float:
+    """Sequential write of `size_mb` MiB with fsync, the way the take writer hits the disk."""
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    target = p / f".rigd-doctor-{os.getpid()}.tmp"
+    block = os.urandom(1 << 20)  # incompressible, so a compressing filesystem cannot cheat
+    t = time.perf_counter()
+    try:
+        with open(target, "wb", buffering=0) as f:
+            for _ in range(size_mb):
+                f.write(block)
+            os.fsync(f.fileno())
+        elapsed = time.perf_counter() - t
+    finally:
+        target.unlink(missing_ok=True)
+    return size_mb / max(elapsed, 1e-9)
+
+
+def _module_reason(name: str) -> str | None:
+    """None when `name` is importable, else why not (without importing heavy modules twice)."""
+    if name == "Aravis":
+        try:
+            import gi
+
+            gi.require_version("Aravis", "0.8")
+            from gi.repository import Aravis  # noqa: F401
+        except (ImportError, ValueError) as exc:
+            return str(exc)
+        return None
+    try:
+        return None if importlib.util.find_spec(name) is not None else f"module {name} not found"
+    except (ImportError, ValueError) as exc:
+        return str(exc)
+
+
+def _hdf5_filters() -> dict[str, bool]:
+    import h5py
+
+    with contextlib.suppress(ImportError):
+        import hdf5plugin  # noqa: F401 - registers the filters with HDF5
+    ids = {"lz4": 32004, "zstd": 32015, "gzip": 1}
+    return {name: bool(h5py.h5z.filter_avail(fid)) for name, fid in ids.items()}
+
+
+@dataclass(slots=True)
+class Readings:
+    """Where each check gets its facts; replace any provider to simulate a machine."""
+
+    usbfs_memory_mb: Callable[[], int | None] = field(
+        default=lambda: _read_int("/sys/module/usbcore/parameters/usbfs_memory_mb")
+    )
+    free_disk_bytes: Callable[[Path], int] = _free_disk
+    disk_write_mb_s: Callable[[Path], float] = measure_write_mb_s
+    clocksource: Callable[[], tuple[str, list[str]] | None] = _clocksource
+    rmem_max: Callable[[], int | None] = field(default=lambda: _read_int("/proc/sys/net/core/rmem_max"))
+    user_groups: Callable[[], set[str]] = _user_groups
+    is_root: Callable[[], bool] = field(default=lambda: os.geteuid() == 0)
+    node_access: Callable[[str], NodeAccess] = _node_access
+    udev_rules: Callable[[], list[str]] = _udev_rules
+    discovery: Callable[[], Discovery] = discover
+    module_reason: Callable[[str], str | None] = _module_reason
+    hdf5_filters: Callable[[], dict[str, bool]] = _hdf5_filters
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """Data rates the configured rig will produce."""
+
+    bytes_per_s: float
+    usb_cameras: list[tuple[str, int]]  # (name, bytes per frame) through userspace USB
+    event_sensors_usb: int
+    gige_cameras: list[str]
+    node_paths: list[str]
+
+
+def plan_rig(rig: RigConfig) -> Plan:
+    """Bytes per second and the USB/GigE load of a rig config (see the module docstring)."""
+    rate_hz = rig.trigger.settings.rate_hz
+    total = 0.0
+    usb: list[tuple[str, int]] = []
+    gige: list[str] = []
+    nodes: list[str] = []
+    trig = _safe_parse(rig.trigger.spec)
+    if trig is not None and trig.scheme == "serial":
+        nodes.append(trig.path or trig.location)
+    for cam in rig.cameras:
+        spec = _safe_parse(cam.spec)
+        params = spec.params if spec else {}
+        width = int(params.get("width", DEFAULT_FRAME[0]))
+        height = int(params.get("height", DEFAULT_FRAME[1]))
+        frame_bytes = width * height * (1 if cam.settings.pixel_format == "mono8" else 3)
+        fps = rate_hz if cam.settings.trigger_mode == "hardware" else cam.settings.free_run_fps
+        total += frame_bytes * fps
+        if spec is None:
+            continue
+        if spec.scheme == "genicam":
+            # GigE or USB3 Vision: unknown until opened; count it for both limits.
+            usb.append((cam.name, frame_bytes))
+            gige.append(cam.name)
+        elif spec.scheme == "v4l2":
+            nodes.append(spec.path)
+    n_ev_usb = 0
+    for sen in rig.event_sensors:
+        total += (sen.settings.erc_rate_ev_s or DEFAULT_EVENT_RATE) * EVENT_BYTES
+        spec = _safe_parse(sen.spec)
+        if spec is not None and spec.scheme == "prophesee":
+            n_ev_usb += 1
+    return Plan(total, usb, n_ev_usb, gige, nodes)
+
+
+def _safe_parse(spec: str) -> DeviceSpec | None:
+    try:
+        return DeviceSpec.parse(spec)
+    except ConfigError:
+        return None
+
+
+def _guard(name: str, fn: Callable[[], list[Check]]) -> list[Check]:
+    try:
+        return fn()
+    except Exception as exc:
+        log.debug("doctor check %s failed", name, exc_info=True)
+        return [Check(name, "WARN", f"could not be checked: {type(exc).__name__}: {exc}")]
+
+
+def run_checks(
+    readings: Readings | None = None,
+    rig: RigConfig | None = None,
+    out_dir: Path = Path("takes"),
+    duration_s: float = 600.0,
+    disk_test: bool = True,
+) -> list[Check]:
+    """Every check, in the order an operator would fix them."""
+    r = readings or Readings()
+    plan = plan_rig(rig) if rig is not None else None
+    found_holder: list[Discovery] = []
+
+    def found() -> Discovery:
+        if not found_holder:
+            found_holder.append(r.discovery())
+        return found_holder[0]
+
+    checks: list[Check] = []
+    checks += _guard("devices", lambda: _check_devices(found()))
+    checks += _guard("device nodes", lambda: _check_nodes(r, found(), plan))
+    checks += _guard("udev rules", lambda: _check_udev(r))
+    checks += _guard("groups", lambda: _check_groups(r))
+    checks += _guard("usb link speed", lambda: _check_usb_speed(found()))
+    checks += _guard("usbfs memory", lambda: _check_usbfs(r, plan))
+    checks += _guard("free disk", lambda: _check_free_disk(r, plan, out_dir, duration_s))
+    if disk_test:
+        checks += _guard("disk write speed", lambda: _check_write_speed(r, plan, out_dir))
+    checks += _guard("clock source", lambda: _check_clocksource(r))
+    checks += _guard("socket buffers", lambda: _check_rmem(r, plan))
+    checks += _guard("hdf5 plugins", lambda: _check_hdf5(r, rig))
+    checks += _guard("backends", lambda: _check_backends(r, rig))
+    return checks
+
+
+def _check_devices(found: Discovery) -> list[Check]:
+    if found.nothing_attached:
+        return [
+            Check(
+                "devices",
+                "WARN",
+                "no camera, event sensor or trigger box is attached",
+                "plug the devices in, then run `rigd devices`",
+            )
+        ]
+    roles = {role: len(found.by_role(role)) for role in ("trigger", "rgb_camera", "event_sensor")}
+    return [Check("devices", "OK", ", ".join(f"{n} {role}" for role, n in roles.items()))]
+
+
+def _check_nodes(r: Readings, found: Discovery, plan: Plan | None) -> list[Check]:
+    paths = [d.path for d in found.devices if d.path and d.path.startswith("/dev/")]
+    paths += [p for p in (plan.node_paths if plan else []) if p.startswith("/dev/")]
+    out: list[Check] = []
+    for path in dict.fromkeys(paths):
+        acc = r.node_access(path)
+        if not acc.exists:
+            out.append(
+                Check(
+                    f"node {path}",
+                    "FAIL",
+                    "does not exist (unplugged, or a wrong name in the config)",
+                    "plug the device in; `rigd devices` lists the names that exist",
+                )
+            )
+        elif not (acc.readable and acc.writable):
+            out.append(
+                Check(
+                    f"node {path}",
+                    "FAIL",
+                    "no read/write permission for this user",
+                    "install the udev rules (`rigd devices --udev 99-rigd.rules`) or join the "
+                    "device's group (see the groups check), then replug",
+                )
+            )
+        else:
+            out.append(Check(f"node {path}", "OK", "readable and writable"))
+    if not out:
+        out.append(Check("device nodes", "OK", "no device node to check"))
+    return out
+
+
+def _check_udev(r: Readings) -> list[Check]:
+    rules = r.udev_rules()
+    if rules:
+        return [Check("udev rules", "OK", "installed: " + ", ".join(rules))]
+    return [
+        Check(
+            "udev rules",
+            "WARN",
+            "no rigd udev rules installed: device names may change between boots",
+            "rigd devices --udev 99-rigd.rules && sudo cp 99-rigd.rules /etc/udev/rules.d/ && "
+            "sudo udevadm control --reload && sudo udevadm trigger",
+        )
+    ]
+
+
+def _check_groups(r: Readings) -> list[Check]:
+    if r.is_root():
+        return [
+            Check(
+                "groups",
+                "OK",
+                "running as root (run the daemon as a user in dialout, video, plugdev instead)",
+            )
+        ]
+    have = r.user_groups()
+    missing = {g: why for g, why in GROUPS.items() if g not in have}
+    if not missing:
+        return [Check("groups", "OK", "member of " + ", ".join(GROUPS))]
+    what = ", ".join(f"{g} ({why})" for g, why in missing.items())
+    return [
+        Check(
+            "groups",
+            "WARN",
+            f"not in {what}",
+            f"sudo usermod -aG {','.join(missing)} $USER, then log out and back in",
+        )
+    ]
+
+
+def _check_usb_speed(found: Discovery) -> list[Check]:
+    out: list[Check] = []
+    for d in found.devices:
+        if d.usb_speed_mbps is None or d.role not in ("rgb_camera", "event_sensor"):
+            continue
+        label = f"{d.name} ({d.spec or d.path})"
+        if d.usb_speed_mbps >= 5000:
+            out.append(Check(f"usb link {label}", "OK", f"{d.usb_speed_mbps} Mbit/s (USB 3)"))
+        elif d.source == "v4l2" and d.usb_speed_mbps >= 480:
+            out.append(Check(f"usb link {label}", "OK", f"{d.usb_speed_mbps} Mbit/s (USB 2, enough for UVC)"))
+        else:
+            out.append(
+                Check(
+                    f"usb link {label}",
+                    "WARN" if d.usb_speed_mbps >= 480 else "FAIL",
+                    f"{d.usb_speed_mbps} Mbit/s: a USB 2 link (or slower) caps the frame rate",
+                    "use a USB 3 port (blue, or SS-marked) and a USB 3 cable, no USB 2 hub",
+                )
+            )
+    if not out:
+        out.append(Check("usb link speed", "OK", "no USB camera or event sensor with a known link speed"))
+    return out
+
+
+def _check_usbfs(r: Readings, plan: Plan | None) -> list[Check]:
+    limit = r.usbfs_memory_mb()
+    need_mb = 0
+    if plan is not None:
+        cams = sum(b * USB_BUFFERS_PER_CAMERA for _, b in plan.usb_cameras)
+        need_mb = -(-cams // (1 << 20)) + USBFS_MB_PER_EVENT_SENSOR * plan.event_sensors_usb
+    fix = (
+        f"echo {max(RECOMMENDED_USBFS_MB, 2 * need_mb)} | sudo tee "
+        "/sys/module/usbcore/parameters/usbfs_memory_mb; to keep it, add "
+        f"usbcore.usbfs_memory_mb={max(RECOMMENDED_USBFS_MB, 2 * need_mb)} to the kernel command line"
+    )
+    if limit is None:
+        return [Check("usbfs memory", "WARN", "cannot read /sys/module/usbcore/parameters/usbfs_memory_mb")]
+    if limit == 0:
+        return [Check("usbfs memory", "OK", "unlimited (0)")]
+    if need_mb and limit < need_mb:
+        return [
+            Check(
+                "usbfs memory",
+                "FAIL",
+                f"limit {limit} MB < {need_mb} MB the configured USB cameras/sensors need "
+                f"({USB_BUFFERS_PER_CAMERA} buffers per camera): streams will stall or drop",
+                fix,
+            )
+        ]
+    if limit < RECOMMENDED_USBFS_MB and need_mb:
+        return [
+            Check(
+                "usbfs memory",
+                "WARN",
+                f"limit {limit} MB covers the {need_mb} MB needed with little margin",
+                fix,
+            )
+        ]
+    what = f"covers the {need_mb} MB needed" if need_mb else "no userspace-USB camera configured"
+    return [Check("usbfs memory", "OK", f"limit {limit} MB; {what}")]
+
+
+def _check_free_disk(r: Readings, plan: Plan | None, out_dir: Path, duration_s: float) -> list[Check]:
+    free = r.free_disk_bytes(out_dir)
+    if plan is None:
+        return [
+            Check("free disk", "OK", f"{free / 1e9:.1f} GB free at {out_dir} (no rig config to size a take)")
+        ]
+    need = plan.bytes_per_s * duration_s
+    msg = (
+        f"{free / 1e9:.1f} GB free at {out_dir}; a {duration_s:g} s take needs ~{need / 1e9:.1f} GB "
+        f"({plan.bytes_per_s / 1e6:.0f} MB/s before compression)"
+    )
+    fix = "free space, point --out at a larger disk, or plan shorter takes"
+    if free < need:
+        return [Check("free disk", "FAIL", msg, fix)]
+    if free < 2 * need:
+        return [Check("free disk", "WARN", msg + ": room for less than two takes", fix)]
+    return [Check("free disk", "OK", msg)]
+
+
+def _check_write_speed(r: Readings, plan: Plan | None, out_dir: Path) -> list[Check]:
+    mb_s = r.disk_write_mb_s(out_dir)
+    if plan is None:
+        return [Check("disk write speed", "OK", f"{mb_s:.0f} MB/s at {out_dir}")]
+    need = plan.bytes_per_s / 1e6
+    msg = f"{mb_s:.0f} MB/s measured at {out_dir}; the rig produces ~{need:.0f} MB/s"
+    fix = "write takes to a faster disk (NVMe SSD), enable compression, or lower rates/resolution"
+    if mb_s < need:
+        return [
+            Check("disk write speed", "FAIL", msg + ": the writer queue will overflow and drop data", fix)
+        ]
+    if mb_s < 1.5 * need:
+        return [Check("disk write speed", "WARN", msg + ": less than 50% headroom", fix)]
+    return [Check("disk write speed", "OK", msg)]
+
+
+def _check_clocksource(r: Readings) -> list[Check]:
+    cs = r.clocksource()
+    if cs is None:
+        return [Check("clock source", "WARN", "cannot read /sys/devices/system/clocksource/clocksource0")]
+    current, available = cs
+    if current in GOOD_CLOCKSOURCES:
+        return [Check("clock source", "OK", f"{current}")]
+    fix = (
+        "the kernel fell back from tsc (often an unstable TSC); check `dmesg | grep -i clocksource`"
+        if "tsc" not in available
+        else "echo tsc | sudo tee /sys/devices/system/clocksource/clocksource0/current_clocksource"
+    )
+    return [
+        Check(
+            "clock source",
+            "WARN",
+            f"{current}: slow clock reads make host timestamps (pulse matching) noisier",
+            fix,
+        )
+    ]
+
+
+def _check_rmem(r: Readings, plan: Plan | None) -> list[Check]:
+    rmem = r.rmem_max()
+    gige = plan.gige_cameras if plan else []
+    if rmem is None:
+        return [Check("socket buffers", "WARN", "cannot read /proc/sys/net/core/rmem_max")]
+    fix = (
+        f"sudo sysctl -w net.core.rmem_max={GIGE_RMEM_MIN}; to keep it, put "
+        f"net.core.rmem_max={GIGE_RMEM_MIN} in /etc/sysctl.d/60-rigd.conf"
+    )
+    if rmem >= GIGE_RMEM_MIN:
+        return [Check("socket buffers", "OK", f"net.core.rmem_max = {rmem}")]
+    if gige:
+        return [
+            Check(
+                "socket buffers",
+                "WARN",
+                f"net.core.rmem_max = {rmem} < {GIGE_RMEM_MIN}: GigE Vision streams of "
+                f"{', '.join(gige)} will lose packets at full rate",
+                fix,
+            )
+        ]
+    return [Check("socket buffers", "OK", f"net.core.rmem_max = {rmem} (only GigE Vision cameras need more)")]
+
+
+def _check_hdf5(r: Readings, rig: RigConfig | None) -> list[Check]:
+    avail = r.hdf5_filters()
+    wanted = {rig.writer.event_compression, rig.writer.frame_compression} - {"none"} if rig else set()
+    missing = sorted(f for f in wanted if not avail.get(f, False))
+    have = ", ".join(f for f, ok in avail.items() if ok) or "none"
+    if missing:
+        return [
+            Check(
+                "hdf5 plugins",
+                "FAIL",
+                f"the config compresses with {', '.join(missing)}, "
+                f"which HDF5 cannot use here (available: {have})",
+                "pip install hdf5plugin",
+            )
+        ]
+    if not all(avail.values()):
+        return [Check("hdf5 plugins", "WARN", f"available filters: {have}", "pip install hdf5plugin")]
+    return [Check("hdf5 plugins", "OK", f"filters {have}")]
+
+
+_BACKENDS = {
+    "prophesee": ("metavision_hal", "OpenEB (Prophesee) Python bindings: https://docs.prophesee.ai"),
+    "genicam": ("Aravis", "apt-get install gir1.2-aravis-0.8 && pip install PyGObject"),
+    "v4l2": ("cv2", "pip install opencv-contrib-python-headless"),
+    "hid": ("hid", "pip install hidapi (and apt-get install libhidapi-hidraw0)"),
+    "usb": ("usb", "pip install pyusb (and apt-get install libusb-1.0-0)"),
+}
+
+
+def _check_backends(r: Readings, rig: RigConfig | None) -> list[Check]:
+    used: set[str] = set()
+    if rig is not None:
+        for spec_text in [
+            rig.trigger.spec,
+            *(c.spec for c in rig.cameras),
+            *(s.spec for s in rig.event_sensors),
+        ]:
+            spec = _safe_parse(spec_text)
+            if spec is not None:
+                used.add(spec.scheme)
+    out: list[Check] = []
+    for scheme, (module, how) in _BACKENDS.items():
+        reason = r.module_reason(module)
+        if reason is None:
+            out.append(Check(f"backend {scheme}", "OK", f"{module} installed"))
+        elif scheme in used:
+            out.append(Check(f"backend {scheme}", "FAIL", f"the config uses {scheme}:// but {reason}", how))
+        else:
+            out.append(Check(f"backend {scheme}", "OK", f"{module} not installed (not used by this config)"))
+    return out
+
+
+def summary_status(checks: list[Check]) -> Status:
+    statuses = {c.status for c in checks}
+    return "FAIL" if "FAIL" in statuses else "WARN" if "WARN" in statuses else "OK"
+
+
+def checks_to_dict(checks: list[Check]) -> dict[str, object]:
+    return {"status": summary_status(checks), "checks": [asdict(c) for c in checks]}

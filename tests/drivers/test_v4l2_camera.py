@@ -1,0 +1,141 @@
+"""V4L2 backend: spec parsing and the grab loop with a stand-in capture; a real /dev/video* if present."""
+
+from __future__ import annotations
+
+import glob
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.base import CameraSettings, Capability
+from drivers.registry import DeviceSpec
+from drivers.v4l2_camera import V4l2Camera, open_v4l2_camera, parse_v4l2_spec
+from rigd.core.errors import ConfigError, DeviceError
+
+
+class FakeCapture:
+    """cv2.VideoCapture stand-in: BGR frames with a counter in pixel (0, 0); `unplug()` ends them."""
+
+    def __init__(self, width: int = 64, height: int = 48) -> None:
+        self.props: dict[int, float] = {cv2.CAP_PROP_FRAME_WIDTH: width, cv2.CAP_PROP_FRAME_HEIGHT: height}
+        self.n = 0
+        self.plugged = True
+        self.released = False
+
+    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+        return True
+
+    def set(self, prop: int, value: float) -> bool:
+        self.props[prop] = value
+        return True
+
+    def get(self, prop: int) -> float:
+        return self.props.get(prop, 0.0)
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        time.sleep(0.005)
+        if not self.plugged:
+            return False, None
+        img = np.zeros(
+            (int(self.get(cv2.CAP_PROP_FRAME_HEIGHT)), int(self.get(cv2.CAP_PROP_FRAME_WIDTH)), 3), np.uint8
+        )
+        img[..., 0] = 255  # blue in BGR
+        img[0, 0, 1] = self.n % 256
+        self.n += 1
+        return True, img
+
+    def release(self) -> None:
+        self.released = True
+
+
+def test_spec_parsing() -> None:
+    p = parse_v4l2_spec(DeviceSpec.parse("v4l2:///dev/video2?width=1280&height=720&fps=30&fourcc=MJPG"))
+    assert p == {
+        "node": "/dev/video2",
+        "width": 1280,
+        "height": 720,
+        "fps": 30.0,
+        "fourcc": "MJPG",
+        "buffers": 64,
+    }
+    for bad, match in [
+        ("v4l2://dev/video0", "three slashes"),
+        ("v4l2:///dev/video0?fourcc=MJPEG", "fourcc"),
+        ("v4l2:///dev/video0?gain=3", "unknown parameter"),
+        ("v4l2:///dev/video0?width=-1", ">= 0"),
+    ]:
+        with pytest.raises(ConfigError, match=match):
+            parse_v4l2_spec(DeviceSpec.parse(bad))
+
+
+def test_free_running_frames_with_host_time_and_software_sync() -> None:
+    cap = FakeCapture()
+    cam = V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9?width=64&height=48"), capture=cap)
+    assert cam.info.facts["sync"] == "software"
+    assert Capability.FREE_RUN in cam.capabilities
+    assert Capability.HARDWARE_TRIGGER not in cam.capabilities
+    with pytest.raises(ConfigError, match="no trigger input"):
+        cam.configure(CameraSettings(trigger_mode="hardware"))
+    cam.configure(CameraSettings(trigger_mode="free_run", exposure_us=5000))
+    assert cap.props[cv2.CAP_PROP_EXPOSURE] == 50  # UVC units of 100 us
+    assert cam.frame_shape == (48, 64, 3)
+    cam.start()
+    with pytest.raises(DeviceError, match="stop"):
+        cam.configure(CameraSettings(trigger_mode="free_run"))
+    frames = [cam.read_frame(1.0) for _ in range(5)]
+    cam.stop()
+    assert all(f is not None for f in frames)
+    counters = [f.frame_counter for f in frames if f is not None]
+    assert counters == list(range(5))
+    f0 = frames[0]
+    assert f0 is not None
+    assert f0.image.shape == (48, 64, 3)
+    assert f0.image[1, 1].tolist() == [0, 0, 255]  # BGR blue became RGB blue
+    assert f0.t_exposure_start_us == f0.host_time_ns // 1000 - 5000
+    hosts = [f.host_time_ns for f in frames if f is not None]
+    assert hosts == sorted(hosts)
+    assert cam.stats().delivered >= 5
+    cam.close()
+    cam.close()
+    assert cap.released
+
+
+def test_mono_and_unplug_is_reported() -> None:
+    cap = FakeCapture()
+    cam = V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9"), capture=cap)
+    cam.configure(CameraSettings(trigger_mode="free_run", pixel_format="mono8"))
+    assert cam.frame_shape == (48, 64)
+    cam.start()
+    f = cam.read_frame(1.0)
+    assert f is not None
+    assert f.image.shape == (48, 64)
+    cap.plugged = False
+    with pytest.raises(DeviceError, match="unplugged"):  # noqa: PT012
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            cam.read_frame(0.2)
+    cam.close()
+
+
+def test_unopenable_node_names_it() -> None:
+    with pytest.raises(DeviceError, match="/dev/video-nope-rigd"):
+        open_v4l2_camera(DeviceSpec.parse("v4l2:///dev/video-nope-rigd"))
+
+
+@pytest.mark.skipif(
+    not glob.glob("/dev/video*"), reason="no /dev/video* node on this machine (no UVC camera)"
+)
+def test_real_v4l2_node_free_runs() -> None:
+    node = sorted(glob.glob("/dev/video*"))[0]
+    cam = open_v4l2_camera(DeviceSpec.parse(f"v4l2://{node}"))
+    try:
+        cam.configure(CameraSettings(trigger_mode="free_run"))
+        cam.start()
+        f = cam.read_frame(3.0)
+        cam.stop()
+        assert f is not None
+        assert f.image.shape == cam.frame_shape
+    finally:
+        cam.close()
