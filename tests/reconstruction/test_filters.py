@@ -130,3 +130,27 @@ def test_extremes() -> None:
         BackgroundActivityFilter(8, 8).mask(EventArray.from_arrays([0, 0], [0, 0], [1, 1], [5, 1]))
     with pytest.raises(ValueError, match="outside"):
         BackgroundActivityFilter(8, 8).mask(EventArray.from_arrays([8], [0], [1], [5]))
+
+
+@pytest.mark.parametrize(("radius", "metric"), [(4, "chebyshev"), (5, "euclidean"), (40, "euclidean")])
+def test_large_radius_matches_brute_force(radius: int, metric: str) -> None:
+    # radius 40: rows of 81 px take two SIMD compares (64 + 24 lanes) in the kernel
+    rng = np.random.default_rng(radius)
+    n, w, h = 400, 3 * radius, 2 * radius + 3
+    t = np.cumsum(rng.integers(0, 4, n))
+    ev = EventArray.from_arrays(rng.integers(0, w, n), rng.integers(0, h, n), rng.choice([-1, 1], n), t)
+    window = 30
+    for support, update_on_drop in [(2, True), (6, True), (1, False)]:
+        got = BackgroundActivityFilter(
+            w,
+            h,
+            radius_px=radius,
+            window_us=window,
+            min_support=support,
+            metric=metric,  # type: ignore[arg-type]
+            update_on_drop=update_on_drop,
+        ).mask(ev)
+        want = brute_force(ev, radius, window, support, metric, update_on_drop)
+        if update_on_drop:  # update_on_drop=False with support >= 1 never bootstraps: nothing kept
+            assert 0 < got.sum() < n
+        np.testing.assert_array_equal(got, want)
