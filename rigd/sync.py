@@ -143,6 +143,51 @@ def _coarse_offset(
     return float(offsets[best].max())
 
 
+def _offset_by_intervals(
+    d: NDArray[np.int64], c: NDArray[np.float64], pulses: PulseLog, period_us: float
+) -> float | None:
+    """Offset from the pulse train's own structure, independent of host latency.
+
+    Intervals between a device's observations are whole numbers of periods (more than one
+    where it missed pulses), so observation j is pulse `s + K[j]` for one unknown shift s.
+    Devices start before the box does, so when a device saw the first and the last pulse
+    only s = 0 fits the count; otherwise the feasible shifts are few and the host arrival
+    times choose among them (least non-negative latency). None when the intervals are not
+    clean multiples (extra edges, clock far off nominal): the caller then scores candidates.
+    """
+    if d.size < 2 or pulses.n_emitted < 1:
+        return None
+    ratio = np.diff(d).astype(np.float64) / period_us
+    m = np.rint(ratio)
+    if (m < 1).any() or np.abs(ratio - m).max() > 0.25:
+        return None
+    k = np.concatenate([[0], np.cumsum(m).astype(np.int64)])
+    n_shifts = pulses.n_emitted - int(k[-1])
+    if n_shifts < 1:
+        return None
+    by_index = np.full(pulses.n_emitted, -1, np.int64)
+    ok = (pulses.index >= 0) & (pulses.index < pulses.n_emitted)
+    by_index[pulses.index[ok]] = pulses.t_us[ok]
+    best: tuple[int, float] | None = None  # (matched, offset) of the best shift so far
+    upper = float(c.min()) + 2_000.0
+    for shift in range(n_shifts):
+        idx = shift + k
+        rig = by_index[idx]
+        have = rig >= 0
+        if not have.any():
+            continue
+        # Offset at the start of the take (drift moves it later on; the fit follows).
+        first = np.flatnonzero(have)[:64]
+        off = float(np.median(rig[first] - d[first]))
+        if n_shifts > 1 and off > upper:
+            continue  # would need a negative host latency
+        score = int(have.sum())
+        # Later shifts imply less latency: on equal support keep the latest feasible one.
+        if best is None or score >= best[0]:
+            best = (score, off)
+    return None if best is None else best[1]
+
+
 def match_device(
     obs: DeviceObservations, pulses: PulseLog, period_us: float, host_to_rig: ClockMap
 ) -> DeviceMatch:
@@ -157,7 +202,9 @@ def match_device(
     c = host_to_rig.to_rig_float(obs.host_time_ns // 1000) - d.astype(np.float64)
     # Window over which +-_MAX_DRIFT_PPM keeps a fixed offset within a quarter period.
     window = max(period_us, 0.25 * period_us / (_MAX_DRIFT_PPM * 1e-6))
-    off = _coarse_offset(d, c[d - d[0] <= window], pulses.t_us, period_us, window)
+    off = _offset_by_intervals(d, c, pulses, period_us)
+    if off is None:
+        off = _coarse_offset(d, c[d - d[0] <= window], pulses.t_us, period_us, window)
     if off is None:
         warnings.append(f"{obs.name}: no box pulse near its observations; clock not fitted")
         return DeviceMatch(np.full(n_obs, -1, np.int64), None, warnings)

@@ -109,3 +109,20 @@ def test_matching_survives_a_loaded_host(seed: int) -> None:
     np.testing.assert_array_equal(res.observation_pulse_index["cam0"], true_idx)
     err = res.maps["cam0"].to_rig(obs.t_device_us) - truth
     assert np.sqrt(np.mean(err**2)) <= 1.0
+
+
+def test_device_whose_data_always_arrives_late_is_still_aligned() -> None:
+    """Host latency never below 1.2 s (a device stalled from the start): the pulse train's
+    own structure aligns it, host times cannot."""
+    pulses, obs, true_idx, truth = _scenario(200, seed=9, latency_ms=(1200.0, 1300.0), drop_pulses=(50, 51))
+    res = synchronize(pulses, [obs], RATE)
+    np.testing.assert_array_equal(res.observation_pulse_index["cam0"], true_idx)
+    err = res.maps["cam0"].to_rig(obs.t_device_us) - truth
+    assert np.sqrt(np.mean(err**2)) <= 1.0
+
+
+def test_device_that_missed_the_first_pulses_is_placed_by_host_time() -> None:
+    pulses, obs, true_idx, _ = _scenario(120, seed=11, drop_pulses=(0, 1, 2))
+    res = synchronize(pulses, [obs], RATE)
+    np.testing.assert_array_equal(res.observation_pulse_index["cam0"], true_idx)
+    assert res.report.devices["cam0"].missing_pulses == [0, 1, 2]
