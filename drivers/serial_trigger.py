@@ -461,8 +461,11 @@ class SerialTrigger(Trigger):
             raise ProtocolError(f"trigger box {self.port}: receive side failed: {err}") from err
 
     def _write(self, payload: str) -> None:
+        # An empty payload is a bare newline (it flushes a half line out of the box's buffer;
+        # the box ignores empty lines). With a checksum it would be an empty command.
+        data = _frame_command(payload) if payload else b"\n"
         try:
-            self._transport.write(_frame_command(payload))
+            self._transport.write(data)
         except TransportError as exc:
             raise TransportError(f"trigger box {self.port}: writing {payload!r} failed: {exc}") from exc
 

@@ -133,6 +133,8 @@ class SimTriggerBox:
         self._lines_sent = 0
         self.tx_dropped = 0
         self.commands_received = 0
+        #: ERR codes the box has replied with, in order (tests read it).
+        self.errors_sent: list[str] = []
         self.booted = threading.Event()
 
         self._stop = threading.Event()
@@ -286,6 +288,7 @@ class SimTriggerBox:
 
     def _reply_error(self, err: _CommandError, tag: int | None) -> None:
         log.debug("trigger box %s: ERR %s %s", self.port_path, err.code, err.message)
+        self.errors_sent.append(err.code)
         self._reply([f"ERR {err.code} {err.message}"], tag)
 
     def _handle_line(self, raw: bytes) -> None:

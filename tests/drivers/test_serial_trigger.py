@@ -409,3 +409,20 @@ def test_hid_without_hidapi_says_what_to_install(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setitem(sys.modules, "hid", None)  # makes `import hid` raise ImportError
     with pytest.raises(BackendUnavailableError, match="pip install hidapi"):
         open_device("trigger", "hid://16c0:0486")
+
+
+def test_handshake_flush_line_draws_no_error_reply(world_name: str) -> None:
+    """The newline the handshake sends first must not earn an ERR that a later command
+    could take for its own reply (seen as `'ID?' failed: ERR UNKNOWN empty command`)."""
+    box = SimTriggerBox(get_world(world_name), boot_ms=0, seed=3)
+    try:
+        for _ in range(10):
+            trig = SerialTrigger(box.port_path, reply_timeout_s=2.0)
+            try:
+                assert trig.info.serial  # ID? answered by its own reply, not by an ERR
+                assert trig.pulse_count() == 0
+            finally:
+                trig.close()
+        assert box.errors_sent == []  # the flush newline is ignored, never an empty command
+    finally:
+        box.close()
