@@ -39,6 +39,7 @@ from drivers.base import (
 from drivers.evt import Evt3Encoder
 from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
+from firmware_sim.board_scene import sim_scene
 from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, lin_log, log_lut
 from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
 from rigd.core.errors import ConfigError, DeviceError
@@ -461,7 +462,7 @@ class SensorParams:
 
 
 #: How far behind true time the generator encodes, so trigger edges are in before their slice.
-GENERATION_LAG_US = 20_000
+GENERATION_LAG_US = 50_000
 
 
 class SimEventSensor:
@@ -724,16 +725,16 @@ class SimEventSensor:
 
 
 def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
-    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=`."""
-    spec.check_params({"offset_us", "drift_ppm", "seed", "width", "height", "threshold", "buffer_packets"})
+    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=&scene=sprites|board`."""
+    spec.check_params(
+        {"offset_us", "drift_ppm", "seed", "width", "height", "threshold", "buffer_packets", "scene"}
+    )
     name = spec.path.strip("/")
     if not name:
         raise ConfigError(f"device spec {spec.raw!r}: no device name in the path (sim://<world>/<name>)")
     seed = spec.int_param("seed", 0)
     world = get_world(spec.location or "default", seed)
-    scene = world.resource("scene", lambda: Scene(seed=seed))
-    if not isinstance(scene, Scene):
-        raise ConfigError(f"device spec {spec.raw!r}: world {world.name!r} holds no Scene")
+    scene = sim_scene(spec, world, seed)
     params = SensorParams(
         width=spec.int_param("width", 1280),
         height=spec.int_param("height", 720),

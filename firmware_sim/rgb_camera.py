@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from drivers.base import AcquisitionStats, CameraSettings, Capability, DeviceInfo, RgbCamera
 from drivers.registry import DeviceSpec
+from firmware_sim.board_scene import sim_scene
 from firmware_sim.scene import Scene, View
 from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
 from rigd.core.errors import ConfigError, DeviceError
@@ -292,9 +293,19 @@ class SimRgbCamera(RgbCamera):
 
 
 def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
-    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=`."""
+    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=&scene=sprites|board`."""
     spec.check_params(
-        {"offset_us", "drift_ppm", "seed", "width", "height", "format", "buffer_frames", "drop_frames"}
+        {
+            "offset_us",
+            "drift_ppm",
+            "seed",
+            "width",
+            "height",
+            "format",
+            "buffer_frames",
+            "drop_frames",
+            "scene",
+        }
     )
     name = spec.path.strip("/")
     if not name:
@@ -320,8 +331,6 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
             )
     seed = spec.int_param("seed", 0)
     world = get_world(spec.location or "default", seed)
-    scene = world.resource("scene", lambda: Scene(seed=seed))
-    if not isinstance(scene, Scene):
-        raise ConfigError(f"device spec {spec.raw!r}: world {world.name!r} holds no Scene")
+    scene = sim_scene(spec, world, seed)
     clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
     return SimRgbCamera(world, name, scene, clock, params, spec.raw)

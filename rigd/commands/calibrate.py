@@ -8,6 +8,7 @@ Exit code 2 on a RigdError, with the message on stderr; `--json` prints the resu
 from __future__ import annotations
 
 import glob
+import json
 import logging
 import re
 from pathlib import Path
@@ -18,6 +19,7 @@ import typer
 from rich.console import Console
 
 from calibration.boards import BoardSpec, Detection, detect, load_image, parse_board
+from calibration.e2calib import METHODS, E2CalibResult, ReconstructionParams, calibrate_events
 from calibration.extrinsics import RigResult, calibrate_rig
 from calibration.intrinsics import (
     IntrinsicsResult,
@@ -32,7 +34,10 @@ from rigd.core.errors import RigdError
 
 log = logging.getLogger(__name__)
 
-calibrate_app = typer.Typer(help="Calibrate cameras: intrinsics, rig extrinsics.", no_args_is_help=True)
+calibrate_app = typer.Typer(
+    help="Calibrate cameras: intrinsics, event-sensor intrinsics (e2calib), rig extrinsics.",
+    no_args_is_help=True,
+)
 _err = Console(stderr=True)
 
 BoardOpt = Annotated[str, typer.Option("--board", "-b", help="Board spec, e.g. chessboard:9x6:0.025.")]
@@ -196,3 +201,110 @@ def rig_cmd(
     else:
         for c in rig.cameras:
             _err.print(f"{c.camera}: t={np.round(c.t, 4).tolist()} m, RMS {c.rms_px:.3f} px")
+
+
+def event_times(take_path: Path, sensor: str, rate_hz: float | None = None) -> np.ndarray:
+    """Times (take clock, us) to reconstruct a sensor's frames at: every `rate_hz` over its event
+    span, else the cameras' mid-exposure instants (the pulses the RGB frames show, so event and
+    RGB views of one pulse see the same board pose), else the sensor's rising trigger edges."""
+    from rigd.take.reader import open_take
+
+    with open_take(take_path) as take:
+        if sensor not in take.event_sensors:
+            raise RigdError(f"{take_path}: no event sensor {sensor!r} (has {take.event_sensors})")
+        if rate_hz is not None:
+            if rate_hz <= 0:
+                raise RigdError(f"--rate must be > 0 Hz, got {rate_hz}")
+            span = take.event_span(sensor)
+            if span is None:
+                raise RigdError(f"{take_path}: event sensor {sensor!r} has no events")
+            return np.arange(span[0], span[1], 1e6 / rate_hz).astype(np.int64)
+        if take.cameras:
+            cam = take.frames(take.cameras[0])
+            if len(cam):
+                return np.asarray(cam.timestamps_us + cam[0].exposure_us // 2, np.int64)
+        trig = take.triggers(sensor)
+        return np.asarray(trig.t[trig.p == 1], np.int64)
+
+
+def calibrate_take_events(
+    take_path: Path,
+    sensor: str,
+    spec: BoardSpec,
+    methods: list[str],
+    rate_hz: float | None = None,
+    params: ReconstructionParams | None = None,
+    model: str = "k1k2",
+) -> E2CalibResult:
+    """e2calib on one sensor of a take (see calibration.e2calib)."""
+    from rigd.take.reader import open_take
+
+    times = event_times(take_path, sensor, rate_hz)
+    with open_take(take_path) as take:
+        events = take.events(sensor)
+        size = take.geometry(sensor)
+    return calibrate_events(
+        events, size, times, spec, sensor=sensor, methods=methods, params=params, model=model
+    )
+
+
+@calibrate_app.command("events")
+def events_cmd(
+    take: Annotated[Path, typer.Argument(help="Take holding the sensor's events of a moving board.")],
+    sensor: Annotated[str, typer.Option("--sensor", "-s", help="Event sensor name in the take.")],
+    board: BoardOpt,
+    out: OutOpt,
+    json_out: JsonOpt = False,
+    method: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--method", "-m", help=f"Reconstruction method(s): {', '.join(METHODS)} (default: all)."
+        ),
+    ] = None,
+    rate: Annotated[
+        float | None,
+        typer.Option("--rate", help="Reconstruct at this rate (Hz) instead of the trigger pulses."),
+    ] = None,
+    cutoff_hz: Annotated[float, typer.Option("--cutoff-hz", help="hpf method: high-pass corner.")] = 1.0,
+    model: ModelOpt = "k1k2",
+) -> None:
+    """Intrinsics of an event sensor from frames reconstructed from its events (e2calib-style).
+
+    Every method is run and reported; the one with the lowest RMS is written to --out."""
+    methods = method or list(METHODS)
+    try:
+        spec = parse_board(board)
+        res = calibrate_take_events(
+            take, sensor, spec, methods, rate, ReconstructionParams(cutoff_hz=cutoff_hz), model=model
+        )
+        best = res.best()
+        assert best.intrinsics is not None
+        write_result(best.intrinsics, out)
+    except RigdError as exc:
+        raise _fail(exc) from exc
+    _warn(best.intrinsics)
+    table = [
+        {
+            "method": m.method,
+            "frames": m.frames,
+            "detected": m.detected,
+            "rms_px": m.intrinsics.rms_px if m.intrinsics else None,
+            "K": m.intrinsics.K if m.intrinsics else None,
+            "error": m.error,
+            "time_s": round(m.total_s, 3),
+        }
+        for m in res.methods
+    ]
+    if json_out:
+        summary = best.intrinsics.summary()
+        summary["method"] = best.method
+        summary["methods"] = table
+        typer.echo(json.dumps(summary, indent=2))
+    else:
+        for row in table:
+            rms = f"{row['rms_px']:.3f} px" if row["rms_px"] is not None else f"failed ({row['error']})"
+            _err.print(
+                f"{sensor} {row['method']}: {row['detected']}/{row['frames']} frames, "
+                f"RMS {rms}, {row['time_s']} s"
+            )
+        _err.print(f"{sensor}: best {best.method} -> {out}")

@@ -89,6 +89,7 @@ def test_real_stereo_extrinsics(real_detections) -> None:
     assert angle < 0.01
     assert np.linalg.norm(t - t_cv) < 1e-4
     cam = rig.cameras[1]
-    assert all(0 < s < 0.05 for s in cam.rot_std_deg)
-    assert all(0 < s < 1e-3 for s in cam.t_std_m)
+    # Sigmas include each camera's intrinsic uncertainty (16 hand-held views): honest, not tiny.
+    assert all(0 < s < 0.2 for s in cam.rot_std_deg)
+    assert all(0 < s < 5e-3 for s in cam.t_std_m)
     assert rig.rms_px < 0.25

@@ -1,0 +1,347 @@
+"""Event-camera intrinsics, e2calib-style: reconstruct frames from events, then calibrate them.
+
+An event sensor has no frames, so (as in e2calib) gray images are reconstructed from the events at
+chosen times (the trigger pulses of a take, or a fixed rate), the board is detected in them, and
+the ordinary frame calibration (`calibration.intrinsics`) runs on those detections. The
+reconstruction method decides both the cost and the accuracy, so several are offered and a
+benchmark (`bench/e2calib.py`) tabulates method vs calibration error vs time:
+
+- ``window`` (cheap): signed events of a short window before each time, exponentially decayed
+  (a signed time surface). Only the window's events are touched, so the cost scales with the
+  number of output frames, not the stream length. It shows where the log intensity *changed*
+  recently: the board where it moved in, plus a ghost where it was, so detections are fewer and
+  noisier.
+- ``hpf`` (accurate): per-pixel leaky integration of log intensity over the whole stream, the
+  high-pass filter of Scheerlinck et al. (ACCV 2018) without frames:
+  L(t) = exp(-a (t - t_last)) L(t_last) + C p at every event. Every event is visited once, in
+  order. It recovers the log image up to a slowly decaying history, which the chessboard detector
+  (saddle points, sub-pixel refinement on gradients) is insensitive to; with a = 0 it is plain
+  direct integration (exact for an ideal sensor, plus the initial scene as a ghost).
+
+The contrast threshold C only scales the reconstructed log image, so its exact value does not
+matter for detection; the images are mapped to 8 bits by robust percentiles.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+from pydantic import BaseModel
+
+from calibration.boards import BoardSpec, Detection, detect
+from calibration.errors import CalibrationError, NoBoardFoundError
+from calibration.intrinsics import IntrinsicsResult, RejectedView, calibrate_intrinsics
+from rigd.core.events import EventArray
+
+log = logging.getLogger(__name__)
+
+F32 = NDArray[np.float32]
+I64 = NDArray[np.int64]
+
+METHODS = ("window", "hpf")
+
+
+@dataclass(frozen=True)
+class ReconstructionParams:
+    """Tuning of the reconstruction methods (defaults measured on the sim rig's board scene).
+
+    window_us / tau_us: the ``window`` method's window and decay time constant.
+    cutoff_hz: the ``hpf`` method's high-pass corner frequency (a = 2 pi cutoff); 0 integrates.
+    contrast: log-intensity step of one event (the sensor's threshold; only a scale).
+    blur_px: Gaussian sigma applied to the reconstruction, which softens the one-threshold
+    quantisation steps that an ideal pixel leaves along edges.
+    half_step: the ``hpf`` method's lag correction (see `_leaky_integrate_kernel`).
+    """
+
+    window_us: int = 150_000
+    tau_us: float = 80_000.0
+    cutoff_hz: float = 1.0
+    contrast: float = 0.3
+    blur_px: float = 0.7
+    half_step: bool = True
+
+
+@njit(cache=True, nogil=True)
+def _leaky_integrate_kernel(  # pragma: no cover - numba
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    t: I64,
+    times: I64,
+    alpha_per_us: float,
+    contrast: float,
+    half_step: bool,
+    out: F32,
+) -> None:
+    """out[i] = the leaky-integrated log image at times[i] (times sorted ascending).
+
+    With `half_step`, half a contrast step in the direction of a pixel's last event is added:
+    a pixel fires only once its log intensity has moved a full step, so after an ON event the
+    true level lies in [ref, ref + C) and ref + C/2 is its unbiased estimate. Without it every
+    moving edge lags behind its true position, a view-dependent bias the calibration cannot absorb.
+    """
+    n_out, h, w = out.shape
+    state = np.zeros((h, w), np.float64)
+    t_last = np.zeros((h, w), np.float64)
+    last_p = np.zeros((h, w), np.float64)
+    if t.shape[0] > 0:
+        t_last[:, :] = float(t[0])
+    k = 0
+    n = t.shape[0]
+    for i in range(n_out):
+        ts = times[i]
+        while k < n and t[k] <= ts:
+            xi = x[k]
+            yi = y[k]
+            tk = float(t[k])
+            if alpha_per_us > 0.0:
+                state[yi, xi] *= math.exp(-alpha_per_us * (tk - t_last[yi, xi]))
+            state[yi, xi] += contrast if p[k] > 0 else -contrast
+            last_p[yi, xi] = 1.0 if p[k] > 0 else -1.0
+            t_last[yi, xi] = tk
+            k += 1
+        for r in range(h):
+            for c in range(w):
+                v = state[r, c]
+                if half_step:
+                    v += 0.5 * contrast * last_p[r, c]
+                if alpha_per_us > 0.0:
+                    v *= math.exp(-alpha_per_us * max(float(ts) - t_last[r, c], 0.0))
+                out[i, r, c] = v
+
+
+def reconstruct_hpf(
+    events: EventArray, size: tuple[int, int], times_us: Sequence[int] | I64, params: ReconstructionParams
+) -> F32:
+    """(n, H, W) high-pass-filtered log images at `times_us` (any order), from all events up to each."""
+    times = np.asarray(times_us, np.int64)
+    order = np.argsort(times, kind="stable")
+    w, h = size
+    out = np.zeros((times.size, h, w), np.float32)
+    alpha = 2.0 * math.pi * params.cutoff_hz * 1e-6
+    _leaky_integrate_kernel(
+        events.x, events.y, events.p, events.t, times[order], alpha, params.contrast, params.half_step, out
+    )
+    res = np.empty_like(out)
+    res[order] = out
+    return res
+
+
+def reconstruct_window(
+    events: EventArray, size: tuple[int, int], times_us: Sequence[int] | I64, params: ReconstructionParams
+) -> F32:
+    """(n, H, W) signed, exponentially decayed sums of the events in [t - window, t]."""
+    times = np.asarray(times_us, np.int64)
+    w, h = size
+    out = np.zeros((times.size, h, w), np.float32)
+    for i, ts in enumerate(times):
+        lo = int(np.searchsorted(events.t, ts - params.window_us, side="left"))
+        hi = int(np.searchsorted(events.t, ts, side="right"))
+        if hi <= lo:
+            continue
+        sl = slice(lo, hi)
+        wgt = np.exp(-(ts - events.t[sl]).astype(np.float64) / params.tau_us)
+        wgt *= np.where(events.p[sl] > 0, params.contrast, -params.contrast)
+        idx = events.y[sl].astype(np.int64) * w + events.x[sl].astype(np.int64)
+        out[i] = np.bincount(idx, weights=wgt, minlength=w * h).reshape(h, w).astype(np.float32)
+    return out
+
+
+def reconstruct(
+    events: EventArray,
+    size: tuple[int, int],
+    times_us: Sequence[int] | I64,
+    method: str = "hpf",
+    params: ReconstructionParams | None = None,
+) -> F32:
+    """Log-intensity-like float images (n, H, W) at the given times by `method` (see METHODS)."""
+    p = params or ReconstructionParams()
+    if method == "hpf":
+        return reconstruct_hpf(events, size, times_us, p)
+    if method == "window":
+        return reconstruct_window(events, size, times_us, p)
+    raise CalibrationError(f"unknown reconstruction method {method!r}; choose from {', '.join(METHODS)}")
+
+
+def to_uint8(img: F32, blur_px: float = 0.7) -> NDArray[np.uint8]:
+    """8-bit image for the board detector: optional blur, then the 0.5..99.5 % range stretched to
+    0..255 (robust to the few pixels an event burst drives far off)."""
+    f = np.asarray(img, np.float32)
+    if blur_px > 0:
+        f = np.asarray(cv2.GaussianBlur(f, (0, 0), blur_px), np.float32)
+    lo, hi = np.percentile(f, [0.5, 99.5])
+    if hi - lo < 1e-6:
+        return np.full(f.shape, 128, np.uint8)
+    return np.clip((f - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
+class MethodResult(BaseModel):
+    """One reconstruction method's outcome: frames, detections, calibration (None if it failed),
+    and the wall time of each stage in seconds."""
+
+    method: str
+    frames: int
+    detected: int
+    intrinsics: IntrinsicsResult | None
+    error: str | None = None
+    reconstruct_s: float
+    detect_s: float
+    calibrate_s: float
+
+    @property
+    def total_s(self) -> float:
+        return self.reconstruct_s + self.detect_s + self.calibrate_s
+
+
+class E2CalibResult(BaseModel):
+    sensor: str
+    board: str
+    image_size: tuple[int, int]
+    events: int
+    times_us: list[int]
+    methods: list[MethodResult]
+
+    def best(self) -> MethodResult:
+        """The calibrated method with the lowest RMS; CalibrationError when none calibrated."""
+        ok = [m for m in self.methods if m.intrinsics is not None]
+        if not ok:
+            raise CalibrationError(
+                f"sensor {self.sensor}: no reconstruction method gave a calibration: "
+                + "; ".join(f"{m.method}: {m.error}" for m in self.methods)
+            )
+        return min(ok, key=lambda m: m.intrinsics.rms_px if m.intrinsics else math.inf)
+
+
+@dataclass
+class FrameDetections:
+    """Detections in reconstructed frames, keyed like the times they were made at."""
+
+    detections: dict[str, Detection] = field(default_factory=dict)
+    rejected: list[RejectedView] = field(default_factory=list)
+
+
+def detect_in_reconstructions(
+    events: EventArray,
+    size: tuple[int, int],
+    times_us: Sequence[int] | I64,
+    board: BoardSpec,
+    method: str = "hpf",
+    params: ReconstructionParams | None = None,
+    names: Sequence[str] | None = None,
+    sensor: str = "ev",
+) -> FrameDetections:
+    """Reconstruct at `times_us` and detect the board in each frame; `names` label the views
+    (default `<sensor>@<t_us>`); the rig calibration matches views across devices by them."""
+    p = params or ReconstructionParams()
+    times = np.asarray(times_us, np.int64)
+    labels = list(names) if names is not None else [f"{sensor}@{int(t)}" for t in times]
+    if len(labels) != times.size:
+        raise CalibrationError(f"{len(labels)} names for {times.size} times")
+    imgs = reconstruct(events, size, times, method, p)
+    out = FrameDetections()
+    for name, img in zip(labels, imgs, strict=True):
+        d = detect(to_uint8(img, p.blur_px), board, name=name)
+        if d is None:
+            out.rejected.append(
+                RejectedView(name=name, reason=f"board {board} not found in the reconstruction")
+            )
+        else:
+            out.detections[name] = d
+    return out
+
+
+def calibrate_events(
+    events: EventArray,
+    size: tuple[int, int],
+    times_us: Sequence[int] | I64,
+    board: BoardSpec,
+    sensor: str = "ev",
+    methods: Sequence[str] = METHODS,
+    params: ReconstructionParams | None = None,
+    model: str = "k1k2",
+    max_views: int = 40,
+) -> E2CalibResult:
+    """Calibrate an event sensor's intrinsics with every method in `methods`.
+
+    `events` must be time-sorted, in the same clock as `times_us`. At most `max_views`
+    detections (evenly spread over time) go into the calibration: neighbouring frames of a moving
+    board are nearly redundant and the calibration cost grows with the views. A method that finds
+    no board or cannot calibrate is reported with its error rather than failing the others.
+    """
+    p = params or ReconstructionParams()
+    times = np.asarray(times_us, np.int64)
+    if times.size == 0:
+        raise CalibrationError(f"sensor {sensor}: no reconstruction times given")
+    if len(events) == 0:
+        raise CalibrationError(f"sensor {sensor}: no events to reconstruct frames from")
+    results: list[MethodResult] = []
+    for m in methods:
+        if m not in METHODS:
+            raise CalibrationError(f"unknown reconstruction method {m!r}; choose from {', '.join(METHODS)}")
+        t0 = time.perf_counter()
+        imgs = reconstruct(events, size, times, m, p)
+        t1 = time.perf_counter()
+        dets: list[Detection] = []
+        rejected: list[RejectedView] = []
+        for ts, img in zip(times, imgs, strict=True):
+            name = f"{sensor}@{int(ts)}"
+            d = detect(to_uint8(img, p.blur_px), board, name=name)
+            if d is None:
+                rejected.append(
+                    RejectedView(name=name, reason=f"board {board} not found in the reconstruction")
+                )
+            else:
+                dets.append(d)
+        t2 = time.perf_counter()
+        if len(dets) > max_views:
+            keep = np.unique(np.linspace(0, len(dets) - 1, max_views).round().astype(int))
+            dets = [dets[i] for i in keep]
+        intr: IntrinsicsResult | None = None
+        err: str | None = None
+        try:
+            if not dets:
+                raise NoBoardFoundError(
+                    f"sensor {sensor}: board {board} not found in any of {times.size} {m} reconstructions"
+                )
+            intr = calibrate_intrinsics(dets, board, camera=sensor, model=model, rejected=rejected)
+        except CalibrationError as exc:
+            err = str(exc)
+            log.warning("sensor %s, method %s: %s", sensor, m, exc)
+        t3 = time.perf_counter()
+        results.append(
+            MethodResult(
+                method=m,
+                frames=int(times.size),
+                detected=len(imgs) - len(rejected),
+                intrinsics=intr,
+                error=err,
+                reconstruct_s=t1 - t0,
+                detect_s=t2 - t1,
+                calibrate_s=t3 - t2,
+            )
+        )
+        log.info(
+            "sensor %s, method %s: %d/%d frames with the board, RMS %s, %.2f s",
+            sensor,
+            m,
+            results[-1].detected,
+            times.size,
+            f"{intr.rms_px:.3f} px" if intr else "-",
+            t3 - t0,
+        )
+    return E2CalibResult(
+        sensor=sensor,
+        board=str(board),
+        image_size=size,
+        events=len(events),
+        times_us=[int(t) for t in times],
+        methods=results,
+    )

@@ -1,0 +1,94 @@
+# ruff: noqa: N806  (K follows the notation of the calibration literature)
+"""e2calib on the simulated rig: a short take of the moving board, both reconstruction methods,
+scored against the simulator's ground-truth K (pinhole sim), plus the `calibrate events` CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from bench.e2calib import BOARD, capture_board_take, score, sensor_results, true_k
+from calibration.boards import detect, parse_board
+from calibration.e2calib import ReconstructionParams, reconstruct, to_uint8
+from firmware_sim.board_scene import BoardScene
+from rigd.commands.calibrate import calibrate_app
+from rigd.take.reader import open_take
+
+RES = (480, 270)
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def board_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cap = capture_board_take(tmp_path_factory.mktemp("e2calib"), 2.5, RES, world="t-e2calib")
+    assert all(n > 10_000 for n in cap.events.values()), cap.events
+    return cap.path
+
+
+def test_board_scene_ground_truth_matches_detections() -> None:
+    """The rendered board's detected corners sit on the ground-truth projections."""
+    scene = BoardScene(seed=3)
+    board = parse_board(scene.board_spec)
+    for t in (0.0, 0.7e6, 1.9e6):
+        img = scene.render(scene.view("ev1", *RES), t, gray=True)
+        d = detect(img, board)
+        assert d is not None
+        gt = scene.board_corners("ev1", t, *RES)
+        err = np.linalg.norm(d.image_points - gt, axis=1)
+        assert float(np.median(err)) < 0.2, err
+
+
+def test_reconstruction_shows_the_board(board_take: Path) -> None:
+    with open_take(board_take) as take:
+        cam = take.frames("cam1")
+        t = int(cam.timestamps_us[40] + cam[40].exposure_us // 2)
+        imgs = reconstruct(take.events("ev0"), take.geometry("ev0"), [t], "hpf", ReconstructionParams())
+    assert detect(to_uint8(imgs[0]), parse_board(BOARD)) is not None
+
+
+def test_methods_calibrate_event_sensors(board_take: Path) -> None:
+    results = sensor_results(board_take)
+    K = true_k(RES[0])
+    K[1, 2] = RES[1] / 2
+    for res in results.values():
+        rows = {r["method"]: r for r in score(res, K)}
+        hpf = rows["hpf"]
+        # Measured at 480x270, 2.5 s: hpf ~0.3-1.5 % focal, 0.25-0.35 px RMS; bounds with margin.
+        assert float(hpf["focal_err_pct"]) < 3.0, hpf  # type: ignore[arg-type]
+        assert float(hpf["rms_px"]) < 0.5, hpf  # type: ignore[arg-type]
+        assert float(hpf["pp_err_px"]) < 15.0, hpf  # type: ignore[arg-type]
+        assert "window" in rows
+
+
+def test_events_cli_writes_best_method(board_take: Path, tmp_path: Path) -> None:
+    out = tmp_path / "ev0.json"
+    r = runner.invoke(
+        calibrate_app,
+        [
+            "events",
+            str(board_take),
+            "--sensor",
+            "ev0",
+            "--board",
+            BOARD,
+            "--out",
+            str(out),
+            "--json",
+            "-m",
+            "hpf",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    assert data["method"] == "hpf"
+    assert data["methods"][0]["detected"] > 20
+    assert out.exists()
+    bad = runner.invoke(
+        calibrate_app,
+        ["events", str(board_take), "--sensor", "nope", "--board", BOARD, "--out", str(out)],
+    )
+    assert bad.exit_code == 2
