@@ -40,6 +40,7 @@ from drivers.evt import Evt3Encoder
 from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
+from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, lin_log, log_lut
 from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
 from rigd.core.errors import ConfigError, DeviceError
@@ -459,6 +460,10 @@ class SensorParams:
     height: int = 720
     threshold: float = 0.3
     buffer_packets: int = 1024
+    pixel_model: PixelModelConfig | None = None
+    """None: the fast ideal kernel (rendering only what moves). Otherwise the full pixel model
+    of `firmware_sim.event_model` (noise, mismatch, refractory, low-pass) on whole rendered log
+    frames at every sub-step: real time only at small resolutions."""
 
 
 #: How far behind true time the generator encodes, so trigger edges are in before their slice.
@@ -511,6 +516,7 @@ class SimEventSensor:
         self._error: BaseException | None = None
         self._closed = False
         self._events_lost = 0
+        self._model_t = 0
         self._counts = {
             "packets_dropped": 0,
             "triggers_dropped": 0,
@@ -673,8 +679,28 @@ class SimEventSensor:
 
     # --- generator ------------------------------------------------------------------------
 
+    def _model_events(self, model: EventSimulator, t0: float, t1: float) -> EventArray:
+        """Full pixel model: whole log frames at sub-steps of at most MAX_STEP_PX of motion."""
+        n_sub = self._scene.substeps(self._view, t0, t1, MAX_STEP_PX)
+        parts = []
+        for t in np.linspace(t0, t1, n_sub + 1)[1:]:
+            ti = round(t)
+            if ti <= self._model_t:
+                continue
+            parts.append(model.step(lin_log(self._scene.render_intensity(self._view, t)), ti))
+            self._model_t = ti
+        ev = EventArray.concatenate(parts)
+        # Model times are true-time microseconds: latch them on the sensor's own clock.
+        t_dev = np.floor(self._clock.offset_us + ev.t.astype(np.float64) * self._clock.rate).astype(np.int64)
+        return ev.with_time(t_dev)
+
     def _run(self, t_start: float, last_log: NDArray[np.float32]) -> None:
         ref = last_log.copy()
+        model: EventSimulator | None = None
+        if self._p.pixel_model is not None:
+            model = EventSimulator(self._p.width, self._p.height, self._p.pixel_model)
+            self._model_t = round(t_start)
+            model.step(last_log, self._model_t)
         t_prev = t_start
         cpu0 = time.thread_time()
         try:
@@ -685,10 +711,13 @@ class SimEventSensor:
                 t_now = self._world.now_us() - (0 if stopping else GENERATION_LAG_US)
                 if t_now <= t_prev and not stopping:
                     continue
-                buf = generate_events(
-                    self._scene, self._view, last_log, ref, self._p.threshold, t_prev, t_now, self._clock
-                )
-                events = buf.to_array()
+                if model is not None:
+                    events = self._model_events(model, t_prev, t_now)
+                else:
+                    buf = generate_events(
+                        self._scene, self._view, last_log, ref, self._p.threshold, t_prev, t_now, self._clock
+                    )
+                    events = buf.to_array()
                 with self._lock:
                     self._encoded_until_us = t_now
                 triggers = self._take_triggers(None if stopping else t_now)
@@ -724,10 +753,45 @@ class SimEventSensor:
             self._counts["bytes"] += len(payload)
 
 
+#: Spec parameters of the full pixel model -> PixelModelConfig fields.
+_MODEL_PARAMS = {
+    "sigma": "sigma",
+    "threshold_on": "threshold_on",
+    "threshold_off": "threshold_off",
+    "refractory_us": "refractory_us",
+    "leak_hz": "leak_rate_hz",
+    "shot_hz": "shot_noise_rate_hz",
+    "hot_fraction": "hot_pixel_fraction",
+    "lowpass_hz": "lowpass_cutoff_hz",
+}
+
+
+def _pixel_model(spec: DeviceSpec, seed: int) -> PixelModelConfig | None:
+    kind = spec.param("pixel_model", "ideal")
+    given = {k: v for k, v in _MODEL_PARAMS.items() if k in spec.params}
+    if kind == "ideal":
+        if given:
+            raise ConfigError(f"device spec {spec.raw!r}: {', '.join(sorted(given))} need pixel_model=full")
+        return None
+    if kind != "full":
+        raise ConfigError(f"device spec {spec.raw!r}: pixel_model={kind!r}; use ideal or full")
+    fields: dict[str, object] = {"input_kind": "log", "threshold": spec.float_param("threshold", 0.3)}
+    for key, field_name in given.items():
+        fields[field_name] = spec.float_param(key, 0.0)
+    if "lowpass_hz" in given:
+        fields["lowpass"] = True
+    fields["seed"] = seed
+    try:
+        return PixelModelConfig.model_validate(fields)
+    except ValueError as exc:
+        raise ConfigError(f"device spec {spec.raw!r}: {exc}") from None
+
+
 def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
     """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=&scene=sprites|board`."""
     spec.check_params(
         {"offset_us", "drift_ppm", "seed", "width", "height", "threshold", "buffer_packets", "scene"}
+        | {"pixel_model", *_MODEL_PARAMS}
     )
     name = spec.path.strip("/")
     if not name:
@@ -740,6 +804,7 @@ def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
         height=spec.int_param("height", 720),
         threshold=spec.float_param("threshold", 0.3),
         buffer_packets=spec.int_param("buffer_packets", 1024),
+        pixel_model=_pixel_model(spec, seed),
     )
     for field_name, ok in (
         ("width", 0 < params.width <= 65535),

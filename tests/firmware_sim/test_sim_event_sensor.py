@@ -215,3 +215,33 @@ def test_bad_specs_name_the_parameter(world_name: str) -> None:
     ):
         with pytest.raises(ConfigError, match=word):
             open_sim_event_sensor(DeviceSpec.parse(f"sim://{world_name}/ev1?{bad}"))
+
+
+def _events_for(world: str, extra: str, seconds: float = 0.4) -> EventArray:
+    with open_ev(world, extra) as sensor:
+        sensor.start()
+        time.sleep(seconds)
+        sensor.stop()
+        return EventArray.concatenate([p.events for p in drain(sensor)])
+
+
+def test_full_pixel_model_runs_in_the_rig_sensor(world_name: str) -> None:
+    """`pixel_model=full` puts the seeded pixel model of firmware_sim.event_model behind the
+    rig's sensor: with noise off it sees the same motion as the ideal kernel, and its noise
+    terms add events where nothing moves."""
+    ideal = _events_for(world_name, "")
+    full = _events_for(world_name, "&pixel_model=full")
+    assert len(full) > 0
+    assert 0.3 < len(full) / len(ideal) < 3.0  # same scene, same threshold (different windows)
+    assert full.is_time_sorted()
+    noisy = _events_for(world_name, "&pixel_model=full&shot_hz=20&sigma=0.03")
+    assert noisy.is_time_sorted()
+    # Shot noise fires all over the sensor, not only where sprites move.
+    assert len(np.unique(noisy.y)) > len(np.unique(full.y))
+
+
+def test_model_parameters_need_the_full_model(world_name: str) -> None:
+    with pytest.raises(ConfigError, match="need pixel_model=full"):
+        open_ev(world_name, "&sigma=0.03")
+    with pytest.raises(ConfigError, match="pixel_model='fancy'"):
+        open_ev(world_name, "&pixel_model=fancy")

@@ -163,3 +163,19 @@ def test_slave_without_master_is_rejected() -> None:
     cfg["event_sensors"][1]["settings"]["sync_master"] = "ev0"
     with pytest.raises(ConfigError, match="not an event sensor of this rig in sync_mode master"):
         RigConfig.from_data(cfg)
+
+
+def test_capture_with_the_full_pixel_model(tmp_path: Path) -> None:
+    """The rig's sim event sensors running the seeded pixel model (mismatch + shot noise)."""
+    cfg = default_sim_rig(world=f"pm-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
+    cfg.cameras = cfg.cameras[:1]
+    for sen in cfg.event_sensors:
+        sen.spec += "&pixel_model=full&sigma=0.03&shot_hz=1"
+    res = run_capture(cfg, tmp_path, 1.0)
+    for name in ("ev0", "ev1"):
+        assert res.events[name] > 0
+        dev = res.report.devices[name]
+        assert dev.missing_pulses == []
+        assert dev.residual_rms_us < 5.0
+    with Take(res.path) as take:
+        assert "pixel_model=full" in take.config["event_sensors"][0]["spec"]
