@@ -103,8 +103,16 @@ def torch_losses() -> SimpleNamespace:
         img = tf.conv2d(img, g.view(1, 1, 1, k).expand(c, 1, 1, k), groups=c)
         return tf.conv2d(img, g.view(1, 1, k, 1).expand(c, 1, k, 1), groups=c)
 
+    def _as4d(img: Any) -> Any:
+        if img.dim() == 2:
+            return img[None, None]
+        if img.dim() == 3:
+            return img[None]
+        return img
+
     def _struct(pred: Any, target: Any, data_range: float = 1.0, sigma: float = 1.5) -> Any:
-        """pred, target: (N, C, H, W)."""
+        """pred, target: (H, W), (C, H, W) or (N, C, H, W), like the numpy version."""
+        pred, target = _as4d(pred), _as4d(target)
         g = _gauss_window(sigma, pred.device, pred.dtype)
         mx, my = _blur(pred, g), _blur(target, g)
         vx = _blur(pred * pred, g) - mx * mx

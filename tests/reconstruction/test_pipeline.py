@@ -163,3 +163,23 @@ def test_rigd_reconstruct_on_a_captured_sim_take(tmp_path: Path) -> None:
         seg = json.loads((tmp_path / "out" / take.stem / sensor / "segments.json").read_text())
         assert seg
         assert (tmp_path / "out" / take.stem / sensor / "snapshots.npz").stat().st_size > 0
+
+
+def test_reconstruct_on_a_distributed_scheduler(tmp_path: Path) -> None:
+    """`--scheduler ADDR`: the same batch through a dask.distributed cluster (in-process here)."""
+    import uuid
+
+    distributed = pytest.importorskip("distributed")
+    from rigd.capture import run_capture
+    from rigd.commands.reconstruct import run_batch
+    from rigd.config import default_sim_rig
+
+    cfg = default_sim_rig(world=f"rd-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
+    cfg.cameras = cfg.cameras[:1]
+    take = run_capture(cfg, tmp_path, 1.0).path
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as c:
+        results = run_batch([str(take)], str(tmp_path / "out"), c.scheduler_address)
+    assert results[0]["sensors"]["ev0"]["events_in"] > 0
+    assert (tmp_path / "out" / take.stem / "ev0" / "segments.json").exists()
