@@ -31,6 +31,7 @@ from calibration.intrinsics import (
 from calibration.io import dumps_summary, write_json, write_kalibr_camchain, write_opencv_yaml, write_result
 from calibration.report import write_report
 from rigd.core.errors import RigdError
+from rigd.take.calibration import store_calibration
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,17 @@ def _warn(result: IntrinsicsResult | RigResult) -> None:
         _err.print(f"[yellow]rejected:[/] {r.name}: {r.reason}")
 
 
+IntoTakeOpt = Annotated[
+    Path | None,
+    typer.Option("--into-take", help="Also store the result in this take (/calibration/<device>)."),
+]
+
+
+def _store_intrinsics(take: Path | None, result: IntrinsicsResult, source: str) -> None:
+    if take is not None:
+        store_calibration(take, result.camera, intrinsics=result.summary(), source=source)
+
+
 @calibrate_app.command("intrinsics")
 def intrinsics_cmd(
     images: Annotated[list[Path], typer.Argument(help="Images of the board (one camera).")],
@@ -70,12 +82,14 @@ def intrinsics_cmd(
     report: ReportOpt = None,
     camera: Annotated[str, typer.Option("--camera", help="Camera name stored in the result.")] = "cam0",
     model: ModelOpt = "auto",
+    into_take: IntoTakeOpt = None,
 ) -> None:
     """Intrinsics of one camera from image files, with lens-model selection."""
     try:
         spec = parse_board(board)
         result = calibrate_images(images, spec, camera=camera, model=model)
         write_result(result, out)
+        _store_intrinsics(into_take, result, f"calibrate intrinsics ({len(images)} images)")
         if report is not None:
             write_report(report, [result], samples={camera: load_image(images[0])})
     except RigdError as exc:
@@ -169,6 +183,7 @@ def rig_cmd(
     json_out: JsonOpt = False,
     report: ReportOpt = None,
     model: ModelOpt = "auto",
+    into_take: IntoTakeOpt = None,
 ) -> None:
     """Intrinsics of every camera and their poses in one rig frame, from simultaneous board views.
 
@@ -189,6 +204,15 @@ def rig_cmd(
             write_opencv_yaml(intr, out, rig)
         if kalibr is not None:
             write_kalibr_camchain(intr, kalibr, rig)
+        if into_take is not None:
+            for pose in rig.cameras:
+                store_calibration(
+                    into_take,
+                    pose.camera,
+                    intrinsics=intr[pose.camera].summary(),
+                    pose=pose.model_dump(),
+                    source=f"calibrate rig (reference {rig.reference})",
+                )
         if report is not None:
             write_report(report, list(intr.values()), rig)
     except RigdError as exc:
@@ -267,6 +291,9 @@ def events_cmd(
     ] = None,
     cutoff_hz: Annotated[float, typer.Option("--cutoff-hz", help="hpf method: high-pass corner.")] = 1.0,
     model: ModelOpt = "k1k2",
+    into_take: Annotated[
+        bool, typer.Option("--into-take", help="Also store the result in TAKE (/calibration/<sensor>).")
+    ] = False,
 ) -> None:
     """Intrinsics of an event sensor from frames reconstructed from its events (e2calib-style).
 
@@ -280,6 +307,10 @@ def events_cmd(
         best = res.best()
         assert best.intrinsics is not None
         write_result(best.intrinsics, out)
+        if into_take:
+            summary = best.intrinsics.summary()
+            summary["camera"] = sensor
+            store_calibration(take, sensor, intrinsics=summary, source=f"calibrate events ({best.method})")
     except RigdError as exc:
         raise _fail(exc) from exc
     _warn(best.intrinsics)

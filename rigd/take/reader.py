@@ -36,6 +36,7 @@ from rigd.core.schema import (
     LossRecord,
     SyncReport,
 )
+from rigd.take.calibration import read_calibration
 
 log = logging.getLogger(__name__)
 
@@ -237,6 +238,11 @@ class Take:
         if not isinstance(data, dict):
             raise TakeFormatError(f"{self.path}: /{CONFIG_DATASET} is not a JSON object")
         return data
+
+    @property
+    def calibration(self) -> dict[str, dict[str, Any]] | None:
+        """Calibrations stored in the take by `rigd calibrate ... --into-take`, by device."""
+        return read_calibration(self._f)
 
     @property
     def sync_report(self) -> SyncReport | None:

@@ -1,0 +1,73 @@
+"""Calibration results stored in a take, next to the data they describe.
+
+`/calibration/<device>` holds what a training job needs without parsing anything (`K`,
+`dist`, `image_size`, and for a rig `R`, `t` of the device in the rig frame) plus the full
+result as JSON (`result_json`: model, RMS, per-view errors, uncertainties, warnings). Writing
+again replaces the device's group; the rest of the take is not touched.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from rigd.core.errors import TakeError
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_GROUP = "calibration"
+
+
+def store_calibration(
+    take_path: str | Path,
+    device: str,
+    intrinsics: dict[str, Any] | None = None,
+    pose: dict[str, Any] | None = None,
+    *,
+    source: str = "",
+) -> None:
+    """Write one device's calibration (intrinsics summary and/or rig pose) into a take."""
+    path = Path(take_path)
+    if intrinsics is None and pose is None:
+        raise TakeError(f"{path}: nothing to store for {device!r}")
+    try:
+        f = h5py.File(path, "r+")
+    except OSError as exc:
+        raise TakeError(f"cannot open take {path} to store calibration: {exc}") from exc
+    with f:
+        known = set(f.get("frames", {})) | set(f.get("events", {}))
+        if device not in known:
+            raise TakeError(f"{path}: no camera or event sensor {device!r} (it has {sorted(known)})")
+        root = f.require_group(CALIBRATION_GROUP)
+        if device in root:
+            del root[device]
+        g = root.create_group(device)
+        if intrinsics is not None:
+            g.create_dataset("K", data=np.asarray(intrinsics["K"], np.float64))
+            g.create_dataset("dist", data=np.asarray(intrinsics["dist"], np.float64))
+            g.create_dataset("image_size", data=np.asarray(intrinsics["image_size"], np.int64))
+        if pose is not None:
+            g.create_dataset("R", data=np.asarray(pose["R"], np.float64))
+            g.create_dataset("t", data=np.asarray(pose["t"], np.float64))
+        payload = {"intrinsics": intrinsics, "pose": pose, "source": source}
+        g.create_dataset("result_json", data=json.dumps(payload), dtype=h5py.string_dtype("utf-8"))
+    log.info("stored calibration of %s in %s", device, path)
+
+
+def read_calibration(f: h5py.File) -> dict[str, dict[str, Any]] | None:
+    """{device: {"K", "dist", "image_size", "R", "t" (numpy, when present), "result": dict}}."""
+    root = f.get(CALIBRATION_GROUP)
+    if root is None:
+        return None
+    out: dict[str, dict[str, Any]] = {}
+    for device, g in root.items():
+        entry: dict[str, Any] = {k: g[k][()] for k in ("K", "dist", "image_size", "R", "t") if k in g}
+        raw = g["result_json"][()]
+        entry["result"] = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+        out[device] = entry
+    return out
