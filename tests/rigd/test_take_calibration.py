@@ -43,13 +43,13 @@ def test_calibrate_into_take_then_a_training_job_reads_it(take_path: Path, tmp_p
         cal = take.calibration
         assert cal is not None
         assert set(cal) == {"cam0"}
-        K = cal["cam0"]["K"]
-        assert K.shape == (3, 3)
-        assert 500 < K[0, 0] < 540  # the real camera's focal length, ~519 px
+        k_mat = cal["cam0"]["K"]
+        assert k_mat.shape == (3, 3)
+        assert 500 < k_mat[0, 0] < 540  # the real camera's focal length, ~519 px
         assert cal["cam0"]["result"]["intrinsics"]["rms_px"] < 0.25
         sample = next(iter(WindowSampler(take, "ev0", "cam0", window_us=50_000, bins=2, n_samples=1)))
         assert sample.calibration is not None
-        np.testing.assert_array_equal(sample.calibration["cam0"]["K"], K)
+        np.testing.assert_array_equal(sample.calibration["cam0"]["K"], k_mat)
     assert validate_take(take_path) == []
 
 
