@@ -483,7 +483,10 @@ def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
         for s in pipe.config.event_sensors
         if s.settings.sync_mode == "slave" and s.settings.sync_master is not None
     }
-    result = synchronize(pulses, observations, rate, pipe.losses, shares_clock_with=slaves)
+    software = {name for name, cam in pipe.cameras.items() if cam.info.facts.get("sync") == "software"}
+    result = synchronize(
+        pulses, observations, rate, pipe.losses, shares_clock_with=slaves, software_synced=software
+    )
     result.report.device_counters = pipe.device_counters
     if pipe.trigger is not None:
         result.report.trigger_link = pipe.trigger.link_stats()

@@ -257,6 +257,7 @@ def synchronize(
     rate_hz: float,
     losses: list[LossRecord] | None = None,
     shares_clock_with: dict[str, str] | None = None,
+    software_synced: set[str] | None = None,
 ) -> SyncResult:
     """Fit every device clock to the rig clock and write down everything that is missing.
 
@@ -264,6 +265,7 @@ def synchronize(
     slave without trigger observations of its own takes its master's map.
     """
     shared = shares_clock_with or {}
+    software = software_synced or set()
     if pulses.index.size and np.any(np.diff(pulses.index) <= 0):
         raise SyncError("box pulse indices are not strictly increasing")
     period_us = 1e6 / rate_hz
@@ -277,8 +279,18 @@ def synchronize(
     obs_index: dict[str, NDArray[np.int64]] = {}
     devices: dict[str, DeviceSync] = {}
     seen = np.zeros(max(pulses.n_emitted, int(pulses.index.max(initial=-1)) + 1), bool)
-    matches = {obs.name: match_device(obs, pulses, period_us, host_map) for obs in observations}
+    matches = {
+        obs.name: match_device(obs, pulses, period_us, host_map)
+        for obs in observations
+        if obs.name not in software
+    }
     for obs in observations:
+        if obs.name in software:
+            devices[obs.name], maps[obs.name], obs_index[obs.name] = _software_sync(
+                obs, pulses, period_us, host_map
+            )
+            warnings.append(f"{obs.name}: free-running, synchronized by the host clock only (ms accuracy)")
+            continue
         m = matches[obs.name]
         obs_index[obs.name] = m.pulse_index
         matched = m.pulse_index[m.pulse_index >= 0]
@@ -338,6 +350,38 @@ def synchronize(
         warnings=warnings,
     )
     return SyncResult(maps, obs_index, report)
+
+
+def _software_sync(
+    obs: DeviceObservations, pulses: PulseLog, period_us: float, host_map: ClockMap
+) -> tuple[DeviceSync, ClockMap, NDArray[np.int64]]:
+    """A free-running device stamped with the host's monotonic clock (us): its clock *is* the
+    host clock, so the host-to-rig fit maps it; each observation goes to the nearest pulse
+    within half a period, and the distance to it is reported (phase, not an error)."""
+    pos = _assign(host_map.to_rig_float(obs.t_device_us), pulses.t_us, period_us / 2.0)
+    ok = pos >= 0
+    index = np.where(ok, pulses.index[np.clip(pos, 0, None)], -1).astype(np.int64)
+    dist = host_map.to_rig_float(obs.t_device_us[ok]) - pulses.t_us[pos[ok]]
+    rms = float(np.sqrt(np.mean(dist**2))) if dist.size else float("nan")
+    mx = float(np.max(np.abs(dist))) if dist.size else float("nan")
+    dev = DeviceSync(
+        device=obs.name,
+        kind=obs.kind,
+        device_ref_us=host_map.device_ref_us,
+        rig_ref_us=host_map.rig_ref_us,
+        rate=host_map.rate,
+        frac_us=host_map.frac_us,
+        drift_ppm=host_map.drift_ppm,
+        n_matched=int(ok.sum()),
+        residual_rms_us=rms,
+        residual_max_us=mx,
+        missing_pulses=[],
+        dropped_frames=_counter_gaps(obs.frame_counter) if obs.frame_counter is not None else [],
+        unmatched_observations=int((~ok).sum()),
+        sync="software",
+        clock_from="host",
+    )
+    return dev, host_map, index
 
 
 def _fallback_map(obs: DeviceObservations, host_map: ClockMap) -> ClockMap:

@@ -76,6 +76,11 @@ class DeviceSync(BaseModel):
     shares_clock_with: str | None = Field(
         None, description="Master whose clock this device runs on (camera synchronization), if any."
     )
+    sync: Literal["hardware", "software"] = Field(
+        "hardware",
+        description="software: a free-running device stamped by the host clock; its times are mapped "
+        "through the host-to-rig fit (millisecond accuracy) and its frames go to the nearest pulse.",
+    )
     clock_from: Literal["own_pulses", "master", "host"] = Field(
         "own_pulses", description="What the map was fitted on: its own pulses, its master's, the host clock."
     )

@@ -139,3 +139,46 @@ def test_real_v4l2_node_free_runs() -> None:
         assert f.image.shape == cam.frame_shape
     finally:
         cam.close()
+
+
+def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path: Path) -> None:
+    """A V4L2 camera in a rig: frames land in rig time through the host clock, each goes to
+    the nearest pulse, and the take says its sync is software-only."""
+    import uuid
+
+    from drivers.registry import register_backend
+    from rigd.capture import run_capture
+    from rigd.config import CameraConfig, default_sim_rig
+    from rigd.take.reader import Take
+
+    class PacedCapture(FakeCapture):
+        def read(self) -> tuple[bool, np.ndarray | None]:
+            time.sleep(0.04)  # ~25 FPS, free running
+            return super().read()
+
+    register_backend(
+        "rgb_camera",
+        "fakev4l2",
+        lambda spec: V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9"), capture=PacedCapture()),
+    )
+    cfg = default_sim_rig(world=f"sw-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
+    cfg.cameras = [cfg.cameras[0], CameraConfig(name="uvc", spec="fakev4l2://x")]
+    cfg.cameras[1].settings.trigger_mode = "free_run"
+    res = run_capture(cfg, tmp_path, 1.5)
+    dev = res.report.devices["uvc"]
+    assert dev.sync == "software"
+    assert dev.clock_from == "host"
+    assert dev.n_matched > 20
+    assert dev.residual_max_us <= 1e6 / 30 / 2  # nearest pulse, within half a period
+    assert res.report.devices["cam0"].sync == "hardware"
+    with Take(res.path) as take:
+        uvc = take.frames("uvc")
+        assert len(uvc) > 20
+        first, last = take.pulses().t_us[[0, -1]]
+        t = uvc.timestamps_us
+        assert (np.diff(t) > 0).all()
+        # In rig time (host monotonic time would be ~1e12 us); a free-running camera also
+        # delivers frames during the drain after the last pulse.
+        assert first - 300_000 < t[0]
+        assert t[-1] < last + 2_000_000
+        assert any("free-running" in w for w in res.report.warnings)
