@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import glob
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
