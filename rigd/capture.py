@@ -94,6 +94,7 @@ class _Pipeline:
         self.frames: dict[str, int] = {c.name: 0 for c in config.cameras}
         self.events: dict[str, int] = {s.name: 0 for s in config.event_sensors}
         self.device_counters: dict[str, dict[str, int]] = {}
+        self.failed_devices: dict[str, str] = {}
         self.trigger_channel = {s.name: s.settings.trigger_in_channel for s in config.event_sensors}
         self.pulses: list[PulseBatch] = []
         self.trigger: Trigger | None = None
@@ -148,10 +149,32 @@ class _Pipeline:
                     )
                 )
 
-    def _guard(self, name: str, fn: Callable[[], None]) -> Callable[[], None]:
+    def _guard(self, name: str, fn: Callable[[], None], device: str | None = None) -> Callable[[], None]:
+        """Run a thread body; an error ends the capture, except a camera or event sensor that
+        fails (unplugged, say): that device is written off with a loss record and the take
+        goes on with the others."""
+
         def run() -> None:
             try:
                 fn()
+            except DeviceError as exc:
+                if device is None:
+                    log.exception("acquisition thread %s failed", name)
+                    with self.lock:
+                        self.errors.append(exc)
+                    self.stop_acq.set()
+                    return
+                log.error("device %s failed mid-take, the others go on: %s", device, exc)
+                with self.lock:
+                    self.failed_devices[device] = str(exc)
+                    self.losses.append(
+                        LossRecord(
+                            device=device,
+                            what="frames" if device in self.cameras else "events",
+                            count=0,
+                            reason=f"device failed mid-take; no data after this point: {exc}",
+                        )
+                    )
             except BaseException as exc:  # recorded and re-raised by the main thread
                 log.exception("acquisition thread %s failed", name)
                 with self.lock:
@@ -193,13 +216,15 @@ class _Pipeline:
 
     def start_threads(self) -> None:
         assert self.trigger is not None
-        targets: list[tuple[str, Callable[[], None]]] = [
-            (f"acq-{n}", functools.partial(self._camera_loop, n, c)) for n, c in self.cameras.items()
+        targets: list[tuple[str, Callable[[], None], str | None]] = [
+            (f"acq-{n}", functools.partial(self._camera_loop, n, c), n) for n, c in self.cameras.items()
         ]
-        targets += [(f"acq-{n}", functools.partial(self._sensor_loop, n, s)) for n, s in self.sensors.items()]
-        targets.append(("acq-trigger", functools.partial(self._trigger_loop, self.trigger)))
-        for name, fn in targets:
-            th = threading.Thread(target=self._guard(name, fn), name=name, daemon=True)
+        targets += [
+            (f"acq-{n}", functools.partial(self._sensor_loop, n, s), n) for n, s in self.sensors.items()
+        ]
+        targets.append(("acq-trigger", functools.partial(self._trigger_loop, self.trigger), None))
+        for name, fn, device in targets:
+            th = threading.Thread(target=self._guard(name, fn, device), name=name, daemon=True)
             th.start()
             self.threads.append(th)
 
@@ -335,10 +360,8 @@ def run_capture(
         emitted = pipe.trigger.stop()
         # Let the last exposures and event slices reach the host before stopping devices.
         _drain_wait(pipe, rate)
-        for sen in pipe.sensors.values():
-            sen.stop()
-        for cam in pipe.cameras.values():
-            cam.stop()
+        for name, dev in [*pipe.sensors.items(), *pipe.cameras.items()]:
+            _stop_device(pipe, name, dev)
         pipe.stop_acq.set()
         for th in pipe.threads:
             th.join()
@@ -383,6 +406,15 @@ def run_capture(
         pipe.close_devices()
 
 
+def _stop_device(pipe: _Pipeline, name: str, dev: RgbCamera | EventSensor) -> None:
+    try:
+        dev.stop()
+    except DeviceError as exc:
+        if name not in pipe.failed_devices:
+            raise
+        log.warning("stopping failed device %s: %s", name, exc)
+
+
 def _wait_for_pulses(
     pipe: _Pipeline, n_pulses: int, rate: float, on_progress: Callable[[Progress], None] | None
 ) -> None:
@@ -418,7 +450,13 @@ def _record_device_losses(pipe: _Pipeline) -> None:
     decoder had to skip, and trigger edges that could not be delivered in order."""
     devices: dict[str, RgbCamera | EventSensor] = {**pipe.cameras, **pipe.sensors}
     for name, dev in devices.items():
-        stats = dev.stats()
+        try:
+            stats = dev.stats()
+        except DeviceError as exc:
+            if name not in pipe.failed_devices:
+                raise
+            log.warning("no counters from failed device %s: %s", name, exc)
+            continue
         pipe.device_counters[name] = {
             "delivered": stats.delivered,
             "device_dropped": stats.device_dropped,
@@ -488,6 +526,8 @@ def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
         pulses, observations, rate, pipe.losses, shares_clock_with=slaves, software_synced=software
     )
     result.report.device_counters = pipe.device_counters
+    for name, why in pipe.failed_devices.items():
+        result.report.warnings.append(f"{name} failed mid-take and was written off: {why}")
     if pipe.trigger is not None:
         result.report.trigger_link = pipe.trigger.link_stats()
     frame_index = {name: result.observation_pulse_index[name] for name in pipe.cameras}

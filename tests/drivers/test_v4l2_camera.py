@@ -183,3 +183,29 @@ def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path:
         assert first - 300_000 < t[0]
         assert t[-1] < last + 2_000_000
         assert any("free-running" in w for w in res.report.warnings)
+
+
+def test_camera_unplugged_mid_take_is_reported_and_the_take_goes_on(tmp_path: Path) -> None:
+    import threading
+    import uuid
+
+    from drivers.registry import register_backend
+    from rigd.capture import run_capture
+    from rigd.config import CameraConfig, default_sim_rig
+
+    cap = FakeCapture()
+
+    def factory(spec: DeviceSpec) -> V4l2Camera:
+        return V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9"), capture=cap)
+
+    register_backend("rgb_camera", "unplugv4l2", factory)
+    cfg = default_sim_rig(world=f"up-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
+    cfg.cameras = [cfg.cameras[0], CameraConfig(name="uvc", spec="unplugv4l2://x")]
+    cfg.cameras[1].settings.trigger_mode = "free_run"
+    threading.Timer(1.0, lambda: setattr(cap, "plugged", False)).start()
+    res = run_capture(cfg, tmp_path, 2.0)
+    assert res.frames["cam0"] == 60  # the other devices kept going
+    assert res.events["ev0"] > 0
+    assert res.frames["uvc"] > 0
+    assert any(loss.device == "uvc" and "failed mid-take" in loss.reason for loss in res.report.losses)
+    assert any("uvc failed mid-take" in w for w in res.report.warnings)
