@@ -360,7 +360,8 @@ def run_capture(
         emitted = pipe.trigger.stop()
         # Let the last exposures and event slices reach the host before stopping devices.
         _drain_wait(pipe, rate)
-        for name, dev in [*pipe.sensors.items(), *pipe.cameras.items()]:
+        devices: dict[str, RgbCamera | EventSensor] = {**pipe.sensors, **pipe.cameras}
+        for name, dev in devices.items():
             _stop_device(pipe, name, dev)
         pipe.stop_acq.set()
         for th in pipe.threads:
