@@ -18,6 +18,7 @@ from rigd import __version__
 from rigd.commands.calibrate import calibrate_app
 from rigd.commands.devices import devices
 from rigd.commands.doctor import doctor
+from rigd.commands.guided import guided
 from rigd.commands.reconstruct import reconstruct
 from rigd.config import RigConfig, default_sim_rig
 from rigd.core.errors import RigdError
@@ -223,6 +224,7 @@ def _fmt(v: object) -> str:
 
 
 _add_plugin_commands()
+calibrate_app.command("guided")(guided)
 app.add_typer(calibrate_app, name="calibrate", help="Calibrate cameras and event sensors.")
 app.command("reconstruct")(reconstruct)
 app.command("devices")(devices)

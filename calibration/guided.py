@@ -1,0 +1,553 @@
+# ruff: noqa: N806  (K, R, J follow the notation of the calibration literature)
+"""Guided calibration session: live frames in, capture decisions and "show me this next" out.
+
+Why: a technician waving a board in front of a camera cannot judge which views are still missing.
+The session watches every frame, keeps a view only when it is worth keeping, and tells the
+technician where to put the board next and when to stop.
+
+Per frame (`GuidedSession.offer`):
+
+1. Detect the board (`calibration.boards.detect`). With `fast_detect` (default) a chessboard is
+   first looked for with the classic detector alone (~10 ms when absent): detect()'s fallback to
+   the SB detector costs ~100 ms on a frame without the board and would stall a live feed. (The
+   cheaper cv2.checkChessboard misses boards with squares under ~10 px, so it is not used.) Set
+   `fast_detect=False` for lenses whose views only the SB detector finds (strong distortion).
+2. *Still*: the largest corner motion since the previous offered frame is below `still_px`
+   (a moving board smears and its corners are exposed at different instants with rolling shutters).
+   *Sharp*: the board's edge width is below `max_edge_width_px` (the sharpness measure of boards.py).
+3. *Novel*: the view is not a near-duplicate of a kept one (mean corner distance < `dup_px` and
+   tilt within `dup_deg` of it), and its coverage bin holds fewer than `max_per_bin` views.
+   Coverage is counted in bins = (image grid cell of the board centre) x (tilt bin: facing the
+   camera, or turned about the vertical / horizontal axis with one edge away from the camera).
+4. A still, sharp, novel view is captured. Once `min_views` are kept, every capture re-runs the
+   calibration (fast model, k1k2 by default, `cv2.calibrateCameraExtended`) to update the standard
+   deviations of fx, fy, cx, cy; the session is done when all four are <= `target_sigma_px`.
+
+Next hint (what to show next): the *information-matrix* method, not a heuristic. For every bin
+(all cells x tilt bins) a board pose is synthesised there (at the median depth of the kept views,
+tilted ~30 deg for a tilt bin, pushed inside the image) with the current intrinsics; the Jacobian
+of its reprojection w.r.t. intrinsics and its own pose (cv2.projectPoints) gives its information
+on the intrinsics after eliminating the pose (Schur complement). Kept views contribute the same way
+at their estimated poses, plus a weak prior so the matrix is invertible before any view. The hint
+is the bin whose addition minimises trace(Cov[fx, fy, cx, cy]). About 45 candidates of ~50
+corners cost a few ms, and it runs only after a capture, so no heuristic fallback is needed;
+`hint_method="emptiest"` (fewest views, corners of the image first) is kept for comparison.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, Field
+
+from calibration.boards import DEFAULT_MAX_EDGE_WIDTH_PX, BoardSpec, Detection, detect
+from calibration.errors import CalibrationError
+from calibration.intrinsics import _DIST_NAMES, MODELS_BY_NAME, IntrinsicsResult, _fit, calibrate_intrinsics
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+#: Tilt bins: facing the camera, or turned ~TILT_DEG about an image axis with one edge away.
+TILT_BINS: tuple[str, ...] = ("facing", "right-away", "left-away", "bottom-away", "top-away")
+_TILT_TEXT = {
+    "facing": "hold it facing the camera (tilt under {flat:.0f} deg)",
+    "right-away": "turn it ~{deg:.0f} deg about the vertical axis, right edge away from the camera",
+    "left-away": "turn it ~{deg:.0f} deg about the vertical axis, left edge away from the camera",
+    "bottom-away": "tilt it ~{deg:.0f} deg about the horizontal axis, bottom edge away from the camera",
+    "top-away": "tilt it ~{deg:.0f} deg about the horizontal axis, top edge away from the camera",
+}
+#: The intrinsics whose uncertainty the session drives down (and reports).
+SIGMA_NAMES: tuple[str, ...] = ("fx", "fy", "cx", "cy")
+#: Tilt (deg) of the synthesised candidate views of the tilt bins.
+TILT_DEG = 30.0
+#: Boards tilted less than this (about both axes) count as facing the camera.
+FLAT_DEG = 15.0
+#: Pixel noise assumed for the hint's information matrix before a calibration measured it.
+_DEFAULT_NOISE_PX = 0.3
+
+
+class Feedback(BaseModel):
+    """What the session says about one offered frame (and the session as a whole)."""
+
+    t_us: int
+    detected: bool
+    n_corners: int = 0
+    motion_px: float | None = Field(None, description="largest corner motion since the previous frame")
+    still: bool = False
+    edge_width_px: float | None = None
+    sharp: bool = False
+    captured: bool = False
+    reason: str = Field(description="why the frame was or was not captured")
+    n_views: int
+    coverage: list[list[int]] = Field(
+        description="views per bin: rows = grid cells (row-major), cols = TILT_BINS"
+    )
+    cells_covered: float = Field(description="fraction of grid cells holding a view")
+    tilts_covered: float = Field(description="fraction of tilt bins holding a view")
+    next_hint: str
+    hint_cell: str = ""
+    hint_tilt: str = ""
+    sigmas: dict[str, float] = Field(default_factory=dict, description="std devs (px) of fx fy cx cy")
+    rms_px: float | None = None
+    done: bool = False
+
+
+@dataclass
+class _View:
+    det: Detection
+    t_us: int
+    rvec: F64
+    tvec: F64
+    cell: int
+    tilt: int
+    angles: tuple[float, float]  # (about vertical, about horizontal), degrees
+
+
+class _FrameState(NamedTuple):
+    motion: float | None
+    still: bool
+    sharp: bool
+
+
+@dataclass
+class _Candidate:
+    cell: int
+    tilt: int
+    score: float
+
+
+def cell_name(row: int, col: int, rows: int, cols: int) -> str:
+    """Human name of a grid cell ("top-left", "centre", ...) from where its centre falls in thirds
+    of the image, so that any grid size reads naturally."""
+    v = ("top", "", "bottom")[min(2, int(3 * (row + 0.5) / rows))]
+    h = ("left", "", "right")[min(2, int(3 * (col + 0.5) / cols))]
+    return "-".join(p for p in (v, h) if p) or "centre"
+
+
+def tilt_angles(rvec: F64) -> tuple[float, float]:
+    """(about vertical, about horizontal) tilt in degrees from the board plane's depth gradient:
+    positive when the right (resp. bottom) side is farther from the camera."""
+    n = cv2.Rodrigues(np.asarray(rvec, np.float64))[0][:, 2]
+    nz = n[2] if abs(n[2]) > 1e-9 else 1e-9
+    return math.degrees(math.atan(-n[0] / nz)), math.degrees(math.atan(-n[1] / nz))
+
+
+def tilt_bin(angles: tuple[float, float], flat_deg: float = FLAT_DEG) -> int:
+    """Index in TILT_BINS of a tilt (see tilt_angles)."""
+    yaw, pitch = angles
+    if max(abs(yaw), abs(pitch)) < flat_deg:
+        return 0
+    if abs(yaw) >= abs(pitch):
+        return 1 if yaw > 0 else 2
+    return 3 if pitch > 0 else 4
+
+
+def _intrinsic_columns(model_params: Sequence[str]) -> list[int]:
+    """Columns of cv2.projectPoints' Jacobian for fx fy cx cy and the model's distortion terms
+    (layout: rvec 3, tvec 3, f 2, c 2, then the distortion vector)."""
+    return [6, 7, 8, 9, *(10 + _DIST_NAMES.index(p) for p in model_params)]
+
+
+@dataclass
+class GuidedSession:
+    """Live guided calibration of one camera (see the module docstring for the method).
+
+    `offer(image, t_us)` per frame; `result()` for the final calibration.
+    """
+
+    board: BoardSpec
+    image_size: tuple[int, int]
+    target_sigma_px: float = 0.5
+    still_px: float = 1.0
+    min_views: int = 6
+    grid: tuple[int, int] = (3, 3)  # (cols, rows) of coverage cells
+    max_edge_width_px: float = DEFAULT_MAX_EDGE_WIDTH_PX
+    dup_px: float | None = None  # default: 5 % of the image diagonal
+    dup_deg: float = 10.0
+    max_per_bin: int = 3
+    model: str = "k1k2"
+    hint_method: Literal["information", "emptiest"] = "information"
+    fast_detect: bool = True
+    views: list[_View] = field(default_factory=list, init=False)
+    _prev: Detection | None = field(default=None, init=False, repr=False)
+    _K: F64 = field(init=False, repr=False)
+    _dist: F64 = field(init=False, repr=False)
+    _sigmas: dict[str, float] = field(default_factory=dict, init=False)
+    _rms: float | None = field(default=None, init=False)
+    _hint: _Candidate | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS_BY_NAME:
+            raise CalibrationError(
+                f"unknown lens model {self.model!r}; choose from {', '.join(MODELS_BY_NAME)}"
+            )
+        if self.min_views < 3:
+            raise CalibrationError(
+                f"min_views must be >= 3 (OpenCV needs 3 views for a model), got {self.min_views}"
+            )
+        w, h = self.image_size
+        # Guess until the first calibration: ~53 deg horizontal field of view, centred.
+        f = float(max(w, h))
+        self._K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]], np.float64)
+        self._dist = np.zeros(MODELS_BY_NAME[self.model].n_coeffs)
+        if self.dup_px is None:
+            self.dup_px = 0.05 * math.hypot(w, h)
+        self._hint = self._choose_hint()
+
+    # --- public ----------------------------------------------------------------------------
+
+    @property
+    def n_cells(self) -> int:
+        return self.grid[0] * self.grid[1]
+
+    @property
+    def camera_matrix(self) -> F64:
+        """Current K: the latest calibration, or the initial guess before `min_views`."""
+        return self._K.copy()
+
+    @property
+    def sigmas(self) -> dict[str, float]:
+        return dict(self._sigmas)
+
+    @property
+    def done(self) -> bool:
+        return (
+            len(self.views) >= self.min_views
+            and bool(self._sigmas)
+            and all(self._sigmas[n] <= self.target_sigma_px for n in SIGMA_NAMES)
+        )
+
+    def coverage(self) -> NDArray[np.int64]:
+        """(cells, tilt bins) count of kept views."""
+        cov = np.zeros((self.n_cells, len(TILT_BINS)), np.int64)
+        for v in self.views:
+            cov[v.cell, v.tilt] += 1
+        return cov
+
+    def offer(self, image: NDArray[np.generic], t_us: int) -> Feedback:
+        """Look at one live frame; capture it when still, sharp and novel (module docstring)."""
+        if self.fast_detect and self.board.kind == "chessboard" and not self._maybe_board(image):
+            det = None
+        else:
+            det = detect(image, self.board, name=f"t{t_us}")
+        return self.offer_detection(det, t_us)
+
+    def offer_detection(self, det: Detection | None, t_us: int) -> Feedback:
+        """`offer` after detection (for callers that detect themselves, and tests)."""
+        prev, self._prev = self._prev, det
+        if det is None:
+            return self._feedback(t_us, None, reason="board not found")
+        if det.image_size != self.image_size:
+            raise CalibrationError(
+                f"frame size {det.image_size} differs from the session's {self.image_size}"
+            )
+        motion = self._motion(prev, det)
+        still = motion is not None and motion < self.still_px
+        ew = det.edge_width_px
+        sharp = not math.isfinite(ew) or ew <= self.max_edge_width_px
+        kw = _FrameState(motion, still, sharp)
+        if self.done:
+            return self._feedback(t_us, det, reason="target uncertainty reached", state=kw)
+        if det.n < 6:
+            return self._feedback(t_us, det, reason=f"only {det.n} corners seen", state=kw)
+        if motion is None:
+            return self._feedback(t_us, det, reason="board appeared: hold it still", state=kw)
+        if not still:
+            return self._feedback(
+                t_us, det, reason=f"moving ({motion:.1f} px > {self.still_px:g} px)", state=kw
+            )
+        if not sharp:
+            blur = f"blurred (edge width {ew:.1f} px > {self.max_edge_width_px:g} px)"
+            return self._feedback(t_us, det, reason=blur, state=kw)
+        view = self._make_view(det, t_us)
+        why_not = self._redundant(view)
+        if why_not:
+            return self._feedback(t_us, det, reason=why_not, state=kw)
+        self.views.append(view)
+        log.info(
+            "captured view %d: cell %s, %s (%.0f, %.0f deg)",
+            len(self.views),
+            self._cell_name(view.cell),
+            TILT_BINS[view.tilt],
+            *view.angles,
+        )
+        if len(self.views) >= self.min_views:
+            self._recalibrate()
+        self._hint = self._choose_hint()
+        return self._feedback(t_us, det, reason=f"captured view {len(self.views)}", captured=True, state=kw)
+
+    def result(self, camera: str = "cam0", model: str | None = None) -> IntrinsicsResult:
+        """The full calibration of the kept views (outlier rejection, warnings, per-view data)."""
+        if len(self.views) < 3:
+            raise CalibrationError(
+                f"camera {camera}: only {len(self.views)} view(s) captured; need at least 3 to calibrate"
+            )
+        return calibrate_intrinsics(
+            [v.det for v in self.views], self.board, camera=camera, model=model or self.model
+        )
+
+    def hint_text(self) -> str:
+        """The next hint in words (or that the session is done)."""
+        if self.done:
+            return "target uncertainty reached: you can stop"
+        if self._hint is None:
+            return "show the board anywhere"
+        return f"move the board to the {self._cell_name(self._hint.cell)} and " + _TILT_TEXT[
+            TILT_BINS[self._hint.tilt]
+        ].format(deg=TILT_DEG, flat=FLAT_DEG)
+
+    # --- per frame ----------------------------------------------------------------------------
+
+    def _maybe_board(self, image: NDArray[np.generic]) -> bool:
+        """Pre-test for live frames: does the classic detector find the chessboard? (module docstring)"""
+        img = np.asarray(image)
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        if img.dtype != np.uint8:
+            return True  # let detect() normalise and decide
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        ok, _ = cv2.findChessboardCorners(np.ascontiguousarray(img), self.board.inner_corners, flags=flags)
+        return bool(ok)
+
+    @staticmethod
+    def _motion(prev: Detection | None, det: Detection) -> float | None:
+        if prev is None:
+            return None
+        common, ia, ib = np.intersect1d(prev.ids, det.ids, return_indices=True)
+        if common.size < 4:
+            return None
+        return float(np.linalg.norm(prev.image_points[ia] - det.image_points[ib], axis=1).max())
+
+    def _pose(self, det: Detection) -> tuple[F64, F64]:
+        ok, rvec, tvec = cv2.solvePnP(det.object_points, det.image_points, self._K, self._dist)
+        if not ok:
+            raise CalibrationError(f"{det.name}: PnP failed")
+        return np.asarray(rvec, np.float64).ravel(), np.asarray(tvec, np.float64).ravel()
+
+    def _cell_of(self, det: Detection) -> int:
+        return self._cell_of_points(det.image_points)
+
+    def _cell_of_points(self, points: F64) -> int:
+        """Grid cell of the centroid of image points."""
+        cols, rows = self.grid
+        w, h = self.image_size
+        cx, cy = points.mean(axis=0)
+        c = int(np.clip(cx / w * cols, 0, cols - 1))
+        r = int(np.clip(cy / h * rows, 0, rows - 1))
+        return r * cols + c
+
+    def _cell_name(self, cell: int) -> str:
+        cols, rows = self.grid
+        return cell_name(cell // cols, cell % cols, rows, cols)
+
+    def _make_view(self, det: Detection, t_us: int) -> _View:
+        rvec, tvec = self._pose(det)
+        angles = tilt_angles(rvec)
+        return _View(det, t_us, rvec, tvec, self._cell_of(det), tilt_bin(angles), angles)
+
+    def _redundant(self, view: _View) -> str:
+        """Why the view adds no coverage ("" when it does)."""
+        same_bin = [v for v in self.views if (v.cell, v.tilt) == (view.cell, view.tilt)]
+        if len(same_bin) >= self.max_per_bin:
+            return f"{self._cell_name(view.cell)} / {TILT_BINS[view.tilt]} already has {len(same_bin)} views"
+        assert self.dup_px is not None
+        for i, v in enumerate(self.views):
+            common, ia, ib = np.intersect1d(v.det.ids, view.det.ids, return_indices=True)
+            if common.size < 4:
+                continue
+            dist = float(np.linalg.norm(v.det.image_points[ia] - view.det.image_points[ib], axis=1).mean())
+            dang = math.hypot(v.angles[0] - view.angles[0], v.angles[1] - view.angles[1])
+            if dist < self.dup_px and dang < self.dup_deg:
+                return f"near-duplicate of view {i + 1} ({dist:.0f} px, {dang:.0f} deg apart)"
+        return ""
+
+    # --- calibration and uncertainty ------------------------------------------------------------
+
+    def _recalibrate(self) -> None:
+        """Re-fit the fast model on the kept views; update K, sigmas and the views' poses/bins."""
+        lens = MODELS_BY_NAME[self.model]
+        try:
+            fit = _fit([v.det for v in self.views], self.image_size, lens)
+        except CalibrationError as exc:
+            log.warning("guided session: calibration of %d views failed: %s", len(self.views), exc)
+            return
+        self._K, self._dist, self._rms = fit.K, fit.dist, fit.rms
+        self._sigmas = {n: float(fit.std[i]) for i, n in enumerate(SIGMA_NAMES)}
+        for v, rv, tv in zip(self.views, fit.rvecs, fit.tvecs, strict=True):
+            v.rvec, v.tvec = rv, tv
+            v.angles = tilt_angles(rv)
+            v.tilt = tilt_bin(v.angles)
+        log.debug(
+            "guided session: %d views, RMS %.3f px, sigmas %s",
+            len(self.views),
+            fit.rms,
+            {k: round(s, 3) for k, s in self._sigmas.items()},
+        )
+
+    def _view_information(self, obj: F64, rvec: F64, tvec: F64) -> tuple[F64, int]:
+        """Information on the intrinsics of one view with its pose eliminated (Schur complement
+        of J^T J), unscaled by the noise; and how many of its corners land inside the image."""
+        cols = _intrinsic_columns(MODELS_BY_NAME[self.model].params)
+        proj, jac = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, self._K, self._dist)
+        p = proj.reshape(-1, 2)
+        w, h = self.image_size
+        inside = (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)
+        rows = np.repeat(inside, 2)
+        J = np.asarray(jac, np.float64)[rows]
+        Ji, Jp = J[:, cols], J[:, :6]
+        A, B, C = Ji.T @ Ji, Ji.T @ Jp, Jp.T @ Jp
+        try:
+            S = A - B @ np.linalg.solve(C, B.T)
+        except np.linalg.LinAlgError:
+            S = np.zeros_like(A)
+        return S, int(inside.sum())
+
+    def _prior(self, n: int) -> F64:
+        """Weak prior (information) on [fx fy cx cy dist...]: sigma = image width for f, a quarter
+        of it for c, 1 for distortion terms; only keeps the matrix invertible early on."""
+        w = float(self.image_size[0])
+        sig = np.array([w, w, w / 4, w / 4, *([1.0] * (n - 4))])
+        return np.diag(1.0 / sig**2)
+
+    def _synthetic_pose(self, cell: int, tilt: int, depth: float) -> tuple[F64, F64] | None:
+        """Board pose whose corners' centroid lies in the cell, tilted as the bin says, with the
+        whole board (margin included) in the image: aimed at the cell's centre, pushed inside the
+        image, and moved farther (up to 2.4x `depth`) while pushing would leave the cell; None
+        when no such pose is found."""
+        cols, rows = self.grid
+        w, h = self.image_size
+        angle = math.radians(TILT_DEG)
+        axis = {
+            0: np.zeros(3),
+            1: np.array([0.0, -angle, 0.0]),  # right edge away
+            2: np.array([0.0, angle, 0.0]),
+            3: np.array([angle, 0.0, 0.0]),  # bottom edge away
+            4: np.array([-angle, 0.0, 0.0]),
+        }[tilt]
+        R = cv2.Rodrigues(axis)[0]
+        rvec = cv2.Rodrigues(R)[0].ravel()
+        bc, br = self.board.inner_corners
+        sq = self.board.square_m
+        mid = np.array([(bc - 1) * sq / 2, (br - 1) * sq / 2, 0.0])
+        outline = np.array([[-sq, -sq, 0], [bc * sq, -sq, 0], [bc * sq, br * sq, 0], [-sq, br * sq, 0]])
+        obj = self.board.object_points()
+        Kinv = np.linalg.inv(self._K)
+        size = np.array([w - 1.0, h - 1.0])
+        for k in range(5):
+            z = depth * 1.25**k
+            target = np.array([((cell % cols) + 0.5) * w / cols, ((cell // cols) + 0.5) * h / rows])
+            for _ in range(4):
+                ray = Kinv @ np.array([target[0], target[1], 1.0])
+                tvec = ray / ray[2] * z - R @ mid
+                p = cv2.projectPoints(outline, rvec, tvec, self._K, self._dist)[0].reshape(-1, 2)
+                lo, hi = p.min(axis=0), p.max(axis=0)
+                if (hi - lo >= size).any():
+                    break  # larger than the image at this depth
+                shift = np.maximum(0, -lo) - np.maximum(0, hi - size)
+                if not shift.any():
+                    proj = cv2.projectPoints(obj, rvec, tvec, self._K, self._dist)[0]
+                    if self._cell_of_points(np.asarray(proj, np.float64).reshape(-1, 2)) == cell:
+                        return np.asarray(rvec, np.float64), np.asarray(tvec, np.float64)
+                    break
+                target = target + shift
+        return None
+
+    def _choose_hint(self) -> _Candidate | None:
+        """The bin to show next (module docstring); None before anything can be said."""
+        cov = self.coverage()
+        if self.hint_method == "emptiest":
+            return self._emptiest(cov)
+        lens = MODELS_BY_NAME[self.model]
+        n = 4 + len(lens.params)
+        noise = self._rms if self._rms else _DEFAULT_NOISE_PX
+        info = self._prior(n)
+        for v in self.views:
+            info += self._view_information(v.det.object_points, v.rvec, v.tvec)[0] / noise**2
+        depths = [float(np.linalg.norm(v.tvec)) for v in self.views]
+        bc = self.board.inner_corners[0]
+        # Without views: the distance at which the board spans ~40 % of the image width.
+        depth = (
+            float(np.median(depths))
+            if depths
+            else self._K[0, 0] * (bc + 1) * self.board.square_m / (0.4 * self.image_size[0])
+        )
+        obj = self.board.object_points()
+        best: _Candidate | None = None
+        for cell in range(self.n_cells):
+            for tilt in range(len(TILT_BINS)):
+                pose = self._synthetic_pose(cell, tilt, depth)
+                if pose is None:
+                    continue
+                S, n_in = self._view_information(obj, *pose)
+                if n_in < max(6, obj.shape[0] // 2):
+                    continue
+                try:
+                    cov_c = np.linalg.inv(info + S / noise**2)
+                except np.linalg.LinAlgError:
+                    continue
+                score = float(np.trace(cov_c[:4, :4]))
+                # ties (e.g. before any view) go to the emptier bin, then to the first one
+                if (
+                    best is None
+                    or score < best.score * (1 - 1e-9)
+                    or (score <= best.score * (1 + 1e-9) and cov[cell, tilt] < cov[best.cell, best.tilt])
+                ):
+                    best = _Candidate(cell, tilt, score)
+        return best or self._emptiest(cov)
+
+    def _emptiest(self, cov: NDArray[np.int64]) -> _Candidate:
+        """Heuristic: the bin with the fewest views; image corners and tilted views first (they
+        constrain distortion and focal length most), then the rest in grid order."""
+        cols, rows = self.grid
+        corners = {0, cols - 1, (rows - 1) * cols, rows * cols - 1}
+        order = sorted(
+            ((c, t) for c in range(self.n_cells) for t in range(len(TILT_BINS))),
+            key=lambda ct: (cov[ct], ct[0] not in corners, ct[1] == 0, ct),
+        )
+        c, t = order[0]
+        return _Candidate(c, t, float(cov[c, t]))
+
+    # --- feedback ----------------------------------------------------------------------------
+
+    def _feedback(
+        self,
+        t_us: int,
+        det: Detection | None,
+        reason: str,
+        state: _FrameState | None = None,
+        captured: bool = False,
+    ) -> Feedback:
+        motion, still, sharp = state if state is not None else (None, False, False)
+        cov = self.coverage()
+        hint = self._hint
+        return Feedback(
+            t_us=int(t_us),
+            detected=det is not None,
+            n_corners=det.n if det is not None else 0,
+            motion_px=motion,
+            still=still,
+            edge_width_px=(
+                det.edge_width_px if det is not None and math.isfinite(det.edge_width_px) else None
+            ),
+            sharp=sharp,
+            captured=captured,
+            reason=reason,
+            n_views=len(self.views),
+            coverage=cov.tolist(),
+            cells_covered=float((cov.sum(axis=1) > 0).mean()),
+            tilts_covered=float((cov.sum(axis=0) > 0).mean()),
+            next_hint=self.hint_text(),
+            hint_cell=self._cell_name(hint.cell) if hint is not None and not self.done else "",
+            hint_tilt=TILT_BINS[hint.tilt] if hint is not None and not self.done else "",
+            sigmas=self.sigmas,
+            rms_px=self._rms,
+            done=self.done,
+        )
