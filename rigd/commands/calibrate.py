@@ -19,7 +19,13 @@ import typer
 from rich.console import Console
 
 from calibration.boards import BoardSpec, Detection, detect, load_image, parse_board
-from calibration.e2calib import METHODS, E2CalibResult, ReconstructionParams, calibrate_events
+from calibration.e2calib import (
+    METHODS,
+    E2CalibResult,
+    ReconstructionParams,
+    calibrate_events,
+    detect_in_reconstructions,
+)
 from calibration.extrinsics import RigResult, calibrate_rig
 from calibration.intrinsics import (
     IntrinsicsResult,
@@ -137,10 +143,20 @@ def _rig_from_images(
 
 
 def _rig_from_take(
-    spec: BoardSpec, take_path: Path, model: str
+    spec: BoardSpec,
+    take_path: Path,
+    model: str,
+    events: bool = False,
+    event_params: ReconstructionParams | None = None,
 ) -> tuple[dict[str, IntrinsicsResult], dict[str, dict[str, Detection]]]:
     """Detect the board in every frame of every camera of a take; frames of one trigger pulse
-    (same pulse_index) form one view."""
+    (same pulse_index) form one view.
+
+    With `events`, every event sensor joins the rig too: frames are reconstructed from its events
+    (`calibration.e2calib`, accurate method) at the mid-exposure instant of each RGB frame of
+    the first camera and labelled with that frame's pulse, so an event view and the RGB views of
+    one pulse show the same board pose and the joint refinement ties the sensor into the rig frame.
+    """
     from rigd.take.reader import open_take
 
     intr: dict[str, IntrinsicsResult] = {}
@@ -163,6 +179,53 @@ def _rig_from_take(
                 log.warning("take %s: board not found in any frame of camera %s", take_path, cam)
                 continue
             intr[cam] = calibrate_intrinsics(dets, spec, camera=cam, model=model, rejected=rej)
+        if events and take.event_sensors:
+            if not take.cameras or not len(take.frames(take.cameras[0])):
+                raise RigdError(
+                    f"{take_path}: --events needs RGB frames: their trigger pulses are the instants "
+                    "the event views are reconstructed at"
+                )
+            series = take.frames(take.cameras[0])
+            keys = [
+                str(series[i].pulse_index if series[i].pulse_index >= 0 else i) for i in range(len(series))
+            ]
+            times = np.asarray(series.timestamps_us, np.int64) + np.asarray(
+                [series[i].exposure_us // 2 for i in range(len(series))], np.int64
+            )
+            for sensor in take.event_sensors:
+                ev = take.events(sensor)
+                if len(ev) == 0:
+                    log.warning(
+                        "take %s: event sensor %s has no events; left out of the rig", take_path, sensor
+                    )
+                    continue
+                found = detect_in_reconstructions(
+                    ev,
+                    take.geometry(sensor),
+                    times,
+                    spec,
+                    params=event_params,
+                    names=[f"{sensor}#{k}" for k in keys],
+                    sensor=sensor,
+                )
+                if not found.detections:
+                    log.warning("take %s: board not found in any reconstruction of %s", take_path, sensor)
+                    continue
+                for k in keys:
+                    d = found.detections.get(f"{sensor}#{k}")
+                    if d is not None:
+                        views.setdefault(k, {})[sensor] = d
+                intr[sensor] = calibrate_intrinsics(
+                    list(found.detections.values()), spec, camera=sensor, model=model, rejected=found.rejected
+                )
+                log.info(
+                    "take %s: %s: board in %d/%d reconstructions, RMS %.3f px",
+                    take_path,
+                    sensor,
+                    len(found.detections),
+                    len(keys),
+                    intr[sensor].rms_px,
+                )
     return intr, views
 
 
@@ -184,17 +247,28 @@ def rig_cmd(
     report: ReportOpt = None,
     model: ModelOpt = "auto",
     into_take: IntoTakeOpt = None,
+    events: Annotated[
+        bool,
+        typer.Option(
+            "--events",
+            help="Take only: include the event sensors, from frames reconstructed at the RGB trigger pulses.",
+        ),
+    ] = False,
 ) -> None:
     """Intrinsics of every camera and their poses in one rig frame, from simultaneous board views.
 
     Views are matched by trigger pulse (take) or by the last number in the file names (image sets).
+    With --events, the take's event sensors are calibrated e2calib-style and posed in the same
+    rig frame, jointly refined with the cameras.
     """
     if (take is None) == (not camera):
         raise _fail(ValueError("give either a TAKE or --camera NAME=GLOB sets (at least two)"))
     try:
         spec = parse_board(board)
+        if events and take is None:
+            raise RigdError("--events needs a TAKE (event sensors have no image files)")
         if take is not None:
-            intr, views = _rig_from_take(spec, take, model)
+            intr, views = _rig_from_take(spec, take, model, events=events)
         else:
             intr, views = _rig_from_images(spec, _parse_camera_globs(camera or []), model)
         rig = calibrate_rig(intr, views, spec, reference=reference)

@@ -1,5 +1,5 @@
 # ruff: noqa: N806  (K follows the notation of the calibration literature)
-"""e2calib on the simulated rig: a short take of the moving board, both reconstruction methods,
+"""e2calib on the simulated rig: a short take of the moving board, every reconstruction method,
 scored against the simulator's ground-truth K (pinhole sim), plus the `calibrate events` CLI."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from bench.e2calib import BOARD, capture_board_take, score, sensor_results, true_k
 from calibration.boards import detect, parse_board
-from calibration.e2calib import ReconstructionParams, reconstruct, to_uint8
+from calibration.e2calib import ReconstructionParams, detector_image, reconstruct, to_uint8
 from firmware_sim.board_scene import BoardScene
 from rigd.commands.calibrate import calibrate_app
 from rigd.take.reader import open_take
@@ -46,8 +46,20 @@ def test_reconstruction_shows_the_board(board_take: Path) -> None:
     with open_take(board_take) as take:
         cam = take.frames("cam1")
         t = int(cam.timestamps_us[40] + cam[40].exposure_us // 2)
-        imgs = reconstruct(take.events("ev0"), take.geometry("ev0"), [t], "hpf", ReconstructionParams())
-    assert detect(to_uint8(imgs[0]), parse_board(BOARD)) is not None
+        events, size = take.events("ev0"), take.geometry("ev0")
+    p = ReconstructionParams()
+    hpf = reconstruct(events, size, [t], "hpf", p)
+    assert detect(to_uint8(hpf[0]), parse_board(BOARD)) is not None
+    # integrate: normalised per pixel, the board's squares at the two ends of [0, 1].
+    img = reconstruct(events, size, [t, t - 1000], "integrate", p)
+    assert img.shape == (2, size[1], size[0])
+    assert img.min() >= 0.0
+    assert img.max() <= 1.0
+    assert np.mean((img[0] < 0.05) | (img[0] > 0.95) | (img[0] == 0.5)) > 0.8
+    d = detect(detector_image(img[0], "integrate", p), parse_board(BOARD))
+    assert d is not None
+    # Reconstruction order does not depend on the order of the times.
+    np.testing.assert_array_equal(img[1], reconstruct(events, size, [t - 1000], "integrate", p)[0])
 
 
 def test_methods_calibrate_event_sensors(board_take: Path) -> None:
@@ -56,6 +68,13 @@ def test_methods_calibrate_event_sensors(board_take: Path) -> None:
     K[1, 2] = RES[1] / 2
     for res in results.values():
         rows = {r["method"]: r for r in score(res, K)}
+        print({m: {k: v for k, v in r.items() if k != "sensor"} for m, r in rows.items()})
+        acc = rows["integrate"]
+        # The accurate method; measured at 480x270, 2.5 s: FOCAL, RMS; acceptance < 0.5 %, < 0.3 px.
+        assert float(acc["focal_err_pct"]) < 0.5, acc  # type: ignore[arg-type]
+        assert float(acc["rms_px"]) < 0.2, acc  # type: ignore[arg-type]
+        assert float(acc["pp_err_px"]) < 3.0, acc  # type: ignore[arg-type]
+        assert acc["frames"] == f"{len(res.times_us)}/{len(res.times_us)}", acc
         hpf = rows["hpf"]
         # Measured at 480x270, 2.5 s: hpf ~0.3-1.5 % focal, 0.25-0.35 px RMS; bounds with margin.
         assert float(hpf["focal_err_pct"]) < 3.0, hpf  # type: ignore[arg-type]
@@ -79,12 +98,12 @@ def test_events_cli_writes_best_method(board_take: Path, tmp_path: Path) -> None
             str(out),
             "--json",
             "-m",
-            "hpf",
+            "integrate",
         ],
     )
     assert r.exit_code == 0, r.output
     data = json.loads(r.stdout)
-    assert data["method"] == "hpf"
+    assert data["method"] == "integrate"
     assert data["methods"][0]["detected"] > 20
     assert out.exists()
     bad = runner.invoke(
