@@ -14,6 +14,12 @@ of words to the reference state machine, which counts/raises exactly as it alway
 fast loop resumes from the state it leaves. Output capacity is checked once per block of words
 (12 events per word at most) instead of once per word.
 
+The encoder's (and cameras') usual (VECT_BASE_X, vector) pairs are decoded in a loop of their own
+inside the VECT_BASE_X branch, so the type dispatch sees fewer, more predictable words (-7% kernel
+time on the bench stream); the vector base and polarity share one register (base << 8 | pol byte)
+and loop/TIME_HIGH live inside the packed time. Measured and rejected: the same run loop for
+ADDR_X words and folding the ADDR_X after an ADDR_Y into its branch (both 4-14% slower).
+
 Measured against the branch-free reference loop (one core, re-encoded Gen4.1 recording): ~25%
 less kernel time, because a valid stream's type sequence is predictable enough that a few
 mispredicted branches cost less than the reference's ~50 masked-merge instructions per word.
@@ -58,14 +64,15 @@ def decode_kernel(
     """Decode words buf[pos:end]; contract of `evt3.decode_kernel` (returns (pos, n, nt, err))."""
     cap = ox.shape[0] - 12
     tcap = tt.shape[0]
-    wlim = width - 12  # highest vector base whose whole span is inside the sensor
+    # vector base and polarity packed in one register: bp = base << 8 | (vpol & 0xFF); the int8
+    # store of bp is the polarity, bp >> 8 the base; one compare checks "base given and whole span
+    # inside the width" (the no-base sentinel is larger than any packed base)
+    bplim = ((width - 12) << 8) | 0xFF
     while pos < end:
-        loop = st[1]
-        th = st[2]
         y = st[4]
-        base = st[5] if st[5] >= 0 else _NOBASE
-        vpol = st[6]
-        tcur = (loop << 24) | (th << 12) | st[3]
+        # time packed as loop << 24 | TIME_HIGH << 12 | TIME_LOW; TIME_HIGH and loop derived from it
+        tcur = (st[1] << 24) | (st[2] << 12) | st[3]
+        bp = (st[5] << 8) | (st[6] & 0xFF) if st[5] >= 0 else _NOBASE
         if st[0] != 0 and 0 <= y < height:
             while pos < end:
                 bend = min(end, pos + (cap - n) // 12)  # no capacity check inside the block
@@ -85,28 +92,62 @@ def decode_kernel(
                         ot[un] = tcur
                         n += 1
                     elif typ == 0x3:
-                        base = w & 0x7FF
-                        vpol = ((w >> 10) & 2) - 1
+                        # the encoder's usual run: (VECT_BASE_X, vector) pairs, decoded here in a
+                        # loop of their own so the type dispatch sees fewer, more predictable words
+                        while True:
+                            bp = ((w & 0x7FF) << 8) | (((w >> 10) & 2) + 0xFF) & 0xFF
+                            if pos + 1 >= bend or bp > bplim:
+                                break
+                            w2 = np.int64(buf[_U64(pos + 1)])
+                            t2 = w2 >> 12
+                            if t2 != 0x4 and t2 != 0x5:
+                                break
+                            m = w2 & (0xFFF if t2 == 0x4 else 0xFF)
+                            b = bp >> 8
+                            un = _U64(n)
+                            ox[un] = b + cttz(m)
+                            oy[un] = y
+                            op[un] = bp
+                            ot[un] = tcur
+                            n += np.int64(m != 0)
+                            m &= m - 1
+                            while m != 0:
+                                un = _U64(n)
+                                ox[un] = b + cttz(m)
+                                oy[un] = y
+                                op[un] = bp
+                                ot[un] = tcur
+                                n += 1
+                                m &= m - 1
+                            bp += (12 << 8) if t2 == 0x4 else (8 << 8)
+                            pos += 1  # at the vector word
+                            if pos + 1 >= bend:
+                                break
+                            w = np.int64(buf[_U64(pos + 1)])
+                            if (w >> 12) != 0x3:
+                                break
+                            pos += 1  # at the next VECT_BASE_X
                     elif typ == 0x4 or typ == 0x5:
-                        if base > wlim:  # no base, or a span reaching past the width
+                        if bp > bplim:  # no base, or a span reaching past the width
                             break
                         m = w & (0xFFF if typ == 0x4 else 0xFF)
+                        b = bp >> 8
                         # first event unconditionally (n only advances when the mask is non-empty)
-                        ox[un] = base + cttz(m)
+                        ox[un] = b + cttz(m)
                         oy[un] = y
-                        op[un] = vpol
+                        op[un] = bp
                         ot[un] = tcur
                         n += np.int64(m != 0)
                         m &= m - 1
                         while m != 0:
                             un = _U64(n)
-                            ox[un] = base + cttz(m)
+                            ox[un] = b + cttz(m)
                             oy[un] = y
-                            op[un] = vpol
+                            op[un] = bp
                             ot[un] = tcur
                             n += 1
                             m &= m - 1
-                        base += 12 if typ == 0x4 else 8
+                        bp += (12 << 8) if typ == 0x4 else (8 << 8)
                     elif typ == 0x0:
                         v = w & 0x7FF
                         if v >= height:
@@ -116,12 +157,13 @@ def decode_kernel(
                         tcur = (tcur & ~0xFFF) | (w & 0xFFF)
                     elif typ == 0x8:
                         v12 = w & 0xFFF
+                        th = (tcur >> 12) & 0xFFF
+                        tnew = (tcur & ~0xFFFFFF) | (v12 << 12)
                         if v12 < th:
                             if th - v12 < 2048:
                                 break  # non-monotonic: the reference counts or raises it
-                            loop += 1
-                        th = v12
-                        tcur = (loop << 24) | (th << 12)
+                            tnew += 1 << 24
+                        tcur = tnew
                     elif typ == 0xA:
                         if nt >= tcap:
                             break
@@ -136,12 +178,15 @@ def decode_kernel(
                     pos += 1
                 if pos < bend:
                     break
-            st[1] = loop
-            st[2] = th
+            st[1] = tcur >> 24
+            st[2] = (tcur >> 12) & 0xFFF
             st[3] = tcur & 0xFFF
             st[4] = y
-            st[5] = base if base < _NOBASE else -1
-            st[6] = vpol
+            if bp < _NOBASE:
+                st[5] = bp >> 8
+                st[6] = np.int64(np.int8(bp & 0xFF))
+            else:
+                st[5] = -1
         if pos >= end:
             break
         # irregular word, state not clean, or outputs nearly full: reference semantics

@@ -252,3 +252,40 @@ def test_growing_outputs(seed: int) -> None:
     b = _run_small(data, evt3_fast.decode_kernel)
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_vector_base_runs(seed: int) -> None:
+    """Runs of (VECT_BASE_X, vector) pairs, decoded by the fast kernel's pair loop: bases near and
+    past the width, both polarities, bases without a vector, pairs cut by chunks and by output
+    capacity, and the polarity/base state carried out of the loop."""
+    rng = np.random.default_rng(seed)
+    words = [0x8010, 0x0005]
+    for _ in range(3000):
+        r = rng.random()
+        if r < 0.7:
+            base = int(rng.integers(150, 200)) if rng.random() < 0.2 else int(rng.integers(0, 150))
+            words.append(0x3000 | (int(rng.integers(0, 2)) << 11) | base)
+            k = rng.random()
+            if k < 0.45:
+                words.append(0x4000 | (1 << int(rng.integers(0, 12))))
+            elif k < 0.6:
+                words.append(0x4000 | int(rng.integers(0, 1 << 12)))
+            elif k < 0.8:
+                words.append(0x5000 | int(rng.integers(0, 1 << 8)))
+        elif r < 0.8:
+            words.append(0x4000 | int(rng.integers(0, 1 << 12)))
+        elif r < 0.9:
+            words.append(0x2000 | (int(rng.integers(0, 2)) << 11) | int(rng.integers(0, 200)))
+        else:
+            words.append(0x0000 | int(rng.integers(0, 100)))
+    data = np.array(words, "<u2").tobytes()
+    for strict in (False, True):
+        for sizes in (None, [1], [3], [2, 5], [77]):
+            ref = _decode(data, "ref", sizes, strict=strict, w=200, h=100)
+            _assert_same(_decode(data, "fast", sizes, strict=strict, w=200, h=100), ref)
+    valid = np.array([w for w in words if not (w >> 12 == 3 and (w & 0x7FF) >= 150)], "<u2").tobytes()
+    a = _run_small(valid, evt3.decode_kernel)
+    b = _run_small(valid, evt3_fast.decode_kernel)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
