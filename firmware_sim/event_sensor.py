@@ -5,8 +5,9 @@ elapsed interval: the interval is cut into sub-steps short enough that sprites m
 most `MAX_STEP_PX` per sub-step, the log intensity is rendered only inside the boxes that
 can change, and a numba kernel (nogil, so two sensors run in parallel) compares it with
 each pixel's reference level. A pixel crossing k thresholds in one sub-step emits k events
-at times linearly interpolated between the two renders. No noise, no refractory period:
-the full pixel model comes later.
+at times linearly interpolated between the two renders. That is the noise-free case of
+`firmware_sim.event_model`; with `pixel_model=full` in the spec the sensor runs that model
+(mismatch, noise, refractory, low-pass) on whole rendered frames instead.
 
 The sensor talks like a Prophesee camera: each slice's events and trigger-in edges are
 encoded into an EVT 3.0 byte stream (time-ordered, trigger edges interleaved), and the host
@@ -525,7 +526,6 @@ class SimEventSensor:
             "triggers": 0,
             "bytes": 0,
         }
-        self._cpu_s = 0.0
         self._unsubscribe = world.wire.subscribe(self._on_edge)
 
     # --- Device ---------------------------------------------------------------------------
@@ -549,11 +549,6 @@ class SimEventSensor:
     @property
     def clock(self) -> DeviceClock:
         return self._clock
-
-    @property
-    def generator_cpu_s(self) -> float:
-        """Thread CPU time the generator has used, for benchmarks."""
-        return self._cpu_s
 
     def configure(self, settings: EventSensorSettings) -> None:
         self._check_open()
@@ -702,7 +697,6 @@ class SimEventSensor:
             self._model_t = round(t_start)
             model.step(last_log, self._model_t)
         t_prev = t_start
-        cpu0 = time.thread_time()
         try:
             while True:
                 wake = t_prev + SLICE_US + GENERATION_LAG_US
@@ -722,7 +716,6 @@ class SimEventSensor:
                     self._encoded_until_us = t_now
                 triggers = self._take_triggers(None if stopping else t_now)
                 self._emit(events, triggers)
-                self._cpu_s = time.thread_time() - cpu0
                 t_prev = t_now
                 if stopping:
                     return

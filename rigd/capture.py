@@ -473,8 +473,8 @@ def _record_device_losses(pipe: _Pipeline) -> None:
                     reason="lost inside the device or its transport (device counters)",
                 )
             )
-        skipped = {k.removeprefix("decoder_skipped_"): v for k, v in stats.extra.items() if v}
-        skipped = {k: v for k, v in skipped.items() if f"decoder_skipped_{k}" in stats.extra}
+        prefix = "decoder_skipped_"
+        skipped = {k.removeprefix(prefix): v for k, v in stats.extra.items() if k.startswith(prefix) and v}
         if skipped:
             pipe.losses.append(
                 LossRecord(

@@ -26,8 +26,8 @@ from drivers.evt import (
 )
 from rigd import __version__
 from rigd.config import WriterConfig
-from rigd.core.errors import RigdError, TakeError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.errors import RigdError
+from rigd.core.events import TriggerEvents
 from rigd.core.schema import SyncReport
 from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take
@@ -169,12 +169,3 @@ def take_to_recording(
         if not total and not len(triggers):
             log.warning("%s: sensor %s has no events; wrote a header-only file", src, sensor)
     return total
-
-
-def check_round_trip(a: EventArray, b: EventArray) -> None:
-    """Raise TakeError naming the first column that differs (used by tests and --verify)."""
-    if len(a) != len(b):
-        raise TakeError(f"event counts differ: {len(a)} vs {len(b)}")
-    for col in ("x", "y", "p", "t"):
-        if not np.array_equal(getattr(a, col), getattr(b, col)):
-            raise TakeError(f"column {col} differs")

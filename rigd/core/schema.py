@@ -43,8 +43,6 @@ FRAME_SERIES = (
 #: `trigger/pulses/<name>`, all int64.
 PULSE_SERIES = ("index", "t_us", "host_time_ns")
 
-TAKE_STATUS = Literal["recording", "complete", "failed"]
-TIME_DOMAIN = Literal["device", "rig"]
 LossKind = Literal["frames", "events", "triggers", "pulses"]
 
 
