@@ -1,0 +1,1 @@
+"""The capture daemon: control protocol, telemetry, metrics, systemd integration."""
