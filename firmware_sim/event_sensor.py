@@ -16,10 +16,16 @@ runs `GENERATION_LAG_US` behind true time so the trigger box's edges for a slice
 before the slice is encoded; an edge later than that cannot be placed in the time-ordered
 stream and is counted (`triggers_late`), never dropped silently. Buffers go into a bounded
 queue whose overflows are counted.
+
+`unplug_at_s` / `unplug_for_s` take the sensor off the bus (docs/sim-faults.md): `read_bytes`
+raises DeviceError, which `EvtStreamSensor.read_events` passes on to the capture pipeline, the
+generator stops, and the span of true time whose events the host never got goes into the
+ground truth (`GroundTruth.unplugged`).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import queue
@@ -43,7 +49,15 @@ from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, lin_log, log_lut
-from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
+from firmware_sim.world import (
+    DeviceClock,
+    Edge,
+    SimWorld,
+    UnplugParams,
+    get_world,
+    truth_journal,
+    unplug_params,
+)
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -465,6 +479,22 @@ class SensorParams:
     """None: the fast ideal kernel (rendering only what moves). Otherwise the full pixel model
     of `firmware_sim.event_model` (noise, mismatch, refractory, low-pass) on whole rendered log
     frames at every sub-step: real time only at small resolutions."""
+    unplug: UnplugParams | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class _Packet:
+    """One slice's EVT buffer, with what the ground truth and the journal need to know of it."""
+
+    payload: bytes
+    host_ns: int
+    n_events: int
+    n_triggers: int
+    t_first_us: int
+    """Device time of the first event (0 when there is none)."""
+    t_last_us: int
+    true_end_us: float
+    """True time the slice ends: the host has every event before it once it read this packet."""
 
 
 #: How far behind true time the generator encodes, so trigger edges are in before their slice.
@@ -505,11 +535,18 @@ class SimEventSensor:
             facts={"evt_format": "evt3", "pixel_model": "ideal", "threshold": str(p.threshold)},
         )
         self._settings = EventSensorSettings()
+        self._fault = world.unplug_fault(name)
+        self._fault.check_present(self._info.spec)
+        self._opened_us = world.now_us()
+        self._unplug_noted = False
+        self._delivered_until_us = -math.inf
+        self._journal = truth_journal()
+        self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":{json.dumps(name)},"kind":"events"'
         world.register_clock(name, clock)
         self._lock = threading.Lock()
         self._accepting = False
         self._pending: list[tuple[float, int]] = []
-        self._packets: queue.Queue[tuple[bytes, int]] = queue.Queue(maxsize=p.buffer_packets)
+        self._packets: queue.Queue[_Packet] = queue.Queue(maxsize=p.buffer_packets)
         self._encoder = Evt3Encoder()
         self._encoded_until_us = -math.inf
         self._stop = threading.Event()
@@ -525,8 +562,10 @@ class SimEventSensor:
             "events_generated": 0,
             "triggers": 0,
             "bytes": 0,
+            "packets_lost_unplugged": 0,
         }
         self._unsubscribe = world.wire.subscribe(self._on_edge)
+        self._unlisten = self._fault.listen(self._on_unplug)
 
     # --- Device ---------------------------------------------------------------------------
 
@@ -551,13 +590,13 @@ class SimEventSensor:
         return self._clock
 
     def configure(self, settings: EventSensorSettings) -> None:
-        self._check_open()
+        self._check_alive()
         if self._thread is not None:
             raise DeviceError(f"event sensor {self._name}: configure while started; stop it first")
         self._settings = settings.model_copy()
 
     def start(self) -> None:
-        self._check_open()
+        self._check_alive()
         if self._thread is not None:
             raise DeviceError(f"event sensor {self._name} is already started")
         if self._settings.sync_mode == "slave":
@@ -578,10 +617,19 @@ class SimEventSensor:
         with self._lock:
             self._pending.clear()
             self._accepting = True
+            self._delivered_until_us = t_start
         self._thread = threading.Thread(
             target=self._run, args=(t_start, last_log), name=f"sim-events-{self._name}", daemon=True
         )
         self._thread.start()
+        unplug = self._p.unplug
+        if unplug is not None and not self._fault.armed:
+            # Armed once per world and device name: the replugged sensor is not unplugged again.
+            self._fault.arm(
+                t_start + unplug.at_s * 1e6,
+                t_start + (unplug.at_s + unplug.for_s) * 1e6,
+                lost_frames_on_edges=False,
+            )
         log.info("event sensor %s started at true %.0f us", self._name, t_start)
 
     def stop(self) -> None:
@@ -605,10 +653,11 @@ class SimEventSensor:
             self.stop()
         finally:
             self._unsubscribe()
+            self._unlisten()
             self._closed = True
 
     def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
-        self._check_open()
+        self._check_alive()
         try:
             first = (
                 self._packets.get(timeout=max(timeout_s, 0.0))
@@ -623,7 +672,27 @@ class SimEventSensor:
                 parts.append(self._packets.get_nowait())
             except queue.Empty:
                 break
-        return b"".join(b for b, _ in parts), parts[-1][1]
+        with self._lock:
+            if self._dead(self._world.now_us()):  # unplugged while we waited: these are lost too
+                self._note_unplug_locked(parts)
+                raise self._unplugged_error()
+            self._delivered_until_us = parts[-1].true_end_us
+        if self._journal is not None:
+            self._write_journal(parts)
+        return b"".join(pk.payload for pk in parts), parts[-1].host_ns
+
+    def _write_journal(self, parts: list[_Packet]) -> None:
+        """One line per buffer handed to the reader (a decoded `EventPacket`), never per event."""
+        n = sum(pk.n_events for pk in parts)
+        with_events = [pk for pk in parts if pk.n_events]
+        first = str(with_events[0].t_first_us) if with_events else "null"
+        last = str(with_events[-1].t_last_us) if with_events else "null"
+        n_trig = sum(pk.n_triggers for pk in parts)
+        assert self._journal is not None
+        self._journal.write(
+            f'{self._journal_head},"n":{n},"n_triggers":{n_trig},"t_first_device_us":{first},'
+            f'"t_last_device_us":{last},"host_time_ns":{time.monotonic_ns()}}}'
+        )
 
     def stats(self) -> AcquisitionStats:
         with self._lock:
@@ -637,12 +706,62 @@ class SimEventSensor:
         if self._closed:
             raise DeviceError(f"event sensor {self._name} is closed")
 
+    # --- unplug fault ---------------------------------------------------------------------
+
+    def _dead(self, true_us: float) -> bool:
+        """Was this sensor object unplugged by that true time (its handle is stale for good)?"""
+        return self._fault.kills(self._opened_us, true_us)
+
+    def _unplugged_error(self) -> DeviceError:
+        return DeviceError(
+            f"event sensor {self._name}: device unplugged (gone from the bus); close it and open it again"
+        )
+
+    def _check_alive(self) -> None:
+        self._check_open()
+        if self._dead(self._world.now_us()):
+            with self._lock:
+                self._note_unplug_locked([])
+            raise self._unplugged_error()
+
+    def _on_unplug(self) -> None:
+        """Timer thread, at the unplug instant: what the host has not read yet is lost."""
+        with self._lock:
+            if self._dead(self._world.now_us()):
+                self._note_unplug_locked([])
+
+    def _note_unplug_locked(self, lost: list[_Packet]) -> None:
+        """Log what the unplug cost (caller holds the lock); safe to call more than once.
+
+        Everything after the last slice the host read is lost: packets still queued, the
+        slices the generator (running behind true time) had not encoded yet, and the window.
+        """
+        lost = list(lost)
+        while True:
+            try:
+                lost.append(self._packets.get_nowait())
+            except queue.Empty:
+                break
+        n_lost = sum(pk.n_events for pk in lost)
+        self._events_lost += n_lost
+        self._counts["packets_lost_unplugged"] += len(lost)
+        if not self._unplug_noted:
+            self._unplug_noted = True
+            self._accepting = False
+            if self._thread is not None:
+                self._world.truth.add_unplugged(self._name, self._delivered_until_us, self._fault.end_us)
+            log.warning(
+                "event sensor %s unplugged; events after true %.0f us lost",
+                self._name,
+                self._delivered_until_us,
+            )
+
     # --- trigger-in -----------------------------------------------------------------------
 
     def _on_edge(self, edge: Edge) -> None:
         """Runs on the trigger box's thread: only latch the edge."""
         with self._lock:
-            if not (self._accepting and self._settings.enable_trigger_in):
+            if not (self._accepting and self._settings.enable_trigger_in) or self._dead(edge.true_us):
                 return
             if edge.true_us < self._encoded_until_us:
                 self._counts["triggers_late"] += 1
@@ -701,6 +820,10 @@ class SimEventSensor:
             while True:
                 wake = t_prev + SLICE_US + GENERATION_LAG_US
                 stopping = self._stop.wait(max(0.0, (wake - self._world.now_us()) * 1e-6))
+                if self._dead(self._world.now_us()):
+                    with self._lock:
+                        self._note_unplug_locked([])
+                    return  # no power, no events; stop() finds no error
                 # At stop everything up to now goes out: no later edge can belong to it.
                 t_now = self._world.now_us() - (0 if stopping else GENERATION_LAG_US)
                 if t_now <= t_prev and not stopping:
@@ -715,7 +838,7 @@ class SimEventSensor:
                 with self._lock:
                     self._encoded_until_us = t_now
                 triggers = self._take_triggers(None if stopping else t_now)
-                self._emit(events, triggers)
+                self._emit(events, triggers, t_now)
                 t_prev = t_now
                 if stopping:
                     return
@@ -723,13 +846,32 @@ class SimEventSensor:
             log.exception("event sensor %s: generator failed", self._name)
             self._error = exc
 
-    def _emit(self, events: EventArray, triggers: TriggerEvents) -> None:
+    def _emit(self, events: EventArray, triggers: TriggerEvents, true_end_us: float) -> None:
         if len(events) == 0 and len(triggers) == 0:
             return
         payload = self._encoder.encode(events, triggers)
-        try:
-            self._packets.put_nowait((payload, time.monotonic_ns()))
-        except queue.Full:
+        n = len(events)
+        packet = _Packet(
+            payload,
+            time.monotonic_ns(),
+            n,
+            len(triggers),
+            int(events.t.min()) if n else 0,
+            int(events.t.max()) if n else 0,
+            true_end_us,
+        )
+        with self._lock:
+            # Under the lock, so an unplug noted meanwhile finds this packet queued or not at all.
+            if self._dead(self._world.now_us()):
+                self._note_unplug_locked([packet])
+                full = False
+            else:
+                try:
+                    self._packets.put_nowait(packet)
+                    full = False
+                except queue.Full:
+                    full = True
+        if full:
             with self._lock:
                 self._events_lost += len(events)
                 self._counts["packets_dropped"] += 1
@@ -781,10 +923,13 @@ def _pixel_model(spec: DeviceSpec, seed: int) -> PixelModelConfig | None:
 
 
 def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
-    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=&scene=sprites|board`."""
+    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=&scene=sprites|board`.
+
+    Fault switches: `unplug_at_s=`, `unplug_for_s=` (docs/sim-faults.md).
+    """
     spec.check_params(
         {"offset_us", "drift_ppm", "seed", "width", "height", "threshold", "buffer_packets", "scene"}
-        | {"pixel_model", *_MODEL_PARAMS}
+        | {"pixel_model", *_MODEL_PARAMS, "unplug_at_s", "unplug_for_s"}
     )
     name = spec.path.strip("/")
     if not name:
@@ -798,6 +943,7 @@ def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
         threshold=spec.float_param("threshold", 0.3),
         buffer_packets=spec.int_param("buffer_packets", 1024),
         pixel_model=_pixel_model(spec, seed),
+        unplug=unplug_params(spec),
     )
     for field_name, ok in (
         ("width", 0 < params.width <= 65535),

@@ -5,11 +5,18 @@ counter, device timestamp) and queues it; a worker renders the scene at mid-expo
 for the exposure to end, and puts the frame into a bounded on-camera buffer. Frames lost to
 a full buffer or to the `drop_frames` transport fault are counted and logged in the ground
 truth, and show as gaps in the frame counter, as on real cameras.
+
+Fault switches (docs/sim-faults.md): `busy_us` makes the camera ignore trigger edges for a
+while after each exposure starts (readout / trigger overlap), and `unplug_at_s` /
+`unplug_for_s` take it off the bus for a window kept in the `SimWorld`, so the host's
+reopen-by-spec finds it gone, then back on the same clock.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -23,7 +30,15 @@ from drivers.base import AcquisitionStats, CameraSettings, Capability, DeviceInf
 from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
 from firmware_sim.scene import Scene, View
-from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
+from firmware_sim.world import (
+    DeviceClock,
+    Edge,
+    SimWorld,
+    UnplugParams,
+    get_world,
+    truth_journal,
+    unplug_params,
+)
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.frames import Frame
 
@@ -52,6 +67,11 @@ class CameraParams:
     pixel_format: str = "rgb8"
     buffer_frames: int = 32
     drop_frames: frozenset[int] = field(default_factory=frozenset)
+    busy_us: int = 0
+    """After an exposure starts, rising edges within this many microseconds are ignored."""
+    unplug: UnplugParams | None = None
+    counter_reset: bool = False
+    """After a replug, count frames from 0 again (default: go on from where the unplug left it)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,6 +102,8 @@ class SimRgbCamera(RgbCamera):
             raise ConfigError(f"camera {name}: pixel format {p.pixel_format!r} (use mono8 or rgb8)")
         if p.buffer_frames < 1:
             raise ConfigError(f"camera {name}: buffer_frames must be >= 1, got {p.buffer_frames}")
+        if p.busy_us < 0:
+            raise ConfigError(f"camera {name}: busy_us must be >= 0, got {p.busy_us}")
         self._world, self._name, self._scene, self._clock, self._p = world, name, scene, clock, p
         self._view: View = scene.view(name, p.width, p.height)
         self._info = DeviceInfo(
@@ -93,6 +115,15 @@ class SimRgbCamera(RgbCamera):
             firmware="sim-1",
         )
         self._settings = CameraSettings()
+        self._fault = world.unplug_fault(name)
+        self._fault.check_present(self._info.spec)
+        self._opened_us = world.now_us()
+        #: First start after a replug goes on counting from where the unplug left the counter.
+        self._resume = self._fault.replugged_before(self._opened_us) and not p.counter_reset
+        self._unplug_noted = False
+        self._busy_until_us = -math.inf
+        self._journal = truth_journal()
+        self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":{json.dumps(name)},"kind":"frame"'
         world.register_clock(name, clock)
         self._lock = threading.Lock()
         self._started = False
@@ -106,8 +137,15 @@ class SimRgbCamera(RgbCamera):
         self._error: BaseException | None = None
         self._delivered = 0
         self._dropped = 0
-        self._counts = {"exposures": 0, "buffer_overflow": 0, "transport_dropped": 0}
+        self._counts = {
+            "exposures": 0,
+            "buffer_overflow": 0,
+            "transport_dropped": 0,
+            "triggers_ignored": 0,
+            "unplug_lost": 0,
+        }
         self._unsubscribe = world.wire.subscribe(self._on_edge)
+        self._unlisten = self._fault.listen(self._on_unplug)
 
     # --- Device ---------------------------------------------------------------------------
 
@@ -138,21 +176,31 @@ class SimRgbCamera(RgbCamera):
         return np.dtype(np.uint8)
 
     def configure(self, settings: CameraSettings) -> None:
-        self._check_open()
+        self._check_alive()
         if self._started:
             raise DeviceError(f"camera {self._name}: configure while started; stop it first")
         self._settings = settings.model_copy()
 
     def start(self) -> None:
-        self._check_open()
+        self._check_alive()
         if self._started:
             raise DeviceError(f"camera {self._name} is already started")
         self._error = None
         self._worker = threading.Thread(target=self._work, name=f"sim-cam-{self._name}", daemon=True)
         self._worker.start()
         with self._lock:
-            self._next_counter = 0
+            self._next_counter = self._fault.resume_counter if self._resume else 0
+            self._resume = False
+            self._busy_until_us = -math.inf
             self._started = True
+            self._fault.acquiring = self._settings.trigger_mode == "hardware"
+        unplug = self._p.unplug
+        if unplug is not None and not self._fault.armed:
+            # Armed once per world and device name: the replugged camera is not unplugged again.
+            t0 = self._world.now_us()
+            self._fault.arm(
+                t0 + unplug.at_s * 1e6, t0 + (unplug.at_s + unplug.for_s) * 1e6, lost_frames_on_edges=True
+            )
         if self._settings.trigger_mode == "free_run":
             self._stop_free_run.clear()
             self._free_run = threading.Thread(
@@ -164,6 +212,9 @@ class SimRgbCamera(RgbCamera):
     def stop(self) -> None:
         with self._lock:
             was_started, self._started = self._started, False
+            if not self._dead(self._world.now_us()):
+                # An unplugged camera was still acquiring as far as the edges in its window go.
+                self._fault.acquiring = False
         if not was_started:
             return
         if self._free_run is not None:
@@ -186,16 +237,25 @@ class SimRgbCamera(RgbCamera):
             self.stop()
         finally:
             self._unsubscribe()
+            self._unlisten()
             self._closed = True
 
     def read_frame(self, timeout_s: float) -> Frame | None:
-        self._check_open()
+        self._check_alive()
         try:
             frame = self._frames.get(timeout=timeout_s) if timeout_s > 0 else self._frames.get_nowait()
         except queue.Empty:
             return None
         with self._lock:
+            if self._dead(self._world.now_us()):  # unplugged while we waited: this frame is lost too
+                self._note_unplug_locked([frame.frame_counter])
+                raise self._unplugged_error()
             self._delivered += 1
+        if self._journal is not None:
+            self._journal.write(
+                f'{self._journal_head},"counter":{frame.frame_counter},'
+                f'"t_device_us":{frame.t_exposure_start_us},"host_time_ns":{time.monotonic_ns()}}}'
+            )
         return frame
 
     def stats(self) -> AcquisitionStats:
@@ -208,6 +268,47 @@ class SimRgbCamera(RgbCamera):
         if self._closed:
             raise DeviceError(f"camera {self._name} is closed")
 
+    # --- unplug fault ---------------------------------------------------------------------
+
+    def _dead(self, true_us: float) -> bool:
+        """Was this camera object unplugged by that true time (its handle is stale for good)?"""
+        return self._fault.kills(self._opened_us, true_us)
+
+    def _unplugged_error(self) -> DeviceError:
+        return DeviceError(
+            f"camera {self._name}: device unplugged (gone from the bus); close it and open it again"
+        )
+
+    def _check_alive(self) -> None:
+        self._check_open()
+        if self._dead(self._world.now_us()):
+            with self._lock:
+                self._note_unplug_locked([])
+            raise self._unplugged_error()
+
+    def _on_unplug(self) -> None:
+        """Timer thread, at the unplug instant: frames still in the camera's buffer are lost."""
+        with self._lock:
+            if self._dead(self._world.now_us()):
+                self._note_unplug_locked([])
+
+    def _note_unplug_locked(self, lost: list[int]) -> None:
+        """Log what the unplug cost (caller holds the lock); safe to call more than once."""
+        while True:
+            try:
+                lost.append(self._frames.get_nowait().frame_counter)
+            except queue.Empty:
+                break
+        if lost:
+            self._dropped += len(lost)
+            self._counts["unplug_lost"] += len(lost)
+            self._world.truth.mark_frames_lost(self._name, lost)
+        if not self._unplug_noted:
+            self._unplug_noted = True
+            if self._started:
+                self._world.truth.add_unplugged(self._name, self._fault.start_us, self._fault.end_us)
+            log.warning("camera %s unplugged; %d buffered frame(s) lost", self._name, len(lost))
+
     # --- exposure -------------------------------------------------------------------------
 
     def _on_edge(self, edge: Edge) -> None:
@@ -217,12 +318,22 @@ class SimRgbCamera(RgbCamera):
         with self._lock:
             if not self._started or self._settings.trigger_mode != "hardware":
                 return
+            if self._dead(edge.true_us):
+                return  # no camera on the wire: the world logs the frame as lost
+            if edge.true_us < self._busy_until_us:
+                # Still reading out the last frame: a real camera drops the edge ("trigger overlap").
+                self._counts["triggers_ignored"] += 1
+                self._world.truth.add_ignored_trigger(self._name, edge.pulse_index, edge.true_us)
+                log.debug("camera %s busy: pulse %d ignored", self._name, edge.pulse_index)
+                return
+            self._busy_until_us = edge.true_us + self._p.busy_us
             self._expose(edge.true_us)
 
     def _expose(self, true_us: float) -> None:
         """Start an exposure at a true time; the caller holds the lock."""
         job = _Exposure(self._next_counter, true_us, self._clock.stamp(true_us), self._settings.exposure_us)
         self._next_counter += 1
+        self._fault.resume_counter = self._next_counter
         self._counts["exposures"] += 1
         self._jobs.put(job)
 
@@ -236,7 +347,7 @@ class SimRgbCamera(RgbCamera):
             if not self._world.sleep_until(t_true, self._stop_free_run):
                 return
             with self._lock:
-                if not self._started:
+                if not self._started or self._dead(t_true):
                     return
                 self._expose(t_true)
             k += 1
@@ -270,9 +381,13 @@ class SimRgbCamera(RgbCamera):
             truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
             log.debug("camera %s: frame %d dropped (fault injection)", self._name, job.counter)
             return
+        t_end = job.true_us + job.exposure_us
+        if self._dead(t_end):
+            self._lose_unplugged(job)  # unplugged before the exposure ended: no frame leaves
+            return
         image = self._render(job)
         # A frame leaves the sensor only once its exposure is over.
-        self._world.sleep_until(job.true_us + job.exposure_us)
+        self._world.sleep_until(t_end)
         frame = Frame(
             image=image,
             t_exposure_start_us=job.device_us,
@@ -280,20 +395,39 @@ class SimRgbCamera(RgbCamera):
             frame_counter=job.counter,
             host_time_ns=time.monotonic_ns(),
         )
-        try:
-            self._frames.put_nowait(frame)
-        except queue.Full:
-            with self._lock:
-                self._dropped += 1
-                self._counts["buffer_overflow"] += 1
-            truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
+        with self._lock:
+            # Under the lock, so an unplug noted meanwhile sees this frame in the buffer or not at all.
+            if self._dead(self._world.now_us()):
+                full = False
+            else:
+                try:
+                    self._frames.put_nowait(frame)
+                except queue.Full:
+                    full = True
+                    self._dropped += 1
+                    self._counts["buffer_overflow"] += 1
+                    truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
+                else:
+                    truth.add_frame(self._name, job.counter, job.true_us, delivered=True)
+                    return
+        if full:
             log.warning("camera %s: frame buffer full, frame %d dropped", self._name, job.counter)
-            return
-        truth.add_frame(self._name, job.counter, job.true_us, delivered=True)
+        else:
+            self._lose_unplugged(job)
+
+    def _lose_unplugged(self, job: _Exposure) -> None:
+        with self._lock:
+            self._dropped += 1
+            self._counts["unplug_lost"] += 1
+        self._world.truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
+        log.debug("camera %s: frame %d lost to the unplug", self._name, job.counter)
 
 
 def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
-    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=&scene=sprites|board`."""
+    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=&scene=sprites|board`.
+
+    Fault switches: `busy_us=`, `unplug_at_s=`, `unplug_for_s=`, `counter_reset=1` (docs/sim-faults.md).
+    """
     spec.check_params(
         {
             "offset_us",
@@ -305,6 +439,10 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
             "buffer_frames",
             "drop_frames",
             "scene",
+            "busy_us",
+            "unplug_at_s",
+            "unplug_for_s",
+            "counter_reset",
         }
     )
     name = spec.path.strip("/")
@@ -319,11 +457,16 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
         pixel_format=fmt,
         buffer_frames=spec.int_param("buffer_frames", 32),
         drop_frames=frozenset(spec.int_list_param("drop_frames")),
+        busy_us=spec.int_param("busy_us", 0),
+        unplug=unplug_params(spec),
+        counter_reset=spec.int_param("counter_reset", 0) == 1,
     )
     for field_name, ok in (
         ("width", 0 < params.width <= 65535),
         ("height", 0 < params.height <= 65535),
         ("buffer_frames", params.buffer_frames >= 1),
+        ("busy_us", params.busy_us >= 0),
+        ("counter_reset", spec.int_param("counter_reset", 0) in (0, 1)),
     ):
         if not ok:
             raise ConfigError(

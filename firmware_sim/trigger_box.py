@@ -13,12 +13,20 @@ timestamps (a late wake-up only delays the report).
 With `link="socket"` the firmware talks over one end of a socket pair instead of a pty;
 `host_socket` is the other end, a plain byte pipe that `firmware_sim.hid_box` packs into
 HID reports, so the same firmware serves the HID transport.
+
+Link faults (docs/sim-faults.md) leave the electrical trigger running: `silent_after=N` hangs
+the link after N pulses (nothing more is sent, nothing received: a hung USB-serial bridge),
+`garbage_after=N` turns every line sent after N pulses into garbage bytes (a baud-rate or
+bridge fault). Pulse records written to the link go to the ground-truth journal when
+`RIGD_SIM_TRUTH_LOG` is set.
 """
 
 from __future__ import annotations
 
 import errno
+import json
 import logging
+import math
 import os
 import re
 import select
@@ -31,7 +39,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world
+from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world, truth_journal
 from rigd.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -61,9 +69,13 @@ _RATE_RE = re.compile(r"^\d{1,5}(\.\d{1,6})?$")
 _UINT_RE = re.compile(r"^\d{1,10}$")
 #: Bytes the garbage fault may inject: never '$', '*' or newline, so framing survives.
 _GARBAGE_BYTES = bytes(b for b in range(256) if b not in b"$*\n")
+_GARBAGE_ARRAY = np.frombuffer(_GARBAGE_BYTES, np.uint8)
 _CORRUPT_CHARS = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789#=-. "
 
 IDLE, ARMED, RUNNING = "IDLE", "ARMED", "RUNNING"
+
+#: What became of a line the box meant to send.
+SendResult = Literal["sent", "garbled", "dropped", "silent"]
 
 
 def checksum(payload: bytes) -> int:
@@ -104,9 +116,14 @@ class SimTriggerBox:
         boot_ms: int = 50,
         seed: int = 0,
         link: Literal["pty", "socket"] = "pty",
+        silent_after: int = 0,
+        garbage_after: int = 0,
     ) -> None:
         if jitter_us < 0 or garbage_every < 0 or boot_ms < 0:
             raise ConfigError("sim trigger box: jitter_us, garbage_every and boot_ms must be >= 0")
+        for name, value in (("silent_after", silent_after), ("garbage_after", garbage_after)):
+            if value < 0:
+                raise ConfigError(f"sim trigger box: {name} must be >= 0 (0: off), got {value}")
         self.world = world
         self.clock = DeviceClock(offset_us, drift_ppm)
         world.register_clock("trigger", self.clock)
@@ -115,6 +132,16 @@ class SimTriggerBox:
         self.garbage_every = int(garbage_every)
         self.boot_ms = int(boot_ms)
         self.seed = int(seed)
+        self.silent_after = int(silent_after)
+        self.garbage_after = int(garbage_after)
+        #: Link hung (`silent_after` reached): nothing is sent, received bytes are discarded.
+        self.silent = False
+        #: Link garbled (`garbage_after` reached): every line sent is garbage bytes.
+        self.garbage = False
+        #: Pulses fired since power-up, over all runs (the `*_after` faults count these).
+        self.pulses_fired = 0
+        self._journal = truth_journal()
+        self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":"trigger","kind":"pulse"'
         #: Test switch: while True the box reads commands but never answers (a hung box).
         self.mute = False
         #: Test switch: swallow this many next replies (a reply lost on the wire).
@@ -182,12 +209,19 @@ class SimTriggerBox:
         return self._closed
 
     # ---------------------------------------------------------------- tx
-    def _send_locked(self, payload: str) -> None:
+    def _send_locked(self, payload: str) -> SendResult:
         """Write one framed line (caller holds the lock); drop it if the host stops reading."""
+        if self.silent:
+            return "silent"
         data = frame(payload)
         self._lines_sent += 1
-        if self.garbage_every and self._lines_sent % self.garbage_every == 0:
+        result: SendResult = "sent"
+        if self.garbage:
+            data = self._garble(data)
+            result = "garbled"
+        elif self.garbage_every and self._lines_sent % self.garbage_every == 0:
             data = self._corrupt(data)
+            result = "garbled"
         view = memoryview(data)
         deadline = time.monotonic() + 0.05
         while view:
@@ -199,13 +233,19 @@ class SimTriggerBox:
                 if remaining <= 0:
                     self.tx_dropped += 1
                     log.warning("trigger box %s: host not reading, line dropped: %r", self.port_path, payload)
-                    return
+                    return "dropped"
                 select.select([], [self._master], [], remaining)
             except OSError as exc:
                 if self._closed:
-                    return
+                    return "dropped"
                 log.error("trigger box %s: write failed: %s", self.port_path, exc)
                 raise
+        return result
+
+    def _garble(self, data: bytes) -> bytes:
+        """`garbage_after` fault: the whole line becomes random bytes (no '$', so never a line)."""
+        idx = self._garbage_rng.integers(0, len(_GARBAGE_ARRAY), len(data) - 1)
+        return _GARBAGE_ARRAY[idx].tobytes() + b"\n"
 
     def _corrupt(self, data: bytes) -> bytes:
         """Garbage fault: random prefix bytes, and sometimes one wrong character inside."""
@@ -259,6 +299,8 @@ class SimTriggerBox:
                 continue
             if not self.booted.is_set():
                 continue  # still booting: the UART is not listening yet
+            if self.silent:
+                continue  # hung bridge: what the host sends never reaches the firmware
             for byte in chunk:
                 if byte == 0x0A:
                     line = bytes(buf)
@@ -462,7 +504,14 @@ class SimTriggerBox:
                         log.debug("trigger box %s: pulse %d fired as STOP arrived", self.port_path, k)
                     self._ring[k % RING_SIZE] = b_k
                     self._count = k + 1
-                    self._send_locked(f"P {k} {b_k}")
+                    sent = self._send_locked(f"P {k} {b_k}")
+                    if self._journal is not None and sent in ("sent", "garbled"):
+                        garbled = "true" if sent == "garbled" else "false"
+                        self._journal.write(
+                            f'{self._journal_head},"index":{k},"t_us":{b_k},'
+                            f'"host_time_ns":{time.monotonic_ns()},"garbled":{garbled}}}'
+                        )
+                    self._link_faults_after_pulse()
                     if target and self._count >= target:
                         self._state = IDLE
                         self._send_locked(f"END {self._count}")
@@ -472,6 +521,24 @@ class SimTriggerBox:
             with self._lock:
                 self._state = IDLE
             raise
+
+    def _link_faults_after_pulse(self) -> None:
+        """Count a fired pulse and switch the link faults on once due (caller holds the lock)."""
+        self.pulses_fired += 1
+        if self.silent_after and not self.silent and self.pulses_fired >= self.silent_after:
+            self.silent = True
+            log.warning(
+                "trigger box %s: link hung after %d pulses (silent_after); trigger keeps firing",
+                self.port_path,
+                self.pulses_fired,
+            )
+        if self.garbage_after and not self.garbage and self.pulses_fired >= self.garbage_after:
+            self.garbage = True
+            log.warning(
+                "trigger box %s: link sends garbage after %d pulses (garbage_after); trigger keeps firing",
+                self.port_path,
+                self.pulses_fired,
+            )
 
     # ---------------------------------------------------------------- lifecycle
     def close(self) -> None:
@@ -526,6 +593,10 @@ _SIM_PARAMS = {
     "boot_ms",
     "seed",
     "transport",
+    "silent_after",
+    "garbage_after",
+    "reply_timeout_s",
+    "boot_timeout_s",
 }
 _BOX_KEY = "trigger_box"
 
@@ -554,6 +625,9 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
 
     `transport=serial` (default): the box on a pty, opened with pyserial. `transport=hid`:
     the box behind a fake hidapi device (firmware_sim.hid_box), opened with HidTransport.
+    Fault switches (docs/sim-faults.md): `silent_after=N`, `garbage_after=N`, besides
+    `drop_pulses`, `garbage_every` and `jitter_us`; `reply_timeout_s` / `boot_timeout_s` go to
+    the host driver.
     """
     from drivers.serial_trigger import SerialTrigger
 
@@ -561,6 +635,12 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
     transport = spec.param("transport", "serial")
     if transport not in ("serial", "hid"):
         raise ConfigError(f"device spec {spec.raw!r}: transport={transport!r}; use serial or hid")
+    # Host driver timeouts, as `serial://` and `hid://` specs take them.
+    reply_timeout_s = spec.float_param("reply_timeout_s", 1.0)
+    boot_timeout_s = spec.float_param("boot_timeout_s", 5.0)
+    for key, value in (("reply_timeout_s", reply_timeout_s), ("boot_timeout_s", boot_timeout_s)):
+        if not (0 < value < math.inf):
+            raise ConfigError(f"device spec {spec.raw!r}: {key}={spec.params[key]!r} must be > 0 seconds")
     seed = spec.int_param("seed", 0)
     world = get_world(spec.location or "default", seed)
     slot = _slot(world)
@@ -580,6 +660,8 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
             boot_ms=spec.int_param("boot_ms", 50),
             seed=seed,
             link="socket" if transport == "hid" else "pty",
+            silent_after=spec.int_param("silent_after", 0),
+            garbage_after=spec.int_param("garbage_after", 0),
         )
         slot.box = box
     try:
@@ -590,8 +672,20 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
             attach(box)
             name = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/{box_serial(box)}"
             link = HidTransport(FakeHidDevice(box), name)
-            return SerialTrigger(transport=link, spec=spec.raw, on_close=box.close)
-        return SerialTrigger(box.port_path, spec=spec.raw, on_close=box.close)
+            return SerialTrigger(
+                transport=link,
+                spec=spec.raw,
+                on_close=box.close,
+                reply_timeout_s=reply_timeout_s,
+                boot_timeout_s=boot_timeout_s,
+            )
+        return SerialTrigger(
+            box.port_path,
+            spec=spec.raw,
+            on_close=box.close,
+            reply_timeout_s=reply_timeout_s,
+            boot_timeout_s=boot_timeout_s,
+        )
     except BaseException:
         box.close()
         raise

@@ -4,18 +4,33 @@ Every simulated device of one rig shares a `SimWorld`. True time is the host's m
 clock (the sim runs in real time, so the daemon meets real deadlines); each device reads
 it through its own `DeviceClock`, with an offset and a drift, and the ground truth of
 everything the devices did is logged in true time so tests can score the sync engine.
+
+Faults that must outlive one device object live here too: an unplugged device's window
+(`UnplugFault`) is kept per device name, because the host recovers by opening the same spec
+again. With `RIGD_SIM_TRUTH_LOG` set, what the devices hand to the host is also appended to
+a JSON-lines journal (`TruthJournal`) that survives a SIGKILL of the process (docs/sim-faults.md).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from rigd.core.errors import ConfigError, DeviceError
+
+if TYPE_CHECKING:
+    from drivers.registry import DeviceSpec
 
 log = logging.getLogger(__name__)
+
+#: Environment variable naming the ground-truth journal file (JSON lines, appended).
+TRUTH_LOG_ENV = "RIGD_SIM_TRUTH_LOG"
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,6 +102,12 @@ class GroundTruth:
     """camera -> (frame counter, true exposure start, delivered to host)."""
     clocks: dict[str, DeviceClock] = field(default_factory=dict)
     """device name -> its clock; the trigger box is under 'trigger'."""
+    unplugged: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    """device -> (true_t_first, true_t_last) spans whose data never reached the host because the
+    device was unplugged (`unplug_at_s`). Event sensors: from the end of the last slice the host
+    read to the replug; cameras: the unplugged window (its lost frames are also in `frames`)."""
+    ignored_triggers: dict[str, list[tuple[int, float]]] = field(default_factory=dict)
+    """camera -> (pulse index, true edge time) of rising edges it ignored while busy (`busy_us`)."""
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def add_pulse(self, index: int, box_us: int, true_us: float, delivered: bool) -> None:
@@ -96,6 +117,31 @@ class GroundTruth:
     def add_frame(self, camera: str, counter: int, true_us: float, delivered: bool) -> None:
         with self.lock:
             self.frames.setdefault(camera, []).append((counter, true_us, delivered))
+
+    def mark_frames_lost(self, camera: str, counters: list[int]) -> None:
+        """Frames logged as delivered that the host never got (left in an unplugged camera)."""
+        if not counters:
+            return
+        todo = set(counters)
+        with self.lock:
+            rows = self.frames.get(camera, [])
+            for i in range(len(rows) - 1, -1, -1):  # newest first: counters may repeat after a reset
+                counter, true_us, delivered = rows[i]
+                if counter in todo and delivered:
+                    rows[i] = (counter, true_us, False)
+                    todo.discard(counter)
+                    if not todo:
+                        break
+        if todo:
+            log.warning("truth: camera %s frames %s were never logged", camera, sorted(todo))
+
+    def add_unplugged(self, device: str, true_first_us: float, true_last_us: float) -> None:
+        with self.lock:
+            self.unplugged.setdefault(device, []).append((true_first_us, true_last_us))
+
+    def add_ignored_trigger(self, camera: str, pulse_index: int, true_us: float) -> None:
+        with self.lock:
+            self.ignored_triggers.setdefault(camera, []).append((pulse_index, true_us))
 
     def device_to_rig(self, device: str, device_us: float) -> float:
         """Exact rig (trigger box) time of a device timestamp."""
@@ -114,6 +160,7 @@ class SimWorld:
         self.truth = GroundTruth()
         self._lock = threading.Lock()
         self._resources: dict[str, object] = {}
+        self._unplugs: dict[str, UnplugFault] = {}
 
     def now_us(self) -> float:
         """True time in microseconds since the world was created."""
@@ -141,6 +188,198 @@ class SimWorld:
             if key not in self._resources:
                 self._resources[key] = make()
             return self._resources[key]
+
+    def unplug_fault(self, device: str) -> UnplugFault:
+        """The unplug state of a device name, shared by every object opened under that name."""
+        with self._lock:
+            fault = self._unplugs.get(device)
+            if fault is None:
+                fault = self._unplugs[device] = UnplugFault(self, device)
+            return fault
+
+
+@dataclass(frozen=True, slots=True)
+class UnplugParams:
+    """`unplug_at_s` / `unplug_for_s` of a device spec (seconds of true time)."""
+
+    at_s: float
+    for_s: float = math.inf
+    """math.inf: the device never comes back."""
+
+
+def unplug_params(spec: DeviceSpec) -> UnplugParams | None:
+    """Parse and check the unplug fault parameters of a spec; None when it has none."""
+    if "unplug_at_s" not in spec.params:
+        if "unplug_for_s" in spec.params:
+            raise ConfigError(f"device spec {spec.raw!r}: unplug_for_s needs unplug_at_s")
+        return None
+    at_s = spec.float_param("unplug_at_s", 0.0)
+    if not (math.isfinite(at_s) and at_s >= 0):
+        raise ConfigError(
+            f"device spec {spec.raw!r}: unplug_at_s={spec.params['unplug_at_s']!r} must be a finite "
+            "number of seconds >= 0"
+        )
+    for_s = spec.float_param("unplug_for_s", math.inf)
+    if not (for_s > 0):  # also rejects nan; inf (never replugged) is allowed
+        raise ConfigError(
+            f"device spec {spec.raw!r}: unplug_for_s={spec.params['unplug_for_s']!r} must be > 0 seconds"
+        )
+    return UnplugParams(at_s, for_s)
+
+
+class UnplugFault:
+    """One device's unplug/replug window, kept by the world so that it outlives the device object.
+
+    The host recovers from an unplug by closing the dead handle and opening the same spec again,
+    so the window must belong to the device name: while it is open, opening fails as for a
+    missing USB device; once it has happened it is never armed again. A device object opened
+    before the window is dead from its start on, for good (its handle went stale, as on
+    hardware), even after the replug. At the start a timer calls the listeners (the open device
+    objects) so they can log what they lose at that instant; every check is also made against
+    true time, so a late timer never lets data through.
+    """
+
+    def __init__(self, world: SimWorld, device: str) -> None:
+        self._world = world
+        self.device = device
+        self._lock = threading.Lock()
+        self.armed = False
+        self.start_us = math.inf
+        self.end_us = math.inf
+        #: Camera frame counter to resume from after the replug (written by the camera).
+        self.resume_counter = 0
+        #: A camera acquiring on hardware trigger: rising edges in the window are lost frames.
+        self.acquiring = False
+        self._listeners: list[Callable[[], None]] = []
+        self._unsubscribe_wire: Callable[[], None] | None = None
+
+    def arm(self, start_us: float, end_us: float, *, lost_frames_on_edges: bool) -> bool:
+        """Schedule the window [start_us, end_us) of true time; False if it was armed before."""
+        with self._lock:
+            if self.armed:
+                return False
+            self.armed = True
+            # End first: unlocked readers never see a window that is open forever.
+            self.end_us = end_us
+            self.start_us = start_us
+        # The USB disconnect "interrupt", for the device objects to log what they lose.
+        timer = threading.Timer(max(0.0, (start_us - self._world.now_us()) / 1e6), self._fire)
+        timer.name = f"sim-unplug-{self._world.name}-{self.device}"
+        timer.daemon = True
+        timer.start()
+        if lost_frames_on_edges:
+            self._unsubscribe_wire = self._world.wire.subscribe(self._on_edge)
+        log.info(
+            "sim %s/%s: unplug armed for true %.0f..%.0f us",
+            self._world.name,
+            self.device,
+            start_us,
+            end_us,
+        )
+        return True
+
+    def absent_at(self, true_us: float) -> bool:
+        """Is the device unplugged (not on the bus) at this true time?"""
+        return self.start_us <= true_us < self.end_us
+
+    def kills(self, opened_us: float, true_us: float) -> bool:
+        """Is a device object opened at `opened_us` dead (unplugged under it) at `true_us`?"""
+        return opened_us <= self.start_us <= true_us
+
+    def replugged_before(self, true_us: float) -> bool:
+        """Did the window close before this true time (an object opened now is the replugged one)?"""
+        return self.armed and self.end_us <= true_us
+
+    def check_present(self, spec: str) -> None:
+        """Refuse to open while unplugged, as a backend finds no such device."""
+        now = self._world.now_us()
+        if self.absent_at(now):
+            back = "never" if math.isinf(self.end_us) else f"in {(self.end_us - now) / 1e6:.3f} s"
+            raise DeviceError(f"cannot open {spec}: no such device (unplugged; back {back})")
+
+    def listen(self, callback: Callable[[], None]) -> Callable[[], None]:
+        """Call `callback` (on a timer thread) when the device is unplugged; returns the unsubscriber."""
+        with self._lock:
+            self._listeners.append(callback)
+
+        def unlisten() -> None:
+            with self._lock:
+                if callback in self._listeners:
+                    self._listeners.remove(callback)
+
+        return unlisten
+
+    def _fire(self) -> None:
+        log.warning("sim %s/%s: unplugged", self._world.name, self.device)
+        with self._lock:
+            listeners = list(self._listeners)
+        for cb in listeners:
+            cb()
+
+    def _on_edge(self, edge: Edge) -> None:
+        """Rising edges in the window are frames an acquiring camera would have taken."""
+        if not edge.rising or edge.true_us < self.start_us:
+            return
+        if edge.true_us >= self.end_us:
+            unsubscribe, self._unsubscribe_wire = self._unsubscribe_wire, None
+            if unsubscribe is not None:
+                unsubscribe()
+            return
+        if self.acquiring:
+            self._world.truth.add_frame(self.device, -1, edge.true_us, delivered=False)
+
+
+class TruthJournal:
+    """Append-only JSON-lines log of what the sim devices handed to the host, for crash tests.
+
+    Each line is one `os.write` on an O_APPEND descriptor: the kernel appends it whole, so a
+    SIGKILL can lose only lines not yet written, never tear one, and nothing waits in a
+    Python buffer. Lines are built with f-strings (every value is a number or a name quoted
+    once with json.dumps), which keeps the cost to a few microseconds per line.
+    """
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self._fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        log.info("sim ground-truth journal: %s", path)
+
+    def write(self, line: str) -> None:
+        """Append one line (no newline in `line`); raises OSError if the disk refuses it."""
+        data = (line + "\n").encode()
+        n = os.write(self._fd, data)
+        if n != len(data):  # a regular file only writes short when the disk is full
+            raise OSError(f"truth journal {self.path}: short write ({n} of {len(data)} bytes)")
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
+_journals: dict[str, TruthJournal] = {}
+_journals_lock = threading.Lock()
+
+
+def truth_journal() -> TruthJournal | None:
+    """The journal `RIGD_SIM_TRUTH_LOG` names now (one descriptor per path), or None if unset.
+
+    Devices look it up when they are opened, so a test may set the variable per test.
+    """
+    path = os.environ.get(TRUTH_LOG_ENV)
+    if not path:
+        return None
+    with _journals_lock:
+        journal = _journals.get(path)
+        if journal is None:
+            journal = _journals[path] = TruthJournal(path)
+        return journal
+
+
+def close_truth_journals() -> None:
+    """Close every journal descriptor (tests); devices opened later reopen their path."""
+    with _journals_lock:
+        journals = list(_journals.values())
+        _journals.clear()
+    for journal in journals:
+        journal.close()
 
 
 _worlds: dict[str, SimWorld] = {}
