@@ -6,20 +6,43 @@ so the writer, the reader and the validator cannot drift apart.
 
 from __future__ import annotations
 
-from typing import Literal
+import json
+from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 SCHEMA_NAME = "rigd.take"
 #: Major changes break readers; minor ones only add datasets or attributes.
-SCHEMA_VERSION = "1.0"
+#: 1.1 added `events/<sensor>/trigger/host_time_ns`, the flush journal and the crash-recovery
+#: attributes; 1.0 takes stay readable (see `added_in`).
+SCHEMA_VERSION = "1.1"
 
 EVENTS_GROUP = "events"
 FRAMES_GROUP = "frames"
 TRIGGER_GROUP = "trigger"
 SYNC_GROUP = "sync"
 CONFIG_DATASET = "config_json"
+#: uint8 (2, capacity): two slots, overwritten in place alternately on every flush given a
+#: journal (the capture's loss bookkeeping), each `{"flush": n, "journal": {...}}` as UTF-8 JSON
+#: padded with NUL bytes. The newest slot that parses is current; the other survives a kill
+#: in the middle of a write.
+JOURNAL_DATASET = "journal_json"
+#: Root attr (JSON) written when finalize starts: clock maps and t_offset, so a finalize cut
+#: short by a crash is continued with exactly the same mapping. Removed once complete.
+FINALIZE_PLAN_ATTR = "finalize_plan_json"
+#: Sensor group attr: events [0, t_rig_upto) of `t` already hold rig time - t_offset.
+FINALIZE_UPTO_ATTR = "t_rig_upto"
+#: Sensor dataset: redo log of the block being rewritten (attr `range` = [start, stop)).
+FINALIZE_SCRATCH = "finalize_scratch"
+#: Sensor datasets `tail_<x|y|p|t>` (2 slots, one chunk long) holding the flushed events past
+#: the last whole chunk while recording, and attr `tail_meta` ([[first row, rows]] per slot).
+TAIL_PREFIX = "tail_"
+TAIL_META_ATTR = "tail_meta"
+#: Root attrs of a take sealed by `rigd recover` (ISO time; JSON RecoveryReport).
+RECOVERED_ATTR = "recovered_utc"
+RECOVERY_REPORT_ATTR = "recovery_report_json"
 
 ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")
 #: `events/<sensor>/<name>`: p is stored as uint8 1/0 (DSEC), not the in-memory int8 +1/-1.
@@ -30,7 +53,12 @@ TRIGGER_DTYPES: dict[str, type[np.generic]] = {
     "p": np.uint8,
     "channel": np.uint8,
     "t_device": np.int64,
+    # Host monotonic ns when the packet carrying the edge arrived; -1 unknown (schema 1.1).
+    "host_time_ns": np.int64,
 }
+#: Items newer than 1.0, with the schema version that added them: takes of an older minor
+#: version may lack them, and readers treat a missing one as "unknown".
+ADDED_IN: dict[str, tuple[int, int]] = {"trigger/host_time_ns": (1, 1)}
 #: `frames/<camera>/<name>`, all int64, one entry per frame.
 FRAME_SERIES = (
     "t_exposure_start_us",
@@ -44,6 +72,44 @@ FRAME_SERIES = (
 PULSE_SERIES = ("index", "t_us", "host_time_ns")
 
 LossKind = Literal["frames", "events", "triggers", "pulses"]
+
+
+def encode_journal(flush: int, journal: Any) -> bytes:
+    """One journal slot's content (UTF-8 JSON, no NUL bytes)."""
+    return json.dumps({"flush": flush, "journal": journal}, allow_nan=True).encode("utf-8")
+
+
+def decode_journal(slots: NDArray[np.uint8]) -> tuple[int, dict[str, Any]] | None:
+    """(flush number, journal) of the newest slot that parses; None if none does."""
+    best: tuple[int, dict[str, Any]] | None = None
+    for row in np.atleast_2d(np.asarray(slots, dtype=np.uint8)):
+        text = row.tobytes().split(b"\0", 1)[0]
+        try:
+            data = json.loads(text)
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            continue  # an empty slot, or one a kill cut in the middle of its write
+        if (
+            isinstance(data, dict)
+            and isinstance(data.get("flush"), int)
+            and isinstance(data.get("journal"), dict)
+            and (best is None or data["flush"] > best[0])
+        ):
+            best = (data["flush"], data["journal"])
+    return best
+
+
+def parse_version(version: str) -> tuple[int, int]:
+    """(major, minor) of a "MAJOR.MINOR" schema version; (-1, -1) when it does not parse."""
+    major, _, minor = version.partition(".")
+    try:
+        return int(major), int(minor or 0)
+    except ValueError:
+        return -1, -1
+
+
+def has_item(version: str, item: str) -> bool:
+    """Whether a take of schema `version` must have `item` (a key of ADDED_IN, or anything older)."""
+    return parse_version(version) >= ADDED_IN.get(item, (1, 0))
 
 
 class DeviceSync(BaseModel):

@@ -1,4 +1,4 @@
-"""Take files: writing (capture pipeline), reading (training jobs) and validation."""
+"""Take files: writing (capture pipeline), reading (training jobs), validation and recovery."""
 
 from rigd.take.reader import (
     CameraSummary,
@@ -8,18 +8,34 @@ from rigd.take.reader import (
     TakeSummary,
     open_take,
 )
+from rigd.take.recover import RecoveryReport, find_unfinished, recover_take
 from rigd.take.validate import validate_take
-from rigd.take.writer import DeviceWriteStats, TakeWriter, compression_options
+from rigd.take.writer import (
+    DeviceWriteStats,
+    TakeInUseError,
+    TakeTruncatedError,
+    TakeWriter,
+    Trim,
+    check_repair,
+    compression_options,
+)
 
 __all__ = [
     "CameraSummary",
     "DeviceWriteStats",
     "EventSensorSummary",
     "FrameSeries",
+    "RecoveryReport",
     "Take",
+    "TakeInUseError",
     "TakeSummary",
+    "TakeTruncatedError",
     "TakeWriter",
+    "Trim",
+    "check_repair",
     "compression_options",
+    "find_unfinished",
     "open_take",
+    "recover_take",
     "validate_take",
 ]

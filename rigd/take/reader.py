@@ -29,14 +29,21 @@ from rigd.core.schema import (
     CONFIG_DATASET,
     EVENTS_GROUP,
     FRAMES_GROUP,
+    JOURNAL_DATASET,
+    RECOVERED_ATTR,
+    RECOVERY_REPORT_ATTR,
     SCHEMA_NAME,
     SCHEMA_VERSION,
     SYNC_GROUP,
+    TAIL_META_ATTR,
+    TAIL_PREFIX,
     TRIGGER_GROUP,
     LossRecord,
     SyncReport,
+    decode_journal,
 )
 from rigd.take.calibration import read_calibration
+from rigd.take.writer import tail_rows
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +95,9 @@ class TakeSummary(BaseModel):
     schema_version: str
     time_domain: str
     failure_reason: str | None = None
+    recovered_utc: str | None = Field(
+        None, description="Set when `rigd recover` sealed the take after its writer crashed."
+    )
     cameras: dict[str, CameraSummary]
     event_sensors: dict[str, EventSensorSummary]
     pulses: int
@@ -100,6 +110,10 @@ class TakeSummary(BaseModel):
 def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
     value = obj.attrs.get(key, default)
     return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _as_text(value: Any) -> str:
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
 
 
 def _finite(v: float | None) -> float | None:
@@ -240,6 +254,36 @@ class Take:
         return data
 
     @property
+    def journal(self) -> dict[str, Any] | None:
+        """The loss bookkeeping of the last flush (`/journal_json`, newest readable slot), or None."""
+        node = self._f.get(JOURNAL_DATASET)
+        if not isinstance(node, h5py.Dataset):
+            return None
+        found = decode_journal(np.asarray(node[...]))
+        return None if found is None else found[1]
+
+    @property
+    def recovered_utc(self) -> str | None:
+        """When `rigd recover` sealed this take after a crash; None for a take closed normally."""
+        return _attr_str(self._f, RECOVERED_ATTR) if RECOVERED_ATTR in self._f.attrs else None
+
+    @property
+    def recovery_report(self) -> dict[str, Any] | None:
+        """The RecoveryReport (as a dict) of a recovered take: what was trimmed and why."""
+        if RECOVERY_REPORT_ATTR not in self._f.attrs:
+            return None
+        return self._json_object(_attr_str(self._f, RECOVERY_REPORT_ATTR), f"/ attr {RECOVERY_REPORT_ATTR}")
+
+    def _json_object(self, text: str, where: str) -> dict[str, Any]:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise TakeFormatError(f"{self.path}: {where} is not valid JSON: {exc}") from exc
+        if not isinstance(data, dict):
+            raise TakeFormatError(f"{self.path}: {where} is not a JSON object")
+        return data
+
+    @property
     def calibration(self) -> dict[str, dict[str, Any]] | None:
         """Calibrations stored in the take by `rigd calibrate ... --into-take`, by device."""
         return read_calibration(self._f)
@@ -291,7 +335,37 @@ class Take:
         return self._t_offset[sensor]
 
     # -- events ------------------------------------------------------------------------
+    def _tail(self, g: h5py.Group) -> tuple[int, int, int]:
+        """(main rows, tail slot, tail rows) of a sensor. A take whose writer died before
+        `rigd recover` keeps the flushed events past its last whole chunk in `tail_*`
+        (see docs/take-format.md); index reads include them."""
+        n = int(g["t"].shape[0])
+        if self.status != "recording" or TAIL_META_ATTR not in g.attrs:
+            return n, 0, 0
+        slot, m = tail_rows(g, n)
+        return n, slot, m
+
+    def _n_events(self, g: h5py.Group) -> int:
+        n, _, m = self._tail(g)
+        return n + m
+
     def _read_events(self, g: h5py.Group, lo: int, hi: int, t_offset: int) -> EventArray:
+        n, slot, m = self._tail(g)
+        main = self._read_main(g, lo, min(hi, n), t_offset)
+        if hi <= n or m == 0:
+            return main
+        a, b = max(lo, n) - n, min(hi, n + m) - n
+        cols = {k: np.asarray(g[f"{TAIL_PREFIX}{k}"][slot, a:b]) for k in "xypt"}
+        tail = EventArray(
+            cols["x"].astype(np.uint16),
+            cols["y"].astype(np.uint16),
+            cols["p"].astype(np.int8) * np.int8(2) - np.int8(1),
+            cols["t"].astype(np.int64) + np.int64(t_offset),
+        )
+        return EventArray.concatenate([main, tail])
+
+    def _read_main(self, g: h5py.Group, lo: int, hi: int, t_offset: int) -> EventArray:
+        hi = max(lo, hi)
         t = np.asarray(g["t"][lo:hi], dtype=np.int64) + np.int64(t_offset)
         p = g["p"][lo:hi].astype(np.int8) * np.int8(2) - np.int8(1)
         return EventArray(g["x"][lo:hi], g["y"][lo:hi], p, t)
@@ -310,7 +384,7 @@ class Take:
         return lo + int(np.searchsorted(t, rel, side="left"))
 
     def event_count(self, sensor: str) -> int:
-        return int(self._sensor_group(sensor)["t"].shape[0])
+        return self._n_events(self._sensor_group(sensor))
 
     def geometry(self, sensor: str) -> tuple[int, int]:
         """(width, height) of an event sensor."""
@@ -320,7 +394,7 @@ class Take:
     def events_by_index(self, sensor: str, start: int, stop: int) -> EventArray:
         """Events [start, stop) by position; works in either time domain."""
         g = self._sensor_group(sensor)
-        n = int(g["t"].shape[0])
+        n = self._n_events(g)
         lo, hi = max(0, min(start, n)), max(0, min(stop, n))
         return self._read_events(g, lo, max(lo, hi), self._offset(sensor))
 
@@ -330,9 +404,8 @@ class Take:
         Without bounds this also works on a never-finalized take (times then in device clock).
         """
         g = self._sensor_group(sensor)
-        n = int(g["t"].shape[0])
         if t_start_us is None and t_end_us is None:
-            return self._read_events(g, 0, n, self._offset(sensor))
+            return self._read_events(g, 0, self._n_events(g), self._offset(sensor))
         lo, hi = self._index_range(sensor, t_start_us, t_end_us)
         return self._read_events(g, lo, hi, self._offset(sensor))
 
@@ -392,6 +465,20 @@ class Take:
             np.asarray(tg["channel"][...], dtype=np.uint8),
         )
 
+    def trigger_host_times(self, sensor: str) -> NDArray[np.int64]:
+        """Host monotonic ns at which each trigger-in edge's packet arrived; -1 where unknown.
+
+        Schema 1.0 takes did not record it: all -1 (the same "unknown" a 1.1 writer stores).
+        """
+        g = self._sensor_group(sensor)
+        tg = g.get("trigger")
+        if not isinstance(tg, h5py.Group):
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/trigger is missing")
+        n = int(tg["t"].shape[0])
+        if "host_time_ns" not in tg:
+            return np.full(n, -1, np.int64)
+        return np.asarray(tg["host_time_ns"][:n], dtype=np.int64)
+
     def pulses(self) -> PulseBatch:
         g = self._f.get(f"{TRIGGER_GROUP}/pulses")
         if not isinstance(g, h5py.Group):
@@ -411,11 +498,12 @@ class Take:
     def event_span(self, sensor: str) -> tuple[int, int] | None:
         """(first, last) event time in the take's time domain, or None without events."""
         g = self._sensor_group(sensor)
-        n = int(g["t"].shape[0])
+        n = self._n_events(g)
         if n == 0:
             return None
-        off = self._offset(sensor)
-        return int(g["t"][0]) + off, int(g["t"][n - 1]) + off
+        return int(self._read_events(g, 0, 1, self._offset(sensor)).t[0]), int(
+            self._read_events(g, n - 1, n, self._offset(sensor)).t[0]
+        )
 
     # -- summary -----------------------------------------------------------------------
     def summary(self) -> TakeSummary:
@@ -445,7 +533,7 @@ class Take:
         sens: dict[str, EventSensorSummary] = {}
         for name in self.event_sensors:
             g = self._sensor_group(name)
-            n = int(g["t"].shape[0])
+            n = self._n_events(g)
             span = self.event_span(name)
             span_us = span[1] - span[0] if span else 0
             d = devs.get(name)
@@ -471,7 +559,8 @@ class Take:
             status=self.status,
             schema_version=self.schema_version,
             time_domain=self.time_domain,
-            failure_reason=None if reason is None else str(reason),
+            failure_reason=None if reason is None else _as_text(reason),
+            recovered_utc=self.recovered_utc,
             cameras=cams,
             event_sensors=sens,
             pulses=int(pulses_node.shape[0]) if isinstance(pulses_node, h5py.Dataset) else 0,

@@ -23,9 +23,12 @@ from rigd.core.schema import (
     CONFIG_DATASET,
     EVENT_DTYPES,
     EVENTS_GROUP,
+    FINALIZE_PLAN_ATTR,
     FRAME_SERIES,
     FRAMES_GROUP,
+    JOURNAL_DATASET,
     PULSE_SERIES,
+    RECOVERY_REPORT_ATTR,
     ROOT_ATTRS,
     SCHEMA_NAME,
     SCHEMA_VERSION,
@@ -33,6 +36,8 @@ from rigd.core.schema import (
     TRIGGER_DTYPES,
     TRIGGER_GROUP,
     SyncReport,
+    decode_journal,
+    has_item,
 )
 
 log = logging.getLogger(__name__)
@@ -49,6 +54,7 @@ class _Validator:
         self.path = path
         self.f = f
         self.problems: list[str] = []
+        self.version = _text(f.attrs.get("schema_version", SCHEMA_VERSION))
 
     def add(self, hpath: str, msg: str) -> None:
         self.problems.append(f"{self.path}: {hpath}: {msg}")
@@ -113,10 +119,22 @@ class _Validator:
             self.add("/", f"time_domain {domain!r} is not device or rig")
         if status == "complete" and domain != "rig":
             self.add("/", f"status is complete but time_domain is {domain!r}, expected 'rig'")
-        if "finalize_started_utc" in f.attrs:
-            self.add("/", "finalize was interrupted: stored times may be partly mapped to rig time")
+        if status != "complete" and ("finalize_started_utc" in f.attrs or FINALIZE_PLAN_ATTR in f.attrs):
+            self.add(
+                "/",
+                "finalize was interrupted: stored times may be partly mapped to rig time "
+                "(`rigd recover` finishes it exactly)",
+            )
+        if "truncated_eof" in f.attrs:
+            self.add("/", "a repair of this truncated take was interrupted (run `rigd recover` again)")
         rig = domain == "rig"
         self.check_config()
+        with self.reading(f"/{JOURNAL_DATASET}"):
+            self.check_journal()
+        if RECOVERY_REPORT_ATTR in f.attrs:
+            with self.reading("/"):
+                if not isinstance(json.loads(_text(f.attrs[RECOVERY_REPORT_ATTR])), dict):
+                    self.add("/", f"attribute {RECOVERY_REPORT_ATTR} is not a JSON object")
         ev = f.get(EVENTS_GROUP)
         if self.group(EVENTS_GROUP) is not None and isinstance(ev, h5py.Group):
             for name in ev:
@@ -141,6 +159,13 @@ class _Validator:
             data = json.loads(_text(ds[()]))
             if not isinstance(data, dict):
                 self.add(f"/{CONFIG_DATASET}", "is not a JSON object")
+
+    def check_journal(self) -> None:
+        if JOURNAL_DATASET not in self.f:
+            return  # optional: only takes whose writer was given a journal have one
+        ds = self.dataset(JOURNAL_DATASET, np.uint8, ndim=2)
+        if ds is not None and (ds.shape[0] != 2 or decode_journal(ds[...]) is None):
+            self.add(f"/{JOURNAL_DATASET}", "has no readable slot (expected 2 rows of NUL-padded JSON)")
 
     def check_report(self) -> None:
         ds = self.dataset(f"{SYNC_GROUP}/report_json", ndim=0)
@@ -172,7 +197,12 @@ class _Validator:
         ms = self.dataset(f"{base}/ms_to_idx", np.uint64) if rig or "ms_to_idx" in g else None
         tg = self.group(f"{base}/trigger")
         if tg is not None:
-            trig = {k: self.dataset(f"{base}/trigger/{k}", dt) for k, dt in TRIGGER_DTYPES.items()}
+            # Items a newer minor version added are optional in older takes (1.0: host_time_ns).
+            trig = {
+                k: self.dataset(f"{base}/trigger/{k}", dt)
+                for k, dt in TRIGGER_DTYPES.items()
+                if k in tg or has_item(self.version, f"trigger/{k}")
+            }
             self.equal_lengths(f"{base}/trigger", trig)
         if any(d is None for d in cols.values()) or len({int(d.shape[0]) for d in cols.values() if d}) != 1:
             return

@@ -1,0 +1,724 @@
+"""Seal takes whose writer died (SIGKILL, power to the process, OOM): find, repair, finalize.
+
+A take is unfinished when its status is still "recording" (the process died while capturing,
+or between the last flush and finalize) or when a finalize started and never completed.
+`recover_take` rebuilds what the capture pipeline had in memory from the file itself -- the
+pulse log, every camera's frame times, every event sensor's rising trigger-in edges, and the
+loss bookkeeping of the last flush (`/journal_json`) -- runs `rigd.sync.synchronize` exactly
+as `rigd.capture` does, and finalizes through `TakeWriter.resume`. What the kill left
+half-written is trimmed (`check_repair`) and reported, never dropped silently; recorded data
+is never deleted otherwise. A take a live process holds (HDF5 file lock) is left untouched.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import h5py
+import hdf5plugin  # noqa: F401  (registers the LZ4 / Zstd filters with h5py)
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+
+from drivers.base import EventSensorSettings
+from rigd.config import WriterConfig
+from rigd.core.errors import SyncError, TakeError, TakeFormatError
+from rigd.core.schema import (
+    CONFIG_DATASET,
+    EVENTS_GROUP,
+    FINALIZE_PLAN_ATTR,
+    FRAMES_GROUP,
+    JOURNAL_DATASET,
+    RECOVERED_ATTR,
+    RECOVERY_REPORT_ATTR,
+    SCHEMA_NAME,
+    SYNC_GROUP,
+    TAIL_PREFIX,
+    TRIGGER_GROUP,
+    LossKind,
+    LossRecord,
+    SyncReport,
+    decode_journal,
+)
+from rigd.sync import DeviceObservations, PulseLog, SyncResult, synchronize
+from rigd.take.writer import (
+    TakeInUseError,
+    TakeTruncatedError,
+    TakeWriter,
+    Trim,
+    ZeroPadded,
+    check_header,
+    check_repair,
+    open_h5,
+    require_dataset,
+    require_group,
+    tail_rows,
+    utc_now,
+)
+
+log = logging.getLogger(__name__)
+
+Outcome = Literal[
+    "sealed",  # finalized: status complete, times in rig time
+    "sealed_failed",  # sealed with status failed and a reason (no rig time could be fitted)
+    "in_use",  # a live process holds the file; untouched
+    "not_needed",  # already complete, or failed by its own writer
+    "would_seal",  # dry run of "sealed"
+    "would_seal_failed",  # dry run of "sealed_failed"
+]
+_SEALED: frozenset[str] = frozenset(
+    {"sealed", "sealed_failed", "not_needed", "would_seal", "would_seal_failed"}
+)
+_COUNTERS = TypeAdapter(dict[str, dict[str, int]])
+_LINK = TypeAdapter(dict[str, int])
+
+
+class RecoveryReport(BaseModel):
+    """What recovery found and did to one take; stored in the take as `recovery_report_json`."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    path: str
+    outcome: Outcome
+    sealed: bool = Field(description="The take is (or, in a dry run, would be) in a final state.")
+    dry_run: bool = False
+    status_before: str | None = None
+    status_after: str | None = None
+    finalize_resumed: bool = Field(False, description="A finalize cut short by the crash was continued.")
+    reason: str | None = Field(None, description="Why the take is not sealed, or sealed as failed.")
+    failure_reason_before: str | None = None
+    trims: list[Trim] = Field(default_factory=list)
+    frames: dict[str, int] = Field(default_factory=dict, description="Frames kept, by camera.")
+    events: dict[str, int] = Field(default_factory=dict, description="Events kept, by sensor.")
+    triggers: dict[str, int] = Field(default_factory=dict, description="Trigger-in edges kept, by sensor.")
+    pulses: int = 0
+    losses_added: list[LossRecord] = Field(
+        default_factory=list, description="Loss records recovery added (trims, the crash itself)."
+    )
+    journal_losses: int = Field(0, description="Loss records merged from the last flush's journal.")
+    truncated_bytes: int = Field(
+        0, description="Bytes a failed write (disk full) left missing at the end; extended with a hole."
+    )
+    warnings: list[str] = Field(default_factory=list)
+    last_flush_utc: str | None = None
+    flush_count: int | None = None
+    flush_interval_s: float | None = None
+
+    def line(self) -> str:
+        """One line for people: what happened, what was kept, what was cut."""
+        kept = f"{sum(self.frames.values())} frames, {sum(self.events.values())} events, {self.pulses} pulses"
+        cut = f"; trimmed {len(self.trims)} group(s)" if self.trims else ""
+        lost = sum(r.count for r in self.losses_added)
+        head = {
+            "sealed": "sealed complete" + (" (finalize resumed)" if self.finalize_resumed else ""),
+            "sealed_failed": "sealed FAILED",
+            "in_use": "in use by a live writer; left untouched",
+            "not_needed": f"{self.status_before}; nothing to recover",
+            "would_seal": "would seal complete" + (" (finalize resumed)" if self.finalize_resumed else ""),
+            "would_seal_failed": "would seal FAILED",
+        }[self.outcome]
+        if self.outcome in ("in_use", "not_needed"):
+            return f"{self.path}: {head}"
+        why = f": {self.reason}" if self.reason else ""
+        return f"{self.path}: {head}{why} ({kept}{cut}; {lost} item(s) recorded as lost)"
+
+
+@dataclass(slots=True)
+class _TakeData:
+    """Everything recovery reads from the take, as the capture pipeline had it in memory."""
+
+    status: str
+    plan: bool
+    failure_reason: str | None
+    last_flush_utc: str | None
+    flush_count: int | None
+    flush_interval_s: float | None
+    writer_config: WriterConfig
+    rate_hz: float | None
+    pulses: PulseLog
+    observations: list[DeviceObservations]
+    cameras: list[str]
+    sensors: list[str]
+    frames: dict[str, int]
+    events: dict[str, int]
+    triggers: dict[str, int]
+    n_pulses: int
+    last_t: dict[str, int | None]
+    slaves: dict[str, str]
+    software: set[str]
+    journal: dict[str, Any] | None
+    stored_report: SyncReport | None
+    warnings: list[str] = field(default_factory=list)
+
+
+def _text(value: Any) -> str:
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
+def _needs_recovery(f: h5py.File, truncated: bool) -> bool:
+    """Still recording, a finalize that started and did not finish (and was not sealed), or a
+    file a failed write left too short for HDF5 to open."""
+    status = _text(f.attrs.get("status", ""))
+    if truncated and status != "complete":
+        return True
+    if status == "complete":
+        return False
+    if status == "recording" or FINALIZE_PLAN_ATTR in f.attrs:
+        return True
+    return "finalize_started_utc" in f.attrs and RECOVERED_ATTR not in f.attrs
+
+
+def find_unfinished(directory: str | Path) -> list[Path]:
+    """Takes (`*.h5`, `*.hdf5`) in `directory` that need `recover_take`, sorted by name.
+
+    Takes a live process holds are listed too (their state cannot be read; `recover_take`
+    reports them "in use"). Files that are not rigd takes are skipped with a log line.
+    """
+    d = Path(directory)
+    if not d.is_dir():
+        raise TakeError(f"{d}: not a directory")
+    out: list[Path] = []
+    for p in sorted(d.iterdir()):
+        if not p.is_file() or p.suffix.lower() not in (".h5", ".hdf5"):
+            continue
+        try:
+            f, truncated = _open_view(p)
+        except TakeInUseError:
+            log.info("%s is held by a live writer; listed as unfinished", p)
+            out.append(p)
+            continue
+        except TakeError as exc:
+            log.warning("skipping %s: %s", p, exc)
+            continue
+        with f:
+            if _text(f.attrs.get("schema", "")) != SCHEMA_NAME:
+                log.info("skipping %s: not a rigd take", p)
+                continue
+            if _needs_recovery(f, truncated is not None):
+                out.append(p)
+    return out
+
+
+def _open_view(path: Path) -> tuple[h5py.File, TakeTruncatedError | None]:
+    """Open read-only; a take truncated by a failed write through a zero-padded view."""
+    try:
+        return open_h5(path, "r"), None
+    except TakeTruncatedError as exc:
+        try:
+            return h5py.File(ZeroPadded(path, exc.stored_eof), "r"), exc
+        except OSError as exc2:
+            raise TakeFormatError(f"{path}: truncated and unreadable even padded: {exc2}") from exc2
+
+
+def recover_take(path: str | Path, *, dry_run: bool = False) -> RecoveryReport:
+    """Repair and seal one unfinished take; see the module docstring and docs/take-format.md.
+
+    Returns the report (also stored in the take as `recovery_report_json`). A take a live
+    process holds comes back "in_use", untouched. Raises TakeError / TakeFormatError, naming
+    the file and the dataset, for a file that is not a readable rigd take.
+    """
+    path = Path(path)
+    try:
+        return _recover(path, dry_run=dry_run)
+    except TakeInUseError as exc:
+        log.warning("%s", exc)
+        return RecoveryReport(
+            path=str(path), outcome="in_use", sealed=False, dry_run=dry_run, reason=str(exc)
+        )
+
+
+def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
+    f, truncated = _open_view(path)
+    with f:
+        check_header(f, path)
+        status = _text(f.attrs.get("status", ""))
+        rr = RecoveryReport(
+            path=str(path), outcome="not_needed", sealed=True, dry_run=dry_run, status_before=status
+        )
+        if not _needs_recovery(f, truncated is not None):
+            log.info("take %s is %s; nothing to recover", path, status)
+            return rr
+        plan = FINALIZE_PLAN_ATTR in f.attrs
+        if truncated is not None:
+            rr.truncated_bytes = truncated.stored_eof - truncated.eof
+            rr.warnings.append(
+                f"the file ends {rr.truncated_bytes} bytes short of what its header records (a write "
+                "failed: disk full?); it is extended with a hole and nothing past the old end is used"
+            )
+        if status == "failed" and not plan:  # truncated: repair it, keep what its writer said
+            trims = check_repair(f, path, apply=False, data_end=truncated.eof if truncated else None)
+            return _repair_only(path, rr, trims, dry_run=dry_run)
+        if not plan and "finalize_started_utc" in f.attrs:
+            reason = (
+                "finalize was interrupted in a take without a finalize plan (written by rigd before "
+                "schema 1.1): event times are part rig, part device time and cannot be told apart"
+            )
+            return _seal_unresumable(path, rr, reason, dry_run=dry_run)
+        # A finalize in progress has rewritten part of t: its order says nothing about damage.
+        trims = check_repair(
+            f, path, apply=False, check_order=not plan, data_end=truncated.eof if truncated else None
+        )
+        if plan and trims:  # finalize starts only on consistent data: this is not a crash's doing
+            what = "; ".join(f"{t.hpath}: {t.reason}" for t in trims)
+            raise TakeFormatError(f"{path}: finalize had started, yet the data is inconsistent ({what})")
+        data = _read(f, path, {t.hpath: t.after for t in trims}, plan=plan)
+    rr.trims = trims
+    rr.failure_reason_before = data.failure_reason
+    rr.frames, rr.events, rr.triggers, rr.pulses = data.frames, data.events, data.triggers, data.n_pulses
+    rr.last_flush_utc, rr.flush_count, rr.flush_interval_s = (
+        data.last_flush_utc,
+        data.flush_count,
+        data.flush_interval_s,
+    )
+    rr.warnings.extend(data.warnings)
+    if data.plan:
+        return _continue_finalize(path, rr, data, dry_run=dry_run)
+    return _finalize_crashed(path, rr, data, trims, dry_run=dry_run)
+
+
+# -- reading the take ----------------------------------------------------------------------
+def _read_ds(ds: h5py.Dataset, n: int, where: str) -> NDArray[Any]:
+    """ds[:n], or a TakeFormatError naming the file and dataset (corrupt chunk, bad filter)."""
+    try:
+        return np.asarray(ds[:n])
+    except (OSError, ValueError) as exc:
+        raise TakeFormatError(f"{where}: {ds.name}: cannot be read: {exc}") from exc
+
+
+def _json_dict(text: str, what: str, warnings: list[str]) -> dict[str, Any]:
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        warnings.append(f"{what} is not valid JSON ({exc}); ignored")
+        return {}
+    if not isinstance(data, dict):
+        warnings.append(f"{what} is not a JSON object; ignored")
+        return {}
+    return data
+
+
+def _known_fields(model: type[BaseModel], raw: Any) -> dict[str, Any]:
+    """Only the fields this rigd knows: takes from other versions still parse."""
+    return {k: v for k, v in raw.items() if k in model.model_fields} if isinstance(raw, dict) else {}
+
+
+def _writer_config(cfg: dict[str, Any], warnings: list[str]) -> WriterConfig:
+    try:
+        return WriterConfig.model_validate(_known_fields(WriterConfig, cfg.get("writer")))
+    except ValidationError as exc:
+        warnings.append(
+            f"rig config writer settings unreadable ({exc.error_count()} error(s)); defaults used"
+        )
+        return WriterConfig()
+
+
+def _sensor_settings(
+    cfg: dict[str, Any], name: str, g: h5py.Group, warnings: list[str]
+) -> EventSensorSettings:
+    """From the rig config in the take, else the group's own `settings_json`, else defaults."""
+    raw: Any = None
+    sensors = cfg.get("event_sensors")
+    for s in sensors if isinstance(sensors, list) else []:
+        if isinstance(s, dict) and s.get("name") == name:
+            raw = s.get("settings", {})
+    if raw is None and "settings_json" in g.attrs:
+        raw = _json_dict(_text(g.attrs["settings_json"]), f"{g.name} attr settings_json", warnings)
+    if raw is None:
+        warnings.append(f"{name}: no settings in the take; trigger-in channel 0 assumed")
+    try:
+        return EventSensorSettings.model_validate(_known_fields(EventSensorSettings, raw))
+    except ValidationError as exc:
+        warnings.append(f"{name}: settings unreadable ({exc.error_count()} error(s)); defaults used")
+        return EventSensorSettings()
+
+
+def _rate_hz(cfg: dict[str, Any], pulses: PulseLog, warnings: list[str]) -> float | None:
+    trig = cfg.get("trigger")
+    settings = trig.get("settings") if isinstance(trig, dict) else None
+    rate = settings.get("rate_hz") if isinstance(settings, dict) else None
+    if isinstance(rate, int | float) and rate > 0:
+        return float(rate)
+    if pulses.t_us.size >= 2:
+        period = float(np.median(np.diff(pulses.t_us) / np.maximum(np.diff(pulses.index), 1)))
+        if period > 0:
+            warnings.append(
+                f"trigger rate not in the rig config; {1e6 / period:.6g} Hz estimated from the pulses"
+            )
+            return 1e6 / period
+    return None
+
+
+def _pulse_log(index: NDArray[np.int64], t_us: NDArray[np.int64], host: NDArray[np.int64]) -> PulseLog:
+    """Sorted, de-duplicated pulse log, as rigd.capture builds it (the box may resend)."""
+    order = np.argsort(index, kind="stable")
+    uniq = np.concatenate([[True], np.diff(index[order]) > 0]) if index.size else np.empty(0, bool)
+    sel = order[uniq]
+    return PulseLog(index[sel], t_us[sel], host[sel], int(index.max(initial=-1)) + 1)
+
+
+def _synth_host_times(
+    t: NDArray[np.int64], host: NDArray[np.int64], pulses: PulseLog, period_us: float
+) -> NDArray[np.int64]:
+    """Host times for edges recorded without one (schema 1.0), so the sync engine's coarse
+    matching has something to work with: the edge's pulse is counted in whole periods from
+    the first edge, taken to be pulse 0 (devices start before the box), and given that
+    pulse's host arrival time from a line fitted to the pulse log."""
+    steps = np.maximum(np.rint(np.diff(t).astype(np.float64) / period_us), 1.0)
+    k = np.concatenate([[0.0], np.cumsum(steps)])
+    idx = pulses.index.astype(np.float64)
+    h0 = int(pulses.host_time_ns[0])
+    rel = (pulses.host_time_ns - h0).astype(np.float64)
+    if idx.size >= 2 and np.ptp(idx) > 0:
+        slope, icpt = np.polyfit(idx, rel, 1)
+    else:
+        slope, icpt = period_us * 1e3, float(rel[0]) - float(idx[0]) * period_us * 1e3
+    est = np.rint(icpt + slope * k).astype(np.int64) + h0
+    return np.where(host < 0, est, host)
+
+
+def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _TakeData:
+    """Read what the sync engine and the report need, as if `kept` trims were applied."""
+    where = str(path)
+    warnings: list[str] = []
+    cfg = _json_dict(_text(require_dataset(f, CONFIG_DATASET, where)[()]), f"/{CONFIG_DATASET}", warnings)
+    pg = require_group(f, f"{TRIGGER_GROUP}/pulses", where)
+    cols = {k: require_dataset(pg, k, where) for k in ("index", "t_us", "host_time_ns")}
+    n_p = kept.get(pg.name, int(cols["index"].shape[0]))
+    pulses = _pulse_log(*(np.asarray(_read_ds(cols[k], n_p, where), np.int64) for k in cols))
+    rate = _rate_hz(cfg, pulses, warnings)
+    observations: list[DeviceObservations] = []
+    frames: dict[str, int] = {}
+    last_t: dict[str, int | None] = {}
+    software: set[str] = set()
+    for name, g in require_group(f, FRAMES_GROUP, where).items():
+        t_ds = require_dataset(g, "t_exposure_start_device_us", where)
+        n = kept.get(g.name, int(t_ds.shape[0]))
+        t = np.asarray(_read_ds(t_ds, n, where), np.int64)
+        host = np.asarray(_read_ds(require_dataset(g, "host_time_ns", where), n, where), np.int64)
+        counter = np.asarray(_read_ds(require_dataset(g, "frame_counter", where), n, where), np.int64)
+        observations.append(DeviceObservations(name, "rgb_camera", t, host, counter))
+        frames[name], last_t[name] = n, int(t[-1]) if n else None
+        info = _json_dict(_text(g.attrs.get("info_json", "{}")), f"{g.name} attr info_json", warnings)
+        facts = info.get("facts")
+        if isinstance(facts, dict) and facts.get("sync") == "software":
+            software.add(name)
+    events: dict[str, int] = {}
+    triggers: dict[str, int] = {}
+    slaves: dict[str, str] = {}
+    period = 1e6 / rate if rate else None
+    for name, g in require_group(f, EVENTS_GROUP, where).items():
+        t_ds = require_dataset(g, "t", where)
+        n_ev = kept.get(g.name, int(t_ds.shape[0]))
+        slot, m = (0, 0) if plan else tail_rows(g, n_ev)  # flushed rows the repair appends
+        events[name] = n_ev + m
+        # During a finalize t is part rig time: the device time of the last event is unknown.
+        if m:
+            last_t[name] = int(g[f"{TAIL_PREFIX}t"][slot, m - 1])
+        else:
+            last_t[name] = int(t_ds[n_ev - 1]) if n_ev and not plan else None
+        settings = _sensor_settings(cfg, name, g, warnings)
+        if settings.sync_mode == "slave" and settings.sync_master is not None:
+            slaves[name] = settings.sync_master
+        tg = require_group(g, "trigger", where)
+        td_ds = require_dataset(tg, "t_device", where)
+        n_tr = kept.get(tg.name, int(td_ds.shape[0]))
+        triggers[name] = n_tr
+        td = np.asarray(_read_ds(td_ds, n_tr, where), np.int64)
+        pol = _read_ds(require_dataset(tg, "p", where), n_tr, where)
+        chan = _read_ds(require_dataset(tg, "channel", where), n_tr, where)
+        if "host_time_ns" in tg:
+            host = np.asarray(_read_ds(require_dataset(tg, "host_time_ns", where), n_tr, where), np.int64)
+        else:
+            host = np.full(n_tr, -1, np.int64)
+        rising = (pol == 1) & (chan == settings.trigger_in_channel)
+        t_r, h_r = td[rising], host[rising]
+        unknown = int((h_r < 0).sum())
+        if unknown and pulses.index.size and period is not None:
+            h_r = _synth_host_times(t_r, h_r, pulses, period)
+            warnings.append(
+                f"{name}: {unknown} trigger edge(s) without a recorded host time (schema 1.0 writer); "
+                "matched to pulses assuming its first edge is pulse 0"
+            )
+        observations.append(DeviceObservations(name, "event_sensor", t_r, h_r))
+    journal = _read_journal(f, warnings)
+    stored_report = None
+    node = f.get(f"{SYNC_GROUP}/report_json")
+    if plan and isinstance(node, h5py.Dataset):
+        try:
+            stored_report = SyncReport.model_validate_json(_text(node[()]))
+        except ValidationError as exc:
+            warnings.append(
+                f"/{SYNC_GROUP}/report_json does not parse ({exc.error_count()} error(s)); kept as is"
+            )
+    interval = f.attrs.get("flush_interval_s")
+    count = f.attrs.get("flush_count")
+    reason = f.attrs.get("failure_reason")
+    return _TakeData(
+        status=_text(f.attrs.get("status", "")),
+        plan=plan,
+        failure_reason=None if reason is None else _text(reason),
+        last_flush_utc=_text(f.attrs["last_flush_utc"]) if "last_flush_utc" in f.attrs else None,
+        flush_count=None if count is None else int(count),
+        flush_interval_s=None if interval is None else float(interval),
+        writer_config=_writer_config(cfg, warnings),
+        rate_hz=rate,
+        pulses=pulses,
+        observations=observations,
+        cameras=list(frames),
+        sensors=list(events),
+        frames=frames,
+        events=events,
+        triggers=triggers,
+        n_pulses=n_p,
+        last_t=last_t,
+        slaves=slaves,
+        software=software,
+        journal=journal,
+        stored_report=stored_report,
+        warnings=warnings,
+    )
+
+
+def _read_journal(f: h5py.File, warnings: list[str]) -> dict[str, Any] | None:
+    """The newest readable journal slot; damage is a warning, never an error (bookkeeping)."""
+    node = f.get(JOURNAL_DATASET)
+    if node is None:
+        return None
+    try:
+        found = decode_journal(np.asarray(node[...]))
+    except (OSError, ValueError, TypeError) as exc:
+        warnings.append(f"/{JOURNAL_DATASET} unreadable ({exc}); losses recorded before the crash unknown")
+        return None
+    if found is None:
+        warnings.append(f"/{JOURNAL_DATASET} has no readable slot; losses recorded before the crash unknown")
+        return None
+    return found[1]
+
+
+# -- sync and bookkeeping ------------------------------------------------------------------
+def _crash_note(data: _TakeData) -> str:
+    when = (
+        f"the last flush (#{data.flush_count}, {data.last_flush_utc})"
+        if data.last_flush_utc
+        else "the last flush"
+    )
+    span = f"at most {data.flush_interval_s:g} s" if data.flush_interval_s else "one flush interval"
+    return f"the take ended by a crash of its writer: data after {when} was never written ({span})"
+
+
+def _crash_losses(data: _TakeData) -> list[LossRecord]:
+    """One record per device: something after the last flush was lost, how much is unknown."""
+    note = _crash_note(data)
+    kinds: list[tuple[str, LossKind]] = [
+        *((n, "frames") for n in data.cameras),
+        *((n, "events") for n in data.sensors),
+        ("trigger", "pulses"),
+    ]
+    out = []
+    for name, what in kinds:
+        t = data.last_t.get(name)
+        after = f"; last stored at device t={t} us" if t is not None else ""
+        out.append(LossRecord(device=name, what=what, count=0, reason=f"{note}; count unknown{after}"))
+    return out
+
+
+def _journal_losses(journal: dict[str, Any], warnings: list[str]) -> list[LossRecord]:
+    raw = journal.get("losses", [])
+    if not isinstance(raw, list):
+        warnings.append("journal 'losses' is not a list; ignored")
+        return []
+    out = []
+    for i, item in enumerate(raw):
+        try:
+            out.append(LossRecord.model_validate(item))
+        except ValidationError as exc:
+            warnings.append(f"journal loss record {i} unreadable ({exc.error_count()} error(s)); ignored")
+    return out
+
+
+def _journal_warnings(journal: dict[str, Any], warnings: list[str]) -> list[str]:
+    """The journal's warnings, fault history and failed devices, worded as rigd.capture does."""
+    out: list[str] = []
+    failed = journal.get("failed_devices", {})
+    if isinstance(failed, dict):
+        out += [f"{name} failed mid-take and was written off: {why}" for name, why in failed.items()]
+    for key, suffix in (("warnings", ""), ("fault_history", ""), ("faults", " (still active at the crash)")):
+        items = journal.get(key, [])
+        if isinstance(items, list):
+            out += [f"{item}{suffix}" for item in items]
+        else:
+            warnings.append(f"journal {key!r} is not a list; ignored")
+    return out
+
+
+def _fit(data: _TakeData, losses: list[LossRecord]) -> tuple[SyncResult | None, str | None]:
+    """synchronize() as rigd.capture._finalize calls it; a reason instead when it cannot tie
+    any device clock to rig time."""
+    if data.flush_count == 0:
+        return None, "the writer died before its first flush: the take holds no recorded data"
+    if data.pulses.index.size == 0:
+        return None, "no trigger pulse was flushed before the crash: no device clock can be tied to rig time"
+    if data.rate_hz is None:
+        return None, "the trigger rate is unknown (no rig config in the take and too few pulses)"
+    try:
+        result = synchronize(
+            data.pulses,
+            data.observations,
+            data.rate_hz,
+            losses,
+            shares_clock_with=data.slaves,
+            software_synced=data.software,
+        )
+    except SyncError as exc:
+        return None, f"sync failed: {exc}"
+    tied = [d for d in result.report.devices.values() if d.clock_from != "host" or d.sync == "software"]
+    if data.observations and not tied:
+        why = "; ".join(result.report.warnings[:3])
+        return None, f"no device clock could be fitted to the trigger pulses ({why})"
+    return result, None
+
+
+def _merge_journal(report: SyncReport, journal: dict[str, Any], warnings: list[str]) -> None:
+    for key, adapter in (("device_counters", _COUNTERS), ("trigger_link", _LINK)):
+        if key not in journal:
+            continue
+        try:
+            setattr(report, key, adapter.validate_python(journal[key]))
+        except ValidationError as exc:
+            warnings.append(f"journal {key!r} unreadable ({exc.error_count()} error(s)); ignored")
+    report.warnings.extend(_journal_warnings(journal, warnings))
+
+
+# -- sealing -------------------------------------------------------------------------------
+def _finalize_crashed(
+    path: Path, rr: RecoveryReport, data: _TakeData, trims: list[Trim], *, dry_run: bool
+) -> RecoveryReport:
+    """A take that died while recording (or before finalize): sync from the file, finalize."""
+    trim_losses = [
+        LossRecord(
+            device=t.device,
+            what=t.what,
+            count=t.lost,
+            reason=f"cut by crash recovery ({t.hpath}): {t.reason}",
+        )
+        for t in trims
+        if t.lost > 0
+    ]
+    journal = data.journal or {}
+    jl = _journal_losses(journal, rr.warnings)
+    rr.journal_losses = len(jl)
+    rr.losses_added = [*trim_losses, *_crash_losses(data)]
+    result, reason = _fit(data, [*jl, *rr.losses_added])
+    rr.warnings.append(_crash_note(data))
+    if result is not None:
+        report = result.report
+        _merge_journal(report, journal, rr.warnings)
+        report.warnings.extend([*data.warnings, f"{_crash_note(data)}; sealed by `rigd recover`"])
+        rr.outcome = "would_seal" if dry_run else "sealed"
+    else:
+        rr.reason = reason
+        rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
+    if dry_run:
+        return rr
+    w = TakeWriter.resume(path, data.writer_config, extend_truncated=True)
+    try:
+        if w.repairs != trims:
+            raise TakeError(f"{path}: the take changed while it was being recovered; run recovery again")
+        w.mark_recovered(None)  # first: a crash during the finalize below still shows it
+        if result is not None:
+            frame_index = {name: result.observation_pulse_index[name] for name in data.cameras}
+            w.finalize(result.maps, frame_index, result.report)
+        else:
+            w.fail(f"recovered after a crash of its writer but not finalized: {reason}")
+        rr.status_after = w.status
+        w.mark_recovered(rr.model_dump_json())
+    finally:
+        w.close()
+    log.warning("%s", rr.line())
+    return rr
+
+
+def _continue_finalize(path: Path, rr: RecoveryReport, data: _TakeData, *, dry_run: bool) -> RecoveryReport:
+    """A take whose finalize a crash cut short: finish it with the plan it started with."""
+    rr.finalize_resumed = True
+    note = (
+        "finalize was interrupted by a crash and completed by `rigd recover` with the clock maps "
+        "it had started with (times identical to an uninterrupted finalize)"
+    )
+    rr.warnings.append(note)
+    report = data.stored_report
+    if report is not None:
+        report = report.model_copy(deep=True)
+        report.warnings.append(note)
+    rr.outcome = "would_seal" if dry_run else "sealed"
+    if dry_run:
+        return rr
+    w = TakeWriter.resume(path, data.writer_config, extend_truncated=True)
+    try:
+        w.mark_recovered(None)
+        w.continue_finalize(report)
+        rr.status_after = w.status
+        w.mark_recovered(rr.model_dump_json())
+    finally:
+        w.close()
+    log.warning("%s", rr.line())
+    return rr
+
+
+def _repair_only(path: Path, rr: RecoveryReport, trims: list[Trim], *, dry_run: bool) -> RecoveryReport:
+    """A take its writer marked failed that a failed write left truncated: make it readable
+    (extend, trim what was never written) and keep its status and reason."""
+    rr.trims = trims
+    rr.reason = "marked failed by its writer; only repaired so that it opens"
+    rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
+    rr.losses_added = [
+        LossRecord(
+            device=t.device,
+            what=t.what,
+            count=t.lost,
+            reason=f"cut by crash recovery ({t.hpath}): {t.reason}",
+        )
+        for t in trims
+        if t.lost > 0
+    ]
+    if dry_run:
+        return rr
+    w = TakeWriter.resume(path, WriterConfig(), extend_truncated=True)
+    try:
+        if w.repairs != trims:
+            raise TakeError(f"{path}: the take changed while it was being recovered; run recovery again")
+        rr.status_after = "failed"
+        for name, st in w.stats.items():
+            if st.kind == "rgb_camera":
+                rr.frames[name] = st.items
+            elif st.kind == "event_sensor":
+                rr.events[name] = st.items
+            else:
+                rr.pulses = st.items
+        w.mark_recovered(rr.model_dump_json())
+    finally:
+        w.close()
+    log.warning("%s", rr.line())
+    return rr
+
+
+def _seal_unresumable(path: Path, rr: RecoveryReport, reason: str, *, dry_run: bool) -> RecoveryReport:
+    """Mark failed with the reason and nothing else: no data is trimmed or rewritten."""
+    rr.reason = reason
+    rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
+    if dry_run:
+        return rr
+    with open_h5(path, "r+") as f:
+        old = f.attrs.get("failure_reason")
+        rr.failure_reason_before = None if old is None else _text(old)
+        f.attrs["status"] = "failed"
+        f.attrs["failure_reason"] = reason if old is None else f"{_text(old)}; {reason}"
+        f.attrs[RECOVERED_ATTR] = utc_now()
+        rr.status_after = "failed"
+        f.attrs[RECOVERY_REPORT_ATTR] = rr.model_dump_json()
+    log.warning("%s", rr.line())
+    return rr
