@@ -177,6 +177,22 @@ class Discovery:
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
 
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Discovery:
+        """Inverse of `to_dict` (what a daemon's `devices` request returns)."""
+        fields = set(FoundDevice.__dataclass_fields__)
+        return cls(
+            [
+                SourceReport(
+                    s["source"],
+                    bool(s["available"]),
+                    [FoundDevice(**{k: v for k, v in d.items() if k in fields}) for d in s["devices"]],
+                    s.get("reason", ""),
+                )
+                for s in data["sources"]
+            ]
+        )
+
 
 # ---------------------------------------------------------------------------- sources
 def _sysfs_usb_speed(usb_device_path: str | None) -> int | None:

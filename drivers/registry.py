@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -153,6 +154,23 @@ def _resolve(kind: DeviceKind, scheme: str) -> Factory:
             f"no {kind} backend for scheme {scheme!r}; known schemes: {', '.join(schemes) or 'none'}"
         )
     return _load(fac) if isinstance(fac, str) else fac
+
+
+def check_spec(kind: DeviceKind, spec: str) -> None:
+    """Check a spec without opening anything: a backend exists for its scheme and, for a
+    serial port given by path, the port exists. Raises ConfigError naming the problem."""
+    parsed = DeviceSpec.parse(spec)
+    key = (kind, parsed.scheme)
+    if key not in _registered and key not in available_backends():
+        schemes = sorted(s for k, s in available_backends() if k == kind)
+        raise ConfigError(
+            f"unknown device URL {spec!r}: no {kind} backend for scheme {parsed.scheme!r} "
+            f"(known: {', '.join(schemes) or 'none'})"
+        )
+    if parsed.scheme == "serial":
+        port = parsed.path or parsed.location
+        if port.startswith("/") and not os.path.exists(port):
+            raise ConfigError(f"serial port {port} does not exist (is the trigger box plugged in?)")
 
 
 D = TypeVar("D", bound=Device)

@@ -7,7 +7,7 @@ import logging
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -20,8 +20,11 @@ from rigd.commands.devices import devices
 from rigd.commands.doctor import doctor
 from rigd.commands.guided import guided
 from rigd.commands.reconstruct import reconstruct
+from rigd.commands.recover import recover_command
+from rigd.commands.service import ConnectOpt, capture_via_daemon, find_for_command, serve, status, stop
 from rigd.config import RigConfig, default_sim_rig
-from rigd.core.errors import RigdError
+from rigd.core.errors import ConfigError, RigdError
+from rigd.service.client import DaemonClient
 
 app = typer.Typer(
     help="Capture daemon for a hybrid RGB + event-camera rig.",
@@ -36,13 +39,37 @@ out = Console(width=120) if not sys.stdout.isatty() else Console()
 @app.callback()
 def _main(
     verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More log output.")] = 0,
+    log_level: Annotated[
+        str | None,
+        typer.Option(
+            "--log-level", envvar="RIGD_LOG_LEVEL", help="debug, info, warning, error (overrides -v)."
+        ),
+    ] = None,
+    log_format: Annotated[
+        str,
+        typer.Option("--log-format", envvar="RIGD_LOG_FORMAT", help="text, or json (one object per line)."),
+    ] = "text",
+    log_file: Annotated[
+        Path | None, typer.Option("--log-file", envvar="RIGD_LOG_FILE", help="Also log to this file.")
+    ] = None,
 ) -> None:
+    from rigd.logs import setup_logging
+
     level = logging.WARNING - 10 * min(verbose, 2)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if log_level is not None:
+        named = logging.getLevelNamesMapping().get(log_level.upper())
+        if named is None:
+            raise _fail(
+                ConfigError(f"--log-level: unknown level {log_level!r} (debug, info, warning, error)")
+            )
+        level = named
+    if log_format not in ("text", "json"):
+        raise _fail(ConfigError(f"--log-format: {log_format!r} is not text or json"))
+    setup_logging(level, "json" if log_format == "json" else "text", log_file)
 
 
 def _fail(exc: Exception) -> typer.Exit:
-    console.print(f"[bold red]error:[/] {exc}")
+    console.print(f"[bold red]error:[/] {exc}", soft_wrap=True)
     return typer.Exit(code=2)
 
 
@@ -52,16 +79,41 @@ def capture(
         Path | None, typer.Option("--config", "-c", help="Rig config (TOML/JSON/YAML); default: the sim rig.")
     ] = None,
     duration: Annotated[float, typer.Option("--duration", "-d", help="Seconds of trigger pulses.")] = 5.0,
-    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Directory for the take.")] = Path("takes"),
+    out_dir: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Directory for the take (default: takes).")
+    ] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
+    label: Annotated[str | None, typer.Option("--label", help="Word for the take's file name.")] = None,
+    connect: ConnectOpt = None,
+    local: Annotated[
+        bool, typer.Option("--local", help="Capture in this process even if a daemon is running.")
+    ] = False,
 ) -> None:
-    """Capture one take; with no --config, from the built-in simulated rig."""
+    """Capture one take: through the running daemon if there is one, else in-process
+    (with no --config, from the built-in simulated rig)."""
     from rigd.capture import Progress as CaptureProgress
     from rigd.capture import run_capture
     from rigd.inspect import summarize
 
     try:
+        client = find_for_command(connect, local)
+    except RigdError as exc:
+        raise _fail(exc) from exc
+    if client is not None:
+        with client:
+            if config is not None or out_dir is not None:
+                raise _fail(
+                    ConfigError(
+                        f"a rigd daemon runs at {client.endpoint} with its own rig config and take dir; "
+                        "drop --config/--out to capture through it, or pass --local to capture in-process"
+                    )
+                )
+            _capture_remote(client, duration, label, json_out)
+        return
+    out_dir = out_dir or Path("takes")
+    try:
         rig = RigConfig.load(config) if config else default_sim_rig()
+        rig.check_devices()
     except RigdError as exc:
         raise _fail(exc) from exc
     total = max(1, round(duration * rig.trigger.settings.rate_hz))
@@ -81,7 +133,7 @@ def capture(
             bar.update(task, completed=p.pulses, detail=f"{ev / 1e6:.1f} Mev  queue {p.queue_depth}")
 
         try:
-            result = run_capture(rig, out_dir, duration, on_progress=on_progress)
+            result = run_capture(rig, out_dir, duration, on_progress=on_progress, label=label)
         except RigdError as exc:
             raise _fail(exc) from exc
     summary = summarize(result.path)
@@ -94,6 +146,25 @@ def capture(
         f"wrote {result.bytes_written / 1e6:.1f} MB in {result.wall_s:.1f} s "
         f"({result.bytes_written / 1e6 / max(result.wall_s, 1e-9):.1f} MB/s)"
     )
+
+
+def _capture_remote(client: DaemonClient, duration: float, label: str | None, json_out: bool) -> None:
+    with Progress(
+        TextColumn("[bold]capturing (daemon)[/]"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("pulses  {task.fields[detail]}"),
+        console=console,
+        disable=json_out or not console.is_terminal,
+    ) as bar:
+        task = bar.add_task("capture", total=None, detail="")
+
+        def on_status(t: dict[str, Any]) -> None:
+            faults = t.get("faults") or []
+            detail = f"queue {t.get('queue_depth')}" + (f"  faults: {len(faults)}" if faults else "")
+            bar.update(task, completed=t.get("pulses") or 0, detail=detail)
+
+        capture_via_daemon(client, duration, label, json_out, on_status)
 
 
 @app.command()
@@ -229,6 +300,10 @@ app.add_typer(calibrate_app, name="calibrate", help="Calibrate cameras and event
 app.command("reconstruct")(reconstruct)
 app.command("devices")(devices)
 app.command("doctor")(doctor)
+app.command("serve")(serve)
+app.command("recover")(recover_command)
+app.command("status")(status)
+app.command("stop")(stop)
 
 
 def main() -> None:

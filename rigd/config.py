@@ -6,6 +6,8 @@ Loaded from TOML, JSON or YAML; every error names the file and the field.
 from __future__ import annotations
 
 import json
+import os
+import tempfile
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -53,6 +55,100 @@ class WriterConfig(BaseModel):
     queue_put_timeout_s: float = Field(
         2.0, gt=0, description="How long an acquisition thread waits on a full queue before counting a drop."
     )
+    flush_interval_s: float = Field(
+        1.0,
+        ge=0.05,
+        le=60.0,
+        description="Seconds between flushes of the take; a crash loses at most this much data.",
+    )
+    disk_reserve_mb: int = Field(
+        1024,
+        ge=0,
+        description="A take does not start, and a running one stops cleanly, below this much free disk.",
+    )
+    disk_ballast_mb: int = Field(
+        64,
+        ge=0,
+        description="Disk space held while a take runs and freed if the disk fills anyway, so the "
+        "take can still be closed.",
+    )
+
+
+def runtime_dir() -> Path:
+    """Where the daemon's sockets live: $RIGD_RUNTIME_DIR, systemd's $RUNTIME_DIRECTORY,
+    $XDG_RUNTIME_DIR/rigd, /run/rigd when the system service runs, else /tmp/rigd-<uid>
+    (created owner-only)."""
+    for var, sub in (("RIGD_RUNTIME_DIR", ""), ("RUNTIME_DIRECTORY", ""), ("XDG_RUNTIME_DIR", "rigd")):
+        base = os.environ.get(var)
+        if base:
+            return Path(base.split(":")[0]) / sub if sub else Path(base.split(":")[0])
+    if Path("/run/rigd/control.sock").exists():  # the systemd unit's RuntimeDirectory
+        return Path("/run/rigd")
+    return Path(tempfile.gettempdir()) / f"rigd-{os.getuid()}"
+
+
+def default_control_endpoint() -> str:
+    return f"ipc://{runtime_dir() / 'control.sock'}"
+
+
+def default_telemetry_endpoint() -> str:
+    return f"ipc://{runtime_dir() / 'telemetry.sock'}"
+
+
+_LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
+
+
+class CurveConfig(BaseModel):
+    """CurveZMQ keys (`rigd keys` writes them): the only way to listen beyond loopback."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    server_secret_key: Path = Field(description="Daemon's secret key file (zmq.auth format).")
+    authorized_keys_dir: Path = Field(description="Directory of the client public keys allowed in.")
+
+
+class ServiceConfig(BaseModel):
+    """How `rigd serve` listens and reports; defaults are local and owner-only."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    control: str | None = Field(None, description="ZeroMQ control endpoint; None: IPC in the runtime dir.")
+    telemetry: str | None = Field(None, description="ZeroMQ endpoint of the telemetry PUB socket.")
+    take_dir: Path = Field(Path("takes"), description="Where takes are written (and recovered on start).")
+    telemetry_interval_s: float = Field(1.0, ge=0.05, le=60.0)
+    thumbnail_interval_s: float = Field(2.0, ge=0.0, le=3600.0, description="0 turns thumbnails off.")
+    thumbnail_width: int = Field(320, ge=16, le=4096)
+    metrics_host: str = Field("127.0.0.1", description="Prometheus exporter address.")
+    metrics_port: int | None = Field(9464, ge=0, le=65535, description="None turns the exporter off.")
+    reconnect_interval_s: float = Field(1.0, ge=0.0, le=60.0, description="0: a lost device is written off.")
+    recover_on_start: bool = Field(True, description="Seal takes a crash left unfinished before serving.")
+    curve: CurveConfig | None = None
+
+    @model_validator(mode="after")
+    def _secure_endpoints(self) -> ServiceConfig:
+        for name in ("control", "telemetry"):
+            ep = getattr(self, name)
+            if ep is None:
+                continue
+            scheme, sep, rest = ep.partition("://")
+            if not sep or scheme not in ("ipc", "tcp"):
+                raise ValueError(f"service.{name}: {ep!r} is not an ipc:// or tcp:// endpoint")
+            if scheme == "tcp":
+                host = rest.rsplit(":", 1)[0]
+                if host not in _LOOPBACK and self.curve is None:
+                    raise ValueError(
+                        f"service.{name}: {ep} listens beyond loopback; that needs CurveZMQ keys "
+                        "(service.curve) or a loopback address"
+                    )
+        return self
+
+    @property
+    def control_endpoint(self) -> str:
+        return self.control or default_control_endpoint()
+
+    @property
+    def telemetry_endpoint(self) -> str:
+        return self.telemetry or default_telemetry_endpoint()
 
 
 class RigConfig(BaseModel):
@@ -63,6 +159,7 @@ class RigConfig(BaseModel):
     cameras: list[CameraConfig] = Field(default_factory=list)
     event_sensors: list[EventSensorConfig] = Field(default_factory=list)
     writer: WriterConfig = Field(default_factory=WriterConfig)
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
 
     @model_validator(mode="after")
     def _unique_names(self) -> RigConfig:
@@ -85,7 +182,40 @@ class RigConfig(BaseModel):
                     )
             elif st.sync_master is not None:
                 raise ValueError(f"event sensor {sen.name}: sync_master is only for sync_mode slave")
+        tr = self.trigger.settings
+        period_us = 1e6 / tr.rate_hz
+        if tr.pulse_width_us >= period_us:
+            raise ValueError(
+                f"trigger.settings.pulse_width_us: {tr.pulse_width_us} us does not fit the "
+                f"{period_us:.0f} us period of rate_hz {tr.rate_hz:g}"
+            )
+        for i, cam in enumerate(self.cameras):
+            cs = cam.settings
+            if cs.trigger_mode == "hardware" and cs.exposure_us >= period_us:
+                raise ValueError(
+                    f"cameras.{i}.settings.exposure_us: {cs.exposure_us} us exposure is longer than the "
+                    f"{period_us:.0f} us trigger period (trigger.settings.rate_hz {tr.rate_hz:g}): "
+                    "impossible frame rate"
+                )
         return self
+
+    def check_devices(self) -> None:
+        """Check every device spec without opening anything (see `drivers.registry.check_spec`);
+        the error names the config field."""
+        from drivers.registry import check_spec
+
+        fields: list[tuple[str, Literal["rgb_camera", "event_sensor", "trigger"], str]] = [
+            ("trigger.spec", "trigger", self.trigger.spec)
+        ]
+        fields += [(f"cameras.{i}.spec", "rgb_camera", c.spec) for i, c in enumerate(self.cameras)]
+        fields += [
+            (f"event_sensors.{i}.spec", "event_sensor", s.spec) for i, s in enumerate(self.event_sensors)
+        ]
+        for where, kind, spec in fields:
+            try:
+                check_spec(kind, spec)
+            except ConfigError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
 
     @classmethod
     def load(cls, path: str | Path) -> RigConfig:
@@ -120,11 +250,12 @@ class RigConfig(BaseModel):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            lines = []
+            parts = []
             for err in exc.errors():
-                where = ".".join(str(x) for x in err["loc"]) or "(top level)"
-                lines.append(f"  {where}: {err['msg']}")
-            raise ConfigError(f"rig config {source} is invalid:\n" + "\n".join(lines)) from None
+                where = ".".join(str(x) for x in err["loc"])
+                msg = str(err["msg"]).removeprefix("Value error, ")
+                parts.append(f"{where}: {msg}" if where else msg)
+            raise ConfigError(f"rig config {source}: " + "; ".join(parts)) from None
 
 
 def default_sim_rig(

@@ -51,9 +51,21 @@ def devices(
     udev: Annotated[
         Path | None, typer.Option("--udev", help="Write udev rules with stable /dev/rigd-* symlinks here.")
     ] = None,
+    connect: Annotated[str | None, typer.Option("--connect", help="Ask the daemon at this endpoint.")] = None,
+    local: Annotated[bool, typer.Option("--local", help="Look here even if a daemon runs.")] = False,
 ) -> None:
-    """List serial ports, USB and HID devices, V4L2 nodes and GenICam cameras rigd can use."""
-    found = discover()
+    """List serial ports, USB and HID devices, V4L2 nodes and GenICam cameras rigd can use.
+
+    With a daemon running, the daemon looks (it is the process with the device permissions)."""
+    from rigd.commands.service import find_for_command
+
+    client = find_for_command(connect, local)
+    if client is None:
+        found = discover()
+    else:
+        with client:
+            found = Discovery.from_dict(client.call("devices"))
+        _err.print(f"devices as seen by the daemon at {client.endpoint}")
     out = Console(width=160)
     if json_out:
         typer.echo(found.to_json())

@@ -71,3 +71,17 @@ def test_spec_parameters_are_checked() -> None:
     with pytest.raises(ConfigError, match="unknown parameter"):
         spec.check_params({"drift_ppm"})
     assert DeviceSpec.parse("/dev/ttyACM0").scheme == "serial"
+
+
+def test_example_configs_load() -> None:
+    """The configs shipped in deploy/ stay valid as the schema changes."""
+    from pathlib import Path
+
+    from rigd.config import RigConfig
+
+    root = Path(__file__).resolve().parents[2] / "deploy" / "configs"
+    configs = sorted(root.glob("*.toml"))
+    assert len(configs) >= 2
+    for path in configs:
+        cfg = RigConfig.load(path)
+        assert cfg.cameras or cfg.event_sensors

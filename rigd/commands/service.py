@@ -1,0 +1,217 @@
+"""`rigd serve`, `rigd status`, `rigd stop`, and the daemon side of `rigd capture`.
+
+Commands that act on the rig talk to a running daemon when one answers at the control
+endpoint; `capture` and `devices` fall back to doing the work in-process when none does.
+Exit codes: 0 done, 1 the take ended with an error, 2 bad input / request refused,
+3 no daemon running (status, stop).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from rigd.config import RigConfig, default_sim_rig
+from rigd.core.errors import ConfigError, RigdError
+from rigd.service.client import DaemonClient, DaemonRequestError, find_daemon
+
+log = logging.getLogger(__name__)
+_err = Console(stderr=True)
+
+ConnectOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--connect", help="Daemon control endpoint; default: the local IPC socket (see docs/service.md)."
+    ),
+]
+
+
+def control_endpoint(connect: str | None, config: Path | None = None) -> str:
+    if connect:
+        return connect
+    if config is not None:
+        return RigConfig.load(config).service.control_endpoint
+    from rigd.config import default_control_endpoint
+
+    return default_control_endpoint()
+
+
+def _fail(exc: Exception, code: int = 2) -> typer.Exit:
+    _err.print(f"[bold red]error:[/] {exc}", soft_wrap=True)
+    return typer.Exit(code=code)
+
+
+def serve(
+    config: Annotated[
+        Path | None, typer.Option("--config", "-c", help="Rig config (TOML/JSON/YAML); default: the sim rig.")
+    ] = None,
+    take_dir: Annotated[Path | None, typer.Option("--take-dir", help="Overrides service.take_dir.")] = None,
+    control: Annotated[str | None, typer.Option("--control", help="Overrides service.control.")] = None,
+    telemetry: Annotated[str | None, typer.Option("--telemetry", help="Overrides service.telemetry.")] = None,
+    metrics_port: Annotated[
+        int | None, typer.Option("--metrics-port", help="Prometheus port (0: any free port; -1: off).")
+    ] = None,
+) -> None:
+    """Run the capture daemon: control socket, telemetry, metrics; Ctrl-C/SIGTERM to stop."""
+    from rigd.service.daemon import run_daemon
+
+    try:
+        rig = RigConfig.load(config) if config else default_sim_rig()
+        overrides: dict[str, Any] = {}
+        if take_dir is not None:
+            overrides["take_dir"] = take_dir
+        if control is not None:
+            overrides["control"] = control
+        if telemetry is not None:
+            overrides["telemetry"] = telemetry
+        if metrics_port is not None:
+            overrides["metrics_port"] = None if metrics_port < 0 else metrics_port
+        if overrides:
+            data = rig.model_dump(mode="json")
+            data["service"].update({k: str(v) if isinstance(v, Path) else v for k, v in overrides.items()})
+            rig = RigConfig.from_data(data, source=f"{config or 'sim rig'} + command line")
+        rig.check_devices()
+        run_daemon(rig)
+    except RigdError as exc:
+        raise _fail(exc) from exc
+
+
+def status(
+    connect: ConnectOpt = None,
+    json_out: Annotated[bool, typer.Option("--json", help="The raw telemetry document.")] = False,
+) -> None:
+    """Show what the daemon is doing: state, devices, rates, losses, faults, disk."""
+    endpoint = control_endpoint(connect)
+    client = find_daemon(endpoint)
+    if client is None:
+        _err.print(f"no rigd daemon at {endpoint} (an in-process `rigd capture` is not visible here)")
+        raise typer.Exit(code=3)
+    with client:
+        try:
+            t = client.call("status")
+        except RigdError as exc:
+            raise _fail(exc) from exc
+    if json_out:
+        typer.echo(json.dumps(t, indent=2))
+        return
+    print_status(t, Console())
+
+
+def print_status(t: dict[str, Any], out: Console) -> None:
+    disk = f"{t['disk_free_bytes'] / 1e9:.1f} of {t['disk_total_bytes'] / 1e9:.1f} GB free"
+    out.print(f"state: [bold]{t['state']}[/]   takes: {t['takes_completed']}   disk: {disk}")
+    if t.get("take"):
+        out.print(
+            f"take: {t['take']}  {t['take_elapsed_s']:.1f} s  pulses {t['pulses']}  "
+            f"queue {t['queue_depth']}/{t['queue_capacity']}  {t['bytes_written'] / 1e6:.0f} MB"
+        )
+    table = Table("device", "kind", "state", "total", "rate/s", "lost", "reconnects", "jitter us")
+    for d in t["devices"]:
+        jitter = d.get("interval_jitter_us")
+        table.add_row(
+            d["name"],
+            d["kind"],
+            d["state"],
+            f"{d['total']:,}",
+            f"{d['rate_hz']:,.1f}",
+            str(d["lost"]),
+            str(d.get("reconnects", 0)),
+            "-" if jitter is None else f"{jitter:.2f}",
+        )
+    out.print(table)
+    for f in t.get("faults", []):
+        out.print(
+            f"[bold red]fault[/] {f['code']} {f.get('device') or ''}: {f['message']} (since {f['since_utc']})"
+        )
+    last = t.get("last_take")
+    if last:
+        out.print(
+            f"last take: {last['path']} ({last['status']})"
+            + (f": {last['error']}" if last.get("error") else "")
+        )
+
+
+def stop(
+    connect: ConnectOpt = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Wait until the take is finalized.")] = True,
+) -> None:
+    """Stop the daemon's running take (it is finalized, nothing is lost)."""
+    endpoint = control_endpoint(connect)
+    client = find_daemon(endpoint)
+    if client is None:
+        _err.print(f"no rigd daemon at {endpoint}; an in-process `rigd capture` stops with Ctrl-C")
+        raise typer.Exit(code=3)
+    with client:
+        try:
+            res = client.call("stop", reason="rigd stop")
+        except RigdError as exc:
+            raise _fail(exc) from exc
+        typer.echo(f"stopping {res['take']}")
+        if wait:
+            last = wait_for_take(client, res["take"])
+            _report_last(last)
+
+
+def wait_for_take(client: DaemonClient, path: str, on_status: Any = None) -> dict[str, Any]:
+    """Poll until the daemon reports `path` as its last take; returns that summary."""
+    while True:
+        t = client.call("status")
+        if on_status is not None:
+            on_status(t)
+        last = t.get("last_take")
+        if last and last["path"] == path and t.get("take") != path:
+            return dict(last)
+        time.sleep(0.2)
+
+
+def _report_last(last: dict[str, Any]) -> None:
+    typer.echo(f"take: {last['path']} ({last['status']})")
+    if last.get("error"):
+        _err.print(f"[bold red]error:[/] {last['error']}")
+        raise typer.Exit(code=1)
+
+
+def capture_via_daemon(
+    client: DaemonClient, duration: float | None, label: str | None, json_out: bool, progress: Any
+) -> None:
+    """Ask the daemon for a take and follow it to the end."""
+    try:
+        res = client.call("capture", duration_s=duration, label=label)
+    except DaemonRequestError as exc:
+        raise _fail(exc) from exc
+    path = res["take"]
+    if not json_out:
+        _err.print(f"capturing through the daemon at {client.endpoint}: {path}")
+    try:
+        last = wait_for_take(client, path, progress)
+    except KeyboardInterrupt:
+        client.call("stop", reason="interrupted (Ctrl-C)")
+        last = wait_for_take(client, path)
+    if json_out:
+        typer.echo(json.dumps(last, indent=2))
+    if last.get("error"):
+        _report_last(last)
+    if not json_out:
+        _report_last(last)
+
+
+def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
+    """The daemon to use, or None to work in-process; explicit --connect must answer."""
+    if local:
+        return None
+    endpoint = control_endpoint(connect)
+    client = find_daemon(endpoint, timeout_s=2.0)
+    if client is None and connect:
+        raise _fail(ConfigError(f"--connect: no rigd daemon answers at {connect}"), code=3)
+    return client
+
+
+def default_rig(config: Path | None) -> RigConfig:
+    return RigConfig.load(config) if config else default_sim_rig()

@@ -1,0 +1,128 @@
+"""Talking to a running `rigd serve`: one request, one reply, a deadline on each.
+
+A REQ socket that missed a reply is unusable, so a timed-out client closes it and opens a
+fresh one on the next call (ZeroMQ's "lazy pirate" pattern).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import uuid
+from pathlib import Path
+from typing import Any, Self
+
+import zmq
+import zmq.auth
+
+from rigd.core.errors import RigdError
+from rigd.service.endpoints import ipc_path
+from rigd.service.protocol import PROTOCOL_VERSION, ErrorInfo, Reply
+
+log = logging.getLogger(__name__)
+
+
+class DaemonUnavailableError(RigdError):
+    """No daemon answered at the endpoint in time."""
+
+
+class DaemonRequestError(RigdError):
+    """The daemon answered with a structured error."""
+
+    def __init__(self, error: ErrorInfo) -> None:
+        where = f" ({error.field})" if error.field else ""
+        super().__init__(f"{error.code}{where}: {error.message}")
+        self.error = error
+
+
+class DaemonClient:
+    """Synchronous client; not thread-safe (one per thread)."""
+
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        timeout_s: float = 5.0,
+        server_public_key: Path | None = None,
+        client_secret_key: Path | None = None,
+    ) -> None:
+        self.endpoint = endpoint
+        self.timeout_s = timeout_s
+        self._curve = (server_public_key, client_secret_key)
+        self._ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
+        self._sock: zmq.Socket[bytes] | None = None
+
+    def _socket(self) -> zmq.Socket[bytes]:
+        if self._sock is None:
+            sock = self._ctx.socket(zmq.REQ)
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.setsockopt(zmq.RCVTIMEO, int(self.timeout_s * 1000))
+            sock.setsockopt(zmq.SNDTIMEO, int(self.timeout_s * 1000))
+            server_pub, client_sec = self._curve
+            if server_pub is not None and client_sec is not None:
+                public, secret = zmq.auth.load_certificate(str(client_sec))
+                if secret is None:
+                    raise RigdError(f"{client_sec} holds no secret key")
+                sock.curve_publickey, sock.curve_secretkey = public, secret
+                sock.curve_serverkey = zmq.auth.load_certificate(str(server_pub))[0]
+            sock.connect(self.endpoint)
+            self._sock = sock
+        return self._sock
+
+    def send_raw(self, payload: bytes) -> bytes:
+        """Send bytes as they are and return the reply bytes (for tests and fuzzing)."""
+        sock = self._socket()
+        try:
+            sock.send(payload)
+            return sock.recv()
+        except zmq.Again:
+            self._reset()
+            raise DaemonUnavailableError(
+                f"no reply from the daemon at {self.endpoint} within {self.timeout_s:g} s"
+            ) from None
+
+    def call(self, cmd: str, **args: Any) -> dict[str, Any]:
+        """Run one command; returns its result or raises `DaemonRequestError`."""
+        req_id = uuid.uuid4().hex[:12]
+        body = json.dumps({"v": PROTOCOL_VERSION, "id": req_id, "cmd": cmd, "args": args}).encode()
+        raw = self.send_raw(body)
+        reply = Reply.model_validate_json(raw)
+        if reply.id != req_id:
+            raise RigdError(f"daemon at {self.endpoint} answered request {reply.id!r}, expected {req_id!r}")
+        if not reply.ok:
+            assert reply.error is not None
+            raise DaemonRequestError(reply.error)
+        return reply.result or {}
+
+    def _reset(self) -> None:
+        if self._sock is not None:
+            self._sock.close(linger=0)
+            self._sock = None
+
+    def close(self) -> None:
+        self._reset()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def find_daemon(endpoint: str, timeout_s: float = 1.0) -> DaemonClient | None:
+    """A client for the daemon at `endpoint` if one answers a ping, else None (quickly when
+    its IPC socket does not even exist)."""
+    path = ipc_path(endpoint)
+    if path is not None and not os.path.exists(path):
+        return None
+    client = DaemonClient(endpoint, timeout_s=timeout_s)
+    try:
+        client.call("ping")
+    except DaemonUnavailableError:
+        client.close()
+        return None
+    except DaemonRequestError as exc:
+        client.close()
+        raise RigdError(f"the daemon at {endpoint} refused ping: {exc}") from exc
+    return client

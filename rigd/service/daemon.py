@@ -1,0 +1,535 @@
+"""`rigd serve`: the capture daemon.
+
+One thread serves the control socket (REP), one publishes telemetry (PUB) and feeds the
+Prometheus exporter and the systemd watchdog, and at most one `CaptureSession` runs in
+the background. Every request gets a reply: malformed input is answered with a
+structured error, and a bug in a handler is logged and answered as `internal` while the
+daemon goes on serving. SIGTERM/SIGINT finalize the running take before exiting.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import json
+import logging
+import os
+import shutil
+import signal
+import threading
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import zmq
+from pydantic import BaseModel, ValidationError
+
+from rigd import __version__
+from rigd.capture import CaptureSession, SessionSnapshot, remove_stale_ballast
+from rigd.config import RigConfig
+from rigd.core.errors import ConfigError, DeviceError, RigdError, TakeError
+from rigd.service import sdnotify
+from rigd.service.client import find_daemon
+from rigd.service.endpoints import DaemonRunningError, apply_server_curve, bind, start_authenticator
+from rigd.service.metrics import MetricsExporter
+from rigd.service.protocol import (
+    ARGS_MODELS,
+    MAX_MESSAGE_BYTES,
+    PROTOCOL_VERSION,
+    CaptureArgs,
+    DaemonState,
+    DeviceTelemetry,
+    ErrorCode,
+    ErrorInfo,
+    Fault,
+    Reply,
+    Request,
+    ShutdownArgs,
+    StopArgs,
+    TakeSummary,
+    Telemetry,
+    ThumbnailHeader,
+)
+from rigd.service.thumbnails import events_thumbnail, frame_thumbnail
+
+log = logging.getLogger(__name__)
+
+#: Messages up to this size are read and refused with `too_large`; ZeroMQ drops bigger
+#: ones at the transport (the peer is disconnected) so they never reach memory.
+_HARD_LIMIT_BYTES = 1 << 20
+
+
+class _RequestError(Exception):
+    def __init__(self, code: ErrorCode, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.info = ErrorInfo(code=code, message=message, field=field)
+
+
+def _utc() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def _loc(prefix: str, loc: tuple[int | str, ...]) -> str:
+    return ".".join([prefix, *(str(x) for x in loc)]) if prefix else ".".join(str(x) for x in loc)
+
+
+class Daemon:
+    """The daemon's state; `serve()` runs until `shutdown()` or a signal."""
+
+    def __init__(self, config: RigConfig, *, metrics: bool = True) -> None:
+        self.config = config
+        self.svc = config.service
+        self._lock = threading.RLock()
+        self._session: CaptureSession | None = None
+        self._state: DaemonState = "idle"
+        self._last_take: TakeSummary | None = None
+        self._takes_completed = 0
+        self._seq = 0
+        self._stop = threading.Event()
+        self._ready = threading.Event()
+        self._ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
+        self._auth: Any = None
+        self._metrics = (
+            MetricsExporter(self.svc.metrics_host, self.svc.metrics_port)
+            if (metrics and self.svc.metrics_port is not None)
+            else None
+        )
+        self.recovered: list[dict[str, Any]] = []
+        self.requests_served = 0
+        self._loop_beat = time.monotonic()
+        self._idle_faults: list[Fault] = []
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def serve(self) -> None:
+        """Recover, bind, notify systemd, serve; blocks until shut down."""
+        control = self.svc.control_endpoint
+        existing = find_daemon(control, timeout_s=1.0)
+        if existing is not None:
+            existing.close()
+            raise DaemonRunningError(f"a rigd daemon already answers at {control}")
+        try:
+            self.svc.take_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"service.take_dir: cannot create {self.svc.take_dir}: {exc.strerror}") from exc
+        if n := remove_stale_ballast(self.svc.take_dir):
+            log.warning("removed %d disk ballast file(s) a killed daemon left in %s", n, self.svc.take_dir)
+        if self.svc.recover_on_start:
+            self._recover()
+        rep = self._ctx.socket(zmq.REP)
+        pub = self._ctx.socket(zmq.PUB)
+        for sock in (rep, pub):
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.setsockopt(zmq.MAXMSGSIZE, _HARD_LIMIT_BYTES)
+        pub.setsockopt(zmq.SNDHWM, 100)  # a slow subscriber loses telemetry, never stalls us
+        if self.svc.curve is not None:
+            self._auth = start_authenticator(self._ctx, self.svc.curve)
+            for sock in (rep, pub):
+                apply_server_curve(sock, self.svc.curve)
+        try:
+            bind(rep, control, "control")
+            bind(pub, self.svc.telemetry_endpoint, "telemetry")
+            if self._metrics is not None:
+                self._metrics.start()
+            telemetry = threading.Thread(
+                target=self._telemetry_loop, args=(pub,), name="telemetry", daemon=True
+            )
+            telemetry.start()
+            self._ready.set()
+            sdnotify.notify("READY=1", f"STATUS=serving on {control}", f"MAINPID={os.getpid()}")
+            log.info(
+                "rigd %s serving on %s (telemetry %s)", __version__, control, self.svc.telemetry_endpoint
+            )
+            self._serve_loop(rep)
+            sdnotify.notify("STOPPING=1", "STATUS=stopping")
+            self._finish_session("daemon shutting down")
+            self._stop.set()
+            telemetry.join(timeout=5)
+        finally:
+            rep.close(linger=0)
+            pub.close(linger=0)
+            if self._metrics is not None:
+                self._metrics.close()
+            if self._auth is not None:
+                self._auth.stop()
+            self._ctx.term()
+            for ep in (control, self.svc.telemetry_endpoint):
+                if ep.startswith("ipc://"):
+                    Path(ep.removeprefix("ipc://")).unlink(missing_ok=True)
+            log.info("rigd daemon stopped")
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        return self._ready.wait(timeout)
+
+    def shutdown(self) -> None:
+        self._stop.set()
+
+    def install_signal_handlers(self) -> None:
+        def handler(signum: int, frame: FrameType | None) -> None:
+            log.warning("signal %s: finalizing and shutting down", signal.Signals(signum).name)
+            self._stop.set()
+
+        signal.signal(signal.SIGTERM, handler)
+        signal.signal(signal.SIGINT, handler)
+
+    def _recover(self) -> None:
+        from rigd.take.recover import find_unfinished, recover_take
+
+        for path in find_unfinished(self.svc.take_dir):
+            log.warning("take %s was left unfinished; checking and sealing it", path)
+            sdnotify.notify(f"STATUS=sealing {path.name}", "EXTEND_TIMEOUT_USEC=120000000")
+            try:
+                rep = recover_take(path)
+            except TakeError as exc:
+                log.error("could not recover %s: %s", path, exc)
+                self.recovered.append({"path": str(path), "error": str(exc)})
+                continue
+            self.recovered.append(_as_dict(rep))
+
+    def _finish_session(self, reason: str) -> None:
+        with self._lock:
+            session = self._session
+        if session is None:
+            return
+        if not session.done:
+            sdnotify.notify("STATUS=finalizing the running take", "EXTEND_TIMEOUT_USEC=120000000")
+            session.request_stop(reason)
+        try:
+            session.wait()
+        except BaseException as exc:  # noqa: BLE001 - summarized into last_take
+            log.error("take %s ended with an error: %s", session.path, exc)
+        self._reap()
+
+    # -- control socket ------------------------------------------------------------------
+    def _serve_loop(self, rep: zmq.Socket[bytes]) -> None:
+        poller = zmq.Poller()
+        poller.register(rep, zmq.POLLIN)
+        while not self._stop.is_set():
+            self._loop_beat = time.monotonic()
+            if not poller.poll(100):
+                continue
+            frames = rep.recv_multipart(copy=True)
+            reply = self.handle(frames)
+            rep.send(reply)
+            self.requests_served += 1
+
+    def handle(self, frames: list[bytes]) -> bytes:
+        """Answer one request message (all its frames); never raises."""
+        req_id: str | None = None
+        try:
+            if len(frames) != 1:
+                raise _RequestError("bad_request", f"a request is one message frame, got {len(frames)}")
+            raw = frames[0]
+            if len(raw) > MAX_MESSAGE_BYTES:
+                raise _RequestError(
+                    "bad_request", f"request of {len(raw)} bytes; the limit is {MAX_MESSAGE_BYTES}"
+                )
+            try:
+                data = json.loads(raw.decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise _RequestError("bad_json", f"request is not UTF-8 JSON: {exc}") from None
+            except RecursionError:
+                raise _RequestError("bad_json", "request JSON is nested too deeply") from None
+            if not isinstance(data, dict):
+                raise _RequestError("bad_json", f"a request is a JSON object, got {type(data).__name__}")
+            rid = data.get("id")
+            req_id = rid if isinstance(rid, str) and len(rid) <= 64 else None
+            v = data.get("v")
+            if isinstance(v, int) and not isinstance(v, bool) and v != PROTOCOL_VERSION:
+                raise _RequestError(
+                    "unsupported_version",
+                    f"protocol version {v} is not spoken here (this daemon: {PROTOCOL_VERSION})",
+                    "v",
+                )
+            try:
+                req = Request.model_validate(data)
+            except ValidationError as exc:
+                err = exc.errors()[0]
+                raise _RequestError("bad_request", err["msg"], _loc("", err["loc"]) or None) from None
+            model = ARGS_MODELS.get(req.cmd)
+            if model is None:
+                raise _RequestError(
+                    "unknown_command", f"unknown command {req.cmd!r} (known: {', '.join(ARGS_MODELS)})", "cmd"
+                )
+            try:
+                args = model.model_validate(req.args)
+            except ValidationError as exc:
+                err = exc.errors()[0]
+                raise _RequestError("bad_request", err["msg"], _loc("args", err["loc"])) from None
+            result = getattr(self, f"_cmd_{req.cmd}")(args)
+            out = Reply(id=req_id, ok=True, result=result)
+        except _RequestError as exc:
+            out = Reply(id=req_id, ok=False, error=exc.info)
+        except ConfigError as exc:
+            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="config_error", message=str(exc)))
+        except DeviceError as exc:
+            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="device_error", message=str(exc)))
+        except TakeError as exc:
+            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="take_error", message=str(exc)))
+        except Exception as exc:
+            log.exception("request handler failed")
+            msg = f"{type(exc).__name__}: {exc}"
+            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="internal", message=msg))
+        return out.model_dump_json(exclude_none=True).encode()
+
+    # -- commands ------------------------------------------------------------------------
+    def _cmd_ping(self, _: BaseModel) -> dict[str, Any]:
+        return {"rigd": __version__, "protocol": PROTOCOL_VERSION, "pid": os.getpid(), "state": self._state}
+
+    def _cmd_status(self, _: BaseModel) -> dict[str, Any]:
+        return self.telemetry().model_dump(mode="json")
+
+    def _cmd_config(self, _: BaseModel) -> dict[str, Any]:
+        return self.config.model_dump(mode="json")
+
+    def _cmd_capture(self, args: BaseModel) -> dict[str, Any]:
+        assert isinstance(args, CaptureArgs)
+        self._reap()
+        with self._lock:
+            if self._session is not None:
+                raise _RequestError("busy", f"a take is already running: {self._session.path}")
+            session = CaptureSession(
+                self.config,
+                self.svc.take_dir,
+                duration_s=args.duration_s,
+                label=args.label,
+                reconnect_interval_s=self.svc.reconnect_interval_s,
+            )
+            self._session = session
+            self._state = "starting"
+        try:
+            path = session.start()
+        except BaseException:
+            self._reap()
+            raise
+        with self._lock:
+            self._state = "capturing"
+        log.info("take %s started (%s)", path, f"{args.duration_s} s" if args.duration_s else "until stopped")
+        return {"take": str(path), "pulses_total": session.n_pulses}
+
+    def _cmd_stop(self, args: BaseModel) -> dict[str, Any]:
+        assert isinstance(args, StopArgs)
+        self._reap()
+        with self._lock:
+            session = self._session
+            if session is None:
+                raise _RequestError("not_capturing", "no take is running")
+            self._state = "stopping"
+        session.request_stop(args.reason)
+        return {"take": str(session.path), "stopping": True}
+
+    def _cmd_devices(self, _: BaseModel) -> dict[str, Any]:
+        from drivers.discovery import discover
+
+        return discover().to_dict()
+
+    def _cmd_recover(self, _: BaseModel) -> dict[str, Any]:
+        with self._lock:
+            if self._session is not None:
+                raise _RequestError("busy", "not while a take is running")
+        before = len(self.recovered)
+        self._recover()
+        return {"recovered": self.recovered[before:]}
+
+    def _cmd_shutdown(self, args: BaseModel) -> dict[str, Any]:
+        assert isinstance(args, ShutdownArgs)
+        with self._lock:
+            running = self._session is not None and not self._session.done
+        if running and not args.force:
+            raise _RequestError(
+                "busy", "a take is running; stop it first or pass force=true (it is finalized)"
+            )
+        self._stop.set()
+        return {"shutting_down": True}
+
+    # -- session bookkeeping ---------------------------------------------------------------
+    def _reap(self) -> None:
+        """Turn a finished session into `last_take` and go back to idle."""
+        with self._lock:
+            session = self._session
+            if session is None or not session.done:
+                return
+            self._session = None
+            self._state = "idle"
+            self._takes_completed += 1
+            snap = session.snapshot()
+            err = session.error
+            res = session.result
+            if res is not None:
+                rep = res.report
+                self._last_take = TakeSummary(
+                    path=str(res.path),
+                    status="complete",
+                    frames=res.frames,
+                    events=res.events,
+                    bytes_written=res.bytes_written,
+                    losses=rep.losses,
+                    warnings=rep.warnings,
+                    residual_rms_us={k: d.residual_rms_us for k, d in rep.devices.items()},
+                )
+            else:
+                self._last_take = TakeSummary(
+                    path=str(session.path),
+                    status="failed",
+                    frames={d.name: d.total for d in snap.devices if d.kind == "rgb_camera"},
+                    events={d.name: d.total for d in snap.devices if d.kind == "event_sensor"},
+                    bytes_written=snap.bytes_written,
+                    losses=[],
+                    warnings=[],
+                    residual_rms_us={},
+                    error=f"{type(err).__name__}: {err}" if err else "unknown",
+                )
+            # Faults that outlive the take (a full disk) stay visible until the next one.
+            self._idle_faults = [_fault(f) for f in snap.faults if f.code in ("disk_full", "disk_low")]
+        log.info("take %s: %s", self._last_take.path, self._last_take.status)
+        _release_memory()
+
+    # -- telemetry -------------------------------------------------------------------------
+    def telemetry(self) -> Telemetry:
+        self._reap()
+        with self._lock:
+            session = self._session
+            self._seq += 1
+            seq = self._seq
+            state = self._state
+            last, completed, idle_faults = self._last_take, self._takes_completed, list(self._idle_faults)
+        try:
+            usage = shutil.disk_usage(self.svc.take_dir)
+            free, total = usage.free, usage.total
+        except OSError:
+            free = total = 0
+        t = Telemetry(
+            seq=seq,
+            time_utc=_utc(),
+            pid=os.getpid(),
+            state=state,
+            disk_free_bytes=free,
+            disk_total_bytes=total,
+            takes_completed=completed,
+            last_take=last,
+            faults=idle_faults,
+        )
+        if session is None:
+            t.devices = self._idle_devices()
+            return t
+        snap = session.snapshot()
+        return self._with_session(t, snap)
+
+    def _idle_devices(self) -> list[DeviceTelemetry]:
+        devs = [DeviceTelemetry(name="trigger", kind="trigger", state="idle", total=0, rate_hz=0.0, lost=0)]
+        devs += [
+            DeviceTelemetry(name=c.name, kind="rgb_camera", state="idle", total=0, rate_hz=0.0, lost=0)
+            for c in self.config.cameras
+        ]
+        devs += [
+            DeviceTelemetry(name=s.name, kind="event_sensor", state="idle", total=0, rate_hz=0.0, lost=0)
+            for s in self.config.event_sensors
+        ]
+        return devs
+
+    def _with_session(self, t: Telemetry, snap: SessionSnapshot) -> Telemetry:
+        t.take = str(snap.path)
+        t.take_elapsed_s = snap.elapsed_s
+        t.pulses = snap.pulses
+        t.queue_depth = snap.queue_depth
+        t.queue_capacity = snap.queue_capacity
+        t.bytes_written = snap.bytes_written
+        t.devices = [
+            DeviceTelemetry(
+                name=d.name,
+                kind=d.kind,
+                state=d.state,
+                total=d.total,
+                rate_hz=d.rate_hz,
+                lost=d.lost,
+                reconnects=d.reconnects,
+                last_data_age_s=d.last_data_age_s,
+                interval_jitter_us=d.interval_jitter_us,
+            )
+            for d in snap.devices
+        ]
+        t.faults = [_fault(f) for f in snap.faults]
+        return t
+
+    def _telemetry_loop(self, pub: zmq.Socket[bytes]) -> None:
+        interval = self.svc.telemetry_interval_s
+        watchdog = sdnotify.watchdog_interval_s()
+        tick = interval if watchdog is None else min(interval, watchdog)
+        next_thumb = next_status = 0.0
+        last_bytes, last_t = 0, time.monotonic()
+        while not self._stop.wait(tick):
+            now = time.monotonic()
+            if watchdog is not None and self._control_alive(now, watchdog):
+                # Pinged only while the control loop turns: a hung daemon gets restarted.
+                sdnotify.notify("WATCHDOG=1", f"STATUS={self._state}")
+            if now < next_status:
+                continue
+            next_status = now + interval
+            try:
+                t = self.telemetry()
+                t.write_rate_bytes_s = max(0.0, (t.bytes_written - last_bytes) / max(now - last_t, 1e-6))
+                last_bytes, last_t = t.bytes_written, now
+                pub.send_multipart([b"status", t.model_dump_json().encode()])
+                if self._metrics is not None:
+                    self._metrics.update(t)
+                if self.svc.thumbnail_interval_s > 0 and now >= next_thumb:
+                    self._publish_thumbnails(pub)
+                    next_thumb = now + self.svc.thumbnail_interval_s
+            except Exception:
+                # Telemetry must not take the daemon down; the next tick tries again.
+                log.exception("telemetry tick failed")
+
+    def _control_alive(self, now: float, watchdog_s: float) -> bool:
+        return now - self._loop_beat < 2 * watchdog_s
+
+    def _publish_thumbnails(self, pub: zmq.Socket[bytes]) -> None:
+        with self._lock:
+            session = self._session
+        if session is None:
+            return
+        width = self.svc.thumbnail_width
+        for name, frame in session.latest_frames().items():
+            jpeg, w, h = frame_thumbnail(frame, width)
+            head = ThumbnailHeader(device=name, kind="rgb_camera", width=w, height=h, time_utc=_utc())
+            pub.send_multipart([f"thumb.{name}".encode(), head.model_dump_json().encode(), jpeg])
+        for name, (events, geometry) in session.latest_events().items():
+            jpeg, w, h = events_thumbnail(events, geometry, width)
+            head = ThumbnailHeader(device=name, kind="event_sensor", width=w, height=h, time_utc=_utc())
+            pub.send_multipart([f"thumb.{name}".encode(), head.model_dump_json().encode(), jpeg])
+
+
+def _release_memory() -> None:
+    """Give the heap a take's buffers used back to the OS between takes.
+
+    Frames and event batches are allocated on several acquisition threads; glibc keeps
+    freed memory in per-thread arenas, so without this the daemon's resident size ratchets
+    up with every take although nothing is alive (measured with bench/soak.py)."""
+    gc.collect()
+    try:
+        libc = ctypes.CDLL(None)
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):  # not glibc: nothing to do
+        return
+    trim(0)
+
+
+def _as_dict(rep: Any) -> dict[str, Any]:
+    if isinstance(rep, BaseModel):
+        return dict(json.loads(rep.model_dump_json()))
+    return dict(vars(rep))
+
+
+def _fault(f: Any) -> Fault:
+    return Fault(code=f.code, device=f.device, message=f.message, since_utc=f.since_utc)
+
+
+def run_daemon(config: RigConfig) -> None:
+    """Entry point of `rigd serve`."""
+    daemon = Daemon(config)
+    daemon.install_signal_handlers()
+    try:
+        daemon.serve()
+    except RigdError:
+        sdnotify.notify("STATUS=failed to start")
+        raise

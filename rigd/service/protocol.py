@@ -1,0 +1,185 @@
+"""The daemon's wire protocol: control requests/replies and telemetry, as pydantic models.
+
+Control is ZeroMQ REQ/REP with one JSON object per message. Every request carries the
+protocol version `v`; a daemon answers a version it does not speak with a structured
+error instead of guessing. Replies always echo the request `id` (when one could be read)
+so scripts can match them. Telemetry is a PUB socket: topic `status` carries a
+`Telemetry` JSON document, topic `thumb.<device>` a JSON header and a JPEG.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from rigd.core.schema import LossRecord
+
+PROTOCOL_VERSION = 1
+#: Largest control message the daemon reads; bigger ones are refused by ZeroMQ itself.
+MAX_MESSAGE_BYTES = 64 * 1024
+
+Command = Literal["ping", "status", "capture", "stop", "devices", "config", "recover", "shutdown"]
+COMMANDS: tuple[str, ...] = Command.__args__  # type: ignore[attr-defined]
+
+ErrorCode = Literal[
+    "bad_json",  # not UTF-8 JSON, or not a JSON object
+    "bad_request",  # valid JSON that does not match the request model; `field` names where
+    "unknown_command",
+    "unsupported_version",
+    "busy",  # e.g. capture while a take is running
+    "not_capturing",  # stop with no take running
+    "config_error",
+    "device_error",
+    "take_error",
+    "internal",  # a bug: the daemon logged a traceback and goes on serving
+]
+
+DaemonState = Literal["idle", "starting", "capturing", "stopping", "error"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# -- requests --------------------------------------------------------------------------------
+
+
+class Request(_Strict):
+    """Envelope of every control request."""
+
+    v: int = Field(description="Protocol version the client speaks.")
+    id: Annotated[str, Field(max_length=64)] | None = Field(None, description="Echoed in the reply.")
+    cmd: str = Field(max_length=32)
+    args: dict[str, Any] = Field(default_factory=dict)
+
+
+class NoArgs(_Strict):
+    pass
+
+
+class CaptureArgs(_Strict):
+    duration_s: float | None = Field(
+        None, gt=0, le=7 * 86400, description="Seconds of trigger pulses; None: until `stop`."
+    )
+    label: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] | None = Field(
+        None, description="Goes into the take file name and attributes."
+    )
+
+
+class StopArgs(_Strict):
+    reason: Annotated[str, Field(max_length=200)] = "stop requested"
+
+
+class ShutdownArgs(_Strict):
+    force: bool = Field(False, description="Stop a running take first (it is finalized, not lost).")
+
+
+ARGS_MODELS: dict[str, type[BaseModel]] = {
+    "ping": NoArgs,
+    "status": NoArgs,
+    "capture": CaptureArgs,
+    "stop": StopArgs,
+    "devices": NoArgs,
+    "config": NoArgs,
+    "recover": NoArgs,
+    "shutdown": ShutdownArgs,
+}
+
+
+# -- replies ---------------------------------------------------------------------------------
+
+
+class ErrorInfo(_Strict):
+    code: ErrorCode
+    message: str
+    field: str | None = Field(None, description="Dotted path of the offending request field.")
+
+
+class Reply(_Strict):
+    v: int = PROTOCOL_VERSION
+    id: str | None = None
+    ok: bool
+    result: dict[str, Any] | None = None
+    error: ErrorInfo | None = None
+
+
+# -- telemetry -------------------------------------------------------------------------------
+
+
+class Fault(_Strict):
+    """Something wrong right now (cleared when it stops being true)."""
+
+    code: Literal[
+        "trigger_silent",
+        "trigger_garbage",
+        "device_failed",
+        "device_reconnecting",
+        "disk_low",
+        "disk_full",
+        "queue_full",
+        "writer_failed",
+    ]
+    device: str | None = None
+    message: str
+    since_utc: str
+
+
+class DeviceTelemetry(_Strict):
+    name: str
+    kind: Literal["rgb_camera", "event_sensor", "trigger"]
+    state: Literal["ok", "failed", "reconnecting", "idle"]
+    total: int = Field(description="Frames, events or pulse records written this take.")
+    rate_hz: float = Field(description="Frames, events or pulses per second over the last interval.")
+    lost: int = Field(description="Items recorded as lost this take (all reasons).")
+    reconnects: int = 0
+    last_data_age_s: float | None = Field(None, description="Seconds since the device last delivered.")
+    interval_jitter_us: float | None = Field(
+        None,
+        description="Std of the device-clock intervals between consecutive trigger observations minus "
+        "the trigger period, over the last interval: live health of the device's sync.",
+    )
+
+
+class TakeSummary(_Strict):
+    path: str
+    status: str
+    frames: dict[str, int]
+    events: dict[str, int]
+    bytes_written: int
+    losses: list[LossRecord]
+    warnings: list[str]
+    residual_rms_us: dict[str, float]
+    error: str | None = None
+
+
+class Telemetry(_Strict):
+    v: int = PROTOCOL_VERSION
+    seq: int
+    time_utc: str
+    pid: int
+    state: DaemonState
+    take: str | None = None
+    take_elapsed_s: float = 0.0
+    pulses: int = 0
+    queue_depth: int = 0
+    queue_capacity: int = 0
+    bytes_written: int = 0
+    write_rate_bytes_s: float = 0.0
+    disk_free_bytes: int = 0
+    disk_total_bytes: int = 0
+    devices: list[DeviceTelemetry] = Field(default_factory=list)
+    faults: list[Fault] = Field(default_factory=list)
+    takes_completed: int = 0
+    last_take: TakeSummary | None = None
+
+
+class ThumbnailHeader(_Strict):
+    """First frame of a `thumb.<device>` telemetry message; the second is the JPEG."""
+
+    v: int = PROTOCOL_VERSION
+    device: str
+    kind: Literal["rgb_camera", "event_sensor"]
+    width: int
+    height: int
+    time_utc: str

@@ -1,0 +1,144 @@
+"""Fixtures for the daemon tests: a small sim rig, private runtime dirs, daemons in a thread
+or in a subprocess (for the kill tests)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from rigd.config import RigConfig, default_sim_rig
+from rigd.service.client import DaemonClient, find_daemon
+from rigd.service.daemon import Daemon
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def small_rig(world: str, *, extra: dict[str, str] | None = None, **service: object) -> RigConfig:
+    """The default sim rig at 160x120 (fast enough for many takes on 2 cores).
+
+    `extra` appends query parameters to one device's spec: {"cam1": "unplug_at_s=1"}."""
+    cfg = default_sim_rig(world=world, resolution=(160, 120))
+    data = cfg.model_dump(mode="json")
+    for dev in [*data["cameras"], *data["event_sensors"]]:
+        if extra and dev["name"] in extra:
+            dev["spec"] += "&" + extra[dev["name"]]
+    if extra and "trigger" in extra:
+        data["trigger"]["spec"] += "&" + extra["trigger"]
+    data["writer"]["disk_reserve_mb"] = 0
+    data["writer"]["disk_ballast_mb"] = 4
+    data["service"].update({"metrics_port": None, "thumbnail_interval_s": 0.5, "telemetry_interval_s": 0.2})
+    data["service"].update(service)
+    return RigConfig.from_data(data)
+
+
+@pytest.fixture
+def runtime_dir() -> Iterator[Path]:
+    """A short private directory for IPC sockets (socket paths are limited to ~100 bytes)."""
+    d = Path(tempfile.mkdtemp(prefix="rigd-t-"))
+    os.chmod(d, 0o700)
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+@dataclass
+class RunningDaemon:
+    daemon: Daemon
+    thread: threading.Thread
+    client: DaemonClient
+    config: RigConfig
+    errors: list[BaseException]
+
+
+def endpoints(runtime: Path) -> dict[str, str]:
+    return {"control": f"ipc://{runtime}/control.sock", "telemetry": f"ipc://{runtime}/telemetry.sock"}
+
+
+@pytest.fixture
+def start_daemon(runtime_dir: Path, tmp_path: Path) -> Iterator[object]:
+    """Factory: start a Daemon in a thread on a small sim rig; stopped at teardown."""
+    running: list[RunningDaemon] = []
+
+    def start(config: RigConfig | None = None, **kw: object) -> RunningDaemon:
+        cfg = config or small_rig(f"svc-{uuid.uuid4().hex[:6]}", take_dir=str(tmp_path / "takes"), **kw)
+        data = cfg.model_dump(mode="json")
+        data["service"].update(endpoints(runtime_dir))
+        cfg = RigConfig.from_data(data)
+        daemon = Daemon(cfg)
+        errors: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                daemon.serve()
+            except BaseException as exc:  # noqa: BLE001 - surfaced by the test through `errors`
+                errors.append(exc)
+
+        th = threading.Thread(target=run, name="daemon-under-test", daemon=True)
+        th.start()
+        deadline = time.monotonic() + 30
+        while not daemon.wait_ready(0.1):
+            if errors:
+                raise errors[0]
+            assert time.monotonic() < deadline, "daemon did not become ready"
+        client = DaemonClient(cfg.service.control_endpoint, timeout_s=10)
+        rd = RunningDaemon(daemon, th, client, cfg, errors)
+        running.append(rd)
+        return rd
+
+    yield start
+    for rd in running:
+        rd.client.close()
+        rd.daemon.shutdown()
+        rd.thread.join(timeout=60)
+
+
+def wait_idle(client: DaemonClient, timeout: float = 60.0) -> dict[str, object]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        t = client.call("status")
+        if t["state"] == "idle":
+            return t
+        time.sleep(0.1)
+    raise AssertionError("daemon did not go back to idle")
+
+
+def spawn_daemon(
+    config: RigConfig, runtime: Path, log_path: Path, env: dict[str, str] | None = None
+) -> subprocess.Popen[bytes]:
+    """`rigd serve` in its own process (for SIGKILL and memory tests)."""
+    cfg_path = runtime / f"rig-{uuid.uuid4().hex[:6]}.json"
+    data = config.model_dump(mode="json")
+    data["service"].update(endpoints(runtime))
+    cfg_path.write_text(json.dumps(data))
+    full_env = {**os.environ, **(env or {})}
+    log = log_path.open("ab")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rigd.cli", "serve", "--config", str(cfg_path)],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=full_env,
+        cwd=REPO,
+    )
+    deadline = time.monotonic() + 60
+    endpoint = endpoints(runtime)["control"]
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise AssertionError(f"daemon exited with {proc.returncode}: {log_path.read_text()[-2000:]}")
+        client = find_daemon(endpoint, timeout_s=0.5)
+        if client is not None:
+            client.close()
+            return proc
+        time.sleep(0.1)
+    proc.kill()
+    raise AssertionError(f"daemon did not answer: {log_path.read_text()[-2000:]}")

@@ -1,0 +1,283 @@
+"""The daemon end to end on the sim rig: control requests, takes, telemetry, security."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import time
+from pathlib import Path
+from typing import Any
+
+import h5py
+import pytest
+import zmq
+from typer.testing import CliRunner
+
+from rigd.cli import app
+from rigd.config import RigConfig
+from rigd.core.errors import ConfigError
+from rigd.service.client import DaemonClient, DaemonRequestError, find_daemon
+from rigd.service.protocol import Reply, Telemetry, ThumbnailHeader
+from tests.rigd.service.conftest import small_rig, wait_idle
+
+
+def test_ping_status_config(start_daemon: Any) -> None:
+    rd = start_daemon()
+    pong = rd.client.call("ping")
+    assert pong["protocol"] == 1
+    assert pong["state"] == "idle"
+    assert pong["pid"] == os.getpid()
+    t = Telemetry.model_validate(rd.client.call("status"))
+    assert t.state == "idle"
+    assert {d.name for d in t.devices} == {"trigger", "cam0", "cam1", "cam2", "ev0", "ev1"}
+    assert t.disk_total_bytes > 0
+    assert rd.client.call("config")["name"] == "sim-rig"
+
+
+def test_timed_capture_through_daemon(start_daemon: Any) -> None:
+    rd = start_daemon()
+    started = rd.client.call("capture", duration_s=1.0, label="unit")
+    path = Path(started["take"])
+    assert "-unit-" in path.name
+    assert started["pulses_total"] == 30
+    with pytest.raises(DaemonRequestError, match="busy"):
+        rd.client.call("capture", duration_s=1.0)
+    t = wait_idle(rd.client)
+    last = t["last_take"]
+    assert last["path"] == str(path), last
+    assert last["status"] == "complete", last
+    assert last["frames"] == {"cam0": 30, "cam1": 30, "cam2": 30}
+    assert all(v < 5.0 for v in last["residual_rms_us"].values()), last["residual_rms_us"]
+    with h5py.File(path, "r") as f:
+        assert f.attrs["status"] == "complete"
+        assert f["frames/cam0/images"].shape[0] == 30
+
+
+def test_open_ended_capture_stop_and_telemetry(start_daemon: Any) -> None:
+    rd = start_daemon()
+    sub = zmq.Context.instance().socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.RCVTIMEO, 5000)
+    sub.subscribe(b"")
+    sub.connect(rd.config.service.telemetry_endpoint)
+    try:
+        path = rd.client.call("capture")["take"]
+        statuses: list[Telemetry] = []
+        thumbs: dict[str, ThumbnailHeader] = {}
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and (len(statuses) < 5 or len(thumbs) < 5):
+            frames = sub.recv_multipart()
+            if frames[0] == b"status":
+                statuses.append(Telemetry.model_validate_json(frames[1]))
+            else:
+                head = ThumbnailHeader.model_validate_json(frames[1])
+                assert frames[0] == f"thumb.{head.device}".encode()
+                assert frames[2][:2] == b"\xff\xd8"  # JPEG
+                thumbs[head.device] = head
+        assert set(thumbs) == {"cam0", "cam1", "cam2", "ev0", "ev1"}
+        live = [s for s in statuses if s.state == "capturing" and s.pulses > 10]
+        assert live, [s.state for s in statuses]
+        s = live[-1]
+        assert s.take == path
+        assert s.queue_capacity > 0
+        assert s.bytes_written > 0
+        devs = {d.name: d for d in s.devices}
+        assert devs["cam0"].rate_hz == pytest.approx(30, rel=0.3)
+        assert devs["ev0"].rate_hz > 0
+        assert devs["trigger"].rate_hz == pytest.approx(30, rel=0.3)
+        assert devs["cam0"].interval_jitter_us is not None
+        assert devs["cam0"].interval_jitter_us < 10
+        assert not s.faults
+    finally:
+        sub.close(linger=0)
+    res = rd.client.call("stop", reason="test over")
+    assert res["take"] == path
+    t = wait_idle(rd.client)
+    with pytest.raises(DaemonRequestError, match="not_capturing"):
+        rd.client.call("stop")
+    assert t["last_take"]["status"] == "complete", t["last_take"]
+    with h5py.File(path, "r") as f:
+        n = f["frames/cam0/images"].shape[0]
+    assert n >= 10
+
+
+def test_structured_errors(start_daemon: Any) -> None:
+    rd = start_daemon()
+    c = rd.client
+
+    def ask(payload: bytes) -> Reply:
+        return Reply.model_validate_json(c.send_raw(payload))
+
+    r = ask(b"\xff\xfe not json")
+    assert not r.ok
+    assert r.error is not None
+    assert r.error.code == "bad_json"
+    r = ask(b"[1, 2]")
+    assert r.error is not None
+    assert r.error.code == "bad_json"
+    r = ask(json.dumps({"v": 99, "id": "x", "cmd": "ping"}).encode())
+    assert r.error is not None
+    assert r.error.code == "unsupported_version"
+    assert r.id == "x"
+    r = ask(json.dumps({"v": 1, "id": "y", "cmd": "fly"}).encode())
+    assert r.error is not None
+    assert r.error.code == "unknown_command"
+    assert r.error.field == "cmd"
+    r = ask(json.dumps({"v": 1, "cmd": "capture", "args": {"duration_s": -1}}).encode())
+    assert r.error is not None
+    assert r.error.code == "bad_request"
+    assert r.error.field == "args.duration_s"
+    r = ask(json.dumps({"v": 1, "cmd": "capture", "args": {"bogus": 1}}).encode())
+    assert r.error is not None
+    assert r.error.field == "args.bogus"
+    r = ask(json.dumps({"cmd": "ping"}).encode())
+    assert r.error is not None
+    assert r.error.code == "bad_request"
+    assert r.error.field == "v"
+    r = ask(b"{" * 100_000)
+    assert r.error is not None
+    assert r.error.code == "bad_request"
+    r = ask(b"[" * 50_000)
+    assert r.error is not None
+    assert r.error.code == "bad_json"
+    assert c.call("ping")["state"] == "idle"
+
+
+def test_oversized_message_is_cut_at_the_transport(start_daemon: Any) -> None:
+    rd = start_daemon()
+    c = DaemonClient(rd.config.service.control_endpoint, timeout_s=1.0)
+    try:
+        with pytest.raises(Exception, match="no reply"):
+            c.send_raw(b"x" * (2 << 20))
+    finally:
+        c.close()
+    assert rd.client.call("ping")["state"] == "idle"
+
+
+def test_ipc_socket_is_owner_only(start_daemon: Any) -> None:
+    rd = start_daemon()
+    sock = Path(rd.config.service.control_endpoint.removeprefix("ipc://"))
+    assert stat.S_IMODE(sock.stat().st_mode) == 0o600
+    assert stat.S_IMODE(sock.parent.stat().st_mode) & 0o077 == 0
+
+
+def test_second_daemon_on_same_endpoint_refused(start_daemon: Any) -> None:
+    rd = start_daemon()
+    from rigd.service.daemon import Daemon
+
+    with pytest.raises(Exception, match="already answers"):
+        Daemon(rd.config).serve()
+    assert rd.client.call("ping")
+
+
+def test_remote_tcp_needs_curve() -> None:
+    with pytest.raises(ConfigError, match=r"service.control: tcp://0.0.0.0:5555 listens beyond loopback"):
+        small_rig("sec", control="tcp://0.0.0.0:5555")
+    small_rig("sec", control="tcp://127.0.0.1:5555")  # loopback is fine
+
+
+def test_curve_remote_control(start_daemon: Any, tmp_path: Path) -> None:
+    import zmq.auth
+
+    keys = tmp_path / "keys"
+    clients = tmp_path / "clients"
+    keys.mkdir()
+    clients.mkdir()
+    server_pub, server_sec = zmq.auth.create_certificates(str(keys), "server")
+    client_pub, client_sec = zmq.auth.create_certificates(str(keys), "client")
+    Path(client_pub).rename(clients / "client.key")
+    _stranger_pub, stranger_sec = zmq.auth.create_certificates(str(keys), "stranger")
+    cfg = small_rig(
+        "curve",
+        take_dir=str(tmp_path / "takes"),
+        curve={"server_secret_key": server_sec, "authorized_keys_dir": str(clients)},
+    )
+    rd = start_daemon(cfg)
+    ep = rd.config.service.control_endpoint
+    good = DaemonClient(
+        ep, timeout_s=3, server_public_key=Path(server_pub), client_secret_key=Path(client_sec)
+    )
+    bad = DaemonClient(
+        ep, timeout_s=1, server_public_key=Path(server_pub), client_secret_key=Path(stranger_sec)
+    )
+    try:
+        assert good.call("ping")["protocol"] == 1
+        with pytest.raises(Exception, match="no reply"):
+            bad.call("ping")
+    finally:
+        good.close()
+        bad.close()
+
+
+def test_cli_talks_to_daemon(start_daemon: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    rd = start_daemon()
+    ep = rd.config.service.control_endpoint
+    runner = CliRunner()
+    res = runner.invoke(app, ["status", "--connect", ep, "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["state"] == "idle"
+    res = runner.invoke(app, ["capture", "--connect", ep, "--duration", "0.5", "--json"])
+    assert res.exit_code == 0, res.output
+    last = json.loads(res.output[res.output.index("{") :])
+    assert last["status"] == "complete"
+    assert last["frames"]["cam0"] == 15
+    res = runner.invoke(app, ["capture", "--connect", ep, "--config", "x.toml"])
+    assert res.exit_code == 2
+    assert "--local" in res.output
+    res = runner.invoke(app, ["stop", "--connect", ep])
+    assert res.exit_code == 2
+    assert "not_capturing" in res.output
+
+
+def test_cli_without_daemon(runtime_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("RIGD_RUNTIME_DIR", str(runtime_dir))
+    runner = CliRunner()
+    res = runner.invoke(app, ["status"])
+    assert res.exit_code == 3
+    assert "no rigd daemon" in res.output
+    res = runner.invoke(app, ["stop"])
+    assert res.exit_code == 3
+    res = runner.invoke(app, ["status", "--connect", f"ipc://{runtime_dir}/nothing.sock"])
+    assert res.exit_code == 3
+    assert find_daemon(f"ipc://{runtime_dir}/control.sock") is None
+
+
+def test_bad_config_one_line_errors(tmp_path: Path) -> None:
+    runner = CliRunner()
+    cases = {
+        "url": ({"cameras": [{"name": "cam0", "spec": "nosuch://x"}]}, "cameras.0.spec"),
+        "rate": (
+            {"trigger": {"spec": "sim://w/trigger", "settings": {"rate_hz": 50000}}},
+            "trigger.settings.rate_hz",
+        ),
+        "port": ({"trigger": {"spec": "/dev/ttyNOPE9"}}, "trigger.spec"),
+    }
+    base = {"trigger": {"spec": "sim://w/trigger"}, "cameras": [{"name": "cam0", "spec": "sim://w/cam0"}]}
+    for name, (patch, field) in cases.items():
+        data = {**base, **patch}
+        p = tmp_path / f"{name}.json"
+        p.write_text(json.dumps(data))
+        res = runner.invoke(app, ["serve", "--config", str(p)])
+        assert res.exit_code == 2, (name, res.output)
+        lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
+        assert len(lines) == 1, (name, res.output)
+        assert field in lines[0], (name, res.output)
+
+
+def test_rig_config_round_trips_service_section() -> None:
+    cfg = small_rig("rt", take_dir="/data/takes")
+    again = RigConfig.model_validate_json(cfg.model_dump_json())
+    assert again.service.take_dir == Path("/data/takes")
+
+
+def test_devices_through_daemon(start_daemon: Any) -> None:
+    rd = start_daemon()
+    runner = CliRunner()
+    res = runner.invoke(app, ["devices", "--connect", rd.config.service.control_endpoint, "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout)
+    assert "seen by the daemon" in res.stderr
+    assert {s["source"] for s in data["sources"]} >= {"serial"}
+    direct = rd.client.call("devices")
+    assert [s["source"] for s in direct["sources"]] == [s["source"] for s in data["sources"]]
