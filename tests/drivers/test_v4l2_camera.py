@@ -196,6 +196,8 @@ def test_camera_unplugged_mid_take_is_reported_and_the_take_goes_on(tmp_path: Pa
     cap = FakeCapture()
 
     def factory(spec: DeviceSpec) -> V4l2Camera:
+        if not cap.plugged:  # what opening a vanished /dev/video node does
+            raise DeviceError("V4L2 camera /dev/video9: no such device")
         return V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9"), capture=cap)
 
     register_backend("rgb_camera", "unplugv4l2", factory)
@@ -209,3 +211,4 @@ def test_camera_unplugged_mid_take_is_reported_and_the_take_goes_on(tmp_path: Pa
     assert res.frames["uvc"] > 0
     assert any(loss.device == "uvc" and "failed mid-take" in loss.reason for loss in res.report.losses)
     assert any("uvc failed mid-take" in w for w in res.report.warnings)
+    assert any("did not come back" in loss.reason for loss in res.report.losses)  # reconnects were tried
