@@ -53,6 +53,7 @@ from firmware_sim.world import (
     DeviceClock,
     Edge,
     SimWorld,
+    Unpluggable,
     UnplugParams,
     get_world,
     truth_journal,
@@ -501,11 +502,13 @@ class _Packet:
 GENERATION_LAG_US = 50_000
 
 
-class SimEventSensor:
+class SimEventSensor(Unpluggable):
     """An ideal event sensor in a `SimWorld`, with its own drifting clock and trigger-in.
 
     A `drivers.evt_stream.ByteSource`: it hands out EVT 3.0 buffers, as a camera would.
     """
+
+    _device_label = "event sensor"
 
     def __init__(
         self,
@@ -707,28 +710,6 @@ class SimEventSensor:
             raise DeviceError(f"event sensor {self._name} is closed")
 
     # --- unplug fault ---------------------------------------------------------------------
-
-    def _dead(self, true_us: float) -> bool:
-        """Was this sensor object unplugged by that true time (its handle is stale for good)?"""
-        return self._fault.kills(self._opened_us, true_us)
-
-    def _unplugged_error(self) -> DeviceError:
-        return DeviceError(
-            f"event sensor {self._name}: device unplugged (gone from the bus); close it and open it again"
-        )
-
-    def _check_alive(self) -> None:
-        self._check_open()
-        if self._dead(self._world.now_us()):
-            with self._lock:
-                self._note_unplug_locked([])
-            raise self._unplugged_error()
-
-    def _on_unplug(self) -> None:
-        """Timer thread, at the unplug instant: what the host has not read yet is lost."""
-        with self._lock:
-            if self._dead(self._world.now_us()):
-                self._note_unplug_locked([])
 
     def _note_unplug_locked(self, lost: list[_Packet]) -> None:
         """Log what the unplug cost (caller holds the lock); safe to call more than once.

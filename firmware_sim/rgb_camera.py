@@ -34,6 +34,7 @@ from firmware_sim.world import (
     DeviceClock,
     Edge,
     SimWorld,
+    Unpluggable,
     UnplugParams,
     get_world,
     truth_journal,
@@ -85,8 +86,10 @@ class _Exposure:
 _STOP = object()
 
 
-class SimRgbCamera(RgbCamera):
+class SimRgbCamera(Unpluggable, RgbCamera):
     """A global-shutter camera in a `SimWorld`, with its own drifting clock."""
+
+    _device_label = "camera"
 
     def __init__(
         self,
@@ -269,28 +272,6 @@ class SimRgbCamera(RgbCamera):
             raise DeviceError(f"camera {self._name} is closed")
 
     # --- unplug fault ---------------------------------------------------------------------
-
-    def _dead(self, true_us: float) -> bool:
-        """Was this camera object unplugged by that true time (its handle is stale for good)?"""
-        return self._fault.kills(self._opened_us, true_us)
-
-    def _unplugged_error(self) -> DeviceError:
-        return DeviceError(
-            f"camera {self._name}: device unplugged (gone from the bus); close it and open it again"
-        )
-
-    def _check_alive(self) -> None:
-        self._check_open()
-        if self._dead(self._world.now_us()):
-            with self._lock:
-                self._note_unplug_locked([])
-            raise self._unplugged_error()
-
-    def _on_unplug(self) -> None:
-        """Timer thread, at the unplug instant: frames still in the camera's buffer are lost."""
-        with self._lock:
-            if self._dead(self._world.now_us()):
-                self._note_unplug_locked([])
 
     def _note_unplug_locked(self, lost: list[int]) -> None:
         """Log what the unplug cost (caller holds the lock); safe to call more than once."""

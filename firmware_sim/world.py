@@ -20,7 +20,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rigd.core.errors import ConfigError, DeviceError
 
@@ -399,3 +399,44 @@ def reset_world(name: str = "default") -> None:
     """Forget a world so the next `get_world` starts a fresh one (tests, repeated captures)."""
     with _worlds_lock:
         _worlds.pop(name, None)
+
+
+class Unpluggable:
+    """The unplug fault's host-facing behaviour, shared by the sim camera and event sensor:
+    once its window opens, this device object is stale for good and every call says so."""
+
+    _fault: UnplugFault
+    _opened_us: float
+    _world: SimWorld
+    _lock: threading.Lock
+    _name: str
+    _device_label: str
+
+    def _check_open(self) -> None:
+        raise NotImplementedError
+
+    def _note_unplug_locked(self, lost: list[Any]) -> None:
+        raise NotImplementedError
+
+    def _dead(self, true_us: float) -> bool:
+        """Was this device object unplugged by that true time (its handle is stale for good)?"""
+        return self._fault.kills(self._opened_us, true_us)
+
+    def _unplugged_error(self) -> DeviceError:
+        return DeviceError(
+            f"{self._device_label} {self._name}: device unplugged (gone from the bus); "
+            "close it and open it again"
+        )
+
+    def _check_alive(self) -> None:
+        self._check_open()
+        if self._dead(self._world.now_us()):
+            with self._lock:
+                self._note_unplug_locked([])
+            raise self._unplugged_error()
+
+    def _on_unplug(self) -> None:
+        """Timer thread, at the unplug instant: what the host has not read yet is lost."""
+        with self._lock:
+            if self._dead(self._world.now_us()):
+                self._note_unplug_locked([])

@@ -297,28 +297,27 @@ class _Pipeline:
                 log.error("closing %s failed: %s", dev.info.spec, exc)
                 self.errors.append(exc)
 
-    def _reopen(self, name: str) -> RgbCamera | EventSensor:
-        for cam in self.config.cameras:
-            if cam.name == name:
-                new_cam = open_device("rgb_camera", cam.spec)
-                try:
-                    new_cam.configure(cam.settings)
-                    new_cam.start()
-                except BaseException:
-                    new_cam.close()
-                    raise
-                self.cameras[name] = new_cam
-                return new_cam
-        sen = next(s for s in self.config.event_sensors if s.name == name)
-        new_sen = open_device("event_sensor", sen.spec)
+    def _reopen(self, name: str) -> None:
+        """Open, configure and start a device again from its config entry."""
+        dev: RgbCamera | EventSensor
+        cam = next((c for c in self.config.cameras if c.name == name), None)
+        if cam is not None:
+            dev = open_device("rgb_camera", cam.spec)
+            settings: Any = cam.settings
+        else:
+            sen = next(s for s in self.config.event_sensors if s.name == name)
+            dev = open_device("event_sensor", sen.spec)
+            settings = sen.settings
         try:
-            new_sen.configure(sen.settings)
-            new_sen.start()
+            dev.configure(settings)
+            dev.start()
         except BaseException:
-            new_sen.close()
+            dev.close()
             raise
-        self.sensors[name] = new_sen
-        return new_sen
+        if isinstance(dev, RgbCamera):
+            self.cameras[name] = dev
+        else:
+            self.sensors[name] = dev
 
     def _reconnect(self, name: str, exc: DeviceError) -> None:
         """A device failed mid-take: keep trying to open it again until it answers or the

@@ -112,7 +112,7 @@ def print_status(t: dict[str, Any], out: Console) -> None:
             f"take: {t['take']}  {t['take_elapsed_s']:.1f} s  pulses {t['pulses']}  "
             f"queue {t['queue_depth']}/{t['queue_capacity']}  {t['bytes_written'] / 1e6:.0f} MB"
         )
-    table = Table("device", "kind", "state", "total", "rate/s", "lost", "reconnects", "jitter us")
+    table = Table("device", "kind", "state", "total", "rate/s", "lost", "queued", "reconnects", "jitter us")
     for d in t["devices"]:
         jitter = d.get("interval_jitter_us")
         table.add_row(
@@ -122,6 +122,7 @@ def print_status(t: dict[str, Any], out: Console) -> None:
             f"{d['total']:,}",
             f"{d['rate_hz']:,.1f}",
             str(d["lost"]),
+            str(d.get("queued", 0)),
             str(d.get("reconnects", 0)),
             "-" if jitter is None else f"{jitter:.2f}",
         )

@@ -18,6 +18,7 @@ import shutil
 import signal
 import threading
 import time
+from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
@@ -435,20 +436,7 @@ class Daemon:
         t.queue_depth = snap.queue_depth
         t.queue_capacity = snap.queue_capacity
         t.bytes_written = snap.bytes_written
-        t.devices = [
-            DeviceTelemetry(
-                name=d.name,
-                kind=d.kind,
-                state=d.state,
-                total=d.total,
-                rate_hz=d.rate_hz,
-                lost=d.lost,
-                reconnects=d.reconnects,
-                last_data_age_s=d.last_data_age_s,
-                interval_jitter_us=d.interval_jitter_us,
-            )
-            for d in snap.devices
-        ]
+        t.devices = [DeviceTelemetry.model_validate(asdict(d)) for d in snap.devices]
         t.faults = [_fault(f) for f in snap.faults]
         return t
 

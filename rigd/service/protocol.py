@@ -133,6 +133,7 @@ class DeviceTelemetry(_Strict):
     rate_hz: float = Field(description="Frames, events or pulses per second over the last interval.")
     lost: int = Field(description="Items recorded as lost this take (all reasons).")
     reconnects: int = 0
+    queued: int = Field(0, description="Items of this device waiting in the writer queue.")
     last_data_age_s: float | None = Field(None, description="Seconds since the device last delivered.")
     interval_jitter_us: float | None = Field(
         None,

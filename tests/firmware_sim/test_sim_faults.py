@@ -192,9 +192,12 @@ def test_event_sensor_unplug_reaches_read_events_and_replug_continues(world_name
     again = open_device("event_sensor", spec)
     again.configure(EventSensorSettings())
     again.start()
-    time.sleep(0.3)
-    again.stop()
     after = []
+    deadline = time.monotonic() + 5.0  # a loaded machine may take a while for the first slice
+    while time.monotonic() < deadline and not any(len(p.events) for p in after):
+        if (p := again.read_events(0.1)) is not None:
+            after.append(p)
+    again.stop()
     while (p := again.read_events(0.1)) is not None:
         after.append(p)
     again.close()
