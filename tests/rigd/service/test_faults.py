@@ -100,6 +100,7 @@ def test_trigger_link_fault_detected_within_a_second(tmp_path: Path, param: str,
         result = session.wait(60)
     except RigdError as exc:  # the take may not be sealable, but it must exist and open
         print(f"take ended with {type(exc).__name__}: {exc}")
+    print(f"{code}: detected {detected_after} s after the last pulse record ({pulses} pulses)")
     assert detected_after is not None, f"{code} not raised"
     assert pulses >= 15
     assert detected_after < 1.0, detected_after
