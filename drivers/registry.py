@@ -149,11 +149,13 @@ def _resolve(kind: DeviceKind, scheme: str) -> Factory:
     if fac is None:
         fac = _entry_point_backends().get(key) or _BUILTIN.get(key)
     if fac is None:
-        schemes = sorted(s for k, s in available_backends() if k == kind)
-        raise ConfigError(
-            f"no {kind} backend for scheme {scheme!r}; known schemes: {', '.join(schemes) or 'none'}"
-        )
+        raise ConfigError(_no_backend(kind, scheme))
     return _load(fac) if isinstance(fac, str) else fac
+
+
+def _no_backend(kind: DeviceKind, scheme: str) -> str:
+    schemes = sorted({s for k, s in [*available_backends(), *_registered] if k == kind})
+    return f"no {kind} backend for scheme {scheme!r} (known: {', '.join(schemes) or 'none'})"
 
 
 def check_spec(kind: DeviceKind, spec: str) -> None:
@@ -162,11 +164,7 @@ def check_spec(kind: DeviceKind, spec: str) -> None:
     parsed = DeviceSpec.parse(spec)
     key = (kind, parsed.scheme)
     if key not in _registered and key not in available_backends():
-        schemes = sorted(s for k, s in available_backends() if k == kind)
-        raise ConfigError(
-            f"unknown device URL {spec!r}: no {kind} backend for scheme {parsed.scheme!r} "
-            f"(known: {', '.join(schemes) or 'none'})"
-        )
+        raise ConfigError(f"unknown device URL {spec!r}: {_no_backend(kind, parsed.scheme)}")
     if parsed.scheme == "serial":
         port = parsed.path or parsed.location
         if port.startswith("/") and not os.path.exists(port):

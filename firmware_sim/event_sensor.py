@@ -625,14 +625,7 @@ class SimEventSensor(Unpluggable):
             target=self._run, args=(t_start, last_log), name=f"sim-events-{self._name}", daemon=True
         )
         self._thread.start()
-        unplug = self._p.unplug
-        if unplug is not None and not self._fault.armed:
-            # Armed once per world and device name: the replugged sensor is not unplugged again.
-            self._fault.arm(
-                t_start + unplug.at_s * 1e6,
-                t_start + (unplug.at_s + unplug.for_s) * 1e6,
-                lost_frames_on_edges=False,
-            )
+        self._arm_unplug(self._p.unplug, t_start, lost_frames_on_edges=False)
         log.info("event sensor %s started at true %.0f us", self._name, t_start)
 
     def stop(self) -> None:

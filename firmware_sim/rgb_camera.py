@@ -197,13 +197,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             self._busy_until_us = -math.inf
             self._started = True
             self._fault.acquiring = self._settings.trigger_mode == "hardware"
-        unplug = self._p.unplug
-        if unplug is not None and not self._fault.armed:
-            # Armed once per world and device name: the replugged camera is not unplugged again.
-            t0 = self._world.now_us()
-            self._fault.arm(
-                t0 + unplug.at_s * 1e6, t0 + (unplug.at_s + unplug.for_s) * 1e6, lost_frames_on_edges=True
-            )
+        self._arm_unplug(self._p.unplug, self._world.now_us(), lost_frames_on_edges=True)
         if self._settings.trigger_mode == "free_run":
             self._stop_free_run.clear()
             self._free_run = threading.Thread(

@@ -418,6 +418,15 @@ class Unpluggable:
     def _note_unplug_locked(self, lost: list[Any]) -> None:
         raise NotImplementedError
 
+    def _arm_unplug(self, unplug: UnplugParams | None, t0_us: float, *, lost_frames_on_edges: bool) -> None:
+        """Armed once per world and device name: the replugged device is not unplugged again."""
+        if unplug is not None and not self._fault.armed:
+            self._fault.arm(
+                t0_us + unplug.at_s * 1e6,
+                t0_us + (unplug.at_s + unplug.for_s) * 1e6,
+                lost_frames_on_edges=lost_frames_on_edges,
+            )
+
     def _dead(self, true_us: float) -> bool:
         """Was this device object unplugged by that true time (its handle is stale for good)?"""
         return self._fault.kills(self._opened_us, true_us)

@@ -119,7 +119,6 @@ class SessionSnapshot:
     bytes_written: int
     devices: list[DeviceSnapshot]
     faults: list[ActiveFault]
-    losses: int
 
 
 @dataclass(slots=True)
@@ -351,7 +350,7 @@ class _Pipeline:
         self.clear_fault("device_reconnecting", name)
         raise DeviceError(f"{name} did not come back before the end of the take (lost: {exc})") from exc
 
-    def _arrived(self, name: str, what: LossKind, t_device: int | None) -> None:
+    def _arrived(self, name: str, what: LossKind, t_device: int | None, t_last: int | None = None) -> None:
         """Bookkeeping for one delivery; closes a reconnect gap with its loss record."""
         live = self.live[name]
         live.last_data_mono = time.monotonic()
@@ -379,7 +378,7 @@ class _Pipeline:
                         t_last_us=t_device,
                     )
                 )
-        live.last_t = t_device
+        live.last_t = t_device if t_last is None else t_last
 
     # -- acquisition threads -------------------------------------------------------------
     def _put(
@@ -476,9 +475,7 @@ class _Pipeline:
             ev = packet.events
             t_range = (int(ev.t[0]), int(ev.t[-1])) if len(ev) else None
             t_first = t_range[0] if t_range else (int(packet.triggers.t[0]) if len(packet.triggers) else None)
-            self._arrived(name, "events", t_first)
-            if t_range is not None:
-                self.live[name].last_t = t_range[1]
+            self._arrived(name, "events", t_first, t_range[1] if t_range else None)
             self._put(name, "events", ("events", name, packet), t_range, len(ev))
 
     def _trigger_loop(self, trigger: Trigger) -> None:
@@ -865,7 +862,6 @@ class CaptureSession:
         pipe.update_rates()
         with pipe.lock:
             faults = list(pipe.faults.values())
-            n_losses = sum(r.count for r in pipe.losses)
         try:
             size = self.path.stat().st_size
         except OSError:
@@ -881,7 +877,6 @@ class CaptureSession:
             size,
             pipe.device_snapshots(),
             faults,
-            n_losses,
         )
 
     def latest_frames(self) -> dict[str, Frame]:

@@ -18,7 +18,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rigd.config import RigConfig, default_sim_rig
+from rigd.config import RigConfig, default_control_endpoint, default_sim_rig
 from rigd.core.errors import ConfigError, RigdError
 from rigd.service.client import DaemonClient, DaemonRequestError, find_daemon
 
@@ -33,14 +33,18 @@ ConnectOpt = Annotated[
 ]
 
 
-def control_endpoint(connect: str | None, config: Path | None = None) -> str:
-    if connect:
-        return connect
-    if config is not None:
-        return RigConfig.load(config).service.control_endpoint
-    from rigd.config import default_control_endpoint
+def control_endpoint(connect: str | None) -> str:
+    return connect or default_control_endpoint()
 
-    return default_control_endpoint()
+
+def _require_daemon(connect: str | None, hint: str) -> DaemonClient:
+    """The daemon at the endpoint, or exit 3 saying there is none."""
+    endpoint = control_endpoint(connect)
+    client = find_daemon(endpoint)
+    if client is None:
+        _err.print(f"no rigd daemon at {endpoint}{hint}")
+        raise typer.Exit(code=3)
+    return client
 
 
 def _fail(exc: Exception, code: int = 2) -> typer.Exit:
@@ -88,12 +92,7 @@ def status(
     json_out: Annotated[bool, typer.Option("--json", help="The raw telemetry document.")] = False,
 ) -> None:
     """Show what the daemon is doing: state, devices, rates, losses, faults, disk."""
-    endpoint = control_endpoint(connect)
-    client = find_daemon(endpoint)
-    if client is None:
-        _err.print(f"no rigd daemon at {endpoint} (an in-process `rigd capture` is not visible here)")
-        raise typer.Exit(code=3)
-    with client:
+    with _require_daemon(connect, " (an in-process `rigd capture` is not visible here)") as client:
         try:
             t = client.call("status")
         except RigdError as exc:
@@ -144,12 +143,7 @@ def stop(
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Wait until the take is finalized.")] = True,
 ) -> None:
     """Stop the daemon's running take (it is finalized, nothing is lost)."""
-    endpoint = control_endpoint(connect)
-    client = find_daemon(endpoint)
-    if client is None:
-        _err.print(f"no rigd daemon at {endpoint}; an in-process `rigd capture` stops with Ctrl-C")
-        raise typer.Exit(code=3)
-    with client:
+    with _require_daemon(connect, "; an in-process `rigd capture` stops with Ctrl-C") as client:
         try:
             res = client.call("stop", reason="rigd stop")
         except RigdError as exc:
@@ -197,9 +191,7 @@ def capture_via_daemon(
         last = wait_for_take(client, path)
     if json_out:
         typer.echo(json.dumps(last, indent=2))
-    if last.get("error"):
-        _report_last(last)
-    if not json_out:
+    if last.get("error") or not json_out:
         _report_last(last)
 
 
@@ -212,7 +204,3 @@ def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
     if client is None and connect:
         raise _fail(ConfigError(f"--connect: no rigd daemon answers at {connect}"), code=3)
     return client
-
-
-def default_rig(config: Path | None) -> RigConfig:
-    return RigConfig.load(config) if config else default_sim_rig()

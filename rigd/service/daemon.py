@@ -22,7 +22,7 @@ from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import Any, Literal
 
 import zmq
 from pydantic import BaseModel, ValidationError
@@ -98,7 +98,6 @@ class Daemon:
             else None
         )
         self.recovered: list[dict[str, Any]] = []
-        self.requests_served = 0
         self._loop_beat = time.monotonic()
         self._idle_faults: list[Fault] = []
 
@@ -186,7 +185,7 @@ class Daemon:
                 log.error("could not recover %s: %s", path, exc)
                 self.recovered.append({"path": str(path), "error": str(exc)})
                 continue
-            self.recovered.append(_as_dict(rep))
+            self.recovered.append(json.loads(rep.model_dump_json()))
 
     def _finish_session(self, reason: str) -> None:
         with self._lock:
@@ -213,7 +212,6 @@ class Daemon:
             frames = rep.recv_multipart(copy=True)
             reply = self.handle(frames)
             rep.send(reply)
-            self.requests_served += 1
 
     def handle(self, frames: list[bytes]) -> bytes:
         """Answer one request message (all its frames); never raises."""
@@ -418,16 +416,13 @@ class Daemon:
         return self._with_session(t, snap)
 
     def _idle_devices(self) -> list[DeviceTelemetry]:
-        devs = [DeviceTelemetry(name="trigger", kind="trigger", state="idle", total=0, rate_hz=0.0, lost=0)]
-        devs += [
-            DeviceTelemetry(name=c.name, kind="rgb_camera", state="idle", total=0, rate_hz=0.0, lost=0)
-            for c in self.config.cameras
+        kinds: list[tuple[str, Literal["rgb_camera", "event_sensor", "trigger"]]] = [("trigger", "trigger")]
+        kinds += [(c.name, "rgb_camera") for c in self.config.cameras]
+        kinds += [(s.name, "event_sensor") for s in self.config.event_sensors]
+        return [
+            DeviceTelemetry(name=name, kind=kind, state="idle", total=0, rate_hz=0.0, lost=0)
+            for name, kind in kinds
         ]
-        devs += [
-            DeviceTelemetry(name=s.name, kind="event_sensor", state="idle", total=0, rate_hz=0.0, lost=0)
-            for s in self.config.event_sensors
-        ]
-        return devs
 
     def _with_session(self, t: Telemetry, snap: SessionSnapshot) -> Telemetry:
         t.take = str(snap.path)
@@ -500,12 +495,6 @@ def _release_memory() -> None:
     except (OSError, AttributeError):  # not glibc: nothing to do
         return
     trim(0)
-
-
-def _as_dict(rep: Any) -> dict[str, Any]:
-    if isinstance(rep, BaseModel):
-        return dict(json.loads(rep.model_dump_json()))
-    return dict(vars(rep))
 
 
 def _fault(f: Any) -> Fault:

@@ -37,12 +37,10 @@ def events_thumbnail(
 ) -> tuple[bytes, int, int]:
     """ON events red, OFF events blue, on grey (the usual event-viewer colours)."""
     w, h = geometry
-    on = np.zeros(h * w, np.int32)
-    off = np.zeros(h * w, np.int32)
     idx = events.y.astype(np.int64) * w + events.x.astype(np.int64)
     pos = events.p > 0
-    np.add.at(on, idx[pos], 1)
-    np.add.at(off, idx[~pos], 1)
+    on = np.bincount(idx[pos], minlength=h * w)
+    off = np.bincount(idx[~pos], minlength=h * w)
     img = np.full((h * w, 3), 128, np.uint8)
     img[off > on] = (255, 80, 0)  # BGR blue-ish
     img[on > off] = (0, 60, 255)  # BGR red-ish

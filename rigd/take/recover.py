@@ -598,16 +598,7 @@ def _finalize_crashed(
     path: Path, rr: RecoveryReport, data: _TakeData, trims: list[Trim], *, dry_run: bool
 ) -> RecoveryReport:
     """A take that died while recording (or before finalize): sync from the file, finalize."""
-    trim_losses = [
-        LossRecord(
-            device=t.device,
-            what=t.what,
-            count=t.lost,
-            reason=f"cut by crash recovery ({t.hpath}): {t.reason}",
-        )
-        for t in trims
-        if t.lost > 0
-    ]
+    trim_losses = _trim_losses(trims)
     journal = data.journal or {}
     jl = _journal_losses(journal, rr.warnings)
     rr.journal_losses = len(jl)
@@ -640,6 +631,20 @@ def _finalize_crashed(
         w.close()
     log.warning("%s", rr.line())
     return rr
+
+
+def _trim_losses(trims: list[Trim]) -> list[LossRecord]:
+    """Loss records for what the repair had to cut (only trims that lost recorded items)."""
+    return [
+        LossRecord(
+            device=t.device,
+            what=t.what,
+            count=t.lost,
+            reason=f"cut by crash recovery ({t.hpath}): {t.reason}",
+        )
+        for t in trims
+        if t.lost > 0
+    ]
 
 
 def _continue_finalize(path: Path, rr: RecoveryReport, data: _TakeData, *, dry_run: bool) -> RecoveryReport:
@@ -675,16 +680,7 @@ def _repair_only(path: Path, rr: RecoveryReport, trims: list[Trim], *, dry_run: 
     rr.trims = trims
     rr.reason = "marked failed by its writer; only repaired so that it opens"
     rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
-    rr.losses_added = [
-        LossRecord(
-            device=t.device,
-            what=t.what,
-            count=t.lost,
-            reason=f"cut by crash recovery ({t.hpath}): {t.reason}",
-        )
-        for t in trims
-        if t.lost > 0
-    ]
+    rr.losses_added = _trim_losses(trims)
     if dry_run:
         return rr
     w = TakeWriter.resume(path, WriterConfig(), extend_truncated=True)
