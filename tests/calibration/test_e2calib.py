@@ -76,7 +76,11 @@ def test_methods_calibrate_event_sensors(board_take: Path) -> None:
         assert float(acc["focal_err_pct"]) < 1.2, acc  # type: ignore[arg-type]
         assert float(acc["rms_px"]) < 0.25, acc  # type: ignore[arg-type]
         assert float(acc["pp_err_px"]) < 3.0, acc  # type: ignore[arg-type]
-        assert acc["frames"] == f"{len(res.times_us)}/{len(res.times_us)}", acc
+        # The board is found in (nearly) every reconstruction. The sim runs in real time, so a
+        # loaded machine can shift a pose to the view's edge: CI once saw 74/75. Two may miss.
+        found, asked = (int(v) for v in str(acc["frames"]).split("/"))
+        assert asked == len(res.times_us), acc
+        assert found >= asked - 2, acc
         hpf = rows["hpf"]
         # Measured at 480x270, 2.5 s: hpf ~0.3-1.5 % focal, 0.25-0.35 px RMS; bounds with margin.
         assert float(hpf["focal_err_pct"]) < 3.0, hpf  # type: ignore[arg-type]
