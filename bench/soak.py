@@ -121,7 +121,9 @@ def main() -> None:
         i = 0
         while time.monotonic() < t_end:
             t0 = time.monotonic()
-            take = Path(client.call("capture", duration_s=args.take_s, label=f"soak{i}")["take"])
+            take = Path(
+                client.call("capture", timeout_s=120.0, duration_s=args.take_s, label=f"soak{i}")["take"]
+            )
             while True:
                 st = client.call("status")
                 if st["state"] == "idle" and st.get("last_take", {}).get("path") == str(take):

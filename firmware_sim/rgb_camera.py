@@ -401,7 +401,8 @@ class SimRgbCamera(Unpluggable, RgbCamera):
 def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
     """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=&scene=sprites|board`.
 
-    Fault switches: `busy_us=`, `unplug_at_s=`, `unplug_for_s=`, `counter_reset=1` (docs/sim-faults.md).
+    Fault switches: `busy_us=`, `unplug_at_s=`, `unplug_for_s=`, `counter_reset=1`,
+    `open_delay_s=` (docs/sim-faults.md).
     """
     spec.check_params(
         {
@@ -418,6 +419,7 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
             "unplug_at_s",
             "unplug_for_s",
             "counter_reset",
+            "open_delay_s",
         }
     )
     name = spec.path.strip("/")
@@ -447,8 +449,13 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
             raise ConfigError(
                 f"device spec {spec.raw!r}: {field_name}={spec.params[field_name]!r} out of range"
             )
+    open_delay_s = spec.float_param("open_delay_s", 0.0)
+    if not 0.0 <= open_delay_s <= 600.0:
+        raise ConfigError(f"device spec {spec.raw!r}: open_delay_s={open_delay_s!r} out of range (0-600 s)")
     seed = spec.int_param("seed", 0)
     world = get_world(spec.location or "default", seed)
     scene = sim_scene(spec, world, seed)
     clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
+    if open_delay_s > 0:
+        time.sleep(open_delay_s)  # enumeration, firmware upload, GenICam XML: seconds on real cameras
     return SimRgbCamera(world, name, scene, clock, params, spec.raw)

@@ -25,6 +25,9 @@ from rigd.service.client import DaemonClient, DaemonRequestError, find_daemon
 log = logging.getLogger(__name__)
 _err = Console(stderr=True)
 
+#: How long `capture` waits for the daemon to open the devices and start the trigger.
+CAPTURE_START_TIMEOUT_S = 120.0
+
 ConnectOpt = Annotated[
     str | None,
     typer.Option(
@@ -178,7 +181,7 @@ def capture_via_daemon(
 ) -> None:
     """Ask the daemon for a take and follow it to the end."""
     try:
-        res = client.call("capture", duration_s=duration, label=label)
+        res = client.call("capture", timeout_s=CAPTURE_START_TIMEOUT_S, duration_s=duration, label=label)
     except DaemonRequestError as exc:
         raise _fail(exc) from exc
     path = res["take"]

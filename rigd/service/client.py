@@ -57,7 +57,6 @@ class DaemonClient:
         if self._sock is None:
             sock = self._ctx.socket(zmq.REQ)
             sock.setsockopt(zmq.LINGER, 0)
-            sock.setsockopt(zmq.RCVTIMEO, int(self.timeout_s * 1000))
             sock.setsockopt(zmq.SNDTIMEO, int(self.timeout_s * 1000))
             server_pub, client_sec = self._curve
             if server_pub is not None and client_sec is not None:
@@ -70,23 +69,29 @@ class DaemonClient:
             self._sock = sock
         return self._sock
 
-    def send_raw(self, payload: bytes) -> bytes:
+    def send_raw(self, payload: bytes, timeout_s: float | None = None) -> bytes:
         """Send bytes as they are and return the reply bytes (for tests and fuzzing)."""
         sock = self._socket()
+        wait_s = self.timeout_s if timeout_s is None else timeout_s
         try:
+            sock.setsockopt(zmq.RCVTIMEO, int(wait_s * 1000))
             sock.send(payload)
             return sock.recv()
         except zmq.Again:
             self._reset()
             raise DaemonUnavailableError(
-                f"no reply from the daemon at {self.endpoint} within {self.timeout_s:g} s"
+                f"no reply from the daemon at {self.endpoint} within {wait_s:g} s"
             ) from None
 
-    def call(self, cmd: str, **args: Any) -> dict[str, Any]:
-        """Run one command; returns its result or raises `DaemonRequestError`."""
+    def call(self, cmd: str, *, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
+        """Run one command; returns its result or raises `DaemonRequestError`.
+
+        `timeout_s` overrides the client's deadline for this call (`capture` replies once the
+        devices are open, which takes seconds on real hardware).
+        """
         req_id = uuid.uuid4().hex[:12]
         body = json.dumps({"v": PROTOCOL_VERSION, "id": req_id, "cmd": cmd, "args": args}).encode()
-        raw = self.send_raw(body)
+        raw = self.send_raw(body, timeout_s)
         reply = Reply.model_validate_json(raw)
         if reply.id != req_id:
             raise RigdError(f"daemon at {self.endpoint} answered request {reply.id!r}, expected {req_id!r}")

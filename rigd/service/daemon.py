@@ -1,8 +1,11 @@
 """`rigd serve`: the capture daemon.
 
-One thread serves the control socket (REP), one publishes telemetry (PUB) and feeds the
-Prometheus exporter and the systemd watchdog, and at most one `CaptureSession` runs in
-the background. Every request gets a reply: malformed input is answered with a
+One thread serves the control socket (ROUTER, so REQ clients see plain request/reply), one
+publishes telemetry (PUB) and feeds the Prometheus exporter and the systemd watchdog, and at
+most one `CaptureSession` runs in the background. Opening the devices for a take can take
+seconds on real hardware, so it runs on a worker thread whose reply is sent when it is done:
+meanwhile the control loop keeps answering (`status` says `starting`, `stop` is queued) and
+keeps feeding the systemd watchdog. Every request gets a reply: malformed input is answered with a
 structured error, and a bug in a handler is logged and answered as `internal` while the
 daemon goes on serving. SIGTERM/SIGINT finalize the running take before exiting.
 """
@@ -10,6 +13,7 @@ daemon goes on serving. SIGTERM/SIGINT finalize the running take before exiting.
 from __future__ import annotations
 
 import ctypes
+import functools
 import gc
 import json
 import logging
@@ -18,6 +22,7 @@ import shutil
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
@@ -61,6 +66,15 @@ log = logging.getLogger(__name__)
 #: ones at the transport (the peer is disconnected) so they never reach memory.
 _HARD_LIMIT_BYTES = 1 << 20
 
+#: How long shutdown waits for a capture that is still opening its devices.
+_WORKER_GRACE_S = 60.0
+
+#: Takes a job that returns reply bytes and sees that the reply gets sent.
+_Defer = Callable[[Callable[[], bytes]], None]
+
+#: Where workers hand finished replies back to the control loop, which owns the socket.
+_REPLIES_ENDPOINT = "inproc://rigd-deferred-replies"
+
 
 class _RequestError(Exception):
     def __init__(self, code: ErrorCode, message: str, field: str | None = None) -> None:
@@ -74,6 +88,83 @@ def _utc() -> str:
 
 def _loc(prefix: str, loc: tuple[int | str, ...]) -> str:
     return ".".join([prefix, *(str(x) for x in loc)]) if prefix else ".".join(str(x) for x in loc)
+
+
+def _reply_bytes(reply: Reply) -> bytes:
+    return reply.model_dump_json(exclude_none=True).encode()
+
+
+def _error_info(exc: Exception) -> ErrorInfo:
+    """The structured error a failed request is answered with (call inside `except`)."""
+    if isinstance(exc, _RequestError):
+        return exc.info
+    for kind, code in _ERROR_CODES:
+        if isinstance(exc, kind):
+            return ErrorInfo(code=code, message=str(exc))
+    log.error("request handler failed", exc_info=exc)
+    return ErrorInfo(code="internal", message=f"{type(exc).__name__}: {exc}")
+
+
+_ERROR_CODES: tuple[tuple[type[Exception], ErrorCode], ...] = (
+    (ConfigError, "config_error"),
+    (DeviceError, "device_error"),
+    (TakeError, "take_error"),
+)
+
+
+def _split_envelope(frames: list[bytes]) -> tuple[list[bytes], list[bytes]]:
+    """ROUTER framing: routing ids up to the empty delimiter a REQ peer adds, then the body
+    (a DEALER peer may send no delimiter: then the first frame is its id)."""
+    try:
+        cut = frames.index(b"", 1) + 1
+    except ValueError:
+        cut = 1
+    return frames[:cut], frames[cut:]
+
+
+def _decode(frames: list[bytes]) -> dict[str, Any]:
+    """The request body as a JSON object; `_RequestError` says what is wrong with it."""
+    if len(frames) != 1:
+        raise _RequestError("bad_request", f"a request is one message frame, got {len(frames)}")
+    raw = frames[0]
+    if len(raw) > MAX_MESSAGE_BYTES:
+        raise _RequestError("bad_request", f"request of {len(raw)} bytes; the limit is {MAX_MESSAGE_BYTES}")
+    try:
+        data = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _RequestError("bad_json", f"request is not UTF-8 JSON: {exc}") from None
+    except RecursionError:
+        raise _RequestError("bad_json", "request JSON is nested too deeply") from None
+    if not isinstance(data, dict):
+        raise _RequestError("bad_json", f"a request is a JSON object, got {type(data).__name__}")
+    return data
+
+
+def _validate(data: dict[str, Any]) -> tuple[str, BaseModel]:
+    """The command and its validated arguments."""
+    v = data.get("v")
+    if isinstance(v, int) and not isinstance(v, bool) and v != PROTOCOL_VERSION:
+        raise _RequestError(
+            "unsupported_version",
+            f"protocol version {v} is not spoken here (this daemon: {PROTOCOL_VERSION})",
+            "v",
+        )
+    try:
+        req = Request.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise _RequestError("bad_request", err["msg"], _loc("", err["loc"]) or None) from None
+    model = ARGS_MODELS.get(req.cmd)
+    if model is None:
+        raise _RequestError(
+            "unknown_command", f"unknown command {req.cmd!r} (known: {', '.join(ARGS_MODELS)})", "cmd"
+        )
+    try:
+        args = model.model_validate(req.args)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise _RequestError("bad_request", err["msg"], _loc("args", err["loc"])) from None
+    return req.cmd, args
 
 
 class Daemon:
@@ -100,6 +191,7 @@ class Daemon:
         self.recovered: list[dict[str, Any]] = []
         self._loop_beat = time.monotonic()
         self._idle_faults: list[Fault] = []
+        self._workers: list[threading.Thread] = []
 
     # -- lifecycle -----------------------------------------------------------------------
     def serve(self) -> None:
@@ -117,7 +209,7 @@ class Daemon:
             log.warning("removed %d disk ballast file(s) a killed daemon left in %s", n, self.svc.take_dir)
         if self.svc.recover_on_start:
             self._recover()
-        rep = self._ctx.socket(zmq.REP)
+        rep = self._ctx.socket(zmq.ROUTER)
         pub = self._ctx.socket(zmq.PUB)
         for sock in (rep, pub):
             sock.setsockopt(zmq.LINGER, 0)
@@ -202,75 +294,93 @@ class Daemon:
         self._reap()
 
     # -- control socket ------------------------------------------------------------------
-    def _serve_loop(self, rep: zmq.Socket[bytes]) -> None:
+    def _serve_loop(self, sock: zmq.Socket[bytes]) -> None:
+        replies = self._ctx.socket(zmq.PULL)
+        replies.setsockopt(zmq.LINGER, 0)
+        replies.bind(_REPLIES_ENDPOINT)
         poller = zmq.Poller()
-        poller.register(rep, zmq.POLLIN)
-        while not self._stop.is_set():
-            self._loop_beat = time.monotonic()
-            if not poller.poll(100):
-                continue
-            frames = rep.recv_multipart(copy=True)
-            reply = self.handle(frames)
-            rep.send(reply)
+        poller.register(sock, zmq.POLLIN)
+        poller.register(replies, zmq.POLLIN)
+        try:
+            while not self._stop.is_set():
+                self._loop_beat = time.monotonic()
+                ready = dict(poller.poll(100))
+                if replies in ready:
+                    self._forward_replies(replies, sock)
+                if sock in ready:
+                    envelope, body = _split_envelope(sock.recv_multipart(copy=True))
+                    reply = self.handle(body, defer=functools.partial(self._defer, envelope))
+                    if reply is not None:
+                        sock.send_multipart([*envelope, reply])
+            # A capture still opening its devices answers its client before the socket goes.
+            for worker in self._workers:
+                worker.join(timeout=_WORKER_GRACE_S)
+            self._forward_replies(replies, sock)
+        finally:
+            replies.close(linger=0)
 
-    def handle(self, frames: list[bytes]) -> bytes:
-        """Answer one request message (all its frames); never raises."""
+    @staticmethod
+    def _forward_replies(replies: zmq.Socket[bytes], sock: zmq.Socket[bytes]) -> None:
+        while True:
+            try:
+                sock.send_multipart(replies.recv_multipart(zmq.NOBLOCK))
+            except zmq.Again:
+                return
+
+    def _defer(self, envelope: list[bytes], job: Callable[[], bytes]) -> None:
+        """Run `job` on a worker; its reply goes back to the client through the control loop."""
+
+        def work() -> None:
+            reply = job()
+            try:
+                push = self._ctx.socket(zmq.PUSH)
+            except zmq.ZMQError as exc:  # the daemon is gone; the client times out
+                log.warning("deferred reply not sent: %s", exc)
+                return
+            try:
+                push.setsockopt(zmq.LINGER, 1000)
+                push.connect(_REPLIES_ENDPOINT)
+                push.send_multipart([*envelope, reply], zmq.NOBLOCK)
+            except zmq.ZMQError as exc:
+                log.warning("deferred reply not sent: %s", exc)
+            finally:
+                push.close()
+
+        self._workers = [w for w in self._workers if w.is_alive()]
+        worker = threading.Thread(target=work, name="control-worker", daemon=True)
+        self._workers.append(worker)
+        worker.start()
+
+    def handle(self, frames: list[bytes], defer: _Defer | None = None) -> bytes | None:
+        """Answer one request message (all its frames); never raises.
+
+        With `defer`, a slow command (capture) hands its work to `defer` and returns None: the
+        reply comes from that job. Without it, everything is answered here.
+        """
         req_id: str | None = None
         try:
-            if len(frames) != 1:
-                raise _RequestError("bad_request", f"a request is one message frame, got {len(frames)}")
-            raw = frames[0]
-            if len(raw) > MAX_MESSAGE_BYTES:
-                raise _RequestError(
-                    "bad_request", f"request of {len(raw)} bytes; the limit is {MAX_MESSAGE_BYTES}"
-                )
-            try:
-                data = json.loads(raw.decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise _RequestError("bad_json", f"request is not UTF-8 JSON: {exc}") from None
-            except RecursionError:
-                raise _RequestError("bad_json", "request JSON is nested too deeply") from None
-            if not isinstance(data, dict):
-                raise _RequestError("bad_json", f"a request is a JSON object, got {type(data).__name__}")
+            data = _decode(frames)
             rid = data.get("id")
             req_id = rid if isinstance(rid, str) and len(rid) <= 64 else None
-            v = data.get("v")
-            if isinstance(v, int) and not isinstance(v, bool) and v != PROTOCOL_VERSION:
-                raise _RequestError(
-                    "unsupported_version",
-                    f"protocol version {v} is not spoken here (this daemon: {PROTOCOL_VERSION})",
-                    "v",
-                )
-            try:
-                req = Request.model_validate(data)
-            except ValidationError as exc:
-                err = exc.errors()[0]
-                raise _RequestError("bad_request", err["msg"], _loc("", err["loc"]) or None) from None
-            model = ARGS_MODELS.get(req.cmd)
-            if model is None:
-                raise _RequestError(
-                    "unknown_command", f"unknown command {req.cmd!r} (known: {', '.join(ARGS_MODELS)})", "cmd"
-                )
-            try:
-                args = model.model_validate(req.args)
-            except ValidationError as exc:
-                err = exc.errors()[0]
-                raise _RequestError("bad_request", err["msg"], _loc("args", err["loc"])) from None
-            result = getattr(self, f"_cmd_{req.cmd}")(args)
-            out = Reply(id=req_id, ok=True, result=result)
-        except _RequestError as exc:
-            out = Reply(id=req_id, ok=False, error=exc.info)
-        except ConfigError as exc:
-            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="config_error", message=str(exc)))
-        except DeviceError as exc:
-            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="device_error", message=str(exc)))
-        except TakeError as exc:
-            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="take_error", message=str(exc)))
-        except Exception as exc:
-            log.exception("request handler failed")
-            msg = f"{type(exc).__name__}: {exc}"
-            out = Reply(id=req_id, ok=False, error=ErrorInfo(code="internal", message=msg))
-        return out.model_dump_json(exclude_none=True).encode()
+            cmd, args = _validate(data)
+            if cmd == "capture" and defer is not None:
+                assert isinstance(args, CaptureArgs)
+                session = self._begin_capture(args)
+                capture_id = req_id
+                defer(lambda: self._answer(capture_id, lambda: self._start_capture(session, args)))
+                return None
+        except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
+            return _reply_bytes(Reply(id=req_id, ok=False, error=_error_info(exc)))
+        return self._answer(req_id, lambda: getattr(self, f"_cmd_{cmd}")(args))
+
+    @staticmethod
+    def _answer(req_id: str | None, fn: Callable[[], dict[str, Any]]) -> bytes:
+        """Run a command and turn its result or its error into the reply bytes."""
+        try:
+            out = Reply(id=req_id, ok=True, result=fn())
+        except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
+            out = Reply(id=req_id, ok=False, error=_error_info(exc))
+        return _reply_bytes(out)
 
     # -- commands ------------------------------------------------------------------------
     def _cmd_ping(self, _: BaseModel) -> dict[str, Any]:
@@ -284,6 +394,10 @@ class Daemon:
 
     def _cmd_capture(self, args: BaseModel) -> dict[str, Any]:
         assert isinstance(args, CaptureArgs)
+        return self._start_capture(self._begin_capture(args), args)
+
+    def _begin_capture(self, args: CaptureArgs) -> CaptureSession:
+        """Claim the rig for a new take (quick; `busy` if one runs)."""
         self._reap()
         with self._lock:
             if self._session is not None:
@@ -297,13 +411,18 @@ class Daemon:
             )
             self._session = session
             self._state = "starting"
+        return session
+
+    def _start_capture(self, session: CaptureSession, args: CaptureArgs) -> dict[str, Any]:
+        """Open the devices and start the trigger (slow on real hardware)."""
         try:
             path = session.start()
         except BaseException:
             self._reap()
             raise
         with self._lock:
-            self._state = "capturing"
+            if self._state == "starting":
+                self._state = "capturing"
         log.info("take %s started (%s)", path, f"{args.duration_s} s" if args.duration_s else "until stopped")
         return {"take": str(path), "pulses_total": session.n_pulses}
 
@@ -409,7 +528,8 @@ class Daemon:
             last_take=last,
             faults=idle_faults,
         )
-        if session is None:
+        if session is None or session.state in ("new", "starting"):
+            # While the devices open, their live counters are still being set up.
             t.devices = self._idle_devices()
             return t
         snap = session.snapshot()

@@ -153,6 +153,8 @@ def test_counter_reset_and_bad_unplug_params(world_name: str) -> None:
         ("unplug_at_s=1&unplug_for_s=0", "unplug_for_s"),
         ("counter_reset=2", "counter_reset"),
         ("busy_us=-5", "busy_us"),
+        ("open_delay_s=-1", "open_delay_s"),
+        ("open_delay_s=nan", "open_delay_s"),
     ):
         with pytest.raises(ConfigError, match=word):
             open_device("rgb_camera", f"sim://{world_name}/cam9?{bad}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -281,3 +282,69 @@ def test_devices_through_daemon(start_daemon: Any) -> None:
     assert {s["source"] for s in data["sources"]} >= {"serial"}
     direct = rd.client.call("devices")
     assert [s["source"] for s in direct["sources"]] == [s["source"] for s in data["sources"]]
+
+
+def test_control_answers_while_devices_open(start_daemon: Any, tmp_path: Path) -> None:
+    """A slow device open runs off the control loop: status and ping answer meanwhile, and a
+    stop asked for while starting ends the take right after it starts."""
+    cfg = small_rig("svc-slow", extra={"cam1": "open_delay_s=2"}, take_dir=str(tmp_path / "takes"))
+    rd = start_daemon(cfg)
+    started: dict[str, Any] = {}
+
+    def capture() -> None:
+        with DaemonClient(rd.config.service.control_endpoint, timeout_s=1.0) as c:
+            started.update(c.call("capture", timeout_s=30.0))
+
+    th = threading.Thread(target=capture)
+    t0 = time.monotonic()
+    th.start()
+    with DaemonClient(rd.config.service.control_endpoint, timeout_s=1.0) as other:
+        while other.call("status")["state"] == "idle":  # the capture request is on its way
+            assert time.monotonic() - t0 < 1.0
+        states = []
+        while time.monotonic() - t0 < 1.5:
+            states.append(other.call("status")["state"])
+            assert other.call("ping")["protocol"] == 1
+            time.sleep(0.1)
+        assert set(states) == {"starting"}, states
+        with pytest.raises(DaemonRequestError, match="busy"):
+            other.call("capture", duration_s=1.0)
+        stopping = other.call("stop", reason="changed my mind")
+    th.join(timeout=30)
+    assert started["take"] == stopping["take"]
+    assert time.monotonic() - t0 >= 2.0
+    last = wait_idle(rd.client)["last_take"]
+    assert last["path"] == started["take"]
+    assert last["status"] == "complete", last
+    with h5py.File(started["take"], "r") as f:
+        assert f.attrs["status"] == "complete"
+        assert f["trigger/pulses/index"].shape[0] < 30  # stopped right after the start
+
+
+def test_dealer_and_multipart_envelopes(start_daemon: Any) -> None:
+    """The control socket is a ROUTER: a DEALER peer with or without the empty delimiter gets its
+    reply with the same framing; extra body frames are a structured error."""
+    rd = start_daemon()
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RCVTIMEO, 5000)
+    sock.connect(rd.config.service.control_endpoint)
+    ping = json.dumps({"v": 1, "id": "d1", "cmd": "ping"}).encode()
+    try:
+        sock.send_multipart([b"", ping])
+        empty, body = sock.recv_multipart()
+        assert empty == b""
+        assert Reply.model_validate_json(body).ok
+        sock.send(ping)
+        (body,) = sock.recv_multipart()
+        assert Reply.model_validate_json(body).id == "d1"
+        sock.send_multipart([b"", ping, ping])
+        _, body = sock.recv_multipart()
+        reply = Reply.model_validate_json(body)
+        assert not reply.ok
+        assert reply.error is not None
+        assert reply.error.code == "bad_request"
+        assert "2" in reply.error.message
+    finally:
+        sock.close(linger=0)
+    assert rd.client.call("ping")["state"] == "idle"
