@@ -39,3 +39,17 @@ class TakeError(RigdError):
 
 class TakeFormatError(TakeError):
     """A take file violates the schema; the message names the HDF5 path."""
+
+
+class TakeInUseError(TakeError):
+    """The take is open for writing in another process (HDF5 file lock); leave it alone."""
+
+
+class TakeTruncatedError(TakeFormatError):
+    """A write failed (disk full, file size limit) after HDF5 had recorded a longer file:
+    the file ends at `eof`, its superblock says `stored_eof`, and HDF5 refuses to open it."""
+
+    def __init__(self, message: str, eof: int, stored_eof: int) -> None:
+        super().__init__(message)
+        self.eof = eof
+        self.stored_eof = stored_eof

@@ -1,5 +1,6 @@
 """Take files: writing (capture pipeline), reading (training jobs), validation and recovery."""
 
+from rigd.core.errors import TakeInUseError, TakeTruncatedError
 from rigd.take.reader import (
     CameraSummary,
     EventSensorSummary,
@@ -12,8 +13,6 @@ from rigd.take.recover import RecoveryReport, find_unfinished, recover_take
 from rigd.take.validate import validate_take
 from rigd.take.writer import (
     DeviceWriteStats,
-    TakeInUseError,
-    TakeTruncatedError,
     TakeWriter,
     Trim,
     check_repair,

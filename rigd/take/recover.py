@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from drivers.base import EventSensorSettings
 from rigd.config import WriterConfig
-from rigd.core.errors import SyncError, TakeError, TakeFormatError
+from rigd.core.errors import SyncError, TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
 from rigd.core.schema import (
     CONFIG_DATASET,
     EVENTS_GROUP,
@@ -46,8 +46,6 @@ from rigd.core.schema import (
 )
 from rigd.sync import DeviceObservations, PulseLog, SyncResult, synchronize
 from rigd.take.writer import (
-    TakeInUseError,
-    TakeTruncatedError,
     TakeWriter,
     Trim,
     ZeroPadded,

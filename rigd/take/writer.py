@@ -35,7 +35,7 @@ from pydantic import BaseModel, ConfigDict
 
 from drivers.base import DeviceInfo, PulseBatch
 from rigd.config import WriterConfig
-from rigd.core.errors import TakeError, TakeFormatError
+from rigd.core.errors import TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import (
@@ -122,20 +122,6 @@ def compression_options(codec: str, *, shuffle: bool) -> dict[str, Any]:
     if shuffle:
         opts["shuffle"] = True
     return opts
-
-
-class TakeInUseError(TakeError):
-    """The take is open for writing in another process (HDF5 file lock); leave it alone."""
-
-
-class TakeTruncatedError(TakeFormatError):
-    """A write failed (disk full, file size limit) after HDF5 had recorded a longer file:
-    the file ends at `eof`, its superblock says `stored_eof`, and HDF5 refuses to open it."""
-
-    def __init__(self, message: str, eof: int, stored_eof: int) -> None:
-        super().__init__(message)
-        self.eof = eof
-        self.stored_eof = stored_eof
 
 
 #: Root attr: the real end of a truncated take that resume extended with a hole; chunks past it
