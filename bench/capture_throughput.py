@@ -1,6 +1,7 @@
 """Capture throughput on the simulated rig, side by side with a raw sequential write.
 
     python -m bench.capture_throughput [--duration 5] [--format rgb8|mono8] [--out DIR]
+                                       [--fsync/--no-fsync] [--flush-interval S]
 
 Prints sustained frames/s, events/s and MB/s written by `rigd capture`, and the MB/s of
 writing the same number of bytes with plain sequential writes (+ fsync) to the same
@@ -46,6 +47,10 @@ def main() -> None:
     ap.add_argument("--frame-compression", choices=["none", "lz4", "zstd", "gzip"], default=None)
     ap.add_argument("--event-compression", choices=["none", "lz4", "zstd", "gzip"], default=None)
     ap.add_argument("--out", type=Path, default=None, help="directory on the disk to measure (default: tmp)")
+    ap.add_argument(
+        "--fsync", action=argparse.BooleanOptionalAction, default=True, help="writer.fsync (durable flushes)"
+    )
+    ap.add_argument("--flush-interval", type=float, default=None, help="writer.flush_interval_s")
     args = ap.parse_args()
 
     out_dir = Path(tempfile.mkdtemp(prefix="rigd-bench-", dir=args.out))
@@ -60,6 +65,9 @@ def main() -> None:
             cfg.writer.frame_compression = args.frame_compression
         if args.event_compression:
             cfg.writer.event_compression = args.event_compression
+        cfg.writer.fsync = args.fsync
+        if args.flush_interval:
+            cfg.writer.flush_interval_s = args.flush_interval
         res = run_capture(cfg, out_dir, args.duration)
         n_frames = sum(res.frames.values())
         n_events = sum(res.events.values())
@@ -82,6 +90,10 @@ def main() -> None:
         for name, wall, fps, eps, bps in rows:
             print(f"{name:<26}{wall:>9.2f}{fps:>11.1f}{eps:>13,.0f}{bps / 1e6:>10.1f}")
         print(f"take size {size / 1e6:.1f} MB; frames {res.frames}; losses recorded: {losses}")
+        print(
+            f"flushes every {cfg.writer.flush_interval_s:g} s, fsync {'on' if args.fsync else 'off'}: "
+            f"{res.flushes} flushes, longest {res.flush_max_s * 1e3:.0f} ms"
+        )
         print(f"whole run incl. device open and finalize: {res.wall_s:.2f} s")
         worst = max((d.residual_rms_us for d in res.report.devices.values()), default=float("nan"))
         print(f"worst per-device sync residual RMS: {worst:.2f} us")

@@ -80,6 +80,9 @@ class CaptureResult:
     """Whole run: opening devices to closing the take."""
     capture_s: float
     """From the trigger's START until the writer had written everything."""
+    flushes: int = 0
+    flush_max_s: float = 0.0
+    """The longest periodic flush (the writer thread's stall; `writer.fsync` lengthens it)."""
 
 
 @dataclass(slots=True)
@@ -188,10 +191,12 @@ class Ballast:
             ) from exc
         os.close(fd)
 
-    def release(self) -> None:
+    def release(self, *, emergency: bool = False) -> None:
+        """Give the space back; `emergency`: the disk is full (said as a warning)."""
         if self.size > 0 and self.path.exists():
             self.path.unlink()
-            log.warning("released %.0f MB of disk ballast (%s)", self.size / 1e6, self.path)
+            level = logging.WARNING if emergency else logging.DEBUG
+            log.log(level, "released %.0f MB of disk ballast (%s)", self.size / 1e6, self.path)
 
 
 def remove_stale_ballast(directory: Path) -> int:
@@ -560,7 +565,7 @@ class _Pipeline:
         Everything flushed before stays in the file; what comes after is counted as lost."""
         self.writer_error = exc
         if self.ballast is not None:
-            self.ballast.release()  # room to close the take cleanly
+            self.ballast.release(emergency=True)  # room to close the take cleanly
         full = exc.errno == errno.ENOSPC or "No space left" in str(exc)
         code = "disk_full" if full else "writer_failed"
         self.set_fault(code, None, f"writing {self.path.name} failed: {exc}")
@@ -1025,6 +1030,8 @@ class CaptureSession:
         self._writer_thread.join()
         self._writer_thread = None
         capture_s = time.monotonic() - self._t_start
+        assert pipe.writer is not None
+        writer_flushes, writer_flush_max_s = pipe.writer.flush_count, pipe.writer.flush_seconds_max
         if pipe.errors:
             raise pipe.errors[0]
         if pipe.writer_error is not None:
@@ -1041,6 +1048,8 @@ class CaptureSession:
             self.path.stat().st_size,
             time.monotonic() - self._t_wall,
             capture_s,
+            flushes=writer_flushes,
+            flush_max_s=writer_flush_max_s,
         )
 
     def _abort(self, exc: BaseException) -> None:

@@ -61,6 +61,11 @@ class WriterConfig(BaseModel):
         le=60.0,
         description="Seconds between flushes of the take; a crash loses at most this much data.",
     )
+    fsync: bool = Field(
+        True,
+        description="fsync the take at every flush and on close: what was flushed survives a power "
+        "cut or kernel crash too, not only a killed process; costs writer time (bench.capture_throughput).",
+    )
     disk_reserve_mb: int = Field(
         1024,
         ge=0,

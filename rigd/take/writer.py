@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import re
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -334,6 +335,9 @@ class TakeWriter:
         self._events: dict[str, _EventSink] = {}
         self._cameras: dict[str, _CameraSink] = {}
         self._flush_count = 0
+        self.flush_seconds_total = 0.0
+        """Time spent in `flush` (with `fsync`, the wait for the disk too)."""
+        self.flush_seconds_max = 0.0
         self._plan: _FinalizePlan | None = None
         self._repairs: list[Trim] = []
 
@@ -833,6 +837,7 @@ class TakeWriter:
         event chunks are rewritten later.
         """
         self._check_open()
+        t0 = time.perf_counter()
         n = self._flush_count + 1
         blob = None
         if journal is not None:
@@ -850,9 +855,14 @@ class TakeWriter:
             f.attrs.modify("flush_count", np.int64(n))
             f.attrs.modify("last_flush_utc", np.bytes_(utc_now("milliseconds")))
             f.flush()
+            if self._cfg.fsync:
+                os.fsync(f.id.get_vfd_handle())
         except RuntimeError as exc:
             raise _as_oserror(exc) from exc
         self._flush_count = n
+        took = time.perf_counter() - t0
+        self.flush_seconds_total += took
+        self.flush_seconds_max = max(self.flush_seconds_max, took)
 
     def _write_journal(self, blob: bytes, n: int) -> None:
         """Overwrite the older of the two slots in place; the newer survives a torn write."""
@@ -1173,7 +1183,12 @@ class TakeWriter:
         try:
             if error is not None:
                 self._discard_pending()
+            elif self._cfg.fsync:
+                self._f.flush()
+                os.fsync(self._f.id.get_vfd_handle())
             self._f.close()
+            if error is None and self._cfg.fsync:
+                fsync_dir(self.path.parent)  # the file's directory entry, for a new take
         except (OSError, RuntimeError) as exc:
             error = error or exc
             _UNCLOSABLE.append(self)
@@ -1189,6 +1204,10 @@ class TakeWriter:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+    @property
+    def flush_count(self) -> int:
+        return self._flush_count
 
     @property
     def status(self) -> str:
@@ -1274,6 +1293,15 @@ class ZeroPadded(io.RawIOBase):
     def close(self) -> None:
         self._f.close()
         super().close()
+
+
+def fsync_dir(directory: Path) -> None:
+    """Make a new file's name durable (POSIX: fsync the directory that holds it)."""
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def is_lock_error(exc: OSError) -> bool:

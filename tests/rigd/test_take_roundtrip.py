@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,8 +55,9 @@ def make_take(
     n_events: int = 20_000,
     compression: str = "lz4",
     n_frames: int = 9,
+    fsync: bool = False,
 ) -> Written:
-    cfg = WriterConfig(event_compression=compression, event_chunk=1024)
+    cfg = WriterConfig(event_compression=compression, event_chunk=1024, fsync=fsync)
     w = TakeWriter(
         path, rig_config_json='{"name": "test-rig"}', take_id="take-1", config=cfg, rigd_version="t"
     )
@@ -215,6 +218,25 @@ def test_other_codecs_roundtrip(tmp_path: Path, codec: str) -> None:
     assert validate_take(wr.path) == []
     with open_take(wr.path) as take:
         np.testing.assert_array_equal(take.events("ev0").t, MAPS["ev0"].to_rig(wr.ev_t_device))
+
+
+@pytest.mark.parametrize("fsync", [False, True])
+def test_fsync_makes_flushes_and_the_name_durable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fsync: bool
+) -> None:
+    """`writer.fsync`: every flush and the close reach the disk, then the directory entry."""
+    synced: list[str] = []
+    real_fsync = os.fsync
+
+    def spy(fd: int) -> None:
+        synced.append("dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "file")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", spy)
+    wr = make_take(tmp_path / "durable.h5", n_events=3000, fsync=fsync)
+    # make_take flushes once by hand; close syncs the file, then its directory.
+    assert synced == (["file", "file", "dir"] if fsync else [])
+    assert validate_take(wr.path) == []
 
 
 def test_unfinalized_take_opens_and_refuses_time_queries(tmp_path: Path) -> None:
