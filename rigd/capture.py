@@ -1227,6 +1227,11 @@ def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
     )
     if pipe.stop_by_fault:
         result.report.warnings.append(f"the rig stopped the take itself: {pipe.stop_reason}")
+        pipe.writer.set_end_reason(f"stopped by the rig: {pipe.stop_reason}")
+    elif pipe.stop_reason is not None:
+        pipe.writer.set_end_reason(f"stopped: {pipe.stop_reason}")
+    else:
+        pipe.writer.set_end_reason(f"all {emitted} pulses done")
     if pipe.trigger is not None:
         result.report.trigger_link = pipe.trigger.link_stats()
     frame_index = {name: result.observation_pulse_index[name] for name in pipe.cameras}

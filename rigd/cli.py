@@ -259,6 +259,8 @@ def _add_plugin_commands() -> None:
 def _print_summary(summary: object) -> None:
     data = json.loads(summary.model_dump_json())  # type: ignore[attr-defined]
     out.print(f"status: {data.get('status')}   schema {data.get('schema_version')}")
+    if data.get("end_reason"):
+        out.print(f"ended: {data['end_reason']}")
     if data.get("recovered_utc"):
         out.print(f"recovered after a crash at {data['recovered_utc']} (data after the last flush is lost)")
     cams = Table("camera", "frames", "fps", "shape", "dropped", "missing pulses", "sync rms us", "max us")

@@ -42,6 +42,7 @@ TAIL_PREFIX = "tail_"
 TAIL_META_ATTR = "tail_meta"
 #: Root attrs of a take sealed by `rigd recover` (ISO time; JSON RecoveryReport).
 RECOVERED_ATTR = "recovered_utc"
+END_REASON_ATTR = "end_reason"
 RECOVERY_REPORT_ATTR = "recovery_report_json"
 
 ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")

@@ -27,6 +27,7 @@ from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import (
     CONFIG_DATASET,
+    END_REASON_ATTR,
     EVENTS_GROUP,
     FRAMES_GROUP,
     JOURNAL_DATASET,
@@ -97,6 +98,9 @@ class TakeSummary(BaseModel):
     failure_reason: str | None = None
     recovered_utc: str | None = Field(
         None, description="Set when `rigd recover` sealed the take after its writer crashed."
+    )
+    end_reason: str | None = Field(
+        None, description="Why the recording ended: pulses done, a stop and its reason, a fault."
     )
     cameras: dict[str, CameraSummary]
     event_sensors: dict[str, EventSensorSummary]
@@ -261,6 +265,11 @@ class Take:
             return None
         found = decode_journal(np.asarray(node[...]))
         return None if found is None else found[1]
+
+    @property
+    def end_reason(self) -> str | None:
+        """Why the recording ended (set by the capture; None for older or converted takes)."""
+        return _attr_str(self._f, END_REASON_ATTR) if END_REASON_ATTR in self._f.attrs else None
 
     @property
     def recovered_utc(self) -> str | None:
@@ -561,6 +570,7 @@ class Take:
             time_domain=self.time_domain,
             failure_reason=None if reason is None else _as_text(reason),
             recovered_utc=self.recovered_utc,
+            end_reason=self.end_reason,
             cameras=cams,
             event_sensors=sens,
             pulses=int(pulses_node.shape[0]) if isinstance(pulses_node, h5py.Dataset) else 0,

@@ -41,6 +41,7 @@ from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import (
     CONFIG_DATASET,
+    END_REASON_ATTR,
     EVENT_DTYPES,
     EVENTS_GROUP,
     FINALIZE_PLAN_ATTR,
@@ -1204,6 +1205,12 @@ class TakeWriter:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+    def set_end_reason(self, reason: str) -> None:
+        """Why the recording ended (pulses done, an operator's stop, a fault), for whoever
+        reads the take later."""
+        self._check_writable()
+        self._f.attrs[END_REASON_ATTR] = reason
 
     @property
     def flush_count(self) -> int:

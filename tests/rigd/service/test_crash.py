@@ -1,6 +1,7 @@
 """SIGKILL the daemon at random moments of a take, 20 times: every take opens with plain
-h5py, holds everything the sim delivered more than a flush interval before the kill
-(checked against the simulator's own journal), and is sealed when the daemon restarts."""
+h5py, holds everything the sim delivered more than a flush interval (plus SLACK_S for the
+queue and the flush itself) before the kill (checked against the simulator's own journal),
+and is sealed when the daemon restarts."""
 
 from __future__ import annotations
 
@@ -23,8 +24,9 @@ from tests.rigd.service.conftest import endpoints, small_rig, spawn_daemon
 
 N_KILLS = 20
 FLUSH_S = 0.5
-#: Writer loop wake-up and write time on top of the flush interval (see CaptureSession).
-SLACK_S = 0.35
+#: On top of the flush interval: the capture queue, the writer's wake-up, and the flush itself
+#: (writing the buffers, then fsync). A loaded CI machine needs the room.
+SLACK_S = 0.5
 
 
 def _journal(path: Path) -> list[dict[str, Any]]:
@@ -43,9 +45,10 @@ def _plain_event_times(g: h5py.Group) -> np.ndarray:
     return t
 
 
-def _check_take(take: Path, truth: list[dict[str, Any]], cutoff_ns: int) -> dict[str, float]:
+def _check_take(take: Path, truth: list[dict[str, Any]], cutoff_ns: int, kill_ns: int) -> dict[str, float]:
     """Everything delivered before `cutoff_ns` is in the take (device times, unfinalized)."""
     old = [r for r in truth if r["host_time_ns"] < cutoff_ns]
+    delivered = {(r["dev"], int(r["t_device_us"])): r["host_time_ns"] for r in old if r["kind"] == "frame"}
     frames: dict[str, set[int]] = defaultdict(set)
     ev_n: dict[str, int] = defaultdict(int)
     ev_last: dict[str, int] = {}
@@ -63,8 +66,11 @@ def _check_take(take: Path, truth: list[dict[str, Any]], cutoff_ns: int) -> dict
         for cam, times in frames.items():
             have = set(f[f"frames/{cam}/t_exposure_start_device_us"][...].tolist())
             missing = times - have
+            ages = sorted((kill_ns - delivered[cam, t]) / 1e9 for t in missing)
             assert not missing, (
-                f"{take.name} {cam}: {len(missing)} frames delivered before the cutoff missing"
+                f"{take.name} {cam}: {len(missing)} frames delivered before the cutoff missing, "
+                f"delivered {ages[0]:.3f}-{ages[-1]:.3f} s before the kill; the take has "
+                f"{len(have)} frames, last flush {f.attrs.get('last_flush_utc')!r}"
             )
         for sen, n in ev_n.items():
             t = _plain_event_times(f[f"events/{sen}"])
@@ -122,7 +128,7 @@ def test_sigkill_twenty_times_takes_survive_and_are_sealed(runtime_dir: Path, tm
                 proc.terminate()  # the last round, or a failure: no daemon left behind
                 proc.wait(timeout=60)
         cutoff = kill_ns - int((FLUSH_S + SLACK_S) * 1e9)
-        stats = _check_take(path, _journal(truth_path), cutoff)
+        stats = _check_take(path, _journal(truth_path), cutoff, kill_ns)
         lag.append(stats["frames"] - stats["old_frames"])
         takes.append((path, kill_ns))
     assert len(takes) == N_KILLS

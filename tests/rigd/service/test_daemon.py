@@ -53,6 +53,7 @@ def test_timed_capture_through_daemon(start_daemon: Any) -> None:
     with h5py.File(path, "r") as f:
         assert f.attrs["status"] == "complete"
         assert f["frames/cam0/images"].shape[0] == 30
+        assert f.attrs["end_reason"] == "all 30 pulses done"
 
 
 def test_open_ended_capture_stop_and_telemetry(start_daemon: Any) -> None:
@@ -319,6 +320,7 @@ def test_control_answers_while_devices_open(start_daemon: Any, tmp_path: Path) -
     with h5py.File(started["take"], "r") as f:
         assert f.attrs["status"] == "complete"
         assert f["trigger/pulses/index"].shape[0] < 30  # stopped right after the start
+        assert f.attrs["end_reason"] == "stopped: changed my mind"
 
 
 def test_dealer_and_multipart_envelopes(start_daemon: Any) -> None:

@@ -143,6 +143,7 @@ def test_disk_low_stops_the_take_cleanly(tmp_path: Path) -> None:
     assert 20 <= res.frames["cam0"] <= 90
     with h5py.File(res.path, "r") as f:
         assert f.attrs["status"] == "complete"
+        assert f.attrs["end_reason"].startswith("stopped by the rig: disk space low"), f.attrs["end_reason"]
     with pytest.raises(TakeError, match="below the reserve"):
         CaptureSession(cfg, tmp_path, duration_s=1, disk_usage=usage).start()
 
