@@ -83,6 +83,8 @@ class CaptureResult:
     flushes: int = 0
     flush_max_s: float = 0.0
     """The longest periodic flush (the writer thread's stall; `writer.fsync` lengthens it)."""
+    end_reason: str = ""
+    """Why the recording ended (also the take's `end_reason` attr)."""
 
 
 @dataclass(slots=True)
@@ -222,6 +224,7 @@ class _Pipeline:
         self.stop_acq = threading.Event()
         self.stop_requested = threading.Event()
         self.stop_reason: str | None = None
+        self.end_reason = ""
         self.stop_by_fault = False
         self.errors: list[BaseException] = []
         self.losses: list[LossRecord] = []
@@ -1050,6 +1053,7 @@ class CaptureSession:
             capture_s,
             flushes=writer_flushes,
             flush_max_s=writer_flush_max_s,
+            end_reason=pipe.end_reason,
         )
 
     def _abort(self, exc: BaseException) -> None:
@@ -1227,11 +1231,12 @@ def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
     )
     if pipe.stop_by_fault:
         result.report.warnings.append(f"the rig stopped the take itself: {pipe.stop_reason}")
-        pipe.writer.set_end_reason(f"stopped by the rig: {pipe.stop_reason}")
+        pipe.end_reason = f"stopped by the rig: {pipe.stop_reason}"
     elif pipe.stop_reason is not None:
-        pipe.writer.set_end_reason(f"stopped: {pipe.stop_reason}")
+        pipe.end_reason = f"stopped: {pipe.stop_reason}"
     else:
-        pipe.writer.set_end_reason(f"all {emitted} pulses done")
+        pipe.end_reason = f"all {emitted} pulses done"
+    pipe.writer.set_end_reason(pipe.end_reason)
     if pipe.trigger is not None:
         result.report.trigger_link = pipe.trigger.link_stats()
     frame_index = {name: result.observation_pulse_index[name] for name in pipe.cameras}

@@ -138,6 +138,7 @@ def print_status(t: dict[str, Any], out: Console) -> None:
         out.print(
             f"last take: {last['path']} ({last['status']})"
             + (f": {last['error']}" if last.get("error") else "")
+            + (f", {last['end_reason']}" if last.get("end_reason") else "")
         )
 
 
@@ -170,7 +171,8 @@ def wait_for_take(client: DaemonClient, path: str, on_status: Any = None) -> dic
 
 
 def _report_last(last: dict[str, Any]) -> None:
-    typer.echo(f"take: {last['path']} ({last['status']})")
+    ended = f", {last['end_reason']}" if last.get("end_reason") else ""
+    typer.echo(f"take: {last['path']} ({last['status']}{ended})")
     if last.get("error"):
         _err.print(f"[bold red]error:[/] {last['error']}")
         raise typer.Exit(code=1)

@@ -485,6 +485,7 @@ class Daemon:
                     losses=rep.losses,
                     warnings=rep.warnings,
                     residual_rms_us={k: d.residual_rms_us for k, d in rep.devices.items()},
+                    end_reason=res.end_reason or None,
                 )
             else:
                 self._last_take = TakeSummary(

@@ -151,6 +151,7 @@ class TakeSummary(_Strict):
     losses: list[LossRecord]
     warnings: list[str]
     residual_rms_us: dict[str, float]
+    end_reason: str | None = None
     error: str | None = None
 
 

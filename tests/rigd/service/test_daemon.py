@@ -48,6 +48,7 @@ def test_timed_capture_through_daemon(start_daemon: Any) -> None:
     last = t["last_take"]
     assert last["path"] == str(path), last
     assert last["status"] == "complete", last
+    assert last["end_reason"] == "all 30 pulses done", last
     assert last["frames"] == {"cam0": 30, "cam1": 30, "cam2": 30}
     assert all(v < 5.0 for v in last["residual_rms_us"].values()), last["residual_rms_us"]
     with h5py.File(path, "r") as f:
