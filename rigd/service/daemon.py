@@ -69,6 +69,10 @@ _HARD_LIMIT_BYTES = 1 << 20
 #: How long shutdown waits for a capture that is still opening its devices.
 _WORKER_GRACE_S = 60.0
 
+#: Commands that can take seconds to minutes (opening devices, enumerating cameras, sealing
+#: big takes): run on a worker so the control loop answers and feeds the watchdog meanwhile.
+_SLOW_COMMANDS = frozenset({"capture", "devices", "recover"})
+
 #: Takes a job that returns reply bytes and sees that the reply gets sent.
 _Defer = Callable[[Callable[[], bytes]], None]
 
@@ -192,6 +196,7 @@ class Daemon:
         self._loop_beat = time.monotonic()
         self._idle_faults: list[Fault] = []
         self._workers: list[threading.Thread] = []
+        self._recovering = False
 
     # -- lifecycle -----------------------------------------------------------------------
     def serve(self) -> None:
@@ -354,8 +359,8 @@ class Daemon:
     def handle(self, frames: list[bytes], defer: _Defer | None = None) -> bytes | None:
         """Answer one request message (all its frames); never raises.
 
-        With `defer`, a slow command (capture) hands its work to `defer` and returns None: the
-        reply comes from that job. Without it, everything is answered here.
+        With `defer`, a slow command (capture, devices, recover) hands its work to `defer` and
+        returns None: the reply comes from that job. Without it, everything is answered here.
         """
         req_id: str | None = None
         try:
@@ -363,11 +368,10 @@ class Daemon:
             rid = data.get("id")
             req_id = rid if isinstance(rid, str) and len(rid) <= 64 else None
             cmd, args = _validate(data)
-            if cmd == "capture" and defer is not None:
-                assert isinstance(args, CaptureArgs)
-                session = self._begin_capture(args)
-                capture_id = req_id
-                defer(lambda: self._answer(capture_id, lambda: self._start_capture(session, args)))
+            if defer is not None and cmd in _SLOW_COMMANDS:
+                job = self._claim(cmd, args)  # quick checks here; `busy` is answered at once
+                deferred_id = req_id
+                defer(lambda: self._answer(deferred_id, job))
                 return None
         except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
             return _reply_bytes(Reply(id=req_id, ok=False, error=_error_info(exc)))
@@ -402,6 +406,8 @@ class Daemon:
         with self._lock:
             if self._session is not None:
                 raise _RequestError("busy", f"a take is already running: {self._session.path}")
+            if self._recovering:
+                raise _RequestError("busy", "unfinished takes are being recovered; try again when done")
             session = CaptureSession(
                 self.config,
                 self.svc.take_dir,
@@ -442,13 +448,34 @@ class Daemon:
 
         return discover().to_dict()
 
-    def _cmd_recover(self, _: BaseModel) -> dict[str, Any]:
-        with self._lock:
-            if self._session is not None:
-                raise _RequestError("busy", "not while a take is running")
-        before = len(self.recovered)
-        self._recover()
-        return {"recovered": self.recovered[before:]}
+    def _cmd_recover(self, args: BaseModel) -> dict[str, Any]:
+        return self._claim("recover", args)()
+
+    def _claim(self, cmd: str, args: BaseModel) -> Callable[[], dict[str, Any]]:
+        """For a slow command: what must be decided before the next request (who owns the rig),
+        and the rest as a job for a worker thread."""
+        if cmd == "capture":
+            assert isinstance(args, CaptureArgs)
+            session = self._begin_capture(args)
+            return functools.partial(self._start_capture, session, args)
+        if cmd == "recover":
+            with self._lock:
+                if self._session is not None:
+                    raise _RequestError("busy", "not while a take is running")
+                if self._recovering:
+                    raise _RequestError("busy", "a recovery is already running")
+                self._recovering = True
+            return self._run_recover
+        return functools.partial(getattr(self, f"_cmd_{cmd}"), args)
+
+    def _run_recover(self) -> dict[str, Any]:
+        try:
+            before = len(self.recovered)
+            self._recover()
+            return {"recovered": self.recovered[before:]}
+        finally:
+            with self._lock:
+                self._recovering = False
 
     def _cmd_shutdown(self, args: BaseModel) -> dict[str, Any]:
         assert isinstance(args, ShutdownArgs)

@@ -351,3 +351,36 @@ def test_dealer_and_multipart_envelopes(start_daemon: Any) -> None:
     finally:
         sock.close(linger=0)
     assert rd.client.call("ping")["state"] == "idle"
+
+
+def test_recover_runs_off_the_control_loop(start_daemon: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Sealing big takes takes minutes: meanwhile the daemon answers, and refuses a capture
+    or a second recovery (they would race over the same take directory)."""
+    rd = start_daemon()
+    entered = threading.Event()
+
+    def slow_recover() -> None:
+        entered.set()
+        time.sleep(1.5)
+        rd.daemon.recovered.append({"path": "sealed.h5"})
+
+    monkeypatch.setattr(rd.daemon, "_recover", slow_recover)
+    result: dict[str, Any] = {}
+
+    def recover() -> None:
+        with DaemonClient(rd.config.service.control_endpoint, timeout_s=10.0) as c:
+            result.update(c.call("recover"))
+
+    th = threading.Thread(target=recover)
+    th.start()
+    assert entered.wait(5)
+    with DaemonClient(rd.config.service.control_endpoint, timeout_s=1.0) as other:
+        assert other.call("status")["state"] == "idle"
+        with pytest.raises(DaemonRequestError, match=r"busy.*recovered"):
+            other.call("capture", duration_s=1.0)
+        with pytest.raises(DaemonRequestError, match=r"busy.*recovery is already running"):
+            other.call("recover")
+    th.join(timeout=10)
+    assert result == {"recovered": [{"path": "sealed.h5"}]}
+    started = rd.client.call("capture", duration_s=0.5)  # the rig is free again
+    assert wait_idle(rd.client)["last_take"]["path"] == started["take"]
