@@ -307,6 +307,8 @@ def test_control_answers_while_devices_open(start_daemon: Any, tmp_path: Path) -
         while time.monotonic() - t0 < 1.5:
             states.append(other.call("status")["state"])
             assert other.call("ping")["protocol"] == 1
+            # What gates the systemd watchdog ping: the control loop turned in the last 0.5 s.
+            assert rd.daemon._control_alive(time.monotonic(), 0.25)
             time.sleep(0.1)
         assert set(states) == {"starting"}, states
         with pytest.raises(DaemonRequestError, match="busy"):
