@@ -3,11 +3,13 @@
 One thread serves the control socket (ROUTER, so REQ clients see plain request/reply), one
 publishes telemetry (PUB) and feeds the Prometheus exporter and the systemd watchdog, and at
 most one `CaptureSession` runs in the background. Opening the devices for a take can take
-seconds on real hardware, so it runs on a worker thread whose reply is sent when it is done:
-meanwhile the control loop keeps answering (`status` says `starting`, `stop` is queued) and
-keeps feeding the systemd watchdog. Every request gets a reply: malformed input is answered with a
-structured error, and a bug in a handler is logged and answered as `internal` while the
-daemon goes on serving. SIGTERM/SIGINT finalize the running take before exiting.
+seconds on real hardware, enumerating cameras too, and sealing big takes minutes, so those
+run on worker threads whose replies are sent when they are done: meanwhile the control loop
+keeps answering (`status` says `starting`, `stop` is queued) and feeding the systemd watchdog.
+
+Every request gets a reply: malformed input is answered with a structured error, and a bug
+in a handler is logged and answered as `internal` while the daemon goes on serving.
+SIGTERM/SIGINT finalize the running take before exiting.
 """
 
 from __future__ import annotations
