@@ -45,6 +45,9 @@ from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
 
+#: How much later than its interval a flush may come before the writer counts as stalled.
+FLUSH_STALL_SLACK_S = 2.0
+
 _READ_TIMEOUT_S = 0.05
 _STOP = object()
 #: A trigger link with no valid line for this long (at rates where pulses come faster) is silent.
@@ -124,6 +127,11 @@ class SessionSnapshot:
     bytes_written: int
     devices: list[DeviceSnapshot]
     faults: list[ActiveFault]
+    last_flush_age_s: float | None = None
+    """Seconds since the take was last flushed (what a crash now would lose); None before
+    the first flush."""
+    flush_max_s: float = 0.0
+    """The longest flush so far (the writer's stall; fsync waits for the disk)."""
 
 
 @dataclass(slots=True)
@@ -250,6 +258,7 @@ class _Pipeline:
         self.last_frame: dict[str, Frame] = {}
         self.last_events: dict[str, list[EventArray]] = {}
         self.last_flush_utc: str | None = None
+        self.last_flush_mono: float | None = None
 
     # -- faults --------------------------------------------------------------------------
     def set_fault(self, code: str, device: str | None, message: str) -> None:
@@ -412,6 +421,9 @@ class _Pipeline:
                         t_last_us=t_range[1] if t_range else None,
                     )
                 )
+            return
+        if ("queue_full", None) in self.faults and self.queue.qsize() < self.queue.maxsize // 2:
+            self.clear_fault("queue_full", None)  # the writer caught up
 
     def _guard(self, name: str, fn: Callable[[], None], device: str | None = None) -> Callable[[], None]:
         """Run a thread body; an error ends the capture, except a camera or event sensor that
@@ -555,6 +567,7 @@ class _Pipeline:
     def _flush(self, writer: TakeWriter) -> None:
         writer.flush(journal=self.journal())
         self.last_flush_utc = _utc_now()
+        self.last_flush_mono = time.monotonic()
 
     def _refused(self, name: str, kind: str, payload: Any, reason: str) -> None:
         with self.lock:
@@ -885,6 +898,8 @@ class CaptureSession:
             size,
             pipe.device_snapshots(),
             faults,
+            None if pipe.last_flush_mono is None else time.monotonic() - pipe.last_flush_mono,
+            0.0 if pipe.writer is None else pipe.writer.flush_seconds_max,
         )
 
     def latest_frames(self) -> dict[str, Frame]:
@@ -934,6 +949,24 @@ class CaptureSession:
         self._watchdog.line_mono = time.monotonic()
         for live in pipe.live.values():
             live.samples.clear()
+
+    def _check_flushes(self, now: float) -> None:
+        """A writer that stopped flushing (a hung disk or network mount) puts everything since
+        at risk: say so long before the queue fills."""
+        pipe = self._pipe
+        if pipe.writer_error is not None or self._t_start is None:
+            return
+        interval = self.config.writer.flush_interval_s
+        since = self._t_start if pipe.last_flush_mono is None else pipe.last_flush_mono
+        if now - since > max(3 * interval, interval + FLUSH_STALL_SLACK_S):
+            pipe.set_fault(
+                "writer_stalled",
+                None,
+                f"no flush for {now - since:.1f} s (every {interval:g} s expected): the disk is not "
+                "taking writes; a crash now would lose everything since",
+            )
+        else:
+            pipe.clear_fault("writer_stalled", None)
 
     def _check_disk(self, *, preflight: bool = False) -> None:
         reserve = self.config.writer.disk_reserve_mb * 1_000_000
@@ -995,6 +1028,7 @@ class CaptureSession:
                 self._watchdog.check()
             if now >= next_disk:
                 self._check_disk()
+                self._check_flushes(now)
                 next_disk = now + 1.0
             if deadline is not None and now > deadline:
                 msg = f"the trigger delivered {pipe.n_pulses} of {self.n_pulses} pulse records in time"

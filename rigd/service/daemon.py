@@ -581,6 +581,8 @@ class Daemon:
         t.queue_depth = snap.queue_depth
         t.queue_capacity = snap.queue_capacity
         t.bytes_written = snap.bytes_written
+        t.last_flush_age_s = snap.last_flush_age_s
+        t.flush_max_s = snap.flush_max_s
         t.devices = [DeviceTelemetry.model_validate(asdict(d)) for d in snap.devices]
         t.faults = [_fault(f) for f in snap.faults]
         return t

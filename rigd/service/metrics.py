@@ -164,6 +164,14 @@ class MetricsExporter:
         self.write_rate = Gauge(
             "rigd_write_rate_bytes_per_second", "Take write rate over the last interval.", registry=r
         )
+        self.flush_age = Gauge(
+            "rigd_take_last_flush_age_seconds",
+            "Seconds since the running take was last flushed: what a crash now would lose.",
+            registry=r,
+        )
+        self.flush_max = Gauge(
+            "rigd_take_flush_max_seconds", "The running take's longest flush (writer stall).", registry=r
+        )
         self.disk_free = Gauge("rigd_disk_free_bytes", "Free bytes on the take directory's disk.", registry=r)
         self.disk_total = Gauge("rigd_disk_total_bytes", "Size of the take directory's disk.", registry=r)
         self.faults = Gauge("rigd_faults", "Active faults by code.", ["code"], registry=r)
@@ -273,6 +281,8 @@ class MetricsExporter:
         self.queue_depth.set(t.queue_depth)
         self.queue_capacity.set(t.queue_capacity)
         self.write_rate.set(t.write_rate_bytes_s)
+        self.flush_age.set(t.last_flush_age_s if t.last_flush_age_s is not None else 0.0)
+        self.flush_max.set(t.flush_max_s)
         self.disk_free.set(t.disk_free_bytes)
         self.disk_total.set(t.disk_total_bytes)
 

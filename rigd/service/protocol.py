@@ -119,6 +119,7 @@ class Fault(_Strict):
         "disk_full",
         "queue_full",
         "writer_failed",
+        "writer_stalled",
     ]
     device: str | None = None
     message: str
@@ -168,6 +169,8 @@ class Telemetry(_Strict):
     queue_capacity: int = 0
     bytes_written: int = 0
     write_rate_bytes_s: float = 0.0
+    last_flush_age_s: float | None = None
+    flush_max_s: float = 0.0
     disk_free_bytes: int = 0
     disk_total_bytes: int = 0
     devices: list[DeviceTelemetry] = Field(default_factory=list)

@@ -197,3 +197,40 @@ def test_disk_full_stops_closes_reports_and_recovers(small_tmpfs: Path, start_da
         assert f.attrs["status"] in ("failed", "complete")
         assert f["frames/cam0/t_exposure_start_device_us"].shape[0] >= n
     wait_idle(rd.client)
+
+
+def test_writer_that_stops_flushing_is_a_fault(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A hung disk: flushes stop; a `writer_stalled` fault is raised while it lasts, telemetry
+    shows the flush age, and the take's report keeps the episode."""
+    from rigd.take.writer import TakeWriter
+
+    cfg = small_rig(_world())
+    data = cfg.model_dump(mode="json")
+    data["writer"]["flush_interval_s"] = 0.2
+    cfg = type(cfg).from_data(data)
+    real_flush = TakeWriter.flush
+    calls = {"n": 0}
+
+    def hanging_flush(self: TakeWriter, journal: Any = None) -> None:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            time.sleep(3.5)  # the disk takes nothing for a while
+        real_flush(self, journal)
+
+    monkeypatch.setattr(TakeWriter, "flush", hanging_flush)
+    session = CaptureSession(cfg, tmp_path, duration_s=6.0)
+    session.start()
+    ages, stalled = [], False
+    while not session.done:
+        snap = session.snapshot()
+        if snap.last_flush_age_s is not None:
+            ages.append(snap.last_flush_age_s)
+        stalled |= any(f.code == "writer_stalled" for f in snap.faults)
+        time.sleep(0.1)
+    res = session.wait(30)
+    assert res is not None
+    assert stalled
+    assert max(ages) > 2.2, max(ages)
+    assert res.flushes >= 10  # flushing resumed: 6 s at 0.2 s, less the stall
+    assert any(w.startswith("fault writer_stalled") for w in res.report.warnings), res.report.warnings
+    assert not session.snapshot().faults  # cleared once flushes came back
