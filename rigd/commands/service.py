@@ -106,6 +106,13 @@ def status(
     print_status(t, Console())
 
 
+def _flush_text(t: dict[str, Any]) -> str:
+    age = t.get("last_flush_age_s")
+    if age is None:
+        return "  not flushed yet"
+    return f"  flushed {age:.1f} s ago (longest {t.get('flush_max_s', 0.0) * 1e3:.0f} ms)"
+
+
 def print_status(t: dict[str, Any], out: Console) -> None:
     disk = f"{t['disk_free_bytes'] / 1e9:.1f} of {t['disk_total_bytes'] / 1e9:.1f} GB free"
     out.print(f"state: [bold]{t['state']}[/]   takes: {t['takes_completed']}   disk: {disk}")
@@ -113,6 +120,7 @@ def print_status(t: dict[str, Any], out: Console) -> None:
         out.print(
             f"take: {t['take']}  {t['take_elapsed_s']:.1f} s  pulses {t['pulses']}  "
             f"queue {t['queue_depth']}/{t['queue_capacity']}  {t['bytes_written'] / 1e6:.0f} MB"
+            + _flush_text(t)
         )
     table = Table("device", "kind", "state", "total", "rate/s", "lost", "queued", "reconnects", "jitter us")
     for d in t["devices"]:

@@ -231,6 +231,19 @@ def test_cli_talks_to_daemon(start_daemon: Any, monkeypatch: pytest.MonkeyPatch)
     res = runner.invoke(app, ["stop", "--connect", ep])
     assert res.exit_code == 2
     assert "not_capturing" in res.output
+    # An open-ended take: the human status shows the flush age; stop says why it ended.
+    rd.client.call("capture")
+    deadline = time.monotonic() + 20
+    while rd.client.call("status").get("last_flush_age_s") is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    res = runner.invoke(app, ["status", "--connect", ep])
+    assert res.exit_code == 0, res.output
+    assert "flushed" in res.output
+    assert "s ago" in res.output
+    res = runner.invoke(app, ["stop", "--connect", ep])
+    assert res.exit_code == 0, res.output
+    assert "complete, stopped: rigd stop" in res.output
 
 
 def test_cli_without_daemon(runtime_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
