@@ -56,6 +56,7 @@ from firmware_sim.world import (
     Unpluggable,
     UnplugParams,
     get_world,
+    power_on_clock,
     truth_journal,
     unplug_params,
 )
@@ -899,11 +900,11 @@ def _pixel_model(spec: DeviceSpec, seed: int) -> PixelModelConfig | None:
 def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
     """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=&scene=sprites|board`.
 
-    Fault switches: `unplug_at_s=`, `unplug_for_s=` (docs/sim-faults.md).
+    Fault switches: `unplug_at_s=`, `unplug_for_s=`, `clock_reset=1` (docs/sim-faults.md).
     """
     spec.check_params(
         {"offset_us", "drift_ppm", "seed", "width", "height", "threshold", "buffer_packets", "scene"}
-        | {"pixel_model", *_MODEL_PARAMS, "unplug_at_s", "unplug_for_s"}
+        | {"pixel_model", *_MODEL_PARAMS, "unplug_at_s", "unplug_for_s", "clock_reset"}
     )
     name = spec.path.strip("/")
     if not name:
@@ -930,4 +931,5 @@ def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
                 f"device spec {spec.raw!r}: {field_name}={spec.params[field_name]!r} out of range"
             )
     clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
+    clock = power_on_clock(spec, world, name, clock)
     return EvtStreamSensor(SimEventSensor(world, name, scene, clock, params, spec.raw))

@@ -37,6 +37,7 @@ from firmware_sim.world import (
     Unpluggable,
     UnplugParams,
     get_world,
+    power_on_clock,
     truth_journal,
     unplug_params,
 )
@@ -402,7 +403,7 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
     """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=&scene=sprites|board`.
 
     Fault switches: `busy_us=`, `unplug_at_s=`, `unplug_for_s=`, `counter_reset=1`,
-    `open_delay_s=` (docs/sim-faults.md).
+    `clock_reset=1`, `open_delay_s=` (docs/sim-faults.md).
     """
     spec.check_params(
         {
@@ -420,6 +421,7 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
             "unplug_for_s",
             "counter_reset",
             "open_delay_s",
+            "clock_reset",
         }
     )
     name = spec.path.strip("/")
@@ -456,6 +458,7 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
     world = get_world(spec.location or "default", seed)
     scene = sim_scene(spec, world, seed)
     clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
+    clock = power_on_clock(spec, world, name, clock)
     if open_delay_s > 0:
         time.sleep(open_delay_s)  # enumeration, firmware upload, GenICam XML: seconds on real cameras
     return SimRgbCamera(world, name, scene, clock, params, spec.raw)

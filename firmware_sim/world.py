@@ -227,6 +227,19 @@ def unplug_params(spec: DeviceSpec) -> UnplugParams | None:
     return UnplugParams(at_s, for_s)
 
 
+def power_on_clock(spec: DeviceSpec, world: SimWorld, name: str, clock: DeviceClock) -> DeviceClock:
+    """`clock_reset=1`: a device opened after its replug counts from 0 again (most cameras and
+    event sensors reset their timestamp counter on a power cycle); the crystal, so the drift,
+    stays the same."""
+    reset = spec.int_param("clock_reset", 0)
+    if reset not in (0, 1):
+        raise ConfigError(f"device spec {spec.raw!r}: clock_reset={reset!r} (use 0 or 1)")
+    fault = world.unplug_fault(name)
+    if reset == 0 or not fault.replugged_before(world.now_us()):
+        return clock
+    return DeviceClock(clock.offset_us - clock.at(fault.end_us), clock.drift_ppm)
+
+
 class UnplugFault:
     """One device's unplug/replug window, kept by the world so that it outlives the device object.
 

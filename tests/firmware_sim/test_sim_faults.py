@@ -155,11 +155,14 @@ def test_counter_reset_and_bad_unplug_params(world_name: str) -> None:
         ("busy_us=-5", "busy_us"),
         ("open_delay_s=-1", "open_delay_s"),
         ("open_delay_s=nan", "open_delay_s"),
+        ("clock_reset=2", "clock_reset"),
     ):
         with pytest.raises(ConfigError, match=word):
             open_device("rgb_camera", f"sim://{world_name}/cam9?{bad}")
     with pytest.raises(ConfigError, match="unplug_at_s"):
         open_device("event_sensor", f"sim://{world_name}/ev9?unplug_at_s=nan")
+    with pytest.raises(ConfigError, match="clock_reset"):
+        open_device("event_sensor", f"sim://{world_name}/ev9?clock_reset=x")
     with pytest.raises(ConfigError, match="silent_after"):
         open_device("trigger", f"sim://{world_name}/trigger?silent_after=-1")
 
