@@ -35,6 +35,7 @@ import numpy as np
 from drivers.base import EventPacket, EventSensor, PulseBatch, RgbCamera, Trigger
 from drivers.registry import open_device
 from rigd import __version__
+from rigd.clock_reset import MAX_HOLD_S, MAX_OBSERVATIONS, ClockReset, estimate_offset
 from rigd.config import RigConfig
 from rigd.core.errors import DeviceError, RigdError, TakeError
 from rigd.core.events import EventArray
@@ -243,6 +244,7 @@ class _Pipeline:
         self.device_counters: dict[str, dict[str, int]] = {}
         self.failed_devices: dict[str, str] = {}
         self.trigger_channel = {s.name: s.settings.trigger_in_channel for s in config.event_sensors}
+        self.clock_resets: dict[str, ClockReset] = {}
         self.pulses: list[PulseBatch] = []
         self.n_pulses = 0
         self.trigger: Trigger | None = None
@@ -367,6 +369,92 @@ class _Pipeline:
         self.clear_fault("device_reconnecting", name)
         raise DeviceError(f"{name} did not come back before the end of the take (lost: {exc})") from exc
 
+    def _deliver(self, name: str, kind: str, item: Any) -> None:
+        """One frame or event packet from a device, on its way to the writer; a device that
+        came back with its clock restarted is re-tied onto its old clock first."""
+        reset = self.clock_resets.get(name)
+        if reset is None and (t_before := self._restarted(name, kind, item)) is not None:
+            reset = self.clock_resets[name] = ClockReset(
+                name,
+                "rgb_camera" if kind == "frame" else "event_sensor",
+                t_before,
+                self.trigger_channel.get(name, 0),
+            )
+            log.warning("%s came back with its clock restarted; tying it to its old clock", name)
+        if reset is None:
+            self._pass(name, kind, item)
+            return
+        if reset.offset is not None:
+            self._pass(name, kind, reset.shift(kind, item))
+            return
+        reset.hold(kind, item)
+        if not self._tie(reset):
+            return
+        for held_kind, held in reset.release():
+            self._pass(name, held_kind, held)
+
+    def _restarted(self, name: str, kind: str, item: Any) -> int | None:
+        """For a first delivery after a reconnect whose time lies before the last one before
+        the gap: that last time (the device's clock restarted); else None."""
+        gap = self.live[name].gap_started
+        t = _first_time(kind, item)
+        if gap is None or gap[1] is None or t is None or t >= gap[1]:
+            return None
+        return gap[1]
+
+    def _tie(self, reset: ClockReset) -> bool:
+        """Try to place the restarted clock on the old one; True once done. A device that does
+        not tie within MAX_OBSERVATIONS is written off (what was held is counted lost)."""
+        pre_t, pre_host, _ = self.obs[reset.name].arrays()
+        n = min(pre_t.size, pre_host.size)
+        with self.lock:
+            pulses = pulse_log(self.pulses, 0)
+        period_us = 1e6 / self.config.trigger.settings.rate_hz
+        offset = estimate_offset(reset, pre_t[:n], pre_host[:n], pulses, period_us)
+        if offset is None:
+            if len(reset.post_t) >= MAX_OBSERVATIONS or reset.held_for_s() > MAX_HOLD_S:
+                self._drop_held(reset.name, "its restarted clock could not be tied to the trigger pulses")
+                raise DeviceError(
+                    f"{reset.name} came back with its clock restarted and {len(reset.post_t)} trigger "
+                    f"observations in {MAX_HOLD_S:g} s did not tie it to its old clock; written off from here"
+                )
+            return False
+        reset.offset = offset
+        line = (
+            f"{reset.name} came back with its clock restarted: its device times from then on are "
+            f"shifted by {offset.us} us onto its old clock ({offset.n} trigger observations, "
+            f"spread {offset.spread_us:.1f} us)"
+        )
+        log.warning("%s", line)
+        with self.lock:
+            self.fault_history.append(line)
+        return True
+
+    def _drop_held(self, name: str, why: str) -> None:
+        reset = self.clock_resets.get(name)
+        if reset is None or not reset.held:
+            return
+        count = reset.held_count()
+        kind = reset.held[0][0]
+        reset.held.clear()
+        with self.lock:
+            self.losses.append(
+                LossRecord(
+                    device=name, what=_what(kind), count=count, reason=f"held back and not written: {why}"
+                )
+            )
+
+    def _pass(self, name: str, kind: str, item: Any) -> None:
+        if kind == "frame":
+            t = item.t_exposure_start_us
+            self._arrived(name, "frames", t)
+            self._put(name, "frames", ("frame", name, item), (t, t), 1)
+            return
+        ev = item.events
+        t_range = (int(ev.t[0]), int(ev.t[-1])) if len(ev) else None
+        self._arrived(name, "events", _first_time(kind, item), t_range[1] if t_range else None)
+        self._put(name, "events", ("events", name, item), t_range, len(ev))
+
     def _arrived(self, name: str, what: LossKind, t_device: int | None, t_last: int | None = None) -> None:
         """Bookkeeping for one delivery; closes a reconnect gap with its loss record."""
         live = self.live[name]
@@ -378,8 +466,8 @@ class _Pipeline:
             since, t_before, why = gap
             if t_before is not None and t_device < t_before:
                 raise DeviceError(
-                    f"{name} came back with its clock reset ({t_device} us after {t_before} us); one "
-                    "clock map per device cannot span that, so it is written off from here"
+                    f"{name} came back with its clock reset ({t_device} us after {t_before} us) and "
+                    "was tied wrongly; written off from here"
                 )
             away = time.monotonic() - since
             with self.lock:
@@ -473,11 +561,10 @@ class _Pipeline:
                 continue
             if frame is None:
                 if self.stop_acq.is_set():
+                    self._drop_held(name, "the take ended before its restarted clock could be tied")
                     return
                 continue
-            t = frame.t_exposure_start_us
-            self._arrived(name, "frames", t)
-            self._put(name, "frames", ("frame", name, frame), (t, t), 1)
+            self._deliver(name, "frame", frame)
 
     def _sensor_loop(self, name: str) -> None:
         while True:
@@ -490,13 +577,10 @@ class _Pipeline:
                 continue
             if packet is None:
                 if self.stop_acq.is_set():
+                    self._drop_held(name, "the take ended before its restarted clock could be tied")
                     return
                 continue
-            ev = packet.events
-            t_range = (int(ev.t[0]), int(ev.t[-1])) if len(ev) else None
-            t_first = t_range[0] if t_range else (int(packet.triggers.t[0]) if len(packet.triggers) else None)
-            self._arrived(name, "events", t_first, t_range[1] if t_range else None)
-            self._put(name, "events", ("events", name, packet), t_range, len(ev))
+            self._deliver(name, "events", packet)
 
     def _trigger_loop(self, trigger: Trigger) -> None:
         live = self.live["trigger"]
@@ -1224,19 +1308,32 @@ def _record_device_losses(pipe: _Pipeline) -> None:
             )
 
 
-def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
-    assert pipe.writer is not None
-    batches = pipe.pulses
+def pulse_log(batches: list[PulseBatch], emitted: int) -> PulseLog:
+    """The box's pulse records so far, one per index (a re-read after a gap may repeat some)."""
     index = np.concatenate([b.index for b in batches]) if batches else np.empty(0, np.int64)
     order = np.argsort(index, kind="stable")
     uniq = np.concatenate([[True], np.diff(index[order]) > 0]) if index.size else np.empty(0, bool)
     sel = order[uniq]
-    pulses = PulseLog(
+    return PulseLog(
         index[sel],
         (np.concatenate([b.t_us for b in batches]) if batches else np.empty(0, np.int64))[sel],
         (np.concatenate([b.host_time_ns for b in batches]) if batches else np.empty(0, np.int64))[sel],
         max(emitted, int(index.max(initial=-1)) + 1),
     )
+
+
+def _first_time(kind: str, item: Any) -> int | None:
+    """Device time of the first thing in a frame or event packet."""
+    if kind == "frame":
+        return int(item.t_exposure_start_us)
+    if len(item.events):
+        return int(item.events.t[0])
+    return int(item.triggers.t[0]) if len(item.triggers) else None
+
+
+def _finalize(pipe: _Pipeline, emitted: int, rate: float) -> SyncReport:
+    assert pipe.writer is not None
+    pulses = pulse_log(pipe.pulses, emitted)
     observations = []
     for name in [*pipe.cameras, *pipe.sensors]:
         t, host, counter = pipe.obs[name].arrays()

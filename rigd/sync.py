@@ -101,7 +101,7 @@ def _assign(pred_rig: NDArray[np.float64], pulse_t: NDArray[np.int64], tol_us: f
     return out
 
 
-def _host_to_rig(pulses: PulseLog) -> ClockMap:
+def host_to_rig_map(pulses: PulseLog) -> ClockMap:
     """Coarse host-monotonic -> rig map from when the box's pulse records arrived."""
     host_us = pulses.host_time_ns // 1000
     fit = fit_clock_map(host_us, pulses.t_us, fit_drift=pulses.t_us.size >= 10)
@@ -274,7 +274,7 @@ def synchronize(
     warnings: list[str] = []
     if missing_from_log:
         warnings.append(f"{len(missing_from_log)} pulse(s) absent from the box's timestamp log")
-    host_map = _host_to_rig(pulses) if pulses.t_us.size else ClockMap.identity()
+    host_map = host_to_rig_map(pulses) if pulses.t_us.size else ClockMap.identity()
     maps: dict[str, ClockMap] = {}
     obs_index: dict[str, NDArray[np.int64]] = {}
     devices: dict[str, DeviceSync] = {}
