@@ -1,11 +1,13 @@
 """Sync accuracy of captured takes against the simulator's ground truth.
 
-    python -m bench.sync_accuracy [--duration 5] [--jitter 0,2,10]
+    python -m bench.sync_accuracy [--duration 5] [--jitter 0,2,10] [--replug cam1]
 
 For each trigger jitter setting, captures a take on the sim rig (+-100 ppm device clocks)
 and prints per device: the fit residual RMS (what the report shows: the jitter the device
 saw) and the RMS error of the take's timestamps in rig time against the exact truth, for
-frame exposure starts and for events.
+frame exposure starts and for events. `--replug CAM` unplugs that camera 1.5 s in for 1 s
+and brings it back with its clock restarted (`clock_reset=1`): its row then measures how well
+the take ties the restarted clock back onto the old one.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ def main() -> None:
     ap.add_argument("--jitter", default="0,2,10", help="comma-separated trigger jitter sigmas, us")
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=360)
+    ap.add_argument("--replug", default=None, help="camera to unplug and replug with its clock restarted")
     args = ap.parse_args()
     print(
         f"{'jitter us':>9} {'device':<6} {'drift ppm':>10} {'fit rms us':>11} {'ts err rms us':>14} {'n':>9}"
@@ -41,9 +44,17 @@ def main() -> None:
         world = f"sync-{uuid.uuid4().hex[:8]}"
         cfg = default_sim_rig(world=world, resolution=(args.width, args.height), pixel_format="mono8")
         cfg.trigger.spec = cfg.trigger.spec.replace("jitter_us=2", f"jitter_us={jitter:g}")
+        if args.replug:
+            cams = {c.name: c for c in cfg.cameras}
+            if args.replug not in cams:
+                ap.error(f"--replug: no camera {args.replug!r} (cameras: {', '.join(cams)})")
+            cams[args.replug].spec += "&unplug_at_s=1.5&unplug_for_s=1&clock_reset=1"
         out = Path(tempfile.mkdtemp(prefix="rigd-sync-"))
         try:
-            res = run_capture(cfg, out, args.duration)
+            res = run_capture(cfg, out, args.duration, reconnect_interval_s=0.2)
+            for w in res.report.warnings:
+                if "clock restarted" in w:
+                    print(f"  ({w})")
             truth = get_world(world).truth
             box = truth.clocks["trigger"]
             with Take(res.path) as take, h5py.File(res.path, "r") as f:
