@@ -373,7 +373,7 @@ class _Pipeline:
         """One frame or event packet from a device, on its way to the writer; a device that
         came back with its clock restarted is re-tied onto its old clock first."""
         reset = self.clock_resets.get(name)
-        if reset is None and (t_before := self._restarted(name, kind, item)) is not None:
+        if (t_before := self._restarted(name, kind, item, reset)) is not None:
             reset = self.clock_resets[name] = ClockReset(
                 name,
                 "rgb_camera" if kind == "frame" else "event_sensor",
@@ -393,11 +393,17 @@ class _Pipeline:
         for held_kind, held in reset.release():
             self._pass(name, held_kind, held)
 
-    def _restarted(self, name: str, kind: str, item: Any) -> int | None:
+    def _restarted(self, name: str, kind: str, item: Any, reset: ClockReset | None) -> int | None:
         """For a first delivery after a reconnect whose time lies before the last one before
-        the gap: that last time (the device's clock restarted); else None."""
+        the gap: that last time (the device's clock restarted); else None. A device already
+        re-tied is compared on its old clock (it may restart again); one still being tied is
+        not asked (its gap stays open until it is)."""
         gap = self.live[name].gap_started
         t = _first_time(kind, item)
+        if reset is not None:
+            if reset.offset is None:
+                return None
+            t = None if t is None else t + reset.offset.us
         if gap is None or gap[1] is None or t is None or t >= gap[1]:
             return None
         return gap[1]
