@@ -420,6 +420,7 @@ class _Pipeline:
         if offset is None:
             if len(reset.post_t) >= MAX_OBSERVATIONS or reset.held_for_s() > MAX_HOLD_S:
                 self._drop_held(reset.name, "its restarted clock could not be tied to the trigger pulses")
+                self._stop_written_off(reset.name)
                 raise DeviceError(
                     f"{reset.name} came back with its clock restarted and {len(reset.post_t)} trigger "
                     f"observations in {MAX_HOLD_S:g} s did not tie it to its old clock; written off from here"
@@ -435,6 +436,16 @@ class _Pipeline:
         with self.lock:
             self.fault_history.append(line)
         return True
+
+    def _stop_written_off(self, name: str) -> None:
+        """A live device about to be written off stops acquiring (bus bandwidth, its buffers)."""
+        dev = self.cameras.get(name) or self.sensors.get(name)
+        if dev is None:
+            return
+        try:
+            dev.stop()
+        except DeviceError as exc:
+            log.warning("stopping %s before writing it off: %s", name, exc)
 
     def _drop_held(self, name: str, why: str) -> None:
         reset = self.clock_resets.get(name)

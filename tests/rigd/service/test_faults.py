@@ -245,3 +245,25 @@ def test_writer_that_stops_flushing_is_a_fault(tmp_path: Path, monkeypatch: pyte
     assert res.flushes >= 10  # flushing resumed: 6 s at 0.2 s, less the stall
     assert any(w.startswith("fault writer_stalled") for w in res.report.warnings), res.report.warnings
     assert not session.snapshot().faults  # cleared once flushes came back
+
+
+def test_restarted_clock_that_cannot_be_tied_is_written_off(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """When the pulses never place the restarted clock (here: the estimate is withheld), the
+    device is written off after MAX_OBSERVATIONS, what was held back is counted, and the
+    device stops acquiring."""
+    import rigd.capture
+    from rigd.clock_reset import MAX_OBSERVATIONS
+
+    monkeypatch.setattr(rigd.capture, "estimate_offset", lambda *a, **k: None)
+    cfg = small_rig(_world(), extra={"cam1": "unplug_at_s=0.5&unplug_for_s=0.5&clock_reset=1"})
+    res = run_capture(cfg, tmp_path, 4.5, reconnect_interval_s=0.2)
+    rep = res.report
+    assert any("cam1" in w and "did not tie" in w for w in rep.warnings), rep.warnings
+    held = [r for r in rep.losses if r.device == "cam1" and r.reason.startswith("held back")]
+    assert len(held) == 1, rep.losses
+    assert held[0].count == MAX_OBSERVATIONS
+    assert res.frames["cam0"] == 135
+    assert 10 < res.frames["cam1"] < 20  # what came before the unplug
+    assert not [r for r in caplog.records if "cam1" in r.getMessage() and "buffer full" in r.getMessage()]
