@@ -387,7 +387,10 @@ class _Pipeline:
         if reset.offset is not None:
             self._pass(name, kind, reset.shift(kind, item))
             return
+        seen = len(reset.post_t)
         reset.hold(kind, item)
+        if len(reset.post_t) == seen and reset.held_for_s() <= MAX_HOLD_S:
+            return  # nothing new to tie with (an event packet without trigger edges)
         if not self._tie(reset):
             return
         for held_kind, held in reset.release():
@@ -567,37 +570,26 @@ class _Pipeline:
 
         return run
 
-    def _camera_loop(self, name: str) -> None:
+    def _device_loop(self, name: str, kind: Literal["frame", "events"]) -> None:
+        """Read a camera's frames or a sensor's event packets until the take ends; the device
+        object is looked up on every read because a reconnect replaces it."""
         while True:
             try:
-                frame = self.cameras[name].read_frame(_READ_TIMEOUT_S)
+                if kind == "frame":
+                    item: Frame | EventPacket | None = self.cameras[name].read_frame(_READ_TIMEOUT_S)
+                else:
+                    item = self.sensors[name].read_events(_READ_TIMEOUT_S)
             except DeviceError as exc:
                 if self.stop_acq.is_set():
                     raise
                 self._reconnect(name, exc)
                 continue
-            if frame is None:
+            if item is None:
                 if self.stop_acq.is_set():
                     self._drop_held(name, "the take ended before its restarted clock could be tied")
                     return
                 continue
-            self._deliver(name, "frame", frame)
-
-    def _sensor_loop(self, name: str) -> None:
-        while True:
-            try:
-                packet = self.sensors[name].read_events(_READ_TIMEOUT_S)
-            except DeviceError as exc:
-                if self.stop_acq.is_set():
-                    raise
-                self._reconnect(name, exc)
-                continue
-            if packet is None:
-                if self.stop_acq.is_set():
-                    self._drop_held(name, "the take ended before its restarted clock could be tied")
-                    return
-                continue
-            self._deliver(name, "events", packet)
+            self._deliver(name, kind, item)
 
     def _trigger_loop(self, trigger: Trigger) -> None:
         live = self.live["trigger"]
@@ -616,9 +608,9 @@ class _Pipeline:
     def start_threads(self) -> None:
         assert self.trigger is not None
         targets: list[tuple[str, Callable[[], None], str | None]] = [
-            (f"acq-{n}", functools.partial(self._camera_loop, n), n) for n in self.cameras
+            (f"acq-{n}", functools.partial(self._device_loop, n, "frame"), n) for n in self.cameras
         ]
-        targets += [(f"acq-{n}", functools.partial(self._sensor_loop, n), n) for n in self.sensors]
+        targets += [(f"acq-{n}", functools.partial(self._device_loop, n, "events"), n) for n in self.sensors]
         targets.append(("acq-trigger", functools.partial(self._trigger_loop, self.trigger), None))
         for name, fn, device in targets:
             th = threading.Thread(target=self._guard(name, fn, device), name=name, daemon=True)

@@ -199,6 +199,7 @@ class Daemon:
         self._idle_faults: list[Fault] = []
         self._workers: list[threading.Thread] = []
         self._recovering = False
+        self._disk_error: str | None = None
 
     # -- lifecycle -----------------------------------------------------------------------
     def serve(self) -> None:
@@ -545,8 +546,12 @@ class Daemon:
         try:
             usage = shutil.disk_usage(self.svc.take_dir)
             free, total = usage.free, usage.total
-        except OSError:
-            free = total = 0
+            self._disk_error = None
+        except OSError as exc:
+            free = total = 0  # telemetry says 0 of 0 bytes; the log says why, once per cause
+            if str(exc) != self._disk_error:
+                self._disk_error = str(exc)
+                log.warning("disk usage of %s unavailable: %s", self.svc.take_dir, exc)
         t = Telemetry(
             seq=seq,
             time_utc=_utc(),

@@ -249,13 +249,7 @@ class Take:
     def config(self) -> dict[str, Any]:
         raw = self._dataset(CONFIG_DATASET)[()]
         text = raw.decode("utf-8") if isinstance(raw, bytes) else str(raw)
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise TakeFormatError(f"{self.path}: /{CONFIG_DATASET} is not valid JSON: {exc}") from exc
-        if not isinstance(data, dict):
-            raise TakeFormatError(f"{self.path}: /{CONFIG_DATASET} is not a JSON object")
-        return data
+        return self._json_object(text, f"/{CONFIG_DATASET}")
 
     @property
     def journal(self) -> dict[str, Any] | None:

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -613,10 +615,7 @@ def _finalize_crashed(
         rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
     if dry_run:
         return rr
-    w = TakeWriter.resume(path, data.writer_config, extend_truncated=True)
-    try:
-        if w.repairs != trims:
-            raise TakeError(f"{path}: the take changed while it was being recovered; run recovery again")
+    with _resumed(path, data.writer_config, trims) as w:
         w.mark_recovered(None)  # first: a crash during the finalize below still shows it
         if result is not None:
             frame_index = {name: result.observation_pulse_index[name] for name in data.cameras}
@@ -625,10 +624,21 @@ def _finalize_crashed(
             w.fail(f"recovered after a crash of its writer but not finalized: {reason}")
         rr.status_after = w.status
         w.mark_recovered(rr.model_dump_json())
-    finally:
-        w.close()
     log.warning("%s", rr.line())
     return rr
+
+
+@contextmanager
+def _resumed(path: Path, config: WriterConfig, trims: list[Trim] | None = None) -> Iterator[TakeWriter]:
+    """The take reopened for sealing (closed afterwards); with `trims`, the repair it applies
+    must be the one that was checked, else the take changed meanwhile."""
+    w = TakeWriter.resume(path, config, extend_truncated=True)
+    try:
+        if trims is not None and w.repairs != trims:
+            raise TakeError(f"{path}: the take changed while it was being recovered; run recovery again")
+        yield w
+    finally:
+        w.close()
 
 
 def _trim_losses(trims: list[Trim]) -> list[LossRecord]:
@@ -660,14 +670,11 @@ def _continue_finalize(path: Path, rr: RecoveryReport, data: _TakeData, *, dry_r
     rr.outcome = "would_seal" if dry_run else "sealed"
     if dry_run:
         return rr
-    w = TakeWriter.resume(path, data.writer_config, extend_truncated=True)
-    try:
+    with _resumed(path, data.writer_config) as w:
         w.mark_recovered(None)
         w.continue_finalize(report)
         rr.status_after = w.status
         w.mark_recovered(rr.model_dump_json())
-    finally:
-        w.close()
     log.warning("%s", rr.line())
     return rr
 
@@ -681,10 +688,7 @@ def _repair_only(path: Path, rr: RecoveryReport, trims: list[Trim], *, dry_run: 
     rr.losses_added = _trim_losses(trims)
     if dry_run:
         return rr
-    w = TakeWriter.resume(path, WriterConfig(), extend_truncated=True)
-    try:
-        if w.repairs != trims:
-            raise TakeError(f"{path}: the take changed while it was being recovered; run recovery again")
+    with _resumed(path, WriterConfig(), trims) as w:
         rr.status_after = "failed"
         for name, st in w.stats.items():
             if st.kind == "rgb_camera":
@@ -694,8 +698,6 @@ def _repair_only(path: Path, rr: RecoveryReport, trims: list[Trim], *, dry_run: 
             else:
                 rr.pulses = st.items
         w.mark_recovered(rr.model_dump_json())
-    finally:
-        w.close()
     log.warning("%s", rr.line())
     return rr
 

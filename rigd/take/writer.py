@@ -1391,6 +1391,24 @@ def stored_prefix(ds: h5py.Dataset, data_end: int | None = None) -> int:
     return n if missing.size == 0 else int(missing[0]) * step
 
 
+def _columns_keep(
+    cols: Mapping[str, h5py.Dataset],
+    data_end: int | None,
+    nonzero: tuple[str, ...],
+    order: tuple[str, str] | None,
+    what: str,
+) -> tuple[int, int, list[str]]:
+    """For a group of parallel columns: their longest length, the rows to keep (stored in every
+    column and not a stale zero tail) and why any are cut."""
+    longest = max(int(d.shape[0]) for d in cols.values())
+    stored = min(stored_prefix(d, data_end) for d in cols.values())
+    keep = _stale_tail(cols, stored, nonzero, order)
+    reasons = [f"{what} columns of unequal or unwritten length"] if stored < longest else []
+    if keep < stored:
+        reasons.append("zero-filled tail (a chunk the interrupted flush did not update)")
+    return longest, keep, reasons
+
+
 def _stale_tail(
     dsets: Mapping[str, h5py.Dataset], n: int, nonzero: tuple[str, ...], same: tuple[str, str] | None
 ) -> int:
@@ -1585,13 +1603,9 @@ def _check_repair(
             if k != "host_time_ns" or k in tg or has_item(version, "trigger/host_time_ns")
         ]
         trig = {k: require_dataset(tg, k, where) for k in keys}
-        longest = max(int(d.shape[0]) for d in trig.values())
-        stored = min(stored_prefix(d, data_end) for d in trig.values())
         nonzero = ("t_device", "host_time_ns") if "host_time_ns" in trig else ("t_device",)
-        keep = _stale_tail(trig, stored, nonzero, ("t", "t_device") if check_order else None)
-        reasons = ["trigger columns of unequal or unwritten length"] if stored < longest else []
-        if keep < stored:
-            reasons.append("zero-filled tail (a chunk the interrupted flush did not update)")
+        order = ("t", "t_device") if check_order else None
+        longest, keep, reasons = _columns_keep(trig, data_end, nonzero, order, "trigger")
         _trim_group(
             trims,
             tg,
@@ -1634,12 +1648,7 @@ def _check_repair(
     pulses = require_group(f, f"{TRIGGER_GROUP}/pulses", where)
     at[0] = pulses.name
     cols = {k: require_dataset(pulses, k, where) for k in PULSE_SERIES}
-    longest = max(int(d.shape[0]) for d in cols.values())
-    stored = min(stored_prefix(d, data_end) for d in cols.values())
-    keep = _stale_tail(cols, stored, ("index", "t_us", "host_time_ns"), None)
-    reasons = ["pulse columns of unequal or unwritten length"] if stored < longest else []
-    if keep < stored:
-        reasons.append("zero-filled tail (a chunk the interrupted flush did not update)")
+    longest, keep, reasons = _columns_keep(cols, data_end, ("index", "t_us", "host_time_ns"), None, "pulse")
     _trim_group(
         trims,
         pulses,

@@ -14,8 +14,9 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TypeVar
 from uuid import uuid4
 
 import numpy as np
@@ -24,10 +25,8 @@ import pytest
 from drivers.base import (
     CameraSettings,
     EventPacket,
-    EventSensor,
     EventSensorSettings,
     PulseBatch,
-    RgbCamera,
     Trigger,
     TriggerSettings,
 )
@@ -57,17 +56,21 @@ def fire_for(world: SimWorld, seconds: float, rate_hz: float) -> tuple[threading
     return th, out
 
 
-def read_until_error(cam: RgbCamera, limit_s: float = 3.0) -> tuple[list[Frame], DeviceError]:
-    frames: list[Frame] = []
+T = TypeVar("T")
+
+
+def read_until_error(read: Callable[[float], T | None], limit_s: float = 3.0) -> tuple[list[T], DeviceError]:
+    """Read frames or event packets until the unplug makes the read raise."""
+    items: list[T] = []
     deadline = time.monotonic() + limit_s
     while time.monotonic() < deadline:
         try:
-            f = cam.read_frame(0.05)
+            item = read(0.05)
         except DeviceError as exc:
-            return frames, exc
-        if f is not None:
-            frames.append(f)
-    raise AssertionError("the camera was never unplugged")
+            return items, exc
+        if item is not None:
+            items.append(item)
+    raise AssertionError("the device was never unplugged")
 
 
 def wait_true(world: SimWorld, true_us: float) -> None:
@@ -86,7 +89,7 @@ def test_camera_unplug_fails_reads_and_opens_then_replug_continues_on_the_same_c
     cam.configure(CameraSettings(exposure_us=2000))
     cam.start()
     th, edges = fire_for(world, 0.9, 50.0)
-    before, err = read_until_error(cam)
+    before, err = read_until_error(cam.read_frame)
     assert "unplugged" in str(err)
     fault = world.unplug_fault("cam0")
     assert fault.end_us - fault.start_us == pytest.approx(0.3e6)
@@ -167,27 +170,14 @@ def test_counter_reset_and_bad_unplug_params(world_name: str) -> None:
         open_device("trigger", f"sim://{world_name}/trigger?silent_after=-1")
 
 
-def read_events_until_error(sensor: EventSensor, limit_s: float = 3.0) -> tuple[list[EventPacket], str]:
-    packets: list[EventPacket] = []
-    deadline = time.monotonic() + limit_s
-    while time.monotonic() < deadline:
-        try:
-            p = sensor.read_events(0.05)
-        except DeviceError as exc:
-            return packets, str(exc)
-        if p is not None:
-            packets.append(p)
-    raise AssertionError("the event sensor was never unplugged")
-
-
 def test_event_sensor_unplug_reaches_read_events_and_replug_continues(world_name: str) -> None:
     spec = f"sim://{world_name}/ev0?{SMALL}&offset_us=412775&drift_ppm=-95&unplug_at_s=0.3&unplug_for_s=0.25"
     world = get_world(world_name)
     sensor = open_device("event_sensor", spec)
     sensor.configure(EventSensorSettings())
     sensor.start()
-    before, err = read_events_until_error(sensor)
-    assert "unplugged" in err
+    before, err = read_until_error(sensor.read_events)
+    assert "unplugged" in str(err)
     fault = world.unplug_fault("ev0")
     with pytest.raises(DeviceError, match="no such device"):
         open_device("event_sensor", spec)
