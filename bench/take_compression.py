@@ -22,11 +22,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import DeviceInfo
-from rigd.config import WriterConfig
+from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.schema import SyncReport
+from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take
 

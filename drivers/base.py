@@ -11,14 +11,14 @@ import abc
 import enum
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import ClassVar, Literal, Self
+from typing import ClassVar, Self
 
 import numpy as np
-from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
+from rigd.core.devices import DeviceInfo, DeviceKind, PulseBatch
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
+from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
 
 
 class Capability(enum.StrEnum):
@@ -42,69 +42,6 @@ class Capability(enum.StrEnum):
     """Trigger source emits an exact number of pulses and stops by itself."""
 
 
-class DeviceInfo(BaseModel):
-    """Identity of an opened device, written into every take."""
-
-    model_config = ConfigDict(frozen=True)
-
-    kind: Literal["rgb_camera", "event_sensor", "trigger"]
-    spec: str = Field(description="The spec the device was opened from.")
-    vendor: str = ""
-    model: str = ""
-    serial: str = ""
-    firmware: str = ""
-    facts: dict[str, str] = Field(
-        default_factory=dict,
-        description="Backend facts worth keeping with the data (stream format, sensor generation, ...).",
-    )
-
-
-class CameraSettings(BaseModel):
-    """Acquisition settings of a camera; backends reject what they cannot do."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    trigger_mode: Literal["hardware", "free_run"] = "hardware"
-    exposure_us: int = Field(10_000, gt=0, description="Exposure time in microseconds.")
-    gain_db: float = Field(0.0, ge=0.0)
-    pixel_format: Literal["mono8", "rgb8"] | None = Field(
-        None, description="None keeps the camera's default format."
-    )
-    free_run_fps: float = Field(30.0, gt=0.0)
-
-
-class EventSensorSettings(BaseModel):
-    """Acquisition settings of an event sensor."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    trigger_in_channel: int = Field(0, ge=0, le=255)
-    enable_trigger_in: bool = True
-    sync_mode: Literal["standalone", "master", "slave"] = Field(
-        "standalone",
-        description="Camera synchronization: a slave takes its clock from the master over the sync cable.",
-    )
-    sync_master: str | None = Field(
-        None, description="For a slave: the rig name of the event sensor whose clock it shares."
-    )
-    biases: dict[str, int] = Field(
-        default_factory=dict, description="Sensor biases by name, e.g. bias_diff_on."
-    )
-    roi: tuple[int, int, int, int] | None = Field(None, description="(x, y, width, height) window, or None.")
-    erc_rate_ev_s: float | None = Field(
-        None, gt=0, description="Event rate controller limit, events/s; dropped events are counted."
-    )
-
-
-class TriggerSettings(BaseModel):
-    """What the trigger source should emit."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    rate_hz: float = Field(30.0, gt=0.0, le=10_000.0)
-    pulse_width_us: int = Field(1000, gt=0)
-
-
 @dataclass(slots=True)
 class AcquisitionStats:
     """Counters a device keeps about what it delivered and what it lost."""
@@ -124,26 +61,10 @@ class EventPacket:
     host_time_ns: int
 
 
-@dataclass(frozen=True, slots=True)
-class PulseBatch:
-    """Pulses the trigger source reported: index from 0 at START, time in its clock."""
-
-    index: NDArray[np.int64]
-    t_us: NDArray[np.int64]
-    host_time_ns: NDArray[np.int64]
-
-    @classmethod
-    def empty(cls) -> PulseBatch:
-        return cls(np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int64))
-
-    def __len__(self) -> int:
-        return int(self.index.shape[0])
-
-
 class Device(abc.ABC):
     """Lifecycle shared by every device: open in the constructor or `open`, close once."""
 
-    kind: ClassVar[Literal["rgb_camera", "event_sensor", "trigger"]]
+    kind: ClassVar[DeviceKind]
 
     @property
     @abc.abstractmethod

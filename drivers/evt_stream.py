@@ -12,16 +12,11 @@ import threading
 import time
 from typing import Protocol
 
-from drivers.base import (
-    AcquisitionStats,
-    Capability,
-    DeviceInfo,
-    EventPacket,
-    EventSensor,
-    EventSensorSettings,
-)
+from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
 from drivers.evt import StreamDecoder
+from rigd.core.devices import DeviceInfo
 from rigd.core.errors import DeviceError
+from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 

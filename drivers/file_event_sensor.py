@@ -15,18 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import (
-    AcquisitionStats,
-    Capability,
-    DeviceInfo,
-    EventPacket,
-    EventSensor,
-    EventSensorSettings,
-)
+from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
 from drivers.evt import Decoded, RawReader, parse_raw_header, read_dat
 from drivers.registry import DeviceSpec
+from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import TriggerEvents
+from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 

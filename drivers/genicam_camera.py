@@ -28,10 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import AcquisitionStats, CameraSettings, Capability, DeviceInfo, RgbCamera
+from drivers.base import AcquisitionStats, Capability, RgbCamera
 from drivers.registry import DeviceSpec
+from rigd.core.devices import DeviceInfo
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
 from rigd.core.frames import Frame
+from rigd.core.settings import CameraSettings
 
 log = logging.getLogger(__name__)
 

@@ -14,10 +14,12 @@ import threading
 import time
 from typing import Any
 
-from drivers.base import AcquisitionStats, Capability, DeviceInfo, EventSensorSettings
+from drivers.base import AcquisitionStats, Capability
 from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
+from rigd.core.devices import DeviceInfo
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
+from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 

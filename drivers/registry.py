@@ -20,11 +20,11 @@ from typing import Literal, TypeVar, cast, overload
 from urllib.parse import parse_qsl, urlsplit
 
 from drivers.base import Device, EventSensor, RgbCamera, Trigger
+from rigd.core.devices import DeviceKind
 from rigd.core.errors import BackendUnavailableError, ConfigError
 
 log = logging.getLogger(__name__)
 
-DeviceKind = Literal["rgb_camera", "event_sensor", "trigger"]
 Factory = Callable[["DeviceSpec"], Device]
 ENTRY_POINT_GROUP = "rigd.backends"
 

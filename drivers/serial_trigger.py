@@ -29,8 +29,9 @@ from typing import Any, Protocol
 import numpy as np
 import serial
 
-from drivers.base import Capability, DeviceInfo, PulseBatch, Trigger, TriggerSettings
+from drivers.base import Capability, Trigger
 from drivers.registry import DeviceSpec
+from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import (
     BackendUnavailableError,
     ConfigError,
@@ -38,6 +39,7 @@ from rigd.core.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
+from rigd.core.settings import TriggerSettings
 
 log = logging.getLogger(__name__)
 

@@ -37,12 +37,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from drivers.base import (
-    AcquisitionStats,
-    Capability,
-    DeviceInfo,
-    EventSensorSettings,
-)
+from drivers.base import AcquisitionStats, Capability
 from drivers.evt import Evt3Encoder
 from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
@@ -60,8 +55,10 @@ from firmware_sim.world import (
     truth_journal,
     unplug_params,
 )
+from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 

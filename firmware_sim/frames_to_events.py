@@ -30,13 +30,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import DeviceInfo
 from drivers.evt import Evt3Encoder, RawHeader
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
-from rigd.config import WriterConfig
+from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.schema import SyncReport
+from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take
 from rigd.take.writer import TakeWriter

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import AcquisitionStats, CameraSettings, Capability, DeviceInfo, RgbCamera
+from drivers.base import AcquisitionStats, Capability, RgbCamera
 from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
 from firmware_sim.scene import Scene, View
@@ -41,8 +41,10 @@ from firmware_sim.world import (
     truth_journal,
     unplug_params,
 )
+from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.frames import Frame
+from rigd.core.settings import CameraSettings
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from drivers.base import CameraSettings, EventSensorSettings, TriggerSettings
 from rigd.core.errors import ConfigError
+from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings, WriterConfig
 
 _NAME = r"^[A-Za-z][A-Za-z0-9_-]{0,31}$"
 
@@ -41,42 +41,6 @@ class TriggerConfig(BaseModel):
 
     spec: str = Field(description="Trigger box port or spec, e.g. `/dev/ttyACM0`.")
     settings: TriggerSettings = Field(default_factory=TriggerSettings)
-
-
-class WriterConfig(BaseModel):
-    """How takes are written; compression is a measured choice (see bench/)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    event_compression: Literal["none", "lz4", "zstd", "gzip"] = "lz4"
-    frame_compression: Literal["none", "lz4", "zstd", "gzip"] = "none"
-    event_chunk: int = Field(1 << 18, ge=1024, description="Events per HDF5 chunk.")
-    queue_items: int = Field(256, ge=4, description="Bound of the acquisition -> writer queue.")
-    queue_put_timeout_s: float = Field(
-        2.0, gt=0, description="How long an acquisition thread waits on a full queue before counting a drop."
-    )
-    flush_interval_s: float = Field(
-        1.0,
-        ge=0.05,
-        le=60.0,
-        description="Seconds between flushes of the take; a crash loses at most this much data.",
-    )
-    fsync: bool = Field(
-        True,
-        description="fsync the take at every flush and on close: what was flushed survives a power "
-        "cut or kernel crash too, not only a killed process; costs writer time (bench.capture_throughput).",
-    )
-    disk_reserve_mb: int = Field(
-        1024,
-        ge=0,
-        description="A take does not start, and a running one stops cleanly, below this much free disk.",
-    )
-    disk_ballast_mb: int = Field(
-        64,
-        ge=0,
-        description="Disk space held while a take runs and freed if the disk fills anyway, so the "
-        "take can still be closed.",
-    )
 
 
 def runtime_dir() -> Path:

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import DeviceInfo
 from drivers.evt import (
     Evt2Encoder,
     Evt3Encoder,
@@ -25,10 +24,11 @@ from drivers.evt import (
     write_dat,
 )
 from rigd import __version__
-from rigd.config import WriterConfig
+from rigd.core.devices import DeviceInfo
 from rigd.core.errors import RigdError
 from rigd.core.events import TriggerEvents
 from rigd.core.schema import SyncReport
+from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take
 from rigd.take.writer import TakeWriter

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from drivers.base import PulseBatch
+from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame

@@ -26,8 +26,6 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from drivers.base import EventSensorSettings
-from rigd.config import WriterConfig
 from rigd.core.errors import SyncError, TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
 from rigd.core.schema import (
     CONFIG_DATASET,
@@ -46,6 +44,7 @@ from rigd.core.schema import (
     SyncReport,
     decode_journal,
 )
+from rigd.core.settings import EventSensorSettings, WriterConfig
 from rigd.sync import DeviceObservations, PulseLog, SyncResult, synchronize
 from rigd.take.writer import (
     TakeWriter,

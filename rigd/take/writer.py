@@ -34,8 +34,7 @@ import numpy as np
 from numpy.typing import DTypeLike, NDArray
 from pydantic import BaseModel, ConfigDict
 
-from drivers.base import DeviceInfo, PulseBatch
-from rigd.config import WriterConfig
+from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
@@ -65,6 +64,7 @@ from rigd.core.schema import (
     encode_journal,
     has_item,
 )
+from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 
 log = logging.getLogger(__name__)

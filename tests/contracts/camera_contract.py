@@ -12,9 +12,10 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from drivers.base import AcquisitionStats, CameraSettings, Capability, RgbCamera
+from drivers.base import AcquisitionStats, Capability, RgbCamera
 from rigd.core.errors import DeviceError
 from rigd.core.frames import Frame
+from rigd.core.settings import CameraSettings
 
 Pulse = Callable[[int], object]
 EXPOSURE_US = 1000

@@ -13,9 +13,10 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor, EventSensorSettings
+from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
 from rigd.core.errors import DeviceError
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.settings import EventSensorSettings
 
 Pulse = Callable[[int], object]
 

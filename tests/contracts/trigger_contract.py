@@ -7,8 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from drivers.base import Capability, PulseBatch, Trigger, TriggerSettings
+from drivers.base import Capability, Trigger
+from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError
+from rigd.core.settings import TriggerSettings
 
 RATE_HZ = 500.0
 WIDTH_US = 200

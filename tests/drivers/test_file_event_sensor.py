@@ -8,11 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import EventPacket, EventSensorSettings
+from drivers.base import EventPacket
 from drivers.evt import RawHeader, read_raw, write_raw
 from drivers.registry import open_device
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.settings import EventSensorSettings
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")

@@ -16,9 +16,10 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from drivers.base import CameraSettings, RgbCamera
+from drivers.base import RgbCamera
 from drivers.registry import DeviceSpec
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
+from rigd.core.settings import CameraSettings
 from tests.contracts.camera_contract import RgbCameraContract, read_n
 
 FAKE = "arv-fake-gv-camera-0.8"

@@ -11,11 +11,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.base import EventSensorSettings
 from drivers.evt import parse_raw_header, read_raw
 from drivers.registry import open_device
 from rigd.core.errors import BackendUnavailableError, ConfigError
 from rigd.core.events import EventArray
+from rigd.core.settings import EventSensorSettings
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from drivers import serial_trigger
-from drivers.base import Capability, PulseBatch, TriggerSettings
+from drivers.base import Capability
 from drivers.registry import DeviceSpec, open_device
 from drivers.serial_trigger import (
     HidTransport,
@@ -32,6 +32,7 @@ from drivers.serial_trigger import (
 from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidApi, attach
 from firmware_sim.trigger_box import SimTriggerBox, find_trigger_box, open_sim_trigger
 from firmware_sim.world import SimWorld, get_world, reset_world
+from rigd.core.devices import PulseBatch
 from rigd.core.errors import (
     BackendUnavailableError,
     ConfigError,
@@ -39,6 +40,7 @@ from rigd.core.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
+from rigd.core.settings import TriggerSettings
 
 
 def _name() -> str:

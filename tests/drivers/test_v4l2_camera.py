@@ -10,10 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.base import CameraSettings, Capability
+from drivers.base import Capability
 from drivers.registry import DeviceSpec
 from drivers.v4l2_camera import V4l2Camera, open_v4l2_camera, parse_v4l2_spec
 from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.settings import CameraSettings
 
 
 class FakeCapture:

@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.base import DeviceInfo
 from firmware_sim.event_model import PixelModelConfig
 from firmware_sim.frames_to_events import (
     EVENT_SENSOR_NAME,
@@ -23,10 +22,11 @@ from firmware_sim.frames_to_events import (
     to_gray,
     video_source,
 )
-from rigd.config import WriterConfig
+from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.schema import SyncReport
+from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take, validate_take
 

@@ -9,12 +9,13 @@ from uuid import uuid4
 import numpy as np
 import pytest
 
-from drivers.base import CameraSettings, Capability
+from drivers.base import Capability
 from drivers.registry import DeviceSpec
 from firmware_sim.rgb_camera import SimRgbCamera, open_sim_camera
 from firmware_sim.world import Edge, SimWorld, get_world, reset_world
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.frames import Frame
+from rigd.core.settings import CameraSettings
 
 
 def fire_pulses(world: SimWorld, n: int, rate_hz: float = 100.0, width_us: float = 500.0) -> list[float]:

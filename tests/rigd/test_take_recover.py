@@ -26,13 +26,14 @@ import typer
 from typer.testing import CliRunner
 
 import rigd.take.writer as writer_mod
-from drivers.base import DeviceInfo, PulseBatch, TriggerSettings
 from rigd.commands.recover import recover_command
-from rigd.config import CameraConfig, EventSensorConfig, RigConfig, TriggerConfig, WriterConfig
+from rigd.config import CameraConfig, EventSensorConfig, RigConfig, TriggerConfig
+from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import FINALIZE_PLAN_ATTR, LossRecord, SyncReport
+from rigd.core.settings import TriggerSettings, WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
 

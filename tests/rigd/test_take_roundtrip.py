@@ -14,12 +14,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.base import DeviceInfo, PulseBatch
-from rigd.config import WriterConfig
+from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import SyncReport
+from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take, validate_take
 

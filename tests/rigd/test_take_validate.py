@@ -146,8 +146,8 @@ def test_crash_after_flush_leaves_a_readable_take(tmp_path: Path) -> None:
     script = textwrap.dedent(
         f"""
         import os, numpy as np
-        from drivers.base import DeviceInfo
-        from rigd.config import WriterConfig
+        from rigd.core.devices import DeviceInfo
+        from rigd.core.settings import WriterConfig
         from rigd.core.events import EventArray
         from rigd.take import TakeWriter
         cfg = WriterConfig(event_chunk=1024)

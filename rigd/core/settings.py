@@ -1,0 +1,89 @@
+"""Settings models shared by the drivers, the rig config and the take writer."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class CameraSettings(BaseModel):
+    """Acquisition settings of a camera; backends reject what they cannot do."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    trigger_mode: Literal["hardware", "free_run"] = "hardware"
+    exposure_us: int = Field(10_000, gt=0, description="Exposure time in microseconds.")
+    gain_db: float = Field(0.0, ge=0.0)
+    pixel_format: Literal["mono8", "rgb8"] | None = Field(
+        None, description="None keeps the camera's default format."
+    )
+    free_run_fps: float = Field(30.0, gt=0.0)
+
+
+class EventSensorSettings(BaseModel):
+    """Acquisition settings of an event sensor."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    trigger_in_channel: int = Field(0, ge=0, le=255)
+    enable_trigger_in: bool = True
+    sync_mode: Literal["standalone", "master", "slave"] = Field(
+        "standalone",
+        description="Camera synchronization: a slave takes its clock from the master over the sync cable.",
+    )
+    sync_master: str | None = Field(
+        None, description="For a slave: the rig name of the event sensor whose clock it shares."
+    )
+    biases: dict[str, int] = Field(
+        default_factory=dict, description="Sensor biases by name, e.g. bias_diff_on."
+    )
+    roi: tuple[int, int, int, int] | None = Field(None, description="(x, y, width, height) window, or None.")
+    erc_rate_ev_s: float | None = Field(
+        None, gt=0, description="Event rate controller limit, events/s; dropped events are counted."
+    )
+
+
+class TriggerSettings(BaseModel):
+    """What the trigger source should emit."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rate_hz: float = Field(30.0, gt=0.0, le=10_000.0)
+    pulse_width_us: int = Field(1000, gt=0)
+
+
+class WriterConfig(BaseModel):
+    """How takes are written; compression is a measured choice (see bench/)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    event_compression: Literal["none", "lz4", "zstd", "gzip"] = "lz4"
+    frame_compression: Literal["none", "lz4", "zstd", "gzip"] = "none"
+    event_chunk: int = Field(1 << 18, ge=1024, description="Events per HDF5 chunk.")
+    queue_items: int = Field(256, ge=4, description="Bound of the acquisition -> writer queue.")
+    queue_put_timeout_s: float = Field(
+        2.0, gt=0, description="How long an acquisition thread waits on a full queue before counting a drop."
+    )
+    flush_interval_s: float = Field(
+        1.0,
+        ge=0.05,
+        le=60.0,
+        description="Seconds between flushes of the take; a crash loses at most this much data.",
+    )
+    fsync: bool = Field(
+        True,
+        description="fsync the take at every flush and on close: what was flushed survives a power "
+        "cut or kernel crash too, not only a killed process; costs writer time (bench.capture_throughput).",
+    )
+    disk_reserve_mb: int = Field(
+        1024,
+        ge=0,
+        description="A take does not start, and a running one stops cleanly, below this much free disk.",
+    )
+    disk_ballast_mb: int = Field(
+        64,
+        ge=0,
+        description="Disk space held while a take runs and freed if the disk fills anyway, so the "
+        "take can still be closed.",
+    )
