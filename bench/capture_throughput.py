@@ -18,8 +18,8 @@ import time
 import uuid
 from pathlib import Path
 
-from rigd.capture import run_capture
-from rigd.config import default_sim_rig
+from rigd.app.capture import run_capture
+from rigd.app.config import default_sim_rig
 
 _BLOCK = 4 << 20
 

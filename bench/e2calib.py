@@ -31,8 +31,8 @@ from calibration.e2calib import METHODS, E2CalibResult, ReconstructionParams, ca
 from firmware_sim.board_scene import BoardScene
 from firmware_sim.scene import REF_FOCAL, REF_WIDTH
 from firmware_sim.world import reset_world
-from rigd.capture import CaptureResult, run_capture
-from rigd.config import RigConfig, default_sim_rig
+from rigd.app.capture import CaptureResult, run_capture
+from rigd.app.config import RigConfig, default_sim_rig
 from rigd.take.reader import open_take
 
 log = logging.getLogger(__name__)

@@ -30,8 +30,8 @@ from typing import Any
 import h5py
 import psutil
 
-from rigd.config import default_sim_rig
-from rigd.service.client import DaemonClient, find_daemon
+from rigd.app.config import default_sim_rig
+from rigd.app.service.client import DaemonClient, find_daemon
 
 
 def _check_take(path: Path) -> dict[str, Any]:
@@ -89,7 +89,7 @@ def main() -> None:
     log_path = out / "daemon.log"
     with log_path.open("ab") as log:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "rigd.cli", "serve", "--config", str(cfg_path)], stdout=log, stderr=log
+            [sys.executable, "-m", "rigd.app.cli", "serve", "--config", str(cfg_path)], stdout=log, stderr=log
         )
     endpoint = f"ipc://{runtime}/control.sock"
     deadline = time.monotonic() + 60

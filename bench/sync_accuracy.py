@@ -22,8 +22,8 @@ import h5py
 import numpy as np
 
 from firmware_sim.world import get_world
-from rigd.capture import run_capture
-from rigd.config import default_sim_rig
+from rigd.app.capture import run_capture
+from rigd.app.config import default_sim_rig
 from rigd.core.schema import DeviceSync
 from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take

@@ -108,7 +108,7 @@ class TakeSummary(BaseModel):
     pulses_seen_by_no_device: list[int] = Field(default_factory=list)
     losses: list[LossRecord] = Field(default_factory=list)
     warnings: list[str] = Field(default_factory=list)
-    problems: list[str] = Field(default_factory=list, description="Validation problems (rigd.inspect).")
+    problems: list[str] = Field(default_factory=list, description="Validation problems (rigd.app.inspect).")
 
 
 def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:

@@ -5,7 +5,7 @@ or between the last flush and finalize) or when a finalize started and never com
 `recover_take` rebuilds what the capture pipeline had in memory from the file itself -- the
 pulse log, every camera's frame times, every event sensor's rising trigger-in edges, and the
 loss bookkeeping of the last flush (`/journal_json`) -- runs `rigd.sync.synchronize` exactly
-as `rigd.capture` does, and finalizes through `TakeWriter.resume`. What the kill left
+as `rigd.app.capture` does, and finalizes through `TakeWriter.resume`. What the kill left
 half-written is trimmed (`check_repair`) and reported, never dropped silently; recorded data
 is never deleted otherwise. A take a live process holds (HDF5 file lock) is left untouched.
 """
@@ -352,7 +352,7 @@ def _rate_hz(cfg: dict[str, Any], pulses: PulseLog, warnings: list[str]) -> floa
 
 
 def _pulse_log(index: NDArray[np.int64], t_us: NDArray[np.int64], host: NDArray[np.int64]) -> PulseLog:
-    """Sorted, de-duplicated pulse log, as rigd.capture builds it (the box may resend)."""
+    """Sorted, de-duplicated pulse log, as rigd.app.capture builds it (the box may resend)."""
     order = np.argsort(index, kind="stable")
     uniq = np.concatenate([[True], np.diff(index[order]) > 0]) if index.size else np.empty(0, bool)
     sel = order[uniq]
@@ -540,7 +540,7 @@ def _journal_losses(journal: dict[str, Any], warnings: list[str]) -> list[LossRe
 
 
 def _journal_warnings(journal: dict[str, Any], warnings: list[str]) -> list[str]:
-    """The journal's warnings, fault history and failed devices, worded as rigd.capture does."""
+    """The journal's warnings, fault history and failed devices, worded as rigd.app.capture does."""
     out: list[str] = []
     failed = journal.get("failed_devices", {})
     if isinstance(failed, dict):
@@ -555,7 +555,7 @@ def _journal_warnings(journal: dict[str, Any], warnings: list[str]) -> list[str]
 
 
 def _fit(data: _TakeData, losses: list[LossRecord]) -> tuple[SyncResult | None, str | None]:
-    """synchronize() as rigd.capture._finalize calls it; a reason instead when it cannot tie
+    """synchronize() as rigd.app.capture._finalize calls it; a reason instead when it cannot tie
     any device clock to rig time."""
     if data.flush_count == 0:
         return None, "the writer died before its first flush: the take holds no recorded data"

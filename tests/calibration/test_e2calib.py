@@ -15,7 +15,7 @@ from bench.e2calib import BOARD, capture_board_take, score, sensor_results, true
 from calibration.boards import detect, parse_board
 from calibration.e2calib import ReconstructionParams, detector_image, reconstruct, to_uint8
 from firmware_sim.board_scene import BoardScene
-from rigd.commands.calibrate import calibrate_app
+from rigd.app.commands.calibrate import calibrate_app
 from rigd.take.reader import open_take
 
 RES = (480, 270)

@@ -224,7 +224,7 @@ def test_done_when_sigmas_reach_target(board: BoardSpec, dets: list[Detection]) 
 
 @pytest.mark.slow
 def test_cli_end_to_end_on_sim_rig(tmp_path: Path) -> None:
-    from rigd.commands.guided import guided
+    from rigd.app.commands.guided import guided
 
     app = typer.Typer()
     app.command("guided")(guided)

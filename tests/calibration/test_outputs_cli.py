@@ -17,7 +17,7 @@ from calibration.errors import CalibrationError
 from calibration.intrinsics import calibrate_intrinsics
 from calibration.io import kalibr_camchain, read_opencv_yaml, write_json, write_opencv_yaml
 from calibration.report import write_report
-from rigd.commands.calibrate import calibrate_app
+from rigd.app.commands.calibrate import calibrate_app
 from tests.calibration.conftest import DATA, REAL_BOARD, real_files
 
 app = typer.Typer()

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from bench.e2calib import BOARD, capture_board_take
 from firmware_sim.board_scene import BoardScene
 from firmware_sim.world import get_world
-from rigd.commands.calibrate import calibrate_app
+from rigd.app.commands.calibrate import calibrate_app
 
 RES = (480, 270)
 WORLD = "t-rig-take"

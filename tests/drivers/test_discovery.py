@@ -19,7 +19,7 @@ from drivers.discovery import (
     udev_rules,
     write_config_skeleton,
 )
-from rigd.config import RigConfig
+from rigd.app.config import RigConfig
 
 
 def _teensy() -> FoundDevice:

@@ -149,8 +149,8 @@ def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path:
     import uuid
 
     from drivers.registry import register_backend
-    from rigd.capture import run_capture
-    from rigd.config import CameraConfig, default_sim_rig
+    from rigd.app.capture import run_capture
+    from rigd.app.config import CameraConfig, default_sim_rig
     from rigd.take.reader import Take
 
     class PacedCapture(FakeCapture):
@@ -191,8 +191,8 @@ def test_camera_unplugged_mid_take_is_reported_and_the_take_goes_on(tmp_path: Pa
     import uuid
 
     from drivers.registry import register_backend
-    from rigd.capture import run_capture
-    from rigd.config import CameraConfig, default_sim_rig
+    from rigd.app.capture import run_capture
+    from rigd.app.config import CameraConfig, default_sim_rig
 
     cap = FakeCapture()
 

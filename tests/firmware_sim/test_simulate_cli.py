@@ -19,7 +19,7 @@ app.command("simulate-events")(simulate_events)
 
 @app.callback()
 def _root() -> None:
-    """Keeps simulate-events a named sub-command, as in rigd/cli.py."""
+    """Keeps simulate-events a named sub-command, as in rigd/app/cli.py."""
 
 
 def make_folder(tmp_path: Path, n: int = 5) -> Path:
@@ -118,7 +118,7 @@ def test_parse_noise() -> None:
 
 
 def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: Path) -> None:
-    from rigd.cli import app as rigd_app
+    from rigd.app.cli import app as rigd_app
 
     folder = make_folder(tmp_path)
     out = tmp_path / "ev.h5"

@@ -150,9 +150,9 @@ def test_rigd_reconstruct_on_a_captured_sim_take(tmp_path: Path) -> None:
 
     from typer.testing import CliRunner
 
-    from rigd.capture import run_capture
-    from rigd.cli import app
-    from rigd.config import default_sim_rig
+    from rigd.app.capture import run_capture
+    from rigd.app.cli import app
+    from rigd.app.config import default_sim_rig
 
     cfg = default_sim_rig(world=f"rc-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
     cfg.cameras = cfg.cameras[:1]
@@ -170,9 +170,9 @@ def test_reconstruct_on_a_distributed_scheduler(tmp_path: Path) -> None:
     import uuid
 
     distributed = pytest.importorskip("distributed")
-    from rigd.capture import run_capture
-    from rigd.commands.reconstruct import run_batch
-    from rigd.config import default_sim_rig
+    from rigd.app.capture import run_capture
+    from rigd.app.commands.reconstruct import run_batch
+    from rigd.app.config import default_sim_rig
 
     cfg = default_sim_rig(world=f"rd-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
     cfg.cameras = cfg.cameras[:1]

@@ -10,9 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from reconstruction.dataset import WindowSampler
-from rigd.capture import run_capture
-from rigd.cli import app
-from rigd.config import default_sim_rig
+from rigd.app.capture import run_capture
+from rigd.app.cli import app
+from rigd.app.config import default_sim_rig
 from rigd.core.errors import TakeError
 from rigd.take.calibration import store_calibration
 from rigd.take.reader import Take

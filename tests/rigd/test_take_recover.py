@@ -26,8 +26,8 @@ import typer
 from typer.testing import CliRunner
 
 import rigd.take.writer as writer_mod
-from rigd.commands.recover import recover_command
-from rigd.config import CameraConfig, EventSensorConfig, RigConfig, TriggerConfig
+from rigd.app.commands.recover import recover_command
+from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, TriggerConfig
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents

@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigd.inspect import event_image, summarize, write_thumbnails
+from rigd.app.inspect import event_image, summarize, write_thumbnails
 from tests.rigd.test_take_roundtrip import MAPS, make_take
 
 

@@ -27,7 +27,7 @@ from typing import Literal
 
 from drivers.discovery import Discovery, discover
 from drivers.registry import DeviceSpec
-from rigd.config import RigConfig
+from rigd.app.config import RigConfig
 from rigd.core.errors import ConfigError
 
 log = logging.getLogger(__name__)

@@ -12,9 +12,9 @@ import pytest
 from typer.testing import CliRunner
 
 from firmware_sim.world import GroundTruth, get_world
-from rigd.capture import CaptureResult, run_capture
-from rigd.cli import app
-from rigd.config import RigConfig, default_sim_rig
+from rigd.app.capture import CaptureResult, run_capture
+from rigd.app.cli import app
+from rigd.app.config import RigConfig, default_sim_rig
 from rigd.core.errors import ConfigError
 from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take

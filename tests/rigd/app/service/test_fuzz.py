@@ -10,9 +10,9 @@ from typing import Any
 
 import psutil
 
-from rigd.service.client import DaemonClient
-from rigd.service.protocol import Reply
-from tests.rigd.service.conftest import endpoints, small_rig, spawn_daemon
+from rigd.app.service.client import DaemonClient
+from rigd.app.service.protocol import Reply
+from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
 
 N_MESSAGES = 10_000
 

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import pytest
 
-from rigd.config import RigConfig, default_sim_rig
-from rigd.service.client import DaemonClient, find_daemon
-from rigd.service.daemon import Daemon
+from rigd.app.config import RigConfig, default_sim_rig
+from rigd.app.service.client import DaemonClient, find_daemon
+from rigd.app.service.daemon import Daemon
 
-REPO = Path(__file__).resolve().parents[3]
+REPO = Path(__file__).resolve().parents[4]
 
 
 def small_rig(world: str, *, extra: dict[str, str] | None = None, **service: object) -> RigConfig:
@@ -124,7 +124,7 @@ def spawn_daemon(
     full_env = {**os.environ, **(env or {})}
     log = log_path.open("ab")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "rigd.cli", "serve", "--config", str(cfg_path)],
+        [sys.executable, "-m", "rigd.app.cli", "serve", "--config", str(cfg_path)],
         stdout=log,
         stderr=subprocess.STDOUT,
         env=full_env,

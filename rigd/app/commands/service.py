@@ -18,9 +18,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rigd.config import RigConfig, default_control_endpoint, default_sim_rig
+from rigd.app.config import RigConfig, default_control_endpoint, default_sim_rig
+from rigd.app.service.client import DaemonClient, DaemonRequestError, find_daemon
 from rigd.core.errors import ConfigError, RigdError
-from rigd.service.client import DaemonClient, DaemonRequestError, find_daemon
 
 log = logging.getLogger(__name__)
 _err = Console(stderr=True)
@@ -67,7 +67,7 @@ def serve(
     ] = None,
 ) -> None:
     """Run the capture daemon: control socket, telemetry, metrics; Ctrl-C/SIGTERM to stop."""
-    from rigd.service.daemon import run_daemon
+    from rigd.app.service.daemon import run_daemon
 
     try:
         rig = RigConfig.load(config) if config else default_sim_rig()

@@ -11,9 +11,9 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from rigd import __version__
+from rigd.app.service.metrics import MetricsExporter
+from rigd.app.service.protocol import DeviceTelemetry, Fault, TakeSummary, Telemetry
 from rigd.core.errors import ConfigError
-from rigd.service.metrics import MetricsExporter
-from rigd.service.protocol import DeviceTelemetry, Fault, TakeSummary, Telemetry
 
 TAKE_A = "/var/lib/rigd/takes/take-A.h5"
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]

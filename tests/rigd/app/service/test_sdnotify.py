@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rigd.service import sdnotify
+from rigd.app.service import sdnotify
 
 
 @pytest.fixture
@@ -58,7 +58,7 @@ def test_not_under_systemd_is_a_quiet_no_op(
 ) -> None:
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
     before = sdnotify.failures()
-    with caplog.at_level(logging.DEBUG, logger="rigd.service.sdnotify"):
+    with caplog.at_level(logging.DEBUG, logger="rigd.app.service.sdnotify"):
         assert sdnotify.notify("READY=1") is False
     assert sdnotify.failures() == before
     assert [r.levelno for r in caplog.records] == [logging.DEBUG]
@@ -70,7 +70,7 @@ def test_send_error_is_logged_and_counted_not_raised(
 ) -> None:
     monkeypatch.setenv("NOTIFY_SOCKET", address)
     before = sdnotify.failures()
-    with caplog.at_level(logging.WARNING, logger="rigd.service.sdnotify"):
+    with caplog.at_level(logging.WARNING, logger="rigd.app.service.sdnotify"):
         assert sdnotify.notify("WATCHDOG=1") is False
     assert sdnotify.failures() == before + 1
     assert any("WATCHDOG=1" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
@@ -114,6 +114,6 @@ def test_watchdog_interval_invalid(
         monkeypatch.delenv("WATCHDOG_PID", raising=False)
     else:
         monkeypatch.setenv("WATCHDOG_PID", pid)
-    with caplog.at_level(logging.WARNING, logger="rigd.service.sdnotify"):
+    with caplog.at_level(logging.WARNING, logger="rigd.app.service.sdnotify"):
         assert sdnotify.watchdog_interval_s() is None
     assert caplog.records

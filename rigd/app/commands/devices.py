@@ -57,7 +57,7 @@ def devices(
     """List serial ports, USB and HID devices, V4L2 nodes and GenICam cameras rigd can use.
 
     With a daemon running, the daemon looks (it is the process with the device permissions)."""
-    from rigd.commands.service import find_for_command
+    from rigd.app.commands.service import find_for_command
 
     client = find_for_command(connect, local)
     if client is None:

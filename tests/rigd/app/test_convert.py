@@ -10,11 +10,11 @@ import pytest
 from typer.testing import CliRunner
 
 from drivers.evt import read_dat, read_raw
-from rigd.cli import app
-from rigd.convert import ConvertError, convert
+from rigd.app.cli import app
+from rigd.app.convert import ConvertError, convert
 from rigd.take.reader import Take
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
+DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")
 
 

@@ -15,16 +15,16 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from rigd import __version__
-from rigd.commands.calibrate import calibrate_app
-from rigd.commands.devices import devices
-from rigd.commands.doctor import doctor
-from rigd.commands.guided import guided
-from rigd.commands.reconstruct import reconstruct
-from rigd.commands.recover import recover_command
-from rigd.commands.service import ConnectOpt, capture_via_daemon, find_for_command, serve, status, stop
-from rigd.config import RigConfig, default_sim_rig
+from rigd.app.commands.calibrate import calibrate_app
+from rigd.app.commands.devices import devices
+from rigd.app.commands.doctor import doctor
+from rigd.app.commands.guided import guided
+from rigd.app.commands.reconstruct import reconstruct
+from rigd.app.commands.recover import recover_command
+from rigd.app.commands.service import ConnectOpt, capture_via_daemon, find_for_command, serve, status, stop
+from rigd.app.config import RigConfig, default_sim_rig
+from rigd.app.service.client import DaemonClient
 from rigd.core.errors import ConfigError, RigdError
-from rigd.service.client import DaemonClient
 
 app = typer.Typer(
     help="Capture daemon for a hybrid RGB + event-camera rig.",
@@ -53,7 +53,7 @@ def _main(
         Path | None, typer.Option("--log-file", envvar="RIGD_LOG_FILE", help="Also log to this file.")
     ] = None,
 ) -> None:
-    from rigd.logs import setup_logging
+    from rigd.app.logs import setup_logging
 
     level = logging.WARNING - 10 * min(verbose, 2)
     if log_level is not None:
@@ -91,9 +91,9 @@ def capture(
 ) -> None:
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
-    from rigd.capture import Progress as CaptureProgress
-    from rigd.capture import run_capture
-    from rigd.inspect import summarize
+    from rigd.app.capture import Progress as CaptureProgress
+    from rigd.app.capture import run_capture
+    from rigd.app.inspect import summarize
 
     try:
         client = find_for_command(connect, local)
@@ -176,7 +176,7 @@ def inspect(
     ] = None,
 ) -> None:
     """Validate a take against the schema and print its summary."""
-    from rigd.inspect import summarize, write_thumbnails
+    from rigd.app.inspect import summarize, write_thumbnails
 
     if not take.exists():
         raise _fail(FileNotFoundError(f"no such take: {take}"))
@@ -207,7 +207,7 @@ def convert_cmd(
     strict: Annotated[bool, typer.Option("--strict", help="Stop at the first invalid word.")] = False,
 ) -> None:
     """Convert a RAW/DAT recording to a take, or a take's event sensor to RAW/DAT."""
-    from rigd.convert import convert
+    from rigd.app.convert import convert
 
     if not src.exists():
         raise _fail(FileNotFoundError(f"no such file: {src}"))

@@ -10,10 +10,10 @@ import typer
 from typer.testing import CliRunner
 
 from drivers.discovery import Discovery, FoundDevice, SourceReport
-from rigd.commands.devices import devices
-from rigd.commands.doctor import doctor
-from rigd.config import RigConfig
-from rigd.doctor import Check, NodeAccess, Readings, plan_rig, run_checks, summary_status
+from rigd.app.commands.devices import devices
+from rigd.app.commands.doctor import doctor
+from rigd.app.config import RigConfig
+from rigd.app.doctor import Check, NodeAccess, Readings, plan_rig, run_checks, summary_status
 
 RIG = {
     "trigger": {"spec": "/dev/rigd-trigger", "settings": {"rate_hz": 60.0, "pulse_width_us": 500}},
@@ -198,7 +198,7 @@ def test_devices_cli_json_and_outputs(tmp_path: Path) -> None:
 
 
 def test_devices_cli_says_plainly_when_nothing_is_attached(monkeypatch: pytest.MonkeyPatch) -> None:
-    import rigd.commands.devices as mod
+    import rigd.app.commands.devices as mod
 
     monkeypatch.setattr(mod, "discover", lambda: Discovery([SourceReport("usb", False, reason="no libusb")]))
     res = CliRunner().invoke(_app(), ["devices"])

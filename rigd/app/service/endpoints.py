@@ -11,7 +11,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from rigd.config import CurveConfig
+from rigd.app.config import CurveConfig
 from rigd.core.errors import ConfigError, RigdError
 
 log = logging.getLogger(__name__)

@@ -14,9 +14,9 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from rigd.config import RigConfig
+from rigd.app.config import RigConfig
+from rigd.app.doctor import checks_to_dict, run_checks, summary_status
 from rigd.core.errors import RigdError
-from rigd.doctor import checks_to_dict, run_checks, summary_status
 
 _err = Console(stderr=True)
 _COLOURS = {"OK": "green", "WARN": "yellow", "FAIL": "bold red"}

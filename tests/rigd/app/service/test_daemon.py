@@ -15,12 +15,12 @@ import pytest
 import zmq
 from typer.testing import CliRunner
 
-from rigd.cli import app
-from rigd.config import RigConfig
+from rigd.app.cli import app
+from rigd.app.config import RigConfig
+from rigd.app.service.client import DaemonClient, DaemonRequestError, find_daemon
+from rigd.app.service.protocol import Reply, Telemetry, ThumbnailHeader
 from rigd.core.errors import ConfigError
-from rigd.service.client import DaemonClient, DaemonRequestError, find_daemon
-from rigd.service.protocol import Reply, Telemetry, ThumbnailHeader
-from tests.rigd.service.conftest import small_rig, wait_idle
+from tests.rigd.app.service.conftest import small_rig, wait_idle
 
 
 def test_ping_status_config(start_daemon: Any) -> None:
@@ -167,7 +167,7 @@ def test_ipc_socket_is_owner_only(start_daemon: Any) -> None:
 
 def test_second_daemon_on_same_endpoint_refused(start_daemon: Any) -> None:
     rd = start_daemon()
-    from rigd.service.daemon import Daemon
+    from rigd.app.service.daemon import Daemon
 
     with pytest.raises(Exception, match="already answers"):
         Daemon(rd.config).serve()

@@ -35,8 +35,8 @@ import numpy as np
 from drivers.base import EventPacket, EventSensor, RgbCamera, Trigger
 from drivers.registry import open_device
 from rigd import __version__
-from rigd.clock_reset import MAX_HOLD_S, MAX_OBSERVATIONS, ClockReset, estimate_offset
-from rigd.config import RigConfig
+from rigd.app.clock_reset import MAX_HOLD_S, MAX_OBSERVATIONS, ClockReset, estimate_offset
+from rigd.app.config import RigConfig
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import DeviceError, RigdError, TakeError
 from rigd.core.events import EventArray

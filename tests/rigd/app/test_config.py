@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 
 from drivers.registry import DeviceSpec
-from rigd.config import RigConfig, default_sim_rig
+from rigd.app.config import RigConfig, default_sim_rig
 from rigd.core.errors import ConfigError
 
-DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "configs"
+DEPLOY = Path(__file__).resolve().parents[3] / "deploy" / "configs"
 
 
 def _params(spec: str) -> dict[str, float]:
@@ -77,9 +77,9 @@ def test_example_configs_load() -> None:
     """The configs shipped in deploy/ stay valid as the schema changes."""
     from pathlib import Path
 
-    from rigd.config import RigConfig
+    from rigd.app.config import RigConfig
 
-    root = Path(__file__).resolve().parents[2] / "deploy" / "configs"
+    root = Path(__file__).resolve().parents[3] / "deploy" / "configs"
     configs = sorted(root.glob("*.toml"))
     assert len(configs) >= 2
     for path in configs:

@@ -18,9 +18,9 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rigd.service.client import DaemonClient
+from rigd.app.service.client import DaemonClient
 from rigd.take.validate import validate_take
-from tests.rigd.service.conftest import endpoints, small_rig, spawn_daemon
+from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
 
 N_KILLS = 20
 FLUSH_S = 0.5

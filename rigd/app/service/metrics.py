@@ -35,9 +35,9 @@ from prometheus_client.core import CounterMetricFamily, Metric
 from prometheus_client.registry import Collector
 
 from rigd import __version__
+from rigd.app.service import sdnotify
+from rigd.app.service.protocol import DaemonState, DeviceTelemetry, Fault, TakeSummary, Telemetry
 from rigd.core.errors import ConfigError
-from rigd.service import sdnotify
-from rigd.service.protocol import DaemonState, DeviceTelemetry, Fault, TakeSummary, Telemetry
 
 log = logging.getLogger(__name__)
 

@@ -16,9 +16,9 @@ from typing import Any, Self
 import zmq
 import zmq.auth
 
+from rigd.app.service.endpoints import ipc_path
+from rigd.app.service.protocol import PROTOCOL_VERSION, ErrorInfo, Reply
 from rigd.core.errors import RigdError
-from rigd.service.endpoints import ipc_path
-from rigd.service.protocol import PROTOCOL_VERSION, ErrorInfo, Reply
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""rigd.logs: JSON lines, extra fields, exceptions, journald mode, rotation by rename."""
+"""rigd.app.logs: JSON lines, extra fields, exceptions, journald mode, rotation by rename."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rigd import logs
+from rigd.app import logs
 
 
 @pytest.fixture(autouse=True)

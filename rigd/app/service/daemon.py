@@ -35,14 +35,13 @@ import zmq
 from pydantic import BaseModel, ValidationError
 
 from rigd import __version__
-from rigd.capture import CaptureSession, SessionSnapshot, remove_stale_ballast
-from rigd.config import RigConfig
-from rigd.core.errors import ConfigError, DeviceError, RigdError, TakeError
-from rigd.service import sdnotify
-from rigd.service.client import find_daemon
-from rigd.service.endpoints import DaemonRunningError, apply_server_curve, bind, start_authenticator
-from rigd.service.metrics import MetricsExporter
-from rigd.service.protocol import (
+from rigd.app.capture import CaptureSession, SessionSnapshot, remove_stale_ballast
+from rigd.app.config import RigConfig
+from rigd.app.service import sdnotify
+from rigd.app.service.client import find_daemon
+from rigd.app.service.endpoints import DaemonRunningError, apply_server_curve, bind, start_authenticator
+from rigd.app.service.metrics import MetricsExporter
+from rigd.app.service.protocol import (
     ARGS_MODELS,
     MAX_MESSAGE_BYTES,
     PROTOCOL_VERSION,
@@ -60,7 +59,8 @@ from rigd.service.protocol import (
     Telemetry,
     ThumbnailHeader,
 )
-from rigd.service.thumbnails import events_thumbnail, frame_thumbnail
+from rigd.app.service.thumbnails import events_thumbnail, frame_thumbnail
+from rigd.core.errors import ConfigError, DeviceError, RigdError, TakeError
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from calibration.guided import TILT_BINS, Feedback, GuidedSession
 from calibration.io import dumps_summary, write_result
 from drivers.base import RgbCamera, Trigger
 from drivers.registry import open_device
-from rigd.config import CameraConfig, RigConfig, default_sim_rig
+from rigd.app.config import CameraConfig, RigConfig, default_sim_rig
 from rigd.core.errors import RigdError
 
 log = logging.getLogger(__name__)
@@ -117,7 +117,7 @@ def _panel(fb: Feedback, camera: str, session: GuidedSession, target: float, lef
 
 
 def _open(cfg: RigConfig, cam_cfg: CameraConfig) -> tuple[Trigger, RgbCamera]:
-    """Open and configure the trigger and the camera (order of rigd.capture)."""
+    """Open and configure the trigger and the camera (order of rigd.app.capture)."""
     trigger = open_device("trigger", cfg.trigger.spec)
     try:
         trigger.configure(cfg.trigger.settings)
