@@ -25,7 +25,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-import rigd.take.writer as writer_mod
+import rigd.take.finalize as finalize_mod
 from rigd.app.commands.recover import recover_command
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, TriggerConfig
 from rigd.core.devices import DeviceInfo, PulseBatch
@@ -155,7 +155,7 @@ def _kill_script(path: Path, kill_at_append: int | None = None) -> str:
         f"""
         import os, signal, sys, time
         from pathlib import Path
-        import rigd.take.writer as wm
+        import rigd.take.sinks as sinks
         from tests.rigd.test_take_recover import append_step, journal, open_writer
         KILL_AT = {kill_at_append!r}
         if KILL_AT is not None:
@@ -167,8 +167,8 @@ def _kill_script(path: Path, kill_at_append: int | None = None) -> str:
                         os.kill(os.getpid(), signal.SIGKILL)
                     real(*args)
                 return write
-            wm._append = killing(wm._append)
-            wm._write_slot = killing(wm._write_slot)
+            sinks.append_rows = killing(sinks.append_rows)
+            sinks._write_slot = killing(sinks._write_slot)
         w = open_writer(Path({str(path)!r}), flush_interval_s=0.2)
         print("START", flush=True)
         k, last = 0, time.monotonic()
@@ -366,7 +366,7 @@ class SimulatedCrashError(Exception):
 @pytest.fixture
 def small_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
     # Many finalize blocks from a small take: 2048 events per block.
-    monkeypatch.setattr(writer_mod, "_FINALIZE_BLOCK", 2 * CHUNK)
+    monkeypatch.setattr(finalize_mod, "_FINALIZE_BLOCK", 2 * CHUNK)
 
 
 @pytest.mark.parametrize("stage", ["scratch_written", "scratch_logged", "t_written"])
@@ -389,14 +389,14 @@ def test_crash_mid_finalize_resumes_exactly(
             if calls["n"] == 7:  # in the middle of the take (36000 events, 18 blocks)
                 raise SimulatedCrashError(f"{s} at {start}")
 
-    monkeypatch.setattr(writer_mod, "_crash_point", crash_at)
+    monkeypatch.setattr(finalize_mod, "_crash_point", crash_at)
     w = TakeWriter.resume(crash, WRITER_CFG)
     with pytest.raises(SimulatedCrashError):
         w.finalize(MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
     with pytest.raises(TakeError, match="no more data"):
         append_step(w, N_STEPS)
     w.close()  # flushes whatever was in memory: the worst case for double mapping
-    monkeypatch.setattr(writer_mod, "_crash_point", lambda *a: None)
+    monkeypatch.setattr(finalize_mod, "_crash_point", lambda *a: None)
     assert find_unfinished(tmp_path) == [crash]
     assert any("finalize was interrupted" in p for p in validate_take(crash))
     with TakeWriter.resume(crash, WRITER_CFG) as w:
@@ -426,16 +426,17 @@ def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
         import os, signal
         import numpy as np
         from pathlib import Path
+        import rigd.take.finalize as fm
         import rigd.take.writer as wm
         from tests.rigd.test_take_recover import MAPS, N_STEPS, WRITER_CFG, CHUNK, _report
-        wm._FINALIZE_BLOCK = 2 * CHUNK
+        fm._FINALIZE_BLOCK = 2 * CHUNK
         seen = []
         def kill(stage, sensor, start):
             if stage == "t_written":
                 seen.append(start)
                 if len(seen) == 5:
                     os.kill(os.getpid(), signal.SIGKILL)
-        wm._crash_point = kill
+        fm._crash_point = kill
         w = wm.TakeWriter.resume(Path({str(crash)!r}), WRITER_CFG)
         w.finalize(MAPS, {{"cam0": np.arange(N_STEPS)}}, _report(N_STEPS))
         """

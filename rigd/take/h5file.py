@@ -1,0 +1,213 @@
+"""Opening take files and the small HDF5 helpers every take module shares.
+
+Opening goes through `open_h5` so a take a live writer holds (HDF5 file lock) is never opened
+twice, and a take a failed write left short is reported as such (`TakeTruncatedError`) rather
+than as a corrupt file; `open_extended` and `ZeroPadded` are the two ways recovery gets at
+such a take (writable, or read-only without changing a byte).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import errno
+import io
+import logging
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import h5py
+import hdf5plugin
+import numpy as np
+from numpy.typing import NDArray
+
+from rigd.core.errors import TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
+from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION
+
+log = logging.getLogger(__name__)
+
+#: Root attr: the real end of a truncated take that resume extended with a hole; chunks past it
+#: were never written. Removed once check_repair has trimmed them away.
+TRUNCATED_EOF_ATTR = "truncated_eof"
+_TRUNCATED_RE = re.compile(r"truncated file: eof = (\d+),.*stored_eof = (\d+)")
+_ERRNO_RE = re.compile(r"errno = (\d+)")
+#: gzip level: 1 keeps write speed usable; with the shuffle filter it loses little ratio.
+_GZIP_LEVEL = 1
+
+
+def utc_now(timespec: str = "seconds") -> str:
+    """ISO 8601 UTC timestamp, the form every take attr ending in `_utc` holds."""
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec=timespec)
+
+
+def attr_text(value: Any) -> str:
+    """A string attr or scalar as str: h5py hands back bytes for fixed-length strings."""
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
+def as_oserror(exc: BaseException) -> OSError:
+    """HDF5 reports some failed writes (a flush, a close) as RuntimeError; callers handle a
+    file system that refuses writes as OSError, with the errno HDF5 saw (ENOSPC: disk full)."""
+    if isinstance(exc, OSError):
+        return exc
+    m = _ERRNO_RE.search(str(exc))
+    return OSError(int(m.group(1)) if m else errno.EIO, str(exc))
+
+
+def compression_options(codec: str, *, shuffle: bool) -> dict[str, Any]:
+    """h5py dataset keywords for a WriterConfig codec name.
+
+    The byte-shuffle filter groups the constant high bytes of int64 times and uint16
+    coordinates, which is what makes the fast codecs effective on event streams.
+    """
+    opts: dict[str, Any]
+    if codec == "none":
+        return {}
+    if codec == "lz4":
+        opts = dict(hdf5plugin.LZ4())
+    elif codec == "zstd":
+        opts = dict(hdf5plugin.Zstd(clevel=3))
+    elif codec == "gzip":
+        opts = {"compression": "gzip", "compression_opts": _GZIP_LEVEL}
+    else:
+        raise TakeError(f"unknown compression {codec!r} (use none, lz4, zstd or gzip)")
+    if shuffle:
+        opts["shuffle"] = True
+    return opts
+
+
+def append_rows(ds: h5py.Dataset, start: int, data: NDArray[Any]) -> None:
+    """Store `data` at rows [start, start + len), growing the dataset when it is too short."""
+    end = start + data.shape[0]
+    if ds.shape[0] < end:
+        ds.resize((end, *ds.shape[1:]))
+    ds[start:end] = data
+
+
+def fsync_dir(directory: Path) -> None:
+    """Make a new file's name durable (POSIX: fsync the directory that holds it)."""
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def is_lock_error(exc: OSError) -> bool:
+    """Whether h5py refused to open a file because another process holds its HDF5 lock."""
+    return isinstance(exc, BlockingIOError) or "errno = 11," in str(exc)
+
+
+def open_h5(path: Path, mode: str) -> h5py.File:
+    """Open with HDF5 file locking on, so a take a live writer holds is never opened
+    (best-effort: file systems without locks open anyway)."""
+    if not path.is_file():
+        raise TakeError(f"{path}: no such take file")
+    try:
+        return h5py.File(path, mode, locking="best-effort")
+    except OSError as exc:
+        if is_lock_error(exc):
+            raise TakeInUseError(
+                f"{path}: in use: another process has it open for writing (HDF5 file lock)"
+            ) from exc
+        m = _TRUNCATED_RE.search(str(exc))
+        if m:
+            eof, stored = int(m.group(1)), int(m.group(2))
+            raise TakeTruncatedError(
+                f"{path}: truncated by a failed write (disk full?): the file ends at byte {eof}, its "
+                f"header records {stored}; `rigd recover` extends it and trims what was never written",
+                eof,
+                stored,
+            ) from exc
+        raise TakeFormatError(f"{path}: cannot be opened as an HDF5 file: {exc}") from exc
+
+
+def open_extended(path: Path, exc: TakeTruncatedError) -> h5py.File:
+    """Open a truncated take for writing, first given the length its superblock records (a
+    sparse hole, no disk space needed) and noting the real end, so check_repair treats what
+    lay past it as never written."""
+    size = path.stat().st_size
+    if size != exc.eof or exc.stored_eof <= exc.eof:
+        raise TakeFormatError(f"{path}: changed while being recovered (size {size}, expected {exc.eof})")
+    log.warning(
+        "take %s is %d bytes short of what its header records (a write failed); extending it with a hole",
+        path,
+        exc.stored_eof - exc.eof,
+    )
+    os.truncate(path, exc.stored_eof)
+    f = open_h5(path, "r+")
+    f.attrs[TRUNCATED_EOF_ATTR] = np.int64(exc.eof)
+    f.flush()
+    return f
+
+
+class ZeroPadded(io.RawIOBase):
+    """Read-only view of a truncated file, zeros past its end up to `size`: lets h5py open a
+    take a failed write left short without changing a byte of it (dry runs)."""
+
+    def __init__(self, path: Path, size: int) -> None:
+        super().__init__()
+        self._f = path.open("rb")
+        self._real = os.fstat(self._f.fileno()).st_size
+        self._size = size
+        self._pos = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: self._size}[whence]
+        self._pos = base + offset
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def readinto(self, buf: Any) -> int:
+        view = memoryview(buf).cast("B")
+        n = max(0, min(len(view), self._size - self._pos))
+        got = 0
+        if self._pos < self._real:
+            self._f.seek(self._pos)
+            got = self._f.readinto(view[: min(n, self._real - self._pos)]) or 0
+        view[got:n] = bytes(n - got)
+        self._pos += n
+        return n
+
+    def close(self) -> None:
+        self._f.close()
+        super().close()
+
+
+def check_header(f: h5py.File, path: Path) -> str:
+    """Schema name and major version of an open take; returns its schema_version."""
+    schema = attr_text(f.attrs.get("schema", ""))
+    if schema != SCHEMA_NAME:
+        raise TakeFormatError(f"{path}: /: attr schema is {schema!r}, expected {SCHEMA_NAME!r}")
+    version = attr_text(f.attrs.get("schema_version", ""))
+    if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
+        raise TakeFormatError(
+            f"{path}: /: schema_version {version!r} is not readable by this rigd "
+            f"(reads {SCHEMA_VERSION.split('.')[0]}.x)"
+        )
+    return version
+
+
+def require_group(parent: h5py.Group, name: str, where: str) -> h5py.Group:
+    """`parent[name]` as a group, or a TakeFormatError naming the file (`where`) and path."""
+    node = parent.get(name)
+    if not isinstance(node, h5py.Group):
+        raise TakeFormatError(f"{where}: {parent.name.rstrip('/')}/{name} is missing or not a group")
+    return node
+
+
+def require_dataset(parent: h5py.Group, name: str, where: str) -> h5py.Dataset:
+    """`parent[name]` as a dataset, or a TakeFormatError naming the file (`where`) and path."""
+    node = parent.get(name)
+    if not isinstance(node, h5py.Dataset):
+        raise TakeFormatError(f"{where}: {parent.name.rstrip('/')}/{name} is missing or not a dataset")
+    return node

@@ -1,0 +1,387 @@
+"""Per-device sinks: what the writer buffers for one device and how it lands in the file.
+
+Small per-item series (frame times, triggers, pulses) are buffered and written in blocks, so
+HDF5 is not called per item; events are written in whole chunks while recording, the rest of a
+flush going to the sensor's tail slots (`rigd.take.tails`). Columns of one group are written
+in a fixed order with `t` last, so a kill between two column writes leaves `t` no longer than
+the others and `check_repair` can cut the group back to what every column holds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Self
+
+import h5py
+import numpy as np
+from numpy.typing import DTypeLike, NDArray
+
+from rigd.core.devices import PulseBatch
+from rigd.core.errors import TakeError, TakeFormatError
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.frames import Frame
+from rigd.core.schema import (
+    EVENT_DTYPES,
+    EVENTS_GROUP,
+    FRAME_SERIES,
+    FRAMES_GROUP,
+    PULSE_SERIES,
+    TAIL_META_ATTR,
+    TRIGGER_DTYPES,
+)
+from rigd.take.h5file import append_rows, require_dataset, require_group
+from rigd.take.tails import choose_tail_slot, create_tail_slots, drop_tail_slots
+
+#: Frames are allocated in blocks of this many, so the images dataset is not resized per frame.
+_FRAME_BLOCK = 64
+#: Small per-item buffers (frame timestamps, triggers, pulses) are written when this full.
+_SMALL_BLOCK = 4096
+#: Chunk length of small 1-D datasets (frame times, triggers, pulses, ms_to_idx).
+SMALL_CHUNK = 4096
+
+
+@dataclass(slots=True)
+class DeviceWriteStats:
+    """What the writer took in and stored for one device."""
+
+    kind: str
+    items: int = 0
+    """Frames, events or pulses appended (buffered ones included)."""
+    raw_bytes: int = 0
+    """Uncompressed payload bytes appended."""
+    stored_bytes: int = 0
+    """Bytes the device's datasets occupy in the file (after compression, flushed data only)."""
+
+
+def new_series(
+    group: h5py.Group, name: str, dtype: DTypeLike, opts: Mapping[str, Any], chunk: int = SMALL_CHUNK
+) -> h5py.Dataset:
+    """An empty, growable 1-D dataset."""
+    return group.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(chunk,), **opts)
+
+
+def _write_slot(ds: h5py.Dataset, slot: int, start: int, data: NDArray[Any]) -> None:
+    ds[slot, start : start + data.shape[0]] = data
+
+
+def _event_columns(ev: EventArray, lo: int, hi: int) -> dict[str, NDArray[Any]]:
+    """Events [lo, hi) as stored: polarity as 0/1, `t` last (see the module docstring)."""
+    return {
+        "x": ev.x[lo:hi],
+        "y": ev.y[lo:hi],
+        "p": (ev.p[lo:hi] > 0).astype(np.uint8),
+        "t": ev.t[lo:hi],
+    }
+
+
+@dataclass(slots=True)
+class EventSink:
+    """One event sensor: `/events/<name>` and its trigger-in group."""
+
+    name: str
+    group: h5py.Group
+    width: int
+    height: int
+    ds: dict[str, h5py.Dataset]
+    trig: dict[str, h5py.Dataset]
+    chunk: int
+    parts: list[EventArray] = field(default_factory=list)
+    n_buffered: int = 0
+    n_written: int = 0
+    last_t: int | None = None
+    trig_parts: list[TriggerEvents] = field(default_factory=list)
+    trig_host_parts: list[NDArray[np.int64]] = field(default_factory=list)
+    n_trig_buffered: int = 0
+    n_trig_written: int = 0
+    tail_ds: dict[str, h5py.Dataset] = field(default_factory=dict)
+    tail_meta: NDArray[np.int64] = field(default_factory=lambda: np.zeros((2, 2), np.int64))
+    """Per tail slot: [first row, rows held]; mirrors the group attr tail_meta."""
+    tail_slot: int = 0
+    """Slot the last flush wrote."""
+    appendable: bool = True
+    """False for a resumed take: its main datasets may end in a partial chunk."""
+    stats: DeviceWriteStats = field(default_factory=lambda: DeviceWriteStats("event_sensor"))
+
+    @classmethod
+    def create(
+        cls, name: str, g: h5py.Group, width: int, height: int, chunk: int, opts: Mapping[str, Any]
+    ) -> Self:
+        """Lay out a new sensor's datasets in its (already created) group."""
+        g.attrs["width"], g.attrs["height"] = int(width), int(height)
+        ds = {k: new_series(g, k, dt, opts, chunk) for k, dt in EVENT_DTYPES.items()}
+        # 0 while recording: t holds device time as is. Finalize sets the real offset.
+        g.create_dataset("t_offset", data=np.int64(0))
+        tg = g.create_group("trigger")
+        trig = {k: new_series(tg, k, dt, {}) for k, dt in TRIGGER_DTYPES.items()}
+        return cls(name, g, int(width), int(height), ds, trig, chunk)
+
+    @classmethod
+    def reopen(cls, name: str, g: h5py.Group, where: str, default_chunk: int) -> Self:
+        """The sink of a resumed take, from what `check_repair` left consistent."""
+        ds = {k: require_dataset(g, k, where) for k in EVENT_DTYPES}
+        tg = require_group(g, "trigger", where)
+        # A 1.0 take has no host_time_ns.
+        trig = {k: require_dataset(tg, k, where) for k in TRIGGER_DTYPES if k in tg or k != "host_time_ns"}
+        n = int(ds["t"].shape[0])
+        missing = [k for k in ("width", "height") if k not in g.attrs]
+        if missing:
+            raise TakeFormatError(f"{where}: {g.name}: missing attribute(s) {missing}")
+        sink = cls(
+            name,
+            g,
+            int(g.attrs["width"]),
+            int(g.attrs["height"]),
+            ds,
+            trig,
+            int(ds["t"].chunks[0]) if ds["t"].chunks else default_chunk,
+            appendable=False,
+            n_written=n,
+            last_t=int(ds["t"][n - 1]) if n else None,
+            n_trig_written=int(trig["t"].shape[0]),
+        )
+        sink.stats.items = n
+        return sink
+
+    def datasets(self) -> list[h5py.Dataset]:
+        return [*self.ds.values(), *self.trig.values()]
+
+    def _check_batch(self, events: EventArray, where: str) -> None:
+        """Refuse a batch that would break the sensor's time order or geometry."""
+        n = len(events)
+        t = events.t
+        seen = self.n_written + self.n_buffered
+        if self.last_t is not None and int(t[0]) < self.last_t:
+            raise TakeError(
+                f"{where}: event 0 of the batch (#{seen} of the sensor) has "
+                f"t={int(t[0])} us before the previous event at {self.last_t} us; batch of {n} refused"
+            )
+        bad = np.flatnonzero(t[1:] < t[:-1])
+        if bad.size:
+            i = int(bad[0]) + 1
+            raise TakeError(
+                f"{where}: event {i} of the batch (#{seen + i} of the sensor) "
+                f"has t={int(t[i])} us before event {i - 1} at {int(t[i - 1])} us; batch of {n} refused"
+            )
+        for axis, arr, limit in (("x", events.x, self.width), ("y", events.y, self.height)):
+            if int(arr.max()) >= limit:
+                i = int(np.argmax(arr >= limit))
+                raise TakeError(
+                    f"{where}: event {i} of the batch has {axis}={int(arr[i])} outside the sensor's "
+                    f"{self.width}x{self.height} geometry; batch of {n} refused"
+                )
+
+    def add_events(self, events: EventArray, path: Path) -> None:
+        """Buffer a batch (device clock), checked whole before any of it is kept."""
+        n = len(events)
+        if n == 0:
+            return
+        self._check_batch(events, f"{path}: /{EVENTS_GROUP}/{self.name}")
+        self.parts.append(events)
+        self.n_buffered += n
+        self.last_t = int(events.t[-1])
+        self.stats.items += n
+        self.stats.raw_bytes += 13 * n
+        if self.n_buffered >= self.chunk:
+            self.write_events(whole_chunks_only=True)
+
+    def add_triggers(self, triggers: TriggerEvents, host_time_ns: int | None) -> None:
+        n = len(triggers)
+        if n == 0:
+            return
+        self.trig_parts.append(triggers)
+        self.trig_host_parts.append(np.full(n, -1 if host_time_ns is None else int(host_time_ns), np.int64))
+        self.n_trig_buffered += n
+        if self.n_trig_buffered >= _SMALL_BLOCK:
+            self.write_triggers()
+
+    def write_events(self, *, whole_chunks_only: bool) -> None:
+        """Append the buffered events; `whole_chunks_only` keeps the rest past the last whole
+        chunk buffered, so a compressed chunk is never rewritten by the next append."""
+        if not self.n_buffered:
+            return
+        ev = EventArray.concatenate(self.parts)
+        n = len(ev)
+        if whole_chunks_only:
+            total = self.n_written + n
+            n = total - total % self.chunk - self.n_written
+            if n <= 0:
+                return
+        for key, data in _event_columns(ev, 0, n).items():
+            append_rows(self.ds[key], self.n_written, data)
+        self.n_written += n
+        rest = ev[n:]
+        self.parts = [rest] if len(rest) else []
+        self.n_buffered = len(rest)
+
+    def write_tail(self) -> None:
+        """Put the buffered rows past the last whole chunk in a tail slot (flush only)."""
+        n = self.n_buffered
+        if n == 0 or self.chunk <= 0:
+            return
+        meta = self.tail_meta
+        slot = choose_tail_slot(meta, self.tail_slot, self.n_written)
+        if not self.tail_ds:
+            self.tail_ds = create_tail_slots(self.group, self.chunk)
+        ev = EventArray.concatenate(self.parts)
+        have = int(meta[slot, 1])
+        for key, data in _event_columns(ev, have, n).items():
+            _write_slot(self.tail_ds[key], slot, have, data)
+        meta[slot, 1] = n
+        self.tail_slot = slot
+        self.group.attrs.modify(TAIL_META_ATTR, meta)
+
+    def drop_tails(self) -> None:
+        """After everything is in the main datasets (close, fail, finalize) the tails go."""
+        drop_tail_slots(self.group)
+        self.tail_ds = {}
+        self.tail_meta[:] = 0
+
+    def write_triggers(self) -> None:
+        if not self.n_trig_buffered:
+            return
+        tr = TriggerEvents.concatenate(self.trig_parts)
+        host = np.concatenate(self.trig_host_parts)
+        start = self.n_trig_written
+        cols: list[tuple[str, NDArray[Any]]] = [
+            ("t", tr.t),
+            ("t_device", tr.t),
+            ("p", tr.p),
+            ("channel", tr.channel),
+            ("host_time_ns", host),
+        ]
+        for key, data in cols:
+            if key in self.trig:  # a resumed 1.0 take has no host_time_ns
+                append_rows(self.trig[key], start, data)
+        self.n_trig_written += len(tr)
+        self.trig_parts, self.trig_host_parts, self.n_trig_buffered = [], [], 0
+
+
+@dataclass(slots=True)
+class CameraSink:
+    """One camera: `/frames/<name>`, images written per frame, timestamps in blocks."""
+
+    name: str
+    group: h5py.Group
+    shape: tuple[int, ...]
+    dtype: np.dtype[Any]
+    images: h5py.Dataset
+    series: dict[str, h5py.Dataset]
+    n_frames: int = 0
+    n_series_written: int = 0
+    buf: dict[str, list[int]] = field(default_factory=lambda: {k: [] for k in FRAME_SERIES})
+    stats: DeviceWriteStats = field(default_factory=lambda: DeviceWriteStats("rgb_camera"))
+
+    @classmethod
+    def create(
+        cls, name: str, g: h5py.Group, shape: tuple[int, ...], dtype: np.dtype[Any], opts: Mapping[str, Any]
+    ) -> Self:
+        """Lay out a new camera's datasets in its (already created) group."""
+        g.attrs["height"], g.attrs["width"] = shape[0], shape[1]
+        g.attrs["channels"] = shape[2] if len(shape) == 3 else 1
+        g.attrs["dtype"] = dtype.str
+        images = g.create_dataset(
+            "images", shape=(0, *shape), maxshape=(None, *shape), dtype=dtype, chunks=(1, *shape), **opts
+        )
+        series = {k: new_series(g, k, np.int64, {}) for k in FRAME_SERIES}
+        series["t_exposure_start_us"].attrs["units"] = "us"
+        return cls(name, g, shape, dtype, images, series)
+
+    @classmethod
+    def reopen(cls, name: str, g: h5py.Group, where: str) -> Self:
+        """The sink of a resumed take, from what `check_repair` left consistent."""
+        images = require_dataset(g, "images", where)
+        series = {k: require_dataset(g, k, where) for k in FRAME_SERIES}
+        n = int(series["t_exposure_start_us"].shape[0])
+        shape = tuple(int(s) for s in images.shape[1:])
+        cam = cls(name, g, shape, np.dtype(images.dtype), images, series, n_frames=n, n_series_written=n)
+        cam.stats.items = n
+        return cam
+
+    def datasets(self) -> list[h5py.Dataset]:
+        return [self.images, *self.series.values()]
+
+    def add_frame(self, frame: Frame, path: Path) -> None:
+        """Write the image now (one HDF5 write) and buffer its timestamps (device clock)."""
+        img = frame.image
+        if img.shape != self.shape or img.dtype != self.dtype:
+            raise TakeError(
+                f"{path}: /{FRAMES_GROUP}/{self.name}/images: frame {self.n_frames} has shape {img.shape} "
+                f"{img.dtype}, declared {self.shape} {self.dtype}"
+            )
+        n = self.n_frames
+        if self.images.shape[0] <= n:
+            self.images.resize((n + _FRAME_BLOCK, *self.shape))
+        self.images[n] = np.ascontiguousarray(img)
+        self.n_frames = n + 1
+        t = int(frame.t_exposure_start_us)
+        for key, value in (
+            ("t_exposure_start_us", t),
+            ("t_exposure_start_device_us", t),
+            ("exposure_us", frame.exposure_us),
+            ("frame_counter", frame.frame_counter),
+            ("pulse_index", frame.pulse_index),
+            ("host_time_ns", frame.host_time_ns),
+        ):
+            self.buf[key].append(int(value))
+        self.stats.items += 1
+        self.stats.raw_bytes += int(img.nbytes) + 48
+        if self.n_frames - self.n_series_written >= _SMALL_BLOCK:
+            self.write_series()
+
+    def write_series(self) -> None:
+        if self.n_frames - self.n_series_written:
+            for key, values in self.buf.items():
+                append_rows(self.series[key], self.n_series_written, np.asarray(values, dtype=np.int64))
+                values.clear()
+            self.n_series_written = self.n_frames
+
+    def trim_images(self) -> None:
+        """Drop the preallocated frames no image was written to."""
+        if self.images.shape[0] != self.n_frames:
+            self.images.resize((self.n_frames, *self.shape))
+
+
+@dataclass(slots=True)
+class PulseSink:
+    """The trigger box pulse log, `/trigger/pulses` (already rig time)."""
+
+    ds: dict[str, h5py.Dataset]
+    parts: list[PulseBatch] = field(default_factory=list)
+    n_buffered: int = 0
+    n_written: int = 0
+    stats: DeviceWriteStats = field(default_factory=lambda: DeviceWriteStats("trigger"))
+
+    @classmethod
+    def create(cls, g: h5py.Group) -> Self:
+        return cls({k: new_series(g, k, np.int64, {}) for k in PULSE_SERIES})
+
+    @classmethod
+    def reopen(cls, g: h5py.Group, where: str) -> Self:
+        sink = cls({k: require_dataset(g, k, where) for k in PULSE_SERIES})
+        sink.n_written = int(sink.ds["index"].shape[0])
+        sink.stats.items = sink.n_written
+        return sink
+
+    def datasets(self) -> list[h5py.Dataset]:
+        return list(self.ds.values())
+
+    def add(self, batch: PulseBatch) -> None:
+        if len(batch) == 0:
+            return
+        self.parts.append(batch)
+        self.n_buffered += len(batch)
+        self.stats.items += len(batch)
+        self.stats.raw_bytes += 24 * len(batch)
+        if self.n_buffered >= _SMALL_BLOCK:
+            self.write()
+
+    def write(self) -> None:
+        if not self.n_buffered:
+            return
+        for key in PULSE_SERIES:
+            data = np.concatenate([np.asarray(getattr(b, key), dtype=np.int64) for b in self.parts])
+            append_rows(self.ds[key], self.n_written, data)
+        self.n_written += self.n_buffered
+        self.parts, self.n_buffered = [], 0
