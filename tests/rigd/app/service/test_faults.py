@@ -253,10 +253,10 @@ def test_restarted_clock_that_cannot_be_tied_is_written_off(
     """When the pulses never place the restarted clock (here: the estimate is withheld), the
     device is written off after MAX_OBSERVATIONS, what was held back is counted, and the
     device stops acquiring."""
-    import rigd.app.capture
-    from rigd.app.clock_reset import MAX_OBSERVATIONS
+    import rigd.app.capture.channel
+    from rigd.app.capture.clock_reset import MAX_OBSERVATIONS
 
-    monkeypatch.setattr(rigd.app.capture, "estimate_offset", lambda *a, **k: None)
+    monkeypatch.setattr(rigd.app.capture.channel, "estimate_offset", lambda *a, **k: None)
     cfg = small_rig(_world(), extra={"cam1": "unplug_at_s=0.5&unplug_for_s=0.5&clock_reset=1"})
     res = run_capture(cfg, tmp_path, 4.5, reconnect_interval_s=0.2)
     rep = res.report

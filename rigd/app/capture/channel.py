@@ -1,0 +1,447 @@
+"""One channel per device for the length of a take: read it, bring it back, hand data on.
+
+A camera or event sensor channel reads its device on its own thread, reconnects a device
+that drops out (every `reconnect_interval_s` until the take ends), re-ties the clock of a
+device that comes back counting from zero (`clock_reset`), and puts what it read on the
+writer queue. The trigger channel reads the box's pulse records. The writer thread tells a
+channel what reached the file (`written`), which is what the sync engine fits.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from drivers.base import EventPacket, EventSensor, RgbCamera, Trigger
+from drivers.registry import open_device
+from rigd.app.capture.clock_reset import MAX_HOLD_S, MAX_OBSERVATIONS, ClockReset, estimate_offset
+from rigd.app.capture.control import RunControl
+from rigd.app.capture.faults import FaultBoard
+from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, WriterQueue, first_time
+from rigd.app.capture.ledger import LossLedger
+from rigd.app.capture.live import Gap, LiveStats, Observations
+from rigd.core.devices import PulseBatch
+from rigd.core.errors import DeviceError, RigdError
+from rigd.core.events import EventArray
+from rigd.core.frames import Frame
+from rigd.core.schema import LossKind
+from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
+from rigd.sync import PulseLog
+
+log = logging.getLogger(__name__)
+
+READ_TIMEOUT_S = 0.05
+#: Recent event packets kept for the live event thumbnails.
+RECENT_PACKETS = 8
+
+
+def pulse_log(batches: list[PulseBatch], emitted: int) -> PulseLog:
+    """The box's pulse records so far, one per index (a re-read after a gap may repeat some)."""
+    index = np.concatenate([b.index for b in batches]) if batches else np.empty(0, np.int64)
+    order = np.argsort(index, kind="stable")
+    uniq = np.concatenate([[True], np.diff(index[order]) > 0]) if index.size else np.empty(0, bool)
+    sel = order[uniq]
+    return PulseLog(
+        index[sel],
+        (np.concatenate([b.t_us for b in batches]) if batches else np.empty(0, np.int64))[sel],
+        (np.concatenate([b.host_time_ns for b in batches]) if batches else np.empty(0, np.int64))[sel],
+        max(emitted, int(index.max(initial=-1)) + 1),
+    )
+
+
+class TriggerChannel:
+    """The trigger box: its pulse records, kept for the sync engine and written to the take."""
+
+    def __init__(
+        self, spec: str, settings: TriggerSettings, control: RunControl, faults: FaultBoard, live: LiveStats
+    ) -> None:
+        self.device: Trigger = open_device("trigger", spec)
+        self.settings = settings
+        self.live = live
+        self._control = control
+        self._faults = faults
+        self._lock = threading.Lock()
+        self._batches: list[PulseBatch] = []
+        self.n_pulses = 0
+        try:
+            self.device.configure(settings)
+        except BaseException:
+            self.device.close()
+            raise
+
+    def run(self, queue: WriterQueue) -> None:
+        """The acquisition thread body: pulse records until acquisition ends."""
+        while True:
+            batch = self.device.read_pulses(READ_TIMEOUT_S)
+            if len(batch):
+                with self._lock:
+                    self._batches.append(batch)
+                    self.n_pulses += len(batch)
+                    self.live.total = self.n_pulses
+                self.live.last_data_mono = time.monotonic()
+                queue.put(PulsesItem(batch), self.live)
+            elif self._control.acquiring_done.is_set():
+                return
+
+    def pulses(self, emitted: int = 0) -> PulseLog:
+        with self._lock:
+            batches = list(self._batches)
+        return pulse_log(batches, emitted)
+
+    def last_pulse_host_ns(self) -> int | None:
+        """When the newest pulse record reached the host (monotonic ns)."""
+        with self._lock:
+            stamps = [int(b.host_time_ns.max()) for b in self._batches if len(b)]
+        return max(stamps, default=None)
+
+    def stop_box(self) -> int:
+        """STOP the pulses; the number emitted (what was seen, when the box does not answer)."""
+        try:
+            return self.device.stop()
+        except DeviceError as exc:
+            with self._lock:
+                seen = max((int(b.index.max()) + 1 for b in self._batches if len(b)), default=0)
+            self._faults.note(f"the trigger box did not confirm STOP ({exc}); {seen} pulses assumed")
+            log.error("trigger STOP failed (%s); assuming %d pulses", exc, seen)
+            return seen
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelContext:
+    """What every device channel of a take shares."""
+
+    control: RunControl
+    queue: WriterQueue
+    ledger: LossLedger
+    faults: FaultBoard
+    trigger: TriggerChannel
+    period_us: float
+    reconnect_interval_s: float
+
+
+class DeviceChannel:
+    """A camera or event sensor, from opening to the end of the take."""
+
+    def __init__(
+        self,
+        name: str,
+        kind: Literal["rgb_camera", "event_sensor"],
+        spec: str,
+        settings: CameraSettings | EventSensorSettings,
+        ctx: ChannelContext,
+    ) -> None:
+        self.name = name
+        self.kind = kind
+        self.spec = spec
+        self.settings = settings
+        self.ctx = ctx
+        self.what: LossKind = "frames" if kind == "rgb_camera" else "events"
+        self.trigger_in = settings.trigger_in_channel if isinstance(settings, EventSensorSettings) else 0
+        self.live = LiveStats(kind)
+        self.obs = Observations()
+        self.written = 0
+        """Frames or events that reached the file."""
+        self.latest_frame: Frame | None = None
+        self.recent_events: list[EventArray] = []
+        self.clock_reset: ClockReset | None = None
+        self.device: RgbCamera | EventSensor = self._open()
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def _open(self) -> RgbCamera | EventSensor:
+        """Open and configure the device from its config entry (also on a reconnect)."""
+        dev: RgbCamera | EventSensor
+        if self.kind == "rgb_camera":
+            dev = open_device("rgb_camera", self.spec)
+        else:
+            dev = open_device("event_sensor", self.spec)
+        try:
+            dev.configure(self.settings)  # type: ignore[arg-type]  # settings match the kind
+        except BaseException:
+            dev.close()
+            raise
+        return dev
+
+    def stop(self) -> None:
+        """Stop acquiring at the end of the take; a device away or written off is left to
+        its acquisition thread."""
+        if self.live.state != "ok":
+            return
+        try:
+            self.device.stop()
+        except DeviceError as exc:
+            if not self.ctx.ledger.is_written_off(self.name):
+                raise
+            log.warning("stopping failed device %s: %s", self.name, exc)
+
+    def close(self) -> None:
+        try:
+            self.device.close()
+        except RigdError as exc:
+            log.error("closing %s failed: %s", self.device.info.spec, exc)
+
+    def drained(self, last_pulse_host_ns: int | None, period_ns: int) -> bool:
+        """Whether the device has delivered what belongs to the last pulse: a camera the frame
+        it exposed on it, an event sensor data from two periods past it; a device away or
+        written off is not waited for."""
+        if self.live.state != "ok" or last_pulse_host_ns is None:
+            return True
+        newest = self.live.last_host_ns
+        wait_ns = 0 if self.kind == "rgb_camera" else 2 * period_ns
+        return newest is not None and newest >= last_pulse_host_ns + wait_ns
+
+    def collect_counters(self) -> None:
+        """Turn the device's counters into loss records: what the device lost, what the
+        host's decoder had to skip, and trigger edges that could not be delivered in order."""
+        ledger, name = self.ctx.ledger, self.name
+        try:
+            stats = self.device.stats()
+        except DeviceError as exc:
+            if not ledger.is_written_off(name):
+                raise
+            log.warning("no counters from failed device %s: %s", name, exc)
+            return
+        ledger.set_counters(
+            name, {"delivered": stats.delivered, "device_dropped": stats.device_dropped, **stats.extra}
+        )
+        if stats.device_dropped:
+            ledger.add(
+                name,
+                self.what,
+                stats.device_dropped,
+                "lost inside the device or its transport (device counters)",
+            )
+        prefix = "decoder_skipped_"
+        skipped = {k.removeprefix(prefix): v for k, v in stats.extra.items() if k.startswith(prefix) and v}
+        if skipped:
+            ledger.add(name, "events", sum(skipped.values()), f"EVT decoder skipped invalid data: {skipped}")
+        if stats.extra.get("triggers_ignored"):
+            ledger.add(
+                name,
+                "frames",
+                stats.extra["triggers_ignored"],
+                "trigger edges arrived while the camera was busy (slower than the trigger)",
+            )
+        if stats.extra.get("triggers_late"):
+            ledger.add(
+                name,
+                "triggers",
+                stats.extra["triggers_late"],
+                "trigger edges arrived after their part of the stream was sent",
+            )
+
+    # -- the acquisition thread ------------------------------------------------------------
+    def run(self) -> None:
+        """Read until the take ends. A device that fails for good (unplugged and not back,
+        say) is written off with a loss record and the take goes on with the others."""
+        try:
+            self._read_loop()
+        except DeviceError as exc:
+            log.error("device %s failed mid-take, the others go on: %s", self.name, exc)
+            self.ctx.faults.set("device_failed", self.name, f"{self.name} written off: {exc}")
+            with self.live.lock:
+                self.live.state = "failed"
+            self.ctx.ledger.write_off(self.name, self.what, str(exc), self.live.last_t)
+
+    def _read_loop(self) -> None:
+        done = self.ctx.control.acquiring_done
+        while True:
+            try:
+                dev = self.device  # a reconnect replaces it
+                item = (
+                    dev.read_frame(READ_TIMEOUT_S)
+                    if isinstance(dev, RgbCamera)
+                    else dev.read_events(READ_TIMEOUT_S)
+                )
+            except DeviceError as exc:
+                if done.is_set():
+                    raise
+                self._reconnect(exc)
+                continue
+            if item is None:
+                if done.is_set():
+                    self._drop_held("the take ended before its restarted clock could be tied")
+                    return
+                continue
+            self._deliver(item)
+
+    def _reconnect(self, exc: DeviceError) -> None:
+        """Keep trying to open the device again until it answers or the take ends (then it
+        is written off by `run`)."""
+        live, faults = self.live, self.ctx.faults
+        with live.lock:
+            live.state = "reconnecting"
+            if live.gap is None:
+                live.gap = Gap(time.monotonic(), live.last_t, str(exc))
+            since = live.gap.since_mono
+        faults.set("device_reconnecting", self.name, f"{self.name} lost ({exc}); reconnecting")
+        try:
+            self.device.close()
+        except DeviceError as close_exc:
+            log.warning("closing lost device %s: %s", self.name, close_exc)
+        if self.ctx.reconnect_interval_s <= 0:
+            raise exc
+        while not self.ctx.control.acquiring_done.wait(self.ctx.reconnect_interval_s):
+            try:
+                dev = self._open()
+                try:
+                    dev.start()
+                except BaseException:
+                    dev.close()
+                    raise
+            except DeviceError as again:
+                log.info("device %s still away: %s", self.name, again)
+                continue
+            self.device = dev
+            with live.lock:
+                live.state = "ok"
+                live.reconnects += 1
+            log.warning("device %s reconnected after %.1f s", self.name, time.monotonic() - since)
+            faults.clear("device_reconnecting", self.name)
+            return
+        faults.clear("device_reconnecting", self.name)
+        raise DeviceError(f"{self.name} did not come back before the end of the take (lost: {exc})") from exc
+
+    # -- delivery -------------------------------------------------------------------------
+    def _deliver(self, item: Frame | EventPacket) -> None:
+        """One frame or event packet on its way to the writer; a device that came back with
+        its clock restarted is re-tied onto its old clock first."""
+        item_kind = "frame" if isinstance(item, Frame) else "events"
+        reset = self.clock_reset
+        if (t_before := self._restarted(item, reset)) is not None:
+            reset = self.clock_reset = ClockReset(self.name, self.kind, t_before, self.trigger_in)
+            log.warning("%s came back with its clock restarted; tying it to its old clock", self.name)
+        if reset is None:
+            self._pass(item)
+            return
+        if reset.offset is not None:
+            self._pass(reset.shift(item_kind, item))
+            return
+        seen = len(reset.post_t)
+        reset.hold(item_kind, item)
+        if len(reset.post_t) == seen and reset.held_for_s() <= MAX_HOLD_S:
+            return  # nothing new to tie with (an event packet without trigger edges)
+        if not self._tie(reset):
+            return
+        for _, held in reset.release():
+            self._pass(held)
+
+    def _restarted(self, item: Frame | EventPacket, reset: ClockReset | None) -> int | None:
+        """For a first delivery after a reconnect whose time lies before the last one before
+        the gap: that last time (the device's clock restarted); else None. A device already
+        re-tied is compared on its old clock (it may restart again); one still being tied is
+        not asked (its gap stays open until it is)."""
+        gap = self.live.gap
+        t = first_time(item)
+        if reset is not None:
+            if reset.offset is None:
+                return None
+            t = None if t is None else t + reset.offset.us
+        if gap is None or gap.t_before is None or t is None or t >= gap.t_before:
+            return None
+        return gap.t_before
+
+    def _tie(self, reset: ClockReset) -> bool:
+        """Try to place the restarted clock on the old one; True once done. A device that does
+        not tie within MAX_OBSERVATIONS is written off (what was held is counted lost)."""
+        pre_t, pre_host, _ = self.obs.arrays()
+        n = min(pre_t.size, pre_host.size)
+        offset = estimate_offset(
+            reset, pre_t[:n], pre_host[:n], self.ctx.trigger.pulses(), self.ctx.period_us
+        )
+        if offset is None:
+            if len(reset.post_t) >= MAX_OBSERVATIONS or reset.held_for_s() > MAX_HOLD_S:
+                self._drop_held("its restarted clock could not be tied to the trigger pulses")
+                self._stop_written_off()
+                raise DeviceError(
+                    f"{reset.name} came back with its clock restarted and {len(reset.post_t)} trigger "
+                    f"observations in {MAX_HOLD_S:g} s did not tie it to its old clock; written off from here"
+                )
+            return False
+        reset.offset = offset
+        line = (
+            f"{reset.name} came back with its clock restarted: its device times from then on are "
+            f"shifted by {offset.us} us onto its old clock ({offset.n} trigger observations, "
+            f"spread {offset.spread_us:.1f} us)"
+        )
+        log.warning("%s", line)
+        self.ctx.faults.note(line)
+        return True
+
+    def _stop_written_off(self) -> None:
+        """A live device about to be written off stops acquiring (bus bandwidth, its buffers)."""
+        try:
+            self.device.stop()
+        except DeviceError as exc:
+            log.warning("stopping %s before writing it off: %s", self.name, exc)
+
+    def _drop_held(self, why: str) -> None:
+        reset = self.clock_reset
+        if reset is None or not reset.held:
+            return
+        count = reset.held_count()
+        reset.held.clear()
+        self.ctx.ledger.add(self.name, self.what, count, f"held back and not written: {why}")
+
+    def _pass(self, item: Frame | EventPacket) -> None:
+        if isinstance(item, Frame):
+            self._arrived(item.t_exposure_start_us, None, item.host_time_ns)
+            self.ctx.queue.put(FrameItem(self.name, item), self.live)
+            return
+        ev = item.events
+        self._arrived(first_time(item), int(ev.t[-1]) if len(ev) else None, item.host_time_ns)
+        self.ctx.queue.put(EventsItem(self.name, item), self.live)
+
+    def _arrived(self, t_device: int | None, t_last: int | None, host_ns: int) -> None:
+        """Bookkeeping for one delivery; closes a reconnect gap with its loss record."""
+        live = self.live
+        live.last_data_mono = time.monotonic()
+        live.last_host_ns = host_ns
+        if t_device is None:
+            return
+        gap = live.gap
+        if gap is not None:
+            if gap.t_before is not None and t_device < gap.t_before:
+                raise DeviceError(
+                    f"{self.name} came back with its clock reset ({t_device} us after {gap.t_before} us) "
+                    "and was tied wrongly; written off from here"
+                )
+            away = time.monotonic() - gap.since_mono
+            with live.lock:
+                live.gap = None
+            self.ctx.ledger.add(
+                self.name,
+                self.what,
+                0,
+                f"device away for {away:.2f} s ({gap.why}); reconnected, nothing recorded in "
+                "between (count unknown: see t_first_us..t_last_us and the sync report)",
+                (gap.t_before, t_device),
+            )
+        live.last_t = t_device if t_last is None else t_last
+
+    # -- the writer thread's side ---------------------------------------------------------
+    def record_written(self, item: FrameItem | EventsItem) -> None:
+        """An item reached the file: keep its trigger observations and count it."""
+        if isinstance(item, FrameItem):
+            frame = item.frame
+            self.obs.t.append(frame.t_exposure_start_us)
+            self.obs.host.append(frame.host_time_ns)
+            self.obs.counter.append(frame.frame_counter)
+            self.written += 1
+            self.live.total += 1
+            self.latest_frame = frame
+            return
+        packet = item.packet
+        if len(packet.events):
+            self.recent_events.append(packet.events)
+            del self.recent_events[:-RECENT_PACKETS]
+        if len(packet.triggers):
+            rising = packet.triggers.rising(self.trigger_in)
+            self.obs.t.extend(rising.t.tolist())
+            self.obs.host.extend([packet.host_time_ns] * len(rising))
+        self.written += len(packet.events)
+        self.live.total += len(packet.events)

@@ -1,0 +1,125 @@
+"""What travels from the acquisition threads to the writer thread, and the queue between them.
+
+The queue is bounded: a full queue blocks an acquisition thread for
+`writer.queue_put_timeout_s`, after which the item is counted as lost with its time range,
+never dropped silently.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+from dataclasses import dataclass
+from typing import ClassVar
+
+from drivers.base import EventPacket
+from rigd.app.capture.faults import FaultBoard
+from rigd.app.capture.ledger import LossLedger
+from rigd.app.capture.live import LiveStats
+from rigd.core.devices import PulseBatch
+from rigd.core.frames import Frame
+from rigd.core.schema import LossKind
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class FrameItem:
+    device: str
+    frame: Frame
+    what: ClassVar[LossKind] = "frames"
+
+    @property
+    def count(self) -> int:
+        return 1
+
+    @property
+    def t_range(self) -> tuple[int | None, int | None]:
+        t = self.frame.t_exposure_start_us
+        return (t, t)
+
+
+@dataclass(frozen=True, slots=True)
+class EventsItem:
+    device: str
+    packet: EventPacket
+    what: ClassVar[LossKind] = "events"
+
+    @property
+    def count(self) -> int:
+        return len(self.packet.events)
+
+    @property
+    def t_range(self) -> tuple[int | None, int | None]:
+        t = self.packet.events.t
+        return (int(t[0]), int(t[-1])) if len(t) else (None, None)
+
+
+@dataclass(frozen=True, slots=True)
+class PulsesItem:
+    batch: PulseBatch
+    device: ClassVar[str] = "trigger"
+    what: ClassVar[LossKind] = "pulses"
+
+    @property
+    def count(self) -> int:
+        return len(self.batch)
+
+    @property
+    def t_range(self) -> tuple[int | None, int | None]:
+        return (None, None)
+
+
+class StopItem:
+    """The last item: the writer flushes and ends."""
+
+
+QueueItem = FrameItem | EventsItem | PulsesItem
+
+
+def first_time(item: Frame | EventPacket) -> int | None:
+    """Device time of the first thing in a frame or event packet."""
+    if isinstance(item, Frame):
+        return int(item.t_exposure_start_us)
+    if len(item.events):
+        return int(item.events.t[0])
+    return int(item.triggers.t[0]) if len(item.triggers) else None
+
+
+class WriterQueue:
+    """The bounded hand-off to the writer; a put that times out is a counted loss."""
+
+    def __init__(self, maxsize: int, put_timeout_s: float, ledger: LossLedger, faults: FaultBoard) -> None:
+        self._queue: queue.Queue[QueueItem | StopItem] = queue.Queue(maxsize=maxsize)
+        self.maxsize = maxsize
+        self._put_timeout_s = put_timeout_s
+        self._ledger = ledger
+        self._faults = faults
+
+    def put(self, item: QueueItem, live: LiveStats) -> bool:
+        live.enqueued()
+        try:
+            self._queue.put(item, timeout=self._put_timeout_s)
+        except queue.Full:
+            log.warning("writer queue full: %d %s of %s lost", item.count, item.what, item.device)
+            self._faults.set("queue_full", None, "the writer cannot keep up; data is being dropped (counted)")
+            live.dequeued()
+            self._ledger.add(
+                item.device, item.what, item.count, "writer queue full (host could not keep up)", item.t_range
+            )
+            return False
+        if self._faults.is_active("queue_full", None) and self._queue.qsize() < self.maxsize // 2:
+            self._faults.clear("queue_full", None)  # the writer caught up
+        return True
+
+    def put_stop(self) -> None:
+        self._queue.put(StopItem())
+
+    def get(self, timeout_s: float) -> QueueItem | StopItem | None:
+        try:
+            return self._queue.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def qsize(self) -> int:
+        return self._queue.qsize()

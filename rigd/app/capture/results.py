@@ -1,0 +1,91 @@
+"""What a capture reports: progress while it runs, telemetry snapshots, the final result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from rigd.core.devices import DeviceKind
+from rigd.core.schema import SyncReport
+
+DeviceState = Literal["ok", "failed", "reconnecting", "idle"]
+SessionState = Literal["new", "starting", "capturing", "stopping", "done", "failed"]
+
+
+@dataclass(slots=True)
+class Progress:
+    """What the pipeline reports while it runs (for progress bars and telemetry)."""
+
+    pulses: int
+    pulses_total: int
+    frames: dict[str, int]
+    events: dict[str, int]
+    queue_depth: int
+
+
+@dataclass(slots=True)
+class CaptureResult:
+    path: Path
+    report: SyncReport
+    frames: dict[str, int]
+    events: dict[str, int]
+    bytes_written: int
+    wall_s: float
+    """Whole run: opening devices to closing the take."""
+    capture_s: float
+    """From the trigger's START until the writer had written everything."""
+    flushes: int = 0
+    flush_max_s: float = 0.0
+    """The longest periodic flush (the writer thread's stall; `writer.fsync` lengthens it)."""
+    end_reason: str = ""
+    """Why the recording ended (also the take's `end_reason` attr)."""
+
+
+@dataclass(slots=True)
+class DeviceSnapshot:
+    name: str
+    kind: DeviceKind
+    state: DeviceState
+    total: int
+    rate_hz: float
+    lost: int
+    reconnects: int
+    queued: int
+    last_data_age_s: float | None
+    interval_jitter_us: float | None
+
+
+@dataclass(slots=True)
+class ActiveFault:
+    code: str
+    device: str | None
+    message: str
+    since_utc: str
+    since_mono: float
+
+    def line(self, lasted_s: float) -> str:
+        """The fault as one line of the take's warnings."""
+        where = f" on {self.device}" if self.device else ""
+        return f"fault {self.code}{where} from {self.since_utc} for {lasted_s:.2f} s: {self.message}"
+
+
+@dataclass(slots=True)
+class SessionSnapshot:
+    """A consistent-enough view of a running session for telemetry (cheap to take)."""
+
+    state: SessionState
+    path: Path
+    elapsed_s: float
+    pulses: int
+    pulses_total: int | None
+    queue_depth: int
+    queue_capacity: int
+    bytes_written: int
+    devices: list[DeviceSnapshot]
+    faults: list[ActiveFault]
+    last_flush_age_s: float | None = None
+    """Seconds since the take was last flushed (what a crash now would lose); None before
+    the first flush."""
+    flush_max_s: float = 0.0
+    """The longest flush so far (the writer's stall; fsync waits for the disk)."""

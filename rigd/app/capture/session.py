@@ -1,0 +1,494 @@
+"""One take from start to sealed file: `CaptureSession` (background, stoppable, watched) and
+`run_capture` (blocking).
+
+The session opens every device through its channel, refuses a rig that cannot do what its
+config asks (`preflight`), starts the writer thread and one acquisition thread per device,
+then watches: the trigger link, the disk, the flushes. After the last pulse (or a stop) it
+drains the devices, fits every device clock and seals the take (`finalize`).
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+
+from drivers.base import Capability, Device
+from rigd import __version__
+from rigd.app.capture.ballast import Ballast
+from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
+from rigd.app.capture.control import RunControl
+from rigd.app.capture.faults import DiskUsage, DiskWatch, FaultBoard, FlushWatch, TriggerWatchdog
+from rigd.app.capture.finalize import finalize_take, software_synced
+from rigd.app.capture.items import WriterQueue
+from rigd.app.capture.ledger import LossLedger
+from rigd.app.capture.live import LiveStats
+from rigd.app.capture.preflight import Settings, check_rig
+from rigd.app.capture.results import CaptureResult, Progress, SessionSnapshot, SessionState
+from rigd.app.capture.writer_loop import WriterLoop
+from rigd.app.config import RigConfig
+from rigd.core.errors import RigdError, TakeError
+from rigd.core.events import EventArray
+from rigd.core.frames import Frame
+from rigd.take.writer import TakeWriter
+
+log = logging.getLogger(__name__)
+
+
+def new_take_path(out_dir: Path, rig_name: str, label: str | None = None) -> Path:
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    middle = f"-{label}" if label else ""
+    return out_dir / f"{rig_name}{middle}-{stamp}-{uuid.uuid4().hex[:6]}.h5"
+
+
+class CaptureSession:
+    """One take, run in the background: start, watch, stop, collect the result.
+
+    `duration_s=None` runs until `request_stop`. The session stops by itself, and still
+    finalizes what it has, when the disk runs low (free space under
+    `writer.disk_reserve_mb`) or the file system refuses a write; it reconnects a camera or
+    event sensor that disappears (every `reconnect_interval_s`, by default the rig config's
+    `service.reconnect_interval_s`; 0 writes it off at once).
+    """
+
+    def __init__(
+        self,
+        config: RigConfig,
+        out_dir: Path,
+        *,
+        duration_s: float | None = None,
+        path: Path | None = None,
+        label: str | None = None,
+        reconnect_interval_s: float | None = None,
+        disk_usage: DiskUsage = shutil.disk_usage,
+    ) -> None:
+        if duration_s is not None and duration_s <= 0:
+            raise RigdError(f"duration must be positive, got {duration_s}")
+        self.config = config
+        self.rate = config.trigger.settings.rate_hz
+        self.n_pulses = None if duration_s is None else max(1, round(duration_s * self.rate))
+        self.out_dir = out_dir
+        self.path = path or new_take_path(out_dir, config.name, label)
+        self._reconnect_interval_s = (
+            config.service.reconnect_interval_s if reconnect_interval_s is None else reconnect_interval_s
+        )
+        self._control = RunControl()
+        self._faults = FaultBoard()
+        self._ledger = LossLedger(self._faults, self._trigger_link)
+        self._queue = WriterQueue(
+            config.writer.queue_items, config.writer.queue_put_timeout_s, self._ledger, self._faults
+        )
+        self._disk = DiskWatch(
+            out_dir, config.writer.disk_reserve_mb, self._faults, self._control, disk_usage
+        )
+        self._flush_watch = FlushWatch(config.writer.flush_interval_s, self._faults)
+        self._trigger_live = LiveStats("trigger")
+        self._trigger: TriggerChannel | None = None
+        self._watchdog: TriggerWatchdog | None = None
+        self._channels: dict[str, DeviceChannel] = {}
+        self._take: TakeWriter | None = None
+        self._writer: WriterLoop | None = None
+        self._ballast: Ballast | None = None
+        self._threads: list[threading.Thread] = []
+        self._writer_thread: threading.Thread | None = None
+        self._state: SessionState = "new"
+        self._t_wall = 0.0
+        self._t_start: float | None = None
+        self._control_thread: threading.Thread | None = None
+        self._result: CaptureResult | None = None
+        self._error: BaseException | None = None
+        self._done = threading.Event()
+
+    # -- public API ----------------------------------------------------------------------
+    @property
+    def state(self) -> SessionState:
+        return self._state
+
+    def start(self) -> Path:
+        """Open the devices, create the take and start the trigger; errors raise here."""
+        if self._state != "new":
+            raise RigdError("a capture session can only be started once")
+        self._state = "starting"
+        self._t_wall = time.monotonic()
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            self._disk.check(preflight=True)
+            self._ballast = Ballast(self.out_dir, self.config.writer.disk_ballast_mb * 1_000_000)
+            self._open()
+        except BaseException as exc:
+            self._abort(exc)
+            self._state = "failed"
+            self._error = exc
+            self._done.set()
+            raise
+        log.info(
+            "capturing %s pulses at %.3f Hz into %s",
+            self.n_pulses if self.n_pulses is not None else "until stopped:",
+            self.rate,
+            self.path,
+        )
+        self._state = "capturing"
+        self._control_thread = threading.Thread(target=self._run, name="capture-control", daemon=True)
+        self._control_thread.start()
+        return self.path
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Stop after the current pulse; the take is finalized as usual."""
+        self._control.request_stop(reason)
+
+    def wait(self, timeout: float | None = None) -> CaptureResult | None:
+        """The result once done (None on timeout); re-raises what ended the take."""
+        if not self._done.wait(timeout):
+            return None
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    @property
+    def error(self) -> BaseException | None:
+        return self._error
+
+    @property
+    def result(self) -> CaptureResult | None:
+        return self._result
+
+    def progress(self) -> Progress:
+        counts = {name: ch.written for name, ch in self._channels.items()}
+        return Progress(
+            0 if self._trigger is None else self._trigger.n_pulses,
+            self.n_pulses or 0,
+            {c.name: counts.get(c.name, 0) for c in self.config.cameras},
+            {s.name: counts.get(s.name, 0) for s in self.config.event_sensors},
+            self._queue.qsize(),
+        )
+
+    def snapshot(self) -> SessionSnapshot:
+        now = time.monotonic()
+        lost = self._ledger.lost_by_device()
+        period_us = 1e6 / self.rate
+        self._trigger_live.update_rate(now)
+        devices = [self._trigger_live.snapshot("trigger", lost.get("trigger", 0), None)]
+        for name, ch in list(self._channels.items()):
+            ch.live.update_rate(now)
+            devices.append(ch.live.snapshot(name, lost.get(name, 0), ch.obs.interval_jitter_us(period_us)))
+        try:
+            size = self.path.stat().st_size
+        except OSError:
+            size = 0
+        writer = self._writer
+        last_flush = None if writer is None else writer.last_flush_mono
+        return SessionSnapshot(
+            self._state,
+            self.path,
+            0.0 if self._t_start is None else now - self._t_start,
+            self.progress().pulses,
+            self.n_pulses,
+            self._queue.qsize(),
+            self._queue.maxsize,
+            size,
+            devices,
+            self._faults.active(),
+            None if last_flush is None else now - last_flush,
+            0.0 if self._take is None else self._take.flush_seconds_max,
+        )
+
+    def latest_frames(self) -> dict[str, Frame]:
+        return {
+            name: ch.latest_frame for name, ch in list(self._channels.items()) if ch.latest_frame is not None
+        }
+
+    def latest_events(self) -> dict[str, tuple[EventArray, tuple[int, int]]]:
+        out = {}
+        for name, ch in list(self._channels.items()):
+            parts = list(ch.recent_events)
+            if parts and ch.kind == "event_sensor":
+                out[name] = (EventArray.concatenate(parts), ch.device.geometry)  # type: ignore[union-attr]
+        return out
+
+    # -- opening -------------------------------------------------------------------------
+    def _trigger_link(self) -> dict[str, int]:
+        return {} if self._trigger is None else self._trigger.device.link_stats()
+
+    def _open(self) -> None:
+        config = self.config
+        trigger = self._trigger = TriggerChannel(
+            config.trigger.spec, config.trigger.settings, self._control, self._faults, self._trigger_live
+        )
+        ctx = ChannelContext(
+            self._control,
+            self._queue,
+            self._ledger,
+            self._faults,
+            trigger,
+            1e6 / self.rate,
+            self._reconnect_interval_s,
+        )
+        for cam in config.cameras:
+            self._channels[cam.name] = DeviceChannel(cam.name, "rgb_camera", cam.spec, cam.settings, ctx)
+        for sen in config.event_sensors:
+            self._channels[sen.name] = DeviceChannel(sen.name, "event_sensor", sen.spec, sen.settings, ctx)
+        self._preflight(trigger)
+        self._take = self._create_take(trigger)
+        writer = self._writer = WriterLoop(
+            self._take,
+            self._queue,
+            self._channels,
+            self._trigger_live,
+            self._ledger,
+            self._faults,
+            self._control,
+            self._ballast,
+            config.writer.flush_interval_s,
+        )
+        self._writer_thread = self._control.start_thread("writer", writer.run, daemon=False)
+        self._threads = [
+            self._control.start_thread(f"acq-{name}", ch.run) for name, ch in self._channels.items()
+        ]
+        self._threads.append(self._control.start_thread("acq-trigger", lambda: trigger.run(self._queue)))
+        for ch in self._channels.values():
+            ch.device.start()
+        trigger.device.arm()
+        self._t_start = time.monotonic()
+        trigger.device.start(self.n_pulses)
+        self._watchdog = TriggerWatchdog(trigger.device, self.rate, self._faults)
+        for live in [self._trigger_live, *(ch.live for ch in self._channels.values())]:
+            live.samples.clear()
+
+    def _preflight(self, trigger: TriggerChannel) -> None:
+        counted = frozenset({Capability.PULSE_COUNT}) if self.n_pulses is not None else frozenset()
+        devices: dict[str, tuple[Device, Settings, frozenset[Capability]]] = {
+            "trigger": (trigger.device, trigger.settings, counted)
+        }
+        for name, ch in self._channels.items():
+            devices[name] = (ch.device, ch.settings, frozenset())
+        check_rig(devices)
+
+    def _create_take(self, trigger: TriggerChannel) -> TakeWriter:
+        config = self.config
+        take = TakeWriter(
+            self.path,
+            rig_config_json=config.model_dump_json(),
+            take_id=self.path.stem,
+            config=config.writer,
+            rigd_version=__version__,
+            flush_interval_s=config.writer.flush_interval_s,
+        )
+        try:
+            take.add_trigger(trigger.device.info)
+            for cam_cfg in config.cameras:
+                ch = self._channels[cam_cfg.name]
+                cam = ch.device
+                # The take says how each camera was synchronized (recovery reads it back).
+                sync = "software" if software_synced(ch) else "hardware"
+                info = cam.info.model_copy(update={"facts": {**cam.info.facts, "sync": sync}})
+                take.add_camera(
+                    cam_cfg.name,
+                    info,
+                    cam.frame_shape,  # type: ignore[union-attr]
+                    cam.frame_dtype,  # type: ignore[union-attr]
+                    cam_cfg.settings.model_dump_json(),
+                )
+            for sen_cfg in config.event_sensors:
+                sen = self._channels[sen_cfg.name].device
+                w, h = sen.geometry  # type: ignore[union-attr]
+                take.add_event_sensor(sen_cfg.name, sen.info, w, h, sen_cfg.settings.model_dump_json())
+        except BaseException:
+            self._take = take  # marked failed and closed by the abort
+            raise
+        return take
+
+    # -- watching ------------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            self._watch()
+            self._state = "stopping"
+            self._result = self._finish()
+            self._state = "done"
+        except BaseException as exc:  # noqa: BLE001 - kept and re-raised by wait()
+            log.error("take %s failed: %s: %s", self.path, type(exc).__name__, exc)
+            self._error = exc
+            self._state = "failed"
+            self._abort(exc)
+        finally:
+            self._close_take()
+            self._close_devices()
+            self._done.set()
+
+    def _watch(self) -> None:
+        """Until the pulses are out, a stop is asked for or something fatal happens."""
+        trigger, watchdog, control = self._trigger, self._watchdog, self._control
+        assert trigger is not None
+        assert watchdog is not None
+        n_total = self.n_pulses
+        deadline = None if n_total is None else time.monotonic() + n_total / self.rate * 1.5 + 5.0
+        next_disk = 0.0
+        while True:
+            if (error := control.first_error) is not None:
+                raise error
+            if control.stop_requested.is_set():
+                log.info("stopping take %s: %s", self.path, control.stop_reason)
+                return
+            if n_total is not None and trigger.n_pulses >= n_total:
+                return
+            now = time.monotonic()
+            watchdog.check()
+            if now >= next_disk:
+                self._disk.check()
+                self._check_flushes(now)
+                next_disk = now + 1.0
+            if deadline is not None and now > deadline:
+                msg = f"the trigger delivered {trigger.n_pulses} of {n_total} pulse records in time"
+                log.error("take %s: %s; finalizing what there is", self.path, msg)
+                control.request_stop(msg, fault=True)
+                return
+            time.sleep(0.05)
+
+    def _check_flushes(self, now: float) -> None:
+        writer = self._writer
+        if writer is None or writer.error is not None or self._t_start is None:
+            return
+        self._flush_watch.check(
+            now, self._t_start if writer.last_flush_mono is None else writer.last_flush_mono
+        )
+
+    # -- the end -------------------------------------------------------------------------
+    def _finish(self) -> CaptureResult:
+        trigger, writer, take = self._trigger, self._writer, self._take
+        assert trigger is not None
+        assert writer is not None
+        assert take is not None
+        assert self._writer_thread is not None
+        assert self._t_start is not None
+        emitted = trigger.stop_box()
+        self._drain(trigger)
+        for ch in sorted(self._channels.values(), key=lambda c: c.kind != "event_sensor"):
+            ch.stop()
+        self._control.acquiring_done.set()
+        for th in self._threads:
+            th.join()
+        for ch in self._channels.values():
+            ch.collect_counters()
+        self._queue.put_stop()
+        self._writer_thread.join()
+        self._writer_thread = None
+        capture_s = time.monotonic() - self._t_start
+        if (error := self._control.first_error) is not None:
+            raise error
+        if writer.error is not None:
+            raise TakeError(
+                f"take {self.path} stopped, {self._control.stop_reason}; everything up to the last flush "
+                f"({writer.last_flush_utc}) is in the file; free space and run `rigd recover` to seal it"
+            )
+        report, reason = finalize_take(
+            self.config, take, trigger, self._channels, self._ledger, self._faults, self._control, emitted
+        )
+        counts = {name: ch.written for name, ch in self._channels.items()}
+        return CaptureResult(
+            self.path,
+            report,
+            {c.name: counts[c.name] for c in self.config.cameras},
+            {s.name: counts[s.name] for s in self.config.event_sensors},
+            self.path.stat().st_size,
+            time.monotonic() - self._t_wall,
+            capture_s,
+            flushes=take.flush_count,
+            flush_max_s=take.flush_seconds_max,
+            end_reason=reason,
+        )
+
+    def _drain(self, trigger: TriggerChannel) -> None:
+        """Let the last exposures and event slices reach the host before the devices stop:
+        until every device has delivered what belongs to the last pulse
+        (`DeviceChannel.drained`), for at most max(0.5 s, 5 trigger periods)."""
+        deadline = time.monotonic() + max(0.5, 5.0 / self.rate)
+        period_ns = round(1e9 / self.rate)
+        last_pulse = trigger.last_pulse_host_ns()
+        while time.monotonic() < deadline and self._control.first_error is None:
+            if all(ch.drained(last_pulse, period_ns) for ch in self._channels.values()):
+                return
+            time.sleep(0.02)
+
+    def _abort(self, exc: BaseException) -> None:
+        self._control.acquiring_done.set()
+        if self._trigger is not None:
+            try:
+                self._trigger.device.stop()
+            except RigdError as stop_exc:
+                log.error("could not stop the trigger: %s", stop_exc)
+        for th in self._threads:
+            th.join(timeout=5)
+        if self._writer_thread is not None:
+            self._queue.put_stop()
+            self._writer_thread.join(timeout=30)
+        if self._take is not None:
+            # Everything written so far stays in the file, marked failed with the reason
+            # (after a full disk, in the room the released ballast made).
+            try:
+                self._take.fail(f"{type(exc).__name__}: {exc}")
+            except (OSError, TakeError) as fail_exc:
+                log.error("could not mark take %s failed: %s", self.path, fail_exc)
+        if self._control_thread is None or threading.current_thread() is not self._control_thread:
+            self._close_take()
+            self._close_devices()
+
+    def _close_take(self) -> None:
+        try:
+            if self._take is not None:
+                try:
+                    self._take.close()
+                except OSError as exc:  # what was flushed stays on disk
+                    log.error("closing take %s: %s", self.path, exc)
+        finally:
+            if self._ballast is not None:
+                self._ballast.release()
+
+    def _close_devices(self) -> None:
+        for ch in self._channels.values():
+            ch.close()
+        if self._trigger is not None:
+            try:
+                self._trigger.device.close()
+            except RigdError as exc:
+                log.error("closing %s failed: %s", self._trigger.device.info.spec, exc)
+
+
+def run_capture(
+    config: RigConfig,
+    out_dir: Path,
+    duration_s: float,
+    *,
+    on_progress: Callable[[Progress], None] | None = None,
+    path: Path | None = None,
+    label: str | None = None,
+    reconnect_interval_s: float | None = None,
+) -> CaptureResult:
+    """Capture one take of `duration_s` seconds of trigger pulses and return its summary."""
+    session = CaptureSession(
+        config,
+        out_dir,
+        duration_s=duration_s,
+        path=path,
+        label=label,
+        reconnect_interval_s=reconnect_interval_s,
+    )
+    session.start()
+    try:
+        while (result := session.wait(0.05)) is None:
+            if on_progress:
+                on_progress(session.progress())
+    except KeyboardInterrupt:
+        session.request_stop("interrupted")
+        session.wait()
+        raise
+    if on_progress:
+        on_progress(session.progress())
+    return result

@@ -1,0 +1,122 @@
+"""The writer thread: takes items off the queue, writes them, flushes the take periodically.
+
+It alone touches the take file while the take runs. Bad data from one device is refused
+and counted without costing the rest; a file system that refuses a write (disk full, I/O
+error) stops the take cleanly: everything flushed before stays, what comes after is counted.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import time
+
+from rigd.app.capture.ballast import Ballast
+from rigd.app.capture.channel import DeviceChannel
+from rigd.app.capture.control import RunControl, utc_now
+from rigd.app.capture.faults import FaultBoard
+from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, QueueItem, StopItem, WriterQueue
+from rigd.app.capture.ledger import LossLedger
+from rigd.app.capture.live import LiveStats
+from rigd.core.errors import TakeError
+from rigd.take.writer import TakeWriter
+
+log = logging.getLogger(__name__)
+
+
+class WriterLoop:
+    def __init__(
+        self,
+        writer: TakeWriter,
+        queue: WriterQueue,
+        channels: dict[str, DeviceChannel],
+        trigger_live: LiveStats,
+        ledger: LossLedger,
+        faults: FaultBoard,
+        control: RunControl,
+        ballast: Ballast | None,
+        flush_interval_s: float,
+    ) -> None:
+        self.writer = writer
+        self._queue = queue
+        self._channels = channels
+        self._trigger_live = trigger_live
+        self._ledger = ledger
+        self._faults = faults
+        self._control = control
+        self._ballast = ballast
+        self._interval = flush_interval_s
+        self.error: OSError | None = None
+        """What the file system refused; the take stopped there."""
+        self.last_flush_utc: str | None = None
+        self.last_flush_mono: float | None = None
+
+    def run(self) -> None:
+        """The thread body: until the stop item, then a last flush."""
+        last_flush = time.monotonic()
+        while True:
+            item = self._queue.get(min(0.2, self._interval / 2))
+            if isinstance(item, StopItem):
+                if self.error is None:
+                    self._flush()
+                return
+            if item is not None:
+                self._take(item)
+            now = time.monotonic()
+            if self.error is None and now - last_flush >= self._interval:
+                try:
+                    self._flush()
+                except OSError as exc:
+                    self._failed(exc)
+                last_flush = now
+
+    def _take(self, item: QueueItem) -> None:
+        channel = None if isinstance(item, PulsesItem) else self._channels[item.device]
+        (self._trigger_live if channel is None else channel.live).dequeued()
+        if self.error is not None:
+            self._refused(item, f"not written: the take stopped ({self.error})")
+            return
+        try:
+            self._write(item)
+        except TakeError as exc:
+            # Bad data from one device must not cost the rest of the take.
+            log.error("refused data from %s: %s", item.device, exc)
+            self._refused(item, str(exc))
+            return
+        except OSError as exc:
+            self._failed(exc)
+            self._refused(item, f"not written: {exc}")
+            return
+        if channel is not None and not isinstance(item, PulsesItem):
+            channel.record_written(item)
+
+    def _write(self, item: QueueItem) -> None:
+        writer = self.writer
+        if isinstance(item, FrameItem):
+            writer.append_frame(item.device, item.frame)
+        elif isinstance(item, EventsItem):
+            packet = item.packet
+            if len(packet.events):
+                writer.append_events(item.device, packet.events)
+            if len(packet.triggers):
+                writer.append_triggers(item.device, packet.triggers, packet.host_time_ns)
+        else:
+            writer.append_pulses(item.batch)
+
+    def _flush(self) -> None:
+        self.writer.flush(journal=self._ledger.journal())
+        self.last_flush_utc = utc_now()
+        self.last_flush_mono = time.monotonic()
+
+    def _refused(self, item: QueueItem, reason: str) -> None:
+        self._ledger.add(item.device, item.what, item.count, reason)
+
+    def _failed(self, exc: OSError) -> None:
+        """The file system refused a write (disk full, I/O error): stop the take cleanly."""
+        self.error = exc
+        if self._ballast is not None:
+            self._ballast.release(emergency=True)  # room to close the take cleanly
+        full = exc.errno == errno.ENOSPC or "No space left" in str(exc)
+        code = "disk_full" if full else "writer_failed"
+        self._faults.set(code, None, f"writing {self.writer.path.name} failed: {exc}")
+        self._control.request_stop(f"{'disk full' if full else 'write error'}: {exc}", fault=True)
