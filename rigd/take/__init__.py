@@ -1,6 +1,7 @@
 """Take files: writing (capture pipeline), reading (training jobs), validation and recovery."""
 
 from rigd.core.errors import TakeInUseError, TakeTruncatedError
+from rigd.take.h5file import compression_options
 from rigd.take.reader import (
     CameraSummary,
     EventSensorSummary,
@@ -10,14 +11,10 @@ from rigd.take.reader import (
     open_take,
 )
 from rigd.take.recover import RecoveryReport, find_unfinished, recover_take
+from rigd.take.repair import Trim, check_repair
+from rigd.take.sinks import DeviceWriteStats
 from rigd.take.validate import validate_take
-from rigd.take.writer import (
-    DeviceWriteStats,
-    TakeWriter,
-    Trim,
-    check_repair,
-    compression_options,
-)
+from rigd.take.writer import TakeWriter
 
 __all__ = [
     "CameraSummary",

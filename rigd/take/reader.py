@@ -44,7 +44,8 @@ from rigd.core.schema import (
     decode_journal,
 )
 from rigd.take.calibration import read_calibration
-from rigd.take.writer import tail_rows
+from rigd.take.h5file import attr_text
+from rigd.take.tails import tail_rows
 
 log = logging.getLogger(__name__)
 
@@ -112,12 +113,7 @@ class TakeSummary(BaseModel):
 
 
 def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
-    value = obj.attrs.get(key, default)
-    return value.decode() if isinstance(value, bytes) else str(value)
-
-
-def _as_text(value: Any) -> str:
-    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+    return attr_text(obj.attrs.get(key, default))
 
 
 def _finite(v: float | None) -> float | None:
@@ -248,7 +244,7 @@ class Take:
     @property
     def config(self) -> dict[str, Any]:
         raw = self._dataset(CONFIG_DATASET)[()]
-        text = raw.decode("utf-8") if isinstance(raw, bytes) else str(raw)
+        text = attr_text(raw)
         return self._json_object(text, f"/{CONFIG_DATASET}")
 
     @property
@@ -298,7 +294,7 @@ class Take:
         if node is None:
             return None
         raw = node[()]
-        text = raw.decode("utf-8") if isinstance(raw, bytes) else str(raw)
+        text = attr_text(raw)
         try:
             return SyncReport.model_validate_json(text)
         except ValidationError as exc:
@@ -562,7 +558,7 @@ class Take:
             status=self.status,
             schema_version=self.schema_version,
             time_domain=self.time_domain,
-            failure_reason=None if reason is None else _as_text(reason),
+            failure_reason=None if reason is None else attr_text(reason),
             recovered_utc=self.recovered_utc,
             end_reason=self.end_reason,
             cameras=cams,

@@ -46,18 +46,18 @@ from rigd.core.schema import (
 )
 from rigd.core.settings import EventSensorSettings, WriterConfig
 from rigd.sync import DeviceObservations, PulseLog, SyncResult, synchronize
-from rigd.take.writer import (
-    TakeWriter,
-    Trim,
+from rigd.take.h5file import (
     ZeroPadded,
+    attr_text,
     check_header,
-    check_repair,
     open_h5,
     require_dataset,
     require_group,
-    tail_rows,
     utc_now,
 )
+from rigd.take.repair import Trim, check_repair
+from rigd.take.tails import tail_rows
+from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
 
@@ -154,14 +154,10 @@ class _TakeData:
     warnings: list[str] = field(default_factory=list)
 
 
-def _text(value: Any) -> str:
-    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
-
-
 def _needs_recovery(f: h5py.File, truncated: bool) -> bool:
     """Still recording, a finalize that started and did not finish (and was not sealed), or a
     file a failed write left too short for HDF5 to open."""
-    status = _text(f.attrs.get("status", ""))
+    status = attr_text(f.attrs.get("status", ""))
     if truncated and status != "complete":
         return True
     if status == "complete":
@@ -194,7 +190,7 @@ def find_unfinished(directory: str | Path) -> list[Path]:
             log.warning("skipping %s: %s", p, exc)
             continue
         with f:
-            if _text(f.attrs.get("schema", "")) != SCHEMA_NAME:
+            if attr_text(f.attrs.get("schema", "")) != SCHEMA_NAME:
                 log.info("skipping %s: not a rigd take", p)
                 continue
             if _needs_recovery(f, truncated is not None):
@@ -234,7 +230,7 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
     f, truncated = _open_view(path)
     with f:
         check_header(f, path)
-        status = _text(f.attrs.get("status", ""))
+        status = attr_text(f.attrs.get("status", ""))
         rr = RecoveryReport(
             path=str(path), outcome="not_needed", sealed=True, dry_run=dry_run, status_before=status
         )
@@ -325,7 +321,7 @@ def _sensor_settings(
         if isinstance(s, dict) and s.get("name") == name:
             raw = s.get("settings", {})
     if raw is None and "settings_json" in g.attrs:
-        raw = _json_dict(_text(g.attrs["settings_json"]), f"{g.name} attr settings_json", warnings)
+        raw = _json_dict(attr_text(g.attrs["settings_json"]), f"{g.name} attr settings_json", warnings)
     if raw is None:
         warnings.append(f"{name}: no settings in the take; trigger-in channel 0 assumed")
     try:
@@ -383,7 +379,7 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
     """Read what the sync engine and the report need, as if `kept` trims were applied."""
     where = str(path)
     warnings: list[str] = []
-    cfg = _json_dict(_text(require_dataset(f, CONFIG_DATASET, where)[()]), f"/{CONFIG_DATASET}", warnings)
+    cfg = _json_dict(attr_text(require_dataset(f, CONFIG_DATASET, where)[()]), f"/{CONFIG_DATASET}", warnings)
     pg = require_group(f, f"{TRIGGER_GROUP}/pulses", where)
     cols = {k: require_dataset(pg, k, where) for k in ("index", "t_us", "host_time_ns")}
     n_p = kept.get(pg.name, int(cols["index"].shape[0]))
@@ -401,7 +397,7 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
         counter = np.asarray(_read_ds(require_dataset(g, "frame_counter", where), n, where), np.int64)
         observations.append(DeviceObservations(name, "rgb_camera", t, host, counter))
         frames[name], last_t[name] = n, int(t[-1]) if n else None
-        info = _json_dict(_text(g.attrs.get("info_json", "{}")), f"{g.name} attr info_json", warnings)
+        info = _json_dict(attr_text(g.attrs.get("info_json", "{}")), f"{g.name} attr info_json", warnings)
         facts = info.get("facts")
         if isinstance(facts, dict) and facts.get("sync") == "software":
             software.add(name)
@@ -448,7 +444,7 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
     node = f.get(f"{SYNC_GROUP}/report_json")
     if plan and isinstance(node, h5py.Dataset):
         try:
-            stored_report = SyncReport.model_validate_json(_text(node[()]))
+            stored_report = SyncReport.model_validate_json(attr_text(node[()]))
         except ValidationError as exc:
             warnings.append(
                 f"/{SYNC_GROUP}/report_json does not parse ({exc.error_count()} error(s)); kept as is"
@@ -457,10 +453,10 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
     count = f.attrs.get("flush_count")
     reason = f.attrs.get("failure_reason")
     return _TakeData(
-        status=_text(f.attrs.get("status", "")),
+        status=attr_text(f.attrs.get("status", "")),
         plan=plan,
-        failure_reason=None if reason is None else _text(reason),
-        last_flush_utc=_text(f.attrs["last_flush_utc"]) if "last_flush_utc" in f.attrs else None,
+        failure_reason=None if reason is None else attr_text(reason),
+        last_flush_utc=attr_text(f.attrs["last_flush_utc"]) if "last_flush_utc" in f.attrs else None,
         flush_count=None if count is None else int(count),
         flush_interval_s=None if interval is None else float(interval),
         writer_config=_writer_config(cfg, warnings),
@@ -709,9 +705,9 @@ def _seal_unresumable(path: Path, rr: RecoveryReport, reason: str, *, dry_run: b
         return rr
     with open_h5(path, "r+") as f:
         old = f.attrs.get("failure_reason")
-        rr.failure_reason_before = None if old is None else _text(old)
+        rr.failure_reason_before = None if old is None else attr_text(old)
         f.attrs["status"] = "failed"
-        f.attrs["failure_reason"] = reason if old is None else f"{_text(old)}; {reason}"
+        f.attrs["failure_reason"] = reason if old is None else f"{attr_text(old)}; {reason}"
         f.attrs[RECOVERED_ATTR] = utc_now()
         rr.status_after = "failed"
         f.attrs[RECOVERY_REPORT_ATTR] = rr.model_dump_json()

@@ -39,14 +39,11 @@ from rigd.core.schema import (
     decode_journal,
     has_item,
 )
+from rigd.take.h5file import attr_text
 
 log = logging.getLogger(__name__)
 
 _BLOCK = 1 << 20
-
-
-def _text(value: Any) -> str:
-    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
 
 
 class _Validator:
@@ -54,7 +51,7 @@ class _Validator:
         self.path = path
         self.f = f
         self.problems: list[str] = []
-        self.version = _text(f.attrs.get("schema_version", SCHEMA_VERSION))
+        self.version = attr_text(f.attrs.get("schema_version", SCHEMA_VERSION))
 
     def add(self, hpath: str, msg: str) -> None:
         self.problems.append(f"{self.path}: {hpath}: {msg}")
@@ -99,7 +96,7 @@ class _Validator:
     # -- checks ------------------------------------------------------------------------
     def run(self) -> None:
         f = self.f
-        attrs = {k: _text(f.attrs[k]) for k in ROOT_ATTRS if k in f.attrs}
+        attrs = {k: attr_text(f.attrs[k]) for k in ROOT_ATTRS if k in f.attrs}
         for k in ROOT_ATTRS:
             if k not in attrs:
                 self.add("/", f"missing attribute {k!r}")
@@ -133,7 +130,7 @@ class _Validator:
             self.check_journal()
         if RECOVERY_REPORT_ATTR in f.attrs:
             with self.reading("/"):
-                if not isinstance(json.loads(_text(f.attrs[RECOVERY_REPORT_ATTR])), dict):
+                if not isinstance(json.loads(attr_text(f.attrs[RECOVERY_REPORT_ATTR])), dict):
                     self.add("/", f"attribute {RECOVERY_REPORT_ATTR} is not a JSON object")
         ev = f.get(EVENTS_GROUP)
         if self.group(EVENTS_GROUP) is not None and isinstance(ev, h5py.Group):
@@ -156,7 +153,7 @@ class _Validator:
         if ds is None:
             return
         with self.reading(f"/{CONFIG_DATASET}"):
-            data = json.loads(_text(ds[()]))
+            data = json.loads(attr_text(ds[()]))
             if not isinstance(data, dict):
                 self.add(f"/{CONFIG_DATASET}", "is not a JSON object")
 
@@ -172,7 +169,7 @@ class _Validator:
         if ds is None:
             return
         try:
-            SyncReport.model_validate_json(_text(ds[()]))
+            SyncReport.model_validate_json(attr_text(ds[()]))
         except ValidationError as exc:
             self.add(f"/{SYNC_GROUP}/report_json", f"does not parse as a SyncReport: {exc}")
 
