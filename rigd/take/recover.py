@@ -375,6 +375,19 @@ def _synth_host_times(
     return np.where(host < 0, est, host)
 
 
+@dataclass(slots=True)
+class _Devices:
+    """What `_read` gathers device by device."""
+
+    observations: list[DeviceObservations] = field(default_factory=list)
+    frames: dict[str, int] = field(default_factory=dict)
+    events: dict[str, int] = field(default_factory=dict)
+    triggers: dict[str, int] = field(default_factory=dict)
+    last_t: dict[str, int | None] = field(default_factory=dict)
+    slaves: dict[str, str] = field(default_factory=dict)
+    software: set[str] = field(default_factory=set)
+
+
 def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _TakeData:
     """Read what the sync engine and the report need, as if `kept` trims were applied."""
     where = str(path)
@@ -385,52 +398,18 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
     n_p = kept.get(pg.name, int(cols["index"].shape[0]))
     pulses = _pulse_log(*(np.asarray(_read_ds(cols[k], n_p, where), np.int64) for k in cols))
     rate = _rate_hz(cfg, pulses, warnings)
-    observations: list[DeviceObservations] = []
-    frames: dict[str, int] = {}
-    last_t: dict[str, int | None] = {}
-    software: set[str] = set()
+    dev = _Devices()
     for name, g in require_group(f, FRAMES_GROUP, where).items():
-        t_ds = require_dataset(g, "t_exposure_start_device_us", where)
-        n = kept.get(g.name, int(t_ds.shape[0]))
-        t = np.asarray(_read_ds(t_ds, n, where), np.int64)
-        host = np.asarray(_read_ds(require_dataset(g, "host_time_ns", where), n, where), np.int64)
-        counter = np.asarray(_read_ds(require_dataset(g, "frame_counter", where), n, where), np.int64)
-        observations.append(DeviceObservations(name, "rgb_camera", t, host, counter))
-        frames[name], last_t[name] = n, int(t[-1]) if n else None
-        info = _json_dict(attr_text(g.attrs.get("info_json", "{}")), f"{g.name} attr info_json", warnings)
-        facts = info.get("facts")
-        if isinstance(facts, dict) and facts.get("sync") == "software":
-            software.add(name)
-    events: dict[str, int] = {}
-    triggers: dict[str, int] = {}
-    slaves: dict[str, str] = {}
+        _read_camera(dev, name, g, where, kept, warnings)
     period = 1e6 / rate if rate else None
     for name, g in require_group(f, EVENTS_GROUP, where).items():
-        t_ds = require_dataset(g, "t", where)
-        n_ev = kept.get(g.name, int(t_ds.shape[0]))
-        slot, m = (0, 0) if plan else tail_rows(g, n_ev)  # flushed rows the repair appends
-        events[name] = n_ev + m
-        # During a finalize t is part rig time: the device time of the last event is unknown.
-        if m:
-            last_t[name] = int(g[f"{TAIL_PREFIX}t"][slot, m - 1])
-        else:
-            last_t[name] = int(t_ds[n_ev - 1]) if n_ev and not plan else None
+        _read_event_counts(dev, name, g, where, kept, plan=plan)
         settings = _sensor_settings(cfg, name, g, warnings)
         if settings.sync_mode == "slave" and settings.sync_master is not None:
-            slaves[name] = settings.sync_master
+            dev.slaves[name] = settings.sync_master
         tg = require_group(g, "trigger", where)
-        td_ds = require_dataset(tg, "t_device", where)
-        n_tr = kept.get(tg.name, int(td_ds.shape[0]))
-        triggers[name] = n_tr
-        td = np.asarray(_read_ds(td_ds, n_tr, where), np.int64)
-        pol = _read_ds(require_dataset(tg, "p", where), n_tr, where)
-        chan = _read_ds(require_dataset(tg, "channel", where), n_tr, where)
-        if "host_time_ns" in tg:
-            host = np.asarray(_read_ds(require_dataset(tg, "host_time_ns", where), n_tr, where), np.int64)
-        else:
-            host = np.full(n_tr, -1, np.int64)
-        rising = (pol == 1) & (chan == settings.trigger_in_channel)
-        t_r, h_r = td[rising], host[rising]
+        dev.triggers[name] = kept.get(tg.name, int(require_dataset(tg, "t_device", where).shape[0]))
+        t_r, h_r = _rising_edges(tg, where, dev.triggers[name], settings.trigger_in_channel)
         unknown = int((h_r < 0).sum())
         if unknown and pulses.index.size and period is not None:
             h_r = _synth_host_times(t_r, h_r, pulses, period)
@@ -438,17 +417,9 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
                 f"{name}: {unknown} trigger edge(s) without a recorded host time (schema 1.0 writer); "
                 "matched to pulses assuming its first edge is pulse 0"
             )
-        observations.append(DeviceObservations(name, "event_sensor", t_r, h_r))
+        dev.observations.append(DeviceObservations(name, "event_sensor", t_r, h_r))
     journal = _read_journal(f, warnings)
-    stored_report = None
-    node = f.get(f"{SYNC_GROUP}/report_json")
-    if plan and isinstance(node, h5py.Dataset):
-        try:
-            stored_report = SyncReport.model_validate_json(attr_text(node[()]))
-        except ValidationError as exc:
-            warnings.append(
-                f"/{SYNC_GROUP}/report_json does not parse ({exc.error_count()} error(s)); kept as is"
-            )
+    stored_report = _stored_report(f, warnings) if plan else None
     interval = f.attrs.get("flush_interval_s")
     count = f.attrs.get("flush_count")
     reason = f.attrs.get("failure_reason")
@@ -462,20 +433,82 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
         writer_config=_writer_config(cfg, warnings),
         rate_hz=rate,
         pulses=pulses,
-        observations=observations,
-        cameras=list(frames),
-        sensors=list(events),
-        frames=frames,
-        events=events,
-        triggers=triggers,
+        observations=dev.observations,
+        cameras=list(dev.frames),
+        sensors=list(dev.events),
+        frames=dev.frames,
+        events=dev.events,
+        triggers=dev.triggers,
         n_pulses=n_p,
-        last_t=last_t,
-        slaves=slaves,
-        software=software,
+        last_t=dev.last_t,
+        slaves=dev.slaves,
+        software=dev.software,
         journal=journal,
         stored_report=stored_report,
         warnings=warnings,
     )
+
+
+def _read_camera(
+    dev: _Devices, name: str, g: h5py.Group, where: str, kept: dict[str, int], warnings: list[str]
+) -> None:
+    """A camera's frame times as the sync engine sees them, and whether it syncs in software."""
+    t_ds = require_dataset(g, "t_exposure_start_device_us", where)
+    n = kept.get(g.name, int(t_ds.shape[0]))
+    t = np.asarray(_read_ds(t_ds, n, where), np.int64)
+    host = np.asarray(_read_ds(require_dataset(g, "host_time_ns", where), n, where), np.int64)
+    counter = np.asarray(_read_ds(require_dataset(g, "frame_counter", where), n, where), np.int64)
+    dev.observations.append(DeviceObservations(name, "rgb_camera", t, host, counter))
+    dev.frames[name], dev.last_t[name] = n, int(t[-1]) if n else None
+    info = _json_dict(attr_text(g.attrs.get("info_json", "{}")), f"{g.name} attr info_json", warnings)
+    facts = info.get("facts")
+    if isinstance(facts, dict) and facts.get("sync") == "software":
+        dev.software.add(name)
+
+
+def _read_event_counts(
+    dev: _Devices, name: str, g: h5py.Group, where: str, kept: dict[str, int], *, plan: bool
+) -> None:
+    """Events the sealed take will hold (the flushed tail the repair appends included) and the
+    device time of the last one."""
+    t_ds = require_dataset(g, "t", where)
+    n_ev = kept.get(g.name, int(t_ds.shape[0]))
+    slot, m = (0, 0) if plan else tail_rows(g, n_ev)
+    dev.events[name] = n_ev + m
+    # During a finalize t is part rig time: the device time of the last event is unknown.
+    if m:
+        dev.last_t[name] = int(g[f"{TAIL_PREFIX}t"][slot, m - 1])
+    else:
+        dev.last_t[name] = int(t_ds[n_ev - 1]) if n_ev and not plan else None
+
+
+def _rising_edges(
+    tg: h5py.Group, where: str, n_tr: int, channel: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Device and host times of the rising trigger-in edges on `channel` (host -1: unknown)."""
+    td = np.asarray(_read_ds(require_dataset(tg, "t_device", where), n_tr, where), np.int64)
+    pol = _read_ds(require_dataset(tg, "p", where), n_tr, where)
+    chan = _read_ds(require_dataset(tg, "channel", where), n_tr, where)
+    if "host_time_ns" in tg:
+        host = np.asarray(_read_ds(require_dataset(tg, "host_time_ns", where), n_tr, where), np.int64)
+    else:
+        host = np.full(n_tr, -1, np.int64)
+    rising = (pol == 1) & (chan == channel)
+    return td[rising], host[rising]
+
+
+def _stored_report(f: h5py.File, warnings: list[str]) -> SyncReport | None:
+    """The sync report a cut-short finalize stored; unparseable, it is kept and not used."""
+    node = f.get(f"{SYNC_GROUP}/report_json")
+    if not isinstance(node, h5py.Dataset):
+        return None
+    try:
+        return SyncReport.model_validate_json(attr_text(node[()]))
+    except ValidationError as exc:
+        warnings.append(
+            f"/{SYNC_GROUP}/report_json does not parse ({exc.error_count()} error(s)); kept as is"
+        )
+        return None
 
 
 def _read_journal(f: h5py.File, warnings: list[str]) -> dict[str, Any] | None:
