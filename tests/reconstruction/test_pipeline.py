@@ -171,8 +171,8 @@ def test_reconstruct_on_a_distributed_scheduler(tmp_path: Path) -> None:
 
     distributed = pytest.importorskip("distributed")
     from rigd.app.capture import run_capture
-    from rigd.app.commands.reconstruct import run_batch
     from rigd.app.config import default_sim_rig
+    from rigd.app.workflows.reconstruct import ReconstructOptions, run_reconstruct
 
     cfg = default_sim_rig(world=f"rd-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
     cfg.cameras = cfg.cameras[:1]
@@ -180,6 +180,7 @@ def test_reconstruct_on_a_distributed_scheduler(tmp_path: Path) -> None:
     with distributed.LocalCluster(
         n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
     ) as c:
-        results = run_batch([str(take)], str(tmp_path / "out"), c.scheduler_address)
-    assert results[0]["sensors"]["ev0"]["events_in"] > 0
+        options = ReconstructOptions(takes=[take], out=tmp_path / "out", scheduler=c.scheduler_address)
+        results = run_reconstruct(options)
+    assert results[0].sensors["ev0"].events_in > 0
     assert (tmp_path / "out" / take.stem / "ev0" / "segments.json").exists()
