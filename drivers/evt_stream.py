@@ -1,28 +1,33 @@
 """An event sensor that delivers an EVT byte stream, decoded on the host.
 
-This is how a Prophesee camera talks (OpenEB's HAL hands out raw EVT buffers), how a RAW file
-replays, and how the simulated sensor talks: all three are `ByteSource`s behind one
-`EvtStreamSensor`, so the decoder the tests exercise is the one the rig runs.
+This is how a Prophesee camera talks (OpenEB's HAL hands out raw EVT buffers) and how the
+simulated sensor talks: both are `ByteSource`s behind one `EvtStreamSensor`, so the decoder
+the tests exercise is the one the rig runs. Sources that must be polled (the HAL, the
+simulated firmware) derive from `GrabbingSource`, which runs the poll on an acquisition
+thread into a bounded buffer whose overflow is counted.
 """
 
 from __future__ import annotations
 
+import abc
 import logging
-import threading
 import time
-from typing import Protocol
+from typing import Generic, Protocol, TypeVar
 
 from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
 from drivers.evt import StreamDecoder
+from drivers.lifecycle import Acquisition, DeliveryQueue, Signal
 from rigd.core.devices import DeviceInfo
-from rigd.core.errors import DeviceError
 from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 
 class ByteSource(Protocol):
-    """The device side of a streaming event sensor."""
+    """The device side of a streaming event sensor. `EvtStreamSensor` enforces the lifecycle:
+    a source sees configure only while stopped, start/stop in pairs, and close once."""
 
     @property
     def info(self) -> DeviceInfo: ...
@@ -51,21 +56,103 @@ class ByteSource(Protocol):
         ...
 
     def stats(self) -> AcquisitionStats:
-        """Device-side counters (buffers lost in the device or transport)."""
+        """Device-side counters (what was lost in the device or transport)."""
         ...
+
+
+class GrabbingSource(abc.ABC, Generic[T]):
+    """A `ByteSource` whose device is polled by `_grab` on an acquisition thread; up to
+    `buffers` items wait for `read_bytes`, which joins up to `merge` of them into one buffer.
+
+    Subclasses set `_info`, `_capabilities`, `_geometry` and `_fmt`, and implement `_grab`,
+    `_join` and `stats`; `_do_start` / `_do_stop` / `_do_close` as their device needs.
+    """
+
+    _info: DeviceInfo
+    _capabilities: frozenset[Capability]
+    _geometry: tuple[int, int]
+    _fmt: str
+
+    def __init__(self, label: str, *, buffers: int, merge: int = 1, drain_on_stop: bool = False) -> None:
+        self._merge = merge
+        self._acq: Acquisition[T] = Acquisition(
+            label, self._grab, DeliveryQueue(buffers), deliver=self._deliver, drain_on_stop=drain_on_stop
+        )
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self._info
+
+    @property
+    def capabilities(self) -> frozenset[Capability]:
+        return self._capabilities
+
+    @property
+    def geometry(self) -> tuple[int, int]:
+        return self._geometry
+
+    @property
+    def evt_format(self) -> str:
+        return self._fmt
+
+    def start(self) -> None:
+        self._check_present()
+        self._do_start()
+        self._acq.start()
+
+    def stop(self) -> None:
+        try:
+            self._do_stop()
+        finally:
+            self._acq.stop()
+
+    def close(self) -> None:
+        self._do_close()
+
+    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
+        self._check_present()
+        items = self._acq.read(timeout_s, max_items=self._merge)
+        return self._join(items) if items else None
+
+    # -- hooks -----------------------------------------------------------------------------
+    def _check_present(self) -> None:
+        """Raise DeviceError when the device is gone (unplugged)."""
+
+    def _do_start(self) -> None: ...
+
+    def _do_stop(self) -> None: ...
+
+    def _do_close(self) -> None: ...
+
+    @abc.abstractmethod
+    def _grab(self, timeout_s: float) -> T | Signal | None:
+        """Acquisition thread: next item, None when none came, END when nothing more will."""
+
+    def _deliver(self, item: T) -> bool:
+        """Acquisition thread: buffer an item; False when the full buffer lost one (counted)."""
+        lost = self._acq.queue.put(item)
+        if lost is None:
+            return True
+        self._on_overflow(lost)
+        return False
+
+    def _on_overflow(self, lost: T) -> None:
+        log.warning("%s: host buffer full, a buffer was lost", self._acq.label)
+
+    @abc.abstractmethod
+    def _join(self, items: list[T]) -> tuple[bytes, int]:
+        """Reader's thread: one byte buffer and its host time (ns) from up to `merge` items."""
 
 
 class EvtStreamSensor(EventSensor):
     """Decodes a `ByteSource` into event packets; decoder skips are counted, never silent."""
 
     def __init__(self, source: ByteSource, *, strict: bool = False) -> None:
+        super().__init__(EventSensorSettings())
         self.source = source
         width, height = source.geometry
         self._decoder = StreamDecoder(source.evt_format, width=width, height=height, strict=strict)
-        self._lock = threading.Lock()
-        self._delivered = 0
         self._bytes = 0
-        self._closed = False
 
     @property
     def info(self) -> DeviceInfo:
@@ -83,30 +170,22 @@ class EvtStreamSensor(EventSensor):
     def evt_format(self) -> str:
         return self.source.evt_format
 
-    def configure(self, settings: EventSensorSettings) -> None:
-        self._check_open()
+    def _do_configure(self, settings: EventSensorSettings) -> None:
         self.source.configure(settings)
 
-    def start(self) -> None:
-        self._check_open()
+    def _do_start(self) -> None:
         self.source.start()
 
-    def stop(self) -> None:
+    def _do_stop(self) -> None:
         self.source.stop()
 
-    def close(self) -> None:
-        if self._closed:
-            return
-        try:
-            self.source.close()
-        finally:
-            self._closed = True
-            skipped = {k: v for k, v in self._decoder.stats.items() if v}
-            if skipped:
-                log.warning("%s: decoder skipped %s", self.info.spec, skipped)
+    def _do_close(self) -> None:
+        self.source.close()
+        skipped = {k: v for k, v in self._decoder.stats.items() if v}
+        if skipped:
+            log.warning("%s: decoder skipped %s", self.label, skipped)
 
-    def read_events(self, timeout_s: float) -> EventPacket | None:
-        self._check_open()
+    def _read(self, timeout_s: float) -> EventPacket | None:
         deadline = time.monotonic() + max(timeout_s, 0.0)
         while True:
             got = self.source.read_bytes(max(0.0, deadline - time.monotonic()))
@@ -114,23 +193,16 @@ class EvtStreamSensor(EventSensor):
                 return None
             data, host_ns = got
             decoded = self._decoder.feed(data)
-            with self._lock:
-                self._bytes += len(data)
-                self._delivered += len(decoded.events)
+            self._bytes += len(data)
             if len(decoded.events) or len(decoded.triggers):
                 return EventPacket(decoded.events, decoded.triggers, host_ns)
             if time.monotonic() >= deadline:
                 return None
 
-    def stats(self) -> AcquisitionStats:
+    def _counters(self) -> tuple[int, dict[str, int]]:
         dev = self.source.stats()
         extra = dict(dev.extra)
         extra["bytes_decoded"] = self._bytes
         for kind, n in self._decoder.stats.items():
             extra[f"decoder_skipped_{kind}"] = n
-        with self._lock:
-            return AcquisitionStats(delivered=self._delivered, device_dropped=dev.device_dropped, extra=extra)
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise DeviceError(f"event sensor {self.info.spec} is closed")
+        return dev.device_dropped, extra

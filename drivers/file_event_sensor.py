@@ -15,21 +15,20 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
+from drivers.base import Capability, EventPacket, EventSensor
 from drivers.evt import Decoded, RawReader, parse_raw_header, read_dat
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
-from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.errors import ConfigError
 from rigd.core.events import TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 
-_CAPS = frozenset({Capability.DEVICE_TIMESTAMPS, Capability.TRIGGER_IN})
-
 
 class FileEventSensor(EventSensor):
-    """Replays a RAW or DAT recording through the EventSensor interface."""
+    """Replays a RAW or DAT recording through the EventSensor interface, on the reader's
+    thread: the reader sets the pace (`pace=0`), so nothing is ever dropped."""
 
     def __init__(
         self,
@@ -41,12 +40,14 @@ class FileEventSensor(EventSensor):
         strict: bool = False,
         spec: str = "",
     ) -> None:
+        super().__init__(EventSensorSettings(enable_trigger_in=False))
         self.path = Path(path)
         if not self.path.is_file():
             raise ConfigError(f"event file {self.path} does not exist")
         if pace < 0 or not np.isfinite(pace):
             raise ConfigError(f"event file {self.path}: pace must be >= 0, got {pace}")
         self.pace, self.loop, self.chunk_bytes, self.strict = pace, loop, chunk_bytes, strict
+        self._label = f"event file sensor {self.path}"
         self._is_dat = self.path.suffix.lower() == ".dat"
         if self._is_dat:
             hdr, ev = read_dat(self.path, strict=strict)
@@ -72,7 +73,7 @@ class FileEventSensor(EventSensor):
             firmware=f"format={self._fmt}",
             facts={"evt_format": self._fmt, **{f"header.{k}": v for k, v in fields.items()}},
         )
-        self._settings = EventSensorSettings()
+        self._has_triggers: bool | None = None
         self._chunks: Iterator[Decoded] | None = None
         self._reader: RawReader | None = None
         self._pending = Decoded.empty()
@@ -81,18 +82,24 @@ class FileEventSensor(EventSensor):
         self._first_t: int | None = None
         self._t0_host = 0.0
         self._passes = 0
-        self._delivered = 0
-        self._exhausted = False
-        self._closed = False
-
-    # -- Device ---------------------------------------------------------------------------
-    @property
-    def info(self) -> DeviceInfo:
-        return self._info
 
     @property
     def capabilities(self) -> frozenset[Capability]:
-        return _CAPS
+        """DEVICE_TIMESTAMPS; TRIGGER_IN only when the recording holds trigger edges to replay."""
+        if self._has_triggers is None:
+            self._has_triggers = self._scan_for_triggers()
+        if self._has_triggers:
+            return frozenset({Capability.DEVICE_TIMESTAMPS, Capability.TRIGGER_IN})
+        return frozenset({Capability.DEVICE_TIMESTAMPS})
+
+    def _scan_for_triggers(self) -> bool:
+        """Decode until the first trigger edge (DAT files hold none); once, on first asking."""
+        if self._is_dat:
+            return False
+        with RawReader(self.path, self.chunk_bytes, strict=False) as reader:
+            found = any(len(chunk.triggers) for chunk in reader)
+        log.debug("%s: trigger edges in the recording: %s", self.label, found)
+        return found
 
     @property
     def geometry(self) -> tuple[int, int]:
@@ -102,29 +109,21 @@ class FileEventSensor(EventSensor):
     def evt_format(self) -> str:
         return self._fmt
 
-    def configure(self, settings: EventSensorSettings) -> None:
-        self._check_open()
-        if self._chunks is not None:
-            raise DeviceError(f"event file sensor {self.path}: configure while started; stop it first")
-        self._settings = settings.model_copy()
-
-    def start(self) -> None:
-        self._check_open()
+    def _do_start(self) -> None:
         self._open_pass()
         self._t0_host = time.monotonic()
 
-    def stop(self) -> None:
+    def _do_stop(self) -> None:
         self._close_reader()
 
-    def close(self) -> None:
+    def _do_close(self) -> None:
         self._close_reader()
-        self._closed = True
 
-    def stats(self) -> AcquisitionStats:
+    def _counters(self) -> tuple[int, dict[str, int]]:
         extra = {"passes": self._passes}
         if self._reader is not None:
             extra.update({f"decoder_skipped_{k}": v for k, v in self._reader.stats.items()})
-        return AcquisitionStats(delivered=self._delivered, device_dropped=0, extra=extra)
+        return 0, extra
 
     # -- replay ---------------------------------------------------------------------------
     def _open_pass(self) -> None:
@@ -136,7 +135,6 @@ class FileEventSensor(EventSensor):
         else:
             self._reader = RawReader(self.path, self.chunk_bytes, strict=self.strict)
             self._chunks = iter(self._reader)
-        self._exhausted = False
 
     def _close_reader(self) -> None:
         if self._reader is not None:
@@ -151,7 +149,6 @@ class FileEventSensor(EventSensor):
             chunk = next(self._chunks, None)
             if chunk is None:
                 if not self.loop or self._first_t is None:
-                    self._exhausted = True
                     return False
                 self._shift += self._span + 1
                 self._open_pass()
@@ -170,8 +167,7 @@ class FileEventSensor(EventSensor):
             self._pending = Decoded.concatenate([self._pending, Decoded(ev, tr)])
             return True
 
-    def read_events(self, timeout_s: float) -> EventPacket | None:
-        self._check_open()
+    def _read(self, timeout_s: float) -> EventPacket | None:
         if self._chunks is None and not len(self._pending.events) and not len(self._pending.triggers):
             return None
         deadline = time.monotonic() + max(0.0, timeout_s)
@@ -180,12 +176,12 @@ class FileEventSensor(EventSensor):
                 return None
             if self.pace == 0 or self._first_t is None:
                 out, self._pending = self._pending, Decoded.empty()
-                return self._packet(out)
+                return _packet(out)
             due = self._first_t + int((time.monotonic() - self._t0_host) * 1e6 * self.pace)
             out, rest = _split(self._pending, due)
             if len(out.events) or len(out.triggers):
                 self._pending = rest
-                return self._packet(out)
+                return _packet(out)
             t_next = _first_time(rest)
             wait = (t_next - due) / 1e6 / self.pace
             left = deadline - time.monotonic()
@@ -193,13 +189,9 @@ class FileEventSensor(EventSensor):
                 return None
             time.sleep(max(0.0, min(wait, left)))
 
-    def _packet(self, d: Decoded) -> EventPacket:
-        self._delivered += len(d.events)
-        return EventPacket(d.events, d.triggers, time.monotonic_ns())
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise DeviceError(f"event file sensor {self.path} is closed")
+def _packet(d: Decoded) -> EventPacket:
+    return EventPacket(d.events, d.triggers, time.monotonic_ns())
 
 
 def _first_time(d: Decoded) -> int:

@@ -18,17 +18,15 @@ resent packets) go into `stats().extra`.
 
 from __future__ import annotations
 
-import collections
 import importlib
 import ipaddress
 import logging
-import threading
 import time
 from typing import Any
 
 import numpy as np
 
-from drivers.base import AcquisitionStats, Capability, RgbCamera
+from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
@@ -51,6 +49,8 @@ _STAT_NAMES = (
     "n_resent_packets",
     "n_resend_requests",
 )
+#: Frames the host holds for the reader at least (more with more Aravis buffers).
+DEFAULT_QUEUE = 64
 _PARAMS = {"trigger_source", "activation", "buffers", "roi", "packet_size", "interface", "socket_buffer"}
 
 
@@ -86,22 +86,21 @@ class GenicamCamera(RgbCamera):
         aravis: Any | None = None,
     ) -> None:
         spec.check_params(_PARAMS)
-        self._spec = spec
-        self._arv = aravis if aravis is not None else import_aravis()
-        self.name = spec.location or spec.path.strip("/")
-        self._trigger_source = spec.param("trigger_source", "Line0")
-        self._activation = spec.param("activation", "RisingEdge")
         self._n_buffers = spec.int_param("buffers", 16)
         if self._n_buffers < 2:
             raise ConfigError(f"device spec {spec.raw!r}: buffers must be >= 2")
+        # Completed frames wait on the host once their Aravis buffer went back to the pool.
+        super().__init__(
+            CameraSettings(), queue_len=max(DEFAULT_QUEUE, 4 * self._n_buffers), drain_on_stop=True
+        )
+        self._spec = spec
+        self._arv = aravis if aravis is not None else import_aravis()
+        self.name = spec.location or spec.path.strip("/")
+        self._label = f"genicam camera {self.name!r}"
+        self._trigger_source = spec.param("trigger_source", "Line0")
+        self._activation = spec.param("activation", "RisingEdge")
         self._roi = parse_roi(spec)
-        self._lock = threading.Lock()
-        self._running = False
-        self._closed = False
         self._stream: Any = None
-        self._settings = CameraSettings()
-        self._frames: collections.deque[Frame] = collections.deque()
-        self._delivered = 0
         self._incomplete = 0
         self._counter_gaps = 0
         self._last_counter: int | None = None
@@ -129,6 +128,7 @@ class GenicamCamera(RgbCamera):
                     "aravis": self._aravis_version(),
                 },
             )
+            self._capabilities = self._probe_capabilities()
         except Exception as exc:
             self._cam = None
             raise DeviceError(f"genicam camera {self.name!r}: setup failed: {exc}") from exc
@@ -190,12 +190,8 @@ class GenicamCamera(RgbCamera):
             return "0.8"
 
     # ------------------------------------------------------------------ properties
-    @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def capabilities(self) -> frozenset[Capability]:
+    def _probe_capabilities(self) -> frozenset[Capability]:
+        """Asked once at open: RGB frames only where the camera offers RGB8 (what rgb8 maps to)."""
         caps = {
             Capability.HARDWARE_TRIGGER,
             Capability.FREE_RUN,
@@ -203,7 +199,7 @@ class GenicamCamera(RgbCamera):
             Capability.DEVICE_TIMESTAMPS,
             Capability.EXPOSURE_CONTROL,
         }
-        if "RGB8" in self._pixel_formats() or "BayerRG8" in self._pixel_formats():
+        if PIXEL_FORMATS["rgb8"] in self._pixel_formats():
             caps.add(Capability.COLOR)
         return frozenset(caps)
 
@@ -225,14 +221,7 @@ class GenicamCamera(RgbCamera):
         return np.dtype(np.uint16) if fmt.endswith(("10", "12", "16")) else np.dtype(np.uint8)
 
     # ------------------------------------------------------------------ settings
-    def _check_open(self) -> None:
-        if self._closed:
-            raise DeviceError(f"genicam camera {self.name!r} is closed")
-
-    def configure(self, settings: CameraSettings) -> None:
-        self._check_open()
-        if self._running:
-            raise DeviceError(f"genicam camera {self.name!r}: configure while acquiring; stop() first")
+    def _do_configure(self, settings: CameraSettings) -> None:
         cam, dev = self._cam, self._dev
         try:
             if settings.pixel_format is not None:
@@ -268,13 +257,9 @@ class GenicamCamera(RgbCamera):
             raise
         except Exception as exc:  # GLib.Error from a feature write
             raise ConfigError(f"genicam camera {self.name!r}: cannot apply {settings!r}: {exc}") from exc
-        self._settings = settings
 
     # ------------------------------------------------------------------ acquisition
-    def start(self) -> None:
-        self._check_open()
-        if self._running:
-            return
+    def _do_start(self) -> None:
         arv = self._arv
         try:
             stream = self._cam.create_stream(None, None)
@@ -290,30 +275,31 @@ class GenicamCamera(RgbCamera):
         self._shape = self.frame_shape
         self._dtype = self.frame_dtype
         self._stream = stream
-        self._running = True
 
-    def stop(self) -> None:
-        if not self._running:
-            return
-        self._running = False
+    def _do_stop(self) -> None:
         try:
             self._cam.stop_acquisition()
         except Exception as exc:  # noqa: BLE001 - an unplugged camera cannot be stopped: report, go on
             log.warning("genicam camera %s: stop_acquisition failed: %s", self.name, exc)
-        # Frames already transferred stay readable: drain what the stream completed.
-        self._drain()
-        self._final_stats = self._stream_stats()
+        # The acquisition thread drains what the stream already completed: frames stay readable.
 
-    def _drain(self) -> None:
-        """Pop every buffer the stream already completed (after stop: frames stay readable)."""
+    def _grab(self, timeout_s: float) -> Frame | None:
+        """The next completed buffer as a Frame; incomplete ones are counted and skipped."""
         stream = self._stream
-        if stream is None:
-            return
-        while (buf := stream.try_pop_buffer()) is not None:
-            self._take(buf)
+        while True:
+            if self._stopping:
+                buf = stream.try_pop_buffer()
+            else:
+                buf = stream.timeout_pop_buffer(max(1, int(timeout_s * 1e6)))
+            if buf is None:
+                return None
+            frame = self._take(buf)
+            if frame is not None:
+                return frame
 
-    def _take(self, buf: Any) -> None:
-        """Convert a completed buffer to a Frame, count an incomplete one; re-queue it either way."""
+    def _take(self, buf: Any) -> Frame | None:
+        """A completed buffer as a Frame (None, counted, for an incomplete one); the buffer goes
+        back to the stream's pool either way."""
         arv = self._arv
         host_ns = time.monotonic_ns()
         try:
@@ -322,7 +308,7 @@ class GenicamCamera(RgbCamera):
                 log.warning(
                     "genicam camera %s: incomplete buffer (%s), re-queued", self.name, buf.get_status()
                 )
-                return
+                return None
             counter = self._unwrap(int(buf.get_frame_id()))
             if self._last_counter is not None and counter > self._last_counter + 1:
                 self._counter_gaps += counter - self._last_counter - 1
@@ -330,16 +316,13 @@ class GenicamCamera(RgbCamera):
             data = np.frombuffer(buf.get_data(), dtype=self._dtype)
             image = data[: int(np.prod(self._shape))].reshape(self._shape).copy()
             t_ns = int(buf.get_timestamp()) or int(buf.get_system_timestamp())
-            self._frames.append(
-                Frame(
-                    image=image,
-                    t_exposure_start_us=t_ns // 1000,
-                    exposure_us=self._settings.exposure_us,
-                    frame_counter=counter,
-                    host_time_ns=host_ns,
-                )
+            return Frame(
+                image=image,
+                t_exposure_start_us=t_ns // 1000,
+                exposure_us=self._settings.exposure_us,
+                frame_counter=counter,
+                host_time_ns=host_ns,
             )
-            self._delivered += 1
         finally:
             if self._stream is not None:
                 self._stream.push_buffer(buf)
@@ -352,22 +335,6 @@ class GenicamCamera(RgbCamera):
             self._wraps += 1
         self._last_raw = raw
         return raw + self._wraps * 0xFFFF if raw <= 0xFFFF else raw
-
-    def read_frame(self, timeout_s: float) -> Frame | None:
-        self._check_open()
-        if self._frames:
-            return self._frames.popleft()
-        if self._running and self._stream is not None:
-            deadline = time.monotonic() + max(0.0, timeout_s)
-            while not self._frames:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                buf = self._stream.timeout_pop_buffer(max(1, int(remaining * 1e6)))
-                if buf is None:
-                    break
-                self._take(buf)
-        return self._frames.popleft() if self._frames else None
 
     def _stream_stats(self) -> dict[str, int]:
         stream = self._stream
@@ -383,26 +350,19 @@ class GenicamCamera(RgbCamera):
             log.debug("genicam camera %s: stream statistics unavailable: %s", self.name, exc)
         return out
 
-    def stats(self) -> AcquisitionStats:
-        extra = self._stream_stats() if self._running else dict(self._final_stats)
+    def _counters(self) -> tuple[int, dict[str, int]]:
+        extra = self._stream_stats()
         extra["incomplete_buffers"] = self._incomplete
         extra["frame_counter_gaps"] = self._counter_gaps
-        return AcquisitionStats(
-            delivered=self._delivered,
-            device_dropped=self._incomplete + self._counter_gaps,
-            extra=extra,
-        )
+        return self._incomplete + self._counter_gaps, extra
 
     def software_trigger(self) -> None:
         """Fire TriggerSoftware (tests and bench use, with trigger_source=Software)."""
         self._check_open()
         self._dev.execute_command("TriggerSoftware")
 
-    def close(self) -> None:
-        if self._closed:
-            return
-        self.stop()
-        self._closed = True
+    def _do_close(self) -> None:
+        self._final_stats = self._stream_stats()
         self._stream = None
         self._cam = None
         self._dev = None

@@ -9,13 +9,12 @@ are optional per camera model: asking for one the camera lacks is a ConfigError 
 from __future__ import annotations
 
 import logging
-import queue
-import threading
 import time
 from typing import Any
 
 from drivers.base import AcquisitionStats, Capability
-from drivers.evt_stream import EvtStreamSensor
+from drivers.evt_stream import EvtStreamSensor, GrabbingSource
+from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
@@ -24,7 +23,6 @@ from rigd.core.settings import EventSensorSettings
 log = logging.getLogger(__name__)
 
 _FORMATS = {"EVT3": "evt3", "EVT2": "evt2", "EVT21": "evt21", "EVT2.1": "evt21", "EVT3.0": "evt3"}
-_CAPS = frozenset({Capability.TRIGGER_IN, Capability.DEVICE_TIMESTAMPS})
 
 
 def _import_hal() -> Any:
@@ -39,8 +37,9 @@ def _import_hal() -> Any:
     return metavision_hal
 
 
-class PropheseeSource:
-    """ByteSource over a live camera opened with the HAL."""
+class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
+    """ByteSource over a live camera opened with the HAL; the HAL is polled on the
+    acquisition thread, so every HAL call after start happens there."""
 
     def __init__(self, serial: str, *, buffers: int = 256, spec: str = "") -> None:
         hal = _import_hal()
@@ -76,30 +75,17 @@ class PropheseeSource:
                 "height": str(self._geometry[1]),
             },
         )
+        caps = {Capability.DEVICE_TIMESTAMPS}
+        if device.get_i_trigger_in() is not None:
+            caps.add(Capability.TRIGGER_IN)
+        if device.get_i_camera_synchronization() is not None:
+            caps.add(Capability.CLOCK_SYNC)
+        self._capabilities = frozenset(caps)
         self._stream = device.get_i_events_stream()
-        self._buffers: queue.Queue[tuple[bytes, int]] = queue.Queue(maxsize=buffers)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._lost_buffers = 0
+        self._streaming = False
         self._lost_bytes = 0
-        self._error: BaseException | None = None
         self.settings = EventSensorSettings()
-
-    @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def capabilities(self) -> frozenset[Capability]:
-        return _CAPS
-
-    @property
-    def geometry(self) -> tuple[int, int]:
-        return self._geometry
-
-    @property
-    def evt_format(self) -> str:
-        return self._fmt
+        super().__init__(f"camera {self._serial}", buffers=buffers, drain_on_stop=True)
 
     def _facility(self, getter: str, what: str) -> Any:
         fac = getattr(self._device, getter)()
@@ -135,60 +121,45 @@ class PropheseeSource:
             erc.enable(True)
             erc.set_cd_event_rate(int(settings.erc_rate_ev_s))
 
-    def start(self) -> None:
-        self._stop.clear()
+    def _do_start(self) -> None:
         self._stream.start()
-        self._thread = threading.Thread(target=self._pump, name=f"prophesee-{self._serial}", daemon=True)
-        self._thread.start()
+        self._streaming = True
 
-    def _pump(self) -> None:
-        try:
-            while not self._stop.is_set():
-                if self._stream.poll_buffer() < 0:
-                    time.sleep(0.001)
-                    continue
-                data = self._stream.get_latest_raw_data()
-                if data is None or len(data) == 0:
-                    continue
-                item = (bytes(data), time.monotonic_ns())
-                try:
-                    self._buffers.put_nowait(item)
-                except queue.Full:
-                    self._lost_buffers += 1
-                    self._lost_bytes += len(item[0])
-                    log.warning("camera %s: host buffer full, a raw buffer was lost", self._serial)
-        except Exception as exc:  # surfaced by stop()/read_bytes, never swallowed
-            log.exception("camera %s: streaming failed", self._serial)
-            self._error = exc
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
-            self._thread = None
-        self._stream.stop()
-        if self._error is not None:
-            raise DeviceError(f"camera {self._serial}: streaming failed: {self._error!r}") from self._error
-
-    def close(self) -> None:
-        if self._thread is not None:
-            self.stop()
-
-    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
-        if self._error is not None:
-            raise DeviceError(f"camera {self._serial}: streaming failed: {self._error!r}") from self._error
-        try:
-            return self._buffers.get(timeout=timeout_s) if timeout_s > 0 else self._buffers.get_nowait()
-        except queue.Empty:
+    def _grab(self, timeout_s: float) -> tuple[bytes, int] | Signal | None:
+        if self._acq.stopping.is_set():  # stop the stream from the thread that polls it
+            self._stop_stream()
+            return END
+        if self._stream.poll_buffer() < 0:
+            time.sleep(0.001)
             return None
+        data = self._stream.get_latest_raw_data()
+        if data is None or len(data) == 0:
+            return None
+        return bytes(data), time.monotonic_ns()
+
+    def _on_overflow(self, lost: tuple[bytes, int]) -> None:
+        self._lost_bytes += len(lost[0])
+        log.warning("camera %s: host buffer full, a raw buffer was lost", self._serial)
+
+    def _join(self, items: list[tuple[bytes, int]]) -> tuple[bytes, int]:
+        return items[0]
+
+    def _do_close(self) -> None:
+        self._stop_stream()  # when the polling thread died before it could
+
+    def _stop_stream(self) -> None:
+        if self._streaming:
+            self._streaming = False
+            self._stream.stop()
 
     def stats(self) -> AcquisitionStats:
-        extra = {"buffers_lost": self._lost_buffers, "bytes_lost": self._lost_bytes}
+        lost = self._acq.queue.dropped
+        extra = {"buffers_lost": lost, "bytes_lost": self._lost_bytes}
         erc = self._device.get_i_erc_module()
         if erc is not None and hasattr(erc, "get_count_period"):
             extra["erc_enabled"] = int(bool(erc.is_enabled()))
-        # Events inside lost buffers are unknown until decoded: count what is known, the bytes.
-        return AcquisitionStats(delivered=0, device_dropped=self._lost_buffers, extra=extra)
+        # Events inside lost buffers are unknown until decoded: count what is known, the buffers.
+        return AcquisitionStats(delivered=0, device_dropped=lost, extra=extra)
 
 
 def open_prophesee_sensor(spec: DeviceSpec) -> EvtStreamSensor:

@@ -1,14 +1,13 @@
 """Host driver for the trigger box (protocol: docs/trigger-protocol.md), over USB serial or raw HID.
 
-The line protocol engine (`SerialTrigger`) runs over a small byte `Transport`: pyserial for
-CDC-ACM / UART boxes (`/dev/ttyACM0`, `serial:///dev/ttyACM0`), hidapi for boxes that
-enumerate as HID (`hid://VID:PID[/SERIAL]`, 64-byte reports carrying the same byte stream,
-framing in docs/trigger-protocol.md). Everything above the transport is shared, so both
-links pass the same protocol tests.
+The line protocol engine (`SerialTrigger`) runs over a small byte `Transport`
+(`drivers.trigger_link`): pyserial for CDC-ACM / UART boxes (`/dev/ttyACM0`,
+`serial:///dev/ttyACM0`), hidapi for boxes that enumerate as HID (`hid://VID:PID[/SERIAL]`).
+Everything above the transport is shared, so both links pass the same protocol tests.
 
-A reader thread owns the receive side: it splits lines, verifies the `*HH` checksum, sends
-async pulse records (`P <index> <t_us>`) to a pulse queue stamped with the host monotonic
-clock on reception, and everything else to a reply queue. Commands are serialized by a
+The receive side runs on an acquisition thread from open to close: it splits lines, verifies
+the `*HH` checksum, sends async pulse records (`P <index> <t_us>`) to a pulse queue stamped
+with the host monotonic clock on reception, and everything else to a reply queue. Commands are serialized by a
 lock and tagged (`#n`) so a late reply to an earlier command can never be taken for the
 current one. Pulse records lost to line noise show up as index gaps and are fetched again
 with `TS?`; those that cannot be recovered stay visible as missing indices and counters.
@@ -16,40 +15,69 @@ with `TS?`; those that cannot be recovered stay visible as missing indices and c
 
 from __future__ import annotations
 
-import abc
-import importlib
 import logging
 import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
 
 import numpy as np
-import serial
 
 from drivers.base import Capability, Trigger
+from drivers.lifecycle import END, Acquisition, DeliveryQueue, Signal
 from drivers.registry import DeviceSpec
-from rigd.core.devices import DeviceInfo, PulseBatch
-from rigd.core.errors import (
-    BackendUnavailableError,
-    ConfigError,
-    DeviceError,
-    DeviceTimeoutError,
-    ProtocolError,
+from drivers.trigger_link import (
+    DEFAULT_BAUD,
+    HID_PAYLOAD,
+    HID_REPORT_SIZE,
+    HidDevice,
+    HidTransport,
+    SerialTransport,
+    Transport,
+    TransportError,
+    hid_payload,
+    hid_report,
+    open_hid_transport,
+    parse_hid_address,
 )
+from rigd.core.devices import DeviceInfo, PulseBatch
+from rigd.core.errors import ConfigError, DeviceTimeoutError, ProtocolError
 from rigd.core.settings import TriggerSettings
+
+# The links live in drivers.trigger_link; their names stay importable from here.
+__all__ = [
+    "DEFAULT_BAUD",
+    "HID_PAYLOAD",
+    "HID_REPORT_SIZE",
+    "TS_MAX_COUNT",
+    "HidDevice",
+    "HidTransport",
+    "SerialTransport",
+    "SerialTrigger",
+    "Transport",
+    "TransportError",
+    "TriggerBoxError",
+    "hid_payload",
+    "hid_report",
+    "open_hid_transport",
+    "open_hid_trigger",
+    "open_serial_trigger",
+    "parse_hid_address",
+]
 
 log = logging.getLogger(__name__)
 
-DEFAULT_BAUD = 115_200
 #: Most records one `TS?` may ask for (box limit).
 TS_MAX_COUNT = 64
 _READBACK_ATTEMPTS = 3
 #: After a corrupt line arrives during a command, how long to wait for a good reply before retrying.
 _CORRUPT_GRACE_S = 0.15
 _HANDSHAKE_PERIOD_S = 0.1
+#: Pulse records waiting for read_pulses; one lost to a full queue is fetched again with `TS?`.
+_PULSE_QUEUE = 1 << 20
+#: Bytes without a newline after which the receive buffer is noise, not a protocol line.
+_MAX_LINE_BYTES = 4096
 
 
 class TriggerBoxError(ProtocolError):
@@ -86,204 +114,14 @@ def _frame_command(payload: str) -> bytes:
     return data + b"*%02X\n" % _checksum(data)
 
 
-# ---------------------------------------------------------------------- transports
-class TransportError(DeviceError):
-    """The link to the box failed (unplugged, I/O error): not a protocol problem."""
-
-
-class Transport(abc.ABC):
-    """A byte pipe to the box. The protocol engine needs nothing more than this."""
-
-    #: Human-readable link name used in every message (port path, hid://VID:PID/SERIAL).
-    name: str
-
-    @abc.abstractmethod
-    def read(self, timeout_s: float) -> bytes:
-        """Bytes received so far, waiting at most `timeout_s` for the first; b"" on timeout.
-
-        Raises TransportError when the link is gone (an unplugged device).
-        """
-
-    @abc.abstractmethod
-    def write(self, data: bytes) -> None:
-        """Send all of `data`; raises TransportError on failure."""
-
-    @abc.abstractmethod
-    def close(self) -> None:
-        """Release the link. Idempotent; a blocked `read` returns or raises soon after."""
-
-
-class SerialTransport(Transport):
-    """pyserial link (USB CDC-ACM, FTDI/CH340 UART bridges, ptys)."""
-
-    def __init__(self, port: str, *, baudrate: int = DEFAULT_BAUD) -> None:
-        self.name = port
-        self._closed = False
-        try:
-            self._ser = serial.serial_for_url(port, baudrate=baudrate, timeout=0.05, write_timeout=1.0)
-        except (serial.SerialException, ValueError, OSError) as exc:
-            raise DeviceError(f"cannot open trigger box port {port!r}: {exc}") from exc
-
-    def read(self, timeout_s: float) -> bytes:
-        # The port timeout is fixed at open (changing it per call costs a tcsetattr).
-        try:
-            return bytes(self._ser.read(max(1, self._ser.in_waiting)))
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-            # TypeError/AttributeError: pyserial on a port closed under it.
-            raise TransportError(f"trigger box {self.name}: serial read failed: {exc}") from exc
-
-    def write(self, data: bytes) -> None:
-        try:
-            self._ser.write(data)
-        except (serial.SerialException, OSError) as exc:
-            raise TransportError(f"trigger box {self.name}: serial write failed: {exc}") from exc
-
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self._ser.close()
-
-
-#: Payload bytes of one HID report: 64 bytes minus the length byte.
-HID_REPORT_SIZE = 64
-HID_PAYLOAD = HID_REPORT_SIZE - 1
-
-
-class HidDevice(Protocol):
-    """The part of hidapi's `hid.device` the transport uses (the sim provides a fake)."""
-
-    def read(self, max_length: int, timeout_ms: int = 0) -> list[int]: ...
-    def write(self, buff: bytes | list[int]) -> int: ...
-    def close(self) -> None: ...
-
-
-def hid_report(payload: bytes) -> bytes:
-    """One 64-byte report: length byte, up to 63 stream bytes, zero padding."""
-    if len(payload) > HID_PAYLOAD:
-        raise ValueError(f"HID report payload is {len(payload)} bytes, at most {HID_PAYLOAD} fit")
-    return bytes([len(payload)]) + payload + bytes(HID_PAYLOAD - len(payload))
-
-
-def hid_payload(report: bytes) -> bytes | None:
-    """The stream bytes of a report, or None when its length byte is impossible."""
-    if not report:
-        return b""
-    n = report[0]
-    if n > HID_PAYLOAD or n > len(report) - 1:
-        return None
-    return bytes(report[1 : 1 + n])
-
-
-class HidTransport(Transport):
-    """The line protocol in 64-byte HID reports (hidapi).
-
-    Report framing (docs/trigger-protocol.md, *HID transport*): byte 0 is the number of
-    stream bytes that follow (0..63), the rest is padding. Reports are written with report
-    ID 0 prepended, as hidapi wants for devices without numbered reports. Lines may span
-    reports; a report with an impossible length byte is dropped and counted.
-    """
-
-    def __init__(self, device: HidDevice, name: str) -> None:
-        self.name = name
-        self._dev = device
-        self._closed = False
-        self._lock = threading.Lock()  # hidapi handles are not thread-safe between read and close
-        self.bad_reports = 0
-
-    def read(self, timeout_s: float) -> bytes:
-        if self._closed:
-            raise TransportError(f"trigger box {self.name}: HID device is closed")
-        try:
-            data = self._dev.read(HID_REPORT_SIZE, max(1, int(timeout_s * 1000)))
-        except (OSError, ValueError) as exc:  # hidapi raises OSError("read error") on unplug
-            raise TransportError(f"trigger box {self.name}: HID read failed (unplugged?): {exc}") from exc
-        if not data:
-            return b""
-        payload = hid_payload(bytes(data))
-        if payload is None:
-            self.bad_reports += 1
-            log.warning("trigger box %s: dropped HID report with length byte %d", self.name, data[0])
-            return b""
-        return payload
-
-    def write(self, data: bytes) -> None:
-        if self._closed:
-            raise TransportError(f"trigger box {self.name}: HID device is closed")
-        for i in range(0, max(len(data), 1), HID_PAYLOAD):
-            report = b"\x00" + hid_report(data[i : i + HID_PAYLOAD])
-            try:
-                n = self._dev.write(report)
-            except (OSError, ValueError) as exc:
-                raise TransportError(f"trigger box {self.name}: HID write failed: {exc}") from exc
-            if n < 0:
-                raise TransportError(f"trigger box {self.name}: HID write failed (returned {n})")
-
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self._dev.close()
-
-
-def _import_hid() -> Any:
-    """hidapi's `hid` module; optional, so a serial-only rig needs no HID library."""
-    try:
-        return importlib.import_module("hid")
-    except ImportError as exc:
-        raise BackendUnavailableError(
-            f"hid:// trigger boxes need hidapi (`pip install hidapi`, libhidapi-hidraw0): {exc}"
-        ) from exc
-
-
-def parse_hid_address(spec: DeviceSpec) -> tuple[int, int, str | None]:
-    """(vid, pid, serial) of `hid://VID:PID[/SERIAL]`, hex IDs as lsusb prints them."""
-    vid_text, sep, pid_text = spec.location.partition(":")
-    try:
-        if not sep:
-            raise ValueError
-        vid, pid = int(vid_text, 16), int(pid_text, 16)
-    except ValueError:
-        raise ConfigError(
-            f"device spec {spec.raw!r}: expected hid://VID:PID[/SERIAL] with hex IDs, e.g. hid://16c0:0486"
-        ) from None
-    if not (0 <= vid <= 0xFFFF and 0 <= pid <= 0xFFFF):
-        raise ConfigError(f"device spec {spec.raw!r}: USB IDs are 16-bit hex numbers")
-    serial_nbr = spec.path.strip("/") or None
-    return vid, pid, serial_nbr
-
-
-def open_hid_transport(vid: int, pid: int, serial_nbr: str | None, hid_module: Any = None) -> HidTransport:
-    """Find and open the HID box; errors name the IDs and what was found instead."""
-    hid = hid_module if hid_module is not None else _import_hid()
-    name = f"hid://{vid:04x}:{pid:04x}" + (f"/{serial_nbr}" if serial_nbr else "")
-    found = [d for d in hid.enumerate(vid, pid) if serial_nbr is None or d.get("serial_number") == serial_nbr]
-    if not found:
-        others = sorted({str(d.get("serial_number") or "?") for d in hid.enumerate(vid, pid)})
-        hint = (
-            f"; serial numbers present: {', '.join(others)}"
-            if others
-            else " (is it plugged in? see `rigd devices`)"
-        )
-        raise DeviceError(f"cannot open trigger box {name}: no such HID device{hint}")
-    if len(found) > 1 and serial_nbr is None:
-        serials = ", ".join(str(d.get("serial_number") or "?") for d in found)
-        raise ConfigError(f"trigger box {name}: {len(found)} devices match; add /SERIAL (one of {serials})")
-    dev = hid.device()
-    try:
-        dev.open_path(found[0]["path"])
-    except (OSError, ValueError) as exc:
-        raise DeviceError(
-            f"cannot open trigger box {name} ({found[0]['path']!r}): {exc}; "
-            "check the hidraw node permissions (`rigd doctor`, deploy/udev/99-rigd.rules)"
-        ) from exc
-    return HidTransport(dev, name)
-
-
 class SerialTrigger(Trigger):
     """A trigger box speaking the line protocol; its clock is the rig timebase.
 
     `port` opens a serial port; pass `transport` instead for any other link (HID). The name
     says "serial" for the line protocol, which is the same whatever carries its bytes.
     """
+
+    _capabilities = frozenset({Capability.PULSE_TIMESTAMPS, Capability.PULSE_COUNT})
 
     def __init__(
         self,
@@ -298,22 +136,20 @@ class SerialTrigger(Trigger):
     ) -> None:
         if (port is None) == (transport is None):
             raise ValueError("SerialTrigger needs exactly one of port and transport")
+        super().__init__()
         if transport is None:
             assert port is not None
             transport = SerialTransport(port, baudrate=baudrate)
         self._transport = transport
         self.port = transport.name
-        port = self.port
+        self._label = f"trigger box {self.port}"
         self.reply_timeout_s = reply_timeout_s
-        self._spec = spec or port
+        self._spec = spec or self.port
         self._on_close = on_close
-        self._closed = False
         self._cmd_lock = threading.Lock()
-        self._state_lock = threading.Lock()
+        self._stats_lock = threading.Lock()
         self._replies: queue.Queue[_Reply] = queue.Queue()
-        self._pulses: queue.Queue[tuple[int, int, int]] = queue.Queue()
-        self._reader_error: BaseException | None = None
-        self._stop_reader = threading.Event()
+        self._rx = bytearray()
         self._corrupt_seen = 0  # bumps on every corrupt line; waiters compare before/after
         self._ready = threading.Event()
         self._handshake_done = False
@@ -322,6 +158,7 @@ class SerialTrigger(Trigger):
             "lines": 0,
             "corrupt_lines": 0,
             "garbage_bytes": 0,
+            "bad_records": 0,
             "pulses_received": 0,
             "recovered_pulses": 0,
             "unrecovered_pulses": 0,
@@ -333,14 +170,16 @@ class SerialTrigger(Trigger):
         self._next_index = 0
         self._final_count: int | None = None
         self._missing: list[int] = []
-        self._settings = TriggerSettings()
-        self._reader = threading.Thread(target=self._read_loop, name=f"trigger-rx-{port}", daemon=True)
-        self._reader.start()
+        # The receive side runs from open to close: the handshake needs it already.
+        self._rx_thread: Acquisition[tuple[int, int, int]] = Acquisition(
+            self._label, self._grab, DeliveryQueue(_PULSE_QUEUE)
+        )
+        self._rx_thread.start()
         try:
             self._handshake(boot_timeout_s)
             ident = self._command("ID?", idempotent=True)[-1].fields
             if ident[0] != "ID" or len(ident) < 5:
-                raise ProtocolError(f"trigger box {port}: malformed ID reply {' '.join(ident)!r}")
+                raise ProtocolError(f"trigger box {self.port}: malformed ID reply {' '.join(ident)!r}")
             self._info = DeviceInfo(
                 kind="trigger",
                 spec=self._spec,
@@ -350,49 +189,49 @@ class SerialTrigger(Trigger):
                 firmware=ident[4],
             )
         except BaseException:
-            self._shutdown(send_stop=False)
+            self._closed = True
+            self._do_close()
             raise
         log.info(
-            "trigger box %s: %s %s fw %s", port, self._info.vendor, self._info.model, self._info.firmware
+            "trigger box %s: %s %s fw %s", self.port, self._info.vendor, self._info.model, self._info.firmware
         )
 
-    # ------------------------------------------------------------------ reader
-    def _read_loop(self) -> None:
-        buf = bytearray()
-        while not self._stop_reader.is_set():
+    # ------------------------------------------------------------------ receive side
+    def _grab(self, timeout_s: float) -> Signal | None:
+        """Receive thread: split what arrived into lines and route them; pulse records go to
+        the pulse queue (stamped with the host clock), replies to the reply queue."""
+        try:
+            chunk = self._transport.read(timeout_s)
+        except TransportError as exc:
+            if self._rx_thread.stopping.is_set():  # the link closed under us while closing: benign
+                log.debug("trigger box %s: reader ends on close: %s", self.port, exc)
+                return END
+            raise  # kept: every later call says the box is disconnected
+        if not chunk:
+            return None
+        buf = self._rx
+        buf.extend(chunk)
+        while (nl := buf.find(b"\n")) >= 0:
+            line = bytes(buf[:nl])
+            del buf[: nl + 1]
             try:
-                chunk = self._transport.read(0.05)
-            except TransportError as exc:
-                if self._stop_reader.is_set():  # the link closed under us while closing: benign
-                    log.debug("trigger box %s: reader ends on close: %s", self.port, exc)
-                    return
-                log.error("trigger box %s: link lost: %s", self.port, exc)
-                self._reader_error = exc
-                return
-            if not chunk:
-                continue
-            buf.extend(chunk)
-            while True:
-                nl = buf.find(b"\n")
-                if nl < 0:
-                    break
-                line = bytes(buf[:nl])
-                del buf[: nl + 1]
-                try:
-                    self._handle_line(line)
-                except Exception as exc:
-                    log.exception("trigger box %s: cannot handle line %r", self.port, line)
-                    self._reader_error = exc
-            if len(buf) > 4096:  # no newline in 4 KiB: noise, not a protocol line
-                with self._state_lock:
-                    self._stats["garbage_bytes"] += len(buf)
-                    self._stats["corrupt_lines"] += 1
-                    self._corrupt_seen += 1
-                buf.clear()
+                self._handle_line(line)
+            except (ProtocolError, ValueError, IndexError) as exc:
+                log.exception("trigger box %s: cannot handle line %r", self.port, line)
+                with self._stats_lock:
+                    self._stats["bad_records"] += 1
+                self._rx_thread.fail(exc)
+        if len(buf) > _MAX_LINE_BYTES:  # no newline in 4 KiB: noise, not a protocol line
+            with self._stats_lock:
+                self._stats["garbage_bytes"] += len(buf)
+                self._stats["corrupt_lines"] += 1
+                self._corrupt_seen += 1
+            buf.clear()
+        return None
 
     def _corrupt(self, line: bytes, why: str) -> None:
         log.warning("trigger box %s: dropped corrupt line (%s): %r", self.port, why, line)
-        with self._state_lock:
+        with self._stats_lock:
             self._stats["corrupt_lines"] += 1
             self._corrupt_seen += 1
 
@@ -407,7 +246,7 @@ class SerialTrigger(Trigger):
             self._corrupt(raw, "no '$' start")
             return
         if start:
-            with self._state_lock:
+            with self._stats_lock:
                 self._stats["garbage_bytes"] += start
         sentence = raw[start + 1 :]
         star = sentence.rfind(b"*")
@@ -427,17 +266,20 @@ class SerialTrigger(Trigger):
         if not fields:
             self._corrupt(raw, "empty payload")
             return
-        with self._state_lock:
+        with self._stats_lock:
             self._stats["lines"] += 1
         kind = fields[0]
         if kind == "P":
             if len(fields) != 3:
                 raise ProtocolError(f"trigger box {self.port}: malformed pulse record {raw!r}")
-            with self._state_lock:
+            with self._stats_lock:
                 self._stats["pulses_received"] += 1
-            self._pulses.put((int(fields[1]), int(fields[2]), host_ns))
+            if self._rx_thread.queue.put((int(fields[1]), int(fields[2]), host_ns)) is not None:
+                log.warning(
+                    "trigger box %s: pulse queue full; record %s will be read back", self.port, fields[1]
+                )
         elif kind == "END":
-            with self._state_lock:
+            with self._stats_lock:
                 self._final_count = int(fields[1])
             log.debug("trigger box %s: run ended after %s pulses", self.port, fields[1])
         elif kind == "READY":
@@ -452,9 +294,11 @@ class SerialTrigger(Trigger):
 
     # ------------------------------------------------------------------ commands
     def _check(self) -> None:
-        if self._closed:
-            raise DeviceError(f"trigger box {self.port} is closed")
-        err = self._reader_error
+        self._check_open()
+
+    def _check_present(self) -> None:
+        """The receive side's kept error: a lost link, or a line that broke the protocol."""
+        err = self._rx_thread.error
         if isinstance(err, TransportError):
             raise TransportError(
                 f"trigger box {self.port} disconnected or failed (reopen it to continue): {err}"
@@ -482,7 +326,7 @@ class SerialTrigger(Trigger):
             except queue.Empty:
                 return
             log.debug("trigger box %s: discarding stale reply %r", self.port, stale.line)
-            with self._state_lock:
+            with self._stats_lock:
                 self._stats["stale_replies"] += 1
 
     def _command(self, command: str, *, idempotent: bool, retries: int = 2) -> list[_Reply]:
@@ -509,7 +353,7 @@ class SerialTrigger(Trigger):
                         f"within {self.reply_timeout_s:g} s{why}"
                     )
                 log.info("trigger box %s: reply to %r lost to line noise, resending", self.port, command)
-                with self._state_lock:
+                with self._stats_lock:
                     self._stats["retries"] += 1
         raise AssertionError("unreachable")
 
@@ -536,7 +380,7 @@ class SerialTrigger(Trigger):
                 log.debug(
                     "trigger box %s: stale reply %r while waiting for %r", self.port, reply.line, command
                 )
-                with self._state_lock:
+                with self._stats_lock:
                     self._stats["stale_replies"] += 1
                 continue
             if reply.is_error:
@@ -586,19 +430,11 @@ class SerialTrigger(Trigger):
                 f"trigger box {self.port}: {command!r} reply {' '.join(fields)!r} lacks integer field {i}"
             ) from None
 
-    # ------------------------------------------------------------------ Trigger API
-    @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def capabilities(self) -> frozenset[Capability]:
-        return frozenset({Capability.PULSE_TIMESTAMPS, Capability.PULSE_COUNT})
-
+    # ------------------------------------------------------------------ Trigger hooks
     @property
     def stats(self) -> dict[str, int]:
         """Line and pulse counters since open (corrupt lines, recovered pulses, ...)."""
-        with self._state_lock:
+        with self._stats_lock:
             return dict(self._stats)
 
     def link_stats(self) -> dict[str, int]:
@@ -607,39 +443,26 @@ class SerialTrigger(Trigger):
     @property
     def missing_indices(self) -> list[int]:
         """Pulse indices of the current run that could not be recovered."""
-        with self._state_lock:
+        with self._stats_lock:
             return list(self._missing)
 
-    def configure(self, settings: TriggerSettings) -> None:
-        period_us = 1e6 / settings.rate_hz
-        if settings.pulse_width_us >= period_us:
-            raise ConfigError(
-                f"trigger {self.port}: pulse width {settings.pulse_width_us} us must be shorter "
-                f"than the period {period_us:.1f} us at {settings.rate_hz:g} Hz"
-            )
+    def _do_configure(self, settings: TriggerSettings) -> None:
         rate = f"{settings.rate_hz:.6f}".rstrip("0").rstrip(".")
         self._simple(f"RATE {rate}", "OK")
         self._simple(f"WIDTH {settings.pulse_width_us}", "OK")
-        self._settings = settings
 
-    def arm(self) -> None:
+    def _do_arm(self) -> None:
         self._simple("ARM", "OK")
         self._reset_run()
 
     def _reset_run(self) -> None:
-        while True:
-            try:
-                self._pulses.get_nowait()
-            except queue.Empty:
-                break
-        with self._state_lock:
+        self._rx_thread.queue.drain()
+        with self._stats_lock:
             self._next_index = 0
             self._final_count = None
             self._missing = []
 
-    def start(self, n_pulses: int | None = None) -> int:
-        if n_pulses is not None and n_pulses < 1:
-            raise ConfigError(f"trigger {self.port}: n_pulses must be >= 1, got {n_pulses}")
+    def _do_start(self, n_pulses: int | None) -> int:
         command = "START" if n_pulses is None else f"START {n_pulses}"
         try:
             fields = self._simple(command, "OK", idempotent=False)
@@ -653,10 +476,10 @@ class SerialTrigger(Trigger):
             return t0
         return self._int_field(command, fields, 2)
 
-    def stop(self) -> int:
+    def _do_stop(self) -> int:
         fields = self._simple("STOP", "OK")
         count = self._int_field("STOP", fields, 2)
-        with self._state_lock:
+        with self._stats_lock:
             self._final_count = count
         return count
 
@@ -672,36 +495,25 @@ class SerialTrigger(Trigger):
         """The box's state, counters and settings as it reports them."""
         return self._status()
 
-    def is_running(self) -> bool:
+    def _is_running(self) -> bool:
         status = self._status()
         running = status["state"] == "RUNNING"
         if not running and int(status.get("t0", "-1")) >= 0:
             # The run is over, so every pulse record precedes this reply in the stream.
-            with self._state_lock:
+            with self._stats_lock:
                 self._final_count = int(status["count"])
         return running
 
-    def pulse_count(self) -> int:
+    def _pulse_count(self) -> int:
         return self._int_field("COUNT?", self._simple("COUNT?", "COUNT"), 1)
 
-    def clock_us(self) -> int:
+    def _clock_us(self) -> int:
         return self._int_field("CLOCK?", self._simple("CLOCK?", "CLOCK"), 1)
 
-    def read_pulses(self, timeout_s: float) -> PulseBatch:
-        self._check()
-        got: dict[int, tuple[int, int]] = {}
-        try:  # block for the first record only: callers loop on this, it must not spin
-            i, t, h = self._pulses.get(timeout=max(0.0, timeout_s))
-            got[i] = (t, h)
-        except queue.Empty:
-            pass
-        while True:
-            try:
-                i, t, h = self._pulses.get_nowait()
-            except queue.Empty:
-                break
-            got[i] = (t, h)
-        with self._state_lock:
+    def _read_pulses(self, timeout_s: float) -> PulseBatch:
+        # Block for the first record only: callers loop on this, it must not spin.
+        got = {i: (t, h) for i, t, h in self._rx_thread.queue.get(timeout_s, max_items=None)}
+        with self._stats_lock:
             start = self._next_index
             final = self._final_count
         dupes = [i for i in got if i < start]
@@ -709,7 +521,7 @@ class SerialTrigger(Trigger):
             del got[i]
         if dupes:
             log.warning("trigger box %s: duplicate pulse records %s", self.port, dupes[:10])
-            with self._state_lock:
+            with self._stats_lock:
                 self._stats["duplicate_pulses"] += len(dupes)
         end = max(got) + 1 if got else start
         if final is not None:
@@ -717,7 +529,7 @@ class SerialTrigger(Trigger):
         missing = [i for i in range(start, end) if i not in got]
         if missing:
             self._recover(missing, got)
-        with self._state_lock:
+        with self._stats_lock:
             self._next_index = end
         idx = np.array(sorted(got), dtype=np.int64)
         t_us = np.array([got[i][0] for i in idx], dtype=np.int64)
@@ -748,28 +560,20 @@ class SerialTrigger(Trigger):
                         got[k] = (self._int_field("TS?", r.fields, 2), now)
             want = [i for i in want if i not in got]
         recovered = len(missing) - len(want)
-        with self._state_lock:
+        with self._stats_lock:
             self._stats["recovered_pulses"] += recovered
             self._stats["unrecovered_pulses"] += len(want)
             self._missing.extend(want)
         if want:
             log.error("trigger box %s: %d pulse record(s) lost for good: %s", self.port, len(want), want[:20])
 
-    def close(self) -> None:
-        """Stop pulsing (best effort), end the reader, close the port. Idempotent."""
-        if self._closed:
-            return
-        self._shutdown(send_stop=self._reader_error is None)
+    def _stop_for_close(self) -> None:
+        # No STOP before the handshake, nor to a box whose link is gone.
+        if self._handshake_done and self._rx_thread.error is None:
+            super()._stop_for_close()
 
-    def _shutdown(self, *, send_stop: bool) -> None:
-        if send_stop and self._handshake_done:
-            try:
-                self.stop()
-            except DeviceError as exc:
-                log.warning("trigger box %s: STOP on close failed: %s", self.port, exc)
-        self._closed = True
-        self._stop_reader.set()
-        self._reader.join()
+    def _do_close(self) -> None:
+        self._rx_thread.stop()
         try:
             self._transport.close()
         finally:

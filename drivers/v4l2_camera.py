@@ -2,26 +2,24 @@
 
 UVC cameras have no trigger input: they run on their own clock and frames get **host**
 timestamps (monotonic clock at reception, minus nothing: the exposure start is unknown to
-within a frame period). The camera therefore advertises FREE_RUN only, never
-HARDWARE_TRIGGER, and says `sync: software` in `DeviceInfo.facts`, so the take records that
-its frames were matched to trigger pulses by host time, not by a wire.
+within a frame period). The camera therefore advertises FREE_RUN and SOFTWARE_SYNC, never
+HARDWARE_TRIGGER (`sync: software` in `DeviceInfo.facts` says the same in the take): its
+frames are matched to trigger pulses by host time, not by a wire.
 
-A grabber thread reads continuously while started (V4L2 drops the oldest buffers when the
-reader is late: counted from gaps in OpenCV's frame position where the driver reports it).
+The base's acquisition thread reads continuously while started; when the reader is late the
+host queue gives up its oldest frame, counted in `stats().extra["host_queue_dropped"]`.
 """
 
 from __future__ import annotations
 
-import collections
 import importlib
 import logging
-import threading
 import time
 from typing import Any
 
 import numpy as np
 
-from drivers.base import AcquisitionStats, Capability, RgbCamera
+from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
@@ -33,6 +31,8 @@ log = logging.getLogger(__name__)
 _PARAMS = {"width", "height", "fps", "fourcc", "buffers"}
 #: Frames kept for the reader before the oldest is dropped (counted).
 DEFAULT_QUEUE = 64
+#: Failed reads in a row (50 ms apart) after which the camera counts as unplugged.
+_UNPLUGGED_AFTER = 20
 
 
 def parse_v4l2_spec(spec: DeviceSpec) -> dict[str, Any]:
@@ -73,12 +73,21 @@ def to_mono(image: np.ndarray[Any, Any], cv2: Any) -> np.ndarray[Any, Any]:
 class V4l2Camera(RgbCamera):
     """A UVC camera through cv2.VideoCapture(node, cv2.CAP_V4L2); free-run only."""
 
+    _capabilities = frozenset(
+        {Capability.FREE_RUN, Capability.SOFTWARE_SYNC, Capability.COLOR, Capability.EXPOSURE_CONTROL}
+    )
+
     def __init__(
         self, spec: DeviceSpec, *, capture: Any | None = None, cv2_module: Any | None = None
     ) -> None:
         p = parse_v4l2_spec(spec)
+        # The reader must get the newest frames: a full queue gives up its oldest (counted).
+        super().__init__(
+            CameraSettings(trigger_mode="free_run"), queue_len=p["buffers"], drop="oldest", join_timeout_s=2.0
+        )
         self._spec = spec
         self.node: str = p["node"]
+        self._label = f"V4L2 camera {self.node}"
         try:
             self._cv2 = cv2_module if cv2_module is not None else importlib.import_module("cv2")
         except ImportError as exc:
@@ -106,18 +115,9 @@ class V4l2Camera(RgbCamera):
         if self._width <= 0 or self._height <= 0:
             cap.release()
             raise DeviceError(f"V4L2 camera {self.node}: driver reports no frame size")
-        self._queue_len: int = p["buffers"]
-        self._settings = CameraSettings(trigger_mode="free_run")
-        self._frames: collections.deque[Frame] = collections.deque()
-        self._cond = threading.Condition()
-        self._running = False
-        self._closed = False
-        self._thread: threading.Thread | None = None
-        self._delivered = 0
-        self._dropped = 0
         self._read_failures = 0
+        self._failures = 0
         self._counter = 0
-        self._error: str | None = None
         self._info = DeviceInfo(
             kind="rgb_camera",
             spec=spec.raw,
@@ -131,14 +131,6 @@ class V4l2Camera(RgbCamera):
         )
 
     @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def capabilities(self) -> frozenset[Capability]:
-        return frozenset({Capability.FREE_RUN, Capability.COLOR, Capability.EXPOSURE_CONTROL})
-
-    @property
     def frame_shape(self) -> tuple[int, ...]:
         if self._settings.pixel_format == "mono8":
             return (self._height, self._width)
@@ -148,16 +140,7 @@ class V4l2Camera(RgbCamera):
     def frame_dtype(self) -> np.dtype[np.generic]:
         return np.dtype(np.uint8)
 
-    def configure(self, settings: CameraSettings) -> None:
-        if self._closed:
-            raise DeviceError(f"V4L2 camera {self.node} is closed")
-        if self._running:
-            raise DeviceError(f"V4L2 camera {self.node}: configure while acquiring; stop() first")
-        if settings.trigger_mode == "hardware":
-            raise ConfigError(
-                f"V4L2 camera {self.node} has no trigger input: use trigger_mode = 'free_run' "
-                "(its frames are matched to pulses by host time; sync is software-only)"
-            )
+    def _do_configure(self, settings: CameraSettings) -> None:
         cv2, cap = self._cv2, self._cap
         cap.set(cv2.CAP_PROP_FPS, settings.free_run_fps)
         # UVC exposure is in 100 us units with auto-exposure off (V4L2 manual mode = 1).
@@ -166,83 +149,37 @@ class V4l2Camera(RgbCamera):
             log.warning("V4L2 camera %s: exposure not settable through OpenCV; use v4l2-ctl", self.node)
         if settings.gain_db:
             cap.set(cv2.CAP_PROP_GAIN, settings.gain_db)
-        self._settings = settings
 
-    def start(self) -> None:
-        if self._closed:
-            raise DeviceError(f"V4L2 camera {self.node} is closed")
-        if self._running:
-            return
-        self._running = True
-        self._thread = threading.Thread(target=self._grab_loop, name=f"v4l2-{self.node}", daemon=True)
-        self._thread.start()
+    def _do_start(self) -> None:
+        self._failures = 0
 
-    def _grab_loop(self) -> None:
-        cv2 = self._cv2
-        failures = 0
-        while self._running:
-            ok, image = self._cap.read()
-            host_ns = time.monotonic_ns()
-            if not ok or image is None:
-                failures += 1
-                self._read_failures += 1
-                if failures >= 20:  # ~ a second of nothing: unplugged
-                    self._error = f"V4L2 camera {self.node}: no frames (unplugged?)"
-                    log.error("%s", self._error)
-                    self._running = False
-                    break
-                time.sleep(0.05)
-                continue
-            failures = 0
-            image = to_mono(image, cv2) if self._settings.pixel_format == "mono8" else to_rgb(image, cv2)
-            frame = Frame(
-                image=image,
-                t_exposure_start_us=host_ns // 1000 - self._settings.exposure_us,
-                exposure_us=self._settings.exposure_us,
-                frame_counter=self._counter,
-                host_time_ns=host_ns,
-            )
-            self._counter += 1
-            with self._cond:
-                if len(self._frames) >= self._queue_len:
-                    self._frames.popleft()
-                    self._dropped += 1
-                self._frames.append(frame)
-                self._delivered += 1
-                self._cond.notify_all()
+    def _grab(self, timeout_s: float) -> Frame | None:
+        ok, image = self._cap.read()
+        host_ns = time.monotonic_ns()
+        if not ok or image is None:
+            self._failures += 1
+            self._read_failures += 1
+            if self._failures >= _UNPLUGGED_AFTER:  # ~ a second of nothing: unplugged
+                raise DeviceError(f"V4L2 camera {self.node}: no frames (unplugged?)")
+            time.sleep(0.05)
+            return None
+        self._failures = 0
+        cv2, settings = self._cv2, self._settings
+        image = to_mono(image, cv2) if settings.pixel_format == "mono8" else to_rgb(image, cv2)
+        frame = Frame(
+            image=image,
+            t_exposure_start_us=host_ns // 1000 - settings.exposure_us,
+            exposure_us=settings.exposure_us,
+            frame_counter=self._counter,
+            host_time_ns=host_ns,
+        )
+        self._counter += 1
+        return frame
 
-    def stop(self) -> None:
-        self._running = False
-        t = self._thread
-        if t is not None and t is not threading.current_thread():
-            t.join(timeout=2.0)
-        self._thread = None
+    def _counters(self) -> tuple[int, dict[str, int]]:
+        return 0, {"read_failures": self._read_failures}
 
-    def read_frame(self, timeout_s: float) -> Frame | None:
-        with self._cond:
-            if not self._frames and self._running:
-                self._cond.wait_for(
-                    lambda: bool(self._frames) or not self._running, timeout=max(0.0, timeout_s)
-                )
-            if self._frames:
-                return self._frames.popleft()
-        if self._error is not None:
-            raise DeviceError(self._error)
-        return None
-
-    def stats(self) -> AcquisitionStats:
-        with self._cond:
-            return AcquisitionStats(
-                delivered=self._delivered,
-                device_dropped=self._dropped,
-                extra={"read_failures": self._read_failures, "host_queue_dropped": self._dropped},
-            )
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self.stop()
-        self._closed = True
+    def _do_close(self) -> None:
         self._cap.release()
 
 

@@ -1,10 +1,10 @@
 """Simulated machine-vision camera: one exposure per rising trigger edge, like a GenICam camera.
 
 The wire callback runs on the trigger box's thread, so it only latches the exposure (frame
-counter, device timestamp) and queues it; a worker renders the scene at mid-exposure, waits
-for the exposure to end, and puts the frame into a bounded on-camera buffer. Frames lost to
-a full buffer or to the `drop_frames` transport fault are counted and logged in the ground
-truth, and show as gaps in the frame counter, as on real cameras.
+counter, device timestamp) and queues it; the acquisition thread renders the scene at
+mid-exposure, waits for the exposure to end, and puts the frame into a bounded on-camera
+buffer. Frames lost to a full buffer or to the `drop_frames` transport fault are counted and
+logged in the ground truth, and show as gaps in the frame counter, as on real cameras.
 
 Fault switches (docs/sim-faults.md): `busy_us` makes the camera ignore trigger edges for a
 while after each exposure starts (readout / trigger overlap), and `unplug_at_s` /
@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import AcquisitionStats, Capability, RgbCamera
+from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
 from firmware_sim.scene import Scene, View
@@ -42,7 +42,7 @@ from firmware_sim.world import (
     unplug_params,
 )
 from rigd.core.devices import DeviceInfo
-from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.errors import ConfigError
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings
 
@@ -86,13 +86,17 @@ class _Exposure:
     exposure_us: int
 
 
-_STOP = object()
-
-
 class SimRgbCamera(Unpluggable, RgbCamera):
-    """A global-shutter camera in a `SimWorld`, with its own drifting clock."""
+    """A global-shutter camera in a `SimWorld`, with its own drifting clock.
+
+    The base's acquisition thread is the camera's readout: it completes latched exposures and
+    fills the on-camera buffer (the base's queue, `buffer_frames` long; overflow counted as
+    `buffer_overflow`). After stop() it finishes the exposures already triggered.
+    """
 
     _device_label = "camera"
+    _capabilities = _CAPABILITIES
+    _overflow_name = "buffer_overflow"
 
     def __init__(
         self,
@@ -110,7 +114,9 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             raise ConfigError(f"camera {name}: buffer_frames must be >= 1, got {p.buffer_frames}")
         if p.busy_us < 0:
             raise ConfigError(f"camera {name}: busy_us must be >= 0, got {p.busy_us}")
+        super().__init__(CameraSettings(), queue_len=p.buffer_frames, drain_on_stop=True)
         self._world, self._name, self._scene, self._clock, self._p = world, name, scene, clock, p
+        self._label = f"camera {name}"
         self._view: View = scene.view(name, p.width, p.height)
         self._info = DeviceInfo(
             kind="rgb_camera",
@@ -120,7 +126,6 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             serial=f"{world.name}/{name}",
             firmware="sim-1",
         )
-        self._settings = CameraSettings()
         self._fault = world.unplug_fault(name)
         self._fault.check_present(self._info.spec)
         self._opened_us = world.now_us()
@@ -132,36 +137,14 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":{json.dumps(name)},"kind":"frame"'
         world.register_clock(name, clock)
         self._lock = threading.Lock()
-        self._started = False
-        self._closed = False
+        self._started = False  # latching edges; under the lock, as the wire callback reads it
         self._next_counter = 0
-        self._jobs: queue.SimpleQueue[_Exposure | object] = queue.SimpleQueue()
-        self._frames: queue.Queue[Frame] = queue.Queue(maxsize=p.buffer_frames)
-        self._worker: threading.Thread | None = None
+        self._jobs: queue.SimpleQueue[_Exposure] = queue.SimpleQueue()
         self._free_run: threading.Thread | None = None
         self._stop_free_run = threading.Event()
-        self._error: BaseException | None = None
-        self._delivered = 0
-        self._dropped = 0
-        self._counts = {
-            "exposures": 0,
-            "buffer_overflow": 0,
-            "transport_dropped": 0,
-            "triggers_ignored": 0,
-            "unplug_lost": 0,
-        }
+        self._counts = {"exposures": 0, "transport_dropped": 0, "triggers_ignored": 0, "unplug_lost": 0}
         self._unsubscribe = world.wire.subscribe(self._on_edge)
         self._unlisten = self._fault.listen(self._on_unplug)
-
-    # --- Device ---------------------------------------------------------------------------
-
-    @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def capabilities(self) -> frozenset[Capability]:
-        return _CAPABILITIES
 
     @property
     def clock(self) -> DeviceClock:
@@ -181,19 +164,9 @@ class SimRgbCamera(Unpluggable, RgbCamera):
     def frame_dtype(self) -> np.dtype[np.generic]:
         return np.dtype(np.uint8)
 
-    def configure(self, settings: CameraSettings) -> None:
-        self._check_alive()
-        if self._started:
-            raise DeviceError(f"camera {self._name}: configure while started; stop it first")
-        self._settings = settings.model_copy()
+    # --- lifecycle hooks ------------------------------------------------------------------
 
-    def start(self) -> None:
-        self._check_alive()
-        if self._started:
-            raise DeviceError(f"camera {self._name} is already started")
-        self._error = None
-        self._worker = threading.Thread(target=self._work, name=f"sim-cam-{self._name}", daemon=True)
-        self._worker.start()
+    def _do_start(self) -> None:
         with self._lock:
             self._next_counter = self._fault.resume_counter if self._resume else 0
             self._resume = False
@@ -207,50 +180,30 @@ class SimRgbCamera(Unpluggable, RgbCamera):
                 target=self._run_free, name=f"sim-cam-{self._name}-freerun", daemon=True
             )
             self._free_run.start()
-        log.info("camera %s started (%s)", self._name, self._settings.trigger_mode)
 
-    def stop(self) -> None:
+    def _do_stop(self) -> None:
         with self._lock:
-            was_started, self._started = self._started, False
+            self._started = False
             if not self._dead(self._world.now_us()):
                 # An unplugged camera was still acquiring as far as the edges in its window go.
                 self._fault.acquiring = False
-        if not was_started:
-            return
         if self._free_run is not None:
             self._stop_free_run.set()
             self._free_run.join()
             self._free_run = None
-        # Exposures already triggered still complete and are delivered.
-        self._jobs.put(_STOP)
-        if self._worker is not None:
-            self._worker.join()
-            self._worker = None
-        log.info("camera %s stopped; %s", self._name, self.stats())
-        if self._error is not None:
-            raise DeviceError(f"camera {self._name}: worker failed: {self._error!r}") from self._error
 
-    def close(self) -> None:
-        if self._closed:
-            return
-        try:
-            self.stop()
-        finally:
-            self._unsubscribe()
-            self._unlisten()
-            self._closed = True
+    def _do_close(self) -> None:
+        self._unsubscribe()
+        self._unlisten()
 
-    def read_frame(self, timeout_s: float) -> Frame | None:
-        self._check_alive()
-        try:
-            frame = self._frames.get(timeout=timeout_s) if timeout_s > 0 else self._frames.get_nowait()
-        except queue.Empty:
+    def _read(self, timeout_s: float) -> Frame | None:
+        frame = super()._read(timeout_s)
+        if frame is None:
             return None
         with self._lock:
             if self._dead(self._world.now_us()):  # unplugged while we waited: this frame is lost too
                 self._note_unplug_locked([frame.frame_counter])
                 raise self._unplugged_error()
-            self._delivered += 1
         if self._journal is not None:
             self._journal.write(
                 f'{self._journal_head},"counter":{frame.frame_counter},'
@@ -258,27 +211,17 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             )
         return frame
 
-    def stats(self) -> AcquisitionStats:
+    def _counters(self) -> tuple[int, dict[str, int]]:
         with self._lock:
-            return AcquisitionStats(
-                delivered=self._delivered, device_dropped=self._dropped, extra=dict(self._counts)
-            )
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise DeviceError(f"camera {self._name} is closed")
+            counts = dict(self._counts)
+        return counts["transport_dropped"] + counts["unplug_lost"], counts
 
     # --- unplug fault ---------------------------------------------------------------------
 
     def _note_unplug_locked(self, lost: list[int]) -> None:
         """Log what the unplug cost (caller holds the lock); safe to call more than once."""
-        while True:
-            try:
-                lost.append(self._frames.get_nowait().frame_counter)
-            except queue.Empty:
-                break
+        lost.extend(f.frame_counter for f in self._queue.drain())
         if lost:
-            self._dropped += len(lost)
             self._counts["unplug_lost"] += len(lost)
             self._world.truth.mark_frames_lost(self._name, lost)
         if not self._unplug_noted:
@@ -330,16 +273,20 @@ class SimRgbCamera(Unpluggable, RgbCamera):
                 self._expose(t_true)
             k += 1
 
-    def _work(self) -> None:
+    def _grab(self, timeout_s: float) -> None:
+        """Acquisition thread: complete the exposures latched so far, waiting up to `timeout_s`
+        for the first; each frame lands in the buffer or is counted lost. Returns None, so a
+        stopping camera ends once no triggered exposure is left."""
         try:
-            while True:
-                job = self._jobs.get()
-                if not isinstance(job, _Exposure):
-                    return
-                self._deliver(job)
-        except Exception as exc:  # the thread must not die silently: stop() re-raises it
-            log.exception("camera %s: worker failed", self._name)
-            self._error = exc
+            job = self._jobs.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+        while True:
+            self._complete(job)
+            try:
+                job = self._jobs.get_nowait()
+            except queue.Empty:
+                return None
 
     def _render(self, job: _Exposure) -> NDArray[np.uint8]:
         gray = self.pixel_format == "mono8"
@@ -349,12 +296,11 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             img = np.asarray(cv2.convertScaleAbs(img, alpha=gain), dtype=np.uint8)
         return img
 
-    def _deliver(self, job: _Exposure) -> None:
+    def _complete(self, job: _Exposure) -> None:
         truth = self._world.truth
         if job.counter in self._p.drop_frames:
             # Lost in transport: the exposure happened, the host never sees it.
             with self._lock:
-                self._dropped += 1
                 self._counts["transport_dropped"] += 1
             truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
             log.debug("camera %s: frame %d dropped (fault injection)", self._name, job.counter)
@@ -375,27 +321,19 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         )
         with self._lock:
             # Under the lock, so an unplug noted meanwhile sees this frame in the buffer or not at all.
-            if self._dead(self._world.now_us()):
-                full = False
-            else:
-                try:
-                    self._frames.put_nowait(frame)
-                except queue.Full:
-                    full = True
-                    self._dropped += 1
-                    self._counts["buffer_overflow"] += 1
-                    truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
-                else:
-                    truth.add_frame(self._name, job.counter, job.true_us, delivered=True)
+            dead = self._dead(self._world.now_us())
+            if not dead:
+                queued = self._queue.put(frame) is None
+                truth.add_frame(self._name, job.counter, job.true_us, delivered=queued)
+                if queued:
                     return
-        if full:
-            log.warning("camera %s: frame buffer full, frame %d dropped", self._name, job.counter)
-        else:
+        if dead:
             self._lose_unplugged(job)
+        else:
+            log.warning("camera %s: frame buffer full, frame %d dropped", self._name, job.counter)
 
     def _lose_unplugged(self, job: _Exposure) -> None:
         with self._lock:
-            self._dropped += 1
             self._counts["unplug_lost"] += 1
         self._world.truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
         log.debug("camera %s: frame %d lost to the unplug", self._name, job.counter)

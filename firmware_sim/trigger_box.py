@@ -666,7 +666,7 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
         slot.box = box
     try:
         if transport == "hid":
-            from drivers.serial_trigger import HidTransport
+            from drivers.trigger_link import HidTransport
             from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidDevice, attach, box_serial
 
             attach(box)

@@ -416,7 +416,8 @@ def reset_world(name: str = "default") -> None:
 
 class Unpluggable:
     """The unplug fault's host-facing behaviour, shared by the sim camera and event sensor:
-    once its window opens, this device object is stale for good and every call says so."""
+    once its window opens, this device object is stale for good and every call says so
+    (through the `_check_present` hook of the device base classes)."""
 
     _fault: UnplugFault
     _opened_us: float
@@ -424,9 +425,6 @@ class Unpluggable:
     _lock: threading.Lock
     _name: str
     _device_label: str
-
-    def _check_open(self) -> None:
-        raise NotImplementedError
 
     def _note_unplug_locked(self, lost: list[Any]) -> None:
         raise NotImplementedError
@@ -450,8 +448,8 @@ class Unpluggable:
             "close it and open it again"
         )
 
-    def _check_alive(self) -> None:
-        self._check_open()
+    def _check_present(self) -> None:
+        """DeviceError once unplugged; what the host had not read yet is logged as lost."""
         if self._dead(self._world.now_us()):
             with self._lock:
                 self._note_unplug_locked([])

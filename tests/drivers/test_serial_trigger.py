@@ -16,19 +16,11 @@ from uuid import uuid4
 import numpy as np
 import pytest
 
-from drivers import serial_trigger
+from drivers import trigger_link
 from drivers.base import Capability
 from drivers.registry import DeviceSpec, open_device
-from drivers.serial_trigger import (
-    HidTransport,
-    SerialTrigger,
-    TransportError,
-    TriggerBoxError,
-    hid_payload,
-    hid_report,
-    open_serial_trigger,
-    parse_hid_address,
-)
+from drivers.serial_trigger import SerialTrigger, TriggerBoxError, open_serial_trigger
+from drivers.trigger_link import HidTransport, TransportError, hid_payload, hid_report, parse_hid_address
 from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidApi, attach
 from firmware_sim.trigger_box import SimTriggerBox, find_trigger_box, open_sim_trigger
 from firmware_sim.world import SimWorld, get_world, reset_world
@@ -381,7 +373,7 @@ def test_hid_address_errors_name_the_spec(spec: str) -> None:
 
 def test_open_hid_spec_through_registry(world_name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """`hid://VID:PID/SERIAL` through open_device, with the fake hidapi module in place of `hid`."""
-    monkeypatch.setattr(serial_trigger, "_import_hid", lambda: FakeHidApi)
+    monkeypatch.setattr(trigger_link, "_import_hid", lambda: FakeHidApi)
     box = SimTriggerBox(get_world(world_name), boot_ms=0, seed=7, link="socket")
     try:
         attach(box)

@@ -78,7 +78,11 @@ def test_free_running_frames_with_host_time_and_software_sync() -> None:
     assert cam.info.facts["sync"] == "software"
     assert Capability.FREE_RUN in cam.capabilities
     assert Capability.HARDWARE_TRIGGER not in cam.capabilities
-    with pytest.raises(ConfigError, match="no trigger input"):
+    assert Capability.SOFTWARE_SYNC in cam.capabilities
+    assert cam.required_capabilities(CameraSettings(trigger_mode="hardware")) - cam.capabilities == {
+        Capability.HARDWARE_TRIGGER
+    }
+    with pytest.raises(ConfigError, match="needs a trigger input"):
         cam.configure(CameraSettings(trigger_mode="hardware"))
     cam.configure(CameraSettings(trigger_mode="free_run", exposure_us=5000))
     assert cap.props[cv2.CAP_PROP_EXPOSURE] == 50  # UVC units of 100 us

@@ -1,0 +1,419 @@
+"""The ideal event pixel as numba kernels, and the renderer that feeds them only what moves.
+
+`generate_events` cuts an interval into sub-steps short enough that sprites move at most
+`MAX_STEP_PX` per sub-step, renders the log intensity only inside the boxes that can change,
+and compares it with each pixel's reference level in one fused pass
+(`_render_events_kernel`, nogil, so two sensors run in parallel). A pixel crossing k
+thresholds in one sub-step emits k events at times linearly interpolated between the two
+renders. This is the noise-free case of `firmware_sim.event_model`, whose kernel works on
+whole frames with per-pixel state (mismatch, noise, refractory, low-pass); the two stay
+separate because fusing rendering into the comparison is what makes this one real-time.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, log_lut
+from firmware_sim.world import DeviceClock
+from rigd.core.events import EventArray
+
+#: Largest sprite motion between two renders, in pixels.
+MAX_STEP_PX = 3.0
+
+I64 = NDArray[np.int64]
+F32 = NDArray[np.float32]
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _emit_pixel(  # pragma: no cover - numba
+    lp: float,
+    ln: float,
+    r: float,
+    threshold: float,
+    t0: float,
+    dt: float,
+    x: int,
+    y: int,
+    c_off: float,
+    c_rate: float,
+    out_x: NDArray[np.uint16],
+    out_y: NDArray[np.uint16],
+    out_p: NDArray[np.int8],
+    out_t: I64,
+    n: int,
+) -> tuple[int, float]:
+    """Events of one pixel whose log level went lp -> ln in [t0, t0 + dt] with reference r.
+
+    Returns (new n, new reference), or (-1, r) when the output has no room for them.
+    Each crossing of r + m * threshold is timed by linear interpolation between lp and ln
+    and stamped like DeviceClock.stamp: floor(c_off + t * c_rate).
+    """
+    d = ln - r
+    if -threshold < d < threshold:
+        return n, r
+    k = int(abs(d) / threshold)
+    if n + k > out_x.shape[0]:
+        return -1, r
+    sign = 1.0 if d > 0 else -1.0
+    slope = ln - lp
+    for m in range(1, k + 1):
+        level = r + sign * m * threshold
+        frac = (level - lp) / slope if slope != 0.0 else 1.0
+        frac = min(max(frac, 0.0), 1.0)
+        out_x[n] = x
+        out_y[n] = y
+        out_p[n] = 1 if sign > 0 else -1
+        out_t[n] = math.floor(c_off + (t0 + frac * dt) * c_rate)
+        n += 1
+    return n, r + sign * k * threshold
+
+
+@njit(nogil=True, cache=True)
+def generate_events_kernel(  # pragma: no cover - numba
+    l_prev: F32,
+    l_new: F32,
+    ref: F32,
+    threshold: float,
+    t0: float,
+    t1: float,
+    x0: int,
+    y0: int,
+    c_off: float,
+    c_rate: float,
+    start: int,
+    out_x: NDArray[np.uint16],
+    out_y: NDArray[np.uint16],
+    out_p: NDArray[np.int8],
+    out_t: I64,
+    n_out: int,
+) -> tuple[int, int]:
+    """Events of one sub-step [t0, t1] from two log images of a box with top-left (x0, y0).
+
+    The reference `ref` is updated in place. Pixels are visited in raster order from flat
+    index `start`; when the outputs are full the kernel stops before the pixel that would
+    overflow and returns (n_out, that pixel) so the caller can grow them and resume; it
+    returns (n_out, h * w) when done.
+    """
+    h, w = l_new.shape
+    dt = t1 - t0
+    for idx in range(start, h * w):
+        i = idx // w
+        j = idx - i * w
+        n, r = _emit_pixel(
+            l_prev[i, j],
+            l_new[i, j],
+            ref[i, j],
+            threshold,
+            t0,
+            dt,
+            x0 + j,
+            y0 + i,
+            c_off,
+            c_rate,
+            out_x,
+            out_y,
+            out_p,
+            out_t,
+            n_out,
+        )
+        if n < 0:
+            return n_out, idx
+        n_out = n
+        ref[i, j] = r
+    return n_out, h * w
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _quad_row_span(q: NDArray[np.float64], y: float) -> tuple[float, float]:  # pragma: no cover - numba
+    """x extent of the convex quad q (4, 2) on row y; (inf, -inf) when the row misses it."""
+    lo = np.inf
+    hi = -np.inf
+    for e in range(4):
+        xa, ya = q[e, 0], q[e, 1]
+        xb, yb = q[(e + 1) % 4, 0], q[(e + 1) % 4, 1]
+        if (ya <= y <= yb) or (yb <= y <= ya):
+            if ya == yb:
+                lo = min(lo, xa, xb)
+                hi = max(hi, xa, xb)
+            else:
+                xe = xa + (y - ya) * (xb - xa) / (yb - ya)
+                lo = min(lo, xe)
+                hi = max(hi, xe)
+    return lo, hi
+
+
+@njit(nogil=True, cache=True)
+def _render_events_kernel(  # pragma: no cover - numba
+    bg_int: F32,
+    bg_log: F32,
+    last_log: F32,
+    ref: F32,
+    stack: F32,
+    texels: I64,
+    hinv: NDArray[np.float64],
+    quads: NDArray[np.float64],
+    lut: F32,
+    lut_scale: float,
+    threshold: float,
+    kmax: int,
+    t0: float,
+    t1: float,
+    c_off: float,
+    c_rate: float,
+    y_start: int,
+    y_end: int,
+    out_x: NDArray[np.uint16],
+    out_y: NDArray[np.uint16],
+    out_p: NDArray[np.int8],
+    out_t: I64,
+    n_out: int,
+) -> tuple[int, int]:
+    """Render the log intensity at t1 where sprites are or were, and emit the events since t0.
+
+    Only pixels inside some sprite's quad at t0 or t1 (`quads`: (n, 2, 4, 2) image corners)
+    can change, so each row visits just the union of those spans. One fused pass per
+    pixel: inverse-map into each covering sprite (bilinear, alpha compositing over the
+    background), log through the table, compare with the reference. `last_log` (the log
+    image at t0) and `ref` are full-frame and updated in place; uncovered pixels read the
+    view's precomputed background log. Rows are atomic: when a row might not fit in the
+    outputs, returns (n_out, that row) for the caller to grow them and resume.
+    """
+    _height, width = bg_int.shape
+    n_spr = texels.shape[0]
+    dt = t1 - t0
+    lut_max = lut.shape[0] - 2.0
+    side = stack.shape[1]
+    row = side * 2
+    flat = stack.reshape(-1)
+    lo = np.empty(n_spr, np.int64)
+    hi = np.empty(n_spr, np.int64)
+    seg_lo = np.empty(n_spr, np.int64)
+    seg_hi = np.empty(n_spr, np.int64)
+    for y in range(y_start, y_end):
+        fy = float(y)
+        n_seg = 0
+        row_px = 0
+        for s in range(n_spr):
+            a0, b0 = _quad_row_span(quads[s, 0], fy)
+            a1, b1 = _quad_row_span(quads[s, 1], fy)
+            a = min(a0, a1)
+            b = max(b0, b1)
+            if a > b:
+                lo[s] = 0
+                hi[s] = 0
+                continue
+            lo[s] = max(math.floor(a), 0)
+            hi[s] = min(math.floor(b) + 2, width)
+            if hi[s] <= lo[s]:
+                continue
+            # Insert [lo, hi) into the sorted segment list, merging overlaps.
+            pos = n_seg
+            while pos > 0 and seg_lo[pos - 1] > lo[s]:
+                seg_lo[pos] = seg_lo[pos - 1]
+                seg_hi[pos] = seg_hi[pos - 1]
+                pos -= 1
+            seg_lo[pos] = lo[s]
+            seg_hi[pos] = hi[s]
+            n_seg += 1
+        if n_seg == 0:
+            continue
+        m = 0
+        for i in range(1, n_seg):
+            if seg_lo[i] <= seg_hi[m]:
+                seg_hi[m] = max(seg_hi[m], seg_hi[i])
+            else:
+                m += 1
+                seg_lo[m] = seg_lo[i]
+                seg_hi[m] = seg_hi[i]
+        n_seg = m + 1
+        for i in range(n_seg):
+            row_px += seg_hi[i] - seg_lo[i]
+        if n_out + row_px * kmax > out_x.shape[0]:
+            return n_out, y
+        for i in range(n_seg):
+            for x in range(seg_lo[i], seg_hi[i]):
+                fx = float(x)
+                inten = bg_int[y, x]
+                hit = False
+                for s in range(n_spr):
+                    if x < lo[s] or x >= hi[s]:
+                        continue
+                    rw = 1.0 / (hinv[s, 2, 0] * fx + hinv[s, 2, 1] * fy + hinv[s, 2, 2])
+                    u = (hinv[s, 0, 0] * fx + hinv[s, 0, 1] * fy + hinv[s, 0, 2]) * rw
+                    v = (hinv[s, 1, 0] * fx + hinv[s, 1, 1] * fy + hinv[s, 1, 2]) * rw
+                    lim = texels[s] - 1
+                    if u < 0.0 or v < 0.0 or u >= lim or v >= lim:
+                        continue
+                    iu = int(u)
+                    iv = int(v)
+                    fu = u - iu
+                    fv = v - iv
+                    # Flat indexing: (s, iv, iu, channel) in the C-contiguous stack.
+                    b = ((s * side + iv) * side + iu) * 2
+                    p00, a00 = flat[b], flat[b + 1]
+                    p01, a01 = flat[b + 2], flat[b + 3]
+                    p10, a10 = flat[b + row], flat[b + row + 1]
+                    p11, a11 = flat[b + row + 2], flat[b + row + 3]
+                    top_p = p00 + fu * (p01 - p00)
+                    bot_p = p10 + fu * (p11 - p10)
+                    top_a = a00 + fu * (a01 - a00)
+                    bot_a = a10 + fu * (a11 - a10)
+                    pa = top_p + fv * (bot_p - top_p)
+                    al = top_a + fv * (bot_a - top_a)
+                    inten = inten * (1.0 - al) + pa
+                    hit = True
+                if hit:
+                    f = min(max(inten, 0.0) * lut_scale, lut_max)
+                    k = int(f)
+                    ln = lut[k] + (f - k) * (lut[k + 1] - lut[k])
+                else:
+                    ln = bg_log[y, x]
+                n_out, r = _emit_pixel(
+                    last_log[y, x],
+                    ln,
+                    ref[y, x],
+                    threshold,
+                    t0,
+                    dt,
+                    x,
+                    y,
+                    c_off,
+                    c_rate,
+                    out_x,
+                    out_y,
+                    out_p,
+                    out_t,
+                    n_out,
+                )
+                ref[y, x] = r
+                last_log[y, x] = ln
+    return n_out, y_end
+
+
+@njit(nogil=True, cache=True)
+def sort_events_by_time(  # pragma: no cover - numba
+    x: NDArray[np.uint16], y: NDArray[np.uint16], p: NDArray[np.int8], t: I64
+) -> tuple[NDArray[np.uint16], NDArray[np.uint16], NDArray[np.int8], I64]:
+    """Stable counting sort by time; a slice spans a few thousand microseconds at most."""
+    n = t.shape[0]
+    ox = np.empty(n, np.uint16)
+    oy = np.empty(n, np.uint16)
+    op = np.empty(n, np.int8)
+    ot = np.empty(n, np.int64)
+    if n == 0:
+        return ox, oy, op, ot
+    tmin = t.min()
+    counts = np.zeros(t.max() - tmin + 2, np.int64)
+    for i in range(n):
+        counts[t[i] - tmin + 1] += 1
+    for b in range(1, counts.shape[0]):
+        counts[b] += counts[b - 1]
+    for i in range(n):
+        b = t[i] - tmin
+        dst = counts[b]
+        counts[b] += 1
+        ox[dst] = x[i]
+        oy[dst] = y[i]
+        op[dst] = p[i]
+        ot[dst] = t[i]
+    return ox, oy, op, ot
+
+
+class EventBuffer:
+    """Growable struct-of-arrays the kernels write into (times already device stamps)."""
+
+    def __init__(self, capacity: int = 1 << 15) -> None:
+        self.x = np.empty(capacity, np.uint16)
+        self.y = np.empty(capacity, np.uint16)
+        self.p = np.empty(capacity, np.int8)
+        self.t = np.empty(capacity, np.int64)
+        self.n = 0
+
+    def grow(self) -> None:
+        cap = 2 * self.x.shape[0]
+        for name in ("x", "y", "p", "t"):
+            old = getattr(self, name)
+            new = np.empty(cap, old.dtype)
+            new[: self.n] = old[: self.n]
+            setattr(self, name, new)
+
+    def to_array(self) -> EventArray:
+        """The events so far, sorted by time (stable)."""
+        if self.n == 0:
+            return EventArray.empty()
+        n = self.n
+        return EventArray(*sort_events_by_time(self.x[:n], self.y[:n], self.p[:n], self.t[:n]))
+
+
+def generate_events(
+    scene: Scene,
+    view: View,
+    last_log: F32,
+    ref: F32,
+    threshold: float,
+    t0_us: float,
+    t1_us: float,
+    clock: DeviceClock | None = None,
+    buf: EventBuffer | None = None,
+) -> EventBuffer:
+    """Events of [t0, t1], unsorted: updates `last_log` (log image at t0 -> t1) and `ref`.
+
+    Only the boxes that can change are visited; outside them `last_log` stays valid.
+    Times are stamped with `clock` (identity when None).
+    """
+    out = buf if buf is not None else EventBuffer()
+    if t1_us <= t0_us or not scene.objects:
+        return out
+    c_off, c_rate = (clock.offset_us, clock.rate) if clock is not None else (0.0, 1.0)
+    n_sub = scene.substeps(view, t0_us, t1_us, MAX_STEP_PX)
+    times = np.linspace(t0_us, t1_us, n_sub + 1)
+    corners = scene.object_corners(view, times)  # (n_sub + 1, n_obj, 4, 2)
+    hinvs = np.linalg.inv(scene.object_homographies(view, times[1:]))
+    y_lo = max(math.floor(corners[..., 1].min()), 0)
+    y_hi = min(math.floor(corners[..., 1].max()) + 2, view.height)
+    # Log range of the scene is below 4 (lin_log(0) ~ 2.0, log(256) ~ 5.6).
+    kmax = int(4.0 / threshold) + 1
+    for k in range(n_sub):
+        if y_hi <= y_lo:
+            break
+        quads = np.ascontiguousarray(np.stack([corners[k], corners[k + 1]], axis=1))
+        hinv = np.ascontiguousarray(hinvs[k])
+        y = y_lo
+        while True:
+            out.n, y = _render_events_kernel(
+                view.bg_intensity,
+                view.bg_log,
+                last_log,
+                ref,
+                scene.sprite_stack,
+                scene.sprite_texels,
+                hinv,
+                quads,
+                _LUT,
+                LOG_LUT_SCALE,
+                threshold,
+                kmax,
+                float(times[k]),
+                float(times[k + 1]),
+                c_off,
+                c_rate,
+                y,
+                y_hi,
+                out.x,
+                out.y,
+                out.p,
+                out.t,
+                out.n,
+            )
+            if y >= y_hi:
+                break
+            out.grow()
+    return out
+
+
+_LUT = log_lut()
