@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -266,24 +266,19 @@ def synchronize(
     """
     shared = shares_clock_with or {}
     software = software_synced or set()
-    if pulses.index.size and np.any(np.diff(pulses.index) <= 0):
-        raise SyncError("box pulse indices are not strictly increasing")
+    _check_pulse_indices(pulses)
     period_us = 1e6 / rate_hz
-    expected = np.arange(pulses.n_emitted, dtype=np.int64)
-    missing_from_log = [int(i) for i in np.setdiff1d(expected, pulses.index)]
     warnings: list[str] = []
-    if missing_from_log:
-        warnings.append(f"{len(missing_from_log)} pulse(s) absent from the box's timestamp log")
+    missing_from_log = _pulses_missing_from_log(pulses, warnings)
     host_map = host_to_rig_map(pulses) if pulses.t_us.size else ClockMap.identity()
-    maps: dict[str, ClockMap] = {}
-    obs_index: dict[str, NDArray[np.int64]] = {}
-    devices: dict[str, DeviceSync] = {}
-    seen = np.zeros(max(pulses.n_emitted, int(pulses.index.max(initial=-1)) + 1), bool)
     matches = {
         obs.name: match_device(obs, pulses, period_us, host_map)
         for obs in observations
         if obs.name not in software
     }
+    maps: dict[str, ClockMap] = {}
+    obs_index: dict[str, NDArray[np.int64]] = {}
+    devices: dict[str, DeviceSync] = {}
     for obs in observations:
         if obs.name in software:
             devices[obs.name], maps[obs.name], obs_index[obs.name] = _software_sync(
@@ -292,50 +287,11 @@ def synchronize(
             warnings.append(f"{obs.name}: free-running, synchronized by the host clock only (ms accuracy)")
             continue
         m = matches[obs.name]
-        obs_index[obs.name] = m.pulse_index
-        matched = m.pulse_index[m.pulse_index >= 0]
-        seen[matched] = True
         master = shared.get(obs.name)
-        master_fit = matches[master].fit if master in matches else None
-        clock_from: Literal["own_pulses", "master", "host"] = "own_pulses"
-        if m.fit is not None:
-            warnings.extend(m.warnings)
-            cmap, rms, mx = m.fit.map, m.fit.rms_us, m.fit.max_abs_us
-        elif master_fit is not None:
-            cmap, rms, mx = master_fit.map, master_fit.rms_us, master_fit.max_abs_us
-            clock_from = "master"
-        else:
-            # Keep the data usable and say loudly how its time was derived.
-            warnings.extend(m.warnings)
-            cmap = _fallback_map(obs, host_map)
-            warnings.append(f"{obs.name}: times mapped with the coarse host clock (ms accuracy)")
-            rms = mx = float("nan")
-            clock_from = "host"
-        maps[obs.name] = cmap
-        dropped = _counter_gaps(obs.frame_counter) if obs.frame_counter is not None else []
-        devices[obs.name] = DeviceSync(
-            device=obs.name,
-            kind=obs.kind,
-            device_ref_us=cmap.device_ref_us,
-            rig_ref_us=cmap.rig_ref_us,
-            rate=cmap.rate,
-            frac_us=cmap.frac_us,
-            drift_ppm=cmap.drift_ppm,
-            n_matched=int(matched.size),
-            residual_rms_us=rms,
-            residual_max_us=mx,
-            # A slave reading its master's clock without trigger-in is not missing pulses.
-            missing_pulses=[]
-            if clock_from == "master" and obs.t_device_us.size == 0
-            else [int(i) for i in np.setdiff1d(expected, matched)],
-            dropped_frames=dropped,
-            unmatched_observations=int((m.pulse_index < 0).sum()),
-            shares_clock_with=master,
-            clock_from=clock_from,
-        )
-        if dropped:
-            warnings.append(f"{obs.name}: {len(dropped)} frame(s) lost (counter gaps)")
-    unseen = [int(i) for i in expected if not seen[i]] if observations else []
+        clock = _choose_clock(obs, m, matches[master].fit if master in matches else None, host_map, warnings)
+        maps[obs.name], obs_index[obs.name] = clock.map, m.pulse_index
+        devices[obs.name] = _device_sync(obs, m, clock, master, pulses.n_emitted, warnings)
+    unseen = _pulses_seen_by_no_device(pulses, list(matches.values())) if observations else []
     if unseen:
         warnings.append(f"{len(unseen)} pulse(s) seen by no device: {unseen[:10]}")
     report = SyncReport(
@@ -350,6 +306,93 @@ def synchronize(
         warnings=warnings,
     )
     return SyncResult(maps, obs_index, report)
+
+
+def _check_pulse_indices(pulses: PulseLog) -> None:
+    if pulses.index.size and np.any(np.diff(pulses.index) <= 0):
+        raise SyncError("box pulse indices are not strictly increasing")
+
+
+def _pulses_missing_from_log(pulses: PulseLog, warnings: list[str]) -> list[int]:
+    """Pulses the box says it emitted but did not report: a gap in its log, not in the devices."""
+    expected = np.arange(pulses.n_emitted, dtype=np.int64)
+    missing = [int(i) for i in np.setdiff1d(expected, pulses.index)]
+    if missing:
+        warnings.append(f"{len(missing)} pulse(s) absent from the box's timestamp log")
+    return missing
+
+
+def _pulses_seen_by_no_device(pulses: PulseLog, matches: list[DeviceMatch]) -> list[int]:
+    seen = np.zeros(max(pulses.n_emitted, int(pulses.index.max(initial=-1)) + 1), bool)
+    for m in matches:
+        seen[m.pulse_index[m.pulse_index >= 0]] = True
+    return [int(i) for i in np.flatnonzero(~seen[: pulses.n_emitted])]
+
+
+class _Clock(NamedTuple):
+    """A device's map to rig time, its fit residuals (us) and where it came from."""
+
+    map: ClockMap
+    rms_us: float
+    max_us: float
+    source: Literal["own_pulses", "master", "host"]
+
+
+def _choose_clock(
+    obs: DeviceObservations,
+    m: DeviceMatch,
+    master_fit: ClockFit | None,
+    host_map: ClockMap,
+    warnings: list[str],
+) -> _Clock:
+    """The device's own fit; else its master's (one clock over a sync cable); else the coarse
+    host map, which keeps the data usable and says loudly how its time was derived."""
+    if m.fit is not None:
+        warnings.extend(m.warnings)
+        return _Clock(m.fit.map, m.fit.rms_us, m.fit.max_abs_us, "own_pulses")
+    if master_fit is not None:
+        return _Clock(master_fit.map, master_fit.rms_us, master_fit.max_abs_us, "master")
+    warnings.extend(m.warnings)
+    cmap = _fallback_map(obs, host_map)
+    warnings.append(f"{obs.name}: times mapped with the coarse host clock (ms accuracy)")
+    return _Clock(cmap, float("nan"), float("nan"), "host")
+
+
+def _device_sync(
+    obs: DeviceObservations,
+    m: DeviceMatch,
+    clock: _Clock,
+    master: str | None,
+    n_emitted: int,
+    warnings: list[str],
+) -> DeviceSync:
+    """The report entry of one triggered device: its map, what it matched, missed and lost."""
+    matched = m.pulse_index[m.pulse_index >= 0]
+    dropped = _counter_gaps(obs.frame_counter) if obs.frame_counter is not None else []
+    cmap = clock.map
+    dev = DeviceSync(
+        device=obs.name,
+        kind=obs.kind,
+        device_ref_us=cmap.device_ref_us,
+        rig_ref_us=cmap.rig_ref_us,
+        rate=cmap.rate,
+        frac_us=cmap.frac_us,
+        drift_ppm=cmap.drift_ppm,
+        n_matched=int(matched.size),
+        residual_rms_us=clock.rms_us,
+        residual_max_us=clock.max_us,
+        # A slave reading its master's clock without trigger-in is not missing pulses.
+        missing_pulses=[]
+        if clock.source == "master" and obs.t_device_us.size == 0
+        else [int(i) for i in np.setdiff1d(np.arange(n_emitted, dtype=np.int64), matched)],
+        dropped_frames=dropped,
+        unmatched_observations=int((m.pulse_index < 0).sum()),
+        shares_clock_with=master,
+        clock_from=clock.source,
+    )
+    if dropped:
+        warnings.append(f"{obs.name}: {len(dropped)} frame(s) lost (counter gaps)")
+    return dev
 
 
 def _software_sync(
