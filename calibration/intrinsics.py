@@ -391,83 +391,18 @@ def calibrate_intrinsics(
     """
     rej = list(rejected)
     warn = list(warnings)
-    if not detections:
-        raise NoBoardFoundError(
-            f"camera {camera}: board {board} was not found in any image"
-            + (f" ({len(rej)} images tried)" if rej else "")
-        )
-    sizes = {d.image_size for d in detections}
-    if len(sizes) != 1:
-        raise CalibrationError(f"camera {camera}: images have different sizes {sorted(sizes)}")
-    size = next(iter(sizes))
-    usable: list[Detection] = []
-    for d in detections:
-        if d.n < 6:
-            rej.append(RejectedView(name=d.name, reason=f"only {d.n} corners detected (need 6)"))
-        elif math.isfinite(d.edge_width_px) and d.edge_width_px > max_edge_width_px:
-            rej.append(
-                RejectedView(
-                    name=d.name,
-                    reason=f"blurred: edge width {d.edge_width_px:.1f} px > {max_edge_width_px:.1f} px "
-                    "(motion blur or focus)",
-                )
-            )
-        else:
-            usable.append(d)
+    size = _image_size(detections, board, camera, rej)
+    usable = _usable_views(detections, max_edge_width_px, rej)
     if len(usable) < 2:
         raise CalibrationError(
             f"camera {camera}: {len(usable)} usable view(s) of {board}; need at least 2 "
             f"(rejected: {'; '.join(f'{r.name}: {r.reason}' for r in rej) or 'none'})"
         )
-
-    scores: list[ModelScore] = []
-    if model != "auto":
-        if model not in MODELS_BY_NAME:
-            raise CalibrationError(f"unknown lens model {model!r}; choose from {', '.join(MODELS_BY_NAME)}")
-        lens = MODELS_BY_NAME[model]
-    elif len(usable) < MIN_VIEWS_FOR_CV:
-        lens = LENS_MODELS[0]
-        warn.append(
-            f"{len(usable)} views are too few for cross-validated model selection "
-            f"(need {MIN_VIEWS_FOR_CV}); using the simplest model {lens.name}"
-        )
-    else:
-        lens, scores = select_model(usable, size)
-
+    lens, scores = _choose_lens(model, usable, size, warn)
     fit = _fit(usable, size, lens)
-    while reject_outliers and len(usable) > max(MIN_VIEWS_FOR_CV, 3):
-        limit = _outlier_limit(fit.per_view)
-        worst = int(np.argmax(fit.per_view))
-        if fit.per_view[worst] <= limit:
-            break
-        bad = usable.pop(worst)
-        reason = (
-            f"reprojection RMS {fit.per_view[worst]:.3f} px > limit {limit:.3f} px "
-            f"(median {float(np.median(fit.per_view)):.3f} px): wrong corners, blur or a moved board"
-        )
-        log.info("camera %s: rejecting view %s: %s", camera, bad.name, reason)
-        rej.append(RejectedView(name=bad.name, reason=reason))
-        fit = _fit(usable, size, lens)
-
+    if reject_outliers:
+        fit = _reject_outlier_views(usable, size, lens, fit, camera, rej)
     warn.extend(_degeneracy_warnings(usable, fit, size, lens))
-    views = []
-    for d, rv, tv, e in zip(usable, fit.rvecs, fit.tvecs, fit.per_view, strict=True):
-        res = _residuals(d, fit.K, fit.dist, rv, tv)
-        views.append(
-            ViewResult(
-                name=d.name,
-                rms_px=float(e),
-                n_points=d.n,
-                rvec=rv.tolist(),
-                tvec=tv.tolist(),
-                tilt_deg=_tilt_deg(rv),
-                board_area_frac=_hull_frac(d),
-                edge_width_px=d.edge_width_px if math.isfinite(d.edge_width_px) else None,
-                ids=d.ids.tolist(),
-                image_points=d.image_points.tolist(),
-                residuals=res.tolist(),
-            )
-        )
     for w in warn:
         log.warning("camera %s: %s", camera, w)
     return IntrinsicsResult(
@@ -479,11 +414,110 @@ def calibrate_intrinsics(
         dist=fit.dist.tolist(),
         rms_px=fit.rms,
         std_devs=_std_map(fit, lens),
-        views=views,
+        views=_view_results(usable, fit),
         rejected=rej,
         warnings=warn,
         model_scores=scores,
     )
+
+
+def _image_size(
+    detections: Sequence[Detection], board: BoardSpec, camera: str, rejected: Sequence[RejectedView]
+) -> tuple[int, int]:
+    """The one image size of all detections; NoBoardFoundError when there are none."""
+    if not detections:
+        raise NoBoardFoundError(
+            f"camera {camera}: board {board} was not found in any image"
+            + (f" ({len(rejected)} images tried)" if rejected else "")
+        )
+    sizes = {d.image_size for d in detections}
+    if len(sizes) != 1:
+        raise CalibrationError(f"camera {camera}: images have different sizes {sorted(sizes)}")
+    return next(iter(sizes))
+
+
+def _usable_views(
+    detections: Sequence[Detection], max_edge_width_px: float, rejected: list[RejectedView]
+) -> list[Detection]:
+    """Views with enough corners and sharp enough edges; the others go to `rejected` with why."""
+    usable: list[Detection] = []
+    for d in detections:
+        if d.n < 6:
+            rejected.append(RejectedView(name=d.name, reason=f"only {d.n} corners detected (need 6)"))
+        elif math.isfinite(d.edge_width_px) and d.edge_width_px > max_edge_width_px:
+            rejected.append(
+                RejectedView(
+                    name=d.name,
+                    reason=f"blurred: edge width {d.edge_width_px:.1f} px > {max_edge_width_px:.1f} px "
+                    "(motion blur or focus)",
+                )
+            )
+        else:
+            usable.append(d)
+    return usable
+
+
+def _choose_lens(
+    model: str, usable: Sequence[Detection], size: tuple[int, int], warnings: list[str]
+) -> tuple[LensModel, list[ModelScore]]:
+    """The named model, or ("auto") the cross-validated choice; the simplest when too few views."""
+    if model != "auto":
+        if model not in MODELS_BY_NAME:
+            raise CalibrationError(f"unknown lens model {model!r}; choose from {', '.join(MODELS_BY_NAME)}")
+        return MODELS_BY_NAME[model], []
+    if len(usable) < MIN_VIEWS_FOR_CV:
+        lens = LENS_MODELS[0]
+        warnings.append(
+            f"{len(usable)} views are too few for cross-validated model selection "
+            f"(need {MIN_VIEWS_FOR_CV}); using the simplest model {lens.name}"
+        )
+        return lens, []
+    return select_model(usable, size)
+
+
+def _reject_outlier_views(
+    usable: list[Detection],
+    size: tuple[int, int],
+    lens: LensModel,
+    fit: _Fit,
+    camera: str,
+    rejected: list[RejectedView],
+) -> _Fit:
+    """Drop the worst view while its error is far above the others, refitting in between; `usable`
+    loses the dropped views. One at a time, since one bad view inflates every other's error."""
+    while len(usable) > max(MIN_VIEWS_FOR_CV, 3):
+        limit = _outlier_limit(fit.per_view)
+        worst = int(np.argmax(fit.per_view))
+        if fit.per_view[worst] <= limit:
+            break
+        bad = usable.pop(worst)
+        reason = (
+            f"reprojection RMS {fit.per_view[worst]:.3f} px > limit {limit:.3f} px "
+            f"(median {float(np.median(fit.per_view)):.3f} px): wrong corners, blur or a moved board"
+        )
+        log.info("camera %s: rejecting view %s: %s", camera, bad.name, reason)
+        rejected.append(RejectedView(name=bad.name, reason=reason))
+        fit = _fit(usable, size, lens)
+    return fit
+
+
+def _view_results(usable: Sequence[Detection], fit: _Fit) -> list[ViewResult]:
+    return [
+        ViewResult(
+            name=d.name,
+            rms_px=float(e),
+            n_points=d.n,
+            rvec=rv.tolist(),
+            tvec=tv.tolist(),
+            tilt_deg=_tilt_deg(rv),
+            board_area_frac=_hull_frac(d),
+            edge_width_px=d.edge_width_px if math.isfinite(d.edge_width_px) else None,
+            ids=d.ids.tolist(),
+            image_points=d.image_points.tolist(),
+            residuals=_residuals(d, fit.K, fit.dist, rv, tv).tolist(),
+        )
+        for d, rv, tv, e in zip(usable, fit.rvecs, fit.tvecs, fit.per_view, strict=True)
+    ]
 
 
 def detect_images(
