@@ -371,20 +371,30 @@ def detect_in_reconstructions(
     (default `<sensor>@<t_us>`); the rig calibration matches views across devices by them."""
     p = params or ReconstructionParams()
     times = np.asarray(times_us, np.int64)
-    labels = list(names) if names is not None else [f"{sensor}@{int(t)}" for t in times]
+    labels = list(names) if names is not None else _labels(sensor, times)
     if len(labels) != times.size:
         raise CalibrationError(f"{len(labels)} names for {times.size} times")
-    imgs = reconstruct(events, size, times, method, p)
-    out = FrameDetections()
+    dets, rejected = _detect_frames(reconstruct(events, size, times, method, p), labels, method, p, board)
+    return FrameDetections({d.name: d for d in dets}, rejected)
+
+
+def _labels(sensor: str, times: I64) -> list[str]:
+    return [f"{sensor}@{int(t)}" for t in times]
+
+
+def _detect_frames(
+    imgs: F32, labels: Sequence[str], method: str, params: ReconstructionParams, board: BoardSpec
+) -> tuple[list[Detection], list[RejectedView]]:
+    """The board in each reconstructed frame (named by its label), in order; the misses rejected."""
+    dets: list[Detection] = []
+    rejected: list[RejectedView] = []
     for name, img in zip(labels, imgs, strict=True):
-        d = detect(detector_image(img, method, p), board, name=name)
+        d = detect(detector_image(img, method, params), board, name=name)
         if d is None:
-            out.rejected.append(
-                RejectedView(name=name, reason=f"board {board} not found in the reconstruction")
-            )
+            rejected.append(RejectedView(name=name, reason=f"board {board} not found in the reconstruction"))
         else:
-            out.detections[name] = d
-    return out
+            dets.append(d)
+    return dets, rejected
 
 
 def calibrate_events(
@@ -415,57 +425,7 @@ def calibrate_events(
     for m in methods:
         if m not in METHODS:
             raise CalibrationError(f"unknown reconstruction method {m!r}; choose from {', '.join(METHODS)}")
-        t0 = time.perf_counter()
-        imgs = reconstruct(events, size, times, m, p)
-        t1 = time.perf_counter()
-        dets: list[Detection] = []
-        rejected: list[RejectedView] = []
-        for ts, img in zip(times, imgs, strict=True):
-            name = f"{sensor}@{int(ts)}"
-            d = detect(detector_image(img, m, p), board, name=name)
-            if d is None:
-                rejected.append(
-                    RejectedView(name=name, reason=f"board {board} not found in the reconstruction")
-                )
-            else:
-                dets.append(d)
-        t2 = time.perf_counter()
-        if len(dets) > max_views:
-            keep = np.unique(np.linspace(0, len(dets) - 1, max_views).round().astype(int))
-            dets = [dets[i] for i in keep]
-        intr: IntrinsicsResult | None = None
-        err: str | None = None
-        try:
-            if not dets:
-                raise NoBoardFoundError(
-                    f"sensor {sensor}: board {board} not found in any of {times.size} {m} reconstructions"
-                )
-            intr = calibrate_intrinsics(dets, board, camera=sensor, model=model, rejected=rejected)
-        except CalibrationError as exc:
-            err = str(exc)
-            log.warning("sensor %s, method %s: %s", sensor, m, exc)
-        t3 = time.perf_counter()
-        results.append(
-            MethodResult(
-                method=m,
-                frames=int(times.size),
-                detected=len(imgs) - len(rejected),
-                intrinsics=intr,
-                error=err,
-                reconstruct_s=t1 - t0,
-                detect_s=t2 - t1,
-                calibrate_s=t3 - t2,
-            )
-        )
-        log.info(
-            "sensor %s, method %s: %d/%d frames with the board, RMS %s, %.2f s",
-            sensor,
-            m,
-            results[-1].detected,
-            times.size,
-            f"{intr.rms_px:.3f} px" if intr else "-",
-            t3 - t0,
-        )
+        results.append(_calibrate_method(m, events, size, times, board, sensor, p, model, max_views))
     return E2CalibResult(
         sensor=sensor,
         board=str(board),
@@ -474,3 +434,64 @@ def calibrate_events(
         times_us=[int(t) for t in times],
         methods=results,
     )
+
+
+def _calibrate_method(
+    method: str,
+    events: EventArray,
+    size: tuple[int, int],
+    times: I64,
+    board: BoardSpec,
+    sensor: str,
+    params: ReconstructionParams,
+    model: str,
+    max_views: int,
+) -> MethodResult:
+    """Reconstruct, detect and calibrate with one method, timing each stage."""
+    t0 = time.perf_counter()
+    imgs = reconstruct(events, size, times, method, params)
+    t1 = time.perf_counter()
+    dets, rejected = _detect_frames(imgs, _labels(sensor, times), method, params, board)
+    t2 = time.perf_counter()
+    intr: IntrinsicsResult | None = None
+    err: str | None = None
+    try:
+        if not dets:
+            raise NoBoardFoundError(
+                f"sensor {sensor}: board {board} not found in any of {times.size} {method} reconstructions"
+            )
+        intr = calibrate_intrinsics(
+            _spread(dets, max_views), board, camera=sensor, model=model, rejected=rejected
+        )
+    except CalibrationError as exc:
+        err = str(exc)
+        log.warning("sensor %s, method %s: %s", sensor, method, exc)
+    t3 = time.perf_counter()
+    detected = len(imgs) - len(rejected)
+    log.info(
+        "sensor %s, method %s: %d/%d frames with the board, RMS %s, %.2f s",
+        sensor,
+        method,
+        detected,
+        times.size,
+        f"{intr.rms_px:.3f} px" if intr else "-",
+        t3 - t0,
+    )
+    return MethodResult(
+        method=method,
+        frames=int(times.size),
+        detected=detected,
+        intrinsics=intr,
+        error=err,
+        reconstruct_s=t1 - t0,
+        detect_s=t2 - t1,
+        calibrate_s=t3 - t2,
+    )
+
+
+def _spread(dets: list[Detection], max_views: int) -> list[Detection]:
+    """At most `max_views` detections, evenly spread over the sequence."""
+    if len(dets) <= max_views:
+        return dets
+    keep = np.unique(np.linspace(0, len(dets) - 1, max_views).round().astype(int))
+    return [dets[i] for i in keep]
