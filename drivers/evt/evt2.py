@@ -1,8 +1,13 @@
+# mypy: disable-error-code="arg-type,assignment"
 """EVT 2.0 (32-bit little-endian words) decoder kernel and streaming encoder, OpenEB semantics.
 
 t = TIME_HIGH << 6 | ts, a 34-bit time base that rolls over every 2^34 us (~4.77 h): a TIME_HIGH
 that falls by >= 2^27 is a roll-over (loop += 2^34), a smaller fall a non-monotonic violation
 whose word is skipped. Words before the first TIME_HIGH are skipped, as OpenEB does.
+
+EVT 2.1 (evt21.py) is EVT 2.0 with a 32-pixel validity mask beside each word, so the decode
+kernels of both formats come from the factory here. The layout is a closure constant that numba compiles
+away: the EVT 2.0 kernels keep no mask loop and no half-word reads.
 """
 
 from __future__ import annotations
@@ -11,7 +16,17 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from drivers.evt.errors import BEFORE_TIME_HIGH, NON_MONOTONIC_TIME_HIGH, OK, OUT_OF_RANGE_XY, UNKNOWN_TYPE
 from drivers.evt.evt3 import _check_inputs
+from drivers.evt.kernels import (
+    I64,
+    U32,
+    DecodeConfig,
+    DecodeKernel,
+    DecodeOut,
+    put_checked,
+    put_trigger,
+)
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -27,91 +42,80 @@ def new_decoder_state() -> NDArray[np.int64]:
     return np.zeros(STATE_SIZE, np.int64)
 
 
-@njit(nogil=True, cache=True)
-def decode_kernel(
-    buf: NDArray[np.uint32],
-    pos: int,
-    end: int,
-    st: NDArray[np.int64],
-    ox: NDArray[np.uint16],
-    oy: NDArray[np.uint16],
-    op: NDArray[np.int8],
-    ot: NDArray[np.int64],
-    n: int,
-    tt: NDArray[np.int64],
-    tp: NDArray[np.uint8],
-    tc: NDArray[np.uint8],
-    nt: int,
-    stats: NDArray[np.int64],
-    width: int,
-    height: int,
-    strict: bool,
-) -> tuple[int, int, int, int]:
-    """Decode whole words in buf[pos:end]; same contract as the EVT3 kernel."""
-    cap = ox.shape[0] - 1
-    tcap = tt.shape[0]
-    started = st[0]
-    loop = st[1]
-    th = st[2]
-    tbase = (loop << 34) | (th << 6)
-    err = 0
-    while pos < end:
-        if n > cap or nt >= tcap:
-            break
-        w = np.int64(buf[pos])
-        typ = w >> 28
-        if typ <= 1:  # CD_OFF / CD_ON
-            if started == 0:
-                stats[6] += 1
-            else:
-                x = (w >> 11) & 0x7FF
-                y = w & 0x7FF
-                if x >= width or y >= height:
-                    stats[3] += 1
-                    if strict:
-                        err = 3
-                        break
-                else:
-                    ox[n] = x
-                    oy[n] = y
-                    op[n] = 1 if typ == 1 else -1
-                    ot[n] = tbase | ((w >> 22) & 0x3F)
-                    n += 1
-        elif typ == 0x8:  # EVT_TIME_HIGH
-            v = w & 0xFFFFFFF
-            if started != 0 and v < th:
-                if th - v >= TH_HALF:
-                    loop += 1
-                else:
-                    stats[1] += 1
-                    if strict:
-                        err = 1
-                        break
-                    pos += 1
-                    continue
-            started = 1
-            th = v
-            tbase = (loop << 34) | (th << 6)
-        elif typ == 0xA:  # EXT_TRIGGER
-            if started == 0:
-                stats[6] += 1
-            else:
-                tt[nt] = tbase | ((w >> 22) & 0x3F)
-                tp[nt] = w & 1
-                tc[nt] = (w >> 8) & 0x1F
-                nt += 1
-        elif typ == 0xE or typ == 0xF:  # OTHERS / CONTINUED
-            pass
-        else:
-            stats[4] += 1
-            if strict:
-                err = 4
+def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
+    """EVT 2.0 decode kernel, or with `masked` EVT 2.1's (u32 pairs: the word and its validity mask;
+    `swapped`: the word's half comes first, IMX636's layout)."""
+    per_word = 32 if masked else 1
+    hi = 0 if swapped else 1  # index of the word's half in a masked word's u32 pair
+
+    @njit(nogil=True, cache=True)
+    def decode_kernel(
+        buf: U32, pos: int, end: int, st: I64, out: DecodeOut, n: int, nt: int, stats: I64, cfg: DecodeConfig
+    ) -> tuple[int, int, int, int]:
+        """Decode whole words buf[pos:end] (word indices); the contract of `evt3.decode_kernel`."""
+        cap = out.x.shape[0] - per_word
+        tcap = out.tt.shape[0]
+        started = st[0]
+        loop = st[1]
+        th = st[2]
+        tbase = (loop << 34) | (th << 6)
+        err = OK
+        while pos < end:
+            if n > cap or nt >= tcap:
                 break
-        pos += 1
-    st[0] = started
-    st[1] = loop
-    st[2] = th
-    return pos, n, nt, err
+            if masked:
+                w = np.int64(buf[2 * pos + hi])
+                mask = np.int64(buf[2 * pos + 1 - hi])
+            else:
+                w = np.int64(buf[pos])
+                mask = np.int64(1)
+            typ = w >> 28
+            if typ <= 1:  # CD_OFF / CD_ON (EVT 2.1: EVT_NEG / EVT_POS)
+                if started == 0:
+                    stats[BEFORE_TIME_HIGH] += 1
+                else:
+                    t = tbase | ((w >> 22) & 0x3F)
+                    pol = 1 if typ == 1 else -1
+                    n, bad = put_checked(out, n, (w >> 11) & 0x7FF, mask, w & 0x7FF, pol, t, stats, cfg)
+                    if bad and cfg.strict:
+                        err = OUT_OF_RANGE_XY
+                        break
+            elif typ == 0x8:  # EVT_TIME_HIGH
+                v = w & 0xFFFFFFF
+                fell = started != 0 and v < th
+                if fell and th - v < TH_HALF:  # a small fall: the word is skipped
+                    stats[NON_MONOTONIC_TIME_HIGH] += 1
+                    if cfg.strict:
+                        err = NON_MONOTONIC_TIME_HIGH
+                        break
+                else:
+                    if fell:  # a large fall: the counter rolled over
+                        loop += 1
+                    started = 1
+                    th = v
+                    tbase = (loop << 34) | (th << 6)
+            elif typ == 0xA:  # EXT_TRIGGER
+                if started == 0:
+                    stats[BEFORE_TIME_HIGH] += 1
+                else:
+                    nt = put_trigger(out, nt, tbase | ((w >> 22) & 0x3F), w & 1, (w >> 8) & 0x1F)
+            elif typ == 0xE or typ == 0xF:  # OTHERS / CONTINUED
+                pass
+            else:
+                stats[UNKNOWN_TYPE] += 1
+                if cfg.strict:
+                    err = UNKNOWN_TYPE
+                    break
+            pos += 1
+        st[0] = started
+        st[1] = loop
+        st[2] = th
+        return pos, n, nt, err
+
+    return decode_kernel
+
+
+decode_kernel = make_decode_kernel(masked=False)
 
 
 @njit(nogil=True, cache=True)

@@ -1,11 +1,12 @@
 # mypy: disable-error-code="arg-type,assignment,call-arg"
-"""EVT 2.1 (64-bit words, 32-pixel validity masks) decoder kernel and encoder, OpenEB semantics.
+"""EVT 2.1 (64-bit words, 32-pixel validity masks) decoder kernels and encoder, OpenEB semantics.
 
 Each 64-bit word has its type, ts (6 bits), x base (11 bits) and y (11 bits) in the upper 32 bits
 (same bit positions as EVT 2.0) and a 32-bit validity mask in the lower 32 bits: pixel
 x_base + i fired when bit i is set. Two byte layouts exist: IMX636 sends the upper half first
 (each half little-endian, "half-swapped", fmt "evt21"); GenX320 sends the whole 64-bit word
-little-endian (lower half first, fmt "evt21_le"). Time handling is EVT 2.0's.
+little-endian (lower half first, fmt "evt21_le"). Time handling is EVT 2.0's, and so are the
+decode kernels: `evt2`'s factory built for masked words.
 """
 
 from __future__ import annotations
@@ -14,120 +15,20 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from drivers.evt.evt2 import TH_HALF, TH_STEP
-from drivers.evt.evt3 import _check_inputs, cttz
+from drivers.evt import evt2
+from drivers.evt.evt2 import TH_STEP
+from drivers.evt.evt3 import _check_inputs
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 
 WORD_BYTES = 8
 MAX_EVENTS_PER_WORD = 32
-STATE_SIZE = 3  # started, loop, time_high
+STATE_SIZE = evt2.STATE_SIZE
+new_decoder_state = evt2.new_decoder_state  # EVT 2.0's time state: started, loop, time_high
 
-
-def new_decoder_state() -> NDArray[np.int64]:
-    return np.zeros(STATE_SIZE, np.int64)
-
-
-@njit(nogil=True, cache=True)
-def decode_kernel(
-    buf: NDArray[np.uint32],
-    pos: int,
-    end: int,
-    st: NDArray[np.int64],
-    ox: NDArray[np.uint16],
-    oy: NDArray[np.uint16],
-    op: NDArray[np.int8],
-    ot: NDArray[np.int64],
-    n: int,
-    tt: NDArray[np.int64],
-    tp: NDArray[np.uint8],
-    tc: NDArray[np.uint8],
-    nt: int,
-    stats: NDArray[np.int64],
-    width: int,
-    height: int,
-    strict: bool,
-    swapped: bool,
-) -> tuple[int, int, int, int]:
-    """Decode 8-byte words held as u32 pairs: buf[2*pos:2*end]; same contract as the EVT3 kernel."""
-    cap = ox.shape[0] - 32
-    tcap = tt.shape[0]
-    started = st[0]
-    loop = st[1]
-    th = st[2]
-    tbase = (loop << 34) | (th << 6)
-    err = 0
-    while pos < end:
-        if n > cap or nt >= tcap:
-            break
-        a = np.int64(buf[2 * pos])
-        b = np.int64(buf[2 * pos + 1])
-        if swapped:
-            w = a
-            mask = b
-        else:
-            w = b
-            mask = a
-        typ = w >> 28
-        if typ <= 1:  # EVT_NEG / EVT_POS
-            if started == 0:
-                stats[6] += 1
-            else:
-                x = (w >> 11) & 0x7FF
-                y = w & 0x7FF
-                t = tbase | ((w >> 22) & 0x3F)
-                pol = 1 if typ == 1 else -1
-                bad = False
-                while mask != 0:
-                    xi = x + cttz(mask)
-                    mask &= mask - 1
-                    if xi >= width or y >= height:
-                        stats[3] += 1
-                        bad = True
-                    else:
-                        ox[n] = xi
-                        oy[n] = y
-                        op[n] = pol
-                        ot[n] = t
-                        n += 1
-                if bad and strict:
-                    err = 3
-                    break
-        elif typ == 0x8:  # EVT_TIME_HIGH
-            v = w & 0xFFFFFFF
-            if started != 0 and v < th:
-                if th - v >= TH_HALF:
-                    loop += 1
-                else:
-                    stats[1] += 1
-                    if strict:
-                        err = 1
-                        break
-                    pos += 1
-                    continue
-            started = 1
-            th = v
-            tbase = (loop << 34) | (th << 6)
-        elif typ == 0xA:  # EXT_TRIGGER
-            if started == 0:
-                stats[6] += 1
-            else:
-                tt[nt] = tbase | ((w >> 22) & 0x3F)
-                tp[nt] = w & 1
-                tc[nt] = (w >> 8) & 0x1F
-                nt += 1
-        elif typ == 0xE or typ == 0xF:  # OTHERS / CONTINUED
-            pass
-        else:
-            stats[4] += 1
-            if strict:
-                err = 4
-                break
-        pos += 1
-    st[0] = started
-    st[1] = loop
-    st[2] = th
-    return pos, n, nt, err
+# the kernels read a word as two u32 halves: buf[2 * pos], buf[2 * pos + 1]
+decode_kernel = evt2.make_decode_kernel(masked=True, swapped=True)
+decode_kernel_le = evt2.make_decode_kernel(masked=True, swapped=False)
 
 
 @njit(nogil=True, cache=True)

@@ -17,18 +17,27 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 from numpy.typing import NDArray
 
 from drivers.evt.errors import (
     BEFORE_TIME_HIGH,
     EVENT_WITHOUT_Y,
     NON_MONOTONIC_TIME_HIGH,
+    OK,
     OUT_OF_RANGE_XY,
     UNKNOWN_TYPE,
     VECTOR_WITHOUT_BASE,
+)
+from drivers.evt.kernels import (
+    I64,
+    U16,
+    DecodeConfig,
+    DecodeOut,
+    ctpop,
+    put_checked,
+    put_run,
+    put_trigger,
 )
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
@@ -41,29 +50,6 @@ MAX_EVENTS_PER_WORD = 12
 # decoder state slots
 _ST_STARTED, _ST_LOOP, _ST_TH, _ST_TL, _ST_Y, _ST_BASE, _ST_VPOL = range(7)
 STATE_SIZE = 7
-
-
-@intrinsic
-def cttz(typingctx: object, x: types.Integer) -> object:
-    """Count trailing zeros (one instruction): walks a validity mask's set bits without a
-    data-dependent branch per bit."""
-    sig = x(x)
-
-    def codegen(context: object, builder: ir.IRBuilder, signature: object, args: list[ir.Value]) -> ir.Value:
-        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 0))
-
-    return sig, codegen
-
-
-@intrinsic
-def ctpop(typingctx: object, x: types.Integer) -> object:
-    """Population count (one instruction, vectorisable)."""
-    sig = x(x)
-
-    def codegen(context: object, builder: ir.IRBuilder, signature: object, args: list[ir.Value]) -> ir.Value:
-        return builder.ctpop(args[0])
-
-    return sig, codegen
 
 
 def new_decoder_state() -> NDArray[np.int64]:
@@ -117,28 +103,17 @@ _TAB = np.array([_type_row(t) for t in range(16)], np.int64)
 _U64 = np.uint64  # unsigned indices: no negative-index wrap-around code in the loop
 
 
+# This reference kernel and `evt3_fast.decode_kernel` are kept as two kernels on purpose: each is
+# the other's oracle (tests compare them word by word), the fast one falls back to this one for
+# every irregular word, and each loop's shape is what makes it fast or exact (see evt3_fast's
+# measurements); the stores and checks they share live in `kernels`.
 @njit(nogil=True, cache=True)
 def decode_kernel(
-    buf: NDArray[np.uint16],
-    pos: int,
-    end: int,
-    st: NDArray[np.int64],
-    ox: NDArray[np.uint16],
-    oy: NDArray[np.uint16],
-    op: NDArray[np.int8],
-    ot: NDArray[np.int64],
-    n: int,
-    tt: NDArray[np.int64],
-    tp: NDArray[np.uint8],
-    tc: NDArray[np.uint8],
-    nt: int,
-    stats: NDArray[np.int64],
-    width: int,
-    height: int,
-    strict: bool,
+    buf: U16, pos: int, end: int, st: I64, out: DecodeOut, n: int, nt: int, stats: I64, cfg: DecodeConfig
 ) -> tuple[int, int, int, int]:
-    """Decode words buf[pos:end] (word indices); stop early when outputs are nearly full or on a
-    strict-mode violation (then pos is the offending word). Returns (pos, n, nt, error_code).
+    """Decode words buf[pos:end] (word indices) into `out` from event n and trigger nt on; stop
+    early when outputs are nearly full or on a strict-mode violation (then pos is the offending
+    word). Returns (pos, n, nt, error code); `st` carries the format state to the next call.
 
     The inner loop handles the words that make up ~all of a valid stream (ADDR_Y, ADDR_X,
     VECT_BASE_X, VECT_12, VECT_8, TIME_LOW) without a data-dependent branch: per-type masks come
@@ -147,8 +122,9 @@ def decode_kernel(
     when it could violate the format (no TIME_HIGH yet, no/out-of-range y, x beyond the width,
     vector without base) or is a rare type; the slow path is the reference per-word semantics.
     """
-    cap = ox.shape[0] - 12
-    tcap = tt.shape[0]
+    width, height, strict = cfg
+    cap = out.x.shape[0] - 12
+    tcap = out.tt.shape[0]
     started = st[0]
     loop = st[1]
     th = st[2]
@@ -157,7 +133,7 @@ def decode_kernel(
     vpol = st[6]
     tcur = (loop << 24) | (th << 12) | st[3]
     wm1 = width - 1
-    err = 0
+    err = OK
     while pos < end:
         # fast loop: words that cannot violate the format (checked by one sign test)
         yk = y if y >= 0 else _NOY
@@ -173,22 +149,9 @@ def decode_kernel(
             if ((hlim - yk) | (wm1 - (ebase + _TAB[typ, 1]))) < 0:
                 break
             polv = ((w >> 10) & 2) - 1
+            # ADDR_X (mx = -1): one event at v; a vector (mx = 0): its mask's pixels from base
             emask = (w & _TAB[typ, 2]) | (mx & 1)
-            un = _U64(n)
-            ox[un] = ebase + cttz(emask)
-            oy[un] = yk
-            op[un] = (vpol & ~mx) | (polv & mx)
-            ot[un] = tcur
-            n += np.int64(emask != 0)
-            rest = emask & (emask - 1)
-            while rest != 0:
-                un = _U64(n)
-                ox[un] = base + cttz(rest)
-                oy[un] = yk
-                op[un] = vpol
-                ot[un] = tcur
-                n += 1
-                rest &= rest - 1
+            n = put_run(out, n, ebase, emask, yk, (vpol & ~mx) | (polv & mx), tcur)
             my = _TAB[typ, 3]
             mb = _TAB[typ, 5]
             mtl = _TAB[typ, 4]
@@ -204,63 +167,31 @@ def decode_kernel(
         w = np.int64(buf[_U64(pos)])
         typ = w >> 12
         v = w & 0x7FF
-        if typ == 0x4 or typ == 0x5:
-            step = 12 if typ == 0x4 else 8
-            mask = w & 0xFFF if typ == 0x4 else w & 0xFF
-            if base >= _NOBASE:
-                stats[2] += 1
+        if typ == 0x2 or typ == 0x4 or typ == 0x5:  # ADDR_X, VECT_12, VECT_8
+            vector = typ != 0x2
+            if vector and base >= _NOBASE:
+                stats[VECTOR_WITHOUT_BASE] += 1
                 if strict:
-                    err = 2
+                    err = VECTOR_WITHOUT_BASE
                     break
             elif started == 0:
-                stats[6] += 1
-                base += step
+                stats[BEFORE_TIME_HIGH] += 1
             elif y < 0:
-                stats[7] += 1
+                stats[EVENT_WITHOUT_Y] += 1
                 if strict:
-                    err = 7
+                    err = EVENT_WITHOUT_Y
                     break
-                base += step
             else:
-                bad = False
-                m = mask
-                x = base
-                while m != 0:
-                    if (m & 1) != 0:
-                        if x >= width or y >= height:
-                            stats[3] += 1
-                            bad = True
-                        else:
-                            ox[_U64(n)] = x
-                            oy[_U64(n)] = y
-                            op[_U64(n)] = vpol
-                            ot[_U64(n)] = tcur
-                            n += 1
-                    m >>= 1
-                    x += 1
+                if vector:
+                    x0, mask, pol = base, w & (0xFFF if typ == 0x4 else 0xFF), vpol
+                else:
+                    x0, mask, pol = v, 1, 1 if (w & 0x800) != 0 else -1
+                n, bad = put_checked(out, n, x0, mask, y, pol, tcur, stats, cfg)
                 if bad and strict:
-                    err = 3
+                    err = OUT_OF_RANGE_XY
                     break
-                base += step
-        elif typ == 0x2:
-            if started == 0:
-                stats[6] += 1
-            elif y < 0:
-                stats[7] += 1
-                if strict:
-                    err = 7
-                    break
-            elif v >= width or y >= height:
-                stats[3] += 1
-                if strict:
-                    err = 3
-                    break
-            else:
-                ox[_U64(n)] = v
-                oy[_U64(n)] = y
-                op[_U64(n)] = 1 if (w & 0x800) != 0 else -1
-                ot[_U64(n)] = tcur
-                n += 1
+            if vector and base < _NOBASE:
+                base += 12 if typ == 0x4 else 8
         elif typ == 0x0:
             y = v
         elif typ == 0x6:
@@ -270,36 +201,31 @@ def decode_kernel(
             vpol = 1 if (w & 0x800) != 0 else -1
         elif typ == 0x8:
             v12 = w & 0xFFF
-            th_ok = True
-            if started != 0 and v12 < th:
-                if th - v12 >= 2048:
+            fell = started != 0 and v12 < th
+            if fell and th - v12 < 2048:  # a small fall: the word is skipped
+                stats[NON_MONOTONIC_TIME_HIGH] += 1
+                if strict:
+                    err = NON_MONOTONIC_TIME_HIGH
+                    break
+            else:
+                if fell:  # a large fall: the 24-bit counter rolled over
                     loop += 1
-                else:
-                    stats[1] += 1
-                    if strict:
-                        err = 1
-                        break
-                    th_ok = False
-            if th_ok:
                 started = 1
                 th = v12
                 tcur = (loop << 24) | (th << 12)
         elif typ == 0xA:
             if started == 0:
-                stats[6] += 1
+                stats[BEFORE_TIME_HIGH] += 1
             else:
                 if nt >= tcap:
                     break
-                tt[nt] = tcur
-                tp[nt] = w & 1
-                tc[nt] = (w >> 8) & 0xF
-                nt += 1
+                nt = put_trigger(out, nt, tcur, w & 1, (w >> 8) & 0xF)
         elif typ == 0x7 or typ == 0xE or typ == 0xF:
             pass
         else:
-            stats[4] += 1
+            stats[UNKNOWN_TYPE] += 1
             if strict:
-                err = 4
+                err = UNKNOWN_TYPE
                 break
         pos += 1
     st[0] = started
@@ -311,17 +237,6 @@ def decode_kernel(
     st[6] = vpol
     return pos, n, nt, err
 
-
-# Keep the named codes referenced so readers can map the literal indices used in the kernel.
-_KERNEL_CODES = (
-    NON_MONOTONIC_TIME_HIGH,
-    VECTOR_WITHOUT_BASE,
-    OUT_OF_RANGE_XY,
-    UNKNOWN_TYPE,
-    BEFORE_TIME_HIGH,
-    EVENT_WITHOUT_Y,
-)
-assert _KERNEL_CODES == (1, 2, 3, 4, 6, 7)
 
 # encoder state: [started, full TIME_HIGH (with loops), last TIME_LOW or -1, last y or -1]
 _TH_STEP = 2047  # largest TIME_HIGH step that a decoder can never mistake for a roll-over

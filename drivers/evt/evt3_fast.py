@@ -1,4 +1,4 @@
-# mypy: disable-error-code="arg-type,assignment,call-arg"
+# mypy: disable-error-code="arg-type"
 """EVT 3.0 decode kernel for clean stretches of a stream, with `evt3.decode_kernel` as fallback.
 
 Same signature, state array and results as `evt3.decode_kernel` (events, order, triggers, stats,
@@ -32,38 +32,27 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from numpy.typing import NDArray
 
-from drivers.evt.evt3 import _NOBASE, cttz
+from drivers.evt.evt3 import _NOBASE
 from drivers.evt.evt3 import decode_kernel as reference_kernel
+from drivers.evt.kernels import I64, U16, DecodeConfig, DecodeOut, put_event, put_run, put_trigger
 
 _U64 = np.uint64
 _WINDOW = 64  # words handed to the reference kernel per irregular stretch
 
 
+# Kept apart from the reference `evt3.decode_kernel` on purpose: that branch-free state machine
+# is this kernel's oracle in the tests and its fallback for every irregular word, and the two
+# loops' shapes are what make one fast and the other exact (measurements above); what they share
+# (event, run and trigger stores) lives in `kernels`.
 @njit(nogil=True, cache=True)
 def decode_kernel(
-    buf: NDArray[np.uint16],
-    pos: int,
-    end: int,
-    st: NDArray[np.int64],
-    ox: NDArray[np.uint16],
-    oy: NDArray[np.uint16],
-    op: NDArray[np.int8],
-    ot: NDArray[np.int64],
-    n: int,
-    tt: NDArray[np.int64],
-    tp: NDArray[np.uint8],
-    tc: NDArray[np.uint8],
-    nt: int,
-    stats: NDArray[np.int64],
-    width: int,
-    height: int,
-    strict: bool,
+    buf: U16, pos: int, end: int, st: I64, out: DecodeOut, n: int, nt: int, stats: I64, cfg: DecodeConfig
 ) -> tuple[int, int, int, int]:
     """Decode words buf[pos:end]; contract of `evt3.decode_kernel` (returns (pos, n, nt, err))."""
-    cap = ox.shape[0] - 12
-    tcap = tt.shape[0]
+    width, height, _ = cfg
+    cap = out.x.shape[0] - 12
+    tcap = out.tt.shape[0]
     # vector base and polarity packed in one register: bp = base << 8 | (vpol & 0xFF); the int8
     # store of bp is the polarity, bp >> 8 the base; one compare checks "base given and whole span
     # inside the width" (the no-base sentinel is larger than any packed base)
@@ -81,15 +70,11 @@ def decode_kernel(
                 while pos < bend:
                     w = np.int64(buf[_U64(pos)])
                     typ = w >> 12
-                    un = _U64(n)
                     if typ == 0x2:
                         x = w & 0x7FF
                         if x >= width:
                             break
-                        ox[un] = x
-                        oy[un] = y
-                        op[un] = ((w >> 10) & 2) - 1
-                        ot[un] = tcur
+                        put_event(out, n, x, y, ((w >> 10) & 2) - 1, tcur)
                         n += 1
                     elif typ == 0x3:
                         # the encoder's usual run: (VECT_BASE_X, vector) pairs, decoded here in a
@@ -102,23 +87,7 @@ def decode_kernel(
                             t2 = w2 >> 12
                             if t2 != 0x4 and t2 != 0x5:
                                 break
-                            m = w2 & (0xFFF if t2 == 0x4 else 0xFF)
-                            b = bp >> 8
-                            un = _U64(n)
-                            ox[un] = b + cttz(m)
-                            oy[un] = y
-                            op[un] = bp
-                            ot[un] = tcur
-                            n += np.int64(m != 0)
-                            m &= m - 1
-                            while m != 0:
-                                un = _U64(n)
-                                ox[un] = b + cttz(m)
-                                oy[un] = y
-                                op[un] = bp
-                                ot[un] = tcur
-                                n += 1
-                                m &= m - 1
+                            n = put_run(out, n, bp >> 8, w2 & (0xFFF if t2 == 0x4 else 0xFF), y, bp, tcur)
                             bp += (12 << 8) if t2 == 0x4 else (8 << 8)
                             pos += 1  # at the vector word
                             if pos + 1 >= bend:
@@ -130,23 +99,7 @@ def decode_kernel(
                     elif typ == 0x4 or typ == 0x5:
                         if bp > bplim:  # no base, or a span reaching past the width
                             break
-                        m = w & (0xFFF if typ == 0x4 else 0xFF)
-                        b = bp >> 8
-                        # first event unconditionally (n only advances when the mask is non-empty)
-                        ox[un] = b + cttz(m)
-                        oy[un] = y
-                        op[un] = bp
-                        ot[un] = tcur
-                        n += np.int64(m != 0)
-                        m &= m - 1
-                        while m != 0:
-                            un = _U64(n)
-                            ox[un] = b + cttz(m)
-                            oy[un] = y
-                            op[un] = bp
-                            ot[un] = tcur
-                            n += 1
-                            m &= m - 1
+                        n = put_run(out, n, bp >> 8, w & (0xFFF if typ == 0x4 else 0xFF), y, bp, tcur)
                         bp += (12 << 8) if typ == 0x4 else (8 << 8)
                     elif typ == 0x0:
                         v = w & 0x7FF
@@ -167,10 +120,7 @@ def decode_kernel(
                     elif typ == 0xA:
                         if nt >= tcap:
                             break
-                        tt[nt] = tcur
-                        tp[nt] = w & 1
-                        tc[nt] = (w >> 8) & 0xF
-                        nt += 1
+                        nt = put_trigger(out, nt, tcur, w & 1, (w >> 8) & 0xF)
                     elif typ == 0x7 or typ >= 0xE:
                         pass
                     else:
@@ -191,9 +141,7 @@ def decode_kernel(
             break
         # irregular word, state not clean, or outputs nearly full: reference semantics
         wend = min(end, pos + _WINDOW)
-        pos, n, nt, err = reference_kernel(
-            buf, pos, wend, st, ox, oy, op, ot, n, tt, tp, tc, nt, stats, width, height, strict
-        )
+        pos, n, nt, err = reference_kernel(buf, pos, wend, st, out, n, nt, stats, cfg)
         if err != 0 or pos < wend:
             return pos, n, nt, err
     return pos, n, nt, 0

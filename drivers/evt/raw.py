@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from drivers.evt import evt2, evt3, evt3_fast, evt21
 from drivers.evt.errors import KIND_NAMES, N_CODES, TRUNCATED, EvtDecodeError
+from drivers.evt.kernels import DecodeConfig, DecodeKernel, DecodeOut
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -53,41 +54,36 @@ class Decoded:
 
 
 class _Out:
-    """Growable output buffers handed to the kernels; grown (never per event) when nearly full."""
+    """Growable output arrays handed to the kernels; grown (never per event) when nearly full."""
 
     def __init__(self, n_events: int, n_triggers: int) -> None:
-        self.x = np.empty(n_events, np.uint16)
-        self.y = np.empty(n_events, np.uint16)
-        self.p = np.empty(n_events, np.int8)
-        self.t = np.empty(n_events, np.int64)
-        self.tt = np.empty(n_triggers, np.int64)
-        self.tp = np.empty(n_triggers, np.uint8)
-        self.tc = np.empty(n_triggers, np.uint8)
+        self.arrays = DecodeOut.empty(n_events, n_triggers)
         self.n = 0
         self.nt = 0
 
     def grow(self, min_free: int) -> None:
-        if self.x.shape[0] - self.n <= min_free:
-            size = max(2 * self.x.shape[0], self.n + 2 * min_free + 1024)
-            for name in ("x", "y", "p", "t"):
-                old = getattr(self, name)
-                new = np.empty(size, old.dtype)
-                new[: self.n] = old[: self.n]
-                setattr(self, name, new)
-        if self.tt.shape[0] - self.nt <= 0:
-            size = 2 * self.tt.shape[0] + 64
-            for name in ("tt", "tp", "tc"):
-                old = getattr(self, name)
-                new = np.empty(size, old.dtype)
-                new[: self.nt] = old[: self.nt]
-                setattr(self, name, new)
+        a, n, nt = self.arrays, self.n, self.nt
+        if a.x.shape[0] - n <= min_free:
+            size = max(2 * a.x.shape[0], n + 2 * min_free + 1024)
+            a = a._replace(**{k: _grown(getattr(a, k), size, n) for k in ("x", "y", "p", "t")})
+        if a.tt.shape[0] - nt <= 0:
+            size = 2 * a.tt.shape[0] + 64
+            a = a._replace(**{k: _grown(getattr(a, k), size, nt) for k in ("tt", "tp", "tc")})
+        self.arrays = a
 
     def result(self) -> Decoded:
-        n, nt = self.n, self.nt
+        a, n, nt = self.arrays, self.n, self.nt
         return Decoded(
-            EventArray(self.x[:n], self.y[:n], self.p[:n], self.t[:n]),
-            TriggerEvents(self.tt[:nt], self.tp[:nt], self.tc[:nt]),
+            EventArray(a.x[:n], a.y[:n], a.p[:n], a.t[:n]),
+            TriggerEvents(a.tt[:nt], a.tp[:nt], a.tc[:nt]),
         )
+
+
+def _grown(old: NDArray[Any], size: int, keep: int) -> NDArray[Any]:
+    """A larger copy of old holding its first `keep` items."""
+    new = np.empty(size, old.dtype)
+    new[:keep] = old[:keep]
+    return new
 
 
 class StreamDecoder:
@@ -124,16 +120,14 @@ class StreamDecoder:
         # kernels read native words; EVT 2.1 words are read as two u32 halves (layout-dependent)
         self._dtype = np.dtype({2: "<u2", 4: "<u4", 8: "<u4"}[self._word])
         self._step = 2 if self._word == 8 else 1
-        kernel: Any = evt3_fast.decode_kernel if fmt == "evt3" and USE_EVT3_FAST else mod.decode_kernel
-        if fmt.startswith("evt21"):
-            swapped = fmt == "evt21"
-
-            def _call(*args: Any) -> tuple[int, int, int, int]:
-                return kernel(*args, swapped)
-
-            self._kernel: Callable[..., tuple[int, int, int, int]] = _call
-        else:
-            self._kernel = kernel
+        kernels: dict[str, DecodeKernel] = {
+            "evt2": evt2.decode_kernel,
+            "evt21": evt21.decode_kernel,
+            "evt21_le": evt21.decode_kernel_le,
+            "evt3": evt3_fast.decode_kernel if USE_EVT3_FAST else evt3.decode_kernel,
+        }
+        self._kernel = kernels[fmt]
+        self._cfg = DecodeConfig(self.width, self.height, self.strict)
         # optional counting pass sizing the outputs exactly (EVT 3.0)
         self._bound: Callable[[NDArray[Any]], tuple[int, int]] | None = getattr(mod, "output_bound", None)
         self._stats = np.zeros(N_CODES, np.int64)
@@ -146,21 +140,19 @@ class StreamDecoder:
         """Skipped items by kind (events for pixel-level kinds, words otherwise)."""
         return {name: int(self._stats[code]) for code, name in KIND_NAMES.items()}
 
-    def _run(self, raw: NDArray[np.uint8], out: _Out, abs_start: int) -> None:
+    def _words(self, raw: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[Any]]:
+        """Whole words' bytes and their view as the kernel's words."""
         if raw.ctypes.data % self._word:
             raw = raw.copy()  # chunk cut mid-word left the body unaligned; one memcpy
-        self._run_words(raw, raw.view(self._dtype), out, abs_start)
+        return raw, raw.view(self._dtype)
 
-    def _run_words(self, raw: NDArray[np.uint8], buf: NDArray[Any], out: _Out, abs_start: int) -> None:
+    def _run(self, raw: NDArray[np.uint8], buf: NDArray[Any], out: _Out, abs_start: int) -> None:
         pos, end = 0, buf.shape[0] // self._step
         ws = self._word
         while pos < end:
             pos, out.n, out.nt, err = self._kernel(
-                buf, pos, end, self._state,
-                out.x, out.y, out.p, out.t, out.n,
-                out.tt, out.tp, out.tc, out.nt,
-                self._stats, self.width, self.height, self.strict,
-            )  # fmt: skip
+                buf, pos, end, self._state, out.arrays, out.n, out.nt, self._stats, self._cfg
+            )
             if err:
                 word = bytes(raw[pos * ws : (pos + 1) * ws])[::-1].hex()
                 off = abs_start + pos * ws
@@ -188,10 +180,7 @@ class StreamDecoder:
             head = np.frombuffer(self._pending + arr[:need].tobytes(), np.uint8)
             arr = arr[need:]
         whole = (arr.shape[0] // ws) * ws
-        body = arr[:whole]
-        if body.ctypes.data % ws:
-            body = body.copy()  # chunk cut mid-word left the body unaligned; one memcpy
-        words = body.view(self._dtype)
+        body, words = self._words(arr[:whole])
         if self._bound is not None:
             # exact-size outputs from a cheap counting pass: no growth, no over-allocation
             ne, ntr = self._bound(words)
@@ -200,11 +189,11 @@ class StreamDecoder:
             cap_events = min(nwords * self._max_per_word, max(nwords * ws, 256)) + self._max_per_word + 1
             out = _Out(cap_events, 16 + nwords // 64)
         if head is not None:
-            self._run(head, out, start)
+            self._run(*self._words(head), out, start)
             start += ws
             self._pending = b""
         if whole:
-            self._run_words(body, words, out, start)
+            self._run(body, words, out, start)
         self._pending = arr[whole:].tobytes()
         self.bytes_consumed += nwords * ws
         return out.result()

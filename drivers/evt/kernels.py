@@ -1,0 +1,139 @@
+# mypy: disable-error-code="call-arg"
+"""Building blocks of the EVT numba kernels: the decode contract's types and the stores they share.
+
+Every decode kernel has one signature, `kernel(buf, pos, end, st, out, n, nt, stats, cfg) ->
+(pos, n, nt, err)` (see `evt3.decode_kernel`), so `StreamDecoder` drives any of them alike. The
+helpers are `inline="always"`: numba pastes them into the calling kernel before LLVM optimises it,
+so sharing them costs no call and keeps constant arguments (a one-pixel mask) foldable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
+from numpy.typing import NDArray
+
+from drivers.evt.errors import OUT_OF_RANGE_XY
+
+U8 = NDArray[np.uint8]
+U16 = NDArray[np.uint16]
+U32 = NDArray[np.uint32]
+I8 = NDArray[np.int8]
+I64 = NDArray[np.int64]
+
+
+class DecodeOut(NamedTuple):
+    """Output arrays a decode kernel fills from index n (events) and nt (trigger edges) on."""
+
+    x: U16
+    y: U16
+    p: I8
+    t: I64
+    tt: I64
+    tp: U8
+    tc: U8
+
+    @staticmethod
+    def empty(n_events: int, n_triggers: int) -> DecodeOut:
+        return DecodeOut(
+            np.empty(n_events, np.uint16),
+            np.empty(n_events, np.uint16),
+            np.empty(n_events, np.int8),
+            np.empty(n_events, np.int64),
+            np.empty(n_triggers, np.int64),
+            np.empty(n_triggers, np.uint8),
+            np.empty(n_triggers, np.uint8),
+        )
+
+
+class DecodeConfig(NamedTuple):
+    """What a decoder fixes for its whole stream: sensor geometry and error mode."""
+
+    width: int
+    height: int
+    strict: bool
+
+
+DecodeKernel = Callable[..., tuple[int, int, int, int]]
+
+
+@intrinsic
+def cttz(typingctx: object, x: types.Integer) -> object:
+    """Count trailing zeros (one instruction): walks a validity mask's set bits without a
+    data-dependent branch per bit."""
+    sig = x(x)
+
+    def codegen(context: object, builder: ir.IRBuilder, signature: object, args: list[ir.Value]) -> ir.Value:
+        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 0))
+
+    return sig, codegen
+
+
+@intrinsic
+def ctpop(typingctx: object, x: types.Integer) -> object:
+    """Population count (one instruction, vectorisable)."""
+    sig = x(x)
+
+    def codegen(context: object, builder: ir.IRBuilder, signature: object, args: list[ir.Value]) -> ir.Value:
+        return builder.ctpop(args[0])
+
+    return sig, codegen
+
+
+@njit(inline="always")
+def put_event(out: DecodeOut, n: int, x: int, y: int, p: int, t: int) -> None:  # pragma: no cover - numba
+    """Store one event at index n (unsigned index: no negative-index wrap-around code)."""
+    i = np.uint64(n)
+    out.x[i] = x
+    out.y[i] = y
+    out.p[i] = p
+    out.t[i] = t
+
+
+@njit(inline="always")
+def put_run(out: DecodeOut, n: int, x0: int, m: int, y: int, p: int, t: int) -> int:  # pragma: no cover
+    """Events at x0 + i for each set bit i of m, all known inside the sensor; returns the new n.
+
+    The first store is unconditional and n advances by whether m had a bit, so the usual
+    one-pixel mask costs no branch; slot n must exist even when m is 0."""
+    put_event(out, n, x0 + cttz(m), y, p, t)
+    n += np.int64(m != 0)
+    m &= m - 1
+    while m != 0:
+        put_event(out, n, x0 + cttz(m), y, p, t)
+        n += 1
+        m &= m - 1
+    return n
+
+
+@njit(inline="always")
+def put_checked(  # pragma: no cover - numba
+    out: DecodeOut, n: int, x0: int, m: int, y: int, p: int, t: int, stats: I64, cfg: DecodeConfig
+) -> tuple[int, bool]:
+    """Events at x0 + i for each set bit i of m; pixels outside the sensor are counted as
+    out_of_range_xy instead. Returns (new n, whether any pixel was outside)."""
+    bad = False
+    while m != 0:
+        x = x0 + cttz(m)
+        m &= m - 1
+        if x >= cfg.width or y >= cfg.height:
+            stats[OUT_OF_RANGE_XY] += 1
+            bad = True
+        else:
+            put_event(out, n, x, y, p, t)
+            n += 1
+    return n, bad
+
+
+@njit(inline="always")
+def put_trigger(out: DecodeOut, nt: int, t: int, p: int, channel: int) -> int:  # pragma: no cover
+    """Store one trigger edge at index nt; returns nt + 1."""
+    out.tt[nt] = t
+    out.tp[nt] = p
+    out.tc[nt] = channel
+    return nt + 1
