@@ -1,22 +1,70 @@
-"""`file://` replay of real RAW/DAT recordings through the production decoder."""
+"""`file://` replay of real RAW/DAT recordings through the production decoder, and the
+event-sensor lifecycle contract on synthetic recordings (a replay takes no live pulses, so
+the trigger-in contract is not its to run)."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from drivers.base import EventPacket
-from drivers.evt import RawHeader, read_raw, write_raw
+from drivers.base import Capability, EventPacket, EventSensor
+from drivers.evt import RawHeader, read_raw, write_dat, write_raw
 from drivers.registry import open_device
+from drivers.testing.event_sensor import EventSensorLifecycleContract
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
-pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")
+
+
+def _recording(tmp_path: Path, fmt: str, *, with_triggers: bool = False) -> Path:
+    """5000 events over 50 ms (and two trigger pulses when asked) as a RAW or DAT file."""
+    t = np.arange(5000, dtype=np.int64) * 10 + 1_000
+    ev = EventArray.from_arrays(t % 320, (t // 320) % 240, np.where(t % 20 == 0, 1, -1), t)
+    if fmt == "dat":
+        path = tmp_path / "rec.dat"
+        write_dat(path, ev, width=320, height=240)
+        return path
+    trig = None
+    if with_triggers:
+        trig = TriggerEvents(
+            np.array([2_000, 2_200, 12_000, 12_200], np.int64),
+            np.array([1, 0, 1, 0], np.uint8),
+            np.zeros(4, np.uint8),
+        )
+    path = tmp_path / f"rec-{fmt}.raw"
+    write_raw(path, RawHeader(fmt=fmt, width=320, height=240), ev, trig)
+    return path
+
+
+class TestFileReplayContract(EventSensorLifecycleContract):
+    @pytest.fixture(params=["evt3", "evt2", "evt21", "dat"])
+    def sensor(self, request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[EventSensor]:
+        sensor = open_device("event_sensor", f"file://{_recording(tmp_path, request.param)}?chunk_bytes=4096")
+        yield sensor
+        sensor.close()
+
+
+@pytest.mark.parametrize("fmt", ["evt3", "evt2", "dat"])
+def test_trigger_in_only_when_the_recording_holds_trigger_edges(tmp_path: Path, fmt: str) -> None:
+    plain = open_device("event_sensor", f"file://{_recording(tmp_path, fmt)}")
+    assert plain.capabilities == {Capability.DEVICE_TIMESTAMPS}
+    with pytest.raises(ConfigError, match="trigger_in"):
+        plain.configure(EventSensorSettings(enable_trigger_in=True))
+    if fmt == "dat":
+        return  # DAT files hold change events only
+    wired = open_device("event_sensor", f"file://{_recording(tmp_path, fmt, with_triggers=True)}")
+    assert Capability.TRIGGER_IN in wired.capabilities
+    wired.configure(EventSensorSettings(enable_trigger_in=True))
+    wired.start()
+    packets = _drain(wired, 0.0)
+    assert len(TriggerEvents.concatenate([p.triggers for p in packets]).rising(0)) == 2
 
 
 def _drain(sensor: object, timeout: float = 0.2) -> list[EventPacket]:
@@ -26,6 +74,7 @@ def _drain(sensor: object, timeout: float = 0.2) -> list[EventPacket]:
     return out
 
 
+@needs_data
 @pytest.mark.parametrize(
     ("name", "count", "first", "last"),
     [
@@ -48,6 +97,7 @@ def test_fast_replay_gives_every_event(name: str, count: int, first: int, last: 
     assert int(ev.y.max()) < h
 
 
+@needs_data
 def test_dat_replay() -> None:
     sensor = open_device("event_sensor", f"file://{DATA / 'dat_ncars_sample.dat'}")
     sensor.start()
@@ -93,6 +143,7 @@ def test_loop_keeps_time_increasing(tmp_path: Path) -> None:
     assert sensor.stats().extra["passes"] >= 4
 
 
+@needs_data
 def test_same_events_as_whole_file_decode() -> None:
     path = DATA / "evt3_gen41_sample.raw"
     _, whole = read_raw(path)
@@ -103,6 +154,7 @@ def test_same_events_as_whole_file_decode() -> None:
         np.testing.assert_array_equal(getattr(ev, col), getattr(whole.events, col))
 
 
+@needs_data
 def test_errors_name_the_problem(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="does not exist"):
         open_device("event_sensor", f"file://{tmp_path / 'nope.raw'}")

@@ -1,9 +1,11 @@
-"""The GenICam backend against Aravis' fake GigE Vision camera on loopback.
+"""The GenICam backend: the camera contracts against a stand-in Aravis module (always), and
+against Aravis' fake GigE Vision camera on loopback.
 
-Needs Aravis 0.8 through PyGObject and `arv-fake-gv-camera-0.8` (Debian: gir1.2-aravis-0.8,
-aravis-tools; pip: PyGObject). The fake camera cannot see a hardware line, so the rig's
-trigger pulse is TriggerSoftware here (`trigger_source=Software`): the hardware-trigger code
-path (TriggerSelector/Mode/Source/Activation, one buffer per trigger) is the same.
+The loopback tests need Aravis 0.8 through PyGObject and `arv-fake-gv-camera-0.8` (Debian:
+gir1.2-aravis-0.8, aravis-tools; pip: PyGObject) and skip, saying so, without them. The fake
+camera cannot see a hardware line, so the rig's trigger pulse is TriggerSoftware there
+(`trigger_source=Software`): the hardware-trigger code path (TriggerSelector/Mode/Source/
+Activation, one buffer per trigger) is the same.
 """
 
 from __future__ import annotations
@@ -16,11 +18,13 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from drivers.base import RgbCamera
+from drivers.base import Capability, RgbCamera
+from drivers.genicam_camera import GenicamCamera
 from drivers.registry import DeviceSpec
+from drivers.testing.camera import FreeRunCameraContract, HardwareTriggerCameraContract, read_n
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
 from rigd.core.settings import CameraSettings
-from tests.contracts.camera_contract import RgbCameraContract, read_n
+from tests.drivers.fake_aravis import FakeCamera, fake_aravis
 
 FAKE = "arv-fake-gv-camera-0.8"
 SPEC = "genicam://127.0.0.1?interface=127.0.0.1&trigger_source=Software&buffers=8"
@@ -39,7 +43,82 @@ def _aravis_reason() -> str | None:
 
 
 _REASON = _aravis_reason()
-pytestmark = pytest.mark.skipif(_REASON is not None, reason=f"Aravis fake camera unavailable: {_REASON}")
+needs_aravis = pytest.mark.skipif(_REASON is not None, reason=f"Aravis fake camera unavailable: {_REASON}")
+
+
+# --- the contracts against the stand-in Aravis ---------------------------------------------
+
+
+def _stand_in(fake: FakeCamera, query: str = "buffers=4") -> Iterator[RgbCamera]:
+    cam = GenicamCamera(DeviceSpec.parse(f"genicam://RIGD01?{query}"), aravis=fake_aravis(fake))
+    yield cam
+    cam.close()
+
+
+class TestGenicamStandIn(HardwareTriggerCameraContract):
+    @pytest.fixture
+    def fake(self) -> FakeCamera:
+        return FakeCamera()
+
+    @pytest.fixture
+    def camera(self, fake: FakeCamera) -> Iterator[RgbCamera]:
+        yield from _stand_in(fake)
+
+    @pytest.fixture
+    def pulse(self, fake: FakeCamera) -> Callable[[int], None]:
+        def fire(n: int) -> None:
+            for _ in range(n):
+                fake.line_pulse()
+                time.sleep(0.005)
+
+        return fire
+
+
+class TestGenicamStandInFreeRun(FreeRunCameraContract):
+    @pytest.fixture
+    def camera(self) -> Iterator[RgbCamera]:
+        yield from _stand_in(FakeCamera(formats=("Mono8", "RGB8")))
+
+
+def test_stand_in_capabilities_follow_the_camera() -> None:
+    mono = GenicamCamera(DeviceSpec.parse("genicam://RIGD01"), aravis=fake_aravis(FakeCamera()))
+    color = GenicamCamera(
+        DeviceSpec.parse("genicam://RIGD01"), aravis=fake_aravis(FakeCamera(formats=("Mono8", "RGB8")))
+    )
+    try:
+        assert Capability.COLOR not in mono.capabilities
+        assert Capability.COLOR in color.capabilities
+        assert Capability.HARDWARE_TRIGGER in mono.capabilities
+        assert Capability.SOFTWARE_SYNC not in mono.capabilities
+        with pytest.raises(ConfigError, match="color"):
+            mono.configure(CameraSettings(pixel_format="rgb8"))
+        color.configure(CameraSettings(pixel_format="rgb8", exposure_us=1000))
+        assert color.frame_shape == (48, 64, 3)
+    finally:
+        mono.close()
+        color.close()
+
+
+def test_stand_in_block_id_gaps_count_as_lost_frames() -> None:
+    fake = FakeCamera()
+    cam = GenicamCamera(DeviceSpec.parse("genicam://RIGD01?buffers=2"), aravis=fake_aravis(fake))
+    try:
+        cam.configure(CameraSettings(exposure_us=1000, pixel_format="mono8"))
+        cam.start()
+        fake.line_pulse()
+        fake._frame_id += 2  # two frames lost between camera and host
+        fake.line_pulse()
+        frames = read_n(cam, 2)
+        cam.stop()
+        assert [f.frame_counter for f in frames] == [1, 4]
+        st = cam.stats()
+        assert (st.delivered, st.device_dropped, st.extra["frame_counter_gaps"]) == (2, 2, 2)
+        assert st.extra["n_completed_buffers"] == 2
+    finally:
+        cam.close()
+
+
+# --- Aravis' fake GigE Vision camera on loopback -------------------------------------------
 
 
 def _gvcp_port_busy() -> bool:
@@ -56,6 +135,8 @@ def _gvcp_port_busy() -> bool:
 
 @pytest.fixture(scope="module")
 def fake_camera() -> Iterator[None]:
+    if _REASON is not None:
+        pytest.skip(f"Aravis fake camera unavailable: {_REASON}")
     if _gvcp_port_busy():
         pytest.skip("UDP 127.0.0.1:3956 is taken: another GigE Vision (fake) camera runs on loopback")
     proc = subprocess.Popen(
@@ -94,7 +175,8 @@ def _open(spec: str = SPEC) -> RgbCamera:
     return open_genicam_camera(DeviceSpec.parse(spec))
 
 
-class TestGenicamFakeCamera(RgbCameraContract):
+@needs_aravis
+class TestGenicamFakeCamera(HardwareTriggerCameraContract):
     @pytest.fixture
     def camera(self, fake_camera: None) -> Iterator[RgbCamera]:
         cam = _open()
@@ -107,13 +189,14 @@ class TestGenicamFakeCamera(RgbCameraContract):
         def fire(n: int) -> None:
             # A pulse on a hardware line reaches nobody while the camera is not acquiring; the
             # fake camera would latch a software trigger and expose after start, so do not send it.
-            if not camera._running:  # type: ignore[attr-defined]
+            if not camera.acquiring:
                 return
             _trigger(camera, n)
 
         return fire
 
 
+@needs_aravis
 def test_info_facts_and_stream_statistics(fake_camera: None) -> None:
     cam = _open()
     try:
@@ -134,6 +217,7 @@ def test_info_facts_and_stream_statistics(fake_camera: None) -> None:
         cam.close()
 
 
+@needs_aravis
 def test_roi_and_free_run(fake_camera: None) -> None:
     cam = _open(SPEC + "&roi=0,0,128,96")
     try:
@@ -148,9 +232,8 @@ def test_roi_and_free_run(fake_camera: None) -> None:
         cam.close()
 
 
+@needs_aravis
 def test_gige_block_id_wrap_keeps_the_counter_increasing(fake_camera: None) -> None:
-    from drivers.genicam_camera import GenicamCamera
-
     cam = _open()
     try:
         assert isinstance(cam, GenicamCamera)
@@ -159,6 +242,7 @@ def test_gige_block_id_wrap_keeps_the_counter_increasing(fake_camera: None) -> N
         cam.close()
 
 
+@needs_aravis
 def test_errors_name_the_camera(fake_camera: None) -> None:
     with pytest.raises(DeviceError, match="no GenICam camera 'NOPE'"):
         _open("genicam://NOPE")

@@ -1,20 +1,25 @@
 """`prophesee://` backend: the clear error without OpenEB, and the real code path against a
-stand-in HAL module that streams a real recording's raw EVT3 buffers."""
+stand-in HAL module: it streams a real recording's raw EVT3 buffers, and, for the event-sensor
+contracts, a synthetic scene whose trigger-in latches the test's pulses."""
 
 from __future__ import annotations
 
 import sys
+import threading
 import types
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from drivers.evt import parse_raw_header, read_raw
+from drivers.base import Capability, EventSensor
+from drivers.evt import Evt3Encoder, parse_raw_header, read_raw
 from drivers.registry import open_device
+from drivers.testing.event_sensor import EventSensorContract
 from rigd.core.errors import BackendUnavailableError, ConfigError
-from rigd.core.events import EventArray
+from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
@@ -39,21 +44,46 @@ class _Facility:
 
 
 class _Stream:
-    def __init__(self, payload: bytes, chunk: int) -> None:
+    """I_EventsStream: raw buffers while started. `pulse(n)` latches n trigger pulses on
+    channel 0 (1 ms apart, 200 us wide) after the events already streamed."""
+
+    def __init__(self, payload: bytes, chunk: int, *, last_t: int = 0) -> None:
         self._chunks = [payload[i : i + chunk] for i in range(0, len(payload), chunk)]
+        self._lock = threading.Lock()
+        self._started = False
+        self._encoder = Evt3Encoder()
+        self._t = last_t
 
-    def start(self) -> None: ...
+    def start(self) -> None:
+        self._started = True
 
-    def stop(self) -> None: ...
+    def stop(self) -> None:
+        self._started = False
 
     def poll_buffer(self) -> int:
-        return 1 if self._chunks else -1
+        with self._lock:
+            return 1 if self._started and self._chunks else -1
 
     def get_latest_raw_data(self) -> np.ndarray:
-        return np.frombuffer(self._chunks.pop(0), np.uint8)
+        with self._lock:
+            return np.frombuffer(self._chunks.pop(0), np.uint8)
+
+    def pulse(self, n: int) -> None:
+        if not self._started:
+            return  # the camera is not streaming: nothing is latched
+        t = self._t + 1000 + np.repeat(np.arange(n, dtype=np.int64) * 1000, 2)
+        t[1::2] += 200
+        p = np.tile(np.array([1, 0], np.uint8), n)
+        with self._lock:
+            self._chunks.append(
+                self._encoder.encode(EventArray.empty(), TriggerEvents(t, p, np.zeros_like(p)))
+            )
+            self._t = int(t[-1])
 
 
-def _fake_hal(payload: bytes, calls: list[tuple[str, Any]], *, has_roi: bool = True) -> types.ModuleType:
+def _fake_hal(
+    payload: bytes, calls: list[tuple[str, Any]], *, has_roi: bool = True, stream: _Stream | None = None
+) -> types.ModuleType:
     class Device:
         def get_i_geometry(self) -> Any:
             return types.SimpleNamespace(get_width=lambda: 1280, get_height=lambda: 720)
@@ -66,7 +96,7 @@ def _fake_hal(payload: bytes, calls: list[tuple[str, Any]], *, has_roi: bool = T
             )
 
         def get_i_events_stream(self) -> _Stream:
-            return _Stream(payload, 4093)
+            return stream if stream is not None else _Stream(payload, 4093)
 
         def get_i_trigger_in(self) -> Any:
             return _Facility(calls, "trigger_in")
@@ -134,3 +164,36 @@ def test_missing_facility_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
     sensor = open_device("event_sensor", "prophesee://00050423")
     with pytest.raises(ConfigError, match="no ROI facility"):
         sensor.configure(EventSensorSettings(roi=(0, 0, 10, 10)))
+
+
+def _synthetic_stream() -> _Stream:
+    """20 000 events of a bar sweeping the sensor, 50 ms; trigger pulses follow on demand."""
+    n = 20_000
+    t = np.arange(n, dtype=np.int64) * 2 + 100
+    x = (t // 10) % 1280
+    ev = EventArray.from_arrays(x, (t // 7) % 720, np.where(t % 4 == 0, 1, -1), t)
+    stream = _Stream(b"", 4093, last_t=int(t[-1]))
+    stream._chunks = [
+        stream._encoder.encode(ev[i : i + 2000], TriggerEvents.empty()) for i in range(0, n, 2000)
+    ]
+    return stream
+
+
+class TestPropheseeStandIn(EventSensorContract):
+    """The event-sensor contracts through the HAL code path, the stand-in in place of OpenEB."""
+
+    @pytest.fixture
+    def stream(self) -> _Stream:
+        return _synthetic_stream()
+
+    @pytest.fixture
+    def sensor(self, stream: _Stream, monkeypatch: pytest.MonkeyPatch) -> Iterator[EventSensor]:
+        monkeypatch.setitem(sys.modules, "metavision_hal", _fake_hal(b"", [], stream=stream))
+        sensor = open_device("event_sensor", "prophesee://00050423")
+        assert {Capability.TRIGGER_IN, Capability.CLOCK_SYNC} <= sensor.capabilities
+        yield sensor
+        sensor.close()
+
+    @pytest.fixture
+    def pulse(self, stream: _Stream) -> Callable[[int], None]:
+        return stream.pulse

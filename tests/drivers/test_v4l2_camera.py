@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import glob
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from drivers.base import Capability
+from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
+from drivers.testing.camera import FreeRunCameraContract
 from drivers.v4l2_camera import V4l2Camera, open_v4l2_camera, parse_v4l2_spec
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.settings import CameraSettings
@@ -50,6 +52,17 @@ class FakeCapture:
 
     def release(self) -> None:
         self.released = True
+
+
+class TestV4l2StandIn(FreeRunCameraContract):
+    """The free-run camera contract through OpenCV's code path, the stand-in capture in place
+    of a UVC camera."""
+
+    @pytest.fixture
+    def camera(self) -> Iterator[RgbCamera]:
+        cam = V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9?width=64&height=48"), capture=FakeCapture())
+        yield cam
+        cam.close()
 
 
 def test_spec_parsing() -> None:

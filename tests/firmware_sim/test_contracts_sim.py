@@ -9,11 +9,11 @@ import pytest
 
 from drivers.base import EventSensor, RgbCamera
 from drivers.registry import DeviceSpec
+from drivers.testing.camera import FreeRunCameraContract, HardwareTriggerCameraContract
+from drivers.testing.event_sensor import EventSensorContract
 from firmware_sim.event_sensor import open_sim_event_sensor
 from firmware_sim.rgb_camera import open_sim_camera
 from firmware_sim.world import get_world, reset_world
-from tests.contracts.camera_contract import RgbCameraContract
-from tests.contracts.event_sensor_contract import EventSensorContract
 from tests.firmware_sim.test_sim_rgb_camera import fire_pulses
 
 
@@ -30,20 +30,28 @@ def pulse(world_name: str) -> Callable[[int], object]:
     return lambda n: fire_pulses(world, n, rate_hz=100.0)
 
 
-class TestSimRgbCamera(RgbCameraContract):
-    @pytest.fixture
-    def camera(self, world_name: str) -> Iterator[RgbCamera]:
-        cam = open_sim_camera(DeviceSpec.parse(f"sim://{world_name}/cam1?drift_ppm=-60&width=320&height=180"))
-        yield cam
-        cam.close()
+def _camera(world_name: str, query: str) -> Iterator[RgbCamera]:
+    cam = open_sim_camera(DeviceSpec.parse(f"sim://{world_name}/cam1?{query}"))
+    yield cam
+    cam.close()
 
 
-class TestSimRgbCameraMono(RgbCameraContract):
+class TestSimRgbCamera(HardwareTriggerCameraContract):
     @pytest.fixture
     def camera(self, world_name: str) -> Iterator[RgbCamera]:
-        cam = open_sim_camera(DeviceSpec.parse(f"sim://{world_name}/cam2?format=mono8&width=160&height=90"))
-        yield cam
-        cam.close()
+        yield from _camera(world_name, "drift_ppm=-60&width=320&height=180")
+
+
+class TestSimRgbCameraMono(HardwareTriggerCameraContract):
+    @pytest.fixture
+    def camera(self, world_name: str) -> Iterator[RgbCamera]:
+        yield from _camera(world_name, "format=mono8&width=160&height=90")
+
+
+class TestSimRgbCameraFreeRun(FreeRunCameraContract):
+    @pytest.fixture
+    def camera(self, world_name: str) -> Iterator[RgbCamera]:
+        yield from _camera(world_name, "drift_ppm=40&width=160&height=90")
 
 
 class TestSimEventSensor(EventSensorContract):

@@ -1,4 +1,5 @@
-"""The contract every `Trigger` backend must pass; subclass and provide a `trigger` fixture."""
+"""The contract every `Trigger` backend runs; subclass it and provide a `trigger` fixture (an
+opened trigger source whose pulses nobody else reads)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 
 from drivers.base import Capability, Trigger
 from rigd.core.devices import PulseBatch
-from rigd.core.errors import ConfigError
+from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.settings import TriggerSettings
 
 RATE_HZ = 500.0
@@ -54,10 +55,18 @@ class TriggerContract:
         assert isinstance(caps, frozenset)
         assert all(isinstance(c, Capability) for c in caps)
         assert Capability.PULSE_TIMESTAMPS in caps, "the rig timebase needs pulse timestamps"
+        assert trigger.required_capabilities(TriggerSettings()) <= caps
+        counted = trigger.required_capabilities(TriggerSettings(), n_pulses=10)
+        assert Capability.PULSE_COUNT in counted
+        if Capability.PULSE_COUNT not in caps:
+            with pytest.raises(ConfigError, match="pulse_count"):
+                trigger.start(10)
 
     def test_configure_rejects_width_not_shorter_than_period(self, trigger: Trigger) -> None:
         with pytest.raises(ConfigError):
             trigger.configure(TriggerSettings(rate_hz=1000.0, pulse_width_us=1000))
+        with pytest.raises(ConfigError):
+            trigger.start(0)
 
     def test_start_n_emits_exactly_n_at_the_period(self, trigger: Trigger) -> None:
         if Capability.PULSE_COUNT not in trigger.capabilities:
@@ -117,6 +126,17 @@ class TriggerContract:
         b = trigger.clock_us()
         assert 80_000 <= b - a <= 600_000
 
-    def test_close_is_idempotent(self, trigger: Trigger) -> None:
+    def test_close_while_pulsing_is_clean_and_idempotent(self, trigger: Trigger) -> None:
+        self._configured(trigger).arm()
+        trigger.start()
+        collect(trigger, 2)
+        trigger.close()  # stops the run first
+        assert trigger.closed
         trigger.close()
+
+    def test_a_closed_trigger_says_so_naming_itself(self, trigger: Trigger) -> None:
         trigger.close()
+        for call in (trigger.arm, trigger.start, trigger.pulse_count, lambda: trigger.read_pulses(0.0)):
+            with pytest.raises(DeviceError, match="closed") as err:
+                call()
+            assert trigger.label in str(err.value)
