@@ -5,8 +5,8 @@ t = TIME_HIGH << 6 | ts, a 34-bit time base that rolls over every 2^34 us (~4.77
 that falls by >= 2^27 is a roll-over (loop += 2^34), a smaller fall a non-monotonic violation
 whose word is skipped. Words before the first TIME_HIGH are skipped, as OpenEB does.
 
-EVT 2.1 (evt21.py) is EVT 2.0 with a 32-pixel validity mask beside each word, so the decode
-kernels of both formats come from the factory here. The layout is a closure constant that numba compiles
+EVT 2.1 (evt21.py) is EVT 2.0 with a 32-pixel validity mask beside each word, so the kernels of
+both formats come from the factories here. The layout is a closure constant that numba compiles
 away: the EVT 2.0 kernels keep no mask loop and no half-word reads.
 """
 
@@ -16,10 +16,13 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from drivers.evt.encoder import EncodeKernel, StreamEncoder
 from drivers.evt.errors import BEFORE_TIME_HIGH, NON_MONOTONIC_TIME_HIGH, OK, OUT_OF_RANGE_XY, UNKNOWN_TYPE
-from drivers.evt.evt3 import _check_inputs
 from drivers.evt.kernels import (
+    I8,
     I64,
+    U8,
+    U16,
     U32,
     DecodeConfig,
     DecodeKernel,
@@ -27,7 +30,6 @@ from drivers.evt.kernels import (
     put_checked,
     put_trigger,
 )
-from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 
 WORD_BYTES = 4
@@ -36,6 +38,8 @@ STATE_SIZE = 3  # started, loop, time_high
 
 TH_HALF = 1 << 27
 TH_STEP = TH_HALF - 1
+_TIME_HIGH = 0x8 << 28
+_EXT_TRIGGER = 0xA << 28
 
 
 def new_decoder_state() -> NDArray[np.int64]:
@@ -115,88 +119,86 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
     return decode_kernel
 
 
+def make_encode_kernel(masked: bool, swapped: bool = False) -> EncodeKernel:
+    """EVT 2.0 encode kernel, or with `masked` EVT 2.1's, in `make_decode_kernel`'s layouts."""
+    n_u32 = 2 if masked else 1  # u32s a word
+    hi = 0 if swapped or not masked else 1  # where the word's type/time/x/y half goes among them
+
+    @njit(nogil=True, cache=True)
+    def encode_kernel(
+        x: U16, y: U16, p: I8, t: I64, tt: I64, tp: U8, tc: U8, st: I64, out: U32, write: bool
+    ) -> int:
+        """Encode time-sorted events and triggers into u32s; returns their count (write=False only
+        counts). EVT 2.1: same-t/y/p events of increasing x in one 32-pixel group share a word."""
+        ne = t.shape[0]
+        ntr = tt.shape[0]
+        started = st[0]
+        th = st[1]  # TIME_HIGH with its roll-overs
+        i = 0
+        j = 0
+        k = 0
+        while i < ne or j < ntr:
+            trigger = j < ntr and (i >= ne or tt[j] <= t[i])  # a trigger goes first on a tie
+            tv = tt[j] if trigger else t[i]
+            # TIME_HIGH words up to tv (the stream's first even at 0), stepped so that a decoder
+            # never takes a step for a roll-over
+            thf = tv >> 6
+            while started == 0 or th < thf:
+                started = 1
+                th += min(thf - th, TH_STEP)
+                if write:
+                    out[k + hi] = _TIME_HIGH | (th & 0xFFFFFFF)
+                    if masked:
+                        out[k + 1 - hi] = 0
+                k += n_u32
+            word = 0  # built only when writing: the counting pass needs the times alone
+            mask = 0
+            if trigger:
+                if write:
+                    word = _EXT_TRIGGER | ((tv & 0x3F) << 22) | ((np.int64(tc[j]) & 0x1F) << 8)
+                    word |= np.int64(tp[j]) & 1
+                j += 1
+            else:
+                e = i + 1
+                if masked:
+                    xb = np.int64(x[i]) & ~31
+                    while (
+                        e < ne
+                        and t[e] == tv
+                        and y[e] == y[i]
+                        and p[e] == p[i]
+                        and x[e] > x[e - 1]
+                        and (np.int64(x[e]) & ~31) == xb
+                    ):
+                        e += 1
+                if write:
+                    xb = np.int64(x[i]) & ~31 if masked else np.int64(x[i])
+                    if masked:
+                        for q in range(i, e):
+                            mask |= 1 << (np.int64(x[q]) - xb)
+                    word = ((1 if p[i] > 0 else 0) << 28) | ((tv & 0x3F) << 22) | (xb << 11) | np.int64(y[i])
+                i = e
+            if write:
+                out[k + hi] = word
+                if masked:
+                    out[k + 1 - hi] = mask
+            k += n_u32
+        st[0] = started
+        st[1] = th
+        return k
+
+    return encode_kernel
+
+
 decode_kernel = make_decode_kernel(masked=False)
+encode_kernel = make_encode_kernel(masked=False)
 
 
-@njit(nogil=True, cache=True)
-def _emit_time(out: NDArray[np.uint32], k: int, st: NDArray[np.int64], tv: int, write: bool) -> int:
-    thf = tv >> 6
-    if st[0] == 0:
-        first = min(thf, TH_STEP)
-        if write:
-            out[k] = (0x8 << 28) | first
-        k += 1
-        st[0] = 1
-        st[1] = first
-    while st[1] < thf:
-        st[1] += min(thf - st[1], TH_STEP)
-        if write:
-            out[k] = (0x8 << 28) | (st[1] & 0xFFFFFFF)
-        k += 1
-    return k
-
-
-@njit(nogil=True, cache=True)
-def encode_kernel(
-    x: NDArray[np.uint16],
-    y: NDArray[np.uint16],
-    p: NDArray[np.int8],
-    t: NDArray[np.int64],
-    tt: NDArray[np.int64],
-    tp: NDArray[np.uint8],
-    tc: NDArray[np.uint8],
-    st: NDArray[np.int64],
-    out: NDArray[np.uint32],
-    write: bool,
-) -> int:
-    """Encode time-sorted events and triggers (one word each); write=False only counts."""
-    ne = t.shape[0]
-    ntr = tt.shape[0]
-    i = 0
-    j = 0
-    k = 0
-    while i < ne or j < ntr:
-        if j < ntr and (i >= ne or tt[j] <= t[i]):
-            k = _emit_time(out, k, st, tt[j], write)
-            if write:
-                out[k] = (
-                    (0xA << 28)
-                    | ((tt[j] & 0x3F) << 22)
-                    | ((np.int64(tc[j]) & 0x1F) << 8)
-                    | (np.int64(tp[j]) & 1)
-                )
-            k += 1
-            j += 1
-        else:
-            k = _emit_time(out, k, st, t[i], write)
-            if write:
-                typ = 1 if p[i] > 0 else 0
-                out[k] = (typ << 28) | ((t[i] & 0x3F) << 22) | (np.int64(x[i]) << 11) | np.int64(y[i])
-            k += 1
-            i += 1
-    return k
-
-
-class Evt2Encoder:
-    """Streaming EVT 2.0 encoder; the stream starts at time base 0 like a reset camera."""
+class Evt2Encoder(StreamEncoder):
+    """Streaming EVT 2.0 encoder."""
 
     def __init__(self) -> None:
-        self._state = np.zeros(2, np.int64)
-        self._last_t = 0
-
-    def encode(self, events: EventArray, triggers: TriggerEvents | None = None) -> bytes:
-        trig = triggers if triggers is not None else TriggerEvents.empty()
-        _check_inputs(events, trig, self._last_t, 0x1F)
-        if len(events) and int(events.t[0]) < 0:
-            raise EventDataError("negative event time cannot be encoded")
-        args = (events.x, events.y, events.p, events.t, trig.t, trig.p, trig.channel)
-        nwords = encode_kernel(*args, self._state.copy(), np.empty(0, np.uint32), False)
-        out = np.empty(nwords, np.uint32)
-        encode_kernel(*args, self._state, out, True)
-        for arr in (events.t, trig.t):
-            if arr.size:
-                self._last_t = max(self._last_t, int(arr[-1]))
-        return out.astype("<u4", copy=False).tobytes()
+        super().__init__(encode_kernel, np.zeros(2, np.int64), np.uint32, max_channel=0x1F)
 
 
 def encode_evt2(events: EventArray, triggers: TriggerEvents | None = None) -> bytes:

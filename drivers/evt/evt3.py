@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from drivers.evt.encoder import StreamEncoder
 from drivers.evt.errors import (
     BEFORE_TIME_HIGH,
     EVENT_WITHOUT_Y,
@@ -30,7 +31,9 @@ from drivers.evt.errors import (
     VECTOR_WITHOUT_BASE,
 )
 from drivers.evt.kernels import (
+    I8,
     I64,
+    U8,
     U16,
     DecodeConfig,
     DecodeOut,
@@ -39,7 +42,6 @@ from drivers.evt.kernels import (
     put_run,
     put_trigger,
 )
-from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 
 log = logging.getLogger(__name__)
@@ -243,72 +245,55 @@ _TH_STEP = 2047  # largest TIME_HIGH step that a decoder can never mistake for a
 
 
 @njit(nogil=True, cache=True)
-def _emit(out: NDArray[np.uint16], k: int, word: int, write: bool) -> int:
-    if write:
-        out[k] = word
-    return k + 1
-
-
-@njit(nogil=True, cache=True)
-def _emit_time(out: NDArray[np.uint16], k: int, st: NDArray[np.int64], tv: int, write: bool) -> int:
-    thf = tv >> 12
-    tl = tv & 0xFFF
-    if st[0] == 0:
-        first = min(thf, _TH_STEP)
-        k = _emit(out, k, 0x8000 | first, write)
-        st[0] = 1
-        st[1] = first
-        st[2] = -1
-    while st[1] < thf:
-        step = min(thf - st[1], _TH_STEP)
-        st[1] += step
-        k = _emit(out, k, 0x8000 | (st[1] & 0xFFF), write)
-        st[2] = -1
-    if st[2] != tl:
-        k = _emit(out, k, 0x6000 | tl, write)
-        st[2] = tl
-    return k
-
-
-@njit(nogil=True, cache=True)
 def encode_kernel(
-    x: NDArray[np.uint16],
-    y: NDArray[np.uint16],
-    p: NDArray[np.int8],
-    t: NDArray[np.int64],
-    tt: NDArray[np.int64],
-    tp: NDArray[np.uint8],
-    tc: NDArray[np.uint8],
-    st: NDArray[np.int64],
-    out: NDArray[np.uint16],
-    write: bool,
+    x: U16, y: U16, p: I8, t: I64, tt: I64, tp: U8, tc: U8, st: I64, out: U16, write: bool
 ) -> int:
-    """Encode time-sorted events and triggers; with write=False only count the words."""
+    """Encode time-sorted events and triggers; returns the word count (write=False only counts)."""
     ne = t.shape[0]
     ntr = tt.shape[0]
     i = 0
     j = 0
     k = 0
     while i < ne or j < ntr:
-        if j < ntr and (i >= ne or tt[j] <= t[i]):
-            k = _emit_time(out, k, st, tt[j], write)
-            k = _emit(out, k, 0xA000 | ((np.int64(tc[j]) & 0xF) << 8) | (np.int64(tp[j]) & 1), write)
+        trigger = j < ntr and (i >= ne or tt[j] <= t[i])  # a trigger goes first on a tie
+        tv = tt[j] if trigger else t[i]
+        # TIME_HIGH words up to tv (the stream's first even at 0), stepped by at most _TH_STEP,
+        # then TIME_LOW when it changed
+        thf = tv >> 12
+        while st[0] == 0 or st[1] < thf:
+            st[0] = 1
+            st[1] += min(thf - st[1], _TH_STEP)
+            st[2] = -1
+            if write:
+                out[k] = 0x8000 | (st[1] & 0xFFF)
+            k += 1
+        if st[2] != tv & 0xFFF:
+            st[2] = tv & 0xFFF
+            if write:
+                out[k] = 0x6000 | st[2]
+            k += 1
+        if trigger:
+            if write:
+                out[k] = 0xA000 | ((np.int64(tc[j]) & 0xF) << 8) | (np.int64(tp[j]) & 1)
+            k += 1
             j += 1
             continue
-        tv = t[i]
         yy = np.int64(y[i])
         pp = p[i]
         e = i + 1
         while e < ne and t[e] == tv and y[e] == y[i] and p[e] == pp and x[e] > x[e - 1]:
             e += 1
-        k = _emit_time(out, k, st, tv, write)
         if st[3] != yy:
-            k = _emit(out, k, yy, write)
             st[3] = yy
+            if write:
+                out[k] = yy
+            k += 1
         pol = 0x800 if pp > 0 else 0
         if e - i < 3:
             for q in range(i, e):
-                k = _emit(out, k, 0x2000 | pol | np.int64(x[q]), write)
+                if write:
+                    out[k] = 0x2000 | pol | np.int64(x[q])
+                k += 1
         else:
             q = i
             need_base = True
@@ -316,19 +301,20 @@ def encode_kernel(
             while q < e:
                 if need_base:
                     base = np.int64(x[q])
-                    k = _emit(out, k, 0x3000 | pol | base, write)
+                    if write:
+                        out[k] = 0x3000 | pol | base
+                    k += 1
                     need_base = False
                 mask = 0
                 m = q
                 while m < e and np.int64(x[m]) < base + 12:
                     mask |= 1 << (np.int64(x[m]) - base)
                     m += 1
-                if m >= e and mask < 256:
-                    k = _emit(out, k, 0x5000 | mask, write)
-                    base += 8
-                else:
-                    k = _emit(out, k, 0x4000 | mask, write)
-                    base += 12
+                vector, step = (0x5000, 8) if m >= e and mask < 256 else (0x4000, 12)
+                if write:
+                    out[k] = vector | mask
+                k += 1
+                base += step
                 q = m
                 if q < e and np.int64(x[q]) >= base + 12:
                     need_base = True
@@ -336,21 +322,7 @@ def encode_kernel(
     return k
 
 
-def _check_inputs(events: EventArray, triggers: TriggerEvents, last_t: int, max_channel: int) -> None:
-    """Reject what the format cannot carry instead of emitting a stream that decodes differently."""
-    for name, arr in (("events.t", events.t), ("triggers.t", triggers.t)):
-        if arr.size:
-            if arr[0] < last_t:
-                raise EventDataError(f"{name} starts at {int(arr[0])} us, before the encoder's {last_t} us")
-            if arr.size > 1 and (np.diff(arr) < 0).any():
-                raise EventDataError(f"{name} is not sorted by time")
-    if len(events) and (int(events.x.max()) > 2047 or int(events.y.max()) > 2047):
-        raise EventDataError("event x/y above 2047 cannot be encoded (11-bit fields)")
-    if len(triggers) and int(triggers.channel.max()) > max_channel:
-        raise EventDataError(f"trigger channel above {max_channel} cannot be encoded")
-
-
-class Evt3Encoder:
+class Evt3Encoder(StreamEncoder):
     """Streaming EVT 3.0 encoder: successive `encode` calls continue one byte stream.
 
     Same-time, same-row, same-polarity runs of increasing x (what a sensor readout produces)
@@ -360,23 +332,7 @@ class Evt3Encoder:
     """
 
     def __init__(self) -> None:
-        self._state = np.array([0, 0, -1, -1], np.int64)
-        self._last_t = 0
-
-    def encode(self, events: EventArray, triggers: TriggerEvents | None = None) -> bytes:
-        trig = triggers if triggers is not None else TriggerEvents.empty()
-        _check_inputs(events, trig, self._last_t, 0xF)
-        if len(events) and int(events.t[0]) < 0:
-            raise EventDataError("negative event time cannot be encoded")
-        args = (events.x, events.y, events.p, events.t, trig.t, trig.p, trig.channel)
-        nwords = encode_kernel(*args, self._state.copy(), np.empty(0, np.uint16), False)
-        out = np.empty(nwords, np.uint16)
-        encode_kernel(*args, self._state, out, True)
-        if len(events):
-            self._last_t = max(self._last_t, int(events.t[-1]))
-        if len(trig):
-            self._last_t = max(self._last_t, int(trig.t[-1]))
-        return out.astype("<u2", copy=False).tobytes()
+        super().__init__(encode_kernel, np.array([0, 0, -1, -1], np.int64), np.uint16, max_channel=0xF)
 
 
 def encode_evt3(events: EventArray, triggers: TriggerEvents | None = None) -> bytes:
