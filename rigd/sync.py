@@ -369,26 +369,20 @@ def _device_sync(
     """The report entry of one triggered device: its map, what it matched, missed and lost."""
     matched = m.pulse_index[m.pulse_index >= 0]
     dropped = _counter_gaps(obs.frame_counter) if obs.frame_counter is not None else []
-    cmap = clock.map
-    dev = DeviceSync(
-        device=obs.name,
-        kind=obs.kind,
-        device_ref_us=cmap.device_ref_us,
-        rig_ref_us=cmap.rig_ref_us,
-        rate=cmap.rate,
-        frac_us=cmap.frac_us,
-        drift_ppm=cmap.drift_ppm,
-        n_matched=int(matched.size),
-        residual_rms_us=clock.rms_us,
-        residual_max_us=clock.max_us,
-        # A slave reading its master's clock without trigger-in is not missing pulses.
-        missing_pulses=[]
+    # A slave reading its master's clock without trigger-in is not missing pulses.
+    missing = (
+        []
         if clock.source == "master" and obs.t_device_us.size == 0
-        else [int(i) for i in np.setdiff1d(np.arange(n_emitted, dtype=np.int64), matched)],
-        dropped_frames=dropped,
-        unmatched_observations=int((m.pulse_index < 0).sum()),
+        else [int(i) for i in np.setdiff1d(np.arange(n_emitted, dtype=np.int64), matched)]
+    )
+    dev = _report_entry(
+        obs,
+        clock,
+        n_matched=int(matched.size),
+        unmatched=int((m.pulse_index < 0).sum()),
+        missing=missing,
+        dropped=dropped,
         shares_clock_with=master,
-        clock_from=clock.source,
     )
     if dropped:
         warnings.append(f"{obs.name}: {len(dropped)} frame(s) lost (counter gaps)")
@@ -407,24 +401,48 @@ def _software_sync(
     dist = host_map.to_rig_float(obs.t_device_us[ok]) - pulses.t_us[pos[ok]]
     rms = float(np.sqrt(np.mean(dist**2))) if dist.size else float("nan")
     mx = float(np.max(np.abs(dist))) if dist.size else float("nan")
-    dev = DeviceSync(
-        device=obs.name,
-        kind=obs.kind,
-        device_ref_us=host_map.device_ref_us,
-        rig_ref_us=host_map.rig_ref_us,
-        rate=host_map.rate,
-        frac_us=host_map.frac_us,
-        drift_ppm=host_map.drift_ppm,
+    dev = _report_entry(
+        obs,
+        _Clock(host_map, rms, mx, "host"),
         n_matched=int(ok.sum()),
-        residual_rms_us=rms,
-        residual_max_us=mx,
-        missing_pulses=[],
-        dropped_frames=_counter_gaps(obs.frame_counter) if obs.frame_counter is not None else [],
-        unmatched_observations=int((~ok).sum()),
+        unmatched=int((~ok).sum()),
+        missing=[],
+        dropped=_counter_gaps(obs.frame_counter) if obs.frame_counter is not None else [],
         sync="software",
-        clock_from="host",
     )
     return dev, host_map, index
+
+
+def _report_entry(
+    obs: DeviceObservations,
+    clock: _Clock,
+    *,
+    n_matched: int,
+    unmatched: int,
+    missing: list[int],
+    dropped: list[int],
+    shares_clock_with: str | None = None,
+    sync: Literal["hardware", "software"] = "hardware",
+) -> DeviceSync:
+    cmap = clock.map
+    return DeviceSync(
+        device=obs.name,
+        kind=obs.kind,
+        device_ref_us=cmap.device_ref_us,
+        rig_ref_us=cmap.rig_ref_us,
+        rate=cmap.rate,
+        frac_us=cmap.frac_us,
+        drift_ppm=cmap.drift_ppm,
+        n_matched=n_matched,
+        residual_rms_us=clock.rms_us,
+        residual_max_us=clock.max_us,
+        missing_pulses=missing,
+        dropped_frames=dropped,
+        unmatched_observations=unmatched,
+        shares_clock_with=shares_clock_with,
+        sync=sync,
+        clock_from=clock.source,
+    )
 
 
 def _fallback_map(obs: DeviceObservations, host_map: ClockMap) -> ClockMap:
