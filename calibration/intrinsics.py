@@ -229,30 +229,14 @@ def select_model(
     for model in sorted(candidates, key=lambda m: m.n_params):
         n_obs = 2 * sum(d.n for d in dets)
         if n_obs < 3 * (model.n_params + 6 * len(dets)):
-            scores.append(
-                ModelScore(
-                    model=model.name,
-                    n_params=model.n_params,
-                    train_rms_px=None,
-                    cv_rms_px=None,
-                    note="too few corners for this many parameters",
-                )
-            )
+            scores.append(_unscored(model, "too few corners for this many parameters"))
             continue
         try:
             train = _fit(dets, size, model).rms
             cv_rms = cross_validate(dets, size, model)
         except CalibrationError as exc:
             log.warning("model %s not scored: %s", model.name, exc)
-            scores.append(
-                ModelScore(
-                    model=model.name,
-                    n_params=model.n_params,
-                    train_rms_px=None,
-                    cv_rms_px=None,
-                    note=str(exc),
-                )
-            )
+            scores.append(_unscored(model, str(exc)))
             continue
         kept = best is None or cv_rms < best_cv * (1.0 - CV_MARGIN)
         scores.append(
@@ -282,6 +266,10 @@ def select_model(
         if s.model == best.name:
             s.note = "chosen"
     return best, scores
+
+
+def _unscored(model: LensModel, why: str) -> ModelScore:
+    return ModelScore(model=model.name, n_params=model.n_params, train_rms_px=None, cv_rms_px=None, note=why)
 
 
 def _tilt_deg(rvec: F64) -> float:

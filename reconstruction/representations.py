@@ -66,6 +66,11 @@ def _pixel_index(ev: EventArray, width: int) -> NDArray[np.int64]:
     return ev.y.astype(np.int64) * width + ev.x.astype(np.int64)
 
 
+def _polarity_pixel_index(ev: EventArray, width: int, height: int) -> NDArray[np.int64]:
+    """Flat index into a (2, H, W) array: channel 0 ON, channel 1 OFF."""
+    return _pixel_index(ev, width) + (ev.p < 0).astype(np.int64) * (width * height)
+
+
 def event_frame(
     ev: EventArray,
     width: int,
@@ -90,7 +95,7 @@ def count_image(
 ) -> F32:
     """(2, H, W) event counts: channel 0 ON, channel 1 OFF."""
     ev, _, _ = _window(ev, width, height, t0_us, t1_us)
-    idx = _pixel_index(ev, width) + (ev.p < 0).astype(np.int64) * (width * height)
+    idx = _polarity_pixel_index(ev, width, height)
     return np.bincount(idx, minlength=2 * width * height).reshape(2, height, width).astype(np.float32)
 
 
@@ -104,7 +109,7 @@ def surface_of_active_events(
     """
     ev, t0, _ = _window(ev, width, height, t0_us, t1_us)
     out = np.full(2 * width * height, -1.0, np.float64)
-    idx = _pixel_index(ev, width) + (ev.p < 0).astype(np.int64) * (width * height)
+    idx = _polarity_pixel_index(ev, width, height)
     np.maximum.at(out, idx, (ev.t - np.int64(t0)).astype(np.float64))
     return out.reshape(2, height, width)
 
