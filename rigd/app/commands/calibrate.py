@@ -9,7 +9,6 @@ the message on stderr; `--json` prints the result on stdout.
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 from typing import Annotated
 
@@ -35,8 +34,6 @@ from rigd.app.workflows.calibrate import (
     run_rig,
 )
 from rigd.core.errors import RigdError
-
-log = logging.getLogger(__name__)
 
 calibrate_app = typer.Typer(
     help="Calibrate cameras: intrinsics, event-sensor intrinsics (e2calib), rig extrinsics.",
