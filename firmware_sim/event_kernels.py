@@ -27,6 +27,10 @@ MAX_STEP_PX = 3.0
 
 I64 = NDArray[np.int64]
 F32 = NDArray[np.float32]
+#: Output columns the kernels write events into: x, y, polarity, device time.
+Out = tuple[NDArray[np.uint16], NDArray[np.uint16], NDArray[np.int8], I64]
+#: A device clock as the kernels take it: (offset_us, rate); stamp = floor(offset + t * rate).
+Clock = tuple[float, float]
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -39,12 +43,8 @@ def _emit_pixel(  # pragma: no cover - numba
     dt: float,
     x: int,
     y: int,
-    c_off: float,
-    c_rate: float,
-    out_x: NDArray[np.uint16],
-    out_y: NDArray[np.uint16],
-    out_p: NDArray[np.int8],
-    out_t: I64,
+    clock: Clock,
+    out: Out,
     n: int,
 ) -> tuple[int, float]:
     """Events of one pixel whose log level went lp -> ln in [t0, t0 + dt] with reference r.
@@ -53,6 +53,8 @@ def _emit_pixel(  # pragma: no cover - numba
     Each crossing of r + m * threshold is timed by linear interpolation between lp and ln
     and stamped like DeviceClock.stamp: floor(c_off + t * c_rate).
     """
+    c_off, c_rate = clock
+    out_x, out_y, out_p, out_t = out
     d = ln - r
     if -threshold < d < threshold:
         return n, r
@@ -83,16 +85,15 @@ def generate_events_kernel(  # pragma: no cover - numba
     t1: float,
     x0: int,
     y0: int,
-    c_off: float,
-    c_rate: float,
+    clock: Clock,
     start: int,
-    out_x: NDArray[np.uint16],
-    out_y: NDArray[np.uint16],
-    out_p: NDArray[np.int8],
-    out_t: I64,
+    out: Out,
     n_out: int,
 ) -> tuple[int, int]:
     """Events of one sub-step [t0, t1] from two log images of a box with top-left (x0, y0).
+
+    The reference kernel of the per-pixel rule (`_render_events_kernel` fuses it with
+    rendering); tests pin the rule with it.
 
     The reference `ref` is updated in place. Pixels are visited in raster order from flat
     index `start`; when the outputs are full the kernel stops before the pixel that would
@@ -113,12 +114,8 @@ def generate_events_kernel(  # pragma: no cover - numba
             dt,
             x0 + j,
             y0 + i,
-            c_off,
-            c_rate,
-            out_x,
-            out_y,
-            out_p,
-            out_t,
+            clock,
+            out,
             n_out,
         )
         if n < 0:
@@ -163,14 +160,10 @@ def _render_events_kernel(  # pragma: no cover - numba
     kmax: int,
     t0: float,
     t1: float,
-    c_off: float,
-    c_rate: float,
+    clock: Clock,
     y_start: int,
     y_end: int,
-    out_x: NDArray[np.uint16],
-    out_y: NDArray[np.uint16],
-    out_p: NDArray[np.int8],
-    out_t: I64,
+    out: Out,
     n_out: int,
 ) -> tuple[int, int]:
     """Render the log intensity at t1 where sprites are or were, and emit the events since t0.
@@ -184,6 +177,7 @@ def _render_events_kernel(  # pragma: no cover - numba
     outputs, returns (n_out, that row) for the caller to grow them and resume.
     """
     _height, width = bg_int.shape
+    cap = out[0].shape[0]
     n_spr = texels.shape[0]
     dt = t1 - t0
     lut_max = lut.shape[0] - 2.0
@@ -233,7 +227,7 @@ def _render_events_kernel(  # pragma: no cover - numba
         n_seg = m + 1
         for i in range(n_seg):
             row_px += seg_hi[i] - seg_lo[i]
-        if n_out + row_px * kmax > out_x.shape[0]:
+        if n_out + row_px * kmax > cap:
             return n_out, y
         for i in range(n_seg):
             for x in range(seg_lo[i], seg_hi[i]):
@@ -282,12 +276,8 @@ def _render_events_kernel(  # pragma: no cover - numba
                     dt,
                     x,
                     y,
-                    c_off,
-                    c_rate,
-                    out_x,
-                    out_y,
-                    out_p,
-                    out_t,
+                    clock,
+                    out,
                     n_out,
                 )
                 ref[y, x] = r
@@ -334,6 +324,11 @@ class EventBuffer:
         self.t = np.empty(capacity, np.int64)
         self.n = 0
 
+    @property
+    def columns(self) -> Out:
+        """The output columns as the kernels take them (valid until the next `grow`)."""
+        return self.x, self.y, self.p, self.t
+
     def grow(self) -> None:
         cap = 2 * self.x.shape[0]
         for name in ("x", "y", "p", "t"):
@@ -369,7 +364,7 @@ def generate_events(
     out = buf if buf is not None else EventBuffer()
     if t1_us <= t0_us or not scene.objects:
         return out
-    c_off, c_rate = (clock.offset_us, clock.rate) if clock is not None else (0.0, 1.0)
+    stamp: Clock = (clock.offset_us, clock.rate) if clock is not None else (0.0, 1.0)
     n_sub = scene.substeps(view, t0_us, t1_us, MAX_STEP_PX)
     times = np.linspace(t0_us, t1_us, n_sub + 1)
     corners = scene.object_corners(view, times)  # (n_sub + 1, n_obj, 4, 2)
@@ -400,14 +395,10 @@ def generate_events(
                 kmax,
                 float(times[k]),
                 float(times[k + 1]),
-                c_off,
-                c_rate,
+                stamp,
                 y,
                 y_hi,
-                out.x,
-                out.y,
-                out.p,
-                out.t,
+                out.columns,
                 out.n,
             )
             if y >= y_hi:

@@ -12,12 +12,8 @@ import pytest
 from drivers.base import EventPacket
 from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
-from firmware_sim.event_sensor import (
-    EventBuffer,
-    generate_events,
-    generate_events_kernel,
-    open_sim_event_sensor,
-)
+from firmware_sim.event_kernels import EventBuffer, generate_events, generate_events_kernel
+from firmware_sim.event_sensor import open_sim_event_sensor
 from firmware_sim.scene import Scene, lin_log
 from firmware_sim.world import DeviceClock, get_world, reset_world
 from rigd.core.errors import ConfigError
@@ -33,9 +29,7 @@ def run_kernel(l0: float, l1: float, ref: float, cap: int = 64) -> tuple[EventAr
     ln = np.array([[l1]], np.float32)
     r = np.array([[ref]], np.float32)
     buf = EventBuffer(cap)
-    n, nxt = generate_events_kernel(
-        lp, ln, r, C, 1000.0, 2000.0, 7, 9, 0.0, 1.0, 0, buf.x, buf.y, buf.p, buf.t, 0
-    )
+    n, nxt = generate_events_kernel(lp, ln, r, C, 1000.0, 2000.0, 7, 9, (0.0, 1.0), 0, buf.columns, 0)
     assert nxt == 1
     return EventArray(buf.x[:n], buf.y[:n], buf.p[:n], buf.t[:n]), float(r[0, 0])
 
@@ -65,15 +59,11 @@ def test_kernel_below_threshold_keeps_reference_and_resumes_when_full() -> None:
     ln = np.full((1, 2), 4.0 + 3.5 * C, np.float32)
     r = lp.copy()
     buf = EventBuffer(4)
-    n, nxt = generate_events_kernel(
-        lp, ln, r, C, 0.0, 100.0, 0, 0, 0.0, 1.0, 0, buf.x, buf.y, buf.p, buf.t, 0
-    )
+    n, nxt = generate_events_kernel(lp, ln, r, C, 0.0, 100.0, 0, 0, (0.0, 1.0), 0, buf.columns, 0)
     assert (n, nxt) == (3, 1)
     buf.n = n
     buf.grow()
-    n, nxt = generate_events_kernel(
-        lp, ln, r, C, 0.0, 100.0, 0, 0, 0.0, 1.0, nxt, buf.x, buf.y, buf.p, buf.t, n
-    )
+    n, nxt = generate_events_kernel(lp, ln, r, C, 0.0, 100.0, 0, 0, (0.0, 1.0), nxt, buf.columns, n)
     assert (n, nxt) == (6, 2)
     assert buf.x[:6].tolist() == [0, 0, 0, 1, 1, 1]
 
