@@ -37,27 +37,11 @@ from drivers.evt import Evt3Encoder
 from drivers.evt_stream import EvtStreamSensor, GrabbingSource
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
-from firmware_sim.board_scene import sim_scene
-from firmware_sim.event_kernels import (
-    MAX_STEP_PX,
-    EventBuffer,
-    generate_events,
-    generate_events_kernel,
-    sort_events_by_time,
-)
+from firmware_sim.event_kernels import MAX_STEP_PX, generate_events
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
-from firmware_sim.scene import Scene, lin_log
-from firmware_sim.world import (
-    DeviceClock,
-    Edge,
-    SimWorld,
-    Unpluggable,
-    UnplugParams,
-    get_world,
-    power_on_clock,
-    truth_journal,
-    unplug_params,
-)
+from firmware_sim.placement import Placement, check_ranges, place
+from firmware_sim.scene import lin_log
+from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.events import EventArray, TriggerEvents
@@ -72,31 +56,17 @@ _MAX_MERGE = 64
 
 _CAPABILITIES = frozenset({Capability.TRIGGER_IN, Capability.DEVICE_TIMESTAMPS, Capability.CLOCK_SYNC})
 
-# The kernels live in firmware_sim.event_kernels; their names stay importable from here.
-__all__ = [
-    "MAX_STEP_PX",
-    "EventBuffer",
-    "SimEventSensor",
-    "generate_events",
-    "generate_events_kernel",
-    "open_sim_event_sensor",
-    "sort_events_by_time",
-]
-
 
 @dataclass(frozen=True, slots=True)
 class SensorParams:
-    """What an event sensor spec may set."""
+    """What an event sensor spec may set besides its placement."""
 
-    width: int = 1280
-    height: int = 720
     threshold: float = 0.3
     buffer_packets: int = 1024
     pixel_model: PixelModelConfig | None = None
     """None: the fast ideal kernel (rendering only what moves). Otherwise the full pixel model
     of `firmware_sim.event_model` (noise, mismatch, refractory, low-pass) on whole rendered log
     frames at every sub-step: real time only at small resolutions."""
-    unplug: UnplugParams | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -143,31 +113,23 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
     _capabilities = _CAPABILITIES
     _fmt = "evt3"
 
-    def __init__(
-        self,
-        world: SimWorld,
-        name: str,
-        scene: Scene,
-        clock: DeviceClock,
-        params: SensorParams | None = None,
-        spec: str = "",
-    ) -> None:
+    def __init__(self, where: Placement, params: SensorParams | None = None) -> None:
         p = params or SensorParams()
+        world, name = where.world, where.name
         if p.threshold <= 0:
             raise ConfigError(f"event sensor {name}: threshold must be > 0, got {p.threshold}")
         if p.buffer_packets < 1:
             raise ConfigError(f"event sensor {name}: buffer_packets must be >= 1, got {p.buffer_packets}")
-        if not (0 < p.width <= 65535 and 0 < p.height <= 65535):
-            raise ConfigError(f"event sensor {name}: bad geometry {p.width}x{p.height}")
         super().__init__(
             f"event sensor {name}", buffers=p.buffer_packets, merge=_MAX_MERGE, drain_on_stop=True
         )
-        self._world, self._name, self._scene, self._clock, self._p = world, name, scene, clock, p
-        self._view = scene.view(name, p.width, p.height)
-        self._geometry = (p.width, p.height)
+        self._world, self._name, self._scene, self._clock, self._p = world, name, where.scene, where.clock, p
+        self._unplug = where.unplug
+        self._view = where.scene.view(name, where.width, where.height)
+        self._geometry = (where.width, where.height)
         self._info = DeviceInfo(
             kind="event_sensor",
-            spec=spec or f"sim://{world.name}/{name}",
+            spec=where.spec,
             vendor="rigd-sim",
             model="SimEventSensor",
             serial=f"{world.name}/{name}",
@@ -182,7 +144,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         self._delivered_until_us = -math.inf
         self._journal = truth_journal()
         self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":{json.dumps(name)},"kind":"events"'
-        world.register_clock(name, clock)
+        world.register_clock(name, where.clock)
         self._lock = threading.Lock()
         self._accepting = False
         self._generating = False
@@ -227,7 +189,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         last_log = lin_log(self._scene.render_intensity(self._view, t_start))
         model: EventSimulator | None = None
         if self._p.pixel_model is not None:
-            model = EventSimulator(self._p.width, self._p.height, self._p.pixel_model)
+            model = EventSimulator(*self._geometry, self._p.pixel_model)
             self._model_t = round(t_start)
             model.step(last_log, self._model_t)
         self._gen = _Generator(t_start, last_log, last_log.copy(), model)
@@ -236,7 +198,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             self._accepting = True
             self._generating = True
             self._delivered_until_us = t_start
-        self._arm_unplug(self._p.unplug, t_start, lost_frames_on_edges=False)
+        self._arm_unplug(self._unplug, t_start, lost_frames_on_edges=False)
         log.info("event sensor %s started at true %.0f us", self._name, t_start)
 
     def _do_stop(self) -> None:
@@ -467,38 +429,23 @@ def _pixel_model(spec: DeviceSpec, seed: int) -> PixelModelConfig | None:
 
 
 def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
-    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&threshold=&buffer_packets=&scene=sprites|board`.
+    """Factory for `sim://<world>/<name>?threshold=&buffer_packets=&pixel_model=ideal|full`
+    besides the placement parameters (`firmware_sim.placement`: offset_us, drift_ppm, seed,
+    width, height, scene=sprites|board).
 
     Fault switches: `unplug_at_s=`, `unplug_for_s=`, `clock_reset=1` (docs/sim-faults.md).
     """
-    spec.check_params(
-        {"offset_us", "drift_ppm", "seed", "width", "height", "threshold", "buffer_packets", "scene"}
-        | {"pixel_model", *_MODEL_PARAMS, "unplug_at_s", "unplug_for_s", "clock_reset"}
-    )
-    name = spec.path.strip("/")
-    if not name:
-        raise ConfigError(f"device spec {spec.raw!r}: no device name in the path (sim://<world>/<name>)")
-    seed = spec.int_param("seed", 0)
-    world = get_world(spec.location or "default", seed)
-    scene = sim_scene(spec, world, seed)
+    where = place(spec, {"threshold", "buffer_packets", "pixel_model", *_MODEL_PARAMS})
     params = SensorParams(
-        width=spec.int_param("width", 1280),
-        height=spec.int_param("height", 720),
         threshold=spec.float_param("threshold", 0.3),
         buffer_packets=spec.int_param("buffer_packets", 1024),
-        pixel_model=_pixel_model(spec, seed),
-        unplug=unplug_params(spec),
+        pixel_model=_pixel_model(spec, where.seed),
     )
-    for field_name, ok in (
-        ("width", 0 < params.width <= 65535),
-        ("height", 0 < params.height <= 65535),
-        ("threshold", params.threshold > 0 and math.isfinite(params.threshold)),
-        ("buffer_packets", params.buffer_packets >= 1),
-    ):
-        if not ok:
-            raise ConfigError(
-                f"device spec {spec.raw!r}: {field_name}={spec.params[field_name]!r} out of range"
-            )
-    clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
-    clock = power_on_clock(spec, world, name, clock)
-    return EvtStreamSensor(SimEventSensor(world, name, scene, clock, params, spec.raw))
+    check_ranges(
+        spec,
+        (
+            ("threshold", params.threshold > 0 and math.isfinite(params.threshold)),
+            ("buffer_packets", params.buffer_packets >= 1),
+        ),
+    )
+    return EvtStreamSensor(SimEventSensor(where, params))

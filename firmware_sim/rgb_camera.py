@@ -28,19 +28,9 @@ from numpy.typing import NDArray
 
 from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
-from firmware_sim.board_scene import sim_scene
-from firmware_sim.scene import Scene, View
-from firmware_sim.world import (
-    DeviceClock,
-    Edge,
-    SimWorld,
-    Unpluggable,
-    UnplugParams,
-    get_world,
-    power_on_clock,
-    truth_journal,
-    unplug_params,
-)
+from firmware_sim.placement import Placement, check_ranges, place
+from firmware_sim.scene import View
+from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.frames import Frame
@@ -64,16 +54,13 @@ _NOMINAL_EXPOSURE_US = 8000
 
 @dataclass(frozen=True, slots=True)
 class CameraParams:
-    """What a camera spec may set."""
+    """What a camera spec may set besides its placement."""
 
-    width: int = 1280
-    height: int = 720
     pixel_format: str = "rgb8"
     buffer_frames: int = 32
     drop_frames: frozenset[int] = field(default_factory=frozenset)
     busy_us: int = 0
     """After an exposure starts, rising edges within this many microseconds are ignored."""
-    unplug: UnplugParams | None = None
     counter_reset: bool = False
     """After a replug, count frames from 0 again (default: go on from where the unplug left it)."""
 
@@ -98,16 +85,9 @@ class SimRgbCamera(Unpluggable, RgbCamera):
     _capabilities = _CAPABILITIES
     _overflow_name = "buffer_overflow"
 
-    def __init__(
-        self,
-        world: SimWorld,
-        name: str,
-        scene: Scene,
-        clock: DeviceClock,
-        params: CameraParams | None = None,
-        spec: str = "",
-    ) -> None:
+    def __init__(self, where: Placement, params: CameraParams | None = None) -> None:
         p = params or CameraParams()
+        world, name = where.world, where.name
         if p.pixel_format not in ("mono8", "rgb8"):
             raise ConfigError(f"camera {name}: pixel format {p.pixel_format!r} (use mono8 or rgb8)")
         if p.buffer_frames < 1:
@@ -115,12 +95,13 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         if p.busy_us < 0:
             raise ConfigError(f"camera {name}: busy_us must be >= 0, got {p.busy_us}")
         super().__init__(CameraSettings(), queue_len=p.buffer_frames, drain_on_stop=True)
-        self._world, self._name, self._scene, self._clock, self._p = world, name, scene, clock, p
+        self._world, self._name, self._scene, self._clock, self._p = world, name, where.scene, where.clock, p
+        self._image_hw, self._unplug = (where.height, where.width), where.unplug
         self._label = f"camera {name}"
-        self._view: View = scene.view(name, p.width, p.height)
+        self._view: View = where.scene.view(name, where.width, where.height)
         self._info = DeviceInfo(
             kind="rgb_camera",
-            spec=spec or f"sim://{world.name}/{name}",
+            spec=where.spec,
             vendor="rigd-sim",
             model="SimRgbCamera",
             serial=f"{world.name}/{name}",
@@ -135,7 +116,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         self._busy_until_us = -math.inf
         self._journal = truth_journal()
         self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":{json.dumps(name)},"kind":"frame"'
-        world.register_clock(name, clock)
+        world.register_clock(name, where.clock)
         self._lock = threading.Lock()
         self._started = False  # latching edges; under the lock, as the wire callback reads it
         self._next_counter = 0
@@ -156,9 +137,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
 
     @property
     def frame_shape(self) -> tuple[int, ...]:
-        if self.pixel_format == "mono8":
-            return (self._p.height, self._p.width)
-        return (self._p.height, self._p.width, 3)
+        return self._image_hw if self.pixel_format == "mono8" else (*self._image_hw, 3)
 
     @property
     def frame_dtype(self) -> np.dtype[np.generic]:
@@ -173,7 +152,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             self._busy_until_us = -math.inf
             self._started = True
             self._fault.acquiring = self._settings.trigger_mode == "hardware"
-        self._arm_unplug(self._p.unplug, self._world.now_us(), lost_frames_on_edges=True)
+        self._arm_unplug(self._unplug, self._world.now_us(), lost_frames_on_edges=True)
         if self._settings.trigger_mode == "free_run":
             self._stop_free_run.clear()
             self._free_run = threading.Thread(
@@ -340,65 +319,37 @@ class SimRgbCamera(Unpluggable, RgbCamera):
 
 
 def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
-    """Factory for `sim://<world>/<name>?offset_us=&drift_ppm=&seed=&width=&height=&format=&buffer_frames=&drop_frames=&scene=sprites|board`.
+    """Factory for `sim://<world>/<name>?format=&buffer_frames=&drop_frames=` besides the
+    placement parameters (`firmware_sim.placement`: offset_us, drift_ppm, seed, width, height,
+    scene=sprites|board).
 
     Fault switches: `busy_us=`, `unplug_at_s=`, `unplug_for_s=`, `counter_reset=1`,
     `clock_reset=1`, `open_delay_s=` (docs/sim-faults.md).
     """
-    spec.check_params(
-        {
-            "offset_us",
-            "drift_ppm",
-            "seed",
-            "width",
-            "height",
-            "format",
-            "buffer_frames",
-            "drop_frames",
-            "scene",
-            "busy_us",
-            "unplug_at_s",
-            "unplug_for_s",
-            "counter_reset",
-            "open_delay_s",
-            "clock_reset",
-        }
+    where = place(
+        spec, {"format", "buffer_frames", "drop_frames", "busy_us", "counter_reset", "open_delay_s"}
     )
-    name = spec.path.strip("/")
-    if not name:
-        raise ConfigError(f"device spec {spec.raw!r}: no device name in the path (sim://<world>/<name>)")
     fmt = spec.param("format", "rgb8")
     if fmt not in ("mono8", "rgb8"):
         raise ConfigError(f"device spec {spec.raw!r}: format={fmt!r} (use mono8 or rgb8)")
     params = CameraParams(
-        width=spec.int_param("width", 1280),
-        height=spec.int_param("height", 720),
         pixel_format=fmt,
         buffer_frames=spec.int_param("buffer_frames", 32),
         drop_frames=frozenset(spec.int_list_param("drop_frames")),
         busy_us=spec.int_param("busy_us", 0),
-        unplug=unplug_params(spec),
         counter_reset=spec.int_param("counter_reset", 0) == 1,
     )
-    for field_name, ok in (
-        ("width", 0 < params.width <= 65535),
-        ("height", 0 < params.height <= 65535),
-        ("buffer_frames", params.buffer_frames >= 1),
-        ("busy_us", params.busy_us >= 0),
-        ("counter_reset", spec.int_param("counter_reset", 0) in (0, 1)),
-    ):
-        if not ok:
-            raise ConfigError(
-                f"device spec {spec.raw!r}: {field_name}={spec.params[field_name]!r} out of range"
-            )
+    check_ranges(
+        spec,
+        (
+            ("buffer_frames", params.buffer_frames >= 1),
+            ("busy_us", params.busy_us >= 0),
+            ("counter_reset", spec.int_param("counter_reset", 0) in (0, 1)),
+        ),
+    )
     open_delay_s = spec.float_param("open_delay_s", 0.0)
     if not 0.0 <= open_delay_s <= 600.0:
         raise ConfigError(f"device spec {spec.raw!r}: open_delay_s={open_delay_s!r} out of range (0-600 s)")
-    seed = spec.int_param("seed", 0)
-    world = get_world(spec.location or "default", seed)
-    scene = sim_scene(spec, world, seed)
-    clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
-    clock = power_on_clock(spec, world, name, clock)
     if open_delay_s > 0:
         time.sleep(open_delay_s)  # enumeration, firmware upload, GenICam XML: seconds on real cameras
-    return SimRgbCamera(world, name, scene, clock, params, spec.raw)
+    return SimRgbCamera(where, params)
