@@ -15,9 +15,10 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from pydantic import BaseModel
 
 from drivers.base import AcquisitionStats, Capability, RgbCamera
-from rigd.core.errors import ConfigError, DeviceError
+from drivers.testing.lifecycle import AcquiringDeviceContract, Device
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings
 
@@ -44,7 +45,7 @@ def drain(camera: RgbCamera, quiet_s: float = 0.2) -> list[Frame]:
     return out
 
 
-class CameraLifecycleContract:
+class CameraLifecycleContract(AcquiringDeviceContract):
     """What the daemon relies on from any camera: identity, capabilities that hold, the state
     machine, well-formed frames. `settings` is how the suite starts the camera; `make_frames(n)`
     makes a started camera expose n frames."""
@@ -52,12 +53,24 @@ class CameraLifecycleContract:
     settings: ClassVar[CameraSettings]
 
     @pytest.fixture
+    def device(self, camera: RgbCamera) -> RgbCamera:
+        return camera
+
+    @pytest.fixture
     def make_frames(self) -> Pulse:
         raise NotImplementedError("the trigger-mode contract provides make_frames")
 
-    def _start(self, camera: RgbCamera) -> None:
-        camera.configure(self.settings)
-        camera.start()
+    def _read(self, device: Device, timeout_s: float) -> object | None:
+        assert isinstance(device, RgbCamera)
+        return device.read_frame(timeout_s)
+
+    def _asks(self) -> dict[Capability, BaseModel]:
+        return {
+            Capability.HARDWARE_TRIGGER: CameraSettings(trigger_mode="hardware"),
+            Capability.FREE_RUN: CameraSettings(trigger_mode="free_run"),
+            Capability.COLOR: self.settings.model_copy(update={"pixel_format": "rgb8"}),
+            Capability.EXPOSURE_CONTROL: self.settings.model_copy(update={"exposure_us": 1234}),
+        }
 
     def test_info_kind_and_capabilities(self, camera: RgbCamera) -> None:
         assert camera.kind == "rgb_camera"
@@ -70,21 +83,6 @@ class CameraLifecycleContract:
         assert hardware != software, "a camera is synced either by a trigger wire or by host time"
         assert Capability.HARDWARE_TRIGGER in caps or Capability.FREE_RUN in caps
 
-    def test_its_settings_need_only_what_it_has(self, camera: RgbCamera) -> None:
-        assert camera.required_capabilities(self.settings) <= camera.capabilities
-
-    def test_configure_refuses_what_it_lacks(self, camera: RgbCamera) -> None:
-        asks = {
-            Capability.HARDWARE_TRIGGER: CameraSettings(trigger_mode="hardware"),
-            Capability.FREE_RUN: CameraSettings(trigger_mode="free_run"),
-            Capability.COLOR: self.settings.model_copy(update={"pixel_format": "rgb8"}),
-        }
-        for cap, settings in asks.items():
-            assert cap in camera.required_capabilities(settings)
-            if cap not in camera.capabilities:
-                with pytest.raises(ConfigError, match=str(cap)):
-                    camera.configure(settings)
-
     def test_frame_shape_and_dtype(self, camera: RgbCamera) -> None:
         shape = camera.frame_shape
         assert len(shape) in (2, 3)
@@ -93,18 +91,11 @@ class CameraLifecycleContract:
             assert shape[2] == 3
         assert isinstance(camera.frame_dtype, np.dtype)
 
-    def test_nothing_to_read_before_start(self, camera: RgbCamera) -> None:
-        t = time.monotonic()
-        assert camera.read_frame(0.1) is None
-        assert time.monotonic() - t < 1.0
-
     def test_frames_are_well_formed(self, camera: RgbCamera, make_frames: Pulse) -> None:
         self._start(camera)
-        assert camera.acquiring
         make_frames(4)
         frames = read_n(camera, 4)
         camera.stop()
-        assert not camera.acquiring
         frames += drain(camera)
         assert len(frames) >= 4
         for f in frames:
@@ -131,35 +122,6 @@ class CameraLifecycleContract:
         time.sleep(0.1)
         camera.stop()
         assert len(read_n(camera, 3)) == 3
-
-    def test_configure_only_while_stopped(self, camera: RgbCamera) -> None:
-        self._start(camera)
-        try:
-            with pytest.raises(DeviceError, match="stop it first"):
-                camera.configure(self.settings)
-            with pytest.raises(DeviceError, match="already started"):
-                camera.start()
-        finally:
-            camera.stop()
-        camera.configure(self.settings)
-
-    def test_stop_and_close_are_idempotent(self, camera: RgbCamera) -> None:
-        camera.stop()
-        self._start(camera)
-        camera.stop()
-        camera.stop()
-        self._start(camera)
-        camera.close()  # stops first
-        assert not camera.acquiring
-        camera.close()
-
-    def test_a_closed_camera_says_so_naming_itself(self, camera: RgbCamera) -> None:
-        camera.close()
-        assert camera.closed
-        for call in (camera.start, lambda: camera.read_frame(0.0), lambda: camera.configure(self.settings)):
-            with pytest.raises(DeviceError, match="closed") as err:
-                call()
-            assert camera.label in str(err.value)
 
 
 class HardwareTriggerCameraContract(CameraLifecycleContract):

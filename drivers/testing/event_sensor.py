@@ -15,9 +15,10 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from pydantic import BaseModel
 
 from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
-from rigd.core.errors import ConfigError, DeviceError
+from drivers.testing.lifecycle import AcquiringDeviceContract, Device
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
@@ -55,7 +56,7 @@ def check_packets(sensor: EventSensor, packets: list[EventPacket]) -> None:
     assert hosts == sorted(hosts)
 
 
-class EventSensorLifecycleContract:
+class EventSensorLifecycleContract(AcquiringDeviceContract):
     """What the daemon relies on from any event sensor: identity, capabilities that hold, the
     state machine, well-formed monotonic packets. `settings` is how the suite starts it."""
 
@@ -63,9 +64,19 @@ class EventSensorLifecycleContract:
     #: How long to read for events after start before giving up.
     events_within_s: ClassVar[float] = 5.0
 
-    def _start(self, sensor: EventSensor) -> None:
-        sensor.configure(self.settings)
-        sensor.start()
+    @pytest.fixture
+    def device(self, sensor: EventSensor) -> EventSensor:
+        return sensor
+
+    def _read(self, device: Device, timeout_s: float) -> object | None:
+        assert isinstance(device, EventSensor)
+        return device.read_events(timeout_s)
+
+    def _asks(self) -> dict[Capability, BaseModel]:
+        return {
+            Capability.TRIGGER_IN: EventSensorSettings(enable_trigger_in=True),
+            Capability.CLOCK_SYNC: EventSensorSettings(enable_trigger_in=False, sync_mode="master"),
+        }
 
     def test_info_kind_geometry_and_capabilities(self, sensor: EventSensor) -> None:
         assert sensor.kind == "event_sensor"
@@ -77,34 +88,15 @@ class EventSensorLifecycleContract:
         caps = sensor.capabilities
         assert isinstance(caps, frozenset)
         assert all(isinstance(c, Capability) for c in caps)
-        assert sensor.required_capabilities(self.settings) <= caps
-
-    def test_configure_refuses_what_it_lacks(self, sensor: EventSensor) -> None:
-        asks = {
-            Capability.TRIGGER_IN: EventSensorSettings(enable_trigger_in=True),
-            Capability.CLOCK_SYNC: EventSensorSettings(enable_trigger_in=False, sync_mode="master"),
-        }
-        for cap, settings in asks.items():
-            assert cap in sensor.required_capabilities(settings)
-            if cap not in sensor.capabilities:
-                with pytest.raises(ConfigError, match=str(cap)):
-                    sensor.configure(settings)
-
-    def test_nothing_to_read_before_start(self, sensor: EventSensor) -> None:
-        t = time.monotonic()
-        assert sensor.read_events(0.1) is None
-        assert time.monotonic() - t < 1.0
 
     def test_events_are_well_formed_and_monotonic(self, sensor: EventSensor) -> None:
         self._start(sensor)
-        assert sensor.acquiring
         packets: list[EventPacket] = []
         deadline = time.monotonic() + self.events_within_s
         while time.monotonic() < deadline and sum(len(p.events) for p in packets) < 1000:
             if (p := sensor.read_events(0.1)) is not None:
                 packets.append(p)
         sensor.stop()
-        assert not sensor.acquiring
         packets += drain(sensor)
         n_events = sum(len(p.events) for p in packets)
         assert n_events > 0, "no events at all"
@@ -113,35 +105,6 @@ class EventSensorLifecycleContract:
         assert isinstance(st, AcquisitionStats)
         assert st.delivered == n_events
         assert st.device_dropped == 0
-
-    def test_configure_only_while_stopped(self, sensor: EventSensor) -> None:
-        self._start(sensor)
-        try:
-            with pytest.raises(DeviceError, match="stop it first"):
-                sensor.configure(self.settings)
-            with pytest.raises(DeviceError, match="already started"):
-                sensor.start()
-        finally:
-            sensor.stop()
-        sensor.configure(self.settings)
-
-    def test_stop_and_close_are_idempotent(self, sensor: EventSensor) -> None:
-        sensor.stop()
-        self._start(sensor)
-        sensor.stop()
-        sensor.stop()
-        self._start(sensor)
-        sensor.close()  # stops first
-        assert not sensor.acquiring
-        sensor.close()
-
-    def test_a_closed_sensor_says_so_naming_itself(self, sensor: EventSensor) -> None:
-        sensor.close()
-        assert sensor.closed
-        for call in (sensor.start, lambda: sensor.read_events(0.0), lambda: sensor.configure(self.settings)):
-            with pytest.raises(DeviceError, match="closed") as err:
-                call()
-            assert sensor.label in str(err.value)
 
 
 class EventSensorTriggerInContract:
