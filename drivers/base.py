@@ -258,6 +258,8 @@ class AcquiringDevice(Device, Generic[T, S]):
             self._check_open()
             if self._running:
                 raise DeviceError(f"{self.label} is already started")
+            if self._acq is not None and self._acq.alive:
+                raise DeviceError(f"{self.label}: the last acquisition has not ended yet; try again")
             self._do_start()
             self._running = True
             if self._acq is not None:
