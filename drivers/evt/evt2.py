@@ -21,14 +21,17 @@ from drivers.evt.errors import BEFORE_TIME_HIGH, NON_MONOTONIC_TIME_HIGH, OK, OU
 from drivers.evt.kernels import (
     I8,
     I64,
+    TRIG_T,
     U8,
     U16,
     U32,
     DecodeConfig,
     DecodeKernel,
     DecodeOut,
+    X,
     put_checked,
     put_trigger,
+    violation,
 )
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -57,8 +60,9 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
         buf: U32, pos: int, end: int, st: I64, out: DecodeOut, n: int, nt: int, stats: I64, cfg: DecodeConfig
     ) -> tuple[int, int, int, int]:
         """Decode whole words buf[pos:end] (word indices); the contract of `evt3.decode_kernel`."""
-        cap = out.x.shape[0] - per_word
-        tcap = out.tt.shape[0]
+        strict = cfg[2]
+        cap = out[X].shape[0] - per_word
+        tcap = out[TRIG_T].shape[0]
         started = st[0]
         loop = st[1]
         th = st[2]
@@ -81,16 +85,15 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                     t = tbase | ((w >> 22) & 0x3F)
                     pol = 1 if typ == 1 else -1
                     n, bad = put_checked(out, n, (w >> 11) & 0x7FF, mask, w & 0x7FF, pol, t, stats, cfg)
-                    if bad and cfg.strict:
+                    if bad and strict:
                         err = OUT_OF_RANGE_XY
                         break
             elif typ == 0x8:  # EVT_TIME_HIGH
                 v = w & 0xFFFFFFF
                 fell = started != 0 and v < th
                 if fell and th - v < TH_HALF:  # a small fall: the word is skipped
-                    stats[NON_MONOTONIC_TIME_HIGH] += 1
-                    if cfg.strict:
-                        err = NON_MONOTONIC_TIME_HIGH
+                    err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict)
+                    if err:
                         break
                 else:
                     if fell:  # a large fall: the counter rolled over
@@ -106,9 +109,8 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
             elif typ == 0xE or typ == 0xF:  # OTHERS / CONTINUED
                 pass
             else:
-                stats[UNKNOWN_TYPE] += 1
-                if cfg.strict:
-                    err = UNKNOWN_TYPE
+                err = violation(stats, UNKNOWN_TYPE, strict)
+                if err:
                     break
             pos += 1
         st[0] = started

@@ -33,14 +33,17 @@ from drivers.evt.errors import (
 from drivers.evt.kernels import (
     I8,
     I64,
+    TRIG_T,
     U8,
     U16,
     DecodeConfig,
     DecodeOut,
+    X,
     ctpop,
     put_checked,
     put_run,
     put_trigger,
+    violation,
 )
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -125,8 +128,8 @@ def decode_kernel(
     vector without base) or is a rare type; the slow path is the reference per-word semantics.
     """
     width, height, strict = cfg
-    cap = out.x.shape[0] - 12
-    tcap = out.tt.shape[0]
+    cap = out[X].shape[0] - 12
+    tcap = out[TRIG_T].shape[0]
     started = st[0]
     loop = st[1]
     th = st[2]
@@ -172,16 +175,14 @@ def decode_kernel(
         if typ == 0x2 or typ == 0x4 or typ == 0x5:  # ADDR_X, VECT_12, VECT_8
             vector = typ != 0x2
             if vector and base >= _NOBASE:
-                stats[VECTOR_WITHOUT_BASE] += 1
-                if strict:
-                    err = VECTOR_WITHOUT_BASE
+                err = violation(stats, VECTOR_WITHOUT_BASE, strict)
+                if err:
                     break
             elif started == 0:
                 stats[BEFORE_TIME_HIGH] += 1
             elif y < 0:
-                stats[EVENT_WITHOUT_Y] += 1
-                if strict:
-                    err = EVENT_WITHOUT_Y
+                err = violation(stats, EVENT_WITHOUT_Y, strict)
+                if err:
                     break
             else:
                 if vector:
@@ -205,9 +206,8 @@ def decode_kernel(
             v12 = w & 0xFFF
             fell = started != 0 and v12 < th
             if fell and th - v12 < 2048:  # a small fall: the word is skipped
-                stats[NON_MONOTONIC_TIME_HIGH] += 1
-                if strict:
-                    err = NON_MONOTONIC_TIME_HIGH
+                err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict)
+                if err:
                     break
             else:
                 if fell:  # a large fall: the 24-bit counter rolled over
@@ -225,9 +225,8 @@ def decode_kernel(
         elif typ == 0x7 or typ == 0xE or typ == 0xF:
             pass
         else:
-            stats[UNKNOWN_TYPE] += 1
-            if strict:
-                err = UNKNOWN_TYPE
+            err = violation(stats, UNKNOWN_TYPE, strict)
+            if err:
                 break
         pos += 1
     st[0] = started

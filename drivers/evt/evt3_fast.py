@@ -35,7 +35,7 @@ from numba import njit
 
 from drivers.evt.evt3 import _NOBASE
 from drivers.evt.evt3 import decode_kernel as reference_kernel
-from drivers.evt.kernels import I64, U16, DecodeConfig, DecodeOut, put_event, put_run, put_trigger
+from drivers.evt.kernels import I64, TRIG_T, U16, DecodeConfig, DecodeOut, X, put_event, put_run, put_trigger
 
 _U64 = np.uint64
 _WINDOW = 64  # words handed to the reference kernel per irregular stretch
@@ -51,8 +51,8 @@ def decode_kernel(
 ) -> tuple[int, int, int, int]:
     """Decode words buf[pos:end]; contract of `evt3.decode_kernel` (returns (pos, n, nt, err))."""
     width, height, _ = cfg
-    cap = out.x.shape[0] - 12
-    tcap = out.tt.shape[0]
+    cap = out[X].shape[0] - 12
+    tcap = out[TRIG_T].shape[0]
     # vector base and polarity packed in one register: bp = base << 8 | (vpol & 0xFF); the int8
     # store of bp is the polarity, bp >> 8 the base; one compare checks "base given and whole span
     # inside the width" (the no-base sentinel is larger than any packed base)

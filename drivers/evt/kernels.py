@@ -10,7 +10,6 @@ so sharing them costs no call and keeps constant arguments (a one-pixel mask) fo
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
 
 import numpy as np
 from llvmlite import ir
@@ -18,7 +17,7 @@ from numba import njit, types
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
-from drivers.evt.errors import OUT_OF_RANGE_XY
+from drivers.evt.errors import OK, OUT_OF_RANGE_XY
 
 U8 = NDArray[np.uint8]
 U16 = NDArray[np.uint16]
@@ -27,39 +26,27 @@ I8 = NDArray[np.int8]
 I64 = NDArray[np.int64]
 
 
-class DecodeOut(NamedTuple):
-    """Output arrays a decode kernel fills from index n (events) and nt (trigger edges) on."""
-
-    x: U16
-    y: U16
-    p: I8
-    t: I64
-    tt: I64
-    tp: U8
-    tc: U8
-
-    @staticmethod
-    def empty(n_events: int, n_triggers: int) -> DecodeOut:
-        return DecodeOut(
-            np.empty(n_events, np.uint16),
-            np.empty(n_events, np.uint16),
-            np.empty(n_events, np.int8),
-            np.empty(n_events, np.int64),
-            np.empty(n_triggers, np.int64),
-            np.empty(n_triggers, np.uint8),
-            np.empty(n_triggers, np.uint8),
-        )
-
-
-class DecodeConfig(NamedTuple):
-    """What a decoder fixes for its whole stream: sensor geometry and error mode."""
-
-    width: int
-    height: int
-    strict: bool
-
-
+# A decode kernel's outputs travel as one plain tuple, indexed by these names: events (x, y, p, t)
+# filled from index n on, trigger edges (t, p, channel) from index nt on. Plain tuples rather than
+# NamedTuples: numba's cache pickles a NamedTuple argument's class by name, and a cache written
+# before that class were renamed would then fail to load (numba issue #6018).
+X, Y, P, T, TRIG_T, TRIG_P, TRIG_CH = range(7)
+DecodeOut = tuple[U16, U16, I8, I64, I64, U8, U8]
+DecodeConfig = tuple[int, int, bool]  # what a decoder fixes for its stream: width, height, strict
 DecodeKernel = Callable[..., tuple[int, int, int, int]]
+
+
+def decode_out(n_events: int, n_triggers: int) -> DecodeOut:
+    """Empty output arrays for that many events and trigger edges."""
+    return (
+        np.empty(n_events, np.uint16),
+        np.empty(n_events, np.uint16),
+        np.empty(n_events, np.int8),
+        np.empty(n_events, np.int64),
+        np.empty(n_triggers, np.int64),
+        np.empty(n_triggers, np.uint8),
+        np.empty(n_triggers, np.uint8),
+    )
 
 
 @intrinsic
@@ -89,10 +76,10 @@ def ctpop(typingctx: object, x: types.Integer) -> object:
 def put_event(out: DecodeOut, n: int, x: int, y: int, p: int, t: int) -> None:  # pragma: no cover - numba
     """Store one event at index n (unsigned index: no negative-index wrap-around code)."""
     i = np.uint64(n)
-    out.x[i] = x
-    out.y[i] = y
-    out.p[i] = p
-    out.t[i] = t
+    out[X][i] = x
+    out[Y][i] = y
+    out[P][i] = p
+    out[T][i] = t
 
 
 @njit(inline="always")
@@ -117,11 +104,12 @@ def put_checked(  # pragma: no cover - numba
 ) -> tuple[int, bool]:
     """Events at x0 + i for each set bit i of m; pixels outside the sensor are counted as
     out_of_range_xy instead. Returns (new n, whether any pixel was outside)."""
+    width, height, _ = cfg
     bad = False
     while m != 0:
         x = x0 + cttz(m)
         m &= m - 1
-        if x >= cfg.width or y >= cfg.height:
+        if x >= width or y >= height:
             stats[OUT_OF_RANGE_XY] += 1
             bad = True
         else:
@@ -131,9 +119,17 @@ def put_checked(  # pragma: no cover - numba
 
 
 @njit(inline="always")
+def violation(stats: I64, code: int, strict: bool) -> int:  # pragma: no cover - numba
+    """Count one violation of kind `code`; returns the code when it stops the decoder (strict
+    mode), else OK."""
+    stats[code] += 1
+    return code if strict else OK
+
+
+@njit(inline="always")
 def put_trigger(out: DecodeOut, nt: int, t: int, p: int, channel: int) -> int:  # pragma: no cover
     """Store one trigger edge at index nt; returns nt + 1."""
-    out.tt[nt] = t
-    out.tp[nt] = p
-    out.tc[nt] = channel
+    out[TRIG_T][nt] = t
+    out[TRIG_P][nt] = p
+    out[TRIG_CH][nt] = channel
     return nt + 1

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from drivers.evt import evt2, evt3, evt3_fast, evt21
 from drivers.evt.errors import KIND_NAMES, N_CODES, TRUNCATED, EvtDecodeError
-from drivers.evt.kernels import DecodeConfig, DecodeKernel, DecodeOut
+from drivers.evt.kernels import DecodeKernel, decode_out
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -57,25 +57,25 @@ class _Out:
     """Growable output arrays handed to the kernels; grown (never per event) when nearly full."""
 
     def __init__(self, n_events: int, n_triggers: int) -> None:
-        self.arrays = DecodeOut.empty(n_events, n_triggers)
+        self.arrays = decode_out(n_events, n_triggers)
         self.n = 0
         self.nt = 0
 
     def grow(self, min_free: int) -> None:
-        a, n, nt = self.arrays, self.n, self.nt
-        if a.x.shape[0] - n <= min_free:
-            size = max(2 * a.x.shape[0], n + 2 * min_free + 1024)
-            a = a._replace(**{k: _grown(getattr(a, k), size, n) for k in ("x", "y", "p", "t")})
-        if a.tt.shape[0] - nt <= 0:
-            size = 2 * a.tt.shape[0] + 64
-            a = a._replace(**{k: _grown(getattr(a, k), size, nt) for k in ("tt", "tp", "tc")})
-        self.arrays = a
+        (x, y, p, t, tt, tp, tc), n, nt = self.arrays, self.n, self.nt
+        if x.shape[0] - n <= min_free:
+            size = max(2 * x.shape[0], n + 2 * min_free + 1024)
+            x, y, p, t = (_grown(a, size, n) for a in (x, y, p, t))
+        if tt.shape[0] - nt <= 0:
+            size = 2 * tt.shape[0] + 64
+            tt, tp, tc = (_grown(a, size, nt) for a in (tt, tp, tc))
+        self.arrays = (x, y, p, t, tt, tp, tc)
 
     def result(self) -> Decoded:
-        a, n, nt = self.arrays, self.n, self.nt
+        (x, y, p, t, tt, tp, tc), n, nt = self.arrays, self.n, self.nt
         return Decoded(
-            EventArray(a.x[:n], a.y[:n], a.p[:n], a.t[:n]),
-            TriggerEvents(a.tt[:nt], a.tp[:nt], a.tc[:nt]),
+            EventArray(x[:n], y[:n], p[:n], t[:n]),
+            TriggerEvents(tt[:nt], tp[:nt], tc[:nt]),
         )
 
 
@@ -127,7 +127,7 @@ class StreamDecoder:
             "evt3": evt3_fast.decode_kernel if USE_EVT3_FAST else evt3.decode_kernel,
         }
         self._kernel = kernels[fmt]
-        self._cfg = DecodeConfig(self.width, self.height, self.strict)
+        self._cfg = (self.width, self.height, self.strict)
         # optional counting pass sizing the outputs exactly (EVT 3.0)
         self._bound: Callable[[NDArray[Any]], tuple[int, int]] | None = getattr(mod, "output_bound", None)
         self._stats = np.zeros(N_CODES, np.int64)

@@ -13,7 +13,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers.evt import Evt3Encoder, EvtDecodeError, StreamDecoder, evt3, evt3_fast, parse_raw_header, raw
-from drivers.evt.kernels import DecodeConfig
 from drivers.evt.raw import _Out
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -234,7 +233,7 @@ def _run_small(data: bytes, kernel: Callable[..., tuple[int, int, int, int]]) ->
     stats = np.zeros(8, np.int64)
     pos = 0
     calls = 0
-    cfg = DecodeConfig(1280, 720, False)
+    cfg = (1280, 720, False)
     while pos < words.size:
         pos, out.n, out.nt, err = kernel(words, pos, words.size, stt, out.arrays, out.n, out.nt, stats, cfg)
         assert err == 0
