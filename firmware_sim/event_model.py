@@ -104,9 +104,22 @@ class PixelModelConfig(BaseModel):
         return self.threshold_off if self.threshold_off is not None else self.threshold
 
 
+# The kernels take their inputs grouped in plain tuples (numba's cache pickles a NamedTuple
+# argument's class by name, so renaming one would break loading older caches):
+LogInput = tuple[bool, float, float, float]
+"""How input values become log levels (`_to_log`): is_log, scale to DN, eps, knee (DN)."""
+Pixels = tuple[F64, F64, F64, F64, I64]
+"""Per-pixel (H, W) arrays `step_kernel` reads and advances: level, ref, thr_on, thr_off, last_t."""
+StepParams = tuple[float, bool, float, float, int]
+"""Non-idealities `step_kernel` applies: leak rate (Hz), low-pass on, its cutoff (Hz) and minimum
+fraction, refractory period (us)."""
+EventOut = tuple[NDArray[np.uint16], NDArray[np.uint16], NDArray[np.int8], I64]
+
+
 @njit(nogil=True, cache=True, inline="always")
-def _to_log(v: float, is_log: bool, scale: float, eps: float, knee: float) -> tuple[float, float]:
+def _to_log(v: float, conv: LogInput) -> tuple[float, float]:
     """(log level, linear intensity in DN) of one input value; lin-log as in firmware_sim.scene."""
+    is_log, scale, eps, knee = conv
     log_knee = math.log(knee)
     if is_log:
         lv = v
@@ -121,49 +134,20 @@ def _to_log(v: float, is_log: bool, scale: float, eps: float, knee: float) -> tu
 
 @njit(nogil=True, cache=True)
 def init_state_kernel(  # pragma: no cover - numba
-    frame: F32,
-    is_log: bool,
-    scale: float,
-    eps: float,
-    knee: float,
-    level: F64,
-    ref: F64,
-    ref_offset: F64,
+    frame: F32, conv: LogInput, level: F64, ref: F64, ref_offset: F64
 ) -> None:
     """Set the level and the reference (level - ref_offset) of every pixel from the first frame."""
     h, w = frame.shape
     for i in range(h):
         for j in range(w):
-            lv, _ = _to_log(frame[i, j], is_log, scale, eps, knee)
+            lv, _ = _to_log(frame[i, j], conv)
             level[i, j] = lv
             ref[i, j] = lv - ref_offset[i, j]
 
 
 @njit(nogil=True, cache=True)
 def step_kernel(  # pragma: no cover - numba
-    frame: F32,
-    is_log: bool,
-    scale: float,
-    eps: float,
-    knee: float,
-    level: F64,
-    ref: F64,
-    thr_on: F64,
-    thr_off: F64,
-    last_t: I64,
-    leak_rate_hz: float,
-    lowpass: bool,
-    lowpass_hz: float,
-    lowpass_min: float,
-    refractory_us: int,
-    t0: int,
-    t1: int,
-    start: int,
-    out_x: NDArray[np.uint16],
-    out_y: NDArray[np.uint16],
-    out_p: NDArray[np.int8],
-    out_t: I64,
-    n_out: int,
+    frame: F32, conv: LogInput, px: Pixels, prm: StepParams, t0: int, t1: int, i0: int, out: EventOut, n: int
 ) -> tuple[int, int]:
     """Events of every pixel for the step (t0, t1], in raster order; updates the state in place.
 
@@ -171,17 +155,20 @@ def step_kernel(  # pragma: no cover - numba
     step fraction s (ref drifts down by the leak), one event per crossing of +m*C_on or
     -m*C_off at t0 + s*(t1 - t0) rounded to the us and kept inside (t0, t1]. The state of
     a pixel changes only with its events, so when the outputs are full the kernel stops
-    before that pixel and returns (n_out, its flat index) for the caller to grow and
-    resume; (n_out, h*w) when done.
+    before that pixel and returns (n, its flat index) for the caller to grow the outputs
+    and resume from (as i0); (n, h*w) when done.
     """
+    level, ref, thr_on, thr_off, last_t = px
+    leak_rate_hz, lowpass, lowpass_hz, lowpass_min, refractory_us = prm
+    out_x, out_y, out_p, out_t = out
     h, w = frame.shape
     dt = float(t1 - t0)
     dt_s = dt * 1e-6
     tol = 1.0 - CROSSING_TOLERANCE
-    for idx in range(start, h * w):
+    for idx in range(i0, h * w):
         i = idx // w
         j = idx - i * w
-        lv, inten = _to_log(frame[i, j], is_log, scale, eps, knee)
+        lv, inten = _to_log(frame[i, j], conv)
         lp = level[i, j]
         if lowpass:
             frac = max(inten / 255.0, lowpass_min)
@@ -207,8 +194,8 @@ def step_kernel(  # pragma: no cover - numba
             sign = -1
             c = coff
         if k > 0:
-            if n_out + k > out_x.shape[0]:
-                return n_out, idx
+            if n + k > out_x.shape[0]:
+                return n, idx
             slope = d1 - d0
             lt = last_t[i, j]
             for m in range(1, k + 1):
@@ -219,17 +206,17 @@ def step_kernel(  # pragma: no cover - numba
                 te = min(max(te, t0 + 1), t1)
                 if te - lt < refractory_us:
                     continue
-                out_x[n_out] = j
-                out_y[n_out] = i
-                out_p[n_out] = sign
-                out_t[n_out] = te
-                n_out += 1
+                out_x[n] = j
+                out_y[n] = i
+                out_p[n] = sign
+                out_t[n] = te
+                n += 1
                 lt = te
             last_t[i, j] = lt
             r += sign * k * c
         level[i, j] = ln
         ref[i, j] = r - drift
-    return n_out, h * w
+    return n, h * w
 
 
 @njit(nogil=True, cache=True)
@@ -256,6 +243,10 @@ def _counting_sort(  # pragma: no cover - numba
         op[dst] = p[i]
         ot[dst] = t[i]
     return ox, oy, op, ot
+
+
+def _event_arrays(n: int) -> EventOut:
+    return np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.int8), np.empty(n, np.int64)
 
 
 def sort_by_time(
@@ -312,12 +303,14 @@ class EventSimulator:
         self.last_t = np.full(shape, np.iinfo(np.int64).min // 2, np.int64)
         self.t_us: int | None = None
         self.n_steps = 0
-        self._cap = max(4096, n_pix // 8)
-        self._bx = np.empty(self._cap, np.uint16)
-        self._by = np.empty(self._cap, np.uint16)
-        self._bp = np.empty(self._cap, np.int8)
-        self._bt = np.empty(self._cap, np.int64)
-        self._dtype: np.dtype[np.generic] | None = None
+        self._params: StepParams = (
+            cfg.leak_rate_hz,
+            cfg.lowpass,
+            cfg.lowpass_cutoff_hz,
+            cfg.lowpass_min_fraction,
+            cfg.refractory_us,
+        )
+        self._out = _event_arrays(max(4096, n_pix // 8))
         log.debug(
             "EventSimulator %dx%d: C_on %.3f C_off %.3f sigma %.3f, %d hot pixels",
             self.width,
@@ -368,9 +361,9 @@ class EventSimulator:
         t = int(t_us)
         f32, scale = self._prepare(frame, t)
         cfg = self.config
-        args = (cfg.input_kind == "log", scale, cfg.log_eps_dn, cfg.lin_log_knee_dn)
+        conv: LogInput = (cfg.input_kind == "log", scale, cfg.log_eps_dn, cfg.lin_log_knee_dn)
         if self.t_us is None:
-            init_state_kernel(f32, *args, self.level, self.ref, self._ref_offset)
+            init_state_kernel(f32, conv, self.level, self.ref, self._ref_offset)
             self.t_us = t
             self.n_steps += 1
             return EventArray.empty()
@@ -380,34 +373,15 @@ class EventSimulator:
                 f"EventSimulator step {self.n_steps}: time {t} us is not after the previous frame's "
                 f"{t0} us (frame times must increase strictly)"
             )
+        px: Pixels = (self.level, self.ref, self.thr_on, self.thr_off, self.last_t)
         n, idx, n_pix = 0, 0, self.width * self.height
         while True:
-            n, idx = step_kernel(
-                f32,
-                *args,
-                self.level,
-                self.ref,
-                self.thr_on,
-                self.thr_off,
-                self.last_t,
-                cfg.leak_rate_hz,
-                cfg.lowpass,
-                cfg.lowpass_cutoff_hz,
-                cfg.lowpass_min_fraction,
-                cfg.refractory_us,
-                t0,
-                t,
-                idx,
-                self._bx,
-                self._by,
-                self._bp,
-                self._bt,
-                n,
-            )
+            n, idx = step_kernel(f32, conv, px, self._params, t0, t, idx, self._out, n)
             if idx >= n_pix:
                 break
             self._grow(n)
-        x, y, p, tt = self._bx[:n], self._by[:n], self._bp[:n], self._bt[:n]
+        bx, by, bp, bt = self._out
+        x, y, p, tt = bx[:n], by[:n], bp[:n], bt[:n]
         noise = self._noise(t0, t)
         if noise is not None:
             x = np.concatenate([x, noise.x])
@@ -419,13 +393,13 @@ class EventSimulator:
         return sort_by_time(x, y, p, tt, t0 + 1, t)
 
     def _grow(self, n: int) -> None:
-        self._cap *= 2
-        for name in ("_bx", "_by", "_bp", "_bt"):
-            old = getattr(self, name)
-            new = np.empty(self._cap, old.dtype)
-            new[:n] = old[:n]
-            setattr(self, name, new)
-        log.debug("EventSimulator: event buffer grown to %d", self._cap)
+        """Double the event buffer, keeping its first n events."""
+        size = 2 * self._out[0].shape[0]
+        grown = _event_arrays(size)
+        for old, new in zip(self._out, grown, strict=True):
+            new[:n] = old[:n]  # type: ignore[index]
+        self._out = grown
+        log.debug("EventSimulator: event buffer grown to %d", size)
 
     def _noise(self, t0: int, t1: int) -> EventArray | None:
         """Shot-noise and hot-pixel events of (t0, t1], unsorted; None when both are off."""
