@@ -446,6 +446,40 @@ class SimulationSummary:
     t_last_us: int | None = None
     wall_s: float = 0.0
 
+    def record(self, res: StepResult) -> None:
+        """Count one written frame and its events."""
+        self.frames += 1
+        self.events += len(res.events)
+        if len(res.events):
+            if self.t_first_us is None:
+                self.t_first_us = int(res.events.t[0])
+            self.t_last_us = int(res.events.t[-1])
+
+    def finish(self, f2e: FramesToEvents, t_start: float) -> None:
+        """Take the run's sub-step counts and its wall time since t_start (perf_counter)."""
+        self.substeps_total = f2e.substeps_total
+        self.substeps_max = f2e.substeps_max
+        self.wall_s = time.perf_counter() - t_start
+
+
+def _steps(
+    source: FrameSource,
+    f2e: FramesToEvents,
+    summary: SimulationSummary,
+    on_step: Callable[[StepResult], None] | None,
+) -> Iterator[tuple[AnyFrame, StepResult]]:
+    """Each frame of `source` with its step through `f2e`, for the caller to write; once the caller
+    asks for the next one, the step is counted in `summary` and handed to `on_step`. A source
+    without frames is an error (a run must not leave an empty output looking complete)."""
+    for frame, t_us in source.frames:
+        res = f2e.push(frame, t_us)
+        yield frame, res
+        summary.record(res)
+        if on_step is not None:
+            on_step(res)
+    if summary.frames == 0:
+        raise ValueError(f"{source.description}: no frames")
+
 
 def simulate_to_take(
     source: FrameSource,
@@ -480,9 +514,7 @@ def simulate_to_take(
         )
     finally:
         source.close()
-    summary.substeps_total = f2e.substeps_total
-    summary.substeps_max = f2e.substeps_max
-    summary.wall_s = time.perf_counter() - t_start
+    summary.finish(f2e, t_start)
     log.info(
         "simulated %d frames -> %d events into %s in %.1f s",
         summary.frames,
@@ -513,24 +545,11 @@ def simulate_to_raw(
     try:
         with outp.open("wb") as f:
             f.write(header.to_bytes())
-            for frame, t_us in source.frames:
-                res = f2e.push(frame, t_us)
+            for _, res in _steps(source, f2e, summary, on_step):
                 f.write(encoder.encode(res.events))
-                summary.frames += 1
-                summary.events += len(res.events)
-                if len(res.events):
-                    if summary.t_first_us is None:
-                        summary.t_first_us = int(res.events.t[0])
-                    summary.t_last_us = int(res.events.t[-1])
-                if on_step is not None:
-                    on_step(res)
-        if summary.frames == 0:
-            raise ValueError(f"{source.description}: no frames")
     finally:
         source.close()
-    summary.substeps_total = f2e.substeps_total
-    summary.substeps_max = f2e.substeps_max
-    summary.wall_s = time.perf_counter() - t_start
+    summary.finish(f2e, t_start)
     return summary
 
 
@@ -568,8 +587,7 @@ def _write_take(
                 json.dumps(settings),
             )
             cam_shape: tuple[int, ...] | None = None
-            for frame, t_us in source.frames:
-                res = f2e.push(frame, t_us)
+            for frame, res in _steps(source, f2e, summary, on_step):
                 if with_frames:
                     img = np.asarray(frame)
                     if (img.shape[1], img.shape[0]) != (w, h):
@@ -587,16 +605,6 @@ def _write_take(
                         CAMERA_NAME, Frame(img, res.t_us, 0, res.index, time.monotonic_ns(), -1)
                     )
                 writer.append_events(EVENT_SENSOR_NAME, res.events)
-                summary.frames += 1
-                summary.events += len(res.events)
-                if len(res.events):
-                    if summary.t_first_us is None:
-                        summary.t_first_us = int(res.events.t[0])
-                    summary.t_last_us = int(res.events.t[-1])
-                if on_step is not None:
-                    on_step(res)
-            if summary.frames == 0:
-                raise ValueError(f"{source.description}: no frames")
             maps = {EVENT_SENSOR_NAME: ClockMap.identity()}
             if cam_shape is not None:
                 maps[CAMERA_NAME] = ClockMap.identity()
