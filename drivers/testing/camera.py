@@ -18,7 +18,7 @@ import pytest
 from pydantic import BaseModel
 
 from drivers.base import AcquisitionStats, Capability, RgbCamera
-from drivers.testing.lifecycle import AcquiringDeviceContract, Device
+from drivers.testing.lifecycle import Acquiring, AcquiringDeviceContract
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings
 
@@ -60,7 +60,7 @@ class CameraLifecycleContract(AcquiringDeviceContract):
     def make_frames(self) -> Pulse:
         raise NotImplementedError("the trigger-mode contract provides make_frames")
 
-    def _read(self, device: Device, timeout_s: float) -> object | None:
+    def _read(self, device: Acquiring, timeout_s: float) -> object | None:
         assert isinstance(device, RgbCamera)
         return device.read_frame(timeout_s)
 

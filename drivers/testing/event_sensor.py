@@ -18,7 +18,7 @@ import pytest
 from pydantic import BaseModel
 
 from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
-from drivers.testing.lifecycle import AcquiringDeviceContract, Device
+from drivers.testing.lifecycle import Acquiring, AcquiringDeviceContract
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
@@ -68,7 +68,7 @@ class EventSensorLifecycleContract(AcquiringDeviceContract):
     def device(self, sensor: EventSensor) -> EventSensor:
         return sensor
 
-    def _read(self, device: Device, timeout_s: float) -> object | None:
+    def _read(self, device: Acquiring, timeout_s: float) -> object | None:
         assert isinstance(device, EventSensor)
         return device.read_events(timeout_s)
 

@@ -12,7 +12,7 @@ from pydantic import BaseModel
 from drivers.base import AcquiringDevice, Capability
 from rigd.core.errors import ConfigError, DeviceError
 
-Device = AcquiringDevice[Any, Any]
+Acquiring = AcquiringDevice[Any, Any]
 
 
 class AcquiringDeviceContract:
@@ -21,33 +21,33 @@ class AcquiringDeviceContract:
 
     settings: ClassVar[BaseModel]
 
-    def _start(self, device: Device) -> None:
+    def _start(self, device: Acquiring) -> None:
         device.configure(self.settings)
         device.start()
 
-    def _read(self, device: Device, timeout_s: float) -> object | None:
+    def _read(self, device: Acquiring, timeout_s: float) -> object | None:
         raise NotImplementedError
 
     def _asks(self) -> dict[Capability, BaseModel]:
         """Settings that need a capability, one per capability the kind knows."""
         raise NotImplementedError
 
-    def test_its_settings_need_only_what_it_has(self, device: Device) -> None:
+    def test_its_settings_need_only_what_it_has(self, device: Acquiring) -> None:
         assert device.required_capabilities(self.settings) <= device.capabilities
 
-    def test_configure_refuses_what_it_lacks(self, device: Device) -> None:
+    def test_configure_refuses_what_it_lacks(self, device: Acquiring) -> None:
         for cap, settings in self._asks().items():
             assert cap in device.required_capabilities(settings)
             if cap not in device.capabilities:
                 with pytest.raises(ConfigError, match=str(cap)):
                     device.configure(settings)
 
-    def test_nothing_to_read_before_start(self, device: Device) -> None:
+    def test_nothing_to_read_before_start(self, device: Acquiring) -> None:
         t = time.monotonic()
         assert self._read(device, 0.1) is None
         assert time.monotonic() - t < 1.0
 
-    def test_configure_only_while_stopped(self, device: Device) -> None:
+    def test_configure_only_while_stopped(self, device: Acquiring) -> None:
         self._start(device)
         assert device.acquiring
         try:
@@ -60,7 +60,7 @@ class AcquiringDeviceContract:
         assert not device.acquiring
         device.configure(self.settings)
 
-    def test_stop_and_close_are_idempotent(self, device: Device) -> None:
+    def test_stop_and_close_are_idempotent(self, device: Acquiring) -> None:
         device.stop()
         self._start(device)
         device.stop()
@@ -70,7 +70,7 @@ class AcquiringDeviceContract:
         assert not device.acquiring
         device.close()
 
-    def test_a_closed_device_says_so_naming_itself(self, device: Device) -> None:
+    def test_a_closed_device_says_so_naming_itself(self, device: Acquiring) -> None:
         device.close()
         assert device.closed
         for call in (device.start, lambda: self._read(device, 0.0), lambda: device.configure(self.settings)):
