@@ -4,30 +4,28 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.evt import Evt3Encoder, EvtDecodeError, StreamDecoder, evt3, evt3_fast, parse_raw_header, raw
+from drivers.evt import Decoded, Evt3Encoder, EvtDecodeError, StreamDecoder, evt3, evt3_fast, raw
 from drivers.evt.raw import _Out
 from rigd.core.events import EventArray, TriggerEvents
+from tests.drivers.evt.streams import (
+    SETTINGS,
+    assert_matches_pypi_evt3,
+    assert_same,
+    feed_chunks,
+    needs_data,
+    real_body,
+)
 
-DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real Prophesee recordings not found at {DATA}")
-SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 KERNELS = {"ref": evt3.decode_kernel, "fast": evt3_fast.decode_kernel}
 
 Result = tuple[EventArray, TriggerEvents, dict[str, int], tuple[int, str] | None, list[int]]
-
-
-def _body(name: str) -> bytes:
-    with (DATA / name).open("rb") as f:
-        parse_raw_header(f)
-        return f.read()
 
 
 def _decode(
@@ -42,17 +40,11 @@ def _decode(
     """Decode through StreamDecoder with the chosen kernel; chunked when `sizes` is given."""
     dec = StreamDecoder("evt3", width=w, height=h, strict=strict)
     dec._kernel = KERNELS[kernel]
-    parts = []
+    parts: list[Decoded] = []
     error = None
-    sizes = sizes or [max(1, len(data))]
-    pos = i = 0
     try:
-        while pos < len(data):
-            k = sizes[i % len(sizes)]
-            parts.append(dec.feed(memoryview(data)[pos : pos + k]))
-            pos += k
-            i += 1
-        dec.finish()
+        for part in feed_chunks(dec, data, sizes or [max(1, len(data))]):
+            parts.append(part)  # kept when a later chunk raises
     except EvtDecodeError as exc:
         error = (exc.offset, exc.kind)
     ev = EventArray.concatenate([d.events for d in parts]) if parts else EventArray.empty()
@@ -61,10 +53,8 @@ def _decode(
 
 
 def _assert_same(a: Result, b: Result) -> None:
-    for x, y in ((a[0], b[0]), (a[1], b[1])):
-        assert len(x) == len(y)
-        for name in x.__slots__:  # type: ignore[union-attr]
-            np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=name)
+    assert_same(a[0], b[0])
+    assert_same(a[1], b[1])
     assert a[2] == b[2]  # skip counts by kind
     assert a[3] == b[3]  # strict: offset and kind of the error
     assert a[4] == b[4]  # outgoing decoder state
@@ -114,7 +104,7 @@ def test_production_path_uses_fast_kernel() -> None:
 @needs_data
 @pytest.mark.parametrize("name", ["evt3_gen41_sample.raw", "evt3_pedestrians.raw"])
 def test_real_files(name: str) -> None:
-    body = _body(name)
+    body = real_body(name)
     ref = _decode(body, "ref")
     _assert_same(_decode(body, "fast"), ref)
     for sizes in ([1], [3, 4097, 7], [65536]):
@@ -132,13 +122,7 @@ def test_real_files(name: str) -> None:
 @needs_data
 @pytest.mark.parametrize("name", ["evt3_gen41_sample.raw", "evt3_pedestrians.raw"])
 def test_real_files_match_pypi_evt3(name: str) -> None:
-    evt3_pkg = pytest.importorskip("evt3", reason="evt3 PyPI package not installed")
-    ref = evt3_pkg.decode_file(str(DATA / name))
-    ev = _decode(_body(name), "fast")[0]
-    np.testing.assert_array_equal(ev.x, ref.x)
-    np.testing.assert_array_equal(ev.y, ref.y)
-    np.testing.assert_array_equal(ev.p, ref.polarity.astype(np.int8) * 2 - 1)
-    np.testing.assert_array_equal(ev.t, ref.timestamp.astype(np.int64))
+    assert_matches_pypi_evt3(_decode(real_body(name), "fast")[0], name)
 
 
 # ------------------------------------------------------------------ encoder streams

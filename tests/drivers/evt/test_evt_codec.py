@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.evt import (
+    Decoded,
     Evt3Encoder,
     EvtDecodeError,
     RawHeader,
@@ -26,9 +27,15 @@ from drivers.evt import (
     write_raw,
 )
 from rigd.core.events import EventArray, TriggerEvents
-
-DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real Prophesee recordings not found at {DATA}")
+from tests.drivers.evt.streams import (
+    DATA,
+    SETTINGS,
+    assert_matches_pypi_evt3,
+    assert_same,
+    feed_chunks,
+    needs_data,
+    real_body,
+)
 
 # file, events, first t, last t (../shared/data/README.md, OpenEB semantics)
 REAL = [
@@ -36,7 +43,6 @@ REAL = [
     ("evt3_pedestrians.raw", "evt3", 1280, 720, 5_000, 5_840_504, 5_885_714),
     ("evt2_gen3_sample.raw", "evt2", 640, 480, 539_481, 1_317_888, 1_367_888),
 ]
-SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def _random_stream(
@@ -62,12 +68,6 @@ def _random_stream(
     return ev, tr
 
 
-def _assert_same(a: EventArray | TriggerEvents, b: EventArray | TriggerEvents) -> None:
-    assert len(a) == len(b)
-    for name in a.__slots__:  # type: ignore[union-attr]
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
-
-
 # ------------------------------------------------------------------ real files
 
 
@@ -84,7 +84,7 @@ def test_real_files_decode_to_readme(
     assert ev.is_time_sorted()
     # constant-memory reader with odd chunk sizes gives the same events
     reader = RawReader(DATA / name, chunk_bytes=4093)
-    _assert_same(EventArray.concatenate([d.events for d in reader]), ev)
+    assert_same(EventArray.concatenate([d.events for d in reader]), ev)
     assert not any(reader.stats.values())
 
 
@@ -99,14 +99,7 @@ def test_dat_file() -> None:
 @needs_data
 @pytest.mark.parametrize("name", ["evt3_gen41_sample.raw", "evt3_pedestrians.raw"])
 def test_evt3_matches_pypi_evt3(name: str) -> None:
-    evt3 = pytest.importorskip("evt3", reason="evt3 PyPI package not installed")
-    ref = evt3.decode_file(str(DATA / name))
-    _, dec = read_raw(DATA / name)
-    ev = dec.events
-    np.testing.assert_array_equal(ev.x, ref.x)
-    np.testing.assert_array_equal(ev.y, ref.y)
-    np.testing.assert_array_equal(ev.p, ref.polarity.astype(np.int8) * 2 - 1)
-    np.testing.assert_array_equal(ev.t, ref.timestamp.astype(np.int64))
+    assert_matches_pypi_evt3(read_raw(DATA / name)[1].events, name)
 
 
 @needs_data
@@ -117,7 +110,7 @@ def test_raw_write_read_round_trip(tmp_path: Path) -> None:
         write_raw(out, RawHeader(fmt=fmt, width=1280, height=720, fields={"serial_number": "42"}), dec.events)
         hdr2, dec2 = read_raw(out, strict=True)
         assert (hdr2.fmt, hdr2.width, hdr2.height, hdr2.serial_number) == (fmt, 1280, 720, "42")
-        _assert_same(dec2.events, dec.events)
+        assert_same(dec2.events, dec.events)
 
 
 def test_dat_round_trip(tmp_path: Path) -> None:
@@ -125,7 +118,7 @@ def test_dat_round_trip(tmp_path: Path) -> None:
     write_dat(tmp_path / "a.dat", ev, width=1280, height=720)
     hdr, back = read_dat(tmp_path / "a.dat")
     assert (hdr.width, hdr.height) == (1280, 720)
-    _assert_same(back, ev)
+    assert_same(back, ev)
 
 
 # ------------------------------------------------------------------ properties
@@ -149,8 +142,8 @@ def test_encode_decode_identity(seed: int, n: int, n_trig: int, loops: int, fmt:
     tr = TriggerEvents(tr.t, tr.p, tr.channel & (0xF if fmt == "evt3" else 0x1F))
     data = encode(fmt, ev, tr)
     dec = decode_bytes(data, fmt, strict=True)
-    _assert_same(dec.events, ev)
-    _assert_same(dec.triggers, tr)
+    assert_same(dec.events, ev)
+    assert_same(dec.triggers, tr)
 
 
 @SETTINGS
@@ -169,25 +162,13 @@ def test_streaming_encoder_equals_one_shot(seed: int, splits: int) -> None:
         parts.append(enc.encode(ev[lo:c], tr[tlo:thi]))
         lo = c
     dec = decode_bytes(b"".join(parts), "evt3", strict=True)
-    _assert_same(dec.events, ev)
-    _assert_same(dec.triggers, tr)
+    assert_same(dec.events, ev)
+    assert_same(dec.triggers, tr)
 
 
 def _chunked(data: bytes, fmt: str, sizes: list[int]) -> tuple[EventArray, TriggerEvents]:
-    dec = StreamDecoder(fmt)
-    out = []
-    pos = 0
-    i = 0
-    while pos < len(data):
-        k = sizes[i % len(sizes)]
-        out.append(dec.feed(memoryview(data)[pos : pos + k]))
-        pos += k
-        i += 1
-    dec.finish()
-    return (
-        EventArray.concatenate([d.events for d in out]),
-        TriggerEvents.concatenate([d.triggers for d in out]),
-    )
+    out = Decoded.concatenate(list(feed_chunks(StreamDecoder(fmt), data, sizes)))
+    return out.events, out.triggers
 
 
 @pytest.mark.parametrize("fmt", ["evt3", "evt2", "evt21", "evt21_le"])
@@ -197,27 +178,19 @@ def test_every_chunk_size_equals_whole(fmt: str) -> None:
     whole = decode_bytes(data, fmt, strict=True)
     for size in range(1, 65):
         e, t = _chunked(data, fmt, [size])
-        _assert_same(e, whole.events)
-        _assert_same(t, whole.triggers)
+        assert_same(e, whole.events)
+        assert_same(t, whole.triggers)
 
 
 @needs_data
 @SETTINGS
 @given(seed=st.integers(0, 2**32 - 1))
 def test_random_chunking_of_real_file(seed: int) -> None:
-    body = _real_body("evt3_gen41_sample.raw")
+    body = real_body("evt3_gen41_sample.raw")
     rng = np.random.default_rng(seed)
     sizes = rng.integers(1, 20_000, 50).tolist()
     e, _ = _chunked(body, "evt3", sizes)
-    _assert_same(e, decode_bytes(body, "evt3").events)
-
-
-def _real_body(name: str) -> bytes:
-    with (DATA / name).open("rb") as f:
-        from drivers.evt import parse_raw_header
-
-        parse_raw_header(f)
-        return f.read()
+    assert_same(e, decode_bytes(body, "evt3").events)
 
 
 # ------------------------------------------------------------------ hostile input
@@ -298,7 +271,7 @@ def test_fuzz_random_and_mutated(fmt: str) -> None:
     bodies = [seed]
     if DATA.is_dir():
         bodies.append(
-            _real_body("evt3_gen41_sample.raw" if fmt == "evt3" else "evt2_gen3_sample.raw")[:40_000]
+            real_body("evt3_gen41_sample.raw" if fmt == "evt3" else "evt2_gen3_sample.raw")[:40_000]
         )
     deadline = time.monotonic() + 0.75
     i = 0
