@@ -84,12 +84,16 @@ def missing_capabilities(device: Device, wanted: Iterable[Capability]) -> frozen
     return frozenset(wanted) - device.capabilities
 
 
+def explain_missing(missing: Iterable[Capability]) -> str:
+    """Each missing capability and why the settings need it, in one line."""
+    return "; ".join(f"{c}: {_WHY[c]}" for c in sorted(missing))
+
+
 def check_capabilities(device: Device, wanted: Iterable[Capability]) -> None:
     """Raise ConfigError naming the device, each missing capability and why it is needed."""
     missing = missing_capabilities(device, wanted)
     if missing:
-        why = "; ".join(f"{c}: {_WHY[c]}" for c in sorted(missing))
-        raise ConfigError(f"{device.label} cannot do what its settings ask: {why}")
+        raise ConfigError(f"{device.label} cannot do what its settings ask: {explain_missing(missing)}")
 
 
 @dataclass(slots=True)

@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from drivers.base import EventPacket, EventSensor, RgbCamera, Trigger
+from drivers.base import Capability, EventPacket, EventSensor, RgbCamera, Trigger
 from drivers.registry import open_device
 from rigd.app.capture.clock_reset import MAX_HOLD_S, MAX_OBSERVATIONS, ClockReset, estimate_offset
 from rigd.app.capture.control import RunControl
@@ -26,7 +26,7 @@ from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, WriterQueu
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import Gap, LiveStats, Observations
 from rigd.core.devices import PulseBatch
-from rigd.core.errors import DeviceError, RigdError
+from rigd.core.errors import ConfigError, DeviceError, RigdError
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
@@ -68,11 +68,9 @@ class TriggerChannel:
         self._lock = threading.Lock()
         self._batches: list[PulseBatch] = []
         self.n_pulses = 0
-        try:
-            self.device.configure(settings)
-        except BaseException:
-            self.device.close()
-            raise
+
+    def configure(self) -> None:
+        self.device.configure(self.settings)
 
     def run(self, queue: WriterQueue) -> None:
         """The acquisition thread body: pulse records until acquisition ends."""
@@ -153,18 +151,29 @@ class DeviceChannel:
 
     # -- lifecycle ------------------------------------------------------------------------
     def _open(self) -> RgbCamera | EventSensor:
-        """Open and configure the device from its config entry (also on a reconnect)."""
-        dev: RgbCamera | EventSensor
         if self.kind == "rgb_camera":
-            dev = open_device("rgb_camera", self.spec)
-        else:
-            dev = open_device("event_sensor", self.spec)
-        try:
-            dev.configure(self.settings)  # type: ignore[arg-type]  # settings match the kind
-        except BaseException:
-            dev.close()
-            raise
-        return dev
+            return open_device("rgb_camera", self.spec)
+        return open_device("event_sensor", self.spec)
+
+    def required_capabilities(self) -> frozenset[Capability]:
+        """What the device must be able to do for its settings (checked by the preflight)."""
+        dev, settings = self.device, self.settings
+        if isinstance(dev, RgbCamera) and isinstance(settings, CameraSettings):
+            return dev.required_capabilities(settings)
+        if isinstance(dev, EventSensor) and isinstance(settings, EventSensorSettings):
+            return dev.required_capabilities(settings)
+        raise ConfigError(f"{self.name}: its settings are not those of a {self.kind}")
+
+    def configure(self, dev: RgbCamera | EventSensor | None = None) -> None:
+        """Apply the config entry's settings (to a reopened device when given)."""
+        dev, settings = (self.device if dev is None else dev), self.settings
+        if isinstance(dev, RgbCamera) and isinstance(settings, CameraSettings):
+            dev.configure(settings)
+            return
+        if isinstance(dev, EventSensor) and isinstance(settings, EventSensorSettings):
+            dev.configure(settings)
+            return
+        raise ConfigError(f"{self.name}: its settings are not those of a {self.kind}")
 
     def stop(self) -> None:
         """Stop acquiring at the end of the take; a device away or written off is left to
@@ -289,6 +298,7 @@ class DeviceChannel:
             try:
                 dev = self._open()
                 try:
+                    self.configure(dev)
                     dev.start()
                 except BaseException:
                     dev.close()

@@ -2,35 +2,27 @@
 
 Each device says which capabilities its settings need (`required_capabilities`); a device
 that lacks one would fail mid-take or record data that cannot be synchronized, so the take
-is refused up front with one line naming every such device.
+is refused up front, before any device is configured or a file is created, with one line
+naming every such device.
 """
 
 from __future__ import annotations
 
-from drivers.base import Capability, Device
+from collections.abc import Iterable
+
+from drivers.base import Capability, Device, explain_missing, missing_capabilities
 from rigd.core.errors import ConfigError
-from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
-
-Settings = CameraSettings | EventSensorSettings | TriggerSettings
 
 
-def missing_capabilities(
-    device: Device, settings: Settings, extra: frozenset[Capability] = frozenset()
-) -> frozenset[Capability]:
-    required = getattr(device, "required_capabilities", None)  # TEMP until the ABCs have it
-    wanted = (frozenset() if required is None else required(settings)) | extra
-    return frozenset(wanted - device.capabilities)
-
-
-def check_rig(devices: dict[str, tuple[Device, Settings, frozenset[Capability]]]) -> None:
-    """`devices`: name -> (opened device, its settings, what the take needs beyond them).
-    Raises ConfigError naming each device and what it lacks."""
+def check_rig(devices: Iterable[tuple[str, str, Device, frozenset[Capability]]]) -> None:
+    """`devices`: (rig name, its spec in the config, the opened device, the capabilities its
+    settings need). Raises ConfigError naming each device, what it lacks and why."""
     problems = []
-    for name, (device, settings, extra) in devices.items():
-        missing = missing_capabilities(device, settings, extra)
+    for name, spec, device, wanted in devices:
+        missing = missing_capabilities(device, wanted)
         if missing:
-            problems.append(f"{name} ({device.info.spec}) lacks {', '.join(sorted(missing))}")
+            problems.append(f"{name} ({spec}) lacks {explain_missing(missing)}")
     if problems:
         raise ConfigError(
-            "not starting a take: the rig config asks for what its devices cannot do: " + "; ".join(problems)
+            "not starting a take: the rig config asks for what its devices cannot do: " + " | ".join(problems)
         )

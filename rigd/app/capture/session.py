@@ -18,7 +18,6 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivers.base import Capability, Device
 from rigd import __version__
 from rigd.app.capture.ballast import Ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
@@ -28,7 +27,7 @@ from rigd.app.capture.finalize import finalize_take, software_synced
 from rigd.app.capture.items import WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
-from rigd.app.capture.preflight import Settings, check_rig
+from rigd.app.capture.preflight import check_rig
 from rigd.app.capture.results import CaptureResult, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
@@ -264,13 +263,21 @@ class CaptureSession:
             live.samples.clear()
 
     def _preflight(self, trigger: TriggerChannel) -> None:
-        counted = frozenset({Capability.PULSE_COUNT}) if self.n_pulses is not None else frozenset()
-        devices: dict[str, tuple[Device, Settings, frozenset[Capability]]] = {
-            "trigger": (trigger.device, trigger.settings, counted)
-        }
-        for name, ch in self._channels.items():
-            devices[name] = (ch.device, ch.settings, frozenset())
-        check_rig(devices)
+        """Refuse a rig whose devices cannot do what the config asks, all named in one line;
+        then configure them."""
+        wanted = trigger.device.required_capabilities(trigger.settings, self.n_pulses)
+        check_rig(
+            [
+                ("trigger", self.config.trigger.spec, trigger.device, wanted),
+                *(
+                    (name, ch.spec, ch.device, ch.required_capabilities())
+                    for name, ch in self._channels.items()
+                ),
+            ]
+        )
+        trigger.configure()
+        for ch in self._channels.values():
+            ch.configure()
 
     def _create_take(self, trigger: TriggerChannel) -> TakeWriter:
         config = self.config
