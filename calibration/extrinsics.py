@@ -35,7 +35,7 @@ from scipy.sparse import lil_matrix
 
 from calibration.boards import BoardSpec, Detection
 from calibration.errors import CalibrationError
-from calibration.intrinsics import _DIST_NAMES, IntrinsicsResult
+from calibration.intrinsics import DIST_NAMES, IntrinsicsResult
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +137,7 @@ def _free_intrinsics(intr: IntrinsicsResult) -> list[int]:
     """Columns of cv2.projectPoints' jacobian (after rvec, tvec) of the calibrated free parameters:
     fx fy cx cy, then the distortion terms that the lens model left free."""
     n_dist = intr.dist_coeffs().size
-    dist_idx = [4 + i for i, n in enumerate(_DIST_NAMES) if n in intr.std_devs and i < n_dist]
+    dist_idx = [4 + i for i, n in enumerate(DIST_NAMES) if n in intr.std_devs and i < n_dist]
     return [0, 1, 2, 3, *dist_idx]
 
 

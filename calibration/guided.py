@@ -49,7 +49,13 @@ from pydantic import BaseModel, Field
 
 from calibration.boards import DEFAULT_MAX_EDGE_WIDTH_PX, BoardSpec, Detection, detect
 from calibration.errors import CalibrationError
-from calibration.intrinsics import _DIST_NAMES, MODELS_BY_NAME, IntrinsicsResult, _fit, calibrate_intrinsics
+from calibration.intrinsics import (
+    DIST_NAMES,
+    MODELS_BY_NAME,
+    IntrinsicsResult,
+    calibrate_intrinsics,
+    fit_model,
+)
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +159,7 @@ def tilt_bin(angles: tuple[float, float], flat_deg: float = FLAT_DEG) -> int:
 def _intrinsic_columns(model_params: Sequence[str]) -> list[int]:
     """Columns of cv2.projectPoints' Jacobian for fx fy cx cy and the model's distortion terms
     (layout: rvec 3, tvec 3, f 2, c 2, then the distortion vector)."""
-    return [6, 7, 8, 9, *(10 + _DIST_NAMES.index(p) for p in model_params)]
+    return [6, 7, 8, 9, *(10 + DIST_NAMES.index(p) for p in model_params)]
 
 
 @dataclass
@@ -375,7 +381,7 @@ class GuidedSession:
         """Re-fit the fast model on the kept views; update K, sigmas and the views' poses/bins."""
         lens = MODELS_BY_NAME[self.model]
         try:
-            fit = _fit([v.det for v in self.views], self.image_size, lens)
+            fit = fit_model([v.det for v in self.views], self.image_size, lens)
         except CalibrationError as exc:
             log.warning("guided session: calibration of %d views failed: %s", len(self.views), exc)
             return

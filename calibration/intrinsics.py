@@ -63,7 +63,8 @@ LENS_MODELS: tuple[LensModel, ...] = (
 MODELS_BY_NAME = {m.name: m for m in LENS_MODELS}
 #: Order of cv2.calibrateCameraExtended's stdDeviationsIntrinsics.
 _STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
-_DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
+#: OpenCV's order of the distortion coefficients.
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
 
 #: A richer model must lower the cross-validated RMS by this fraction to be kept.
 CV_MARGIN = 0.02
@@ -140,7 +141,9 @@ class IntrinsicsResult(BaseModel):
 
 
 @dataclass
-class _Fit:
+class ModelFit:
+    """One OpenCV calibration of a set of views under one lens model."""
+
     rms: float
     K: F64
     dist: F64
@@ -158,7 +161,7 @@ def _img(d: Detection) -> NDArray[np.float32]:
     return d.image_points.astype(np.float32).reshape(-1, 1, 2)
 
 
-def _fit(dets: Sequence[Detection], size: tuple[int, int], model: LensModel) -> _Fit:
+def fit_model(dets: Sequence[Detection], size: tuple[int, int], model: LensModel) -> ModelFit:
     """cv2.calibrateCameraExtended with the model's flags; CalibrationError if OpenCV refuses."""
     try:
         rms, K, dist, rvecs, tvecs, std, _, per_view = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
@@ -177,7 +180,7 @@ def _fit(dets: Sequence[Detection], size: tuple[int, int], model: LensModel) -> 
         ) from exc
     dist = np.asarray(dist, np.float64).ravel()
     dist = np.concatenate([dist, np.zeros(max(0, model.n_coeffs - dist.size))])[: model.n_coeffs]
-    return _Fit(
+    return ModelFit(
         float(rms),
         np.asarray(K, np.float64),
         dist,
@@ -213,7 +216,7 @@ def cross_validate(
     for f in range(k):
         train = [d for i, d in enumerate(dets) if i % k != f]
         test = [d for i, d in enumerate(dets) if i % k == f]
-        fit = _fit(train, size, model)
+        fit = fit_model(train, size, model)
         sq.extend(_heldout_sq_errors(d, fit.K, fit.dist) for d in test)
     return float(math.sqrt(np.concatenate(sq).mean()))
 
@@ -232,7 +235,7 @@ def select_model(
             scores.append(_unscored(model, "too few corners for this many parameters"))
             continue
         try:
-            train = _fit(dets, size, model).rms
+            train = fit_model(dets, size, model).rms
             cv_rms = cross_validate(dets, size, model)
         except CalibrationError as exc:
             log.warning("model %s not scored: %s", model.name, exc)
@@ -312,7 +315,7 @@ def max_distortion_px(K: F64, dist: F64, size: tuple[int, int]) -> float:
 
 
 def _degeneracy_warnings(
-    dets: Sequence[Detection], fit: _Fit, size: tuple[int, int], model: LensModel
+    dets: Sequence[Detection], fit: ModelFit, size: tuple[int, int], model: LensModel
 ) -> list[str]:
     warnings: list[str] = []
     n = len(dets)
@@ -351,7 +354,7 @@ def _degeneracy_warnings(
     return warnings
 
 
-def _std_map(fit: _Fit, model: LensModel) -> dict[str, float]:
+def _std_map(fit: ModelFit, model: LensModel) -> dict[str, float]:
     free = {"fx", "fy", "cx", "cy", *model.params}
     return {n: float(fit.std[i]) for i, n in enumerate(_STD_NAMES) if n in free and i < fit.std.size}
 
@@ -387,7 +390,7 @@ def calibrate_intrinsics(
             f"(rejected: {'; '.join(f'{r.name}: {r.reason}' for r in rej) or 'none'})"
         )
     lens, scores = _choose_lens(model, usable, size, warn)
-    fit = _fit(usable, size, lens)
+    fit = fit_model(usable, size, lens)
     if reject_outliers:
         fit = _reject_outlier_views(usable, size, lens, fit, camera, rej)
     warn.extend(_degeneracy_warnings(usable, fit, size, lens))
@@ -467,10 +470,10 @@ def _reject_outlier_views(
     usable: list[Detection],
     size: tuple[int, int],
     lens: LensModel,
-    fit: _Fit,
+    fit: ModelFit,
     camera: str,
     rejected: list[RejectedView],
-) -> _Fit:
+) -> ModelFit:
     """Drop the worst view while its error is far above the others, refitting in between; `usable`
     loses the dropped views. One at a time, since one bad view inflates every other's error."""
     while len(usable) > max(MIN_VIEWS_FOR_CV, 3):
@@ -485,11 +488,11 @@ def _reject_outlier_views(
         )
         log.info("camera %s: rejecting view %s: %s", camera, bad.name, reason)
         rejected.append(RejectedView(name=bad.name, reason=reason))
-        fit = _fit(usable, size, lens)
+        fit = fit_model(usable, size, lens)
     return fit
 
 
-def _view_results(usable: Sequence[Detection], fit: _Fit) -> list[ViewResult]:
+def _view_results(usable: Sequence[Detection], fit: ModelFit) -> list[ViewResult]:
     return [
         ViewResult(
             name=d.name,

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.evt.errors import EvtDecodeError
-from drivers.evt.raw import _read_header_lines
+from drivers.evt.raw import read_header_lines
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray
 
@@ -38,7 +38,7 @@ class DatHeader:
 def read_dat(path: str | Path, *, strict: bool = False) -> tuple[DatHeader, EventArray]:
     """Read a DAT file; a trailing partial record is an error (strict) or dropped with a warning."""
     with Path(path).open("rb") as f:
-        lines, _ = _read_header_lines(f)
+        lines, _ = read_header_lines(f)
         kind = f.read(2)
         start = f.tell()
         data = f.read()

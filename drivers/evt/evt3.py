@@ -81,7 +81,7 @@ def output_bound(buf: NDArray[np.uint16]) -> tuple[int, int]:
     return ne, nt
 
 
-_NOBASE = 1 << 40  # vector base while none was given (any vector then fails the x check)
+NOBASE = 1 << 40  # vector base while none was given (any vector then fails the x check)
 _NOY = 0xFFFF  # y while none was given (>= any height, so events fail the y check)
 _BIG = 1 << 50
 _FAST_TYPES = (0x0, 0x2, 0x3, 0x4, 0x5, 0x6)
@@ -134,7 +134,7 @@ def decode_kernel(
     loop = st[1]
     th = st[2]
     y = st[4]
-    base = st[5] if st[5] >= 0 else _NOBASE
+    base = st[5] if st[5] >= 0 else NOBASE
     vpol = st[6]
     tcur = (loop << 24) | (th << 12) | st[3]
     wm1 = width - 1
@@ -174,7 +174,7 @@ def decode_kernel(
         v = w & 0x7FF
         if typ == 0x2 or typ == 0x4 or typ == 0x5:  # ADDR_X, VECT_12, VECT_8
             vector = typ != 0x2
-            if vector and base >= _NOBASE:
+            if vector and base >= NOBASE:
                 err = violation(stats, VECTOR_WITHOUT_BASE, strict)
                 if err:
                     break
@@ -193,7 +193,7 @@ def decode_kernel(
                 if bad and strict:
                     err = OUT_OF_RANGE_XY
                     break
-            if vector and base < _NOBASE:
+            if vector and base < NOBASE:
                 base += 12 if typ == 0x4 else 8
         elif typ == 0x0:
             y = v
@@ -234,7 +234,7 @@ def decode_kernel(
     st[2] = th
     st[3] = tcur & 0xFFF
     st[4] = y
-    st[5] = base if base < _NOBASE else -1
+    st[5] = base if base < NOBASE else -1
     st[6] = vpol
     return pos, n, nt, err
 

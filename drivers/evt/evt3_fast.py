@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from drivers.evt.evt3 import _NOBASE
+from drivers.evt.evt3 import NOBASE
 from drivers.evt.evt3 import decode_kernel as reference_kernel
 from drivers.evt.kernels import I64, TRIG_T, U16, DecodeConfig, DecodeOut, X, put_event, put_run, put_trigger
 
@@ -61,7 +61,7 @@ def decode_kernel(
         y = st[4]
         # time packed as loop << 24 | TIME_HIGH << 12 | TIME_LOW; TIME_HIGH and loop derived from it
         tcur = (st[1] << 24) | (st[2] << 12) | st[3]
-        bp = (st[5] << 8) | (st[6] & 0xFF) if st[5] >= 0 else _NOBASE
+        bp = (st[5] << 8) | (st[6] & 0xFF) if st[5] >= 0 else NOBASE
         if st[0] != 0 and 0 <= y < height:
             while pos < end:
                 bend = min(end, pos + (cap - n) // 12)  # no capacity check inside the block
@@ -132,7 +132,7 @@ def decode_kernel(
             st[2] = (tcur >> 12) & 0xFFF
             st[3] = tcur & 0xFFF
             st[4] = y
-            if bp < _NOBASE:
+            if bp < NOBASE:
                 st[5] = bp >> 8
                 st[6] = np.int64(np.int8(bp & 0xFF))
             else:

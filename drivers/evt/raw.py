@@ -281,7 +281,7 @@ class RawHeader:
         return ("\n".join(lines) + "\n").encode("ascii")
 
 
-def _read_header_lines(f: BinaryIO) -> tuple[list[str], int]:
+def read_header_lines(f: BinaryIO) -> tuple[list[str], int]:
     lines: list[str] = []
     while True:
         start = f.tell()
@@ -306,7 +306,7 @@ def _read_header_lines(f: BinaryIO) -> tuple[list[str], int]:
 
 def parse_raw_header(f: BinaryIO) -> RawHeader:
     """Read the header at the current position; leaves `f` at the first stream byte."""
-    lines, size = _read_header_lines(f)
+    lines, size = read_header_lines(f)
     fields: dict[str, str] = {}
     for line in lines:
         body = line[1:].strip()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -81,16 +81,8 @@ def intrinsics_cmd(
 ) -> None:
     """Intrinsics of one camera from image files, with lens-model selection."""
     try:
-        options = IntrinsicsOptions(
-            images=images,
-            board=board,
-            out=out,
-            camera=camera,
-            model=model,
-            report=report,
-            into_take=into_take,
-        )
-        result = run_intrinsics(options)
+        shared: dict[str, Any] = {"out": out, "model": model, "report": report, "into_take": into_take}
+        result = run_intrinsics(IntrinsicsOptions(images=images, board=board, camera=camera, **shared))
     except RigdError as exc:
         raise _fail(exc) from exc
     _warn(result)
@@ -154,17 +146,8 @@ def rig_cmd(
         if events and take is None:
             raise RigdError("--events needs a TAKE (event sensors have no image files)")
         source = TakeSource(path=take, events=events) if take is not None else _image_sets(camera or [])
-        options = RigOptions(
-            board=spec,
-            source=source,
-            out=out,
-            reference=reference,
-            kalibr=kalibr,
-            report=report,
-            model=model,
-            into_take=into_take,
-        )
-        calib = run_rig(options)
+        shared: dict[str, Any] = {"out": out, "model": model, "report": report, "into_take": into_take}
+        calib = run_rig(RigOptions(board=spec, source=source, reference=reference, kalibr=kalibr, **shared))
     except RigdError as exc:
         raise _fail(exc) from exc
     for r in calib.intrinsics.values():
