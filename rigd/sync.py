@@ -43,6 +43,21 @@ class PulseLog:
     n_emitted: int
     """Pulse count the box reports at STOP; indices 0..n_emitted-1 should all be present."""
 
+    @classmethod
+    def from_records(
+        cls,
+        index: NDArray[np.int64],
+        t_us: NDArray[np.int64],
+        host_time_ns: NDArray[np.int64],
+        emitted: int = 0,
+    ) -> PulseLog:
+        """The box's pulse records sorted by index, one per index (a re-read after a gap may
+        repeat some); `emitted` is what the box said at STOP (0: unknown, the highest index)."""
+        order = np.argsort(index, kind="stable")
+        uniq = np.concatenate([[True], np.diff(index[order]) > 0]) if index.size else np.empty(0, bool)
+        sel = order[uniq]
+        return cls(index[sel], t_us[sel], host_time_ns[sel], max(emitted, int(index.max(initial=-1)) + 1))
+
 
 @dataclass(slots=True)
 class DeviceObservations:

@@ -347,14 +347,6 @@ def _rate_hz(cfg: dict[str, Any], pulses: PulseLog, warnings: list[str]) -> floa
     return None
 
 
-def _pulse_log(index: NDArray[np.int64], t_us: NDArray[np.int64], host: NDArray[np.int64]) -> PulseLog:
-    """Sorted, de-duplicated pulse log, as rigd.app.capture builds it (the box may resend)."""
-    order = np.argsort(index, kind="stable")
-    uniq = np.concatenate([[True], np.diff(index[order]) > 0]) if index.size else np.empty(0, bool)
-    sel = order[uniq]
-    return PulseLog(index[sel], t_us[sel], host[sel], int(index.max(initial=-1)) + 1)
-
-
 def _synth_host_times(
     t: NDArray[np.int64], host: NDArray[np.int64], pulses: PulseLog, period_us: float
 ) -> NDArray[np.int64]:
@@ -396,7 +388,8 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
     pg = require_group(f, f"{TRIGGER_GROUP}/pulses", where)
     cols = {k: require_dataset(pg, k, where) for k in ("index", "t_us", "host_time_ns")}
     n_p = kept.get(pg.name, int(cols["index"].shape[0]))
-    pulses = _pulse_log(*(np.asarray(_read_ds(cols[k], n_p, where), np.int64) for k in cols))
+    index, t_us, host = (np.asarray(_read_ds(cols[k], n_p, where), np.int64) for k in cols)
+    pulses = PulseLog.from_records(index, t_us, host)
     rate = _rate_hz(cfg, pulses, warnings)
     dev = _Devices()
     for name, g in require_group(f, FRAMES_GROUP, where).items():

@@ -41,16 +41,15 @@ RECENT_PACKETS = 8
 
 
 def pulse_log(batches: list[PulseBatch], emitted: int) -> PulseLog:
-    """The box's pulse records so far, one per index (a re-read after a gap may repeat some)."""
-    index = np.concatenate([b.index for b in batches]) if batches else np.empty(0, np.int64)
-    order = np.argsort(index, kind="stable")
-    uniq = np.concatenate([[True], np.diff(index[order]) > 0]) if index.size else np.empty(0, bool)
-    sel = order[uniq]
-    return PulseLog(
-        index[sel],
-        (np.concatenate([b.t_us for b in batches]) if batches else np.empty(0, np.int64))[sel],
-        (np.concatenate([b.host_time_ns for b in batches]) if batches else np.empty(0, np.int64))[sel],
-        max(emitted, int(index.max(initial=-1)) + 1),
+    """The box's pulse records so far, one per index."""
+    if not batches:
+        none = np.empty(0, np.int64)
+        return PulseLog.from_records(none, none, none, emitted)
+    return PulseLog.from_records(
+        np.concatenate([b.index for b in batches]),
+        np.concatenate([b.t_us for b in batches]),
+        np.concatenate([b.host_time_ns for b in batches]),
+        emitted,
     )
 
 
