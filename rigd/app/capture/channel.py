@@ -40,6 +40,15 @@ READ_TIMEOUT_S = 0.05
 RECENT_PACKETS = 8
 
 
+def pace(done: threading.Event, asked: float) -> None:
+    """After an empty read: wait out the rest of the read timeout. A device that is not
+    acquiring (not started yet, stopped, draining) answers at once, and an acquisition
+    thread that asked again at once would spin and starve the others of the GIL."""
+    rest = READ_TIMEOUT_S - (time.monotonic() - asked)
+    if rest > 0:
+        done.wait(rest)
+
+
 def pulse_log(batches: list[PulseBatch], emitted: int) -> PulseLog:
     """The box's pulse records so far, one per index."""
     if not batches:
@@ -74,6 +83,7 @@ class TriggerChannel:
     def run(self, queue: WriterQueue) -> None:
         """The acquisition thread body: pulse records until acquisition ends."""
         while True:
+            asked = time.monotonic()
             batch = self.device.read_pulses(READ_TIMEOUT_S)
             if len(batch):
                 with self._lock:
@@ -84,6 +94,8 @@ class TriggerChannel:
                 queue.put(PulsesItem(batch), self.live)
             elif self._control.acquiring_done.is_set():
                 return
+            else:
+                pace(self._control.acquiring_done, asked)
 
     def pulses(self, emitted: int = 0) -> PulseLog:
         with self._lock:
@@ -258,6 +270,7 @@ class DeviceChannel:
     def _read_loop(self) -> None:
         done = self.ctx.control.acquiring_done
         while True:
+            asked = time.monotonic()
             try:
                 dev = self.device  # a reconnect replaces it
                 item = (
@@ -274,6 +287,7 @@ class DeviceChannel:
                 if done.is_set():
                     self._drop_held("the take ended before its restarted clock could be tied")
                     return
+                pace(done, asked)
                 continue
             self._deliver(item)
 
