@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from firmware_sim.event_model import sort_by_time
 from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, log_lut
 from firmware_sim.world import DeviceClock
 from rigd.core.events import EventArray
@@ -285,35 +286,6 @@ def _render_events_kernel(  # pragma: no cover - numba
     return n_out, y_end
 
 
-@njit(nogil=True, cache=True)
-def sort_events_by_time(  # pragma: no cover - numba
-    x: NDArray[np.uint16], y: NDArray[np.uint16], p: NDArray[np.int8], t: I64
-) -> tuple[NDArray[np.uint16], NDArray[np.uint16], NDArray[np.int8], I64]:
-    """Stable counting sort by time; a slice spans a few thousand microseconds at most."""
-    n = t.shape[0]
-    ox = np.empty(n, np.uint16)
-    oy = np.empty(n, np.uint16)
-    op = np.empty(n, np.int8)
-    ot = np.empty(n, np.int64)
-    if n == 0:
-        return ox, oy, op, ot
-    tmin = t.min()
-    counts = np.zeros(t.max() - tmin + 2, np.int64)
-    for i in range(n):
-        counts[t[i] - tmin + 1] += 1
-    for b in range(1, counts.shape[0]):
-        counts[b] += counts[b - 1]
-    for i in range(n):
-        b = t[i] - tmin
-        dst = counts[b]
-        counts[b] += 1
-        ox[dst] = x[i]
-        oy[dst] = y[i]
-        op[dst] = p[i]
-        ot[dst] = t[i]
-    return ox, oy, op, ot
-
-
 class EventBuffer:
     """Growable struct-of-arrays the kernels write into (times already device stamps)."""
 
@@ -342,7 +314,8 @@ class EventBuffer:
         if self.n == 0:
             return EventArray.empty()
         n = self.n
-        return EventArray(*sort_events_by_time(self.x[:n], self.y[:n], self.p[:n], self.t[:n]))
+        t = self.t[:n]
+        return sort_by_time(self.x[:n], self.y[:n], self.p[:n], t, int(t.min()), int(t.max()))
 
 
 def generate_events(
