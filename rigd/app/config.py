@@ -193,6 +193,11 @@ class RigConfig(BaseModel):
             text = p.read_text(encoding="utf-8")
         except OSError as exc:
             raise ConfigError(f"cannot read rig config {p}: {exc.strerror}") from exc
+        except UnicodeDecodeError as exc:
+            bad = exc.object[exc.start]
+            raise ConfigError(
+                f"rig config {p} is not a text file: byte {exc.start} (0x{bad:02x}) is not UTF-8"
+            ) from None
         suffix = p.suffix.lower()
         try:
             data: Any

@@ -85,3 +85,26 @@ def test_example_configs_load() -> None:
     for path in configs:
         cfg = RigConfig.load(path)
         assert cfg.cameras or cfg.event_sensors
+
+
+@pytest.mark.parametrize("suffix", [".toml", ".json", ".yaml"])
+@pytest.mark.parametrize(
+    "blob",
+    [
+        b"\xff\xfe\x00t\x00o",
+        b"name = 'rig'\n\x80\x81\n",
+        bytes(range(256)),
+        b"\x89PNG\r\n\x1a\n" + b"\0" * 64,
+    ],
+)
+def test_binary_or_non_utf8_config_is_one_line_naming_the_file(
+    tmp_path: Path, suffix: str, blob: bytes
+) -> None:
+    path = tmp_path / f"b{suffix}"
+    path.write_bytes(blob)
+    with pytest.raises(ConfigError) as err:
+        RigConfig.load(path)
+    msg = str(err.value)
+    assert str(path) in msg
+    assert "\n" not in msg
+    assert "not a text file" in msg or "not valid" in msg
