@@ -136,14 +136,61 @@ def _decode(frames: list[bytes]) -> dict[str, Any]:
     if len(raw) > MAX_MESSAGE_BYTES:
         raise _RequestError("bad_request", f"request of {len(raw)} bytes; the limit is {MAX_MESSAGE_BYTES}")
     try:
-        data = json.loads(raw.decode("utf-8"))
+        data = json.loads(raw.decode("utf-8"), object_pairs_hook=_object_no_duplicates)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise _RequestError("bad_json", f"request is not UTF-8 JSON: {exc}") from None
     except RecursionError:
         raise _RequestError("bad_json", "request JSON is nested too deeply") from None
     if not isinstance(data, dict):
         raise _RequestError("bad_json", f"a request is a JSON object, got {type(data).__name__}")
+    if (where := _first_duplicate(data)) is not None:
+        raise _RequestError("bad_request", f"duplicate key {where!r} in the request", where)
     return data
+
+
+class _DuplicateKeys(dict[str, Any]):
+    """A JSON object that named `duplicate` more than once (which value wins is up to the
+    parser, so such a request is refused rather than guessed at)."""
+
+    duplicate: str = ""
+
+
+def _object_no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """`object_pairs_hook` for json.loads: marks objects with a repeated key.
+
+    The hook cannot know where its object sits, so it marks it and `_first_duplicate` finds
+    the path afterwards, for an error that names the field."""
+    obj = dict(pairs)
+    if len(obj) == len(pairs):
+        return obj
+    seen: set[str] = set()
+    marked = _DuplicateKeys(obj)
+    for key, _ in pairs:
+        if key in seen:
+            marked.duplicate = key
+            break
+        seen.add(key)
+    return marked
+
+
+def _first_duplicate(data: Any) -> str | None:
+    """Dotted path of the first repeated key anywhere in a parsed request, or None.
+
+    Iterative: a request nested as deeply as json.loads allows must not overflow the stack."""
+    stack: list[tuple[str, Any]] = [("", data)]
+    while stack:
+        prefix, node = stack.pop()
+        if isinstance(node, _DuplicateKeys):
+            return f"{prefix}.{node.duplicate}" if prefix else node.duplicate
+        if isinstance(node, dict):
+            items: list[tuple[str, Any]] = list(node.items())
+        elif isinstance(node, list):
+            items = [(str(i), v) for i, v in enumerate(node)]
+        else:
+            continue
+        for key, value in reversed(items):
+            stack.append((f"{prefix}.{key}" if prefix else key, value))
+    return None
 
 
 def _validate(data: dict[str, Any]) -> tuple[str, BaseModel]:

@@ -42,10 +42,17 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+class _StrictRequest(BaseModel):
+    """Requests come from anyone who can reach the socket: no coercion (a string is not a bool
+    or an int, a bool is not an int, a float is not an int), no unknown fields."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
 # -- requests --------------------------------------------------------------------------------
 
 
-class Request(_Strict):
+class Request(_StrictRequest):
     """Envelope of every control request."""
 
     v: int = Field(description="Protocol version the client speaks.")
@@ -54,11 +61,11 @@ class Request(_Strict):
     args: dict[str, Any] = Field(default_factory=dict)
 
 
-class NoArgs(_Strict):
+class NoArgs(_StrictRequest):
     pass
 
 
-class CaptureArgs(_Strict):
+class CaptureArgs(_StrictRequest):
     duration_s: float | None = Field(
         None, gt=0, le=7 * 86400, description="Seconds of trigger pulses; None: until `stop`."
     )
@@ -67,11 +74,11 @@ class CaptureArgs(_Strict):
     )
 
 
-class StopArgs(_Strict):
+class StopArgs(_StrictRequest):
     reason: Annotated[str, Field(max_length=200)] = "stop requested"
 
 
-class ShutdownArgs(_Strict):
+class ShutdownArgs(_StrictRequest):
     force: bool = Field(False, description="Stop a running take first (it is finalized, not lost).")
 
 

@@ -9,8 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import psutil
+import pytest
 
 from rigd.app.service.client import DaemonClient
+from rigd.app.service.daemon import Daemon
 from rigd.app.service.protocol import Reply
 from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
 
@@ -76,7 +78,12 @@ def _message(rng: random.Random) -> bytes:
         # Keep these from being valid: an unknown argument is always refused.
         args = msg.get("args")
         msg["args"] = {**(args if isinstance(args, dict) else {}), "fuzz_extra": 1}
-    return json.dumps(msg, allow_nan=True).encode()
+    body = json.dumps(msg, allow_nan=True).encode()
+    if rng.random() < 0.05 and body.startswith(b"{") and len(body) > 2:
+        # a key repeated: top level (`"cmd":"shutdown"` last) or nested in args
+        dup = rng.choice([b'"cmd":"shutdown",', b'"v":1,', b'"args":{"force":true,"force":true},'])
+        body = b"{" + dup + body[1:]
+    return body
 
 
 def test_fuzzed_messages_all_answered_daemon_serving_memory_flat(runtime_dir: Path, tmp_path: Path) -> None:
@@ -108,3 +115,68 @@ def test_fuzzed_messages_all_answered_daemon_serving_memory_flat(runtime_dir: Pa
     growth = max(rss[2:]) - rss[1]
     assert growth < 8e6, [round(r / 1e6, 1) for r in rss]
     assert proc.returncode == 0, (tmp_path / "daemon.log").read_text()[-3000:]
+
+
+# -- strict types and duplicate keys: answered `bad_request` naming the field, never acted on --
+
+_STRICT_CASES: list[tuple[bytes, str]] = [
+    # a string, an int or null is not a bool
+    (b'{"v":1,"cmd":"shutdown","args":{"force":"yes"}}', "args.force"),
+    (b'{"v":1,"cmd":"shutdown","args":{"force":"true"}}', "args.force"),
+    (b'{"v":1,"cmd":"shutdown","args":{"force":1}}', "args.force"),
+    (b'{"v":1,"cmd":"shutdown","args":{"force":null}}', "args.force"),
+    # the version is an int: not a string, a bool, a float or null
+    (b'{"v":"1","cmd":"ping"}', "v"),
+    (b'{"v":true,"cmd":"ping"}', "v"),
+    (b'{"v":1.0,"cmd":"ping"}', "v"),
+    (b'{"v":null,"cmd":"ping"}', "v"),
+    (b'{"cmd":"ping"}', "v"),
+    # required strings are strings; null is not one
+    (b'{"v":1,"cmd":null}', "cmd"),
+    (b'{"v":1,"cmd":1}', "cmd"),
+    (b'{"v":1,"id":5,"cmd":"ping"}', "id"),
+    (b'{"v":1,"cmd":"ping","args":null}', "args"),
+    (b'{"v":1,"cmd":"ping","args":[]}', "args"),
+    # numbers are numbers, not strings or bools
+    (b'{"v":1,"cmd":"capture","args":{"duration_s":"5"}}', "args.duration_s"),
+    (b'{"v":1,"cmd":"capture","args":{"duration_s":true}}', "args.duration_s"),
+    (b'{"v":1,"cmd":"capture","args":{"label":7}}', "args.label"),
+    (b'{"v":1,"cmd":"stop","args":{"reason":false}}', "args.reason"),
+    # duplicate keys, at the top and nested; the last one must not win
+    (b'{"v":1,"cmd":"ping","cmd":"shutdown"}', "cmd"),
+    (b'{"v":1,"v":1,"cmd":"ping"}', "v"),
+    (b'{"v":1,"cmd":"shutdown","args":{"force":false,"force":true}}', "args.force"),
+    (b'{"v":1,"cmd":"ping","args":{"x":{"y":1,"y":2}}}', "args.x.y"),
+    (b'{"v":1,"cmd":"ping","args":{"x":[0,{"y":1,"y":2}]}}', "args.x.1.y"),
+    (b'{"v":1,"id":"a","id":"b","cmd":"ping"}', "id"),
+]
+
+
+@pytest.mark.parametrize(("raw", "field"), _STRICT_CASES)
+def test_lax_types_and_duplicate_keys_refused_naming_the_field(raw: bytes, field: str) -> None:
+    daemon = Daemon(small_rig("strict"), metrics=False)
+    try:
+        reply = Reply.model_validate_json(daemon.handle([raw]) or b"")
+        assert not reply.ok
+        assert reply.error is not None
+        assert (reply.error.code, reply.error.field) == ("bad_request", field), reply.error
+        assert not daemon._stop.is_set(), "a refused request must not shut the daemon down"
+    finally:
+        daemon._ctx.term()
+
+
+def test_strict_requests_still_accept_valid_forms() -> None:
+    """Strictness is about types, not about refusing what the protocol allows."""
+    daemon = Daemon(small_rig("strict-ok"), metrics=False)
+    try:
+        for raw in (
+            b'{"v":1,"cmd":"ping"}',
+            b'{"v":1,"id":"x","cmd":"ping","args":{}}',
+            b'{"v":1,"cmd":"stop","args":{"reason":"r"}}',  # answered not_capturing, not bad_request
+            b'{"v":1,"cmd":"shutdown","args":{"force":false}}',
+        ):
+            reply = Reply.model_validate_json(daemon.handle([raw]) or b"")
+            assert reply.ok or (reply.error is not None and reply.error.code == "not_capturing"), raw
+        assert daemon._stop.is_set()  # the last one: a valid shutdown
+    finally:
+        daemon._ctx.term()
