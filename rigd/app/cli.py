@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 import sys
 from importlib import metadata
 from pathlib import Path
@@ -68,6 +69,10 @@ def _main(
     setup_logging(level, "json" if log_format == "json" else "text", log_file)
 
 
+#: Signals that end an in-process take cleanly (drained and finalized), as Ctrl-C does.
+_STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def _fail(exc: Exception) -> typer.Exit:
     console.print(f"[bold red]error:[/] {exc}", soft_wrap=True)
     return typer.Exit(code=2)
@@ -92,7 +97,7 @@ def capture(
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
     from rigd.app.capture import Progress as CaptureProgress
-    from rigd.app.capture import run_capture
+    from rigd.app.capture import new_take_path, run_capture
     from rigd.app.inspect import summarize
 
     try:
@@ -132,20 +137,33 @@ def capture(
             ev = sum(p.events.values())
             bar.update(task, completed=p.pulses, detail=f"{ev / 1e6:.1f} Mev  queue {p.queue_depth}")
 
+        path = new_take_path(out_dir, rig.name, label)
         try:
-            result = run_capture(rig, out_dir, duration, on_progress=on_progress, label=label)
+            result = run_capture(
+                rig, out_dir, duration, on_progress=on_progress, path=path, stop_signals=_STOPS
+            )
         except RigdError as exc:
             raise _fail(exc) from exc
+        except KeyboardInterrupt:  # a second signal while finalizing: the take is left as it is
+            console.print(
+                f"[bold red]aborted:[/] take {path} left unfinished; `rigd recover {path}` seals it",
+                soft_wrap=True,
+            )
+            raise typer.Exit(code=130) from None
     summary = summarize(result.path)
     if json_out:
         out.print_json(summary.model_dump_json())
-        return
-    typer.echo(f"take: {result.path}")
-    _print_summary(summary)
-    out.print(
-        f"wrote {result.bytes_written / 1e6:.1f} MB in {result.wall_s:.1f} s "
-        f"({result.bytes_written / 1e6 / max(result.wall_s, 1e-9):.1f} MB/s)"
-    )
+    else:
+        typer.echo(f"take: {result.path}")
+        _print_summary(summary)
+        out.print(
+            f"wrote {result.bytes_written / 1e6:.1f} MB in {result.wall_s:.1f} s "
+            f"({result.bytes_written / 1e6 / max(result.wall_s, 1e-9):.1f} MB/s)"
+        )
+    if result.stop_signal is not None:
+        name = signal.Signals(result.stop_signal).name
+        console.print(f"stopped by {name}: take {result.path} was finalized", soft_wrap=True)
+        raise typer.Exit(code=128 + result.stop_signal)
 
 
 def _capture_remote(client: DaemonClient, duration: float, label: str | None, json_out: bool) -> None:

@@ -40,6 +40,8 @@ class CaptureResult:
     """The longest periodic flush (the writer thread's stall; `writer.fsync` lengthens it)."""
     end_reason: str = ""
     """Why the recording ended (also the take's `end_reason` attr)."""
+    stop_signal: int | None = None
+    """The signal that stopped the take (`run_capture(stop_signals=...)`), if one did."""
 
 
 @dataclass(slots=True)

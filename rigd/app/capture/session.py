@@ -11,15 +11,18 @@ from __future__ import annotations
 
 import logging
 import shutil
+import signal
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 from pathlib import Path
+from types import FrameType
+from typing import Any
 
 from rigd import __version__
-from rigd.app.capture.ballast import Ballast
+from rigd.app.capture.ballast import Ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
 from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import DiskUsage, DiskWatch, FaultBoard, FlushWatch, TriggerWatchdog
@@ -116,6 +119,7 @@ class CaptureSession:
         self._t_wall = time.monotonic()
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
+            remove_stale_ballast(self.out_dir)
             self._disk.check(preflight=True)
             self._ballast = Ballast(self.out_dir, self.config.writer.disk_ballast_mb * 1_000_000)
             self._open()
@@ -468,6 +472,39 @@ class CaptureSession:
                 log.error("closing %s failed: %s", self._trigger.device.info.spec, exc)
 
 
+class StopOnSignals:
+    """While active (main thread only), the given signals stop the session as a user's stop
+    does: the take is drained and finalized. A second signal raises KeyboardInterrupt, which
+    abandons the take unfinished (`rigd recover` seals it)."""
+
+    def __init__(self, session: CaptureSession, signals: Iterable[int]) -> None:
+        self._session = session
+        self._signals = list(signals)
+        self._previous: dict[int, Any] = {}
+        self.received: int | None = None
+
+    def __enter__(self) -> StopOnSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in self._signals:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        name = signal.Signals(signum).name
+        if self.received is not None:
+            log.error("%s again while the take was being finalized: abandoning %s", name, self._session.path)
+            raise KeyboardInterrupt
+        self.received = signum
+        log.warning(
+            "%s: stopping take %s; it is finalized as usual (again to abandon it)", name, self._session.path
+        )
+        self._session.request_stop(f"{name} received")
+
+
 def run_capture(
     config: RigConfig,
     out_dir: Path,
@@ -477,8 +514,13 @@ def run_capture(
     path: Path | None = None,
     label: str | None = None,
     reconnect_interval_s: float | None = None,
+    stop_signals: Iterable[int] = (),
 ) -> CaptureResult:
-    """Capture one take of `duration_s` seconds of trigger pulses and return its summary."""
+    """Capture one take of `duration_s` seconds of trigger pulses and return its summary.
+
+    `stop_signals` (e.g. SIGINT, SIGTERM, SIGHUP for a command line) end the take early and
+    cleanly; the result then says which one (`stop_signal`). Without them a KeyboardInterrupt
+    still stops and finalizes the take before it propagates."""
     session = CaptureSession(
         config,
         out_dir,
@@ -488,14 +530,17 @@ def run_capture(
         reconnect_interval_s=reconnect_interval_s,
     )
     session.start()
-    try:
-        while (result := session.wait(0.05)) is None:
-            if on_progress:
-                on_progress(session.progress())
-    except KeyboardInterrupt:
-        session.request_stop("interrupted")
-        session.wait()
-        raise
+    with StopOnSignals(session, stop_signals) as signals:
+        try:
+            while (result := session.wait(0.05)) is None:
+                if on_progress:
+                    on_progress(session.progress())
+        except KeyboardInterrupt:
+            if signals.received is None:
+                session.request_stop("interrupted")
+                session.wait()
+            raise
     if on_progress:
         on_progress(session.progress())
+    result.stop_signal = signals.received
     return result
