@@ -3,7 +3,7 @@
 Commands that act on the rig talk to a running daemon when one answers at the control
 endpoint; `capture` and `devices` fall back to doing the work in-process when none does.
 Exit codes: 0 done, 1 the take ended with an error, 2 bad input / request refused,
-3 no daemon running (status, stop).
+3 no daemon running (status, stop), or the daemon stopped answering during `capture`.
 """
 
 from __future__ import annotations
@@ -19,11 +19,14 @@ from rich.console import Console
 from rich.table import Table
 
 from rigd.app.config import RigConfig, default_control_endpoint, default_sim_rig
-from rigd.app.service.client import DaemonClient, DaemonRequestError, find_daemon
+from rigd.app.service.client import DaemonClient, DaemonRequestError, DaemonUnavailableError, find_daemon
 from rigd.core.errors import ConfigError, RigdError
 
 log = logging.getLogger(__name__)
 _err = Console(stderr=True)
+
+#: Exit code of `rigd capture` when the daemon stops answering before the take is over.
+DAEMON_LOST_EXIT = 3
 
 #: How long `capture` waits for the daemon to open the devices and start the trigger.
 CAPTURE_START_TIMEOUT_S = 120.0
@@ -194,18 +197,46 @@ def capture_via_daemon(
         res = client.call("capture", timeout_s=CAPTURE_START_TIMEOUT_S, duration_s=duration, label=label)
     except DaemonRequestError as exc:
         raise _fail(exc) from exc
+    except DaemonUnavailableError as exc:
+        log.error("capture request unanswered: %s", exc)
+        _err.print(
+            f"[bold red]error:[/] the daemon at {client.endpoint} did not answer the capture request "
+            f"({exc}); a take it may have started is in its take_dir, and `rigd recover` seals it "
+            "if it was left unfinished",
+            soft_wrap=True,
+            highlight=False,
+        )
+        raise typer.Exit(code=DAEMON_LOST_EXIT) from None
     path = res["take"]
     if not json_out:
         _err.print(f"capturing through the daemon at {client.endpoint}: {path}")
     try:
-        last = wait_for_take(client, path, progress)
-    except KeyboardInterrupt:
-        client.call("stop", reason="interrupted (Ctrl-C)")
-        last = wait_for_take(client, path)
+        try:
+            last = wait_for_take(client, path, progress)
+        except KeyboardInterrupt:
+            client.call("stop", reason="interrupted (Ctrl-C)")
+            last = wait_for_take(client, path)
+    except DaemonUnavailableError as exc:
+        raise _daemon_lost(client, path, exc) from None
     if json_out:
         typer.echo(json.dumps(last, indent=2))
     if last.get("error") or not json_out:
         _report_last(last)
+
+
+def _daemon_lost(client: DaemonClient, path: str, exc: DaemonUnavailableError) -> typer.Exit:
+    """The daemon stopped answering mid-take: say so in one line, with where the take is.
+
+    No traceback: the daemon going away (killed, crashed, host trouble) is an operating
+    condition, and what the operator needs is the take's path and how to seal it."""
+    log.error("daemon lost during take %s: %s", path, exc)
+    _err.print(
+        f"[bold red]error:[/] the daemon at {client.endpoint} stopped answering during the take "
+        f"({exc}); the take is {path}; if it was left unfinished, `rigd recover {path}` seals it",
+        soft_wrap=True,
+        highlight=False,
+    )
+    return typer.Exit(code=DAEMON_LOST_EXIT)
 
 
 def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
