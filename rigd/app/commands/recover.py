@@ -1,9 +1,11 @@
 """`rigd recover`: seal takes whose writer crashed; one line per take.
 
 Register with `app.command("recover")(recover_command)`. Arguments are take files or
-directories (every unfinished take in them). Exit code 0 when every take is sealed (complete,
-or failed with a reason when no rig time could be fitted) or needed nothing; 1 when any take
-could not be sealed (held by a live writer, unreadable); 2 when no take was named or found.
+directories (every unfinished take in them). A file that cannot be read or sealed is one
+ERROR line naming it and why (an entry with `error` in --json), and the others are still
+sealed. Exit code 0 when every take is sealed (complete, or failed with a reason when no rig
+time could be fitted) or needed nothing; 1 when any file could not be handled (held by a
+live writer, unreadable); 2 when no take was named or found, or a directory cannot be listed.
 """
 
 from __future__ import annotations
@@ -11,14 +13,15 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 
 from rigd.core.errors import TakeError
-from rigd.take.recover import RecoveryReport, find_unfinished, recover_take
+from rigd.take.recover import RecoveryReport
+from rigd.take.recover_dir import RecoveryProblem, recover_dir, recover_one
 
 log = logging.getLogger(__name__)
 _err = Console(stderr=True)
@@ -32,11 +35,15 @@ _COLOURS = {
 }
 
 
-def _targets(paths: list[Path]) -> list[Path]:
-    """Files as given; directories expanded to their unfinished takes."""
-    out: list[Path] = []
+def _recover_all(paths: list[Path], *, dry_run: bool) -> list[RecoveryReport | RecoveryProblem]:
+    """Files as given, directories expanded to their unfinished takes; a file that cannot be
+    read or sealed is a `RecoveryProblem` in the list, never the end of the run."""
+    out: list[RecoveryReport | RecoveryProblem] = []
     for p in paths:
-        out.extend(find_unfinished(p) if p.is_dir() else [p])
+        if p.is_dir():
+            out.extend(recover_dir(p, dry_run=dry_run))
+        else:
+            out.append(recover_one(p, dry_run=dry_run))
     return out
 
 
@@ -51,32 +58,26 @@ def recover_command(
 ) -> None:
     """Repair and seal takes left unfinished by a crash (status recording, or a cut-short finalize)."""
     try:
-        targets = _targets(paths)
-    except TakeError as exc:
-        _err.print(f"[bold red]error:[/] {escape(str(exc))}")
+        results = _recover_all(paths, dry_run=dry_run)
+    except TakeError as exc:  # a directory that cannot be listed
+        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(code=2) from exc
-    if not targets:
+    if not results:
         _err.print("no unfinished takes found")
         raise typer.Exit(code=0 if paths and all(p.is_dir() for p in paths) else 2)
-    results: list[dict[str, Any]] = []
     ok = True
     out = Console(width=200, highlight=False, soft_wrap=True)
-    for path in targets:
-        try:
-            rr = recover_take(path, dry_run=dry_run)
-        except TakeError as exc:  # not a readable take: say so and go on with the others
-            log.error("recovering %s failed: %s", path, exc)
+    for r in results:
+        if isinstance(r, RecoveryProblem):
             ok = False
-            results.append({"path": str(path), "error": str(exc)})
             if not json_out:
-                out.print(f"[bold red]ERROR[/] {escape(str(exc))}")
+                out.print(f"[bold red]{'ERROR':<17}[/] {escape(r.line())}")
             continue
-        ok &= rr.sealed
-        results.append(rr.model_dump(mode="json"))
+        ok &= r.sealed
         if not json_out:
-            _print(out, rr)
+            _print(out, r)
     if json_out:
-        typer.echo(json.dumps(results, indent=2))
+        typer.echo(json.dumps([r.model_dump(mode="json") for r in results], indent=2))
     if not ok:
         raise typer.Exit(code=1)
 

@@ -321,18 +321,21 @@ class Daemon:
         signal.signal(signal.SIGINT, handler)
 
     def _recover(self) -> None:
-        from rigd.take.recover import find_unfinished, recover_take
+        """Seal unfinished takes in take_dir. A file that cannot be read is reported and moved
+        to take_dir/unreadable/ (kept); it never stops the daemon from starting and serving."""
+        from rigd.take.recover_dir import recover_dir
 
-        for path in find_unfinished(self.svc.take_dir):
+        def sealing(path: Path) -> None:
             log.warning("take %s was left unfinished; checking and sealing it", path)
             sdnotify.notify(f"STATUS=sealing {path.name}", "EXTEND_TIMEOUT_USEC=120000000")
-            try:
-                rep = recover_take(path)
-            except TakeError as exc:
-                log.error("could not recover %s: %s", path, exc)
-                self.recovered.append({"path": str(path), "error": str(exc)})
-                continue
-            self.recovered.append(json.loads(rep.model_dump_json()))
+
+        try:
+            results = recover_dir(self.svc.take_dir, move_unreadable=True, before_each=sealing)
+        except TakeError as exc:  # the directory itself cannot be listed
+            log.error("recovery skipped: %s", exc)
+            self.recovered.append({"path": str(self.svc.take_dir), "error": str(exc)})
+            return
+        self.recovered.extend(r.model_dump(mode="json") for r in results)
 
     def _finish_session(self, reason: str) -> None:
         with self._lock:
