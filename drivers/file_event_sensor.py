@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from drivers.base import Capability, EventPacket, EventSensor
-from drivers.evt import Decoded, RawReader, parse_raw_header, read_dat
+from drivers.evt import Decoded, RawReader, read_dat
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
-from rigd.core.errors import ConfigError
+from rigd.core.errors import ConfigError, EventDataError
 from rigd.core.events import TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
@@ -42,6 +42,8 @@ class FileEventSensor(EventSensor):
     ) -> None:
         super().__init__(EventSensorSettings(enable_trigger_in=False))
         self.path = Path(path)
+        if self.path.is_dir():
+            raise ConfigError(f"event file {self.path} is a directory, not a RAW or DAT recording")
         if not self.path.is_file():
             raise ConfigError(f"event file {self.path} does not exist")
         if pace < 0 or not np.isfinite(pace):
@@ -49,27 +51,18 @@ class FileEventSensor(EventSensor):
         self.pace, self.loop, self.chunk_bytes, self.strict = pace, loop, chunk_bytes, strict
         self._label = f"event file sensor {self.path}"
         self._is_dat = self.path.suffix.lower() == ".dat"
-        if self._is_dat:
-            hdr, ev = read_dat(self.path, strict=strict)
-            if hdr.width and hdr.height:
-                self._geometry = (hdr.width, hdr.height)
-            elif len(ev):  # old DAT files carry no geometry: the smallest that holds the data
-                self._geometry = (int(ev.x.max()) + 1, int(ev.y.max()) + 1)
-            else:
-                raise ConfigError(f"event file {self.path}: no geometry in the header and no events")
-            self._fmt, serial, fields = "dat", "", dict(hdr.fields)
-        else:
-            with self.path.open("rb") as f:
-                raw_hdr = parse_raw_header(f)
-            self._geometry = (raw_hdr.width, raw_hdr.height)
-            self._fmt, serial, fields = raw_hdr.fmt, raw_hdr.serial_number or "", raw_hdr.fields
-        self.header_fields = fields
+        self._dat_skipped: dict[str, int] = {}
+        try:
+            self._read_header(strict)
+        except (EventDataError, OSError) as exc:
+            raise ConfigError(f"event file {self.path}: {_reason(exc, self.path)}") from exc
+        fields = self.header_fields
         self._info = DeviceInfo(
             kind="event_sensor",
             spec=spec or f"file://{self.path}",
             vendor="file",
             model=fields.get("camera_integrator_name", "") + " " + fields.get("plugin_name", ""),
-            serial=serial,
+            serial=self._serial,
             firmware=f"format={self._fmt}",
             facts={"evt_format": self._fmt, **{f"header.{k}": v for k, v in fields.items()}},
         )
@@ -82,6 +75,27 @@ class FileEventSensor(EventSensor):
         self._first_t: int | None = None
         self._t0_host = 0.0
         self._passes = 0
+
+    def _read_header(self, strict: bool) -> None:
+        """Format, geometry, serial and header fields; an empty or unreadable file raises."""
+        if self.path.stat().st_size == 0:
+            raise EventDataError("empty file, not a recording")
+        if self._is_dat:
+            hdr, ev = read_dat(self.path, strict=strict)
+            if hdr.width and hdr.height:
+                self._geometry = (hdr.width, hdr.height)
+            elif len(ev):  # old DAT files carry no geometry: the smallest that holds the data
+                self._geometry = (int(ev.x.max()) + 1, int(ev.y.max()) + 1)
+            else:
+                raise ConfigError(f"event file {self.path}: no geometry in the header and no events")
+            self._fmt, serial, fields = "dat", "", dict(hdr.fields)
+        else:
+            with RawReader(self.path, self.chunk_bytes, strict=strict) as reader:  # checks the header
+                raw_hdr = reader.header
+            self._geometry = (raw_hdr.width, raw_hdr.height)
+            self._fmt, serial, fields = raw_hdr.fmt, raw_hdr.serial_number or "", raw_hdr.fields
+        self.header_fields = fields
+        self._serial = serial
 
     @property
     def capabilities(self) -> frozenset[Capability]:
@@ -123,6 +137,9 @@ class FileEventSensor(EventSensor):
         extra = {"passes": self._passes}
         if self._reader is not None:
             extra.update({f"decoder_skipped_{k}": v for k, v in self._reader.stats.items()})
+            if self._reader.decoder.skipped_offsets:
+                extra["decoder_first_skipped_offset"] = self._reader.decoder.skipped_offsets[0]
+        extra.update({f"decoder_skipped_{k}": v for k, v in self._dat_skipped.items()})
         return 0, extra
 
     # -- replay ---------------------------------------------------------------------------
@@ -130,7 +147,8 @@ class FileEventSensor(EventSensor):
         self._close_reader()
         self._passes += 1
         if self._is_dat:
-            _, ev = read_dat(self.path, strict=self.strict)
+            hdr, ev = read_dat(self.path, strict=self.strict)
+            self._dat_skipped = hdr.skipped
             self._chunks = iter([Decoded(ev, TriggerEvents.empty())])
         else:
             self._reader = RawReader(self.path, self.chunk_bytes, strict=self.strict)
@@ -188,6 +206,13 @@ class FileEventSensor(EventSensor):
             if left <= 0:
                 return None
             time.sleep(max(0.0, min(wait, left)))
+
+
+def _reason(exc: EventDataError | OSError, path: Path) -> str:
+    """The problem without the path that the message already leads with (one line)."""
+    if isinstance(exc, OSError):
+        return f"cannot read: {exc.strerror or exc}"
+    return str(exc).removeprefix(f"{path}: ")
 
 
 def _packet(d: Decoded) -> EventPacket:

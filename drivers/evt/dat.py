@@ -1,7 +1,10 @@
 """Prophesee DAT files (Event2D/CD): `% ` header lines, 2 bytes (event type, size=8), records.
 
 Each record is u32 t (us) then u32 with x in bits [13:0], y in [27:14], p in [31:28]. Decoding is
-a numpy view over the records, so there is no per-event Python loop.
+a numpy view over the records, so there is no per-event Python loop. Records are kept in time
+order like the EVT decoders' output: a record earlier than one before it (a corrupt t) is dropped
+and counted as non_monotonic_time, and so is a lone record jumping ahead of its successors, which
+would otherwise hold back every record after it.
 """
 
 from __future__ import annotations
@@ -11,8 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
-from drivers.evt.errors import EvtDecodeError
+from drivers.evt.errors import KIND_NAMES, MAX_SKIP_OFFSETS, NON_MONOTONIC_TIME, TRUNCATED, EvtDecodeError
 from drivers.evt.raw import read_header_lines
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray
@@ -33,6 +37,9 @@ class DatHeader:
     width: int | None = None
     height: int | None = None
     size: int = 0
+    # what `read_dat` dropped, by decoder kind, and the byte offsets of the first few items
+    skipped: dict[str, int] = field(default_factory=dict)
+    skipped_offsets: list[int] = field(default_factory=list)
 
 
 def read_dat(path: str | Path, *, strict: bool = False) -> tuple[DatHeader, EventArray]:
@@ -52,12 +59,15 @@ def read_dat(path: str | Path, *, strict: bool = False) -> tuple[DatHeader, Even
             f"{path}: DAT file ends before the event type/size bytes", offset=start, kind="truncated"
         )
     hdr = DatHeader(fields=fields, event_type=kind[0], event_size=kind[1], size=start)
-    for key in ("Width", "width"):
-        if key in fields:
-            hdr.width = int(fields[key])
-    for key in ("Height", "height"):
-        if key in fields:
-            hdr.height = int(fields[key])
+    for attr, keys in (("width", ("Width", "width")), ("height", ("Height", "height"))):
+        for key in keys:
+            if key in fields:
+                try:
+                    setattr(hdr, attr, int(fields[key]))
+                except ValueError:
+                    raise EvtDecodeError(
+                        f"{path}: DAT header {key} {fields[key]!r} is not an integer", offset=0, kind="header"
+                    ) from None
     if hdr.event_size != 8:
         raise EvtDecodeError(
             f"{path}: DAT event size {hdr.event_size} at byte offset {start - 1}, expected 8",
@@ -72,12 +82,46 @@ def read_dat(path: str | Path, *, strict: bool = False) -> tuple[DatHeader, Even
                 f"{path}: truncated DAT record at byte offset {off}", offset=off, kind="truncated"
             )
         log.warning("%s: dropping %d trailing bytes of a partial DAT record", path, len(data) % 8)
+        hdr.skipped[KIND_NAMES[TRUNCATED]] = 1
+        hdr.skipped_offsets.append(off)
     rec = np.frombuffer(data, _RECORD, count=n)
+    bad = _out_of_order(rec["t"])
+    if bad.size:
+        off = start + int(bad[0]) * 8
+        if strict:
+            raise EvtDecodeError(
+                f"{path}: non_monotonic_time: DAT record earlier than the one before it at byte offset {off}",
+                offset=off,
+                kind=KIND_NAMES[NON_MONOTONIC_TIME],
+            )
+        log.warning(
+            "%s: dropping %d DAT records out of time order (first at byte offset %d)", path, bad.size, off
+        )
+        hdr.skipped[KIND_NAMES[NON_MONOTONIC_TIME]] = int(bad.size)
+        hdr.skipped_offsets = sorted([*hdr.skipped_offsets, *(start + bad[:MAX_SKIP_OFFSETS] * 8).tolist()])[
+            :MAX_SKIP_OFFSETS
+        ]
+        rec = np.delete(rec, bad)
     d = rec["d"]
     x = (d & 0x3FFF).astype(np.uint16)
     y = ((d >> 14) & 0x3FFF).astype(np.uint16)
     p = np.where((d >> 28) != 0, 1, -1).astype(np.int8)
     return hdr, EventArray(x, y, p, rec["t"].astype(np.int64))
+
+
+def _out_of_order(t: NDArray[np.uint32]) -> NDArray[np.intp]:
+    """Indices of the records to drop so that the rest is time-sorted: a lone record above both
+    its successor and its predecessor's successor level (a spike ahead), then every record below
+    the running maximum of the others."""
+    if t.size < 2:
+        return np.empty(0, np.intp)
+    t64 = t.astype(np.int64)
+    prev = np.r_[np.int64(-1), t64[:-2]]  # t[i - 1] for i in 0 .. n - 2
+    spike = np.zeros(t.size, bool)
+    spike[:-1] = (t64[:-1] > t64[1:]) & (prev <= t64[1:])
+    kept = np.where(spike, np.int64(-1), t64)
+    behind = t64 < np.maximum.accumulate(kept)
+    return np.flatnonzero(spike | behind)
 
 
 def write_dat(

@@ -18,7 +18,15 @@ UNKNOWN_TYPE = 4
 TRUNCATED = 5
 BEFORE_TIME_HIGH = 6
 EVENT_WITHOUT_Y = 7
-N_CODES = 8
+NON_MONOTONIC_TIME = 8  # an event or trigger edge whose time would fall below the last one emitted
+N_CODES = 9
+# After the codes, the stats array keeps the word positions of the first few skipped items (see
+# `kernels.skipped`): slot SKIP_COUNT counts them, SKIP_POS.. holds them; the decoder turns them
+# into absolute byte offsets after each kernel call.
+MAX_SKIP_OFFSETS = 8
+SKIP_COUNT = N_CODES
+SKIP_POS = N_CODES + 1
+STATS_SIZE = SKIP_POS + MAX_SKIP_OFFSETS
 
 KIND_NAMES: dict[int, str] = {
     NON_MONOTONIC_TIME_HIGH: "non_monotonic_time_high",
@@ -28,6 +36,7 @@ KIND_NAMES: dict[int, str] = {
     TRUNCATED: "truncated",
     BEFORE_TIME_HIGH: "before_time_high",
     EVENT_WITHOUT_Y: "event_without_y",
+    NON_MONOTONIC_TIME: "non_monotonic_time",
 }
 
 # Kinds that strict mode does NOT raise on: a stream joined mid-way (before its first TIME_HIGH)

@@ -1,9 +1,11 @@
-# mypy: disable-error-code="arg-type,assignment"
+# mypy: disable-error-code="arg-type,assignment,call-arg"
 """EVT 2.0 (32-bit little-endian words) decoder kernel and streaming encoder, OpenEB semantics.
 
 t = TIME_HIGH << 6 | ts, a 34-bit time base that rolls over every 2^34 us (~4.77 h): a TIME_HIGH
 that falls by >= 2^27 is a roll-over (loop += 2^34), a smaller fall a non-monotonic violation
-whose word is skipped. Words before the first TIME_HIGH are skipped, as OpenEB does.
+whose word is skipped. Words before the first TIME_HIGH are skipped, as OpenEB does. An event or
+trigger edge earlier than the last one emitted (a corrupt ts or TIME_HIGH) is dropped and counted
+as non_monotonic_time, so the output time never runs backwards.
 
 EVT 2.1 (evt21.py) is EVT 2.0 with a 32-pixel validity mask beside each word, so the kernels of
 both formats come from the factories here. The layout is a closure constant that numba compiles
@@ -17,7 +19,14 @@ from numba import njit
 from numpy.typing import NDArray
 
 from drivers.evt.encoder import EncodeKernel, StreamEncoder
-from drivers.evt.errors import BEFORE_TIME_HIGH, NON_MONOTONIC_TIME_HIGH, OK, OUT_OF_RANGE_XY, UNKNOWN_TYPE
+from drivers.evt.errors import (
+    BEFORE_TIME_HIGH,
+    NON_MONOTONIC_TIME,
+    NON_MONOTONIC_TIME_HIGH,
+    OK,
+    OUT_OF_RANGE_XY,
+    UNKNOWN_TYPE,
+)
 from drivers.evt.kernels import (
     I8,
     I64,
@@ -28,16 +37,21 @@ from drivers.evt.kernels import (
     DecodeConfig,
     DecodeKernel,
     DecodeOut,
+    T,
     X,
+    ctpop,
+    keep_last_times,
+    last_time,
     put_checked,
     put_trigger,
+    skipped,
     violation,
 )
 from rigd.core.events import EventArray, TriggerEvents
 
 WORD_BYTES = 4
 MAX_EVENTS_PER_WORD = 1
-STATE_SIZE = 3  # started, loop, time_high
+STATE_SIZE = 5  # started, loop, time_high, last event time, last trigger time
 
 TH_HALF = 1 << 27
 TH_STEP = TH_HALF - 1
@@ -46,7 +60,8 @@ _EXT_TRIGGER = 0xA << 28
 
 
 def new_decoder_state() -> NDArray[np.int64]:
-    return np.zeros(STATE_SIZE, np.int64)
+    """Fresh state: no time base, nothing emitted."""
+    return np.array([0, 0, 0, -1, -1], np.int64)
 
 
 def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
@@ -84,15 +99,25 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                 else:
                     t = tbase | ((w >> 22) & 0x3F)
                     pol = 1 if typ == 1 else -1
-                    n, bad = put_checked(out, n, (w >> 11) & 0x7FF, mask, w & 0x7FF, pol, t, stats, cfg)
-                    if bad and strict:
-                        err = OUT_OF_RANGE_XY
-                        break
+                    if t < last_time(out[T], n, st[3]):  # would go back in time: dropped
+                        if strict:
+                            stats[NON_MONOTONIC_TIME] += 1
+                            err = NON_MONOTONIC_TIME
+                            break
+                        if mask != 0:
+                            skipped(stats, NON_MONOTONIC_TIME, ctpop(mask), pos)
+                    else:
+                        n, bad = put_checked(
+                            out, n, (w >> 11) & 0x7FF, mask, w & 0x7FF, pol, t, stats, cfg, pos
+                        )
+                        if bad and strict:
+                            err = OUT_OF_RANGE_XY
+                            break
             elif typ == 0x8:  # EVT_TIME_HIGH
                 v = w & 0xFFFFFFF
                 fell = started != 0 and v < th
                 if fell and th - v < TH_HALF:  # a small fall: the word is skipped
-                    err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict)
+                    err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
                     if err:
                         break
                 else:
@@ -105,17 +130,24 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                 if started == 0:
                     stats[BEFORE_TIME_HIGH] += 1
                 else:
-                    nt = put_trigger(out, nt, tbase | ((w >> 22) & 0x3F), w & 1, (w >> 8) & 0x1F)
+                    t = tbase | ((w >> 22) & 0x3F)
+                    if t < last_time(out[TRIG_T], nt, st[4]):  # would go back in time: dropped
+                        err = violation(stats, NON_MONOTONIC_TIME, strict, pos)
+                        if err:
+                            break
+                    else:
+                        nt = put_trigger(out, nt, t, w & 1, (w >> 8) & 0x1F)
             elif typ == 0xE or typ == 0xF:  # OTHERS / CONTINUED
                 pass
             else:
-                err = violation(stats, UNKNOWN_TYPE, strict)
+                err = violation(stats, UNKNOWN_TYPE, strict, pos)
                 if err:
                     break
             pos += 1
         st[0] = started
         st[1] = loop
         st[2] = th
+        keep_last_times(st, out, n, nt)
         return pos, n, nt, err
 
     return decode_kernel

@@ -24,6 +24,7 @@ from drivers.evt.encoder import StreamEncoder
 from drivers.evt.errors import (
     BEFORE_TIME_HIGH,
     EVENT_WITHOUT_Y,
+    NON_MONOTONIC_TIME,
     NON_MONOTONIC_TIME_HIGH,
     OK,
     OUT_OF_RANGE_XY,
@@ -38,11 +39,15 @@ from drivers.evt.kernels import (
     U16,
     DecodeConfig,
     DecodeOut,
+    T,
     X,
     ctpop,
+    keep_last_times,
+    last_time,
     put_checked,
     put_run,
     put_trigger,
+    skipped,
     violation,
 )
 from rigd.core.events import EventArray, TriggerEvents
@@ -52,16 +57,19 @@ log = logging.getLogger(__name__)
 WORD_BYTES = 2
 MAX_EVENTS_PER_WORD = 12
 
-# decoder state slots
-_ST_STARTED, _ST_LOOP, _ST_TH, _ST_TL, _ST_Y, _ST_BASE, _ST_VPOL = range(7)
-STATE_SIZE = 7
+# decoder state slots; the last two are the times of the last event and trigger edge emitted
+# (before this call's outputs), so that no later one is emitted earlier
+_ST_STARTED, _ST_LOOP, _ST_TH, _ST_TL, _ST_Y, _ST_BASE, _ST_VPOL, ST_TEV, ST_TTR = range(9)
+STATE_SIZE = 9
 
 
 def new_decoder_state() -> NDArray[np.int64]:
-    """Fresh decoder state: no time base, no y, no vector base."""
+    """Fresh decoder state: no time base, no y, no vector base, nothing emitted."""
     st = np.zeros(STATE_SIZE, np.int64)
     st[_ST_Y] = -1
     st[_ST_BASE] = -1
+    st[ST_TEV] = -1
+    st[ST_TTR] = -1
     return st
 
 
@@ -126,6 +134,11 @@ def decode_kernel(
     emitted, and state updates are masked merges. One sign test routes a word to the slow path
     when it could violate the format (no TIME_HIGH yet, no/out-of-range y, x beyond the width,
     vector without base) or is a rare type; the slow path is the reference per-word semantics.
+
+    Time never runs backwards in the output: a falling TIME_LOW goes to the slow path, and while
+    the time is below the last emitted event's (a corrupt TIME_LOW/TIME_HIGH, a stray word) every
+    word takes the slow path, which drops the events and triggers that would go back in time as
+    non_monotonic_time (strict mode stops there) until the time base is back at or past them.
     """
     width, height, strict = cfg
     cap = out[X].shape[0] - 12
@@ -142,7 +155,7 @@ def decode_kernel(
     while pos < end:
         # fast loop: words that cannot violate the format (checked by one sign test)
         yk = y if y >= 0 else _NOY
-        hlim = height - 1 if started else -1
+        hlim = height - 1 if started and tcur >= last_time(out[T], n, st[ST_TEV]) else -1
         while pos < end:
             if n > cap:
                 break
@@ -150,8 +163,10 @@ def decode_kernel(
             typ = w >> 12
             v = w & 0x7FF
             mx = _TAB[typ, 0]
+            mtl = _TAB[typ, 4]
             ebase = (base & ~mx) | (v & mx)
-            if ((hlim - yk) | (wm1 - (ebase + _TAB[typ, 1]))) < 0:
+            # (a falling TIME_LOW makes the last term negative)
+            if ((hlim - yk) | (wm1 - (ebase + _TAB[typ, 1])) | ((w & mtl) - (tcur & mtl))) < 0:
                 break
             polv = ((w >> 10) & 2) - 1
             # ADDR_X (mx = -1): one event at v; a vector (mx = 0): its mask's pixels from base
@@ -159,7 +174,6 @@ def decode_kernel(
             n = put_run(out, n, ebase, emask, yk, (vpol & ~mx) | (polv & mx), tcur)
             my = _TAB[typ, 3]
             mb = _TAB[typ, 5]
-            mtl = _TAB[typ, 4]
             yk = (yk & ~my) | (v & my)
             tcur = (tcur & ~mtl) | (w & mtl)
             vpol = (vpol & ~mb) | (polv & mb)
@@ -175,13 +189,13 @@ def decode_kernel(
         if typ == 0x2 or typ == 0x4 or typ == 0x5:  # ADDR_X, VECT_12, VECT_8
             vector = typ != 0x2
             if vector and base >= NOBASE:
-                err = violation(stats, VECTOR_WITHOUT_BASE, strict)
+                err = violation(stats, VECTOR_WITHOUT_BASE, strict, pos)
                 if err:
                     break
             elif started == 0:
                 stats[BEFORE_TIME_HIGH] += 1
             elif y < 0:
-                err = violation(stats, EVENT_WITHOUT_Y, strict)
+                err = violation(stats, EVENT_WITHOUT_Y, strict, pos)
                 if err:
                     break
             else:
@@ -189,10 +203,18 @@ def decode_kernel(
                     x0, mask, pol = base, w & (0xFFF if typ == 0x4 else 0xFF), vpol
                 else:
                     x0, mask, pol = v, 1, 1 if (w & 0x800) != 0 else -1
-                n, bad = put_checked(out, n, x0, mask, y, pol, tcur, stats, cfg)
-                if bad and strict:
-                    err = OUT_OF_RANGE_XY
-                    break
+                if tcur < last_time(out[T], n, st[ST_TEV]):  # would go back in time: dropped
+                    if strict:
+                        stats[NON_MONOTONIC_TIME] += 1
+                        err = NON_MONOTONIC_TIME
+                        break
+                    if mask != 0:
+                        skipped(stats, NON_MONOTONIC_TIME, ctpop(mask), pos)
+                else:
+                    n, bad = put_checked(out, n, x0, mask, y, pol, tcur, stats, cfg, pos)
+                    if bad and strict:
+                        err = OUT_OF_RANGE_XY
+                        break
             if vector and base < NOBASE:
                 base += 12 if typ == 0x4 else 8
         elif typ == 0x0:
@@ -206,7 +228,7 @@ def decode_kernel(
             v12 = w & 0xFFF
             fell = started != 0 and v12 < th
             if fell and th - v12 < 2048:  # a small fall: the word is skipped
-                err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict)
+                err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
                 if err:
                     break
             else:
@@ -218,6 +240,10 @@ def decode_kernel(
         elif typ == 0xA:
             if started == 0:
                 stats[BEFORE_TIME_HIGH] += 1
+            elif tcur < last_time(out[TRIG_T], nt, st[ST_TTR]):  # would go back in time: dropped
+                err = violation(stats, NON_MONOTONIC_TIME, strict, pos)
+                if err:
+                    break
             else:
                 if nt >= tcap:
                     break
@@ -225,7 +251,7 @@ def decode_kernel(
         elif typ == 0x7 or typ == 0xE or typ == 0xF:
             pass
         else:
-            err = violation(stats, UNKNOWN_TYPE, strict)
+            err = violation(stats, UNKNOWN_TYPE, strict, pos)
             if err:
                 break
         pos += 1
@@ -236,6 +262,7 @@ def decode_kernel(
     st[4] = y
     st[5] = base if base < NOBASE else -1
     st[6] = vpol
+    keep_last_times(st, out, n, nt)
     return pos, n, nt, err
 
 

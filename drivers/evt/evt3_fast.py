@@ -8,11 +8,13 @@ carry state exactly as before.
 While the decoder state is "clean" (a TIME_HIGH was seen, the current y is inside the sensor) the
 loop dispatches on the word type with ordinary branches and handles only what cannot violate the
 format: an ADDR_X inside the width, a vector whose whole 12/8-pixel span lies inside the width,
-ADDR_Y inside the height, VECT_BASE_X, TIME_LOW, a TIME_HIGH that rises or rolls over, triggers,
-and the ignored types 7/E/F. Any other word (or a state that is not clean) hands a short window
-of words to the reference state machine, which counts/raises exactly as it always did, and the
-fast loop resumes from the state it leaves. Output capacity is checked once per block of words
-(12 events per word at most) instead of once per word.
+ADDR_Y inside the height, VECT_BASE_X, a TIME_LOW or TIME_HIGH that does not take the time back,
+triggers not earlier than the last one, and the ignored types 7/E/F; it runs only while the time
+is at or past the last emitted event's, so its events never go back in time. Any other word (or a
+state that is not clean) hands a short window of words to the reference state machine, which
+counts/raises exactly as it always did, and the fast loop resumes from the state it leaves.
+Output capacity is checked once per block of words (12 events per word at most) instead of once
+per word.
 
 The encoder's (and cameras') usual (VECT_BASE_X, vector) pairs are decoded in a loop of their own
 inside the VECT_BASE_X branch, so the type dispatch sees fewer, more predictable words (-7% kernel
@@ -35,7 +37,20 @@ from numba import njit
 
 from drivers.evt.evt3 import NOBASE
 from drivers.evt.evt3 import decode_kernel as reference_kernel
-from drivers.evt.kernels import I64, TRIG_T, U16, DecodeConfig, DecodeOut, X, put_event, put_run, put_trigger
+from drivers.evt.kernels import (
+    I64,
+    TRIG_T,
+    U16,
+    DecodeConfig,
+    DecodeOut,
+    T,
+    X,
+    keep_last_times,
+    last_time,
+    put_event,
+    put_run,
+    put_trigger,
+)
 
 _U64 = np.uint64
 _WINDOW = 64  # words handed to the reference kernel per irregular stretch
@@ -62,7 +77,7 @@ def decode_kernel(
         # time packed as loop << 24 | TIME_HIGH << 12 | TIME_LOW; TIME_HIGH and loop derived from it
         tcur = (st[1] << 24) | (st[2] << 12) | st[3]
         bp = (st[5] << 8) | (st[6] & 0xFF) if st[5] >= 0 else NOBASE
-        if st[0] != 0 and 0 <= y < height:
+        if st[0] != 0 and 0 <= y < height and tcur >= last_time(out[T], n, st[7]):
             while pos < end:
                 bend = min(end, pos + (cap - n) // 12)  # no capacity check inside the block
                 if bend <= pos:
@@ -107,7 +122,10 @@ def decode_kernel(
                             break
                         y = v
                     elif typ == 0x6:
-                        tcur = (tcur & ~0xFFF) | (w & 0xFFF)
+                        tl = w & 0xFFF
+                        if tl < (tcur & 0xFFF):
+                            break  # time falls: the reference drops what would go back
+                        tcur = (tcur & ~0xFFF) | tl
                     elif typ == 0x8:
                         v12 = w & 0xFFF
                         th = (tcur >> 12) & 0xFFF
@@ -116,9 +134,11 @@ def decode_kernel(
                             if th - v12 < 2048:
                                 break  # non-monotonic: the reference counts or raises it
                             tnew += 1 << 24
+                        elif tnew < tcur:
+                            break  # the same TIME_HIGH again takes TIME_LOW back to 0
                         tcur = tnew
                     elif typ == 0xA:
-                        if nt >= tcap:
+                        if nt >= tcap or tcur < last_time(out[TRIG_T], nt, st[8]):
                             break
                         nt = put_trigger(out, nt, tcur, w & 1, (w >> 8) & 0xF)
                     elif typ == 0x7 or typ >= 0xE:
@@ -144,4 +164,5 @@ def decode_kernel(
         pos, n, nt, err = reference_kernel(buf, pos, wend, st, out, n, nt, stats, cfg)
         if err != 0 or pos < wend:
             return pos, n, nt, err
+    keep_last_times(st, out, n, nt)
     return pos, n, nt, 0

@@ -1,4 +1,4 @@
-# mypy: disable-error-code="call-arg"
+# mypy: disable-error-code="call-arg,arg-type"
 """Building blocks of the EVT numba kernels: the decode contract's types and the stores they share.
 
 Every decode kernel has one signature, `kernel(buf, pos, end, st, out, n, nt, stats, cfg) ->
@@ -17,7 +17,7 @@ from numba import njit, types
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
-from drivers.evt.errors import OK, OUT_OF_RANGE_XY
+from drivers.evt.errors import MAX_SKIP_OFFSETS, OK, OUT_OF_RANGE_XY, SKIP_COUNT, SKIP_POS
 
 U8 = NDArray[np.uint8]
 U16 = NDArray[np.uint16]
@@ -99,30 +99,57 @@ def put_run(out: DecodeOut, n: int, x0: int, m: int, y: int, p: int, t: int) -> 
 
 
 @njit(inline="always")
+def skipped(stats: I64, code: int, count: int, pos: int) -> None:  # pragma: no cover - numba
+    """Count `count` skipped items of kind `code` from the word at `pos`, whose position is kept
+    while fewer than MAX_SKIP_OFFSETS were: a corrupt file's report can point at the bytes."""
+    stats[code] += count
+    k = stats[SKIP_COUNT]
+    if k < MAX_SKIP_OFFSETS:
+        stats[SKIP_POS + k] = pos
+        stats[SKIP_COUNT] = k + 1
+
+
+@njit(inline="always")
+def last_time(times: I64, n: int, before: int) -> int:  # pragma: no cover - numba
+    """Time of the last item stored (index n - 1), or `before` (the previous call's) if none."""
+    return times[np.uint64(n - 1)] if n > 0 else before
+
+
+@njit(inline="always")
+def keep_last_times(st: I64, out: DecodeOut, n: int, nt: int) -> None:  # pragma: no cover - numba
+    """Every decoder state ends with the times of the last event and trigger edge emitted; kept
+    here on leaving a kernel, for the next call, whose outputs start empty."""
+    k = st.shape[0]
+    st[k - 2] = last_time(out[T], n, st[k - 2])
+    st[k - 1] = last_time(out[TRIG_T], nt, st[k - 1])
+
+
+@njit(inline="always")
 def put_checked(  # pragma: no cover - numba
-    out: DecodeOut, n: int, x0: int, m: int, y: int, p: int, t: int, stats: I64, cfg: DecodeConfig
+    out: DecodeOut, n: int, x0: int, m: int, y: int, p: int, t: int, stats: I64, cfg: DecodeConfig, pos: int
 ) -> tuple[int, bool]:
     """Events at x0 + i for each set bit i of m; pixels outside the sensor are counted as
     out_of_range_xy instead. Returns (new n, whether any pixel was outside)."""
     width, height, _ = cfg
-    bad = False
+    bad = 0
     while m != 0:
         x = x0 + cttz(m)
         m &= m - 1
         if x >= width or y >= height:
-            stats[OUT_OF_RANGE_XY] += 1
-            bad = True
+            bad += 1
         else:
             put_event(out, n, x, y, p, t)
             n += 1
-    return n, bad
+    if bad:
+        skipped(stats, OUT_OF_RANGE_XY, bad, pos)
+    return n, bad != 0
 
 
 @njit(inline="always")
-def violation(stats: I64, code: int, strict: bool) -> int:  # pragma: no cover - numba
-    """Count one violation of kind `code`; returns the code when it stops the decoder (strict
-    mode), else OK."""
-    stats[code] += 1
+def violation(stats: I64, code: int, strict: bool, pos: int) -> int:  # pragma: no cover - numba
+    """Count one violation of kind `code` at word `pos`; returns the code when it stops the
+    decoder (strict mode), else OK."""
+    skipped(stats, code, 1, pos)
     return code if strict else OK
 
 

@@ -20,7 +20,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.evt import evt2, evt3, evt3_fast, evt21
-from drivers.evt.errors import KIND_NAMES, N_CODES, TRUNCATED, EvtDecodeError
+from drivers.evt.errors import (
+    KIND_NAMES,
+    MAX_SKIP_OFFSETS,
+    SKIP_COUNT,
+    SKIP_POS,
+    STATS_SIZE,
+    TRUNCATED,
+    EvtDecodeError,
+)
 from drivers.evt.kernels import DecodeKernel, decode_out
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
@@ -93,7 +101,10 @@ class StreamDecoder:
     strict=True raises `EvtDecodeError` naming the absolute byte offset (`offset` = where the
     stream starts in its file, e.g. the RAW header size) and the violation. After an error the
     decoder must not be fed again. Events outside width x height are violations too (a header
-    that lies about geometry must not produce impossible pixels).
+    that lies about geometry must not produce impossible pixels), and so is an event or trigger
+    edge earlier than the last one emitted: output time never runs backwards, so a corrupt word
+    costs the events it corrupts and not a take (whose writer refuses out-of-order batches).
+    `skipped_offsets` holds the absolute byte offsets of the first few skipped items.
     """
 
     def __init__(
@@ -130,7 +141,8 @@ class StreamDecoder:
         self._cfg = (self.width, self.height, self.strict)
         # optional counting pass sizing the outputs exactly (EVT 3.0)
         self._bound: Callable[[NDArray[Any]], tuple[int, int]] | None = getattr(mod, "output_bound", None)
-        self._stats = np.zeros(N_CODES, np.int64)
+        self._stats = np.zeros(STATS_SIZE, np.int64)
+        self.skipped_offsets: list[int] = []
         self._pending = b""
         self._base = int(offset)
         self.bytes_consumed = 0
@@ -150,9 +162,16 @@ class StreamDecoder:
         pos, end = 0, buf.shape[0] // self._step
         ws = self._word
         while pos < end:
+            seen = int(self._stats[SKIP_COUNT])
             pos, out.n, out.nt, err = self._kernel(
                 buf, pos, end, self._state, out.arrays, out.n, out.nt, self._stats, self._cfg
             )
+            if self._stats[SKIP_COUNT] > seen:  # word positions of this call's first skips
+                self.skipped_offsets += [
+                    abs_start + int(w) * ws
+                    for w in self._stats[SKIP_POS + seen : SKIP_POS + self._stats[SKIP_COUNT]]
+                ]
+                self._stats[SKIP_COUNT] = len(self.skipped_offsets)
             if err:
                 word = bytes(raw[pos * ws : (pos + 1) * ws])[::-1].hex()
                 off = abs_start + pos * ws
@@ -212,6 +231,9 @@ class StreamDecoder:
                     kind=KIND_NAMES[TRUNCATED],
                 )
             self._stats[TRUNCATED] += 1
+            if len(self.skipped_offsets) < MAX_SKIP_OFFSETS:
+                self.skipped_offsets.append(off)
+                self._stats[SKIP_COUNT] = len(self.skipped_offsets)
             log.warning("%s stream ends with %d byte(s) of a partial word at offset %d", self.fmt, n, off)
         return Decoded.empty()
 
@@ -219,7 +241,12 @@ class StreamDecoder:
         """Report skipped items once, so tolerant decoding is never silent."""
         skipped = {k: v for k, v in self.stats.items() if v}
         if skipped:
-            log.warning("%s decode skipped items: %s", self.fmt, skipped)
+            log.warning(
+                "%s decode skipped items: %s (first at byte offsets %s)",
+                self.fmt,
+                skipped,
+                self.skipped_offsets,
+            )
 
 
 def decode_bytes(
@@ -304,8 +331,18 @@ def read_header_lines(f: BinaryIO) -> tuple[list[str], int]:
     return lines, f.tell()
 
 
+def _header_int(where: str, key: str, value: str) -> int:
+    """A header number, or an EventDataError naming the file and the line's key."""
+    try:
+        return int(value)
+    except ValueError:
+        raise EventDataError(f"{where}: RAW header {key} {value!r} is not an integer") from None
+
+
 def parse_raw_header(f: BinaryIO) -> RawHeader:
-    """Read the header at the current position; leaves `f` at the first stream byte."""
+    """Read the header at the current position; leaves `f` at the first stream byte. A number
+    that is not one (`width=abc`) is an EventDataError naming the file."""
+    where = str(getattr(f, "name", "RAW stream"))
     lines, size = read_header_lines(f)
     fields: dict[str, str] = {}
     for line in lines:
@@ -323,13 +360,14 @@ def parse_raw_header(f: BinaryIO) -> RawHeader:
         params = dict(p.split("=", 1) for p in parts[1:] if "=" in p)
         if fmt == "evt21" and params.get("endianness", "").lower() == "little":
             fmt = "evt21_le"
-        if "width" in params and "height" in params:
-            width, height = int(params["width"]), int(params["height"])
+        given = {k: _header_int(where, f"format {k}", params[k]) for k in ("width", "height") if k in params}
+        if len(given) == 2:
+            width, height = given["width"], given["height"]
     if fmt is None and "evt" in fields:
         fmt = _EVT_VERSIONS.get(fields["evt"])
     if width is None and "geometry" in fields and "x" in fields["geometry"]:
         gw, _, gh = fields["geometry"].partition("x")
-        width, height = int(gw), int(gh)
+        width, height = _header_int(where, "geometry", gw), _header_int(where, "geometry", gh)
     if width is None:
         sensor = " ".join(
             fields.get(k, "") for k in ("plugin_name", "sensor_generation", "system_ID")
@@ -339,7 +377,8 @@ def parse_raw_header(f: BinaryIO) -> RawHeader:
                 width, height = w, h
                 break
     if fmt is None:
-        log.warning("RAW header names no known format (%s); assuming EVT 3.0", fields.get("format"))
+        if fields:  # no header at all is the caller's to judge (RawReader refuses it)
+            log.warning("RAW header names no known format (%s); assuming EVT 3.0", fields.get("format"))
         fmt = "evt3"
     hdr.fmt = fmt
     if width is not None and height is not None:
@@ -348,7 +387,12 @@ def parse_raw_header(f: BinaryIO) -> RawHeader:
 
 
 class RawReader:
-    """Iterate a RAW file as decoded chunks of `chunk_bytes` input bytes, in constant memory."""
+    """Iterate a RAW file as decoded chunks of `chunk_bytes` input bytes, in constant memory.
+
+    A file without any `%` header line is refused unless `fmt` is given: random bytes or another
+    file type would otherwise decode as EVT 3.0 into noise. Header problems (a geometry the
+    decoder cannot take) are EventDataErrors naming the file.
+    """
 
     def __init__(
         self,
@@ -364,19 +408,30 @@ class RawReader:
         self._f: BinaryIO = self.path.open("rb")
         try:
             self.header = parse_raw_header(self._f)
-        except (ValueError, OSError):
+            if fmt is not None:
+                self.header.fmt = fmt
+            elif not self.header.fields:
+                raise EventDataError(
+                    f"{self.path}: no RAW header ('% evt' / '% format' lines); not a Prophesee RAW file"
+                )
+            self.decoder = StreamDecoder(
+                self.header.fmt,
+                width=width or self.header.width,
+                height=height or self.header.height,
+                strict=strict,
+                offset=self.header.size,
+            )
+        except EvtDecodeError:
             self._f.close()
             raise
-        if fmt is not None:
-            self.header.fmt = fmt
+        except EventDataError as exc:
+            self._f.close()
+            msg = str(exc)
+            raise EventDataError(msg if msg.startswith(str(self.path)) else f"{self.path}: {msg}") from None
+        except OSError:
+            self._f.close()
+            raise
         self.chunk_bytes = max(1, int(chunk_bytes))
-        self.decoder = StreamDecoder(
-            self.header.fmt,
-            width=width or self.header.width,
-            height=height or self.header.height,
-            strict=strict,
-            offset=self.header.size,
-        )
 
     def __iter__(self) -> Iterator[Decoded]:
         try:

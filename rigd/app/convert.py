@@ -1,20 +1,25 @@
 """`rigd convert`: RAW/DAT recordings to takes and back, streaming in constant memory.
 
 A recording converted to a take keeps the sensor's own clock (there is no trigger box to tie
-it to): the take's clock map is the identity and its report says so. Converting back writes
+it to): the take's clock map is the identity and its report says so. What the decoder skipped
+(corrupt words, events that would go back in time) becomes a loss record naming the first byte
+offsets. An input that cannot be read, or that decodes to nothing, is a ConvertError naming the
+file, and the take being written is removed: convert leaves no half-done take behind. Converting back writes
 the events and trigger edges of one sensor, re-encoded in the chosen EVT format.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from drivers.evt import (
+    DatHeader,
     Evt2Encoder,
     Evt3Encoder,
     Evt21Encoder,
@@ -25,9 +30,9 @@ from drivers.evt import (
 )
 from rigd import __version__
 from rigd.core.devices import DeviceInfo
-from rigd.core.errors import RigdError
-from rigd.core.events import TriggerEvents
-from rigd.core.schema import SyncReport
+from rigd.core.errors import EventDataError, RigdError
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.schema import LossRecord, SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take
@@ -61,22 +66,99 @@ def convert(
     raise ConvertError(f"cannot convert {src.name} to {dst.name}: use .raw/.dat -> .h5 or .h5 -> .raw/.dat")
 
 
+def _skip_text(skipped: dict[str, int], offsets: list[int]) -> str:
+    return f"{skipped}, first at byte offsets {offsets}"
+
+
+def _open_recording(
+    src: Path, strict: bool
+) -> tuple[Iterator[tuple[EventArray, TriggerEvents]], int, int, dict[str, str], str, RawReader | DatHeader]:
+    """Chunks, geometry, header fields, format and what reports the skips; a ConvertError naming
+    the file when it cannot be read as a recording."""
+    if src.is_dir():
+        raise ConvertError(f"{src}: is a directory, not a recording")
+    try:
+        if src.stat().st_size == 0:
+            raise ConvertError(f"{src}: empty file, not a recording")
+        if src.suffix.lower() == ".dat":
+            dat_hdr, ev = read_dat(src, strict=strict)
+            width = dat_hdr.width or (int(ev.x.max()) + 1 if len(ev) else 1)
+            height = dat_hdr.height or (int(ev.y.max()) + 1 if len(ev) else 1)
+            return iter([(ev, TriggerEvents.empty())]), width, height, dict(dat_hdr.fields), "dat", dat_hdr
+        reader = RawReader(src, strict=strict)
+    except OSError as exc:
+        raise ConvertError(f"{src}: cannot read: {exc.strerror or exc}") from exc
+    return (
+        _decoded(src, reader),
+        reader.header.width,
+        reader.header.height,
+        reader.header.fields,
+        reader.header.fmt,
+        reader,
+    )
+
+
+def _decoded(src: Path, reader: RawReader) -> Iterator[tuple[EventArray, TriggerEvents]]:
+    """The reader's chunks; a strict-mode decode error names the file (the decoder's does not)."""
+    try:
+        for d in reader:
+            yield d.events, d.triggers
+    except EventDataError as exc:
+        raise ConvertError(f"{src}: {exc}") from exc
+
+
+def _skips(source: RawReader | DatHeader) -> tuple[dict[str, int], list[int]]:
+    """What the decoder skipped, by kind, and the byte offsets of the first few."""
+    if isinstance(source, RawReader):
+        return {k: v for k, v in source.stats.items() if v}, source.decoder.skipped_offsets
+    return dict(source.skipped), source.skipped_offsets
+
+
+def _first_data(
+    src: Path, chunks: Iterator[tuple[EventArray, TriggerEvents]], source: RawReader | DatHeader
+) -> Iterator[tuple[EventArray, TriggerEvents]]:
+    """The chunks from the first that holds data on (decoding up to it in constant memory); a
+    ConvertError when none does, so an input with nothing to convert never creates a take."""
+    for ev, tr in chunks:
+        if len(ev) or len(tr):
+            return itertools.chain([(ev, tr)], chunks)
+    skipped, offsets = _skips(source)
+    why = f"the decoder skipped {_skip_text(skipped, offsets)}" if skipped else "it holds no event data"
+    raise ConvertError(f"{src}: no events decoded: {why}")
+
+
 def recording_to_take(
     src: Path, dst: Path, *, sensor: str = "ev0", strict: bool = False, on_progress: Progress | None = None
 ) -> int:
+    """Write a RAW/DAT recording as a take; returns the events written."""
     if dst.exists():
         raise ConvertError(f"{dst} exists; not overwriting a take")
-    if src.suffix.lower() == ".dat":
-        dat_hdr, ev = read_dat(src, strict=strict)
-        width = dat_hdr.width or (int(ev.x.max()) + 1 if len(ev) else 1)
-        height = dat_hdr.height or (int(ev.y.max()) + 1 if len(ev) else 1)
-        chunks = iter([(ev, TriggerEvents.empty())])
-        fields, fmt, stats = dict(dat_hdr.fields), "dat", None
-    else:
-        reader = RawReader(src, strict=strict)
-        width, height = reader.header.width, reader.header.height
-        chunks = ((d.events, d.triggers) for d in reader)
-        fields, fmt, stats = reader.header.fields, reader.header.fmt, reader
+    chunks, width, height, fields, fmt, source = _open_recording(src, strict)
+    chunks = _first_data(src, chunks, source)  # before the take exists: nothing to undo
+    try:
+        n = _write_take(src, dst, sensor, chunks, (width, height), fields, fmt, source, on_progress)
+    except BaseException:
+        if dst.exists():
+            log.warning("convert %s failed; removing the unfinished take %s", src, dst)
+            dst.unlink()
+        raise
+    log.info("converted %s -> %s: %d events", src, dst, n)
+    return n
+
+
+def _write_take(
+    src: Path,
+    dst: Path,
+    sensor: str,
+    chunks: Iterator[tuple[EventArray, TriggerEvents]],
+    geometry: tuple[int, int],
+    fields: dict[str, str],
+    fmt: str,
+    source: RawReader | DatHeader,
+    on_progress: Progress | None,
+) -> int:
+    """Write the chunks as one sensor's data and finalize with the skips as losses; a failure
+    marks the take failed (the caller removes it)."""
     info = DeviceInfo(
         kind="event_sensor",
         spec=f"file://{src.resolve()}",
@@ -93,9 +175,7 @@ def recording_to_take(
         rigd_version=__version__,
     ) as writer:
         try:
-            writer.add_event_sensor(
-                sensor, info, width, height, json.dumps({"format": fmt, "header": fields})
-            )
+            writer.add_event_sensor(sensor, info, *geometry, json.dumps({"format": fmt, "header": fields}))
             for ev, tr in chunks:
                 if len(ev):
                     writer.append_events(sensor, ev)
@@ -104,20 +184,35 @@ def recording_to_take(
                 n += len(ev)
                 if on_progress:
                     on_progress(n)
+            skipped, offsets = _skips(source)
             warnings = [
                 "converted recording: times are the sensor's own clock (identity map), no trigger box"
             ]
-            skipped = {k: v for k, v in (stats.stats.items() if stats else []) if v}
+            losses = []
             if skipped:
-                warnings.append(f"decoder skipped invalid data: {skipped}")
+                text = _skip_text(skipped, offsets)
+                warnings.append(f"decoder skipped invalid data: {text}")
+                losses.append(
+                    LossRecord(
+                        device=sensor,
+                        what="events",
+                        count=sum(skipped.values()),
+                        reason=f"EVT decoder skipped invalid data in {src.name}: {text}",
+                    )
+                )
+                log.warning("%s: decoder skipped %s; recorded as losses in %s", src, text, dst)
             report = SyncReport(
-                rate_hz=0.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None, warnings=warnings
+                rate_hz=0.0,
+                n_pulses=0,
+                t_first_pulse_us=None,
+                t_last_pulse_us=None,
+                warnings=warnings,
+                losses=losses,
             )
             writer.finalize({sensor: ClockMap.identity()}, {}, report)
         except BaseException as exc:
             writer.fail(f"convert failed: {exc!r}")
             raise
-    log.info("converted %s -> %s: %d events", src, dst, n)
     return n
 
 

@@ -5,7 +5,7 @@ the trigger-in contract is not its to run)."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -167,3 +167,68 @@ def test_errors_name_the_problem(tmp_path: Path) -> None:
     sensor.close()
     with pytest.raises(DeviceError, match="closed"):
         sensor.read_events(0.0)
+
+
+@pytest.mark.parametrize(
+    ("make", "problem"),
+    [
+        (lambda d: d, "is a directory"),
+        (lambda d: _write(d / "z.raw", b""), "empty file"),
+        (
+            lambda d: _write(d / "w.raw", b"% format EVT3;width=abc;height=720\n% end\n"),
+            "'abc' is not an integer",
+        ),
+        (lambda d: _write(d / "g.raw", b"% geometry 640xabc\n% end\n"), "'abc' is not an integer"),
+        (lambda d: _write(d / "b.raw", b"% format EVT3;width=9000;height=720\n% end\n"), "outside 1..2048"),
+        (
+            lambda d: _write(d / "r.raw", bytes(np.random.default_rng(0).integers(0, 256, 999, np.uint8))),
+            "no RAW header",
+        ),
+        (
+            lambda d: _write(d / "h.dat", b"% Width abc\n% Height 4\n\x0c\x08"),
+            "Width 'abc' is not an integer",
+        ),
+        (lambda d: _write(d / "k.dat", b"% Width 4\n"), "ends before the event type"),
+    ],
+)
+def test_unreadable_files_are_one_line_config_errors(
+    tmp_path: Path, make: Callable[[Path], Path], problem: str
+) -> None:
+    """A directory, an empty file, bad header numbers, random bytes, a bad DAT header: one line
+    naming the file and the problem."""
+    path = make(tmp_path)
+    with pytest.raises(ConfigError, match=problem) as exc:
+        open_device("event_sensor", f"file://{path}")
+    assert str(path) in str(exc.value)
+    assert "\n" not in str(exc.value)
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def test_a_corrupt_word_costs_only_its_events_in_replay(tmp_path: Path) -> None:
+    path = _recording(tmp_path, "evt3")
+    ref = EventArray.concatenate([p.events for p in _drain(open_started(path), 0.0)])
+    data = bytearray(path.read_bytes())
+    hdr_size = data.index(b"% end\n") + 6
+    words = np.frombuffer(bytes(data[hdr_size:]), "<u2")
+    tl = np.flatnonzero((words >> 12) == 6)
+    i = int(tl[len(tl) // 2])
+    data[hdr_size + 2 * i : hdr_size + 2 * i + 2] = (0x6000).to_bytes(2, "little")
+    bad = tmp_path / "bad.raw"
+    bad.write_bytes(bytes(data))
+    sensor = open_started(bad)
+    ev = EventArray.concatenate([p.events for p in _drain(sensor, 0.0)])
+    extra = sensor.stats().extra
+    assert ev.is_time_sorted()
+    assert len(ev) + extra["decoder_skipped_non_monotonic_time"] == len(ref)
+    assert extra["decoder_skipped_non_monotonic_time"] > 0
+    assert extra["decoder_first_skipped_offset"] >= hdr_size + 2 * i
+
+
+def open_started(path: Path) -> EventSensor:
+    sensor = open_device("event_sensor", f"file://{path}?chunk_bytes=501")
+    sensor.start()
+    return sensor

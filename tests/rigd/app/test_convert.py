@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from drivers.evt import read_dat, read_raw
+from drivers.evt import RawHeader, parse_raw_header, read_dat, read_raw, write_raw
 from rigd.app.cli import app
 from rigd.app.convert import ConvertError, convert
 from rigd.take.reader import Take
@@ -70,3 +71,109 @@ def test_refuses_to_overwrite_and_names_missing_sensor(tmp_path: Path) -> None:
         convert(DATA / "evt3_pedestrians.raw", take_path)
     with pytest.raises(ConvertError, match="no event sensor 'ev9'"):
         convert(take_path, tmp_path / "o.raw", sensor="ev9")
+
+
+def _zero_a_time_low(src: Path, dst: Path) -> int:
+    """Copy a real EVT3 recording with one TIME_LOW in the middle set to 0; returns its offset."""
+    data = bytearray(src.read_bytes())
+    with src.open("rb") as f:
+        start = parse_raw_header(f).size
+    words = np.frombuffer(bytes(data[start:]), "<u2", (len(data) - start) // 2)
+    tl = np.flatnonzero((words >> 12) == 6)
+    off = start + 2 * int(tl[len(tl) // 2])
+    data[off : off + 2] = (0x6000).to_bytes(2, "little")
+    dst.write_bytes(bytes(data))
+    return off
+
+
+def test_one_corrupt_word_costs_only_its_events(tmp_path: Path) -> None:
+    src = tmp_path / "rec.raw"
+    off = _zero_a_time_low(DATA / "evt3_gen41_sample.raw", src)
+    _, ref = read_raw(DATA / "evt3_gen41_sample.raw")
+    r = CliRunner().invoke(app, ["convert", str(src), str(tmp_path / "t.h5")])
+    assert r.exit_code == 0, r.output
+    with Take(tmp_path / "t.h5") as take:
+        ev = take.events("ev0")
+        report = take.sync_report
+    assert report is not None
+    (loss,) = report.losses
+    assert "non_monotonic_time" in loss.reason
+    assert len(ev) + loss.count == len(ref.events)
+    assert 0 < loss.count < 1000
+    assert str(off) in loss.reason or any(str(o) in loss.reason for o in range(off, off + 4096, 2))
+    assert (np.diff(ev.t) >= 0).all()
+    with pytest.raises(ConvertError, match="non_monotonic_time at byte offset"):
+        convert(src, tmp_path / "strict.h5", strict=True)
+    assert not (tmp_path / "strict.h5").exists()
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def _dir(tmp_path: Path) -> Path:
+    d = tmp_path / "rec.raw"
+    d.mkdir()
+    return d
+
+
+@pytest.mark.parametrize(
+    ("make", "problem"),
+    [
+        (
+            lambda d: _write(d / "w.raw", b"% format EVT3;width=abc;height=720\n% end\n" + bytes(64)),
+            "is not an integer",
+        ),
+        (lambda d: _write(d / "g.raw", b"% evt 3.0\n% geometry axb\n" + bytes(64)), "is not an integer"),
+        (lambda d: _write(d / "big.raw", b"% format EVT3;width=4096;height=720\n% end\n"), "outside 1..2048"),
+        (lambda d: _write(d / "z.raw", b""), "empty file"),
+        (lambda d: _write(d / "v.raw", b"% format EVT3;width=abc\n"), "format width 'abc' is not an integer"),
+        (lambda d: _write(d / "r.raw", np.random.default_rng(1).bytes(4096)), "no RAW header"),
+        (lambda d: _write(d / "h.raw", b"% evt 3.0\n% end\n"), "no events decoded: it holds no event data"),
+        (lambda d: _write(d / "d.dat", b"% Height x\n\x0c\x08" + bytes(16)), "Height 'x' is not an integer"),
+        (lambda d: _write(d / "s.dat", b"% Width 4\n\x0c\x07" + bytes(16)), "DAT event size 7"),
+        (lambda d: _write(d / "e.dat", b""), "empty file"),
+        (_dir, "is a directory"),
+    ],
+)
+def test_unreadable_input_is_one_line_naming_the_file(
+    tmp_path: Path, make: Callable[[Path], Path], problem: str
+) -> None:
+    src = make(tmp_path)
+    dst = tmp_path / "out.h5"
+    r = CliRunner().invoke(app, ["convert", str(src), str(dst)])
+    assert r.exit_code in (1, 2), r.output
+    assert problem in r.output
+    assert str(src) in r.output
+    assert "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1, r.output
+    assert not dst.exists()  # nothing half-done left behind
+
+
+def test_geometry_that_puts_every_event_out_of_range(tmp_path: Path) -> None:
+    _, ref = read_raw(DATA / "evt3_pedestrians.raw")
+    src = tmp_path / "tiny.raw"
+    write_raw(src, RawHeader(fmt="evt3", width=1280, height=720), ref.events)
+    data = (
+        src.read_bytes().replace(b"height=720;width=1280", b"height=2;width=2").replace(b"1280x720", b"2x2")
+    )
+    src.write_bytes(data)
+    r = CliRunner().invoke(app, ["convert", str(src), str(tmp_path / "o.h5")])
+    assert r.exit_code in (1, 2), r.output
+    assert "no events decoded" in r.output
+    assert "out_of_range_xy" in r.output
+    assert str(src) in r.output
+    assert not (tmp_path / "o.h5").exists()
+
+
+def test_existing_take_with_data_is_kept(tmp_path: Path) -> None:
+    take_path = tmp_path / "t.h5"
+    convert(DATA / "evt3_pedestrians.raw", take_path)
+    before = take_path.read_bytes()
+    r = CliRunner().invoke(app, ["convert", str(tmp_path / "missing.raw"), str(take_path)])
+    assert r.exit_code in (1, 2)
+    r = CliRunner().invoke(app, ["convert", str(DATA / "evt3_pedestrians.raw"), str(take_path)])
+    assert r.exit_code in (1, 2)
+    assert "exists" in r.output
+    assert take_path.read_bytes() == before
