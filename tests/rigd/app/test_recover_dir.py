@@ -118,19 +118,20 @@ def test_recover_command_dir_with_bad_files(tmp_path: Path) -> None:
     d, good, bad = _dir_with(tmp_path, sorted(BAD))
     res = CliRunner().invoke(_app(), [str(d)])
     assert res.exit_code == 1, res.output
-    assert "Traceback" not in res.output
-    lines = res.output.splitlines()
+    assert isinstance(res.exception, SystemExit), res.exception  # exit 1, nothing raised
+    assert "Traceback" not in res.stdout
+    lines = res.stdout.splitlines()  # the report; log lines go to stderr
     for p in bad:  # one line per problem, naming the file
-        assert sum(str(p) in line for line in lines) == 1, res.output
+        assert sum(str(p) in line for line in lines) == 1, res.stdout
     for p in good:
-        assert any(str(p) in line and "sealed complete" in line for line in lines), res.output
+        assert any(str(p) in line and "sealed complete" in line for line in lines), res.stdout
 
 
 def test_recover_command_json_reports_the_problems(tmp_path: Path) -> None:
     d, good, bad = _dir_with(tmp_path, ["zero", "random"])
     res = CliRunner().invoke(_app(), ["--json", str(d)])
     assert res.exit_code == 1, res.output
-    out: list[dict[str, Any]] = json.loads(res.output[res.output.index("[") :])
+    out: list[dict[str, Any]] = json.loads(res.stdout)
     assert {r["path"] for r in out if "error" in r} == {str(p) for p in bad}
     assert {r["path"] for r in out if r.get("outcome") == "sealed"} == {str(p) for p in good}
 
