@@ -20,6 +20,7 @@ import gc
 import json
 import logging
 import os
+import queue
 import shutil
 import signal
 import threading
@@ -75,8 +76,21 @@ _WORKER_GRACE_S = 60.0
 #: big takes): run on a worker so the control loop answers and feeds the watchdog meanwhile.
 _SLOW_COMMANDS = frozenset({"capture", "devices", "recover"})
 
-#: Takes a job that returns reply bytes and sees that the reply gets sent.
-_Defer = Callable[[Callable[[], bytes]], None]
+#: Of those, the ones that act on the rig: their claim (`_claim`) lets one run at a time, so
+#: each gets its own thread and is never refused for a queue full of other requests.
+_RIG_COMMANDS = frozenset({"capture", "recover"})
+
+#: Worker threads for the other slow commands (`devices`), and how many requests may wait
+#: for one; beyond that a request is answered `busy` at once. Without a bound, a client
+#: flooding `devices` made a thread per request and starved the control loop (2,000
+#: requests: 79 threads, `ping` 1.5-3.9 s).
+POOL_WORKERS = 3
+POOL_QUEUE = 8
+_POOL_THREAD = "control-worker"
+
+#: Takes a command and a job that returns reply bytes and sees that the reply gets sent
+#: (raises `_RequestError` busy when it cannot take the job now).
+_Defer = Callable[[str, Callable[[], bytes]], None]
 
 #: Where workers hand finished replies back to the control loop, which owns the socket.
 _REPLIES_ENDPOINT = "inproc://rigd-deferred-replies"
@@ -220,6 +234,51 @@ def _validate(data: dict[str, Any]) -> tuple[str, BaseModel]:
     return req.cmd, args
 
 
+class _WorkerPool:
+    """A fixed number of threads working off a bounded queue: `submit` says at once whether
+    the job was taken, so the control loop can answer `busy` instead of piling up threads."""
+
+    def __init__(self, workers: int, depth: int, name: str) -> None:
+        self._queue: queue.Queue[Callable[[], None] | None] = queue.Queue(maxsize=depth)
+        self._threads = [
+            threading.Thread(target=self._run, name=f"{name}-{i}", daemon=True) for i in range(workers)
+        ]
+        self.failures = 0
+
+    def start(self) -> None:
+        for t in self._threads:
+            t.start()
+
+    def submit(self, job: Callable[[], None]) -> bool:
+        """Queue `job`; False when the queue is full."""
+        try:
+            self._queue.put_nowait(job)
+        except queue.Full:
+            return False
+        return True
+
+    def _run(self) -> None:
+        while (job := self._queue.get()) is not None:
+            try:
+                job()
+            except Exception:  # a failed job must not shrink the pool; logged with its traceback
+                self.failures += 1
+                log.exception("control worker job failed")
+
+    def close(self, timeout_s: float) -> None:
+        """Let queued jobs finish (up to `timeout_s` in all), then end the threads."""
+        deadline = time.monotonic() + timeout_s
+        for _ in self._threads:
+            try:
+                self._queue.put(None, timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Full:
+                log.warning("control workers still busy after %.0f s; not waiting for them", timeout_s)
+                return
+        for t in self._threads:
+            if t.is_alive():
+                t.join(timeout=max(0.0, deadline - time.monotonic()))
+
+
 class Daemon:
     """The daemon's state; `serve()` runs until `shutdown()` or a signal."""
 
@@ -245,6 +304,8 @@ class Daemon:
         self._loop_beat = time.monotonic()
         self._idle_faults: list[Fault] = []
         self._workers: list[threading.Thread] = []
+        self._pool = _WorkerPool(POOL_WORKERS, POOL_QUEUE, _POOL_THREAD)
+        self._refused = 0  # requests refused busy since the pool last took one
         self._recovering = False
         self._disk_error: str | None = None
 
@@ -359,6 +420,7 @@ class Daemon:
         poller = zmq.Poller()
         poller.register(sock, zmq.POLLIN)
         poller.register(replies, zmq.POLLIN)
+        self._pool.start()
         try:
             while not self._stop.is_set():
                 self._loop_beat = time.monotonic()
@@ -373,6 +435,7 @@ class Daemon:
             # A capture still opening its devices answers its client before the socket goes.
             for worker in self._workers:
                 worker.join(timeout=_WORKER_GRACE_S)
+            self._pool.close(_WORKER_GRACE_S)
             self._forward_replies(replies, sock)
         finally:
             replies.close(linger=0)
@@ -385,8 +448,11 @@ class Daemon:
             except zmq.Again:
                 return
 
-    def _defer(self, envelope: list[bytes], job: Callable[[], bytes]) -> None:
-        """Run `job` on a worker; its reply goes back to the client through the control loop."""
+    def _defer(self, envelope: list[bytes], cmd: str, job: Callable[[], bytes]) -> None:
+        """Run `job` on a worker; its reply goes back to the client through the control loop.
+
+        capture/recover get a thread each (their claim lets one run at a time); the rest go to
+        the bounded pool, and a request it cannot take is refused `busy` here, at once."""
 
         def work() -> None:
             reply = job()
@@ -404,8 +470,23 @@ class Daemon:
             finally:
                 push.close()
 
+        if cmd not in _RIG_COMMANDS:
+            if self._pool.submit(work):
+                if self._refused:
+                    log.warning("control workers take requests again (%d refused busy)", self._refused)
+                    self._refused = 0
+                return
+            if not self._refused:  # once per flood, not once per request
+                log.warning(
+                    "%s refused busy: %d workers busy, %d requests waiting", cmd, POOL_WORKERS, POOL_QUEUE
+                )
+            self._refused += 1
+            raise _RequestError(
+                "busy",
+                f"{POOL_WORKERS} workers are busy and {POOL_QUEUE} requests wait for them; try again",
+            )
         self._workers = [w for w in self._workers if w.is_alive()]
-        worker = threading.Thread(target=work, name="control-worker", daemon=True)
+        worker = threading.Thread(target=work, name=f"control-{cmd}", daemon=True)
         self._workers.append(worker)
         worker.start()
 
@@ -424,7 +505,7 @@ class Daemon:
             if defer is not None and cmd in _SLOW_COMMANDS:
                 job = self._claim(cmd, args)  # quick checks here; `busy` is answered at once
                 deferred_id = req_id
-                defer(lambda: self._answer(deferred_id, job))
+                defer(cmd, lambda: self._answer(deferred_id, job))  # capture/recover: never busy here
                 return None
         except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
             return _reply_bytes(Reply(id=req_id, ok=False, error=_error_info(exc)))
