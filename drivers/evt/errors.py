@@ -19,7 +19,8 @@ TRUNCATED = 5
 BEFORE_TIME_HIGH = 6
 EVENT_WITHOUT_Y = 7
 NON_MONOTONIC_TIME = 8  # an event or trigger edge whose time would fall below the last one emitted
-N_CODES = 9
+TIME_HIGH_JUMP = 9  # a TIME_HIGH jumping away (or "rolling over") that the next one contradicts
+N_CODES = 10
 # After the codes, the stats array keeps the word positions of the first few skipped items (see
 # `kernels.skipped`): slot SKIP_COUNT counts them, SKIP_POS.. holds them; the decoder turns them
 # into absolute byte offsets after each kernel call.
@@ -37,6 +38,7 @@ KIND_NAMES: dict[int, str] = {
     BEFORE_TIME_HIGH: "before_time_high",
     EVENT_WITHOUT_Y: "event_without_y",
     NON_MONOTONIC_TIME: "non_monotonic_time",
+    TIME_HIGH_JUMP: "time_high_jump",
 }
 
 # Kinds that strict mode does NOT raise on: a stream joined mid-way (before its first TIME_HIGH)

@@ -1,4 +1,4 @@
-# mypy: disable-error-code="arg-type,assignment,call-arg"
+# mypy: disable-error-code="arg-type,assignment,call-arg,return-value"
 """EVT 3.0 (16-bit stateful words) decoder kernel and streaming encoder, OpenEB semantics.
 
 Time is t = loop << 24 | TIME_HIGH << 12 | TIME_LOW; `loop` increments when TIME_HIGH falls by
@@ -28,6 +28,7 @@ from drivers.evt.errors import (
     NON_MONOTONIC_TIME_HIGH,
     OK,
     OUT_OF_RANGE_XY,
+    TIME_HIGH_JUMP,
     UNKNOWN_TYPE,
     VECTOR_WITHOUT_BASE,
 )
@@ -114,6 +115,26 @@ def _type_row(t: int) -> list[int]:
 
 _TAB = np.array([_type_row(t) for t in range(16)], np.int64)
 _U64 = np.uint64  # unsigned indices: no negative-index wrap-around code in the loop
+
+
+TH_JUMP = 1  # TIME_HIGH steps larger than this (cameras step by 1) are checked by `_refuted`
+_TH_NEAR = 16  # how far the next TIME_HIGH may be from a base to continue it
+
+
+@njit(inline="always")
+def _refuted(buf: U16, pos: int, th: int, v12: int) -> bool:  # pragma: no cover - numba
+    """Whether the TIME_HIGH v12 at `pos`, a jump (or roll-over) from th, is a corrupt word: the
+    next TIME_HIGH in the buffer continues th and not v12. A valid jump is never refuted (the
+    next one continues it, and an encoder's steps of <= 2047 never land within _TH_NEAR of th
+    again); with no next TIME_HIGH in the buffer the jump is taken, as OpenEB does."""
+    q = pos + 1
+    while q < buf.shape[0]:
+        w = np.int64(buf[_U64(q)])
+        if (w >> 12) == 0x8:
+            v2 = w & 0xFFF
+            return ((v2 - th) & 0xFFF) <= _TH_NEAR and ((v2 - v12) & 0xFFF) > _TH_NEAR
+        q += 1
+    return False
 
 
 # This reference kernel and `evt3_fast.decode_kernel` are kept as two kernels on purpose: each is
@@ -229,6 +250,12 @@ def decode_kernel(
             fell = started != 0 and v12 < th
             if fell and th - v12 < 2048:  # a small fall: the word is skipped
                 err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
+                if err:
+                    break
+            elif (
+                started != 0 and (v12 - th) + (4096 if fell else 0) > TH_JUMP and _refuted(buf, pos, th, v12)
+            ):
+                err = violation(stats, TIME_HIGH_JUMP, strict, pos)
                 if err:
                     break
             else:

@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from drivers.evt.evt3 import NOBASE
+from drivers.evt.evt3 import NOBASE, TH_JUMP
 from drivers.evt.evt3 import decode_kernel as reference_kernel
 from drivers.evt.kernels import (
     I64,
@@ -136,6 +136,8 @@ def decode_kernel(
                             tnew += 1 << 24
                         elif tnew < tcur:
                             break  # the same TIME_HIGH again takes TIME_LOW back to 0
+                        if (tnew >> 12) - (tcur >> 12) > TH_JUMP:
+                            break  # a jump: the reference checks it against the next TIME_HIGH
                         tcur = tnew
                     elif typ == 0xA:
                         if nt >= tcap or tcur < last_time(out[TRIG_T], nt, st[8]):
