@@ -136,6 +136,10 @@ class Finalizer:
         f = self._f
         for name, idx in frame_pulse_index.items():
             self._cameras[name].series["pulse_index"][...] = np.asarray(idx, dtype=np.int64)
+        notes = [n for n in self.empty_device_notes() if n not in report.warnings]
+        if notes:  # the reader of the report must not mistake an empty device for a lost file
+            report = report.model_copy(deep=True)
+            report.warnings.extend(notes)
         self.write_sync(plan.maps, report)
         for sink in self._events.values():
             sink.group.attrs[FINALIZE_UPTO_ATTR] = np.int64(0)
@@ -143,6 +147,22 @@ class Finalizer:
         # If the process dies while times are being rewritten, this says so (see the docs).
         f.attrs["finalize_started_utc"] = utc_now()
         f.flush()
+
+    def empty_device_notes(self) -> list[str]:
+        """One sync-report line per device that recorded nothing (capped lens, unplugged from
+        the start): its datasets stay empty and its clock map ties no data."""
+        out = [
+            f"{name}: recorded nothing (0 frames)" for name, cam in self._cameras.items() if not cam.n_frames
+        ]
+        for name, sink in self._events.items():
+            n_trig = int(sink.trig["t_device"].shape[0])
+            if not sink.n_written and not n_trig:
+                out.append(f"{name}: recorded nothing (0 events, 0 trigger edges)")
+            elif not sink.n_written:
+                out.append(f"{name}: recorded no events ({n_trig} trigger edges)")
+            elif not n_trig:
+                out.append(f"{name}: recorded no trigger edges ({sink.n_written} events)")
+        return out
 
     def run(self, plan: FinalizePlan) -> None:
         """Map every time with `plan` and mark the take complete (also after a crash)."""
@@ -226,6 +246,9 @@ class Finalizer:
         return g.create_dataset(
             "ms_to_idx",
             shape=(n_ms,),
+            # Resizable so a sensor that recorded nothing (n_ms = 0) still gets a chunked,
+            # empty index: HDF5 refuses a fixed shape smaller than one chunk.
+            maxshape=(None,),
             dtype=np.uint64,
             chunks=(min(max(n_ms, 1), 1 << 16),),
             **self._small_opts,

@@ -28,9 +28,12 @@ from rigd.core.frames import Frame
 from rigd.core.schema import (
     CONFIG_DATASET,
     END_REASON_ATTR,
+    EVENT_DTYPES,
     EVENTS_GROUP,
+    FRAME_SERIES,
     FRAMES_GROUP,
     JOURNAL_DATASET,
+    PULSE_SERIES,
     RECOVERED_ATTR,
     RECOVERY_REPORT_ATTR,
     SCHEMA_NAME,
@@ -38,10 +41,12 @@ from rigd.core.schema import (
     SYNC_GROUP,
     TAIL_META_ATTR,
     TAIL_PREFIX,
+    TRIGGER_DTYPES,
     TRIGGER_GROUP,
     LossRecord,
     SyncReport,
     decode_journal,
+    has_item,
 )
 from rigd.take.calibration import read_calibration
 from rigd.take.h5file import attr_text
@@ -195,6 +200,7 @@ class Take:
             raise TakeError(f"cannot open take {self.path}: {exc}") from exc
         try:
             self._check_header()
+            self._check_layout()
         except BaseException:
             self._f.close()
             raise
@@ -211,6 +217,35 @@ class Take:
                 f"{self.path}: /: schema_version {self.schema_version!r} is not readable by this rigd "
                 f"(reads {SCHEMA_VERSION.split('.')[0]}.x)"
             )
+
+    def _required(self) -> Iterator[str]:
+        """HDF5 paths every reader method relies on, for the take's version and time domain."""
+        f = self._f
+        version = _attr_str(f, "schema_version", SCHEMA_VERSION)
+        rig = _attr_str(f, "time_domain") == "rig"
+        for name in self.event_sensors:
+            base = f"{EVENTS_GROUP}/{name}"
+            yield from (f"{base}/{k}" for k in EVENT_DTYPES)
+            yield f"{base}/t_offset"
+            if rig:
+                yield f"{base}/ms_to_idx"
+            trig = (k for k in TRIGGER_DTYPES if has_item(version, f"trigger/{k}"))
+            yield from (f"{base}/trigger/{k}" for k in trig)
+        for name in self.cameras:
+            yield f"{FRAMES_GROUP}/{name}/images"
+            yield from (f"{FRAMES_GROUP}/{name}/{k}" for k in FRAME_SERIES)
+        yield from (f"{TRIGGER_GROUP}/pulses/{k}" for k in PULSE_SERIES)
+
+    def _check_layout(self) -> None:
+        """Refuse a damaged take on open with the first missing dataset named, instead of a
+        KeyError from whichever read reaches it first."""
+        for name in (EVENTS_GROUP, FRAMES_GROUP):
+            node = self._f.get(name)
+            if node is not None and not isinstance(node, h5py.Group):
+                raise TakeFormatError(f"{self.path}: /{name} is not a group")
+        for hpath in self._required():
+            if not isinstance(self._f.get(hpath), h5py.Dataset):
+                raise TakeFormatError(f"{self.path}: /{hpath}: required dataset is missing (damaged take)")
 
     # -- lifecycle ---------------------------------------------------------------------
     def close(self) -> None:

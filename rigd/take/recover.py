@@ -154,17 +154,46 @@ class _TakeData:
     warnings: list[str] = field(default_factory=list)
 
 
+def _failed_unsealed(f: h5py.File) -> bool:
+    """Marked failed by its own writer (disk full, a fault) and never finalized nor recovered:
+    its times are still in device clock, and recovery can seal what was flushed."""
+    return (
+        attr_text(f.attrs.get("status", "")) == "failed"
+        and attr_text(f.attrs.get("time_domain", "device")) == "device"
+        and RECOVERED_ATTR not in f.attrs
+        and "finalize_started_utc" not in f.attrs
+        and FINALIZE_PLAN_ATTR not in f.attrs
+    )
+
+
 def _needs_recovery(f: h5py.File, truncated: bool) -> bool:
-    """Still recording, a finalize that started and did not finish (and was not sealed), or a
-    file a failed write left too short for HDF5 to open."""
+    """Still recording, failed by its writer before finalize, a finalize that started and did
+    not finish (and was not sealed), or a file a failed write left too short for HDF5 to open."""
     status = attr_text(f.attrs.get("status", ""))
     if truncated and status != "complete":
         return True
     if status == "complete":
         return False
-    if status == "recording" or FINALIZE_PLAN_ATTR in f.attrs:
+    if status == "recording" or FINALIZE_PLAN_ATTR in f.attrs or _failed_unsealed(f):
         return True
     return "finalize_started_utc" in f.attrs and RECOVERED_ATTR not in f.attrs
+
+
+def needs_recovery(path: str | Path) -> bool:
+    """Whether `recover_take` has something to do for this one take (the predicate
+    `find_unfinished` applies to each file). A take a live process holds counts as
+    unfinished (its state cannot be read). Raises TakeError / TakeFormatError, naming the
+    file, for a file that is not a readable rigd take."""
+    p = Path(path)
+    try:
+        f, truncated = _open_view(p)
+    except TakeInUseError:
+        return True
+    with f:
+        schema = attr_text(f.attrs.get("schema", ""))
+        if schema != SCHEMA_NAME:
+            raise TakeFormatError(f"{p}: /: attr schema is {schema!r}, not a rigd take")
+        return _needs_recovery(f, truncated is not None)
 
 
 def find_unfinished(directory: str | Path) -> list[Path]:
@@ -244,7 +273,8 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
                 f"the file ends {rr.truncated_bytes} bytes short of what its header records (a write "
                 "failed: disk full?); it is extended with a hole and nothing past the old end is used"
             )
-        if status == "failed" and not plan:  # truncated: repair it, keep what its writer said
+        if status == "failed" and not plan and not _failed_unsealed(f):
+            # Already sealed failed (or part rig time), only truncated since: repair, keep it.
             trims = check_repair(f, path, apply=False, data_end=truncated.eof if truncated else None)
             return _repair_only(path, rr, trims, dry_run=dry_run)
         if not plan and "finalize_started_utc" in f.attrs:
@@ -528,6 +558,11 @@ def _crash_note(data: _TakeData) -> str:
         else "the last flush"
     )
     span = f"at most {data.flush_interval_s:g} s" if data.flush_interval_s else "one flush interval"
+    if data.status == "failed":
+        return (
+            f"the take was marked failed by its writer ({data.failure_reason}): data after {when} "
+            f"may never have been written ({span})"
+        )
     return f"the take ended by a crash of its writer: data after {when} was never written ({span})"
 
 
@@ -596,8 +631,15 @@ def _fit(data: _TakeData, losses: list[LossRecord]) -> tuple[SyncResult | None, 
         )
     except SyncError as exc:
         return None, f"sync failed: {exc}"
-    tied = [d for d in result.report.devices.values() if d.clock_from != "host" or d.sync == "software"]
-    if data.observations and not tied:
+    # A device that recorded nothing has no times to map: it neither needs a fit nor may it
+    # fail the take (its datasets stay empty, the report says so).
+    holding = {n for n, k in data.frames.items() if k} | {n for n, k in data.events.items() if k}
+    tied = [
+        d
+        for name, d in result.report.devices.items()
+        if name in holding and (d.clock_from != "host" or d.sync == "software")
+    ]
+    if holding and not tied:
         why = "; ".join(result.report.warnings[:3])
         return None, f"no device clock could be fitted to the trigger pulses ({why})"
     return result, None
@@ -626,13 +668,16 @@ def _finalize_crashed(
     rr.losses_added = [*trim_losses, *_crash_losses(data)]
     result, reason = _fit(data, [*jl, *rr.losses_added])
     rr.warnings.append(_crash_note(data))
+    failed = data.status == "failed"
+    if failed:
+        rr.reason = f"marked failed by its writer: {data.failure_reason}"
     if result is not None:
         report = result.report
         _merge_journal(report, journal, rr.warnings)
         report.warnings.extend([*data.warnings, f"{_crash_note(data)}; sealed by `rigd recover`"])
         rr.outcome = "would_seal" if dry_run else "sealed"
     else:
-        rr.reason = reason
+        rr.reason = f"{rr.reason}; {reason}" if failed else reason
         rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
     if dry_run:
         return rr
@@ -641,10 +686,12 @@ def _finalize_crashed(
         if result is not None:
             frame_index = {name: result.observation_pulse_index[name] for name in data.cameras}
             w.finalize(result.maps, frame_index, result.report)
+        elif failed:
+            w.fail(f"{data.failure_reason}; recovered but not finalized: {reason}")
         else:
             w.fail(f"recovered after a crash of its writer but not finalized: {reason}")
         rr.status_after = w.status
-        w.mark_recovered(rr.model_dump_json())
+        w.mark_recovered(rr.model_dump_json(), keep_failure_reason=failed)
     log.warning("%s", rr.line())
     return rr
 

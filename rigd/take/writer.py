@@ -483,11 +483,13 @@ class TakeWriter:
         log.info("take %s finalized (t_offset %d us)", self.path, plan.t_offset)
 
     # -- end of life -------------------------------------------------------------------
-    def mark_recovered(self, recovery_report_json: str | None) -> None:
+    def mark_recovered(self, recovery_report_json: str | None, *, keep_failure_reason: bool = False) -> None:
         """Stamp a take sealed by recovery (`recovered_utc`, and the report once known).
 
         A take that a crashed finalize had marked failed and that is now complete drops its
-        stale `failure_reason`; the recovery report keeps it.
+        stale `failure_reason`; the recovery report keeps it. `keep_failure_reason`: the
+        take's own writer failed it (disk full) before finalize; sealed `complete`, it keeps
+        the reason, so readers see both that it is usable and why it is short.
         """
         self._check_open()
         f = self._f
@@ -495,7 +497,7 @@ class TakeWriter:
             f.attrs[RECOVERED_ATTR] = utc_now()
         if recovery_report_json is not None:
             f.attrs[RECOVERY_REPORT_ATTR] = recovery_report_json
-        if self._state == "complete" and "failure_reason" in f.attrs:
+        if self._state == "complete" and "failure_reason" in f.attrs and not keep_failure_reason:
             del f.attrs["failure_reason"]
         f.flush()
 

@@ -564,8 +564,9 @@ def test_no_pulses_seals_failed_and_keeps_data(tmp_path: Path) -> None:
     assert recover_take(path).outcome == "not_needed"
 
 
-def test_truncated_failed_take_is_only_repaired(tmp_path: Path) -> None:
-    """A take its writer marked failed, then cut short: recovery makes it open, keeps it failed."""
+def test_truncated_failed_take_is_repaired_and_sealed(tmp_path: Path) -> None:
+    """A take its writer marked failed (disk full), then cut short: recovery makes it open and
+    seals what was flushed into rig time, keeping the failure reason."""
     path = _unfinished(tmp_path / "tf.h5", n=40)
     size = path.stat().st_size
     with h5py.File(path, "r+") as f:
@@ -579,14 +580,15 @@ def test_truncated_failed_take_is_only_repaired(tmp_path: Path) -> None:
         open_take(path)
     assert find_unfinished(tmp_path) == [path]
     rr = recover_take(path)
-    assert rr.outcome == "sealed_failed", rr
-    assert rr.status_after == "failed"
+    assert rr.outcome == "sealed", rr
+    assert rr.status_after == "complete"
     assert rr.events == {"ev0": 40 * EV_PER_STEP}
     assert validate_take(path) == []
     with Take(path) as take:
-        assert take.status == "failed"
+        assert take.status == "complete"
+        assert take.time_domain == "rig"
         assert take.summary().failure_reason == "disk full"
-        np.testing.assert_array_equal(take.events("ev0").t, expected(40).ev.t)
+        np.testing.assert_array_equal(take.events("ev0").t, expected(40).ev.t - OFF_EV)
     assert find_unfinished(tmp_path) == []
 
 
@@ -810,15 +812,16 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
     n_flushed = max(int(line.split()[1]) for line in lines if line.startswith("F "))
     if then == "fail_and_close":
         assert lines[-3:] == ["C 27", "C 27", "survived"]
-        if recover_take(path, dry_run=True).outcome == "would_seal_failed":
-            # "failed" reached the file before the writes ran out of room: repaired, kept failed
-            # (test_truncated_failed_take_is_only_repaired covers that path).
-            assert recover_take(path).outcome == "sealed_failed"
+        if recover_take(path, dry_run=True).status_before == "failed":
+            # "failed" reached the file before the writes ran out of room: repaired and sealed
+            # with the reason kept (test_truncated_failed_take_is_repaired_and_sealed).
+            assert recover_take(path).outcome == "sealed"
             assert validate_take(path) == []
             with Take(path) as take:
-                assert take.status == "failed"
+                assert take.status == "complete"
+                assert take.summary().failure_reason == "disk full"
                 np.testing.assert_array_equal(
-                    take.events("ev0").t[: n_flushed * EV_PER_STEP], expected(n_flushed).ev.t
+                    take.events("ev0").t[: n_flushed * EV_PER_STEP], expected(n_flushed).ev.t - OFF_EV
                 )
             return
     with pytest.raises(TakeFormatError, match=r"truncated by a failed write"):
