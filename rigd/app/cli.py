@@ -194,12 +194,13 @@ def inspect(
     ] = None,
 ) -> None:
     """Validate a take against the schema and print its summary."""
-    from rigd.app.inspect import summarize, write_thumbnails
+    from rigd.app.inspect import status_hint, summarize, write_thumbnails
 
     if not take.exists():
         raise _fail(FileNotFoundError(f"no such take: {take}"))
     try:
         summary = summarize(take)
+        hint = status_hint(summary)
         if thumbnails is not None:
             write_thumbnails(take, thumbnails)
     except RigdError as exc:
@@ -210,7 +211,9 @@ def inspect(
         _print_summary(summary)
         if thumbnails is not None:
             out.print(f"thumbnails: {thumbnails}")
-    if summary.problems:
+    if hint is not None:  # a take that is not complete is not usable as it is
+        console.print(hint, soft_wrap=True)
+    if summary.problems or hint is not None:
         raise typer.Exit(code=1)
 
 

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from rigd.core.errors import TakeError
 from rigd.take.reader import Take, TakeSummary
+from rigd.take.recover import needs_recovery
 from rigd.take.validate import validate_take
 
 log = logging.getLogger(__name__)
@@ -30,6 +31,27 @@ def summarize(path: str | Path) -> TakeSummary:
         summary = take.summary()
     summary.problems = problems
     return summary
+
+
+def status_hint(summary: TakeSummary) -> str | None:
+    """One line for a take that is not complete (`rigd inspect` exits 1 on it): what to run to
+    seal it, or why it failed; None for a complete take."""
+    path, status = summary.path, summary.status
+    if status == "complete":
+        return None
+    if status == "recording":
+        return (
+            f"{path}: take is still recording (its writer died or is still running): "
+            f"run `rigd recover {path}` to seal it"
+        )
+    if status == "failed":
+        why = summary.failure_reason or "no reason recorded"
+        if needs_recovery(path):
+            return (
+                f"{path}: take failed ({why}) and was never sealed: free space and run `rigd recover {path}`"
+            )
+        return f"{path}: take failed: {why}"
+    return f"{path}: take status {status!r} is not complete"
 
 
 def _to_bgr8(img: NDArray[np.generic]) -> NDArray[np.uint8]:

@@ -41,6 +41,11 @@ def _write(path: Path, frames: int, events: int, edges: int, pulses: int) -> Tak
 
 def _check_readable(path: Path, frames: int, events: int) -> None:
     assert validate_take(path) == []
+    with h5py.File(path, "r") as f:
+        complete = f.attrs["status"] == "complete"
+    for args in ((), ("--json",)):
+        res = CliRunner().invoke(app, ["inspect", str(path), *args])
+        assert res.exit_code == (0 if complete else 1), res.output
     res = CliRunner().invoke(app, ["inspect", str(path), "--json"])
     assert res.exit_code in (0, 1), res.output
     with Take(path) as take:

@@ -9,8 +9,13 @@ import cv2
 import h5py
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from rigd.app.cli import app
 from rigd.app.inspect import event_image, summarize, write_thumbnails
+from rigd.core.errors import TakeFormatError
+from rigd.take import Take, recover_take
+from tests.rigd.test_take_recover import append_step, open_writer, step
 from tests.rigd.test_take_roundtrip import MAPS, make_take
 
 
@@ -74,3 +79,67 @@ def test_event_image_colours() -> None:
     assert img[1, 3, 0] > 0
     assert img[1, 3, 2] == 0  # OFF: blue only
     assert img[1, 1].sum() == 0
+
+
+# -- exit codes and damaged takes ------------------------------------------------------------
+def _inspect(path: Path, *args: str) -> tuple[int, str]:
+    res = CliRunner().invoke(app, ["inspect", str(path), *args])
+    assert res.exception is None or isinstance(res.exception, SystemExit), res.output
+    return res.exit_code, res.output
+
+
+def test_inspect_exit_codes_by_status(take_path: Path, tmp_path: Path) -> None:
+    assert _inspect(take_path)[0] == 0
+    rec = make_take(tmp_path / "rec.h5", finalize=False).path
+    for args in ((), ("--json",)):
+        code, text = _inspect(rec, *args)
+        assert code == 1
+        assert "still recording" in text
+        assert f"rigd recover {rec}" in text
+    failed = tmp_path / "failed.h5"
+    w = open_writer(failed)
+    for k in range(5):
+        append_step(w, k)
+    w.fail("disk full")
+    w.close()
+    code, text = _inspect(failed)
+    assert code == 1
+    assert "take failed (disk full) and was never sealed: free space and run `rigd recover" in text
+    sealed_failed = tmp_path / "nopulse.h5"
+    w = open_writer(sealed_failed)
+    w.append_frame("cam0", step(0).frame)
+    w.fail("camera fault")
+    w.close()
+    assert recover_take(sealed_failed).outcome == "sealed_failed"
+    code, text = _inspect(sealed_failed)
+    assert code == 1
+    assert "take failed: camera fault; recovered but not finalized" in text
+    assert "rigd recover" not in text.split("take failed:")[1]
+
+
+@pytest.mark.parametrize(
+    "hpath",
+    [
+        "events/ev0/t",
+        "events/ev0/x",
+        "events/ev0/ms_to_idx",
+        "events/ev0/t_offset",
+        "events/ev0/trigger/t_device",
+        "frames/cam0/t_exposure_start_us",
+        "frames/cam0/images",
+        "trigger/pulses/t_us",
+    ],
+)
+def test_missing_dataset_is_named_in_one_line(take_path: Path, tmp_path: Path, hpath: str) -> None:
+    p = tmp_path / "cut.h5"
+    shutil.copy(take_path, p)
+    with h5py.File(p, "r+") as f:
+        del f[hpath]
+    for args in ((), ("--json",)):
+        code, text = _inspect(p, *args)
+        assert code != 0
+        assert f"/{hpath}" in text
+        assert "Traceback" not in text
+        assert "KeyError" not in text
+    with pytest.raises(TakeFormatError, match=f"/{hpath}: required dataset is missing"):
+        Take(p)
