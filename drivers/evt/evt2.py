@@ -1,11 +1,12 @@
-# mypy: disable-error-code="arg-type,assignment,call-arg"
+# mypy: disable-error-code="arg-type,assignment,call-arg,return-value"
 """EVT 2.0 (32-bit little-endian words) decoder kernel and streaming encoder, OpenEB semantics.
 
 t = TIME_HIGH << 6 | ts, a 34-bit time base that rolls over every 2^34 us (~4.77 h): a TIME_HIGH
 that falls by >= 2^27 is a roll-over (loop += 2^34), a smaller fall a non-monotonic violation
 whose word is skipped. Words before the first TIME_HIGH are skipped, as OpenEB does. An event or
 trigger edge earlier than the last one emitted (a corrupt ts or TIME_HIGH) is dropped and counted
-as non_monotonic_time, so the output time never runs backwards.
+as non_monotonic_time, so the output time never runs backwards. A TIME_HIGH jump (a step over 16,
+or a roll-over) that the next TIME_HIGH in the buffer contradicts is skipped as time_high_jump.
 
 EVT 2.1 (evt21.py) is EVT 2.0 with a 32-pixel validity mask beside each word, so the kernels of
 both formats come from the factories here. The layout is a closure constant that numba compiles
@@ -25,6 +26,7 @@ from drivers.evt.errors import (
     NON_MONOTONIC_TIME_HIGH,
     OK,
     OUT_OF_RANGE_XY,
+    TIME_HIGH_JUMP,
     UNKNOWN_TYPE,
 )
 from drivers.evt.kernels import (
@@ -55,6 +57,7 @@ STATE_SIZE = 5  # started, loop, time_high, last event time, last trigger time
 
 TH_HALF = 1 << 27
 TH_STEP = TH_HALF - 1
+_TH_NEAR = 16  # larger TIME_HIGH jumps (cameras step by 1) are checked against the next one
 _TIME_HIGH = 0x8 << 28
 _EXT_TRIGGER = 0xA << 28
 
@@ -69,6 +72,21 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
     `swapped`: the word's half comes first, IMX636's layout)."""
     per_word = 32 if masked else 1
     hi = 0 if swapped else 1  # index of the word's half in a masked word's u32 pair
+
+    @njit(inline="always")
+    def refuted(buf: U32, pos: int, th: int, v: int) -> bool:  # pragma: no cover - numba
+        """Whether TIME_HIGH v at `pos`, a jump or roll-over from th, is a corrupt word: the next
+        TIME_HIGH in the buffer continues th and not v (`evt3._refuted`'s rule, 28-bit counter)."""
+        q = pos + 1
+        nwords = buf.shape[0] // (2 if masked else 1)
+        while q < nwords:
+            wq = np.int64(buf[2 * q + hi]) if masked else np.int64(buf[q])
+            if (wq >> 28) == 0x8:
+                v2 = wq & 0xFFFFFFF
+                ahead = (v2 - v) & 0xFFFFFFF
+                return ((v2 - th) & 0xFFFFFFF) < min(ahead, (1 << 28) - ahead)
+            q += 1
+        return False
 
     @njit(nogil=True, cache=True)
     def decode_kernel(
@@ -118,6 +136,14 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                 fell = started != 0 and v < th
                 if fell and th - v < TH_HALF:  # a small fall: the word is skipped
                     err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
+                    if err:
+                        break
+                elif (
+                    started != 0
+                    and (v - th) + (1 << 28 if fell else 0) > _TH_NEAR
+                    and refuted(buf, pos, th, v)
+                ):
+                    err = violation(stats, TIME_HIGH_JUMP, strict, pos)
                     if err:
                         break
                 else:

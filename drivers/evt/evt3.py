@@ -117,22 +117,26 @@ _TAB = np.array([_type_row(t) for t in range(16)], np.int64)
 _U64 = np.uint64  # unsigned indices: no negative-index wrap-around code in the loop
 
 
-TH_JUMP = 1  # TIME_HIGH steps larger than this (cameras step by 1) are checked by `_refuted`
-_TH_NEAR = 16  # how far the next TIME_HIGH may be from a base to continue it
+# TIME_HIGH steps larger than this (cameras step by 1) are checked by `_refuted`; smaller jumps
+# are taken as they come (a corrupt *next* word could otherwise refute a valid one).
+TH_JUMP = 16
 
 
 @njit(inline="always")
 def _refuted(buf: U16, pos: int, th: int, v12: int) -> bool:  # pragma: no cover - numba
     """Whether the TIME_HIGH v12 at `pos`, a jump (or roll-over) from th, is a corrupt word: the
-    next TIME_HIGH in the buffer continues th and not v12. A valid jump is never refuted (the
-    next one continues it, and an encoder's steps of <= 2047 never land within _TH_NEAR of th
-    again); with no next TIME_HIGH in the buffer the jump is taken, as OpenEB does."""
+    next TIME_HIGH in the buffer is a shorter step (mod 4096) from th than its distance (either
+    way) from v12. A valid jump is never refuted: the next one is v12 + d, and with jump + d < 4096
+    (steps <= 2047, as the encoder and cameras make) it is farther from th; nor is one followed by
+    a corrupt word just below it. With no next TIME_HIGH in the buffer the
+    jump is taken, as OpenEB does."""
     q = pos + 1
     while q < buf.shape[0]:
         w = np.int64(buf[_U64(q)])
         if (w >> 12) == 0x8:
             v2 = w & 0xFFF
-            return ((v2 - th) & 0xFFF) <= _TH_NEAR and ((v2 - v12) & 0xFFF) > _TH_NEAR
+            ahead = (v2 - v12) & 0xFFF
+            return ((v2 - th) & 0xFFF) < min(ahead, 4096 - ahead)
         q += 1
     return False
 
