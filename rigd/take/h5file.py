@@ -31,6 +31,24 @@ log = logging.getLogger(__name__)
 #: were never written. Removed once check_repair has trimmed them away.
 TRUNCATED_EOF_ATTR = "truncated_eof"
 _TRUNCATED_RE = re.compile(r"truncated file: eof = (\d+),.*stored_eof = (\d+)")
+_ADDR_OVERFLOW_RE = re.compile(r"addr overflow, addr = (\d+), size = (\d+), eoa = (\d+)")
+
+
+def describe_open_error(path: Path, exc: BaseException) -> str:
+    """One line for a file HDF5 cannot open, saying what is wrong where HDF5's message is
+    cryptic: its header records an end before data it points to (a write failed before the
+    first flush reached the disk: disk full?)."""
+    m = _ADDR_OVERFLOW_RE.search(str(exc))
+    if m:
+        addr, size, eoa = (int(v) for v in m.groups())
+        return (
+            f"{path}: damaged by a failed write (disk full before the first flush?): its header "
+            f"records the file ending at byte {eoa}, yet refers to {size} bytes at byte {addr}; "
+            "HDF5 refuses it and `rigd recover` cannot repair it"
+        )
+    return f"{path}: cannot be opened as an HDF5 file: {exc}"
+
+
 _ERRNO_RE = re.compile(r"errno = (\d+)")
 #: gzip level: 1 keeps write speed usable; with the shuffle filter it loses little ratio.
 _GZIP_LEVEL = 1
@@ -120,7 +138,7 @@ def open_h5(path: Path, mode: str) -> h5py.File:
                 eof,
                 stored,
             ) from exc
-        raise TakeFormatError(f"{path}: cannot be opened as an HDF5 file: {exc}") from exc
+        raise TakeFormatError(describe_open_error(path, exc)) from exc
 
 
 def open_extended(path: Path, exc: TakeTruncatedError) -> h5py.File:

@@ -49,7 +49,7 @@ from rigd.core.schema import (
     has_item,
 )
 from rigd.take.calibration import read_calibration
-from rigd.take.h5file import attr_text
+from rigd.take.h5file import attr_text, describe_open_error
 from rigd.take.tails import tail_rows
 
 log = logging.getLogger(__name__)
@@ -197,7 +197,7 @@ class Take:
         try:
             self._f = h5py.File(self.path, "r", rdcc_nbytes=_CHUNK_CACHE_BYTES, rdcc_nslots=10007)
         except (OSError, ValueError) as exc:
-            raise TakeError(f"cannot open take {self.path}: {exc}") from exc
+            raise TakeFormatError(describe_open_error(self.path, exc)) from exc
         try:
             self._check_header()
             self._check_layout()

@@ -255,10 +255,23 @@ def recover_take(path: str | Path, *, dry_run: bool = False) -> RecoveryReport:
         )
 
 
+@contextmanager
+def _reading(path: Path, what: str) -> Iterator[None]:
+    """HDF5's own errors from a damaged file (a structure past the end, a broken heap) as one
+    line naming the file and the step, instead of a bare OSError or KeyError."""
+    try:
+        yield
+    except (OSError, KeyError, ValueError) as exc:
+        raise TakeFormatError(
+            f"{path}: damaged beyond what recovery repairs ({what}): {type(exc).__name__}: {exc}"
+        ) from exc
+
+
 def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
     f, truncated = _open_view(path)
     with f:
-        check_header(f, path)
+        with _reading(path, "reading the header"):
+            check_header(f, path)
         status = attr_text(f.attrs.get("status", ""))
         rr = RecoveryReport(
             path=str(path), outcome="not_needed", sealed=True, dry_run=dry_run, status_before=status
@@ -275,7 +288,8 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
             )
         if status == "failed" and not plan and not _failed_unsealed(f):
             # Already sealed failed (or part rig time), only truncated since: repair, keep it.
-            trims = check_repair(f, path, apply=False, data_end=truncated.eof if truncated else None)
+            with _reading(path, "checking the datasets"):
+                trims = check_repair(f, path, apply=False, data_end=truncated.eof if truncated else None)
             return _repair_only(path, rr, trims, dry_run=dry_run)
         if not plan and "finalize_started_utc" in f.attrs:
             reason = (
@@ -284,13 +298,15 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
             )
             return _seal_unresumable(path, rr, reason, dry_run=dry_run)
         # A finalize in progress has rewritten part of t: its order says nothing about damage.
-        trims = check_repair(
-            f, path, apply=False, check_order=not plan, data_end=truncated.eof if truncated else None
-        )
+        with _reading(path, "checking the datasets"):
+            trims = check_repair(
+                f, path, apply=False, check_order=not plan, data_end=truncated.eof if truncated else None
+            )
         if plan and trims:  # finalize starts only on consistent data: this is not a crash's doing
             what = "; ".join(f"{t.hpath}: {t.reason}" for t in trims)
             raise TakeFormatError(f"{path}: finalize had started, yet the data is inconsistent ({what})")
-        data = _read(f, path, {t.hpath: t.after for t in trims}, plan=plan)
+        with _reading(path, "reading the recorded data"):
+            data = _read(f, path, {t.hpath: t.after for t in trims}, plan=plan)
     rr.trims = trims
     rr.failure_reason_before = data.failure_reason
     rr.frames, rr.events, rr.triggers, rr.pulses = data.frames, data.events, data.triggers, data.n_pulses
