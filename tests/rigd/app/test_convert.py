@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from drivers.evt import RawHeader, parse_raw_header, read_dat, read_raw, write_raw
+from drivers.evt import RawHeader, parse_raw_header, read_dat, read_raw, write_dat, write_raw
 from rigd.app.cli import app
 from rigd.app.convert import ConvertError, convert
 from rigd.take.reader import Take
@@ -177,3 +177,21 @@ def test_existing_take_with_data_is_kept(tmp_path: Path) -> None:
     assert r.exit_code in (1, 2)
     assert "exists" in r.output
     assert take_path.read_bytes() == before
+
+
+def test_dat_record_out_of_time_order_is_a_loss(tmp_path: Path) -> None:
+    src = tmp_path / "rec.dat"
+    _, ref = read_dat(DATA / "dat_ncars_sample.dat")
+    write_dat(src, ref, width=int(ref.x.max()) + 1, height=int(ref.y.max()) + 1)
+    data = bytearray(src.read_bytes())
+    off = len(data) - 8 * len(ref) + 8 * (len(ref) // 2)
+    data[off : off + 4] = (0).to_bytes(4, "little")  # one record's time zeroed
+    src.write_bytes(bytes(data))
+    assert convert(src, tmp_path / "d.h5") == len(ref) - 1
+    with Take(tmp_path / "d.h5") as take:
+        report = take.sync_report
+        assert take.event_count("ev0") == len(ref) - 1
+    assert report is not None
+    (loss,) = report.losses
+    assert loss.count == 1
+    assert f"[{off}]" in loss.reason
