@@ -147,14 +147,26 @@ def _repair_take(f: h5py.File, scan: _Scan) -> None:
         scan.data_end = int(f.attrs[TRUNCATED_EOF_ATTR])
     scan.version = attr_text(f.attrs.get("schema_version", SCHEMA_VERSION))
     for name, g in require_group(f, EVENTS_GROUP, scan.where).items():
-        scan.at = g.name
+        scan.at = f"/{EVENTS_GROUP}/{name}"
+        _require_readable_group(scan, g)
         cols, longest, keep = _repair_event_columns(scan, name, g)
         _merge_event_tail(scan, name, g, cols, longest, keep)
         _repair_trigger_in(scan, name, require_group(g, "trigger", scan.where))
     for name, g in require_group(f, FRAMES_GROUP, scan.where).items():
-        scan.at = g.name
+        scan.at = f"/{FRAMES_GROUP}/{name}"
+        _require_readable_group(scan, g)
         _repair_camera(scan, name, g)
     _repair_pulses(scan, require_group(f, f"{TRIGGER_GROUP}/pulses", scan.where))
+
+
+def _require_readable_group(scan: _Scan, g: h5py.Group | None) -> None:
+    """h5py lists a link whose object cannot be opened as None (a group whose header never
+    reached the disk); say so instead of failing on its first use."""
+    if not isinstance(g, h5py.Group):
+        raise TakeFormatError(
+            f"{scan.where}: {scan.at}: listed but cannot be opened as a group "
+            "(its header never reached the file: disk full before the first flush?)"
+        )
 
 
 def _repair_event_columns(scan: _Scan, name: str, g: h5py.Group) -> tuple[dict[str, h5py.Dataset], int, int]:

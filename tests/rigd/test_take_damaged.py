@@ -7,6 +7,7 @@ import shutil
 import struct
 from pathlib import Path
 
+import h5py
 import pytest
 from typer.testing import CliRunner
 
@@ -56,3 +57,16 @@ def test_addr_overflow_is_one_line(tmp_path: Path, eoa: int) -> None:
         assert res.exit_code == 2
         assert want in res.output
         assert "Traceback" not in res.output
+
+
+def test_unopenable_device_group_is_one_line(tmp_path: Path) -> None:
+    """A device group listed in the file whose object cannot be opened (h5py lists it as None)."""
+    p = tmp_path / "g.h5"
+    w = open_writer(p)
+    append_step(w, 0)
+    w.flush()
+    w.close()
+    with h5py.File(p, "r+") as f:
+        f["events/ev1"] = h5py.SoftLink("/nowhere")
+    with pytest.raises(TakeFormatError, match=r"/events/ev1: listed but cannot be opened as a group"):
+        recover_take(p, dry_run=True)
