@@ -136,10 +136,9 @@ class Finalizer:
         f = self._f
         for name, idx in frame_pulse_index.items():
             self._cameras[name].series["pulse_index"][...] = np.asarray(idx, dtype=np.int64)
-        notes = [n for n in self.empty_device_notes() if n not in report.warnings]
-        if notes:  # the reader of the report must not mistake an empty device for a lost file
-            report = report.model_copy(deep=True)
-            report.warnings.extend(notes)
+        # The reader of the report must not mistake an empty device for a lost file; the
+        # caller's report gains the notes too, so what it shows is what the take holds.
+        report.warnings.extend(n for n in self.empty_device_notes() if n not in report.warnings)
         self.write_sync(plan.maps, report)
         for sink in self._events.values():
             sink.group.attrs[FINALIZE_UPTO_ATTR] = np.int64(0)

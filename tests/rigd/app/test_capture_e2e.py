@@ -179,3 +179,19 @@ def test_capture_with_the_full_pixel_model(tmp_path: Path) -> None:
         assert dev.residual_rms_us < 5.0
     with Take(res.path) as take:
         assert "pixel_model=full" in take.config["event_sensors"][0]["spec"]
+
+
+def test_a_sensor_that_sees_nothing_does_not_cost_the_take(tmp_path: Path) -> None:
+    """ev1 sees no contrast (its threshold is far above any change in the scene): the take
+    completes with everything the others recorded, and says ev1 recorded no events."""
+    cfg = default_sim_rig(world=f"dark-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
+    cfg.event_sensors[1].spec += "&threshold=1000"
+    res = run_capture(cfg, tmp_path, 1.0)
+    assert res.events["ev1"] == 0
+    assert res.events["ev0"] > 0
+    assert all(n == 30 for n in res.frames.values())
+    assert any(w.startswith("ev1: recorded no events") for w in res.report.warnings), res.report.warnings
+    with Take(res.path) as take:
+        assert take.status == "complete"
+        assert len(take.events("ev1").t) == 0
+        assert len(take.events("ev0").t) == res.events["ev0"]
