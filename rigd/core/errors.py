@@ -41,6 +41,10 @@ class TakeFormatError(TakeError):
     """A take file violates the schema; the message names the HDF5 path."""
 
 
+class NotATakeError(TakeFormatError):
+    """An HDF5 file that is not a rigd take (another schema): skipped, not repaired."""
+
+
 class TakeInUseError(TakeError):
     """The take is open for writing in another process (HDF5 file lock); leave it alone."""
 

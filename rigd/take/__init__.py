@@ -10,7 +10,8 @@ from rigd.take.reader import (
     TakeSummary,
     open_take,
 )
-from rigd.take.recover import RecoveryReport, find_unfinished, recover_take
+from rigd.take.recover import RecoveryReport, recover_take
+from rigd.take.recover_dir import find_unfinished
 from rigd.take.repair import Trim, check_repair
 from rigd.take.sinks import DeviceWriteStats
 from rigd.take.validate import validate_take

@@ -26,7 +26,14 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from rigd.core.errors import SyncError, TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
+from rigd.core.errors import (
+    NotATakeError,
+    SyncError,
+    TakeError,
+    TakeFormatError,
+    TakeInUseError,
+    TakeTruncatedError,
+)
 from rigd.core.schema import (
     CONFIG_DATASET,
     EVENTS_GROUP,
@@ -181,53 +188,22 @@ def _needs_recovery(f: h5py.File, truncated: bool) -> bool:
 
 def needs_recovery(path: str | Path) -> bool:
     """Whether `recover_take` has something to do for this one take (the predicate
-    `find_unfinished` applies to each file). A take a live process holds counts as
+    `recover_dir.scan_dir` applies to each file). A take a live process holds counts as
     unfinished (its state cannot be read). Raises TakeError / TakeFormatError, naming the
     file, for a file that is not a readable rigd take."""
     p = Path(path)
     try:
-        f, truncated = _open_view(p)
+        f, truncated = open_view(p)
     except TakeInUseError:
         return True
     with f:
         schema = attr_text(f.attrs.get("schema", ""))
         if schema != SCHEMA_NAME:
-            raise TakeFormatError(f"{p}: /: attr schema is {schema!r}, not a rigd take")
+            raise NotATakeError(f"{p}: /: attr schema is {schema!r}, not a rigd take")
         return _needs_recovery(f, truncated is not None)
 
 
-def find_unfinished(directory: str | Path) -> list[Path]:
-    """Takes (`*.h5`, `*.hdf5`) in `directory` that need `recover_take`, sorted by name.
-
-    Takes a live process holds are listed too (their state cannot be read; `recover_take`
-    reports them "in use"). Files that are not rigd takes are skipped with a log line.
-    """
-    d = Path(directory)
-    if not d.is_dir():
-        raise TakeError(f"{d}: not a directory")
-    out: list[Path] = []
-    for p in sorted(d.iterdir()):
-        if not p.is_file() or p.suffix.lower() not in (".h5", ".hdf5"):
-            continue
-        try:
-            f, truncated = _open_view(p)
-        except TakeInUseError:
-            log.info("%s is held by a live writer; listed as unfinished", p)
-            out.append(p)
-            continue
-        except TakeError as exc:
-            log.warning("skipping %s: %s", p, exc)
-            continue
-        with f:
-            if attr_text(f.attrs.get("schema", "")) != SCHEMA_NAME:
-                log.info("skipping %s: not a rigd take", p)
-                continue
-            if _needs_recovery(f, truncated is not None):
-                out.append(p)
-    return out
-
-
-def _open_view(path: Path) -> tuple[h5py.File, TakeTruncatedError | None]:
+def open_view(path: Path) -> tuple[h5py.File, TakeTruncatedError | None]:
     """Open read-only; a take truncated by a failed write through a zero-padded view."""
     try:
         return open_h5(path, "r"), None
@@ -268,7 +244,7 @@ def _reading(path: Path, what: str) -> Iterator[None]:
 
 
 def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
-    f, truncated = _open_view(path)
+    f, truncated = open_view(path)
     with f:
         with _reading(path, "reading the header"):
             check_header(f, path)

@@ -18,10 +18,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from rigd.core.errors import TakeError, TakeInUseError
-from rigd.core.schema import SCHEMA_NAME
-from rigd.take.h5file import attr_text
-from rigd.take.recover import RecoveryReport, _needs_recovery, _open_view, recover_take
+from rigd.core.errors import NotATakeError, TakeError
+from rigd.take.recover import RecoveryReport, needs_recovery, recover_take
 
 log = logging.getLogger(__name__)
 
@@ -78,14 +76,9 @@ def _needs(p: Path) -> bool | None:
     """True: unfinished (or held by a live writer); False: nothing to do; None: not a rigd
     take. Raises one of READ_ERRORS for a file that cannot be read."""
     try:
-        f, truncated = _open_view(p)
-    except TakeInUseError:
-        log.info("%s is held by a live writer; listed as unfinished", p)
-        return True
-    with f:
-        if attr_text(f.attrs.get("schema", "")) != SCHEMA_NAME:
-            return None
-        return _needs_recovery(f, truncated is not None)
+        return needs_recovery(p)
+    except NotATakeError:
+        return None
 
 
 def scan_dir(directory: str | Path) -> DirScan:
@@ -190,3 +183,9 @@ def recover_dir(
             _move_problem(result, d)
         out.append(result)
     return out
+
+
+def find_unfinished(directory: str | Path) -> list[Path]:
+    """Takes (`*.h5`, `*.hdf5`) in `directory` that need `recover_take`, sorted by name (a take
+    a live process holds included); files that cannot be read are logged and left out."""
+    return scan_dir(directory).unfinished
