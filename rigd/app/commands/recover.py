@@ -19,6 +19,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from rigd.app.capture.ballast import remove_stale_ballast
 from rigd.core.errors import TakeError
 from rigd.take.recover import RecoveryReport
 from rigd.take.recover_dir import RecoveryProblem, recover_dir, recover_one
@@ -44,6 +45,8 @@ def _recover_all(paths: list[Path], *, dry_run: bool) -> list[RecoveryReport | R
             out.extend(recover_dir(p, dry_run=dry_run))
         else:
             out.append(recover_one(p, dry_run=dry_run))
+        if not dry_run:  # the disk ballast a killed capture left next to its take
+            remove_stale_ballast(p if p.is_dir() else p.parent)
     return out
 
 

@@ -195,3 +195,12 @@ def test_recover_dir_dry_run_moves_nothing(tmp_path: Path) -> None:
     results = recover_dir(d, dry_run=True, move_unreadable=True)
     assert any(isinstance(r, RecoveryProblem) for r in results)
     assert bad[0].exists()
+
+
+def test_recover_command_removes_the_ballast_a_killed_capture_left(tmp_path: Path) -> None:
+    d, _, _ = _dir_with(tmp_path, [])
+    stale = d / ".rigd-ballast-12345678-0123abcd"  # no process 12345678: pid_max is 4194304
+    stale.write_bytes(b"\0" * 1024)
+    res = CliRunner().invoke(_app(), [str(d)])
+    assert res.exit_code == 0, res.output
+    assert not stale.exists()
