@@ -1,3 +1,25 @@
 """Root conftest: its presence (with tests/__init__.py) puts the repo root on sys.path under
 pytest's default import mode, so tests share helpers (`from tests.drivers.fake_aravis import
 ...`) with plain `pytest`. The contract suites every backend runs live in `drivers.testing`."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+
+import pytest
+
+
+@pytest.fixture(autouse=True)
+def _restore_root_logging() -> Iterator[None]:
+    """Commands under test call `setup_logging`, which puts a stderr handler on the root logger;
+    left there, it writes into a stream pytest has since closed, and every later test that
+    logs gets a "Logging error" traceback on its stderr. Each test starts and ends with the
+    root logger as it found it."""
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    yield
+    for handler in [h for h in root.handlers if h not in handlers]:
+        root.removeHandler(handler)
+        handler.close()
+    root.setLevel(level)
