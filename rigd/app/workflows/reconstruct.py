@@ -6,6 +6,9 @@ thread pool by default, or over a distributed cluster when `scheduler` gives its
 (`tcp://host:8786`). Per take and event sensor the output directory gets
 `<take_id>/<sensor>/segments.json` (segment boundaries and canonical keyframes) and
 `snapshots.npz` (high-pass log-intensity snapshots at the keyframes).
+
+A take that cannot be read (not HDF5, truncated, a dataset missing, event times going back)
+fails alone: its result carries `error` (one line naming the take) and the others still run.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from reconstruction.e2i import reconstruct as e2i_reconstruct
 from reconstruction.filters import BackgroundActivityFilter
 from reconstruction.partition import PartitionConfig, export_segments, partition
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
-from rigd.core.errors import RigdError
+from rigd.core.errors import RigdError, TakeFormatError
 from rigd.core.events import EventArray
 from rigd.take.reader import Take
 
@@ -28,6 +31,8 @@ log = logging.getLogger(__name__)
 
 #: Events are denoised in chunks of this span (us), so a long take never sits in memory twice.
 CHUNK_US = 100_000
+#: Events read per step by the time-order check.
+_CHECK_BLOCK = 1_000_000
 
 
 class ReconstructOptions(BaseModel):
@@ -51,10 +56,11 @@ class SensorReconstruction(BaseModel):
 
 
 class TakeReconstruction(BaseModel):
-    """One take's outcome; `take` is the path as given."""
+    """One take's outcome; `take` is the path as given, `error` one line when it failed."""
 
     take: str
     sensors: dict[str, SensorReconstruction] = {}
+    error: str | None = None
 
 
 def reconstruct_take(
@@ -69,9 +75,30 @@ def reconstruct_take(
     return result
 
 
+def _check_time_order(take: Take, sensor: str) -> None:
+    """TakeFormatError naming the take and index where a sensor's event times go backwards."""
+    n = take.event_count(sensor)
+    last: int | None = None
+    for lo in range(0, n, _CHECK_BLOCK):
+        t = take.events_by_index(sensor, lo, lo + _CHECK_BLOCK).t
+        if len(t) == 0:
+            break
+        if last is not None and int(t[0]) < last:
+            bad = lo
+        else:
+            back = np.flatnonzero(np.diff(t) < 0)
+            bad = lo + int(back[0]) + 1 if len(back) else -1
+        if bad >= 0:
+            raise TakeFormatError(
+                f"{take.path}: /events/{sensor}/t: event times go backwards at index {bad} (damaged take)"
+            )
+        last = int(t[-1])
+
+
 def _reconstruct_sensor(
     take: Take, sensor: str, dest: Path, contrast: float, cutoff_hz: float
 ) -> SensorReconstruction:
+    _check_time_order(take, sensor)
     w, h = take.geometry(sensor)
     baf = BackgroundActivityFilter(w, h)
     ev = EventArray.concatenate([baf.filter(chunk) for chunk in take.iter_events(sensor, CHUNK_US)])
@@ -90,10 +117,22 @@ def _reconstruct_sensor(
     return SensorReconstruction(events_in=baf.n_in, events_kept=baf.n_kept, segments=len(segs))
 
 
+def _failed(path: Path, exc: Exception) -> TakeReconstruction:
+    """The failed take's result: one line naming the take (prefixed when the error does not)."""
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    if str(path) not in msg:
+        msg = f"{path}: {msg}"
+    log.debug("reconstruct of %s failed", path, exc_info=exc)
+    return TakeReconstruction(take=str(path), error=msg)
+
+
 def run_reconstruct(
     options: ReconstructOptions, progress: ProgressCallback = no_progress
 ) -> list[TakeReconstruction]:
-    """All takes through Dask; results in input order, progress once per finished take."""
+    """All takes through Dask; results in input order, progress once per finished take.
+
+    A take failing with a RigdError or OSError (h5py's read errors) gets `error` set; others run.
+    """
     try:
         import dask
         from dask import delayed
@@ -113,11 +152,18 @@ def run_reconstruct(
             futures = client.compute(tasks)
             index = {f.key: i for i, f in enumerate(futures)}
             for done, fut in enumerate(as_completed(futures), 1):
-                results[index[fut.key]] = fut.result()
-                progress(ProgressUpdate("reconstruct", str(o.takes[index[fut.key]]), done, n))
+                i = index[fut.key]
+                try:
+                    results[i] = fut.result()
+                except (RigdError, OSError) as exc:
+                    results[i] = _failed(o.takes[i], exc)
+                progress(ProgressUpdate("reconstruct", str(o.takes[i]), done, n))
     else:
         # Local scheduler: threads (the kernels release the GIL); one task per take.
         for i, task in enumerate(tasks):
-            (results[i],) = dask.compute(task, scheduler="threads")
+            try:
+                (results[i],) = dask.compute(task, scheduler="threads")
+            except (RigdError, OSError) as exc:
+                results[i] = _failed(o.takes[i], exc)
             progress(ProgressUpdate("reconstruct", str(o.takes[i]), i + 1, n))
     return [results[i] for i in range(n)]
