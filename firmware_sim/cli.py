@@ -99,7 +99,7 @@ def simulate_events(
         raise typer.BadParameter(str(exc)) from exc
     try:
         source = open_source(input_path, fps=fps, camera=camera)
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, RigdError) as exc:  # a take that cannot be read: TakeFormatError
         console.print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(code=2) from exc
     try:
@@ -112,7 +112,7 @@ def simulate_events(
             max_px_per_step=max_px_per_step,
             max_substeps=max_substeps,
         )
-    except (ValueError, StopIteration) as exc:
+    except (ValueError, StopIteration, RigdError) as exc:
         source.close()
         console.print(f"[bold red]error:[/] {source.description}: {exc}")
         raise typer.Exit(code=2) from exc
