@@ -137,6 +137,21 @@ def parse_board(spec: str) -> BoardSpec:
     return board
 
 
+def nearby_boards(board: BoardSpec) -> list[BoardSpec]:
+    """Boards a miscounted spec may mean: cols/rows +-1 and swapped, same kind and lengths."""
+    c, r = board.cols, board.rows
+    low = 2 if board.kind == "chessboard" else 3
+    sizes = [(c + 1, r), (c - 1, r), (c, r + 1), (c, r - 1), (r, c), (c + 1, r + 1), (c - 1, r - 1)]
+    seen = {(c, r)}
+    out: list[BoardSpec] = []
+    for cols, rows in sizes:
+        if (cols, rows) in seen or min(cols, rows) < low:
+            continue
+        seen.add((cols, rows))
+        out.append(board.model_copy(update={"cols": cols, "rows": rows}))
+    return out
+
+
 @dataclass
 class Detection:
     """Corners of one board found in one image.

@@ -23,7 +23,14 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, Field
 
-from calibration.boards import DEFAULT_MAX_EDGE_WIDTH_PX, BoardSpec, Detection, detect, load_image
+from calibration.boards import (
+    DEFAULT_MAX_EDGE_WIDTH_PX,
+    BoardSpec,
+    Detection,
+    detect,
+    load_image,
+    nearby_boards,
+)
 from calibration.errors import CalibrationError, NoBoardFoundError
 
 log = logging.getLogger(__name__)
@@ -547,17 +554,63 @@ def detect_images(
     return dets, rej, warn
 
 
+#: Images that failed detection on which the nearby board sizes are tried.
+_PROBE_IMAGES = 3
+
+
+def _size(board: BoardSpec) -> str:
+    return f"{board.cols}x{board.rows}"
+
+
+def suggest_board(paths: Sequence[str | Path], board: BoardSpec, failed: Sequence[str | Path]) -> str | None:
+    """'N of M show CxR: use --board SPEC' for the nearby size found most, or None.
+
+    The nearby sizes are tried on a few `failed` images spread over the list; the best one is then
+    counted over all `paths`.
+    """
+    if not failed:
+        return None
+    step = max(1, len(failed) // _PROBE_IMAGES)
+    probes = [load_image(p) for p in list(failed)[::step][:_PROBE_IMAGES]]
+    best: BoardSpec | None = None
+    best_hits = 0
+    for alt in nearby_boards(board):
+        hits = sum(detect(img, alt) is not None for img in probes)
+        if hits > best_hits:
+            best, best_hits = alt, hits
+    if best is None:
+        return None
+    count = sum(detect(load_image(p), best) is not None for p in paths)
+    return f"{count} of {len(paths)} show {_size(best)}: use --board {best}"
+
+
 def calibrate_images(
     paths: Sequence[str | Path],
     board: BoardSpec,
     camera: str = "cam0",
     model: str = "auto",
     max_edge_width_px: float = DEFAULT_MAX_EDGE_WIDTH_PX,
+    allow_few_views: bool = False,
 ) -> IntrinsicsResult:
-    """Detect and calibrate from image files; NoBoardFoundError names the files when none shows it."""
+    """Detect and calibrate from image files; NoBoardFoundError names the files when none shows it.
+
+    When the board is not found in most images (and not `allow_few_views`), NoBoardFoundError
+    names a nearby board size that is found, or says how to go on with the few views.
+    """
     if not paths:
         raise CalibrationError(f"camera {camera}: no images given")
     dets, rej, warn = detect_images(paths, board)
+    if 2 * len(rej) > len(paths) and not allow_few_views:
+        names = {r.name for r in rej}
+        hint = suggest_board(paths, board, [p for p in paths if Path(p).name in names])
+        shown = f"camera {camera}: {len(dets)} of {len(paths)} images show a {_size(board)} board"
+        if hint is not None:
+            raise NoBoardFoundError(f"{shown}; {hint}")
+        if dets:
+            raise NoBoardFoundError(
+                f"{shown}, and no nearby board size is found more often; check the images, "
+                "or pass --allow-few-views to calibrate from these views"
+            )
     if not dets:
         shown = ", ".join(str(Path(p).name) for p in list(paths)[:5])
         raise NoBoardFoundError(

@@ -15,6 +15,7 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from calibration.boards import parse_board
 from calibration.e2calib import METHODS
@@ -51,7 +52,7 @@ ModelOpt = Annotated[
 
 
 def _fail(exc: Exception) -> typer.Exit:
-    _err.print(f"[bold red]error:[/] {exc}")
+    _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
     return typer.Exit(code=2)
 
 
@@ -78,10 +79,20 @@ def intrinsics_cmd(
     camera: Annotated[str, typer.Option("--camera", help="Camera name stored in the result.")] = "cam0",
     model: ModelOpt = "auto",
     into_take: IntoTakeOpt = None,
+    allow_few_views: Annotated[
+        bool,
+        typer.Option("--allow-few-views", help="Calibrate even when most images do not show the board."),
+    ] = False,
 ) -> None:
     """Intrinsics of one camera from image files, with lens-model selection."""
     try:
-        shared: dict[str, Any] = {"out": out, "model": model, "report": report, "into_take": into_take}
+        shared: dict[str, Any] = {
+            "out": out,
+            "model": model,
+            "report": report,
+            "into_take": into_take,
+            "allow_few_views": allow_few_views,
+        }
         result = run_intrinsics(IntrinsicsOptions(images=images, board=board, camera=camera, **shared))
     except RigdError as exc:
         raise _fail(exc) from exc

@@ -70,6 +70,8 @@ class IntrinsicsOptions(BaseModel):
     model: str = "auto"
     report: Path | None = None
     into_take: Path | None = None
+    #: Calibrate even when the board is not found in most images.
+    allow_few_views: bool = False
 
 
 class TakeSource(BaseModel):
@@ -144,7 +146,9 @@ def run_intrinsics(options: IntrinsicsOptions, progress: ProgressCallback = no_p
     """Detect, select the lens model, calibrate, and write the result (and report, take entry)."""
     o = options
     progress(ProgressUpdate("calibrate", f"{o.camera}: {len(o.images)} images"))
-    result = calibrate_images(o.images, o.board, camera=o.camera, model=o.model)
+    result = calibrate_images(
+        o.images, o.board, camera=o.camera, model=o.model, allow_few_views=o.allow_few_views
+    )
     progress(ProgressUpdate("write", f"{o.camera} -> {o.out}"))
     write_result(result, o.out)
     if o.into_take is not None:

@@ -1,4 +1,4 @@
-"""Hostile inputs to `rigd reconstruct`: every unreadable take is one line naming it, never a traceback."""
+"""Hostile inputs to `rigd reconstruct` and `rigd calibrate`: one line naming the problem, no traceback."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
 import h5py
 import numpy as np
 import pytest
@@ -154,3 +155,62 @@ def test_errors_raised_in_distributed_tasks_come_back_as_one_line(tmp_path: Path
         assert "\n" not in r.error
     assert results[-1].error is None
     assert results[-1].sensors["ev0"].events_in == 20_000
+
+
+# --- rigd calibrate intrinsics with a miscounted board ---------------------------------------------
+
+STEREO = Path("/work/shared/data/chessboard-stereo")
+needs_stereo = pytest.mark.skipif(
+    not (STEREO / "left01.jpg").is_file(), reason="chessboard-stereo data not available"
+)
+
+
+def _left() -> list[str]:
+    return [str(p) for p in sorted(STEREO.glob("left*.jpg"))]
+
+
+@needs_stereo
+@pytest.mark.parametrize(
+    ("spec", "shown"),
+    [("8x6", "4 of 16 images show a 8x6 board"), ("9x7", "0 of 16 images show a 9x7 board"), ("10x6", "")],
+)
+def test_wrong_corner_count_names_the_size_that_detects(tmp_path: Path, spec: str, shown: str) -> None:
+    out = tmp_path / "cam.yaml"
+    argv = ["calibrate", "intrinsics", *_left(), "--board", f"chessboard:{spec}:0.025", "--out", str(out)]
+    r = CliRunner().invoke(app, argv)
+    assert r.exit_code in (1, 2), r.output
+    assert "Traceback" not in r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1, r.output
+    assert shown in lines[0]
+    assert f"show a {spec} board" in lines[0]
+    assert "16 of 16 show 9x6: use --board chessboard:9x6:0.025" in lines[0]
+    assert not out.exists()
+
+
+@needs_stereo
+def test_allow_few_views_calibrates_from_the_views_found(tmp_path: Path) -> None:
+    out = tmp_path / "cam.yaml"
+    argv = ["calibrate", "intrinsics", *_left(), "--board", "chessboard:8x6:0.025", "--out", str(out)]
+    r = CliRunner().invoke(app, [*argv, "--allow-few-views"])
+    assert r.exit_code == 0, r.output
+    assert "4 views" in r.output
+    assert out.is_file()
+
+
+@needs_stereo
+def test_few_views_and_no_nearby_size_refuses_in_one_line(tmp_path: Path) -> None:
+    blank = np.full((512, 640, 3), 128, np.uint8)
+    files = _left()[:3]
+    for i in range(4):
+        cv2.imwrite(str(tmp_path / f"blank{i}.png"), blank)
+        files.append(str(tmp_path / f"blank{i}.png"))
+    out = tmp_path / "cam.yaml"
+    argv = ["calibrate", "intrinsics", *files, "--board", "chessboard:9x6:0.025", "--out", str(out)]
+    r = CliRunner().invoke(app, argv)
+    assert r.exit_code in (1, 2), r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1, r.output
+    assert "3 of 7 images show a 9x6 board" in lines[0]
+    assert "--allow-few-views" in lines[0]
+    assert not out.exists()
