@@ -27,7 +27,7 @@ from calibration.e2calib import (
     calibrate_events,
     detect_in_reconstructions,
 )
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, NoBoardFoundError
 from calibration.extrinsics import RigResult, calibrate_rig
 from calibration.intrinsics import (
     IntrinsicsResult,
@@ -40,6 +40,7 @@ from calibration.io import write_json, write_kalibr_camchain, write_opencv_yaml,
 from calibration.report import write_report
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
 from rigd.core.errors import RigdError
+from rigd.core.events import EventArray
 from rigd.take.calibration import store_calibration
 from rigd.take.reader import Take, open_take
 
@@ -370,6 +371,37 @@ def event_times(take_path: Path, sensor: str, rate_hz: float | None = None) -> N
         return np.asarray(trig.t[trig.p == 1], np.int64)
 
 
+#: Frames reconstructed over the take to check that it shows the board at all.
+_PROBE_FRAMES = 8
+
+
+def _check_board_seen(
+    take_path: Path,
+    sensor: str,
+    events: EventArray,
+    size: tuple[int, int],
+    times: NDArray[np.int64],
+    board: BoardSpec,
+    methods: list[str],
+    params: ReconstructionParams | None,
+) -> None:
+    """NoBoardFoundError (saying how to record a board take) when no method finds the board in
+    any of a few frames spread over the take."""
+    if len(events) == 0 or times.size == 0:
+        return  # calibrate_events says what is missing
+    idx = np.unique(np.linspace(0, times.size - 1, min(_PROBE_FRAMES, times.size)).round().astype(np.int64))
+    probe = times[idx]
+    for method in [m for m in methods if m in METHODS]:
+        found = detect_in_reconstructions(events, size, probe, board, method, params, sensor=sensor)
+        if found.detections:
+            return
+    raise NoBoardFoundError(
+        f"{take_path}: sensor {sensor}: board {board} not found in {probe.size} frames reconstructed over "
+        f"the take ({', '.join(methods)}); record a take of the board (on the sim: scene=board, "
+        f"e.g. sim://W/{sensor}?scene=board)"
+    )
+
+
 def calibrate_take_events(
     take_path: Path,
     sensor: str,
@@ -379,11 +411,15 @@ def calibrate_take_events(
     params: ReconstructionParams | None = None,
     model: str = "k1k2",
 ) -> E2CalibResult:
-    """e2calib on one sensor of a take (see calibration.e2calib), at `event_times`."""
+    """e2calib on one sensor of a take (see calibration.e2calib), at `event_times`.
+
+    A few frames spread over the take are checked first, so a take without a board fails at once.
+    """
     times = event_times(take_path, sensor, rate_hz)
     with open_take(take_path) as take:
         events = take.events(sensor)
         size = take.geometry(sensor)
+    _check_board_seen(take_path, sensor, events, size, times, board, methods, params)
     return calibrate_events(
         events, size, times, board, sensor=sensor, methods=methods, params=params, model=model
     )

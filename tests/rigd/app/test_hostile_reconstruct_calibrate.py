@@ -214,3 +214,23 @@ def test_few_views_and_no_nearby_size_refuses_in_one_line(tmp_path: Path) -> Non
     assert "3 of 7 images show a 9x6 board" in lines[0]
     assert "--allow-few-views" in lines[0]
     assert not out.exists()
+
+
+# --- rigd calibrate events on a take without a board ------------------------------------------------
+
+
+@pytest.mark.parametrize("methods", [[], ["-m", "hpf"], ["-m", "window", "-m", "integrate"]])
+def test_events_take_without_a_board_is_refused_early_in_one_line(tmp_path: Path, methods: list[str]) -> None:
+    take = make_take(tmp_path / "noboard.h5", n_events=40_000).path
+    out = tmp_path / "ev0.yaml"
+    argv = ["calibrate", "events", str(take), "--sensor", "ev0", "--board", "chessboard:9x6:0.025"]
+    r = CliRunner().invoke(app, [*argv, "--out", str(out), *methods])
+    assert r.exit_code in (1, 2), r.output
+    assert "Traceback" not in r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1, r.output
+    assert str(take) in lines[0]
+    assert "not found in 8 frames" in lines[0]
+    assert "scene=board" in lines[0]
+    assert "sim://W/ev0?scene=board" in lines[0]
+    assert not out.exists()

@@ -161,6 +161,6 @@ def test_events_without_a_board_is_a_calibration_error(tmp_path: Path) -> None:
     """Random events show no board: every method fails, the error names them, nothing is written."""
     path = make_take(tmp_path / "t.h5").path
     options = EventsOptions(take=path, sensor="ev0", board=BOARD, out=tmp_path / "ev0.yaml", methods=["hpf"])
-    with pytest.raises(CalibrationError, match="no reconstruction method gave a calibration: hpf"):
+    with pytest.raises(CalibrationError, match=r"board .* not found in 8 frames .*scene=board"):
         run_events(options)
     assert not (tmp_path / "ev0.yaml").exists()
