@@ -107,6 +107,33 @@ COMMANDS: dict[str, tuple[dict[str, Make], Callable[[Path, Path], list[str]]]] =
     "doctor --config": (CONFIG_INPUTS, lambda p, d: ["doctor", "--config", str(p)]),
     "serve --config": (CONFIG_INPUTS, lambda p, d: ["serve", "--config", str(p)]),
     "simulate-events": (INPUTS, lambda p, d: ["simulate-events", str(p), "--out", str(d / "sim.h5")]),
+    "reconstruct": (INPUTS, lambda p, d: ["reconstruct", str(p), "--out", str(d / "rec")]),
+    "calibrate events": (
+        INPUTS,
+        lambda p, d: [
+            "calibrate",
+            "events",
+            str(p),
+            "--sensor",
+            "ev0",
+            "--board",
+            "chessboard:9x6:0.08",
+            "--out",
+            str(d / "ev0.yaml"),
+        ],
+    ),
+    "calibrate intrinsics": (
+        {**INPUTS, "png-junk": _bytes(RANDOM, ".png"), "png-empty": _bytes(b"", ".png")},
+        lambda p, d: [
+            "calibrate",
+            "intrinsics",
+            "--board",
+            "chessboard:9x6:0.025",
+            str(p),
+            "--out",
+            str(d / "cam.yaml"),
+        ],
+    ),
     "recover": (
         {k: v for k, v in INPUTS.items() if not k.startswith("damaged") and k != "directory"},
         lambda p, d: ["recover", str(p)],
