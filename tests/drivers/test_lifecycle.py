@@ -35,6 +35,8 @@ class CountingCamera(RgbCamera):
         self.calls: list[str] = []
         self.go = threading.Event()
         self.go.set()
+        self.ended = threading.Event()
+        """Set when the grab says END: every frame it was to give has been delivered."""
 
     @property
     def frame_shape(self) -> tuple[int, ...]:
@@ -60,6 +62,7 @@ class CountingCamera(RgbCamera):
         if not self.go.wait(timeout_s):
             return None
         if self.frames is not None and self.grabs >= self.frames:
+            self.ended.set()
             return END
         if self.fail_after is not None and self.grabs >= self.fail_after:
             raise OSError("cable pulled")
@@ -90,7 +93,6 @@ def test_hooks_run_in_order_and_close_stops_first() -> None:
 def test_an_acquisition_error_reaches_the_reader_after_the_frames_before_it() -> None:
     cam = CountingCamera(fail_after=3, queue_len=100)
     cam.start()
-    time.sleep(0.1)
     frames = [cam.read_frame(1.0) for _ in range(3)]
     assert [f.frame_counter for f in frames if f is not None] == [1, 2, 3]
     with pytest.raises(DeviceError, match="cable pulled") as err:
@@ -108,7 +110,7 @@ def test_an_acquisition_error_reaches_the_reader_after_the_frames_before_it() ->
 def test_a_full_queue_gives_up_frames_and_counts_them() -> None:
     cam = CountingCamera(queue_len=4, frames=10)
     cam.start()
-    time.sleep(0.2)  # ten frames into a queue of four, nobody reading
+    assert cam.ended.wait(30)  # ten frames into a queue of four, nobody reading
     cam.stop()
     kept = drain(cam, 0.05)
     assert [f.frame_counter for f in kept] == [7, 8, 9, 10]  # drop="oldest": the newest stay
