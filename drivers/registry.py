@@ -35,6 +35,7 @@ _BUILTIN: dict[tuple[str, str], str] = {
     ("event_sensor", "prophesee"): "drivers.prophesee:open_prophesee_sensor",
     ("rgb_camera", "genicam"): "drivers.genicam_camera:open_genicam_camera",
     ("rgb_camera", "v4l2"): "drivers.v4l2_camera:open_v4l2_camera",
+    ("rgb_camera", "file"): "drivers.file_camera:open_file_camera",
 }
 _registered: dict[tuple[str, str], Factory | str] = {}
 
