@@ -44,6 +44,14 @@ TAIL_META_ATTR = "tail_meta"
 RECOVERED_ATTR = "recovered_utc"
 END_REASON_ATTR = "end_reason"
 RECOVERY_REPORT_ATTR = "recovery_report_json"
+#: Root attrs of a captured take (int64 rig us): its trigger window, [start, end), and the
+#: margin before the first pulse it starts with; `window_outside_json` (JSON): per device,
+#: what arrived outside the window and was not written ({"before", "after", "triggers_before",
+#: "triggers_after"}; events or frames).
+WINDOW_START_ATTR = "window_start_us"
+WINDOW_END_ATTR = "window_end_us"
+WINDOW_MARGIN_ATTR = "window_margin_us"
+WINDOW_OUTSIDE_ATTR = "window_outside_json"
 
 ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")
 #: `events/<sensor>/<name>`: p is stored as uint8 1/0 (DSEC), not the in-memory int8 +1/-1.

@@ -87,3 +87,26 @@ class WriterConfig(BaseModel):
         description="Disk space held while a take runs and freed if the disk fills anyway, so the "
         "take can still be closed.",
     )
+    window_margin_us: int | None = Field(
+        None,
+        ge=0,
+        le=10_000_000,
+        description="How far before the first trigger pulse a take starts (rig us); None = one trigger "
+        "period, so the first frame has the same span of events before it as every later frame "
+        "(event-based reconstruction of frame 0). The take ends one period after its last pulse.",
+    )
+    stop_backlog_s: float = Field(
+        2.0,
+        gt=0,
+        le=600.0,
+        description="At the end of a take: how long to wait for the devices to deliver up to the end "
+        "of the trigger window before stopping them, and again to read what they still hold after "
+        "the stop; what is not delivered by then is recorded in the take's losses.",
+    )
+    window_hold_s: float = Field(
+        5.0,
+        gt=0,
+        le=600.0,
+        description="How long an event sensor's data is held until its first trigger edge places the "
+        "take's window in its clock; without an edge by then its window is applied by host time.",
+    )

@@ -50,6 +50,10 @@ from rigd.core.schema import (
     SCHEMA_VERSION,
     SYNC_GROUP,
     TRIGGER_GROUP,
+    WINDOW_END_ATTR,
+    WINDOW_MARGIN_ATTR,
+    WINDOW_OUTSIDE_ATTR,
+    WINDOW_START_ATTR,
     SyncReport,
     encode_journal,
 )
@@ -578,6 +582,23 @@ class TakeWriter:
         reads the take later."""
         self._check_writable()
         self._f.attrs[END_REASON_ATTR] = reason
+
+    def set_window(
+        self,
+        start_us: int | None,
+        end_us: int | None,
+        margin_us: int,
+        outside: Mapping[str, Mapping[str, int]],
+    ) -> None:
+        """The take's trigger window in rig us (None: unknown, no pulse) and, per device, what
+        arrived outside it and was not written."""
+        self._check_writable()
+        attrs = self._f.attrs
+        for key, value in ((WINDOW_START_ATTR, start_us), (WINDOW_END_ATTR, end_us)):
+            if value is not None:
+                attrs[key] = np.int64(value)
+        attrs[WINDOW_MARGIN_ATTR] = np.int64(margin_us)
+        attrs[WINDOW_OUTSIDE_ATTR] = json.dumps({k: dict(v) for k, v in outside.items()}, sort_keys=True)
 
     @property
     def flush_count(self) -> int:

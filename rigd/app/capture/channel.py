@@ -25,6 +25,7 @@ from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, WriterQueue, first_time
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import Gap, LiveStats, Observations
+from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError, DeviceError, RigdError
 from rigd.core.events import EventArray
@@ -66,9 +67,17 @@ class TriggerChannel:
     """The trigger box: its pulse records, kept for the sync engine and written to the take."""
 
     def __init__(
-        self, spec: str, settings: TriggerSettings, control: RunControl, faults: FaultBoard, live: LiveStats
+        self,
+        spec: str,
+        settings: TriggerSettings,
+        control: RunControl,
+        faults: FaultBoard,
+        live: LiveStats,
+        window: TakeWindow | None = None,
     ) -> None:
         self.device: Trigger = open_device("trigger", spec)
+        self.window = window
+        """The take's trigger window, told of every pulse record."""
         self.settings = settings
         self.live = live
         self._control = control
@@ -86,6 +95,8 @@ class TriggerChannel:
             asked = time.monotonic()
             batch = self.device.read_pulses(READ_TIMEOUT_S)
             if len(batch):
+                if self.window is not None:
+                    self.window.note_pulses(batch.index, batch.t_us, batch.host_time_ns)
                 with self._lock:
                     self._batches.append(batch)
                     self.n_pulses += len(batch)
@@ -158,6 +169,13 @@ class DeviceChannel:
         self.latest_frame: Frame | None = None
         self.recent_events: list[EventArray] = []
         self.clock_reset: ClockReset | None = None
+        self.gate: WindowGate | None = None
+        """Keeps what lies outside the take's trigger window out of the file (counted)."""
+        self.read_deadline: float | None = None
+        """Monotonic time after which, once acquisition is done, the channel stops reading
+        what the stopped device still holds (`writer.stop_backlog_s`)."""
+        self.left_unread = False
+        """The device still had data when `read_deadline` passed."""
         self.device: RgbCamera | EventSensor = self._open()
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -214,6 +232,15 @@ class DeviceChannel:
         wait_ns = 0 if self.kind == "rgb_camera" else 2 * period_ns
         return newest is not None and newest >= last_pulse_host_ns + wait_ns
 
+    def window_reached(self) -> bool:
+        """Whether the device has delivered up to the end of the take window (nothing of the
+        window is still to come from it); a device away or written off, or a take without a
+        known window end, is not waited for."""
+        gate = self.gate
+        if self.live.state != "ok" or gate is None or gate.end_device_us is None:
+            return True
+        return gate.closed
+
     def collect_counters(self) -> None:
         """Turn the device's counters into loss records: what the device lost, what the
         host's decoder had to skip, and trigger edges that could not be delivered in order."""
@@ -269,8 +296,19 @@ class DeviceChannel:
 
     def _read_loop(self) -> None:
         done = self.ctx.control.acquiring_done
+        try:
+            self._read_until_done(done)
+        finally:
+            if self.gate is not None:
+                for part in self.gate.finish():
+                    self._enqueue(part)
+
+    def _read_until_done(self, done: threading.Event) -> None:
         while True:
             asked = time.monotonic()
+            if done.is_set() and self.read_deadline is not None and asked > self.read_deadline:
+                self._stop_reading()
+                return
             try:
                 dev = self.device  # a reconnect replaces it
                 item = (
@@ -290,6 +328,31 @@ class DeviceChannel:
                 pace(done, asked)
                 continue
             self._deliver(item)
+
+    def _stop_reading(self) -> None:
+        """The stop's bound ran out while the stopped device still delivered: leave the rest in
+        its buffers, recorded (its own counters give the amount where it keeps them)."""
+        self._drop_held("the take ended before its restarted clock could be tied")
+        dev = self.device
+        try:
+            more = dev.read_frame(0.0) if isinstance(dev, RgbCamera) else dev.read_events(0.0)
+        except DeviceError as exc:
+            log.warning("%s: last read at the stop bound failed: %s", self.name, exc)
+            return
+        if more is None:
+            return
+        self._deliver(more)
+        self.left_unread = True
+        reached = None if self.gate is None else self.gate.reached_us
+        log.warning("%s: still delivering at the stop bound; the rest of its buffers is not read", self.name)
+        self.ctx.ledger.add(
+            self.name,
+            self.what,
+            0,
+            "left unread in the stopped device's buffers when writer.stop_backlog_s ran out "
+            "(count unknown: see the device's counters; past the take window when its gate was closed)",
+            (reached, None),
+        )
 
     def _reconnect(self, exc: DeviceError) -> None:
         """Keep trying to open the device again until it answers or the take ends (then it
@@ -413,11 +476,18 @@ class DeviceChannel:
     def _pass(self, item: Frame | EventPacket) -> None:
         if isinstance(item, Frame):
             self._arrived(item.t_exposure_start_us, None, item.host_time_ns)
+        else:
+            ev = item.events
+            self._arrived(first_time(item), int(ev.t[-1]) if len(ev) else None, item.host_time_ns)
+        gate = self.gate
+        for part in [item] if gate is None else gate.admit(item):
+            self._enqueue(part)
+
+    def _enqueue(self, item: Frame | EventPacket) -> None:
+        if isinstance(item, Frame):
             self.ctx.queue.put(FrameItem(self.name, item), self.live)
-            return
-        ev = item.events
-        self._arrived(first_time(item), int(ev.t[-1]) if len(ev) else None, item.host_time_ns)
-        self.ctx.queue.put(EventsItem(self.name, item), self.live)
+        else:
+            self.ctx.queue.put(EventsItem(self.name, item), self.live)
 
     def _arrived(self, t_device: int | None, t_last: int | None, host_ns: int) -> None:
         """Bookkeeping for one delivery; closes a reconnect gap with its loss record."""

@@ -22,6 +22,7 @@ class LossLedger:
         self._losses: list[LossRecord] = []
         self._failed: dict[str, str] = {}
         self._counters: dict[str, dict[str, int]] = {}
+        self._outside: dict[str, dict[str, int]] = {}
 
     def add(
         self,
@@ -59,6 +60,15 @@ class LossLedger:
         with self._lock:
             return {k: dict(v) for k, v in self._counters.items()}
 
+    def set_outside(self, device: str, counts: dict[str, int]) -> None:
+        """What a device delivered outside the take's trigger window (not written, not lost)."""
+        with self._lock:
+            self._outside[device] = dict(counts)
+
+    def outside(self) -> dict[str, dict[str, int]]:
+        with self._lock:
+            return {k: dict(v) for k, v in self._outside.items()}
+
     def records(self) -> list[LossRecord]:
         with self._lock:
             return list(self._losses)
@@ -76,7 +86,9 @@ class LossLedger:
             losses = [r.model_dump() for r in self._losses]
             failed = dict(self._failed)
             counters = {k: dict(v) for k, v in self._counters.items()}
+            outside = {k: dict(v) for k, v in self._outside.items()}
         return {
+            "outside_window": outside,
             "losses": losses,
             "failed_devices": failed,
             "device_counters": counters,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -42,6 +42,27 @@ class CaptureResult:
     """Why the recording ended (also the take's `end_reason` attr)."""
     stop_signal: int | None = None
     """The signal that stopped the take (`run_capture(stop_signals=...)`), if one did."""
+    window_start_us: int | None = None
+    """The take's trigger window in rig us: first pulse - `writer.window_margin_us` ..."""
+    window_end_us: int | None = None
+    """... last pulse + one period (None: no pulse was seen)."""
+    outside_window: dict[str, dict[str, int]] = field(default_factory=dict)
+    """Per device, what it delivered outside the window and was not written
+    (before / after, events or frames; triggers_before / triggers_after, trigger edges)."""
+
+    @property
+    def window_s(self) -> float | None:
+        """Length of the trigger window, the span the counts and rates refer to."""
+        if self.window_start_us is None or self.window_end_us is None:
+            return None
+        return (self.window_end_us - self.window_start_us) / 1e6
+
+    def rates(self) -> dict[str, float]:
+        """Frames or events per second of each device over the trigger window."""
+        span = self.window_s
+        if not span:
+            return {}
+        return {name: n / span for name, n in {**self.frames, **self.events}.items()}
 
 
 @dataclass(slots=True)

@@ -4,12 +4,16 @@
 The session opens every device through its channel, refuses a rig that cannot do what its
 config asks (`preflight`), starts the writer thread and one acquisition thread per device,
 then watches: the trigger link, the disk, the flushes. After the last pulse (or a stop) it
-drains the devices, fits every device clock and seals the take (`finalize`).
+waits, for at most `writer.stop_backlog_s`, until every device has delivered up to the end of
+the take's trigger window (`window`), stops the devices, reads what they still hold (again
+bounded), fits every device clock and seals the take (`finalize`). What a device delivers
+outside the window is counted, not written.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import shutil
 import signal
 import threading
@@ -21,6 +25,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from drivers.base import Capability
 from rigd import __version__
 from rigd.app.capture.ballast import Ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
@@ -32,14 +37,21 @@ from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.app.capture.preflight import check_rig
 from rigd.app.capture.results import CaptureResult, Progress, SessionSnapshot, SessionState
+from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
 from rigd.core.errors import RigdError, TakeError
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
+from rigd.core.settings import EventSensorSettings
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
+
+#: A stop picks the take's last pulse at most this far ahead of the pulses seen, so the
+#: window's end is known before the devices deliver data past it (the box is stopped at once;
+#: the window ends at the earlier of its last pulse and this one).
+STOP_LEAD_S = 0.1
 
 
 def new_take_path(out_dir: Path, rig_name: str, label: str | None = None) -> Path:
@@ -78,6 +90,13 @@ class CaptureSession:
         self.path = path or new_take_path(out_dir, config.name, label)
         self._reconnect_interval_s = (
             config.service.reconnect_interval_s if reconnect_interval_s is None else reconnect_interval_s
+        )
+        writer_cfg = config.writer
+        margin = writer_cfg.window_margin_us
+        self._window = TakeWindow(
+            self.rate,
+            round(1e6 / self.rate) if margin is None else margin,
+            None if self.n_pulses is None else self.n_pulses - 1,
         )
         self._control = RunControl()
         self._faults = FaultBoard()
@@ -224,7 +243,12 @@ class CaptureSession:
     def _open(self) -> None:
         config = self.config
         trigger = self._trigger = TriggerChannel(
-            config.trigger.spec, config.trigger.settings, self._control, self._faults, self._trigger_live
+            config.trigger.spec,
+            config.trigger.settings,
+            self._control,
+            self._faults,
+            self._trigger_live,
+            self._window,
         )
         ctx = ChannelContext(
             self._control,
@@ -240,6 +264,14 @@ class CaptureSession:
         for sen in config.event_sensors:
             self._channels[sen.name] = DeviceChannel(sen.name, "event_sensor", sen.spec, sen.settings, ctx)
         self._preflight(trigger)
+        for ch in self._channels.values():
+            ch.gate = WindowGate(
+                ch.name,
+                self._gate_mode(ch),
+                self._window,
+                trigger_channel=ch.trigger_in,
+                hold_s=config.writer.window_hold_s,
+            )
         self._take = self._create_take(trigger)
         writer = self._writer = WriterLoop(
             self._take,
@@ -265,6 +297,20 @@ class CaptureSession:
         self._watchdog = TriggerWatchdog(trigger.device, self.rate, self._faults)
         for live in [self._trigger_live, *(ch.live for ch in self._channels.values())]:
             live.samples.clear()
+
+    @staticmethod
+    def _gate_mode(ch: DeviceChannel) -> GateMode:
+        """How a device's data is placed in the take window: by its trigger edges or frames in
+        its own clock where it has them, else by host arrival time."""
+        caps = ch.device.capabilities
+        if ch.kind == "rgb_camera":
+            if software_synced(ch) or Capability.DEVICE_TIMESTAMPS not in caps:
+                return "host"
+            return "pulse_frames"
+        settings = ch.settings
+        if isinstance(settings, EventSensorSettings) and settings.enable_trigger_in:
+            return "trigger_in"
+        return "host"
 
     def _preflight(self, trigger: TriggerChannel) -> None:
         """Refuse a rig whose devices cannot do what the config asks, all named in one line;
@@ -379,15 +425,20 @@ class CaptureSession:
         assert take is not None
         assert self._writer_thread is not None
         assert self._t_start is not None
-        emitted = trigger.stop_box()
-        self._drain(trigger)
+        emitted = self._stop_trigger(trigger)
+        backlog_s = self.config.writer.stop_backlog_s
+        self._wait_for_window(backlog_s)
         for ch in sorted(self._channels.values(), key=lambda c: c.kind != "event_sensor"):
             ch.stop()
+        read_deadline = time.monotonic() + backlog_s
+        for ch in self._channels.values():
+            ch.read_deadline = read_deadline
         self._control.acquiring_done.set()
         for th in self._threads:
             th.join()
         for ch in self._channels.values():
             ch.collect_counters()
+        outside = self._record_window()
         self._queue.put_stop()
         self._writer_thread.join()
         self._writer_thread = None
@@ -399,6 +450,7 @@ class CaptureSession:
                 f"take {self.path} stopped, {self._control.stop_reason}; everything up to the last flush "
                 f"({writer.last_flush_utc}) is in the file; free space and run `rigd recover` to seal it"
             )
+        take.set_window(self._window.start_us, self._window.end_us, self._window.margin_us, outside)
         report, reason = finalize_take(
             self.config, take, trigger, self._channels, self._ledger, self._faults, self._control, emitted
         )
@@ -414,19 +466,87 @@ class CaptureSession:
             flushes=take.flush_count,
             flush_max_s=take.flush_seconds_max,
             end_reason=reason,
+            window_start_us=self._window.start_us,
+            window_end_us=self._window.end_us,
+            outside_window=outside,
         )
 
-    def _drain(self, trigger: TriggerChannel) -> None:
-        """Let the last exposures and event slices reach the host before the devices stop:
-        until every device has delivered what belongs to the last pulse
-        (`DeviceChannel.drained`), for at most max(0.5 s, 5 trigger periods)."""
-        deadline = time.monotonic() + max(0.5, 5.0 / self.rate)
-        period_ns = round(1e9 / self.rate)
-        last_pulse = trigger.last_pulse_host_ns()
-        while time.monotonic() < deadline and self._control.first_error is None:
-            if all(ch.drained(last_pulse, period_ns) for ch in self._channels.values()):
-                return
+    def _stop_trigger(self, trigger: TriggerChannel) -> int:
+        """Fix the take's last pulse and stop the box; the number of pulses it emitted.
+
+        The last pulse is chosen before STOP is sent, at most `STOP_LEAD_S` ahead of the
+        pulses seen, so the devices' gates cut at a known end while the STOP round trip runs;
+        the window then ends one period after the earlier of that pulse and the box's last."""
+        window = self._window
+        lead = max(1, math.ceil(STOP_LEAD_S * self.rate))
+        ahead = max(window.seen_index, trigger.n_pulses - 1) + lead
+        last = window.last_index
+        window.set_last_index(ahead if last is None else min(last, ahead))
+        emitted = trigger.stop_box()
+        if emitted > 0:
+            window.set_last_index(min(emitted - 1, window.last_index or 0))
+        log.info(
+            "take %s: window %s..%s us (last pulse %s of %d emitted)",
+            self.path,
+            window.start_us,
+            window.end_us,
+            window.last_index,
+            emitted,
+        )
+        return emitted
+
+    def _wait_for_window(self, backlog_s: float) -> bool:
+        """Until every device has delivered up to the end of the window (or is away), for at
+        most `backlog_s`; False when the bound ran out."""
+        deadline = time.monotonic() + backlog_s
+        while self._control.first_error is None:
+            behind = [name for name, ch in self._channels.items() if not ch.window_reached()]
+            if not behind:
+                return True
+            if time.monotonic() >= deadline:
+                log.warning(
+                    "take %s: %s not delivered up to the window end within writer.stop_backlog_s = %g s; "
+                    "stopping anyway",
+                    self.path,
+                    ", ".join(behind),
+                    backlog_s,
+                )
+                return False
             time.sleep(0.02)
+        return False
+
+    def _record_window(self) -> dict[str, dict[str, int]]:
+        """Per device, what it delivered outside the window (into the ledger's journal); a
+        device that never delivered up to the window end gets a loss record for the span."""
+        outside: dict[str, dict[str, int]] = {}
+        backlog_s = self.config.writer.stop_backlog_s
+        for name, ch in self._channels.items():
+            gate = ch.gate
+            if gate is None:
+                continue
+            outside[name] = gate.counts.as_dict()
+            self._ledger.set_outside(name, outside[name])
+            if gate.counts.total:
+                log.info(
+                    "%s: %d %s before and %d after the take window not written",
+                    name,
+                    gate.counts.before,
+                    ch.what,
+                    gate.counts.after,
+                )
+            if not ch.window_reached():
+                reached, end = gate.still_to_come()
+                clock = "host ns" if gate.mode == "host" else "device us"
+                self._ledger.add(
+                    name,
+                    ch.what,
+                    0,
+                    f"did not deliver up to the end of the take window ({clock} {reached} of {end}) "
+                    f"before it was stopped (writer.stop_backlog_s = {backlog_s:g} s); "
+                    "the rest of its window is not in the take",
+                    (reached, end) if gate.mode != "host" else (None, None),
+                )
+        return outside
 
     def _abort(self, exc: BaseException) -> None:
         self._control.acquiring_done.set()

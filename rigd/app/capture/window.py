@@ -1,0 +1,372 @@
+"""The take's trigger window, and the gate each device's data passes through on its way to
+the writer.
+
+A take holds the data of its trigger window: from the first pulse minus
+`writer.window_margin_us` to the last pulse plus one trigger period, in rig time (the trigger
+box clock). The box reports pulse k at `b_k = b_0 + round(k * 1e6 / rate)`, so the window is
+known relative to pulse 0 as soon as the last pulse index is (a fixed-duration take knows it
+from the start; an open-ended one when the box is stopped).
+
+Each `WindowGate` applies the window in its device's own clock while the take runs, so a
+device that delivers late (a loaded host, a backlog drained at stop) cannot stretch the take:
+
+* `trigger_in` (event sensor with trigger-in): the first rising edge is pulse 0; later edges
+  are paired with pulse indices by rounding their distance from the previous paired edge in
+  trigger periods (robust to dropped pulses and to drift, which accumulates only between
+  consecutive edges); the window edges are placed in device time from the newest pair and
+  the device clock rate measured between edges. Packets are split with `np.searchsorted`.
+  Packets that arrive before the first edge are held (at most `window_hold_s` or
+  `MAX_HELD_PACKETS`); without an edge by then the gate falls back to host time.
+* `pulse_frames` (hardware-triggered camera with device timestamps): the first frame is
+  pulse 0, later frames are paired the same way; a frame of a pulse after the last is
+  outside.
+* `host` (free-running or software-synced cameras, sensors without trigger-in, and the
+  fallback): by the host arrival time of the frame or packet against the host arrival times
+  of the pulse records (approximate: the transport latency).
+
+What falls outside is not written and is counted (`OutsideCounts`): the take records it per
+device (`window_outside_json`). Within the sync accuracy of each device the data in the file
+lies in [window_start_us, window_end_us).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.base import EventPacket
+from rigd.core.errors import RigdError
+from rigd.core.frames import Frame
+
+log = logging.getLogger(__name__)
+
+GateMode = Literal["trigger_in", "pulse_frames", "host"]
+#: Packets a gate holds at most while it waits for its sensor's first trigger edge.
+MAX_HELD_PACKETS = 5000
+
+
+class TakeWindow:
+    """The rig-time bounds of a take; fed with the box's pulse records (thread-safe).
+
+    Bounds relative to pulse 0 (`start_rel_us`, `end_rel_us`) are known without any pulse
+    record; absolute ones need a pulse record (any index: `b_0` follows from the schedule).
+    """
+
+    def __init__(self, rate_hz: float, margin_us: int, last_index: int | None = None) -> None:
+        if rate_hz <= 0:
+            raise RigdError(f"trigger rate must be positive, got {rate_hz}")
+        if margin_us < 0:
+            raise RigdError(f"window margin must be >= 0 us, got {margin_us}")
+        self.rate_hz = rate_hz
+        self.period_us = 1e6 / rate_hz
+        self.margin_us = int(margin_us)
+        self._lock = threading.Lock()
+        self._b0: int | None = None
+        self._ref: tuple[int, int] | None = None  # newest (b_k, host_ns) of a pulse record
+        self._last_index = last_index
+        self._seen_index = -1
+
+    def offset_us(self, k: int) -> int:
+        """Box time of pulse k after pulse 0 (the box's schedule, no drift)."""
+        return round(k * 1e6 / self.rate_hz)
+
+    def note_pulses(
+        self, index: NDArray[np.int64], t_us: NDArray[np.int64], host_time_ns: NDArray[np.int64]
+    ) -> None:
+        """Pulse records as they arrive (any order, any gaps)."""
+        if index.size == 0:
+            return
+        i = int(np.argmax(index))
+        k, b, host = int(index[i]), int(t_us[i]), int(host_time_ns[i])
+        with self._lock:
+            if self._b0 is None:
+                self._b0 = b - self.offset_us(k)
+            if self._ref is None or b > self._ref[0]:
+                self._ref = (b, host)
+            self._seen_index = max(self._seen_index, k)
+
+    @property
+    def seen_index(self) -> int:
+        """Highest pulse index reported so far (-1: none)."""
+        with self._lock:
+            return self._seen_index
+
+    def set_last_index(self, k: int) -> None:
+        """The last pulse of the take (0-based); the window ends one period after it."""
+        with self._lock:
+            self._last_index = max(0, int(k))
+
+    @property
+    def last_index(self) -> int | None:
+        with self._lock:
+            return self._last_index
+
+    @property
+    def first_pulse_us(self) -> int | None:
+        with self._lock:
+            return self._b0
+
+    @property
+    def start_rel_us(self) -> int:
+        return -self.margin_us
+
+    @property
+    def end_rel_us(self) -> int | None:
+        """Window end after pulse 0 in box us; None until the last pulse is known."""
+        last = self.last_index
+        return None if last is None else self.offset_us(last) + round(self.period_us)
+
+    @property
+    def start_us(self) -> int | None:
+        b0 = self.first_pulse_us
+        return None if b0 is None else b0 + self.start_rel_us
+
+    @property
+    def end_us(self) -> int | None:
+        b0, end = self.first_pulse_us, self.end_rel_us
+        return None if b0 is None or end is None else b0 + end
+
+    def host_ns_at(self, rig_us: int) -> int | None:
+        """Host monotonic ns when a pulse at `rig_us` would have been reported, from the
+        newest pulse record (host latency of the records included)."""
+        with self._lock:
+            ref = self._ref
+        if ref is None:
+            return None
+        return ref[1] + (rig_us - ref[0]) * 1000
+
+    def host_bounds_ns(self) -> tuple[int | None, int | None]:
+        start, end = self.start_us, self.end_us
+        return (
+            None if start is None else self.host_ns_at(start),
+            None if end is None else self.host_ns_at(end),
+        )
+
+
+@dataclass(slots=True)
+class OutsideCounts:
+    """What a gate kept out of the take: items (events or frames) and trigger edges."""
+
+    before: int = 0
+    after: int = 0
+    triggers_before: int = 0
+    triggers_after: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+    @property
+    def total(self) -> int:
+        return self.before + self.after
+
+
+Item = Frame | EventPacket
+
+
+class WindowGate:
+    """One device's filter: `admit` returns what of an item lies in the take's window.
+
+    Called from the device's acquisition thread only; `closed`, `counts` and `reached_us`
+    are read by the control thread (plain attribute reads).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        mode: GateMode,
+        window: TakeWindow,
+        *,
+        trigger_channel: int = 0,
+        hold_s: float = 5.0,
+        max_held: int = MAX_HELD_PACKETS,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.name = name
+        self.mode: GateMode = mode
+        self.window = window
+        self.counts = OutsideCounts()
+        self.closed = False
+        """The device delivered data at or past the window end (nothing of the window is
+        still to come from it)."""
+        self.reached_us: int | None = None
+        """Newest device time delivered (host ns in host mode)."""
+        self.by_host_fallback = False
+        self._channel = trigger_channel
+        self._hold_ns = round(hold_s * 1e9)
+        self._max_held = max_held
+        self._clock_ns = clock_ns
+        self._held: list[Item] = []
+        self._held_since_ns: int | None = None
+        self._d0: float | None = None  # device time of pulse 0
+        self._ref: tuple[float, int] | None = None  # newest (device time, pulse index) pair
+        self._rate = 1.0  # device us per box us, measured between paired edges
+
+    # -- device-time bounds ----------------------------------------------------------------
+    def _device_time(self, rel_us: int) -> float | None:
+        """Device time of a box time relative to pulse 0."""
+        if self._ref is None or self._d0 is None:
+            return None
+        d_ref, k_ref = self._ref
+        return d_ref + (rel_us - self.window.offset_us(k_ref)) * self._rate
+
+    @property
+    def start_device_us(self) -> float | None:
+        return None if self._d0 is None else self._d0 + self.window.start_rel_us * self._rate
+
+    @property
+    def end_device_us(self) -> float | None:
+        """The window end in the device's clock (host ns in host mode); None while unknown."""
+        if self.mode == "host":
+            return self.window.host_bounds_ns()[1]
+        end = self.window.end_rel_us
+        return None if end is None else self._device_time(end)
+
+    def _pair(self, t: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Pulse indices of device times of pulses (rising edges, exposures), in order."""
+        if t.size == 0:
+            return np.empty(0, np.int64)
+        period = self.window.period_us * self._rate
+        if self._ref is None:
+            self._d0 = float(t[0])
+            self._ref = (float(t[0]), 0)
+        d_ref, k_ref = self._ref
+        # Each one from its predecessor: drift only accumulates between consecutive pulses.
+        steps = np.diff(np.concatenate(([d_ref], t.astype(np.float64))))
+        k = k_ref + np.cumsum(np.maximum(np.rint(steps / period), 0)).astype(np.int64)
+        self._ref = (float(t[-1]), int(k[-1]))
+        if k[-1] > 0 and self._d0 is not None:
+            span = self.window.offset_us(int(k[-1]))
+            self._rate = (float(t[-1]) - self._d0) / span
+        return k
+
+    # -- admitting ---------------------------------------------------------------------------
+    def admit(self, item: Item) -> list[Item]:
+        """The parts of `item` inside the window (held items come out once placeable)."""
+        if self.mode == "pulse_frames" and isinstance(item, Frame):
+            return self._admit_frame(item)
+        if self.mode == "trigger_in" and isinstance(item, EventPacket):
+            if self._d0 is None:
+                rising = item.triggers.rising(self._channel)
+                if len(rising) == 0:
+                    return self._hold(item)
+                self._pair(rising.t[:1])
+                held = [h for h in self._release() if isinstance(h, EventPacket)]
+                return [part for h in held for part in self._split_events(h)] + self._split_events(item)
+            return self._split_events(item)
+        if self.window.first_pulse_us is None:
+            return self._hold(item)
+        return [part for held in self._release() for part in self._by_host(held)] + self._by_host(item)
+
+    def finish(self) -> list[Item]:
+        """At the end of the take: what is still held, passed through (no pulse to place it)."""
+        if not self._held:
+            return []
+        log.warning(
+            "%s: %d packets held for the window's start were never placed (no trigger edge or pulse "
+            "record); written as they are",
+            self.name,
+            len(self._held),
+        )
+        return self._release()
+
+    def _hold(self, item: Item) -> list[Item]:
+        now = self._clock_ns()
+        if self._held_since_ns is None:
+            self._held_since_ns = now
+        self._held.append(item)
+        if now - self._held_since_ns <= self._hold_ns and len(self._held) < self._max_held:
+            return []
+        # Nothing to place the window with: from here by host time.
+        self.by_host_fallback = self.mode != "host"
+        if self.by_host_fallback:
+            log.warning(
+                "%s: no trigger edge within %.1f s (%d packets held); its take window is applied by "
+                "host time from here",
+                self.name,
+                self._hold_ns / 1e9,
+                len(self._held),
+            )
+            self.mode = "host"
+        if self.window.first_pulse_us is None:
+            log.warning("%s: no pulse record yet to place its data in the take window; passing it", self.name)
+            return self._release()
+        return [part for held in self._release() for part in self._by_host(held)]
+
+    def _release(self) -> list[Item]:
+        held, self._held, self._held_since_ns = self._held, [], None
+        return held
+
+    def _split_events(self, packet: EventPacket) -> list[Item]:
+        triggers = packet.triggers
+        rising = triggers.rising(self._channel)
+        if len(rising) and self._ref is not None:
+            self._pair(rising.t[rising.t > self._ref[0]])
+        start, end = self.start_device_us, self.end_device_us
+        assert start is not None
+        t = packet.events.t
+        n = len(t)
+        lo = int(np.searchsorted(t, start, side="left"))
+        hi = n if end is None else int(np.searchsorted(t, end, side="left"))
+        hi = max(lo, hi)
+        self.counts.before += lo
+        self.counts.after += n - hi
+        tt = triggers.t
+        keep = tt >= start
+        if end is not None:
+            keep &= tt < end
+        if not keep.all():
+            self.counts.triggers_before += int(np.count_nonzero(tt < start))
+            self.counts.triggers_after += int(np.count_nonzero(~keep & (tt >= start)))
+        newest = max(int(t[-1]) if n else -(2**62), int(tt.max()) if len(tt) else -(2**62))
+        self._reached(newest, end)
+        if lo == 0 and hi == n and keep.all():
+            return [packet]
+        if hi == lo and not keep.any():
+            return []
+        return [EventPacket(packet.events[lo:hi], triggers[keep], packet.host_time_ns)]
+
+    def _admit_frame(self, frame: Frame) -> list[Item]:
+        k = int(self._pair(np.array([frame.t_exposure_start_us], np.int64))[0])
+        last = self.window.last_index
+        self._reached(frame.t_exposure_start_us, None)
+        if last is not None and k >= last:
+            self.closed = True
+        if last is not None and k > last:
+            self.counts.after += 1
+            return []
+        return [frame]
+
+    def _by_host(self, item: Item) -> list[Item]:
+        host = item.host_time_ns
+        h_start, h_end = self.window.host_bounds_ns()
+        self._reached(host, h_end)
+        n = 1 if isinstance(item, Frame) else len(item.events)
+        n_trig = 0 if isinstance(item, Frame) else len(item.triggers)
+        if h_start is not None and host < h_start:
+            self.counts.before += n
+            self.counts.triggers_before += n_trig
+            return []
+        if h_end is not None and host >= h_end:
+            self.counts.after += n
+            self.counts.triggers_after += n_trig
+            return []
+        return [item]
+
+    def _reached(self, newest: int, end: float | None) -> None:
+        if self.reached_us is None or newest > self.reached_us:
+            self.reached_us = newest
+        if end is not None and self.reached_us is not None and self.reached_us >= end:
+            self.closed = True
+
+    def still_to_come(self) -> tuple[int | None, int | None]:
+        """(reached, window end) of a gate not closed: the span it has not delivered."""
+        end = self.end_device_us
+        return self.reached_us, None if end is None else math.ceil(end)
