@@ -425,17 +425,28 @@ class CaptureSession:
         assert take is not None
         assert self._writer_thread is not None
         assert self._t_start is not None
+        t_stop = time.monotonic()
         emitted = self._stop_trigger(trigger)
         backlog_s = self.config.writer.stop_backlog_s
         self._wait_for_window(backlog_s)
+        t_waited = time.monotonic()
         for ch in sorted(self._channels.values(), key=lambda c: c.kind != "event_sensor"):
             ch.stop()
-        read_deadline = time.monotonic() + backlog_s
+        t_stopped = time.monotonic()
+        read_deadline = t_stopped + backlog_s
         for ch in self._channels.values():
             ch.read_deadline = read_deadline
         self._control.acquiring_done.set()
         for th in self._threads:
             th.join()
+        log.info(
+            "take %s stop: %.2f s waiting for the window end, %.2f s stopping the devices, %.2f s "
+            "reading what they still held",
+            self.path,
+            t_waited - t_stop,
+            t_stopped - t_waited,
+            time.monotonic() - t_stopped,
+        )
         for ch in self._channels.values():
             ch.collect_counters()
         outside = self._record_window()

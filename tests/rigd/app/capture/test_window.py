@@ -5,6 +5,7 @@ fell outside counted; a slow sensor does not hold the stop beyond `writer.stop_b
 from __future__ import annotations
 
 import json
+import math
 import time
 import uuid
 from collections.abc import Sequence
@@ -17,8 +18,9 @@ import pytest
 from pydantic import ValidationError
 
 from drivers.base import EventPacket
-from rigd.app.capture import run_capture
+from rigd.app.capture import CaptureSession, run_capture
 from rigd.app.capture.channel import DeviceChannel
+from rigd.app.capture.session import STOP_LEAD_S
 from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.app.config import default_sim_rig
 from rigd.core.events import EventArray, TriggerEvents
@@ -241,3 +243,26 @@ def test_slow_sensors_do_not_hold_the_stop(tmp_path: Path, monkeypatch: pytest.M
         # What it did not get to is on record (the rest of its window too, when that was
         # still in its buffers; what its full buffers lost is in the device counters' record).
         assert any("left unread" in r for r in reasons), reasons
+
+
+def test_open_ended_take_ends_at_the_pulse_the_stop_fixed(tmp_path: Path) -> None:
+    """A daemon's take (no duration) stopped by request: the window ends one period after the
+    box's last pulse, at most STOP_LEAD_S of pulses past those seen when the stop came."""
+    session = CaptureSession(_sim_rig("open"), tmp_path)  # type: ignore[arg-type]
+    session.start()
+    deadline = time.monotonic() + 60
+    while session.progress().pulses < 10:
+        assert time.monotonic() < deadline, "no pulses"
+        assert session.wait(0.02) is None
+    seen = session.progress().pulses
+    session.request_stop("test stop")
+    res = session.wait(120)
+    assert res is not None
+    _, end, _ = _check_take_is_in_its_window(res.path, tol_us=50)
+    with Take(res.path) as take:
+        pulses = take.pulses()
+    b0 = int(pulses.t_us[np.argmin(pulses.index)])
+    last = round((end - round(1e6 / 30) - b0) * 30 / 1e6)
+    assert seen - 1 <= last <= seen - 1 + math.ceil(STOP_LEAD_S * 30) + 1  # records in flight
+    assert last <= int(pulses.index.max())
+    assert end == b0 + round(last * 1e6 / 30) + round(1e6 / 30)
