@@ -80,7 +80,18 @@ class DeliveryQueue(Generic[T]):
                     lambda: bool(self._items) or (until is not None and until()), timeout=timeout_s
                 )
             n = len(self._items) if max_items is None else min(max_items, len(self._items))
-            return [self._items.popleft() for _ in range(n)]
+            taken = [self._items.popleft() for _ in range(n)]
+            if taken:
+                self._cond.notify_all()  # a producer may be waiting for room (`wait_room`)
+            return taken
+
+    def wait_room(self, timeout_s: float, below: int | None = None) -> bool:
+        """Wait at most `timeout_s` until fewer than `below` (default: the length) items are
+        queued; a producer that must not lose data (a simulated device on virtual time) waits
+        here instead of dropping, and may keep itself closer to its reader than a full queue."""
+        limit = self.maxlen if below is None else max(1, min(below, self.maxlen))
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self._items) < limit, timeout=timeout_s)
 
     def drain(self) -> list[T]:
         """Every queued item, oldest first (what an unplug takes with it)."""

@@ -37,6 +37,7 @@ from drivers.evt import Evt3Encoder
 from drivers.evt_stream import EvtStreamSensor, GrabbingSource
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
+from firmware_sim.clock import Hold
 from firmware_sim.event_kernels import MAX_STEP_PX, generate_events
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from firmware_sim.placement import Placement, check_ranges, place
@@ -51,6 +52,10 @@ log = logging.getLogger(__name__)
 
 #: True time between generator wake-ups.
 SLICE_US = 5_000
+#: On virtual time a sensor runs at most this many packets ahead of its reader.
+_VIRTUAL_LEAD_PACKETS = 8
+#: After stop, how long (wall seconds) a sensor on virtual time waits for room before dropping.
+_STOP_ROOM_WAIT_S = 2.0
 #: Packets merged into one `read_events` answer at most.
 _MAX_MERGE = 64
 
@@ -94,6 +99,8 @@ class _Generator:
     ref: NDArray[np.float32]
     model: EventSimulator | None
     final: bool = False
+    hold: Hold | None = None
+    """On virtual time: holds the world's time while a slice is made and delivered."""
 
 
 #: How far behind true time the generator encodes, so trigger edges are in before their slice.
@@ -192,7 +199,8 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             model = EventSimulator(*self._geometry, self._p.pixel_model)
             self._model_t = round(t_start)
             model.step(last_log, self._model_t)
-        self._gen = _Generator(t_start, last_log, last_log.copy(), model)
+        hold = self._world.hold() if self._world.virtual else None
+        self._gen = _Generator(t_start, last_log, last_log.copy(), model, hold=hold)
         with self._lock:
             self._pending.clear()
             self._accepting = True
@@ -209,6 +217,8 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
     def _do_close(self) -> None:
         self._unsubscribe()
         self._unlisten()
+        if self._gen.hold is not None:
+            self._gen.hold.release()
 
     def _join(self, parts: list[_Packet]) -> tuple[bytes, int]:
         with self._lock:
@@ -325,14 +335,21 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         """
         gen = self._gen
         if gen.final:
+            if gen.hold is not None:
+                gen.hold.release()
             return END
         wake = gen.t_prev + SLICE_US + GENERATION_LAG_US
-        stopping = self._acq.stopping.wait(max(0.0, (wake - self._world.now_us()) * 1e-6))
+        if gen.hold is not None:
+            # Virtual time: whole slices on a fixed grid, so the same world gives the same events.
+            stopping = not gen.hold.sleep_until(wake, self._acq.stopping)
+            t_now = self._world.now_us() if stopping else gen.t_prev + SLICE_US
+        else:
+            stopping = self._acq.stopping.wait(max(0.0, (wake - self._world.now_us()) * 1e-6))
+            t_now = self._world.now_us() - (0 if stopping else GENERATION_LAG_US)
         if self._dead(self._world.now_us()):
             with self._lock:
                 self._note_unplug_locked([])
             return END  # no power, no events
-        t_now = self._world.now_us() - (0 if stopping else GENERATION_LAG_US)
         if t_now <= gen.t_prev and not stopping:
             return None
         if gen.model is not None:
@@ -373,6 +390,16 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
     def _deliver(self, packet: _Packet) -> bool:
         """Into the FIFO, under the lock, so an unplug noted meanwhile finds it queued or not
         at all; a full FIFO loses it (counted with its events and trigger edges)."""
+        if self._gen.hold is not None:
+            # Virtual time waits for the host to make room instead of losing the packet.
+            give_up: float | None = None
+            while not self._acq.queue.wait_room(0.05, below=_VIRTUAL_LEAD_PACKETS):
+                if self._dead(self._world.now_us()):
+                    break
+                if self._acq.stopping.is_set():  # the host may have stopped reading: wait a while
+                    give_up = give_up or time.monotonic() + _STOP_ROOM_WAIT_S
+                    if time.monotonic() > give_up:
+                        break
         with self._lock:
             full = False
             if self._dead(self._world.now_us()):

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
 from firmware_sim.scene import Scene
-from firmware_sim.world import DeviceClock, SimWorld, UnplugParams, get_world, power_on_clock, unplug_params
+from firmware_sim.world import DeviceClock, SimWorld, UnplugParams, power_on_clock, spec_world, unplug_params
 from rigd.core.errors import ConfigError
 
 #: Spec parameters every simulated camera and event sensor takes.
@@ -25,6 +25,7 @@ PLACEMENT_PARAMS = frozenset(
         "unplug_at_s",
         "unplug_for_s",
         "clock_reset",
+        "clock",
     }
 )
 
@@ -62,7 +63,7 @@ def place(spec: DeviceSpec, params: Iterable[str]) -> Placement:
     check_ranges(spec, (("width", 0 < width <= 65535), ("height", 0 < height <= 65535)))
     unplug = unplug_params(spec)
     seed = spec.int_param("seed", 0)
-    world = get_world(spec.location or "default", seed)
+    world = spec_world(spec)
     scene = sim_scene(spec, world, seed)
     clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
     clock = power_on_clock(spec, world, name, clock)

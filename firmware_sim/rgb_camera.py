@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
+from firmware_sim.clock import Hold
 from firmware_sim.placement import Placement, check_ranges, place
 from firmware_sim.scene import View
 from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal
@@ -48,6 +49,8 @@ _CAPABILITIES = frozenset(
         Capability.COLOR,
     }
 )
+#: On virtual time a camera runs at most this many frames ahead of its reader.
+_VIRTUAL_LEAD_FRAMES = 4
 #: Exposure at which the rendered image has its nominal brightness.
 _NOMINAL_EXPOSURE_US = 8000
 
@@ -71,6 +74,8 @@ class _Exposure:
     true_us: float
     device_us: int
     exposure_us: int
+    hold: Hold
+    """Keeps a virtual world's time from passing the exposure before its frame is buffered."""
 
 
 class SimRgbCamera(Unpluggable, RgbCamera):
@@ -174,6 +179,11 @@ class SimRgbCamera(Unpluggable, RgbCamera):
     def _do_close(self) -> None:
         self._unsubscribe()
         self._unlisten()
+        while True:  # exposures latched and never completed must not hold a virtual world's time
+            try:
+                self._jobs.get_nowait().hold.release()
+            except queue.Empty:
+                break
 
     def _read(self, timeout_s: float) -> Frame | None:
         frame = super()._read(timeout_s)
@@ -231,7 +241,13 @@ class SimRgbCamera(Unpluggable, RgbCamera):
 
     def _expose(self, true_us: float) -> None:
         """Start an exposure at a true time; the caller holds the lock."""
-        job = _Exposure(self._next_counter, true_us, self._clock.stamp(true_us), self._settings.exposure_us)
+        job = _Exposure(
+            self._next_counter,
+            true_us,
+            self._clock.stamp(true_us),
+            self._settings.exposure_us,
+            self._world.hold(),
+        )
         self._next_counter += 1
         self._fault.resume_counter = self._next_counter
         self._counts["exposures"] += 1
@@ -241,16 +257,21 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         """Free-run: exposures every 1/fps seconds of the camera's own clock."""
         period_dev = 1e6 / self._settings.free_run_fps
         dev0 = self._clock.at(self._world.now_us())
+        hold = self._world.hold()
+        self._world.clock.start()  # a free-running camera sets a virtual world's time going
         k = 0
-        while True:
-            t_true = self._clock.true_at(dev0 + k * period_dev)
-            if not self._world.sleep_until(t_true, self._stop_free_run):
-                return
-            with self._lock:
-                if not self._started or self._dead(t_true):
+        try:
+            while True:
+                t_true = self._clock.true_at(dev0 + k * period_dev)
+                if not hold.sleep_until(t_true, self._stop_free_run):
                     return
-                self._expose(t_true)
-            k += 1
+                with self._lock:
+                    if not self._started or self._dead(t_true):
+                        return
+                    self._expose(t_true)
+                k += 1
+        finally:
+            hold.release()
 
     def _grab(self, timeout_s: float) -> None:
         """Acquisition thread: complete the exposures latched so far, waiting up to `timeout_s`
@@ -276,6 +297,12 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         return img
 
     def _complete(self, job: _Exposure) -> None:
+        try:
+            self._complete_held(job)
+        finally:
+            job.hold.release()
+
+    def _complete_held(self, job: _Exposure) -> None:
         truth = self._world.truth
         if job.counter in self._p.drop_frames:
             # Lost in transport: the exposure happened, the host never sees it.
@@ -290,7 +317,13 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             return
         image = self._render(job)
         # A frame leaves the sensor only once its exposure is over.
-        self._world.sleep_until(t_end)
+        job.hold.sleep_until(t_end)
+        if self._world.virtual:
+            # Virtual time waits for the host to make room instead of losing the frame.
+            while not self._queue.wait_room(0.05, below=_VIRTUAL_LEAD_FRAMES):
+                with self._lock:
+                    if not self._started or self._dead(self._world.now_us()):
+                        break  # stopped (the host may have stopped reading) or unplugged
         frame = Frame(
             image=image,
             t_exposure_start_us=job.device_us,

@@ -39,7 +39,8 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from firmware_sim.world import DeviceClock, Edge, SimWorld, get_world, truth_journal
+from firmware_sim.clock import Hold
+from firmware_sim.world import DeviceClock, Edge, SimWorld, spec_world, truth_journal
 from rigd.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -435,12 +436,13 @@ class SimTriggerBox:
             self._run_stop = threading.Event()
             self._scheduler = threading.Thread(
                 target=self._pulse_loop,
-                args=(self._t0, self._rate_hz, self._width_us, target, self._run_stop),
+                args=(self._t0, self._rate_hz, self._width_us, target, self._run_stop, self.world.hold()),
                 name=f"trigbox-pulses-{self.world.name}",
                 daemon=True,
             )
             self._scheduler.start()
-            return [f"OK START {self._t0} {target}"]
+        self.world.clock.start()  # a virtual world's time runs from the first START
+        return [f"OK START {self._t0} {target}"]
 
     def _cmd_stop(self, args: list[str]) -> list[str]:
         self._halt_scheduler()
@@ -484,13 +486,17 @@ class SimTriggerBox:
             sched.join()
         self._scheduler = None
 
-    def _pulse_loop(self, t0: int, rate_hz: float, width_us: int, target: int, stop: threading.Event) -> None:
+    def _pulse_loop(
+        self, t0: int, rate_hz: float, width_us: int, target: int, stop: threading.Event, hold: Hold
+    ) -> None:
+        """The box timer. `hold` keeps a virtual world's time at each pulse until its edges
+        are on the wire (the devices take their own holds as they latch them)."""
         k = 0
         try:
             while not target or k < target:
                 b_k = t0 + round(k * 1e6 / rate_hz)
                 true_us = self.clock.true_at(b_k)
-                if not self.world.sleep_until(true_us, stop):
+                if not hold.sleep_until(true_us, stop):
                     return
                 jitter = float(self._jitter_rng.normal(0.0, self.jitter_us)) if self.jitter_us else 0.0
                 edge = true_us + jitter
@@ -521,6 +527,8 @@ class SimTriggerBox:
             with self._lock:
                 self._state = IDLE
             raise
+        finally:
+            hold.release()
 
     def _link_faults_after_pulse(self) -> None:
         """Count a fired pulse and switch the link faults on once due (caller holds the lock)."""
@@ -597,6 +605,7 @@ _SIM_PARAMS = {
     "garbage_after",
     "reply_timeout_s",
     "boot_timeout_s",
+    "clock",
 }
 _BOX_KEY = "trigger_box"
 
@@ -642,7 +651,7 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
         if not (0 < value < math.inf):
             raise ConfigError(f"device spec {spec.raw!r}: {key}={spec.params[key]!r} must be > 0 seconds")
     seed = spec.int_param("seed", 0)
-    world = get_world(spec.location or "default", seed)
+    world = spec_world(spec)
     slot = _slot(world)
     with slot.lock:
         if slot.box is not None and not slot.box.closed:

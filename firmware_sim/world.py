@@ -1,9 +1,11 @@
 """The simulated world: true time, device clocks, the trigger wire and the ground truth.
 
-Every simulated device of one rig shares a `SimWorld`. True time is the host's monotonic
-clock (the sim runs in real time, so the daemon meets real deadlines); each device reads
-it through its own `DeviceClock`, with an offset and a drift, and the ground truth of
-everything the devices did is logged in true time so tests can score the sync engine.
+Every simulated device of one rig shares a `SimWorld`. True time is the world's clock
+(`firmware_sim.clock`): the host's monotonic clock by default, so the daemon meets real
+deadlines, or a virtual clock (`clock=virtual`) that runs as fast as the CPU allows and gives
+the same data twice; each device reads it through its own `DeviceClock`, with an offset and
+a drift, and the ground truth of everything the devices did is logged in true time so tests
+can score the sync engine.
 
 Faults that must outlive one device object live here too: an unplugged device's window
 (`UnplugFault`) is kept per device name, because the host recovers by opening the same spec
@@ -17,11 +19,11 @@ import logging
 import math
 import os
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from firmware_sim.clock import CLOCK_MODES, ClockMode, Hold, RealClock, VirtualClock, make_clock
 from rigd.core.errors import ConfigError, DeviceError
 
 if TYPE_CHECKING:
@@ -152,31 +154,31 @@ class GroundTruth:
 class SimWorld:
     """Shared state of one simulated rig."""
 
-    def __init__(self, name: str = "default", seed: int = 0) -> None:
+    def __init__(self, name: str = "default", seed: int = 0, clock: ClockMode = "real") -> None:
         self.name = name
         self.seed = seed
-        self._epoch_ns = time.monotonic_ns()
+        self.clock: RealClock | VirtualClock = make_clock(clock)
         self.wire = TriggerWire()
         self.truth = GroundTruth()
         self._lock = threading.Lock()
         self._resources: dict[str, object] = {}
         self._unplugs: dict[str, UnplugFault] = {}
 
+    @property
+    def virtual(self) -> bool:
+        return self.clock.mode == "virtual"
+
     def now_us(self) -> float:
-        """True time in microseconds since the world was created."""
-        return (time.monotonic_ns() - self._epoch_ns) / 1000.0
+        """True time in microseconds since the world was created (or its virtual clock's)."""
+        return self.clock.now_us()
 
     def sleep_until(self, true_us: float, stop: threading.Event | None = None) -> bool:
-        """Sleep until a true time; returns False if `stop` was set first."""
-        while True:
-            remaining = (true_us - self.now_us()) / 1e6
-            if remaining <= 0:
-                return True
-            if stop is not None:
-                if stop.wait(min(remaining, 0.05)):
-                    return False
-            else:
-                time.sleep(min(remaining, 0.05))
+        """Sleep until a true time without holding it; returns False if `stop` was set first."""
+        return self.clock.sleep_until(true_us, stop)
+
+    def hold(self) -> Hold:
+        """Hold true time still while a device works (a no-op in real time)."""
+        return self.clock.hold()
 
     def register_clock(self, device: str, clock: DeviceClock) -> None:
         with self.truth.lock:
@@ -276,10 +278,7 @@ class UnplugFault:
             self.end_us = end_us
             self.start_us = start_us
         # The USB disconnect "interrupt", for the device objects to log what they lose.
-        timer = threading.Timer(max(0.0, (start_us - self._world.now_us()) / 1e6), self._fire)
-        timer.name = f"sim-unplug-{self._world.name}-{self.device}"
-        timer.daemon = True
-        timer.start()
+        self._world.clock.call_at(start_us, self._fire, f"sim-unplug-{self._world.name}-{self.device}")
         if lost_frames_on_edges:
             self._unsubscribe_wire = self._world.wire.subscribe(self._on_edge)
         log.info(
@@ -399,13 +398,27 @@ _worlds: dict[str, SimWorld] = {}
 _worlds_lock = threading.Lock()
 
 
-def get_world(name: str = "default", seed: int = 0) -> SimWorld:
-    """The world of that name, created on first use (the seed applies then)."""
+def get_world(name: str = "default", seed: int = 0, clock: str | None = None) -> SimWorld:
+    """The world of that name, created on first use (the seed and clock apply then; a spec
+    that asks for another clock than the world runs on is refused)."""
+    if clock is not None and clock not in CLOCK_MODES:
+        raise ConfigError(f"sim world {name!r}: clock={clock!r} (use {' or '.join(CLOCK_MODES)})")
     with _worlds_lock:
         world = _worlds.get(name)
         if world is None:
-            world = _worlds[name] = SimWorld(name, seed)
+            mode: ClockMode = "virtual" if clock == "virtual" else "real"
+            world = _worlds[name] = SimWorld(name, seed, mode)
+        elif clock is not None and clock != world.clock.mode:
+            raise ConfigError(
+                f"sim world {name!r} runs on the {world.clock.mode} clock; a device spec asks for "
+                f"clock={clock} (give every device of a world the same clock=)"
+            )
         return world
+
+
+def spec_world(spec: DeviceSpec) -> SimWorld:
+    """The world a sim spec names (`sim://WORLD/...?seed=&clock=real|virtual`)."""
+    return get_world(spec.location or "default", spec.int_param("seed", 0), spec.params.get("clock"))
 
 
 def reset_world(name: str = "default") -> None:

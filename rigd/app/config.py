@@ -238,12 +238,15 @@ def default_sim_rig(
     pixel_format: Literal["mono8", "rgb8"] = "rgb8",
     resolution: tuple[int, int] = (1280, 720),
     rate_hz: float = 30.0,
+    clock: Literal["real", "virtual"] = "real",
 ) -> RigConfig:
     """The built-in simulated rig of the paper: 3 RGB cameras, 2 event sensors, one trigger.
 
     Clock offsets and drifts differ per device (within +-100 ppm) so the sync engine has
-    real work to do; the trigger edges jitter by 2 us.
+    real work to do; the trigger edges jitter by 2 us. `clock="virtual"` runs the world on
+    virtual time: as fast as the CPU allows, the same data for the same seed.
     """
+    tail = "&clock=virtual" if clock == "virtual" else ""
     clocks = {
         "cam0": (1_503_311, 80.0),
         "cam1": (73_005_123, -60.0),
@@ -258,12 +261,13 @@ def default_sim_rig(
         off, ppm = clocks[name]
         return (
             f"sim://{world}/{name}?offset_us={off}&drift_ppm={ppm}&seed={seed}&width={width}&height={height}"
+            + tail
         )
 
     return RigConfig(
         name="sim-rig",
         trigger=TriggerConfig(
-            spec=f"sim://{world}/trigger?drift_ppm=12&jitter_us=2&seed={seed}",
+            spec=f"sim://{world}/trigger?drift_ppm=12&jitter_us=2&seed={seed}{tail}",
             settings=TriggerSettings(rate_hz=rate_hz, pulse_width_us=min(1000, int(2e5 / rate_hz))),
         ),
         cameras=[

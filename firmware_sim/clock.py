@@ -1,0 +1,254 @@
+"""The simulated world's true time: the host's monotonic clock, or a virtual one.
+
+`RealClock` runs the sim in real time, so the daemon meets real deadlines. `VirtualClock`
+(`clock=virtual` in a sim spec) is a discrete-event clock: time stands still while any
+device holds it (a camera rendering a latched exposure, an event sensor generating a slice,
+a device waiting for room in its buffer) and otherwise jumps to the earliest time some
+device sleeps until. A rig on it runs as fast as the CPU and the host's reading allow, loses
+nothing to its own slowness (a full buffer holds time instead of dropping data), and gives
+the same data for the same config and seed however loaded the machine is.
+
+Time starts at 0 and stays there until the world is started (`start`: the trigger box's
+START, a free-running camera), so every device opened and started before the first pulse
+starts at the same instant, whatever the host's timing.
+
+A `Hold` is how a device thread takes part: while held, time does not move; `Hold.sleep_until`
+lets go while asleep and takes the hold again, atomically, at the instant it is woken.
+Sleeping without a hold (`SimClock.sleep_until`) waits for time to get there without stopping it.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Literal, Protocol
+
+log = logging.getLogger(__name__)
+
+ClockMode = Literal["real", "virtual"]
+CLOCK_MODES: tuple[ClockMode, ...] = ("real", "virtual")
+
+#: How often a sleeper looks at its stop event (wall seconds); time itself never polls.
+_STOP_POLL_S = 0.05
+
+
+class Hold(Protocol):
+    """A device thread's claim on the present (a no-op on the real clock)."""
+
+    def sleep_until(self, true_us: float, stop: threading.Event | None = None) -> bool:
+        """Let go, sleep until `true_us`, hold again; False (not holding) if `stop` came first."""
+        ...
+
+    def release(self) -> None:
+        """Let time go on (idempotent)."""
+        ...
+
+
+class SimClock(Protocol):
+    mode: ClockMode
+
+    def now_us(self) -> float: ...
+
+    def sleep_until(self, true_us: float, stop: threading.Event | None = None) -> bool: ...
+
+    def hold(self) -> Hold: ...
+
+    def start(self) -> None: ...
+
+    def call_at(self, true_us: float, fn: Callable[[], None], name: str) -> None: ...
+
+    def wait(self, cond: threading.Condition, predicate: Callable[[], bool], timeout_s: float) -> bool: ...
+
+
+class _NoHold:
+    def __init__(self, clock: RealClock) -> None:
+        self._clock = clock
+
+    def sleep_until(self, true_us: float, stop: threading.Event | None = None) -> bool:
+        return self._clock.sleep_until(true_us, stop)
+
+    def release(self) -> None:
+        pass
+
+
+class RealClock:
+    """True time = the host's monotonic clock since the world was made."""
+
+    mode: ClockMode = "real"
+
+    def __init__(self) -> None:
+        self._epoch_ns = time.monotonic_ns()
+
+    def now_us(self) -> float:
+        return (time.monotonic_ns() - self._epoch_ns) / 1000.0
+
+    def sleep_until(self, true_us: float, stop: threading.Event | None = None) -> bool:
+        """Sleep until a true time; False if `stop` was set first."""
+        while True:
+            remaining = (true_us - self.now_us()) / 1e6
+            if remaining <= 0:
+                return True
+            if stop is not None:
+                if stop.wait(min(remaining, _STOP_POLL_S)):
+                    return False
+            else:
+                time.sleep(min(remaining, _STOP_POLL_S))
+
+    def hold(self) -> Hold:
+        return _NoHold(self)
+
+    def start(self) -> None:
+        pass
+
+    def call_at(self, true_us: float, fn: Callable[[], None], name: str) -> None:
+        timer = threading.Timer(max(0.0, (true_us - self.now_us()) / 1e6), fn)
+        timer.name = name
+        timer.daemon = True
+        timer.start()
+
+    def wait(self, cond: threading.Condition, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Wait (holding `cond`) for `predicate`, at most `timeout_s` wall seconds."""
+        return cond.wait_for(predicate, timeout=timeout_s)
+
+
+class _VirtualHold:
+    def __init__(self, clock: VirtualClock) -> None:
+        self._clock = clock
+        self._held = True
+
+    def sleep_until(self, true_us: float, stop: threading.Event | None = None) -> bool:
+        return self._clock._sleep(true_us, stop, self)
+
+    def release(self) -> None:
+        self._clock._release(self)
+
+    def __del__(self) -> None:
+        if self._held:  # a hold dropped without release would stop time for good
+            log.error("virtual clock: a hold was dropped without release; releasing it")
+            self._clock._release(self)
+
+
+class VirtualClock:
+    """Discrete-event time: see the module docstring."""
+
+    mode: ClockMode = "virtual"
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._now = 0.0
+        self._started = False
+        self._holds = 0
+        self._seq = itertools.count()
+        #: (deadline, seq, hold or None) of every sleeper; entries of woken sleepers are stale.
+        self._sleepers: list[tuple[float, int, _VirtualHold | None]] = []
+        self._waiting: set[int] = set()
+        self.advances = 0
+
+    def now_us(self) -> float:
+        with self._cond:
+            return self._now
+
+    def start(self) -> None:
+        """Let time run (the trigger box started, or a free-running camera)."""
+        with self._cond:
+            if not self._started:
+                self._started = True
+                log.info("virtual clock started")
+                self._advance_locked()
+
+    @property
+    def started(self) -> bool:
+        with self._cond:
+            return self._started
+
+    def hold(self) -> Hold:
+        with self._cond:
+            self._holds += 1
+        return _VirtualHold(self)
+
+    def wait_sleepers(self, n: int, timeout_s: float = 10.0) -> bool:
+        """Wait until `n` threads sleep on this clock (tests: a state to wait for, not a delay)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self._waiting) >= n, timeout=timeout_s)
+
+    def sleep_until(self, true_us: float, stop: threading.Event | None = None) -> bool:
+        return self._sleep(true_us, stop, None)
+
+    def call_at(self, true_us: float, fn: Callable[[], None], name: str) -> None:
+        def run() -> None:
+            if self.sleep_until(true_us):
+                fn()
+
+        threading.Thread(target=run, name=name, daemon=True).start()
+
+    def wait(self, cond: threading.Condition, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Wait (holding `cond`) for `predicate`, however long it takes: on virtual time a
+        device waits for the host instead of giving data up."""
+        while not cond.wait_for(predicate, timeout=_STOP_POLL_S):
+            pass
+        return True
+
+    # -- internals -----------------------------------------------------------------------
+    def _release(self, hold: _VirtualHold) -> None:
+        with self._cond:
+            if not hold._held:
+                return
+            hold._held = False
+            self._holds -= 1
+            self._advance_locked()
+
+    def _sleep(self, true_us: float, stop: threading.Event | None, hold: _VirtualHold | None) -> bool:
+        with self._cond:
+            if stop is not None and stop.is_set():
+                if hold is not None and hold._held:
+                    hold._held = False
+                    self._holds -= 1
+                    self._advance_locked()
+                return False
+            if true_us <= self._now and (hold is None or hold._held):
+                return True
+            seq = next(self._seq)
+            if hold is not None and hold._held:
+                hold._held = False
+                self._holds -= 1
+            heapq.heappush(self._sleepers, (true_us, seq, hold))
+            self._waiting.add(seq)
+            self._cond.notify_all()
+            self._advance_locked()
+            while seq in self._waiting:
+                if stop is not None and stop.is_set():
+                    self._waiting.discard(seq)
+                    return False
+                self._cond.wait(_STOP_POLL_S if stop is not None else None)
+            return True
+
+    def _advance_locked(self) -> None:
+        """Jump to the earliest deadline when nothing holds time; wake those due, holding."""
+        if not self._started or self._holds:
+            return
+        heap = self._sleepers
+        while heap and heap[0][1] not in self._waiting:
+            heapq.heappop(heap)  # a sleeper that left on its stop event
+        if not heap:
+            return
+        t = heap[0][0]
+        if t > self._now:
+            self._now = t
+            self.advances += 1
+        while heap and (heap[0][0] <= self._now or heap[0][1] not in self._waiting):
+            _, seq, hold = heapq.heappop(heap)
+            if seq not in self._waiting:
+                continue
+            self._waiting.discard(seq)
+            if hold is not None:
+                hold._held = True
+                self._holds += 1
+        self._cond.notify_all()
+
+
+def make_clock(mode: ClockMode) -> RealClock | VirtualClock:
+    return VirtualClock() if mode == "virtual" else RealClock()

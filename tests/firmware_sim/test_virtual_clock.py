@@ -1,0 +1,140 @@
+"""The virtual clock: discrete-event time that holds still while devices work, and a sim rig
+on it that gives the same take twice."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_sim.clock import VirtualClock
+from firmware_sim.world import get_world, reset_world
+from rigd.app.capture import run_capture
+from rigd.app.config import default_sim_rig
+from rigd.core.errors import ConfigError
+from rigd.take import Take
+
+
+def test_time_stands_still_until_started() -> None:
+    clock = VirtualClock()
+    done = threading.Event()
+
+    def sleeper() -> None:
+        clock.sleep_until(1000.0)
+        done.set()
+
+    th = threading.Thread(target=sleeper)
+    th.start()
+    assert clock.wait_sleepers(1)
+    assert clock.now_us() == 0.0  # nothing moves time before start()
+    assert not done.is_set()
+    clock.start()
+    th.join(10)
+    assert done.is_set()
+    assert clock.now_us() == 1000.0
+
+
+def test_a_hold_keeps_time_until_released() -> None:
+    clock = VirtualClock()
+    clock.start()
+    hold = clock.hold()
+    woke = threading.Event()
+
+    def sleeper() -> None:
+        clock.sleep_until(500.0)
+        woke.set()
+
+    th = threading.Thread(target=sleeper)
+    th.start()
+    assert clock.wait_sleepers(1)
+    assert clock.now_us() == 0.0  # the hold keeps it
+    assert not woke.is_set()
+    hold.release()
+    th.join(10)
+    assert clock.now_us() == 500.0
+
+
+def test_sleepers_wake_in_deadline_order_holding_time() -> None:
+    """Each holder runs alone at its instant: the order of what they record is the order of
+    their deadlines, however the threads are scheduled."""
+    clock = VirtualClock()
+    seen: list[tuple[str, float]] = []
+    lock = threading.Lock()
+
+    def actor(name: str, period: float, n: int) -> None:
+        hold = clock.hold()
+        t = 0.0
+        for _ in range(n):
+            t += period
+            assert hold.sleep_until(t)
+            with lock:
+                seen.append((name, clock.now_us()))
+        hold.release()
+
+    threads = [threading.Thread(target=actor, args=(n, p, 20)) for n, p in (("a", 3.0), ("b", 5.0))]
+    for th in threads:
+        th.start()
+    clock.start()
+    for th in threads:
+        th.join(20)
+    times = [t for _, t in seen]
+    assert times == sorted(times)
+    expected = [("a", 3.0 * k) for k in range(1, 21)] + [("b", 5.0 * k) for k in range(1, 21)]
+    assert sorted(seen) == sorted(expected)
+
+
+def test_a_sleeper_leaves_on_its_stop_event_without_moving_time() -> None:
+    clock = VirtualClock()
+    clock.start()
+    hold = clock.hold()
+    stop = threading.Event()
+    result: list[bool] = []
+    th = threading.Thread(target=lambda: result.append(clock.sleep_until(10.0, stop)))
+    th.start()
+    stop.set()
+    th.join(10)
+    assert result == [False]
+    hold.release()
+    assert clock.now_us() == 0.0
+
+
+def test_a_world_refuses_specs_that_disagree_on_the_clock() -> None:
+    reset_world("clock-clash")
+    get_world("clock-clash", clock="virtual")
+    with pytest.raises(ConfigError, match=r"virtual clock.*clock=real"):
+        get_world("clock-clash", clock="real")
+    with pytest.raises(ConfigError, match="clock='fast'"):
+        get_world("other", clock="fast")
+    reset_world("clock-clash")
+
+
+def _capture(tmp: Path, world: str) -> Take:
+    reset_world(world)
+    config = default_sim_rig(world=world, seed=7, clock="virtual")
+    result = run_capture(config, tmp, 0.5)
+    assert result.frames == {"cam0": 15, "cam1": 15, "cam2": 15}
+    return Take(result.path)
+
+
+def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -> None:
+    """The whole pipeline (pty trigger, EVT decoding, window, sync, finalize) on virtual time:
+    frames (pixels and times) and events are the same twice."""
+    a = _capture(tmp_path / "a", "det-a")
+    b = _capture(tmp_path / "b", "det-b")
+    for cam in ("cam0", "cam1", "cam2"):
+        fa, fb = a.frames(cam), b.frames(cam)
+        assert len(fa) == len(fb) == 15
+        assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
+        for i in (0, 7, 14):
+            assert np.array_equal(fa[i].image, fb[i].image)
+    for sensor in ("ev0", "ev1"):
+        ea, eb = a.events(sensor), b.events(sensor)
+        assert len(ea) > 10_000
+        assert np.array_equal(ea.t, eb.t)
+        assert np.array_equal(ea.x, eb.x)
+        assert np.array_equal(ea.y, eb.y)
+        assert np.array_equal(ea.p, eb.p)
+    reset_world("det-a")
+    reset_world("det-b")
