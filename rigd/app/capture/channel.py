@@ -85,6 +85,8 @@ class TriggerChannel:
         self._lock = threading.Lock()
         self._batches: list[PulseBatch] = []
         self.n_pulses = 0
+        self.pulses_after_window = 0
+        """Pulse records after the take window's last pulse, not kept."""
 
     def configure(self) -> None:
         self.device.configure(self.settings)
@@ -94,9 +96,10 @@ class TriggerChannel:
         while True:
             asked = time.monotonic()
             batch = self.device.read_pulses(READ_TIMEOUT_S)
+            if len(batch) and self.window is not None:
+                self.window.note_pulses(batch.index, batch.t_us, batch.host_time_ns)
+                batch = self._clip(batch, self.window.last_index)
             if len(batch):
-                if self.window is not None:
-                    self.window.note_pulses(batch.index, batch.t_us, batch.host_time_ns)
                 with self._lock:
                     self._batches.append(batch)
                     self.n_pulses += len(batch)
@@ -107,6 +110,17 @@ class TriggerChannel:
                 return
             else:
                 pace(self._control.acquiring_done, asked)
+
+    def _clip(self, batch: PulseBatch, last: int | None) -> PulseBatch:
+        """Pulse records past the take's last pulse (the box ran on during STOP's round trip)
+        are counted in `pulses_after_window`, not kept."""
+        if last is None:
+            return batch
+        keep = batch.index <= last
+        if keep.all():
+            return batch
+        self.pulses_after_window += int(np.count_nonzero(~keep))
+        return PulseBatch(batch.index[keep], batch.t_us[keep], batch.host_time_ns[keep])
 
     def pulses(self, emitted: int = 0) -> PulseLog:
         with self._lock:

@@ -483,7 +483,8 @@ class CaptureSession:
         )
 
     def _stop_trigger(self, trigger: TriggerChannel) -> int:
-        """Fix the take's last pulse and stop the box; the number of pulses it emitted.
+        """Fix the take's last pulse and stop the box; the number of pulses of the take (those
+        the box emitted, up to the last).
 
         The last pulse is chosen before STOP is sent, at most `STOP_LEAD_S` ahead of the
         pulses seen, so the devices' gates cut at a known end while the STOP round trip runs;
@@ -496,6 +497,14 @@ class CaptureSession:
         emitted = trigger.stop_box()
         if emitted > 0:
             window.set_last_index(min(emitted - 1, window.last_index or 0))
+        kept = emitted if window.last_index is None else min(emitted, window.last_index + 1)
+        if kept < emitted:
+            line = (
+                f"the trigger box emitted {emitted - kept} pulse(s) after the take's last "
+                f"(pulse {kept - 1}, fixed when the stop came); they are outside the take window"
+            )
+            log.info("take %s: %s", self.path, line)
+            self._faults.note(line)
         log.info(
             "take %s: window %s..%s us (last pulse %s of %d emitted)",
             self.path,
@@ -504,7 +513,7 @@ class CaptureSession:
             window.last_index,
             emitted,
         )
-        return emitted
+        return kept
 
     def _wait_for_window(self, backlog_s: float) -> bool:
         """Until every device has delivered up to the end of the window (or is away), for at
@@ -531,6 +540,9 @@ class CaptureSession:
         device that never delivered up to the window end gets a loss record for the span."""
         outside: dict[str, dict[str, int]] = {}
         backlog_s = self.config.writer.stop_backlog_s
+        if self._trigger is not None:
+            outside["trigger"] = {"before": 0, "after": self._trigger.pulses_after_window}
+            self._ledger.set_outside("trigger", outside["trigger"])
         for name, ch in self._channels.items():
             gate = ch.gate
             if gate is None:

@@ -266,12 +266,22 @@ class WindowGate:
         return [part for held in self._release() for part in self._by_host(held)] + self._by_host(item)
 
     def finish(self) -> list[Item]:
-        """At the end of the take: what is still held, passed through (no pulse to place it)."""
+        """At the end of the take, what is still held: placed by host time when a pulse record
+        came, else passed through (nothing to place it with)."""
         if not self._held:
             return []
+        if self.window.first_pulse_us is not None:
+            log.warning(
+                "%s: no trigger edge came to place its window; %d held packets placed by host time",
+                self.name,
+                len(self._held),
+            )
+            self.by_host_fallback = self.mode != "host"
+            self.mode = "host"
+            return [part for held in self._release() for part in self._by_host(held)]
         log.warning(
-            "%s: %d packets held for the window's start were never placed (no trigger edge or pulse "
-            "record); written as they are",
+            "%s: %d packets held for the window's start were never placed (no pulse record); "
+            "written as they are",
             self.name,
             len(self._held),
         )

@@ -10,6 +10,7 @@ import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import h5py
@@ -19,10 +20,11 @@ from pydantic import ValidationError
 
 from drivers.base import EventPacket
 from rigd.app.capture import CaptureSession, run_capture
-from rigd.app.capture.channel import DeviceChannel
+from rigd.app.capture.channel import DeviceChannel, TriggerChannel
 from rigd.app.capture.session import STOP_LEAD_S
 from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.app.config import default_sim_rig
+from rigd.core.devices import PulseBatch
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.settings import WriterConfig
@@ -127,6 +129,29 @@ def test_without_a_trigger_edge_the_window_falls_back_to_host_time() -> None:
     assert gate.closed
 
 
+def test_held_packets_are_placed_by_host_time_at_the_end() -> None:
+    """A sensor whose trigger edges never came: what it held is placed by host time."""
+    window = TakeWindow(RATE, margin_us=0, last_index=9)
+    gate = WindowGate("ev", "trigger_in", window, hold_s=60.0)
+    assert gate.admit(_packet(np.arange(10), host_ns=9_000_000_000)) == []
+    assert gate.admit(_packet(np.arange(10, 20), host_ns=10_005_000_000)) == []
+    window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
+    kept = _events(gate.finish())
+    assert kept.tolist() == list(range(10, 20))
+    assert gate.counts.before == 10
+    assert gate.by_host_fallback
+
+
+def test_pulse_records_after_the_last_pulse_are_counted_not_kept() -> None:
+    channel = SimpleNamespace(pulses_after_window=0)
+    idx = np.arange(5, 10, dtype=np.int64)
+    batch = PulseBatch(idx, idx * 1000, idx * 10)
+    kept = TriggerChannel._clip(channel, batch, 7)  # type: ignore[arg-type]
+    assert kept.index.tolist() == [5, 6, 7]
+    assert channel.pulses_after_window == 2
+    assert TriggerChannel._clip(channel, batch, None) is batch  # type: ignore[arg-type]
+
+
 def test_frames_of_pulses_after_the_last_are_outside() -> None:
     window = TakeWindow(RATE, margin_us=0, last_index=2)
     gate = WindowGate("cam", "pulse_frames", window)
@@ -204,7 +229,7 @@ def _check_take_is_in_its_window(path: Path, tol_us: int) -> tuple[int, int, dic
             assert ts.size > 0, cam
             assert ts.min() >= start - tol_us, cam
             assert ts.max() < end + tol_us, cam
-    assert set(outside) == {"cam0", "cam1", "cam2", "ev0", "ev1"}
+    assert set(outside) == {"trigger", "cam0", "cam1", "cam2", "ev0", "ev1"}
     return start, end, outside
 
 
