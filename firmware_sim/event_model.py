@@ -28,16 +28,19 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from typing import Literal
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from rigd.core.events import EventArray
 
 log = logging.getLogger(__name__)
+
+_PARALLEL_LOCK = threading.Lock()
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -145,65 +148,89 @@ def init_state_kernel(  # pragma: no cover - numba
             ref[i, j] = lv - ref_offset[i, j]
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _new_level(v: float, conv: LogInput, lp: float, prm: StepParams, dt_s: float) -> float:
+    """Log level of a pixel at the end of the step: the input's, low-passed from `lp` if asked."""
+    _leak, lowpass, lowpass_hz, lowpass_min, _refr = prm
+    lv, inten = _to_log(v, conv)
+    if lowpass:
+        frac = max(inten / 255.0, lowpass_min)
+        tau = 1.0 / (2.0 * math.pi * lowpass_hz * frac)
+        a = 1.0 - math.exp(-dt_s / tau)
+        return lp + a * (lv - lp)
+    return lv
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _crossings(
+    lp: float, ln: float, r: float, con: float, coff: float, leak_rate_hz: float, dt_s: float
+) -> tuple[int, int, float, float, float, float]:
+    """(k, sign, threshold, d0, slope, drift) of a pixel going lp -> ln with reference r.
+
+    d(s) = level(s) - ref(s) runs from d0 to d0 + slope over the step (the reference
+    drifts down by `drift`, the leak); k crossings of sign * m * threshold, m = 1..k.
+    """
+    drift = leak_rate_hz * con * dt_s
+    d0 = lp - r
+    d1 = ln - r + drift
+    k = 0
+    sign = 0
+    c = con
+    if d1 >= con * (1.0 - CROSSING_TOLERANCE):
+        k = max(1, int(d1 / con + CROSSING_TOLERANCE))
+        sign = 1
+    elif d1 <= -coff * (1.0 - CROSSING_TOLERANCE):
+        k = max(1, int(-d1 / coff + CROSSING_TOLERANCE))
+        sign = -1
+        c = coff
+    return k, sign, c, d0, d1 - d0, drift
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _event_time(m: int, sign: int, c: float, d0: float, slope: float, t0: int, t1: int, dt: float) -> int:
+    """Time (us, inside (t0, t1]) of the m-th crossing: linear interpolation, rounded."""
+    target = sign * m * c
+    s = (target - d0) / slope if slope != 0.0 else 1.0
+    s = min(max(s, 0.0), 1.0)
+    te = t0 + int(s * dt + 0.5)  # s * dt >= 0: truncation rounds to nearest
+    return min(max(te, t0 + 1), t1)
+
+
 @njit(nogil=True, cache=True)
 def step_kernel(  # pragma: no cover - numba
     frame: F32, conv: LogInput, px: Pixels, prm: StepParams, t0: int, t1: int, i0: int, out: EventOut, n: int
 ) -> tuple[int, int]:
     """Events of every pixel for the step (t0, t1], in raster order; updates the state in place.
 
-    Per pixel: new level (low-passed if asked), d(s) = level(s) - ref(s) linear in the
-    step fraction s (ref drifts down by the leak), one event per crossing of +m*C_on or
-    -m*C_off at t0 + s*(t1 - t0) rounded to the us and kept inside (t0, t1]. The state of
-    a pixel changes only with its events, so when the outputs are full the kernel stops
-    before that pixel and returns (n, its flat index) for the caller to grow the outputs
-    and resume from (as i0); (n, h*w) when done.
+    The serial reference of the rule (the simulator runs the two-pass block kernels
+    below, which give the same events; tests compare them). Per pixel: new level
+    (low-passed if asked), d(s) = level(s) - ref(s) linear in the step fraction s (ref
+    drifts down by the leak), one event per crossing of +m*C_on or -m*C_off at
+    t0 + s*(t1 - t0) rounded to the us and kept inside (t0, t1]. The state of a pixel
+    changes only with its events, so when the outputs are full the kernel stops before
+    that pixel and returns (n, its flat index) for the caller to grow the outputs and
+    resume from (as i0); (n, h*w) when done.
     """
     level, ref, thr_on, thr_off, last_t = px
-    leak_rate_hz, lowpass, lowpass_hz, lowpass_min, refractory_us = prm
+    leak_rate_hz = prm[0]
+    refractory_us = prm[4]
     out_x, out_y, out_p, out_t = out
     h, w = frame.shape
     dt = float(t1 - t0)
     dt_s = dt * 1e-6
-    tol = 1.0 - CROSSING_TOLERANCE
     for idx in range(i0, h * w):
         i = idx // w
         j = idx - i * w
-        lv, inten = _to_log(frame[i, j], conv)
         lp = level[i, j]
-        if lowpass:
-            frac = max(inten / 255.0, lowpass_min)
-            tau = 1.0 / (2.0 * math.pi * lowpass_hz * frac)
-            a = 1.0 - math.exp(-dt_s / tau)
-            ln = lp + a * (lv - lp)
-        else:
-            ln = lv
+        ln = _new_level(frame[i, j], conv, lp, prm, dt_s)
         r = ref[i, j]
-        con = thr_on[i, j]
-        coff = thr_off[i, j]
-        drift = leak_rate_hz * con * dt_s
-        d0 = lp - r
-        d1 = ln - r + drift
-        k = 0
-        sign = 0
-        c = con
-        if d1 >= con * tol:
-            k = max(1, int(d1 / con + CROSSING_TOLERANCE))
-            sign = 1
-        elif d1 <= -coff * tol:
-            k = max(1, int(-d1 / coff + CROSSING_TOLERANCE))
-            sign = -1
-            c = coff
+        k, sign, c, d0, slope, drift = _crossings(lp, ln, r, thr_on[i, j], thr_off[i, j], leak_rate_hz, dt_s)
         if k > 0:
             if n + k > out_x.shape[0]:
                 return n, idx
-            slope = d1 - d0
             lt = last_t[i, j]
             for m in range(1, k + 1):
-                target = sign * m * c
-                s = (target - d0) / slope if slope != 0.0 else 1.0
-                s = min(max(s, 0.0), 1.0)
-                te = t0 + int(s * dt + 0.5)  # s * dt >= 0: truncation rounds to nearest
-                te = min(max(te, t0 + 1), t1)
+                te = _event_time(m, sign, c, d0, slope, t0, t1, dt)
                 if te - lt < refractory_us:
                     continue
                 out_x[n] = j
@@ -217,6 +244,282 @@ def step_kernel(  # pragma: no cover - numba
         level[i, j] = ln
         ref[i, j] = r - drift
     return n, h * w
+
+
+# The simulator's step runs in two passes over fixed blocks of rows, so that the events
+# come out in the order of the reference (stable by time: raster order, then the noise)
+# whatever the number of threads. Between passes an event is one int64 key,
+# (t - t0 - 1) << KEY_T_SHIFT | y << 17 | x << 1 | (ON), 8 bytes to move:
+# 1. emit: each block of rows runs the per-pixel rule, appends its events' keys (raster
+#    order) to its own slice of a scratch buffer, counts them per coarse time bucket and
+#    advances its pixels' state; a block whose slice is full stops before a pixel and
+#    resumes there once the buffer has grown. A finished block sorts its keys by coarse
+#    bucket (stable, while they are still in cache) into its slice of a second buffer;
+# 2. sort: each coarse bucket gathers its run of keys from every block in order (the
+#    noise's last), sorts them by the fine time (counting sort, stable) and unpacks them
+#    into its range of the output columns.
+# Each pass is a `prange` over blocks (or buckets) calling a per-block kernel; the `_ser`
+# twins run the same blocks in order on one thread.
+
+#: Rows of the image are cut into at most this many blocks (the unit of parallel work).
+MAX_BLOCKS = 64
+#: At most 2**COARSE_BITS coarse time buckets per step.
+COARSE_BITS = 7
+#: Bit of an event key where its time (relative to the step's start) begins.
+KEY_T_SHIFT = 33
+#: Steps at least this long (us, ~18 min) run the serial reference (times must fit a key).
+MAX_KEYED_SPAN = 1 << 30
+
+
+@njit(nogil=True, cache=True)
+def _emit_block(  # pragma: no cover - numba
+    b: int,
+    rows: int,
+    frame: F32,
+    conv: LogInput,
+    px: Pixels,
+    prm: StepParams,
+    t0: int,
+    t1: int,
+    shift: int,
+    hist: I64,
+    filled: I64,
+    resume: I64,
+    keys: I64,
+    bucketed: I64,
+) -> None:
+    """Pass 1 for block b (rows [b*rows, (b+1)*rows)) from flat pixel index resume[b].
+
+    Event keys go to keys[b*cap + filled[b]:(b+1)*cap] (cap = len(keys) // len(filled)),
+    counted in hist[b]; the arithmetic is `step_kernel`'s. Stops before a pixel whose
+    events do not fit, leaving its index in resume[b]; else resume[b] = the block's end
+    and the block's keys, sorted by coarse bucket, are in the same slice of `bucketed`.
+    """
+    level, ref, thr_on, thr_off, last_t = px
+    leak_rate_hz = prm[0]
+    refractory_us = prm[4]
+    h, w = frame.shape
+    cap = keys.shape[0] // filled.shape[0]
+    lo = b * cap
+    n = filled[b]
+    dt = float(t1 - t0)
+    dt_s = dt * 1e-6
+    base = t0 + 1
+    i_end = min(h, (b + 1) * rows)
+    i0 = resume[b] // w
+    j0 = resume[b] - i0 * w
+    for i in range(i0, i_end):
+        for j in range(j0 if i == i0 else 0, w):
+            lp = level[i, j]
+            ln = _new_level(frame[i, j], conv, lp, prm, dt_s)
+            r = ref[i, j]
+            k, sign, c, d0, slope, drift = _crossings(
+                lp, ln, r, thr_on[i, j], thr_off[i, j], leak_rate_hz, dt_s
+            )
+            if k > 0:
+                if n + k > cap:
+                    filled[b] = n
+                    resume[b] = i * w + j
+                    return
+                lt = last_t[i, j]
+                pix = (i << 17) | (j << 1) | (1 if sign > 0 else 0)
+                for m in range(1, k + 1):
+                    te = _event_time(m, sign, c, d0, slope, t0, t1, dt)
+                    if te - lt < refractory_us:
+                        continue
+                    keys[lo + n] = ((te - base) << KEY_T_SHIFT) | pix
+                    n += 1
+                    hist[b, (te - base) >> shift] += 1
+                    lt = te
+                last_t[i, j] = lt
+                r += sign * k * c
+            level[i, j] = ln
+            if k > 0 or drift != 0.0:
+                ref[i, j] = r - drift
+    filled[b] = n
+    resume[b] = i_end * w
+    _bucket_sort(keys, lo, n, hist[b], shift, bucketed)
+
+
+@njit(nogil=True, cache=True)
+def _bucket_sort(  # pragma: no cover - numba
+    keys: I64, lo: int, n: int, counts: I64, shift: int, dst: I64
+) -> None:
+    """keys[lo:lo+n] into dst[lo:lo+n] by coarse bucket (stable); counts: keys per bucket."""
+    pos = np.empty(counts.shape[0], np.int64)
+    acc = lo
+    for q in range(counts.shape[0]):
+        pos[q] = acc
+        acc += counts[q]
+    sh = KEY_T_SHIFT + shift
+    for e in range(lo, lo + n):
+        key = keys[e]
+        q = key >> sh
+        dst[pos[q]] = key
+        pos[q] += 1
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _unpack(key: int, base: int, e: int, out: EventOut) -> None:
+    ox, oy, op, ot = out
+    ox[e] = (key >> 1) & 0xFFFF
+    oy[e] = (key >> 17) & 0xFFFF
+    op[e] = 1 if key & 1 else -1
+    ot[e] = base + (key >> KEY_T_SHIFT)
+
+
+@njit(nogil=True, cache=True)
+def _sort_bucket(  # pragma: no cover - numba
+    q: int,
+    bounds: I64,
+    starts: I64,
+    hist: I64,
+    base: int,
+    shift: int,
+    bucketed: I64,
+    noise: I64,
+    out: EventOut,
+) -> None:
+    """Pass 2 for coarse bucket q: its keys, from every block's run (starts[b, q], hist[b, q]
+    long, in `bucketed`; the last row's in `noise`), sorted by time into out[bounds[q]:bounds[q+1]]."""
+    lo = bounds[q]
+    n = bounds[q + 1] - lo
+    if n == 0:
+        return
+    n_runs = hist.shape[0]
+    span = 1 << shift
+    if n == 1 or span == 1:
+        e = lo
+        for b in range(n_runs):
+            src = noise if b == n_runs - 1 else bucketed
+            for s in range(starts[b, q], starts[b, q] + hist[b, q]):
+                _unpack(src[s], base, e, out)
+                e += 1
+        return
+    if span <= 4 * n + 64:
+        mask = span - 1
+        counts = np.zeros(span + 1, np.int64)
+        for b in range(n_runs):
+            src = noise if b == n_runs - 1 else bucketed
+            for s in range(starts[b, q], starts[b, q] + hist[b, q]):
+                counts[((src[s] >> KEY_T_SHIFT) & mask) + 1] += 1
+        for f in range(1, span + 1):
+            counts[f] += counts[f - 1]
+        # Sort the keys in a local buffer (one write stream per fine bucket, in cache), then
+        # unpack them in order (one sequential stream per output column).
+        local = np.empty(n, np.int64)
+        for b in range(n_runs):
+            src = noise if b == n_runs - 1 else bucketed
+            for s in range(starts[b, q], starts[b, q] + hist[b, q]):
+                key = src[s]
+                f = (key >> KEY_T_SHIFT) & mask
+                local[counts[f]] = key
+                counts[f] += 1
+        for e in range(n):
+            _unpack(local[e], base, lo + e, out)
+        return
+    gathered = np.empty(n, np.int64)
+    e = 0
+    for b in range(n_runs):
+        src = noise if b == n_runs - 1 else bucketed
+        for s in range(starts[b, q], starts[b, q] + hist[b, q]):
+            gathered[e] = src[s]
+            e += 1
+    order = np.argsort(gathered >> KEY_T_SHIFT, kind="mergesort")
+    for e in range(n):
+        _unpack(gathered[order[e]], base, lo + e, out)
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def _emit_par(  # pragma: no cover - numba
+    frame: F32,
+    conv: LogInput,
+    px: Pixels,
+    prm: StepParams,
+    t0: int,
+    t1: int,
+    rows: int,
+    shift: int,
+    hist: I64,
+    filled: I64,
+    resume: I64,
+    keys: I64,
+    bucketed: I64,
+) -> None:
+    for b in prange(filled.shape[0]):
+        _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed)
+
+
+@njit(nogil=True, cache=True)
+def _emit_ser(  # pragma: no cover - numba
+    frame: F32,
+    conv: LogInput,
+    px: Pixels,
+    prm: StepParams,
+    t0: int,
+    t1: int,
+    rows: int,
+    shift: int,
+    hist: I64,
+    filled: I64,
+    resume: I64,
+    keys: I64,
+    bucketed: I64,
+) -> None:
+    for b in range(filled.shape[0]):
+        _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed)
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def _sort_par(  # pragma: no cover - numba
+    bounds: I64, starts: I64, hist: I64, base: int, shift: int, bucketed: I64, noise: I64, out: EventOut
+) -> None:
+    for q in prange(bounds.shape[0] - 1):
+        _sort_bucket(q, bounds, starts, hist, base, shift, bucketed, noise, out)
+
+
+@njit(nogil=True, cache=True)
+def _sort_ser(  # pragma: no cover - numba
+    bounds: I64, starts: I64, hist: I64, base: int, shift: int, bucketed: I64, noise: I64, out: EventOut
+) -> None:
+    for q in range(bounds.shape[0] - 1):
+        _sort_bucket(q, bounds, starts, hist, base, shift, bucketed, noise, out)
+
+
+@njit(nogil=True, cache=True)
+def _run_offsets(hist: I64, cap: int) -> tuple[I64, I64]:  # pragma: no cover - numba
+    """(bounds, starts) of a (runs, buckets) histogram: bucket q's events go to the output's
+    [bounds[q], bounds[q + 1]); run b's keys of bucket q start at starts[b, q] (run b of the
+    key buffer at b * cap, the last run, the noise's, at 0 of its own array)."""
+    n_r, n_q = hist.shape
+    bounds = np.empty(n_q + 1, np.int64)
+    pos = 0
+    for q in range(n_q):
+        bounds[q] = pos
+        for b in range(n_r):
+            pos += hist[b, q]
+    bounds[n_q] = pos
+    starts = np.empty((n_r, n_q), np.int64)
+    for b in range(n_r):
+        acc = b * cap if b < n_r - 1 else 0
+        for q in range(n_q):
+            starts[b, q] = acc
+            acc += hist[b, q]
+    return bounds, starts
+
+
+@njit(nogil=True, cache=True)
+def _noise_keys(ev: EventOut, base: int, shift: int, counts: I64) -> I64:  # pragma: no cover - numba
+    """Keys of extra events (in their order), counted per coarse bucket into `counts`."""
+    x, y, p, t = ev
+    keys = np.empty(t.shape[0], np.int64)
+    for e in range(t.shape[0]):
+        rel = t[e] - base
+        counts[rel >> shift] += 1
+        keys[e] = (
+            (rel << KEY_T_SHIFT) | (np.int64(y[e]) << 17) | (np.int64(x[e]) << 1) | (1 if p[e] > 0 else 0)
+        )
+    return keys
 
 
 @njit(nogil=True, cache=True)
@@ -271,12 +574,17 @@ class EventSimulator:
     """Per-pixel state of one simulated sensor and the step that turns a new frame into events.
 
     `step(frame, t_us)` takes the frame at time t_us (strictly after the previous one)
-    and returns the events of (t_prev, t_us], sorted by time. The first call only sets
-    the state and returns no events. Memory is constant: the state (about 40 bytes per
-    pixel) plus an output buffer that grows to the largest step seen.
+    and returns the events of (t_prev, t_us], sorted by time (stable: raster order, then
+    noise). The first call only sets the state and returns no events. The step runs on
+    numba's threads (`numba.set_num_threads`; `parallel=False`: on the caller's thread)
+    and gives the same events whatever their number. Memory is constant: the state
+    (about 48 bytes per pixel) plus a scratch event buffer that grows to the largest
+    step seen.
     """
 
-    def __init__(self, width: int, height: int, config: PixelModelConfig | None = None) -> None:
+    def __init__(
+        self, width: int, height: int, config: PixelModelConfig | None = None, *, parallel: bool = True
+    ) -> None:
         if not (0 < width <= 65536 and 0 < height <= 65536):
             raise ValueError(f"EventSimulator: geometry {width}x{height} out of range (1..65536)")
         self.width, self.height = int(width), int(height)
@@ -310,7 +618,11 @@ class EventSimulator:
             cfg.lowpass_min_fraction,
             cfg.refractory_us,
         )
-        self._out = _event_arrays(max(4096, n_pix // 8))
+        self.parallel = parallel
+        self._rows = -(-self.height // min(self.height, MAX_BLOCKS))
+        self._n_blocks = -(-self.height // self._rows)
+        self._keys = np.empty(self._n_blocks * max(1024, self._rows * self.width // 2), np.int64)
+        self._bucketed = np.empty_like(self._keys)
         log.debug(
             "EventSimulator %dx%d: C_on %.3f C_off %.3f sigma %.3f, %d hot pixels",
             self.width,
@@ -373,33 +685,104 @@ class EventSimulator:
                 f"EventSimulator step {self.n_steps}: time {t} us is not after the previous frame's "
                 f"{t0} us (frame times must increase strictly)"
             )
+        noise = self._noise(t0, t)
+        # Parallel kernels only when no other simulator is running them (numba's workqueue
+        # layer does not take concurrent parallel calls); the serial twins give the same events.
+        par = self.parallel and _PARALLEL_LOCK.acquire(blocking=False)
+        try:
+            events = self._run_passes(f32, conv, t0, t, noise, par)
+        finally:
+            if par:
+                _PARALLEL_LOCK.release()
+        self.t_us = t
+        self.n_steps += 1
+        return events
+
+    def _run_passes(
+        self, f32: F32, conv: LogInput, t0: int, t1: int, noise: EventArray | None, par: bool
+    ) -> EventArray:
+        """Emit, scatter and sort the events of (t0, t1] (see the comments above `_emit_block`)."""
+        span = t1 - t0
+        if span >= MAX_KEYED_SPAN:
+            return self._reference_step(f32, conv, t0, t1, noise)
+        bits = max(span - 1, 1).bit_length()
+        shift = max(bits - COARSE_BITS, 0)
+        n_buckets = ((span - 1) >> shift) + 1
+        nb = self._n_blocks
+        hist = np.zeros((nb + 1, n_buckets), np.int64)  # the last row: noise
+        base = t0 + 1
+        noise_sorted = np.empty(0, np.int64)
+        if noise is not None:
+            extra: EventOut = (noise.x, noise.y, noise.p, noise.t)
+            noise_keys = _noise_keys(extra, base, shift, hist[nb])
+            noise_sorted = np.empty_like(noise_keys)
+            _bucket_sort(noise_keys, 0, noise_keys.shape[0], hist[nb], shift, noise_sorted)
+        filled = np.zeros(nb, np.int64)
+        resume = np.arange(nb, dtype=np.int64) * (self._rows * self.width)
+        end = np.minimum(resume + self._rows * self.width, self.width * self.height)
         px: Pixels = (self.level, self.ref, self.thr_on, self.thr_off, self.last_t)
+        emit = _emit_par if par else _emit_ser
+        while True:
+            emit(
+                f32,
+                conv,
+                px,
+                self._params,
+                t0,
+                t1,
+                self._rows,
+                shift,
+                hist,
+                filled,
+                resume,
+                self._keys,
+                self._bucketed,
+            )
+            if (resume >= end).all():
+                break
+            self._grow_keys(filled)
+        bounds, starts = _run_offsets(hist, self._keys.shape[0] // nb)
+        n = int(bounds[-1])
+        if n == 0:
+            return EventArray.empty()
+        out = _event_arrays(n)
+        sort = _sort_par if par else _sort_ser
+        sort(bounds, starts, hist, base, shift, self._bucketed, noise_sorted, out)
+        return EventArray(*out)
+
+    def _grow_keys(self, filled: I64) -> None:
+        """Double every block's slice of the key buffers, keeping what they hold."""
+        nb = self._n_blocks
+        cap = self._keys.shape[0] // nb
+        grown = np.empty(2 * cap * nb, np.int64), np.empty(2 * cap * nb, np.int64)
+        for old, new in zip((self._keys, self._bucketed), grown, strict=True):
+            for b in range(nb):
+                new[2 * cap * b : 2 * cap * b + filled[b]] = old[cap * b : cap * b + filled[b]]
+        self._keys, self._bucketed = grown
+        log.debug("EventSimulator: event buffer grown to %d per block", 2 * cap)
+
+    def _reference_step(
+        self, f32: F32, conv: LogInput, t0: int, t1: int, noise: EventArray | None
+    ) -> EventArray:
+        """The step by the serial reference kernel and a sort (steps too long for the keys)."""
+        px: Pixels = (self.level, self.ref, self.thr_on, self.thr_off, self.last_t)
+        out = _event_arrays(max(4096, self.width * self.height // 8))
         n, idx, n_pix = 0, 0, self.width * self.height
         while True:
-            n, idx = step_kernel(f32, conv, px, self._params, t0, t, idx, self._out, n)
+            n, idx = step_kernel(f32, conv, px, self._params, t0, t1, idx, out, n)
             if idx >= n_pix:
                 break
-            self._grow(n)
-        bx, by, bp, bt = self._out
-        x, y, p, tt = bx[:n], by[:n], bp[:n], bt[:n]
-        noise = self._noise(t0, t)
+            grown = _event_arrays(2 * out[0].shape[0])
+            for old, new in zip(out, grown, strict=True):
+                new[:n] = old[:n]  # type: ignore[index]
+            out = grown
+        x, y, p, tt = out[0][:n], out[1][:n], out[2][:n], out[3][:n]
         if noise is not None:
             x = np.concatenate([x, noise.x])
             y = np.concatenate([y, noise.y])
             p = np.concatenate([p, noise.p])
             tt = np.concatenate([tt, noise.t])
-        self.t_us = t
-        self.n_steps += 1
-        return sort_by_time(x, y, p, tt, t0 + 1, t)
-
-    def _grow(self, n: int) -> None:
-        """Double the event buffer, keeping its first n events."""
-        size = 2 * self._out[0].shape[0]
-        grown = _event_arrays(size)
-        for old, new in zip(self._out, grown, strict=True):
-            new[:n] = old[:n]  # type: ignore[index]
-        self._out = grown
-        log.debug("EventSimulator: event buffer grown to %d", size)
+        return sort_by_time(x, y, p, tt, t0 + 1, t1)
 
     def _noise(self, t0: int, t1: int) -> EventArray | None:
         """Shot-noise and hot-pixel events of (t0, t1], unsorted; None when both are off."""

@@ -10,7 +10,7 @@ from rigd.core.events import EventArray
 
 
 def log_sim(width: int = 1, height: int = 1, **kw: object) -> EventSimulator:
-    return EventSimulator(width, height, PixelModelConfig(input_kind="log", **kw))  # type: ignore[arg-type]
+    return EventSimulator(width, height, PixelModelConfig(input_kind="log", **kw))
 
 
 def const(value: float, width: int = 1, height: int = 1) -> np.ndarray:
@@ -262,3 +262,100 @@ def test_clear_errors() -> None:
         sim.step(np.zeros((6, 10), np.uint8), 0)
     with pytest.raises(ValueError, match="NaN"):
         sim.step(np.full((6, 10), np.nan, np.float32), 20)
+
+
+# The step runs three passes on numba's threads (firmware_sim.event_model, above
+# `_emit_block`); they must give exactly the events of the serial reference kernel.
+
+
+def _moving_frames(n: int, w: int = 96, h: int = 70) -> list[np.ndarray]:
+    rng = np.random.default_rng(12)
+    tex = rng.integers(0, 256, (h, w + 4 * n)).astype(np.float32)
+    return [tex[:, 4 * i : 4 * i + w].copy() for i in range(n)]
+
+
+STEP_TIMES = [0, 33_333, 40_000, 40_001, 41_000, 100_000, 2_000_000]
+
+
+def run_steps(cfg: PixelModelConfig, **kw: object) -> list[EventArray]:
+    frames = _moving_frames(len(STEP_TIMES))
+    sim = EventSimulator(frames[0].shape[1], frames[0].shape[0], cfg, **kw)  # type: ignore[arg-type]
+    return [sim.step(f, t) for f, t in zip(frames, STEP_TIMES, strict=True)]
+
+
+def assert_same(a: list[EventArray], b: list[EventArray]) -> None:
+    assert len(a) == len(b)
+    for ea, eb in zip(a, b, strict=True):
+        for name in ("x", "y", "p", "t"):
+            xa, xb = getattr(ea, name), getattr(eb, name)
+            assert xa.dtype == xb.dtype
+            np.testing.assert_array_equal(xa, xb)
+
+
+NOISY = [
+    PixelModelConfig(threshold=0.2),
+    PixelModelConfig(threshold=0.05, sigma=0.02),  # many events per pixel: the key buffer grows
+    PixelModelConfig(
+        threshold=0.15,
+        sigma=0.03,
+        lowpass=True,
+        lowpass_cutoff_hz=80.0,
+        refractory_us=300,
+        leak_rate_hz=3.0,
+        shot_noise_rate_hz=30.0,
+        hot_pixel_fraction=0.01,
+        seed=9,
+    ),
+]
+
+
+@pytest.mark.parametrize("cfg", NOISY, ids=["clean", "dense", "noisy"])
+def test_parallel_serial_and_reference_give_the_same_events(
+    cfg: PixelModelConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import firmware_sim.event_model as em
+
+    par = run_steps(cfg)
+    ser = run_steps(cfg, parallel=False)
+    assert sum(len(e) for e in par) > 1000
+    assert all(e.is_time_sorted() for e in par)
+    assert_same(par, ser)
+    monkeypatch.setattr(em, "MAX_KEYED_SPAN", 1)  # every step through the serial reference kernel
+    assert_same(par, run_steps(cfg))
+
+
+def test_same_events_whatever_the_thread_count() -> None:
+    import numba
+
+    cfg = NOISY[2]
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = run_steps(cfg)
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
+        many = run_steps(cfg)
+    finally:
+        numba.set_num_threads(before)
+    assert_same(one, many)
+    assert_same(one, run_steps(cfg))
+
+
+def test_simulators_in_threads_give_the_events_they_give_alone() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = NOISY[2]
+    alone = run_steps(cfg)
+    with ThreadPoolExecutor(3) as pool:
+        results = list(pool.map(lambda _: run_steps(cfg), range(3)))
+    for r in results:
+        assert_same(alone, r)
+
+
+def test_step_longer_than_the_event_keys_hold() -> None:
+    """A step of ~20 min (past MAX_KEYED_SPAN) goes through the reference kernel, same rule."""
+    sim = log_sim(threshold=0.25)
+    dt = 1_200_000_000
+    sim.step(const(0.0), 0)
+    ev = sim.step(const(1.0), dt)
+    assert len(ev) == 4
+    assert np.abs(ev.t - np.arange(1, 5) * dt // 4).max() <= 1
