@@ -430,7 +430,7 @@ class SimTriggerBox:
             period = 1e6 / self._rate_hz
             if self._width_us >= period:
                 raise _CommandError("BADARG", f"width {self._width_us} us >= period {period:.1f} us")
-            self._t0 = self.box_now() + START_LEAD_US
+            self._t0 = self._first_pulse_time()
             self._target = target
             self._state = RUNNING
             self._run_stop = threading.Event()
@@ -479,6 +479,14 @@ class SimTriggerBox:
         return [*lines, f"OK TS {len(lines)}"]
 
     # ---------------------------------------------------------------- pulses
+    def _first_pulse_time(self) -> int:
+        """Box time of pulse 0 of a run STARTed now (a replayed box puts its recording there)."""
+        return self.box_now() + START_LEAD_US
+
+    def _pulse_box_time(self, t0: int, rate_hz: float, k: int) -> int | None:
+        """Box time of pulse k of the run; None when the schedule has no more (a replay's end)."""
+        return t0 + round(k * 1e6 / rate_hz)
+
     def _halt_scheduler(self) -> None:
         sched = self._scheduler
         self._run_stop.set()
@@ -494,7 +502,13 @@ class SimTriggerBox:
         k = 0
         try:
             while not target or k < target:
-                b_k = t0 + round(k * 1e6 / rate_hz)
+                b_k = self._pulse_box_time(t0, rate_hz, k)
+                if b_k is None:
+                    with self._lock:
+                        self._state = IDLE
+                        self._send_locked(f"END {self._count}")
+                    log.info("trigger box %s: schedule ended after %d pulses", self.port_path, k)
+                    return
                 true_us = self.clock.true_at(b_k)
                 if not hold.sleep_until(true_us, stop):
                     return
@@ -592,7 +606,8 @@ _COMMANDS: dict[str, tuple[str, int, int]] = {
     "TS?": ("_cmd_ts", 2, 2),
 }
 
-_SIM_PARAMS = {
+#: Spec parameters of a box on the pty (sim and replay alike).
+BOX_PARAMS = {
     "offset_us",
     "drift_ppm",
     "jitter_us",
@@ -630,6 +645,12 @@ def find_trigger_box(world: SimWorld) -> SimTriggerBox | None:
 
 
 def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
+    """Factory for `sim://<world>/trigger?...` (see `open_box_trigger`)."""
+    spec.check_params(BOX_PARAMS)
+    return open_box_trigger(spec, spec_world(spec), SimTriggerBox)
+
+
+def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTriggerBox]) -> SerialTrigger:
     """Start a sim box for the spec's world and open it with the real driver.
 
     `transport=serial` (default): the box on a pty, opened with pyserial. `transport=hid`:
@@ -640,7 +661,6 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
     """
     from drivers.serial_trigger import SerialTrigger
 
-    spec.check_params(_SIM_PARAMS)
     transport = spec.param("transport", "serial")
     if transport not in ("serial", "hid"):
         raise ConfigError(f"device spec {spec.raw!r}: transport={transport!r}; use serial or hid")
@@ -651,7 +671,6 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
         if not (0 < value < math.inf):
             raise ConfigError(f"device spec {spec.raw!r}: {key}={spec.params[key]!r} must be > 0 seconds")
     seed = spec.int_param("seed", 0)
-    world = spec_world(spec)
     slot = _slot(world)
     with slot.lock:
         if slot.box is not None and not slot.box.closed:
@@ -659,7 +678,7 @@ def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
                 f"device spec {spec.raw!r}: world {world.name!r} already has an open trigger box "
                 f"on {slot.box.port_path}"
             )
-        box = SimTriggerBox(
+        box = box_class(
             world,
             offset_us=spec.float_param("offset_us", 0.0),
             drift_ppm=spec.float_param("drift_ppm", 0.0),

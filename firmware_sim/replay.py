@@ -1,0 +1,618 @@
+"""`replay:///abs/TAKE.h5?device=NAME`: a recorded take played back as a rig, through the real drivers.
+
+Every device of a recorded take can be opened again from the file: the trigger box runs the
+simulated firmware on a pty (the host opens it with pyserial) and reports the recorded pulse
+times; a camera delivers the recorded frames with their device timestamps and counters; an
+event sensor encodes the recorded events and trigger-in edges, back in its own clock, into an
+EVT 3.0 byte stream that the production decoder reads. The devices share one `SimWorld`
+per take (and clock: `clock=virtual` replays as fast as the host reads, real time otherwise),
+so a re-captured replay holds the same frames and events and ties the same clocks.
+
+Times: the take holds rig times (trigger-box microseconds). When the box is STARTed it puts
+the recorded pulse 0 one start lead ahead and fixes `rig = true + shift` for the world; every
+device waits for that shift and hands out its data when true time reaches it. Device times come
+back exactly: camera exposure starts and trigger-in edges are stored in device time, and an
+event's device time is the integer whose rig time (through the take's own clock map) is the
+recorded one.
+
+Fault switches as on `sim://` devices (docs/sim-faults.md): box `drop_pulses`, `garbage_every`,
+`silent_after`, `garbage_after`; camera `drop_frames`; camera and event sensor `unplug_at_s` /
+`unplug_for_s`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.base import AcquisitionStats, Capability, RgbCamera
+from drivers.evt import Evt3Encoder
+from drivers.evt_stream import EvtStreamSensor, GrabbingSource
+from drivers.lifecycle import END, Signal
+from drivers.registry import DeviceSpec
+from drivers.serial_trigger import SerialTrigger
+from firmware_sim.clock import Hold
+from firmware_sim.event_sensor import SLICE_US, _Packet
+from firmware_sim.trigger_box import BOX_PARAMS, START_LEAD_US, SimTriggerBox, open_box_trigger
+from firmware_sim.world import DeviceClock, SimWorld, Unpluggable, UnplugParams, get_world, unplug_params
+from rigd.core.devices import DeviceInfo
+from rigd.core.errors import ConfigError, DeviceError, RigdError
+from rigd.core.events import TriggerEvents
+from rigd.core.frames import Frame
+from rigd.core.settings import CameraSettings, EventSensorSettings
+from rigd.core.timebase import ClockMap
+from rigd.take import Take
+
+log = logging.getLogger(__name__)
+
+SCHEME = "replay"
+_CAMERA_PARAMS = {"device", "clock", "buffer_frames", "drop_frames", "unplug_at_s", "unplug_for_s"}
+_SENSOR_PARAMS = {"device", "clock", "buffer_packets", "unplug_at_s", "unplug_for_s"}
+#: A device runs at most this many buffers ahead of its reader on virtual time.
+_VIRTUAL_LEAD = 4
+_STOP_POLL_S = 0.05
+
+
+@dataclass(frozen=True, slots=True)
+class CameraTrack:
+    """One camera's recorded frames (images stay in the file)."""
+
+    name: str
+    rig_us: NDArray[np.int64]
+    device_us: NDArray[np.int64]
+    counter: NDArray[np.int64]
+    exposure_us: NDArray[np.int64]
+    shape: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class SensorTrack:
+    """One event sensor's clock map and trigger-in edges (events stay in the file)."""
+
+    name: str
+    width: int
+    height: int
+    cmap: ClockMap
+    trig_rig: NDArray[np.int64]
+    trig_device: NDArray[np.int64]
+    trig_p: NDArray[np.uint8]
+    trig_channel: NDArray[np.uint8]
+    n_events: int
+
+
+class Recording:
+    """What a finalized take holds that a replay needs, read once per world."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            take = Take(path)
+        except RigdError as exc:
+            raise ConfigError(f"replay {path}: {exc}") from None
+        with take:
+            if take.time_domain != "rig":
+                raise ConfigError(
+                    f"replay {path}: the take is not finalized (times still in device clocks); "
+                    "run `rigd recover` on it first"
+                )
+            report = take.sync_report
+            if report is None:
+                raise ConfigError(f"replay {path}: the take has no sync report")
+            self.rate_hz = float(report.rate_hz)
+            pulses = take.pulses()
+            order = np.argsort(pulses.index, kind="stable")
+            self.pulse_index = pulses.index[order]
+            self.pulse_t = pulses.t_us[order]
+            if self.pulse_index.size == 0:
+                raise ConfigError(f"replay {path}: the take has no trigger pulses to replay")
+            self._pulses = dict(zip(self.pulse_index.tolist(), self.pulse_t.tolist(), strict=True))
+            self.config: dict[str, Any] = take.config
+            self.sensors: dict[str, SensorTrack] = {}
+            with h5py.File(path, "r") as f:
+                self.cameras = {name: self._camera(f, name) for name in take.cameras}
+                for name in take.event_sensors:
+                    sync = report.devices.get(name)
+                    if sync is None:
+                        raise ConfigError(f"replay {path}: event sensor {name} has no clock fit")
+                    trig = take.triggers(name)
+                    w, h = take.geometry(name)
+                    self.sensors[name] = SensorTrack(
+                        name,
+                        w,
+                        h,
+                        ClockMap(sync.device_ref_us, sync.rig_ref_us, sync.rate, sync.frac_us),
+                        trig.t,
+                        np.asarray(f[f"events/{name}/trigger/t_device"][...], np.int64),
+                        trig.p,
+                        trig.channel,
+                        take.event_count(name),
+                    )
+
+    @staticmethod
+    def _camera(f: h5py.File, name: str) -> CameraTrack:
+        g = f[f"frames/{name}"]
+        n = int(g["images"].shape[0])
+        return CameraTrack(
+            name,
+            np.asarray(g["t_exposure_start_us"][:n], np.int64),
+            np.asarray(g["t_exposure_start_device_us"][:n], np.int64),
+            np.asarray(g["frame_counter"][:n], np.int64),
+            np.asarray(g["exposure_us"][:n], np.int64),
+            tuple(int(v) for v in g["images"].shape[1:]),
+        )
+
+    def pulse_time(self, k: int) -> int | None:
+        """Recorded box time of pulse k; a pulse the box log missed is put on the schedule."""
+        if k > int(self.pulse_index[-1]):
+            return None
+        t = self._pulses.get(k)
+        if t is None:
+            return int(self.pulse_t[0]) + round((k - int(self.pulse_index[0])) * 1e6 / self.rate_hz)
+        return int(t)
+
+    def camera(self, name: str) -> CameraTrack:
+        if name not in self.cameras:
+            raise ConfigError(f"replay {self.path}: no camera {name!r} (cameras: {sorted(self.cameras)})")
+        return self.cameras[name]
+
+    def sensor(self, name: str) -> SensorTrack:
+        if name not in self.sensors:
+            raise ConfigError(
+                f"replay {self.path}: no event sensor {name!r} (event sensors: {sorted(self.sensors)})"
+            )
+        return self.sensors[name]
+
+
+class Timeline:
+    """rig = true + shift, fixed when the replayed box is STARTed."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._shift: float | None = None
+
+    def set(self, shift_us: float) -> None:
+        with self._cond:
+            self._shift = shift_us
+            self._cond.notify_all()
+
+    def wait(self, timeout_s: float) -> float | None:
+        """The shift, waiting at most `timeout_s` wall seconds for the START."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._shift is not None, timeout=timeout_s)
+            return self._shift
+
+
+def rig_to_device(cmap: ClockMap, rig_us: NDArray[np.int64]) -> tuple[NDArray[np.int64], int]:
+    """Device times whose rig time through `cmap` is exactly `rig_us`; and how many have none
+    (a rate above 1 skips a rig microsecond now and then: those get the nearest)."""
+    d = cmap.to_device(rig_us)
+    for _ in range(2):
+        err = cmap.to_rig(d) - rig_us
+        bad = err != 0
+        if not bad.any():
+            return d, 0
+        d[bad] -= np.sign(err[bad])
+    return d, int(np.count_nonzero(cmap.to_rig(d) != rig_us))
+
+
+# ---------------------------------------------------------------------------------------- world
+def _take_path(spec: DeviceSpec) -> Path:
+    raw = (spec.location + spec.path) if spec.location else spec.path
+    path = Path(raw)
+    if not path.is_absolute():
+        raise ConfigError(f"device spec {spec.raw!r}: the take path must be absolute (replay:///abs/take.h5)")
+    if not path.is_file():
+        raise ConfigError(f"device spec {spec.raw!r}: no take file at {path}")
+    return path
+
+
+def replay_world(spec: DeviceSpec) -> tuple[SimWorld, Recording, Timeline]:
+    """The world of a take's replay (one per take path and process), its recording and timeline."""
+    path = _take_path(spec)
+    world = get_world(f"replay:{path}", 0, spec.params.get("clock"))
+    rec = world.resource("replay_recording", lambda: Recording(path))
+    timeline = world.resource("replay_timeline", Timeline)
+    assert isinstance(rec, Recording)
+    assert isinstance(timeline, Timeline)
+    return world, rec, timeline
+
+
+def _device_name(spec: DeviceSpec) -> str:
+    name = spec.params.get("device", "")
+    if not name:
+        raise ConfigError(f"device spec {spec.raw!r}: say which recorded device to replay (?device=NAME)")
+    return name
+
+
+# ---------------------------------------------------------------------------------------- trigger
+class ReplayTriggerBox(SimTriggerBox):
+    """The sim firmware, reporting the recorded pulse times instead of a computed schedule."""
+
+    def _first_pulse_time(self) -> int:
+        rec = self.world.resource("replay_recording", lambda: None)
+        timeline = self.world.resource("replay_timeline", Timeline)
+        assert isinstance(rec, Recording)
+        assert isinstance(timeline, Timeline)
+        t0 = rec.pulse_time(int(rec.pulse_index[0]))
+        assert t0 is not None
+        # The box clock is rig time: pulse 0 one start lead from now.
+        self.clock = DeviceClock(t0 - (self.world.now_us() + START_LEAD_US), 0.0)
+        self.world.register_clock("trigger", self.clock)
+        timeline.set(self.clock.offset_us)
+        self._recording = rec
+        return t0
+
+    def _pulse_box_time(self, t0: int, rate_hz: float, k: int) -> int | None:
+        return self._recording.pulse_time(k + int(self._recording.pulse_index[0]))
+
+
+def open_replay_trigger(spec: DeviceSpec) -> SerialTrigger:
+    """Factory for `replay:///abs/take.h5?device=trigger` (+ the box's fault switches)."""
+    spec.check_params({*BOX_PARAMS, "device"} - {"offset_us", "drift_ppm", "jitter_us"})
+    world, _, _ = replay_world(spec)
+    return open_box_trigger(spec, world, ReplayTriggerBox)
+
+
+# ---------------------------------------------------------------------------------------- camera
+class ReplayCamera(Unpluggable, RgbCamera):
+    """A recorded camera: frame j leaves when true time reaches its recorded exposure end."""
+
+    _device_label = "camera"
+    _capabilities = frozenset(
+        {
+            Capability.HARDWARE_TRIGGER,
+            Capability.FRAME_COUNTER,
+            Capability.DEVICE_TIMESTAMPS,
+            Capability.EXPOSURE_CONTROL,
+            Capability.COLOR,
+        }
+    )
+    _overflow_name = "buffer_overflow"
+
+    def __init__(
+        self,
+        spec: DeviceSpec,
+        world: SimWorld,
+        rec: Recording,
+        timeline: Timeline,
+        *,
+        buffer_frames: int,
+        drop_frames: frozenset[int],
+        unplug: UnplugParams | None,
+    ) -> None:
+        name = _device_name(spec)
+        self._track = rec.camera(name)
+        super().__init__(CameraSettings(), queue_len=buffer_frames, drain_on_stop=True)
+        self._world, self._name, self._rec, self._timeline = world, name, rec, timeline
+        self._drop_frames, self._unplug = drop_frames, unplug
+        self._info = DeviceInfo(
+            kind="rgb_camera",
+            spec=spec.raw,
+            vendor="rigd-replay",
+            model="ReplayCamera",
+            serial=f"{rec.path.name}/{name}",
+            firmware="replay-1",
+        )
+        self._fault = world.unplug_fault(name)
+        self._fault.check_present(spec.raw)
+        self._opened_us = world.now_us()
+        self._unplug_noted = False
+        self._lock = threading.Lock()
+        self._file: h5py.File | None = None
+        self._next = 0
+        self._hold: Hold | None = None
+        self._counts = {"transport_dropped": 0, "unplug_lost": 0}
+        self._unlisten = self._fault.listen(self._on_unplug)
+
+    @property
+    def pixel_format(self) -> str:
+        return "mono8" if len(self._track.shape) == 2 else "rgb8"
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        return self._track.shape
+
+    @property
+    def frame_dtype(self) -> np.dtype[np.generic]:
+        return np.dtype(np.uint8)
+
+    def _do_configure(self, settings: CameraSettings) -> None:
+        if settings.pixel_format and settings.pixel_format != self.pixel_format:
+            raise ConfigError(
+                f"replay camera {self._name}: recorded in {self.pixel_format}, settings ask "
+                f"{settings.pixel_format}"
+            )
+
+    def _do_start(self) -> None:
+        if self._file is None:
+            self._file = h5py.File(self._rec.path, "r")
+        shift = self._timeline.wait(0.0)
+        now = self._world.now_us()
+        # A camera (re)started mid-replay goes on from the frames not yet due.
+        self._next = (
+            0 if shift is None else int(np.searchsorted(self._track.rig_us, now + shift, side="left"))
+        )
+        self._hold = self._world.hold() if self._world.virtual else None
+        self._arm_unplug(self._unplug, now, lost_frames_on_edges=False)
+
+    def _do_stop(self) -> None:
+        pass
+
+    def _do_close(self) -> None:
+        self._unlisten()
+        if self._hold is not None:
+            self._hold.release()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def _counters(self) -> tuple[int, dict[str, int]]:
+        with self._lock:
+            counts = dict(self._counts)
+        return counts["transport_dropped"] + counts["unplug_lost"], counts
+
+    def _note_unplug_locked(self, lost: list[Any]) -> None:
+        lost = [*lost, *self._queue.drain()]
+        self._counts["unplug_lost"] += len(lost)
+        if not self._unplug_noted:
+            self._unplug_noted = True
+            log.warning("replay camera %s unplugged; %d buffered frame(s) lost", self._name, len(lost))
+
+    def _sleep_until(self, true_us: float) -> bool:
+        if self._hold is not None:
+            return self._hold.sleep_until(true_us, self._acq.stopping if self._acq else None)
+        return self._world.sleep_until(true_us, self._acq.stopping if self._acq else None)
+
+    def _grab(self, timeout_s: float) -> Frame | Signal | None:
+        track = self._track
+        if self._next >= len(track.rig_us):
+            if self._hold is not None:
+                self._hold.release()
+            return END
+        shift = self._timeline.wait(timeout_s)
+        if shift is None:
+            return None
+        j = self._next
+        leave = float(track.rig_us[j] + track.exposure_us[j]) - shift
+        if not self._sleep_until(leave):
+            return None  # stopped before this frame left the camera
+        self._next = j + 1
+        counter = int(track.counter[j])
+        if counter in self._drop_frames:
+            with self._lock:
+                self._counts["transport_dropped"] += 1
+            return None
+        if self._dead(self._world.now_us()):
+            with self._lock:
+                self._counts["unplug_lost"] += 1
+            return END
+        assert self._file is not None
+        image = np.asarray(self._file[f"frames/{self._name}/images"][j])
+        if self._hold is not None:
+            while not self._queue.wait_room(_STOP_POLL_S, below=_VIRTUAL_LEAD) and not self._stopping:
+                pass
+        return Frame(
+            image=image,
+            t_exposure_start_us=int(track.device_us[j]),
+            exposure_us=int(track.exposure_us[j]),
+            frame_counter=counter,
+            host_time_ns=time.monotonic_ns(),
+        )
+
+
+def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
+    """Factory for `replay:///abs/take.h5?device=cam0[&buffer_frames=&drop_frames=&unplug_at_s=]`."""
+    spec.check_params(_CAMERA_PARAMS)
+    world, rec, timeline = replay_world(spec)
+    buffer_frames = spec.int_param("buffer_frames", 32)
+    if buffer_frames < 1:
+        raise ConfigError(f"device spec {spec.raw!r}: buffer_frames={buffer_frames} must be >= 1")
+    return ReplayCamera(
+        spec,
+        world,
+        rec,
+        timeline,
+        buffer_frames=buffer_frames,
+        drop_frames=frozenset(spec.int_list_param("drop_frames")),
+        unplug=unplug_params(spec),
+    )
+
+
+# ---------------------------------------------------------------------------------------- events
+class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
+    """A recorded event sensor: every `SLICE_US` of true time, the recorded events and trigger
+    edges of that span, back in the sensor clock, as one EVT 3.0 buffer."""
+
+    _device_label = "event sensor"
+    _capabilities = frozenset({Capability.TRIGGER_IN, Capability.DEVICE_TIMESTAMPS, Capability.CLOCK_SYNC})
+    _fmt = "evt3"
+
+    def __init__(
+        self,
+        spec: DeviceSpec,
+        world: SimWorld,
+        rec: Recording,
+        timeline: Timeline,
+        *,
+        buffer_packets: int,
+        unplug: UnplugParams | None,
+    ) -> None:
+        name = _device_name(spec)
+        self._track = rec.sensor(name)
+        super().__init__(f"replay event sensor {name}", buffers=buffer_packets, merge=64, drain_on_stop=True)
+        self._world, self._name, self._rec, self._timeline = world, name, rec, timeline
+        self._unplug = unplug
+        self._geometry = (self._track.width, self._track.height)
+        self._info = DeviceInfo(
+            kind="event_sensor",
+            spec=spec.raw,
+            vendor="rigd-replay",
+            model="ReplayEventSensor",
+            serial=f"{rec.path.name}/{name}",
+            firmware="replay-1",
+            facts={"evt_format": "evt3"},
+        )
+        self._fault = world.unplug_fault(name)
+        self._fault.check_present(spec.raw)
+        self._opened_us = world.now_us()
+        self._unplug_noted = False
+        self._lock = threading.Lock()
+        self._encoder = Evt3Encoder()
+        self._take: Take | None = None
+        self._t_prev: float | None = None
+        self._final = False
+        self._hold: Hold | None = None
+        self._counts = {
+            "events": 0,
+            "triggers": 0,
+            "bytes": 0,
+            "inexact_times": 0,
+            "packets_lost_unplugged": 0,
+        }
+        self._unlisten = self._fault.listen(self._on_unplug)
+
+    def configure(self, settings: EventSensorSettings) -> None:
+        self._check_present()
+
+    def _do_start(self) -> None:
+        if self._take is None:
+            self._take = Take(self._rec.path)
+        shift = self._timeline.wait(0.0)
+        self._t_prev = None if shift is None else self._world.now_us()
+        self._final = False
+        self._hold = self._world.hold() if self._world.virtual else None
+        self._arm_unplug(self._unplug, self._world.now_us(), lost_frames_on_edges=False)
+
+    def _do_close(self) -> None:
+        self._unlisten()
+        if self._hold is not None:
+            self._hold.release()
+        if self._take is not None:
+            self._take.close()
+            self._take = None
+
+    def _join(self, parts: list[_Packet]) -> tuple[bytes, int]:
+        with self._lock:
+            if self._dead(self._world.now_us()):
+                self._note_unplug_locked(parts)
+                raise self._unplugged_error()
+        return b"".join(pk.payload for pk in parts), parts[-1].host_ns
+
+    def stats(self) -> AcquisitionStats:
+        with self._lock:
+            counts = dict(self._counts)
+        counts["packets_dropped"] = self._acq.queue.dropped
+        return AcquisitionStats(delivered=counts["events"], device_dropped=0, extra=counts)
+
+    def _note_unplug_locked(self, lost: list[_Packet]) -> None:
+        lost = [*lost, *self._acq.queue.drain()]
+        self._counts["packets_lost_unplugged"] += len(lost)
+        if not self._unplug_noted:
+            self._unplug_noted = True
+            log.warning("replay event sensor %s unplugged", self._name)
+
+    def _grab(self, timeout_s: float) -> _Packet | Signal | None:
+        if self._final:
+            if self._hold is not None:
+                self._hold.release()
+            return END
+        shift = self._timeline.wait(timeout_s)
+        if shift is None:
+            return None
+        if self._t_prev is None:  # the first slice reaches back to the start of the recording
+            self._t_prev = -math.inf
+            t_end = self._world.now_us()
+        else:
+            start = self._t_prev if math.isfinite(self._t_prev) else self._world.now_us()
+            wake = start + SLICE_US
+            stop = self._acq.stopping
+            awake = self._hold.sleep_until(wake, stop) if self._hold else self._world.sleep_until(wake, stop)
+            now = self._world.now_us()
+            if awake:
+                t_end = start + SLICE_US * max(1, math.floor((now - start) / SLICE_US))
+            else:
+                t_end, self._final = now, True
+        if self._dead(self._world.now_us()):
+            with self._lock:
+                self._note_unplug_locked([])
+            return END
+        packet = self._slice(self._t_prev, t_end, shift)
+        self._t_prev = t_end
+        if packet is not None and self._hold is not None:
+            while (
+                not self._acq.queue.wait_room(_STOP_POLL_S, below=_VIRTUAL_LEAD)
+                and not self._acq.stopping.is_set()
+            ):
+                pass
+        return packet
+
+    def _slice(self, t0: float, t1: float, shift: float) -> _Packet | None:
+        """The recorded data of true time [t0, t1), in the sensor clock, encoded."""
+        assert self._take is not None
+        track = self._track
+        lo_rig = None if math.isinf(t0) else math.ceil(t0 + shift)
+        hi_rig = math.ceil(t1 + shift)
+        ev = self._take.events(self._name, lo_rig, hi_rig)
+        t_dev, inexact = rig_to_device(track.cmap, ev.t)
+        a = 0 if lo_rig is None else int(np.searchsorted(track.trig_rig, lo_rig, side="left"))
+        b = int(np.searchsorted(track.trig_rig, hi_rig, side="left"))
+        trig = TriggerEvents(track.trig_device[a:b], track.trig_p[a:b], track.trig_channel[a:b])
+        n = len(ev)
+        if n == 0 and b == a:
+            return None
+        events = ev.with_time(t_dev)
+        payload = self._encoder.encode(events, trig)
+        with self._lock:
+            self._counts["events"] += n
+            self._counts["triggers"] += b - a
+            self._counts["bytes"] += len(payload)
+            self._counts["inexact_times"] += inexact
+        return _Packet(
+            payload,
+            time.monotonic_ns(),
+            n,
+            b - a,
+            int(t_dev[0]) if n else 0,
+            int(t_dev[-1]) if n else 0,
+            t1,
+        )
+
+
+def open_replay_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
+    """Factory for `replay:///abs/take.h5?device=ev0[&buffer_packets=&unplug_at_s=]`."""
+    spec.check_params(_SENSOR_PARAMS)
+    world, rec, timeline = replay_world(spec)
+    buffer_packets = spec.int_param("buffer_packets", 1024)
+    if buffer_packets < 1:
+        raise ConfigError(f"device spec {spec.raw!r}: buffer_packets={buffer_packets} must be >= 1")
+    return EvtStreamSensor(
+        ReplayEventSource(
+            spec, world, rec, timeline, buffer_packets=buffer_packets, unplug=unplug_params(spec)
+        )
+    )
+
+
+def replay_spec(take: Path, device: str, **params: str) -> str:
+    """The spec that replays one device of a take."""
+    query = "&".join(f"{k}={v}" for k, v in {"device": device, **params}.items())
+    return f"{SCHEME}://{take.resolve()}?{query}"
+
+
+__all__ = [
+    "DeviceError",
+    "Recording",
+    "open_replay_camera",
+    "open_replay_event_sensor",
+    "open_replay_trigger",
+    "replay_spec",
+    "rig_to_device",
+]
