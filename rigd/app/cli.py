@@ -8,7 +8,7 @@ import signal
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import typer
 from rich.console import Console
@@ -83,7 +83,10 @@ def capture(
     config: Annotated[
         Path | None, typer.Option("--config", "-c", help="Rig config (TOML/JSON/YAML); default: the sim rig.")
     ] = None,
-    duration: Annotated[float, typer.Option("--duration", "-d", help="Seconds of trigger pulses.")] = 5.0,
+    duration: Annotated[
+        float | None,
+        typer.Option("--duration", "-d", help="Seconds of trigger pulses (default 5; a replay: all of it)."),
+    ] = None,
     out_dir: Annotated[
         Path | None, typer.Option("--out", "-o", help="Directory for the take (default: takes).")
     ] = None,
@@ -93,6 +96,18 @@ def capture(
     local: Annotated[
         bool, typer.Option("--local", help="Capture in this process even if a daemon is running.")
     ] = False,
+    replay: Annotated[
+        Path | None,
+        typer.Option("--replay", help="Replay a recorded take as the rig (replay:// devices, in-process)."),
+    ] = None,
+    sim_clock: Annotated[
+        str,
+        typer.Option(
+            "--sim-clock",
+            help="real, or virtual: the sim or replayed rig runs as fast as the CPU allows, "
+            "the same take for the same seed.",
+        ),
+    ] = "real",
 ) -> None:
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
@@ -100,8 +115,19 @@ def capture(
     from rigd.app.capture import new_take_path, run_capture
     from rigd.app.inspect import summarize
 
+    if sim_clock not in ("real", "virtual"):
+        raise _fail(ConfigError(f"--sim-clock {sim_clock!r}: use real or virtual"))
+    if replay is not None and config is not None:
+        raise _fail(ConfigError("--replay plays a take's own rig: drop --config"))
+    if sim_clock == "virtual" and config is not None:
+        raise _fail(
+            ConfigError(
+                "--sim-clock applies to the built-in sim rig and --replay; in a config, give every "
+                "sim:// spec clock=virtual"
+            )
+        )
     try:
-        client = find_for_command(connect, local)
+        client = None if replay is not None or sim_clock == "virtual" else find_for_command(connect, local)
     except RigdError as exc:
         raise _fail(exc) from exc
     if client is not None:
@@ -113,14 +139,22 @@ def capture(
                         "drop --config/--out to capture through it, or pass --local to capture in-process"
                     )
                 )
-            _capture_remote(client, duration, label, json_out)
+            _capture_remote(client, 5.0 if duration is None else duration, label, json_out)
         return
     out_dir = out_dir or Path("takes")
+    clock: Literal["real", "virtual"] = "virtual" if sim_clock == "virtual" else "real"
     try:
-        rig = RigConfig.load(config) if config else default_sim_rig()
+        if replay is not None:
+            from rigd.app.replay import replay_config
+
+            rig, recorded_s = replay_config(replay, clock=clock)
+            duration = recorded_s if duration is None else duration
+        else:
+            rig = RigConfig.load(config) if config else default_sim_rig(clock=clock)
         rig.check_devices()
     except RigdError as exc:
         raise _fail(exc) from exc
+    duration = 5.0 if duration is None else duration
     total = max(1, round(duration * rig.trigger.settings.rate_hz))
     with Progress(
         TextColumn("[bold]capturing[/]"),
