@@ -428,10 +428,11 @@ class CaptureSession:
         t_stop = time.monotonic()
         emitted = self._stop_trigger(trigger)
         backlog_s = self.config.writer.stop_backlog_s
-        self._wait_for_window(backlog_s)
+        stopped = self._wait_for_window(backlog_s)
         t_waited = time.monotonic()
         for ch in sorted(self._channels.values(), key=lambda c: c.kind != "event_sensor"):
-            ch.stop()
+            if ch.name not in stopped:
+                ch.stop()
         t_stopped = time.monotonic()
         read_deadline = t_stopped + backlog_s
         for ch in self._channels.values():
@@ -515,14 +516,22 @@ class CaptureSession:
         )
         return kept
 
-    def _wait_for_window(self, backlog_s: float) -> bool:
+    def _wait_for_window(self, backlog_s: float) -> set[str]:
         """Until every device has delivered up to the end of the window (or is away), for at
-        most `backlog_s`; False when the bound ran out."""
+        most `backlog_s`. A device that has is stopped at once (it makes nothing more for the
+        take, and a loaded host gets its CPU back for the others); their names."""
         deadline = time.monotonic() + backlog_s
+        stopped: set[str] = set()
         while self._control.first_error is None:
-            behind = [name for name, ch in self._channels.items() if not ch.window_reached()]
+            behind = []
+            for name, ch in self._channels.items():
+                if not ch.window_reached():
+                    behind.append(name)
+                elif name not in stopped:
+                    ch.stop()
+                    stopped.add(name)
             if not behind:
-                return True
+                break
             if time.monotonic() >= deadline:
                 log.warning(
                     "take %s: %s not delivered up to the window end within writer.stop_backlog_s = %g s; "
@@ -531,9 +540,9 @@ class CaptureSession:
                     ", ".join(behind),
                     backlog_s,
                 )
-                return False
+                break
             time.sleep(0.02)
-        return False
+        return stopped
 
     def _record_window(self) -> dict[str, dict[str, int]]:
         """Per device, what it delivered outside the window (into the ledger's journal); a
