@@ -349,6 +349,8 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         if self._dead(self._world.now_us()):
             with self._lock:
                 self._note_unplug_locked([])
+            if gen.hold is not None:
+                gen.hold.release()  # a dead sensor no longer holds the world's time
             return END  # no power, no events
         if t_now <= gen.t_prev and not stopping:
             return None

@@ -17,7 +17,7 @@ recorded one.
 
 Fault switches as on `sim://` devices (docs/sim-faults.md): box `drop_pulses`, `garbage_every`,
 `silent_after`, `garbage_after`; camera `drop_frames`; camera and event sensor `unplug_at_s` /
-`unplug_for_s`.
+`unplug_for_s`, and `clock_reset=1` (a device opened after its replug counts from 0).
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError, RigdError
 from rigd.core.events import TriggerEvents
 from rigd.core.frames import Frame
+from rigd.core.schema import DeviceSync, SyncReport
 from rigd.core.settings import CameraSettings, EventSensorSettings
 from rigd.core.timebase import ClockMap
 from rigd.take import Take
@@ -55,8 +56,9 @@ from rigd.take import Take
 log = logging.getLogger(__name__)
 
 SCHEME = "replay"
-_CAMERA_PARAMS = {"device", "clock", "buffer_frames", "drop_frames", "unplug_at_s", "unplug_for_s"}
-_SENSOR_PARAMS = {"device", "clock", "buffer_packets", "unplug_at_s", "unplug_for_s"}
+_FAULT_PARAMS = {"unplug_at_s", "unplug_for_s", "clock_reset"}
+_CAMERA_PARAMS = {"device", "clock", "buffer_frames", "drop_frames", *_FAULT_PARAMS}
+_SENSOR_PARAMS = {"device", "clock", "buffer_packets", *_FAULT_PARAMS}
 #: A device runs at most this many buffers ahead of its reader on virtual time.
 _VIRTUAL_LEAD = 4
 _STOP_POLL_S = 0.05
@@ -72,6 +74,8 @@ class CameraTrack:
     counter: NDArray[np.int64]
     exposure_us: NDArray[np.int64]
     shape: tuple[int, ...]
+    cmap: ClockMap | None
+    """The camera's clock map (None for a camera the sync report has no fit for)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,6 +91,10 @@ class SensorTrack:
     trig_p: NDArray[np.uint8]
     trig_channel: NDArray[np.uint8]
     n_events: int
+
+
+def _clock_map(sync: DeviceSync) -> ClockMap:
+    return ClockMap(sync.device_ref_us, sync.rig_ref_us, sync.rate, sync.frac_us)
 
 
 class Recording:
@@ -118,7 +126,7 @@ class Recording:
             self.config: dict[str, Any] = take.config
             self.sensors: dict[str, SensorTrack] = {}
             with h5py.File(path, "r") as f:
-                self.cameras = {name: self._camera(f, name) for name in take.cameras}
+                self.cameras = {name: self._camera(f, name, report) for name in take.cameras}
                 for name in take.event_sensors:
                     sync = report.devices.get(name)
                     if sync is None:
@@ -129,7 +137,7 @@ class Recording:
                         name,
                         w,
                         h,
-                        ClockMap(sync.device_ref_us, sync.rig_ref_us, sync.rate, sync.frac_us),
+                        _clock_map(sync),
                         trig.t,
                         np.asarray(f[f"events/{name}/trigger/t_device"][...], np.int64),
                         trig.p,
@@ -138,9 +146,13 @@ class Recording:
                     )
 
     @staticmethod
-    def _camera(f: h5py.File, name: str) -> CameraTrack:
+    def _camera(f: h5py.File, name: str, report: SyncReport) -> CameraTrack:
         g = f[f"frames/{name}"]
         n = int(g["images"].shape[0])
+        sync = report.devices.get(name)
+        cmap = (
+            None if sync is None else ClockMap(sync.device_ref_us, sync.rig_ref_us, sync.rate, sync.frac_us)
+        )
         return CameraTrack(
             name,
             np.asarray(g["t_exposure_start_us"][:n], np.int64),
@@ -148,6 +160,7 @@ class Recording:
             np.asarray(g["frame_counter"][:n], np.int64),
             np.asarray(g["exposure_us"][:n], np.int64),
             tuple(int(v) for v in g["images"].shape[1:]),
+            cmap,
         )
 
     def pulse_time(self, k: int) -> int | None:
@@ -202,6 +215,24 @@ def rig_to_device(cmap: ClockMap, rig_us: NDArray[np.int64]) -> tuple[NDArray[np
             return d, 0
         d[bad] -= np.sign(err[bad])
     return d, int(np.count_nonzero(cmap.to_rig(d) != rig_us))
+
+
+def clock_reset_param(spec: DeviceSpec) -> bool:
+    reset = spec.int_param("clock_reset", 0)
+    if reset not in (0, 1):
+        raise ConfigError(f"device spec {spec.raw!r}: clock_reset={reset!r} (use 0 or 1)")
+    return reset == 1
+
+
+def reset_base(
+    reset: bool, world: SimWorld, name: str, cmap: ClockMap | None, shift: float | None, now: float
+) -> int:
+    """`clock_reset=1`: a device opened after its replug counts from 0 again, so its recorded
+    device times lose the device time of the replug instant; 0 otherwise."""
+    fault = world.unplug_fault(name)
+    if not reset or cmap is None or shift is None or not fault.replugged_before(now):
+        return 0
+    return int(cmap.to_device(np.array([round(fault.end_us + shift)], np.int64))[0])
 
 
 # ---------------------------------------------------------------------------------------- world
@@ -288,9 +319,11 @@ class ReplayCamera(Unpluggable, RgbCamera):
         buffer_frames: int,
         drop_frames: frozenset[int],
         unplug: UnplugParams | None,
+        clock_reset: bool = False,
     ) -> None:
         name = _device_name(spec)
         self._track = rec.camera(name)
+        self._clock_reset, self._base = clock_reset, 0
         super().__init__(CameraSettings(), queue_len=buffer_frames, drain_on_stop=True)
         self._world, self._name, self._rec, self._timeline = world, name, rec, timeline
         self._drop_frames, self._unplug = drop_frames, unplug
@@ -338,9 +371,9 @@ class ReplayCamera(Unpluggable, RgbCamera):
         shift = self._timeline.wait(0.0)
         now = self._world.now_us()
         # A camera (re)started mid-replay goes on from the frames not yet due.
-        self._next = (
-            0 if shift is None else int(np.searchsorted(self._track.rig_us, now + shift, side="left"))
-        )
+        due = 0 if shift is None else np.searchsorted(self._track.rig_us, now + shift, side="left")
+        self._next = int(due)
+        self._base = reset_base(self._clock_reset, self._world, self._name, self._track.cmap, shift, now)
         self._hold = self._world.hold() if self._world.virtual else None
         self._arm_unplug(self._unplug, now, lost_frames_on_edges=False)
 
@@ -394,6 +427,8 @@ class ReplayCamera(Unpluggable, RgbCamera):
         if self._dead(self._world.now_us()):
             with self._lock:
                 self._counts["unplug_lost"] += 1
+            if self._hold is not None:
+                self._hold.release()  # a dead device no longer holds the world's time
             return END
         assert self._file is not None
         image = np.asarray(self._file[f"frames/{self._name}/images"][j])
@@ -402,7 +437,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
                 pass
         return Frame(
             image=image,
-            t_exposure_start_us=int(track.device_us[j]),
+            t_exposure_start_us=int(track.device_us[j]) - self._base,
             exposure_us=int(track.exposure_us[j]),
             frame_counter=counter,
             host_time_ns=time.monotonic_ns(),
@@ -424,6 +459,7 @@ def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
         buffer_frames=buffer_frames,
         drop_frames=frozenset(spec.int_list_param("drop_frames")),
         unplug=unplug_params(spec),
+        clock_reset=clock_reset_param(spec),
     )
 
 
@@ -445,9 +481,11 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         *,
         buffer_packets: int,
         unplug: UnplugParams | None,
+        clock_reset: bool = False,
     ) -> None:
         name = _device_name(spec)
         self._track = rec.sensor(name)
+        self._clock_reset, self._base = clock_reset, 0
         super().__init__(f"replay event sensor {name}", buffers=buffer_packets, merge=64, drain_on_stop=True)
         self._world, self._name, self._rec, self._timeline = world, name, rec, timeline
         self._unplug = unplug
@@ -487,7 +525,9 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         if self._take is None:
             self._take = Take(self._rec.path)
         shift = self._timeline.wait(0.0)
-        self._t_prev = None if shift is None else self._world.now_us()
+        now = self._world.now_us()
+        self._t_prev = None if shift is None else now
+        self._base = reset_base(self._clock_reset, self._world, self._name, self._track.cmap, shift, now)
         self._final = False
         self._hold = self._world.hold() if self._world.virtual else None
         self._arm_unplug(self._unplug, self._world.now_us(), lost_frames_on_edges=False)
@@ -544,6 +584,8 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         if self._dead(self._world.now_us()):
             with self._lock:
                 self._note_unplug_locked([])
+            if self._hold is not None:
+                self._hold.release()  # a dead device no longer holds the world's time
             return END
         packet = self._slice(self._t_prev, t_end, shift)
         self._t_prev = t_end
@@ -565,7 +607,8 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         t_dev, inexact = rig_to_device(track.cmap, ev.t)
         a = 0 if lo_rig is None else int(np.searchsorted(track.trig_rig, lo_rig, side="left"))
         b = int(np.searchsorted(track.trig_rig, hi_rig, side="left"))
-        trig = TriggerEvents(track.trig_device[a:b], track.trig_p[a:b], track.trig_channel[a:b])
+        t_dev -= self._base
+        trig = TriggerEvents(track.trig_device[a:b] - self._base, track.trig_p[a:b], track.trig_channel[a:b])
         n = len(ev)
         if n == 0 and b == a:
             return None
@@ -594,11 +637,16 @@ def open_replay_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
     buffer_packets = spec.int_param("buffer_packets", 1024)
     if buffer_packets < 1:
         raise ConfigError(f"device spec {spec.raw!r}: buffer_packets={buffer_packets} must be >= 1")
-    return EvtStreamSensor(
-        ReplayEventSource(
-            spec, world, rec, timeline, buffer_packets=buffer_packets, unplug=unplug_params(spec)
-        )
+    source = ReplayEventSource(
+        spec,
+        world,
+        rec,
+        timeline,
+        buffer_packets=buffer_packets,
+        unplug=unplug_params(spec),
+        clock_reset=clock_reset_param(spec),
     )
+    return EvtStreamSensor(source)
 
 
 def replay_spec(take: Path, device: str, **params: str) -> str:

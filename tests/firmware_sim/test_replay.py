@@ -107,3 +107,23 @@ def test_replay_refuses_what_it_cannot_play(recorded: Path, tmp_path: Path) -> N
         Recording(bad)
     reset_world(f"replay:{recorded.resolve()}")
     assert DeviceSpec.parse(f"replay://{recorded.resolve()}?device=ev0").scheme == "replay"
+
+
+def test_replay_unplug_and_clock_reset(recorded: Path, tmp_path: Path) -> None:
+    """A replayed camera unplugged for 0.1 s that comes back counting from 0: the take loses
+    the frames of the window, re-ties the restarted clock, and the frames it kept have the
+    recorded rig times."""
+    faults = {"cam2": {"unplug_at_s": "0.2", "unplug_for_s": "0.1", "clock_reset": "1"}}
+    config, duration = replay_config(recorded, clock="virtual", faults=faults)
+    result = run_capture(config, tmp_path, duration, reconnect_interval_s=0.02)
+    reset_world(f"replay:{recorded.resolve()}")
+    with Take(recorded) as a, Take(result.path) as b:
+        ta, tb = a.frames("cam2").timestamps_us, b.frames("cam2").timestamps_us
+        assert 0 < len(tb) < len(ta)
+        # Every kept frame at its recorded rig time, to the few us the camera's clock fit
+        # moves by with fewer observations and a re-tied restart.
+        nearest = ta[np.abs(tb[:, None] - ta[None, :]).argmin(axis=1)]
+        assert np.abs(tb - nearest).max() <= 3
+        report = b.sync_report
+        assert report is not None
+        assert any(loss.device == "cam2" for loss in report.losses)
