@@ -441,8 +441,8 @@ class CaptureSession:
         for th in self._threads:
             th.join()
         log.info(
-            "take %s stop: %.2f s waiting for the window end, %.2f s stopping the devices, %.2f s "
-            "reading what they still held",
+            "take %s stop: %.2f s waiting for the window end (stopping each device that reached it), "
+            "%.2f s stopping the others, %.2f s reading what they still held",
             self.path,
             t_waited - t_stop,
             t_stopped - t_waited,
