@@ -23,6 +23,7 @@ import logging
 import tempfile
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -41,11 +42,19 @@ BOARD = BoardScene().board_spec
 
 
 def board_rig(
-    world: str, resolution: tuple[int, int], threshold: float | None = None, rate_hz: float = 30.0
+    world: str,
+    resolution: tuple[int, int],
+    threshold: float | None = None,
+    rate_hz: float = 30.0,
+    clock: Literal["real", "virtual"] = "real",
 ) -> RigConfig:
-    """The built-in sim rig with every device watching the moving board (mono8 frames)."""
+    """The built-in sim rig with every device watching the moving board (mono8 frames).
+
+    `clock="virtual"` runs the sim world on virtual time: the same board poses every run."""
     reset_world(world)
-    cfg = default_sim_rig(world=world, resolution=resolution, pixel_format="mono8", rate_hz=rate_hz)
+    cfg = default_sim_rig(
+        world=world, resolution=resolution, pixel_format="mono8", rate_hz=rate_hz, clock=clock
+    )
     data = cfg.model_dump()
     for dev in data["cameras"]:
         dev["spec"] += "&scene=board"
@@ -60,9 +69,11 @@ def capture_board_take(
     resolution: tuple[int, int] = (640, 360),
     threshold: float | None = None,
     world: str = "e2calib",
+    clock: Literal["real", "virtual"] = "real",
 ) -> CaptureResult:
-    """Capture a take of the sim rig watching the moving board."""
-    return run_capture(board_rig(world, resolution, threshold), out_dir, seconds)
+    """Capture a take of the sim rig watching the moving board (`clock="virtual"`: a
+    deterministic take, the same for every run whatever the machine's load; the world is reset)."""
+    return run_capture(board_rig(world, resolution, threshold, clock=clock), out_dir, seconds)
 
 
 def true_k(width: int) -> np.ndarray:

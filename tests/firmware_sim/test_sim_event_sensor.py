@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from uuid import uuid4
@@ -15,7 +16,7 @@ from drivers.registry import DeviceSpec
 from firmware_sim.event_kernels import EventBuffer, generate_events, generate_events_kernel
 from firmware_sim.event_sensor import open_sim_event_sensor
 from firmware_sim.scene import Scene, lin_log
-from firmware_sim.world import DeviceClock, get_world, reset_world
+from firmware_sim.world import DeviceClock, SimWorld, get_world, reset_world
 from rigd.core.errors import ConfigError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
@@ -120,15 +121,43 @@ def drain(sensor: EvtStreamSensor) -> list[EventPacket]:
     return out
 
 
+#: Spec tail of a sensor on its world's virtual clock: the same events whatever the machine's load.
+VIRTUAL = "&clock=virtual"
+
+
+def run_virtual(
+    sensor: EvtStreamSensor, world: SimWorld, seconds: float, *, read: bool = True
+) -> list[EventPacket]:
+    """Let a started sensor run `seconds` of its world's virtual time from now, reading what it
+    makes (or not, `read=False`: its FIFO fills), then stop it at that very instant and drain
+    it. Time is held at the end while the sensor stops, so its last slice ends there."""
+    hold = world.hold()
+    until = world.now_us() + seconds * 1e6
+    reached = threading.Event()
+
+    def sleeper() -> None:
+        assert hold.sleep_until(until)
+        reached.set()
+
+    threading.Thread(target=sleeper, name="test-run-virtual", daemon=True).start()
+    world.clock.start()
+    packets: list[EventPacket] = []
+    while not reached.wait(0 if read else 0.05):
+        if read and (p := sensor.read_events(0.05)) is not None:
+            packets.append(p)
+    assert world.now_us() == until
+    if read:
+        packets += drain(sensor)  # so the last slice finds room at once
+    sensor.stop()
+    hold.release()
+    return packets + drain(sensor)
+
+
 def test_moving_scene_gives_sorted_in_range_events(world_name: str) -> None:
-    with open_ev(world_name) as sensor:
+    with open_ev(world_name, VIRTUAL) as sensor:
         assert sensor.geometry == (320, 180)
         sensor.start()
-        time.sleep(0.4)
-        packets = [p for p in [sensor.read_events(0.5)] if p is not None]
-        time.sleep(0.1)
-        sensor.stop()
-        packets += drain(sensor)
+        packets = run_virtual(sensor, get_world(world_name), 0.5)
     ev = EventArray.concatenate([p.events for p in packets])
     assert len(ev) > 1000
     assert ev.t.dtype == np.int64
@@ -142,12 +171,12 @@ def test_moving_scene_gives_sorted_in_range_events(world_name: str) -> None:
 
 
 def test_static_scene_gives_no_events(world_name: str) -> None:
-    get_world(world_name).resource("scene", lambda: Scene(seed=0, speed=0.0))
-    with open_ev(world_name) as sensor:
+    world = get_world(world_name, clock="virtual")
+    world.resource("scene", lambda: Scene(seed=0, speed=0.0))
+    with open_ev(world_name, VIRTUAL) as sensor:
         sensor.start()
-        time.sleep(0.2)
-        sensor.stop()
-        assert drain(sensor) == []
+        packets = run_virtual(sensor, world, 0.2)  # 0.2 s of sim time, however long it took
+        assert sum(len(p.events) + len(p.triggers) for p in packets) == 0
         assert sensor.stats().extra["events_generated"] == 0
 
 
@@ -178,15 +207,21 @@ def test_trigger_in_can_be_disabled(world_name: str) -> None:
         sensor.start()
         fire_pulses(world, 3)
         sensor.stop()
-        assert drain(sensor) == []
+        # Nothing latched, nothing generated (a packet may still say how far time got).
+        assert sum(len(p.events) + len(p.triggers) for p in drain(sensor)) == 0
 
 
 def test_packet_buffer_overflow_is_counted(world_name: str) -> None:
+    """Nobody reads: a FIFO of two packets overflows. Real time on purpose: on virtual time a
+    sensor waits for room instead of dropping, so only a real-time sensor loses packets."""
     world = get_world(world_name)
     with open_ev(world_name, "&buffer_packets=2") as sensor:
         sensor.start()
         fire_pulses(world, 5, rate_hz=50)
-        time.sleep(0.1)
+        deadline = time.monotonic() + 30.0  # wait for the state, not a fixed time
+        while sensor.stats().extra["packets_dropped"] == 0:
+            assert time.monotonic() < deadline, "the FIFO never overflowed"
+            time.sleep(0.01)
         sensor.stop()
         packets = drain(sensor)
     st = sensor.stats()
@@ -209,11 +244,10 @@ def test_bad_specs_name_the_parameter(world_name: str) -> None:
 
 
 def _events_for(world: str, extra: str, seconds: float = 0.4) -> EventArray:
-    with open_ev(world, extra) as sensor:
+    """`seconds` of the world's virtual time, from where the last sensor left it."""
+    with open_ev(world, extra + VIRTUAL) as sensor:
         sensor.start()
-        time.sleep(seconds)
-        sensor.stop()
-        return EventArray.concatenate([p.events for p in drain(sensor)])
+        return EventArray.concatenate([p.events for p in run_virtual(sensor, get_world(world), seconds)])
 
 
 def test_full_pixel_model_runs_in_the_rig_sensor(world_name: str) -> None:

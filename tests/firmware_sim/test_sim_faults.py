@@ -228,7 +228,14 @@ def test_busy_camera_ignores_every_other_edge_at_30_hz(world_name: str) -> None:
 # --- trigger-box link faults --------------------------------------------------------------
 
 
+def pulse_thread_alive(world_name: str) -> bool:
+    """Is the pulse scheduler of that world's sim trigger box still running?"""
+    return any(th.name == f"trigbox-pulses-{world_name}" and th.is_alive() for th in threading.enumerate())
+
+
 def run_trigger(trig: Trigger, rate_hz: float, seconds: float) -> PulseBatch:
+    """Run the box for `seconds` of wall time, reading pulses. Real time on purpose: the link
+    fault tests are about the driver's reply timeouts on a real serial link."""
     trig.configure(TriggerSettings(rate_hz=rate_hz, pulse_width_us=1000))
     trig.arm()
     trig.start()
@@ -259,9 +266,9 @@ def test_silent_after_hangs_the_link_but_not_the_trigger(world_name: str) -> Non
     trig.close()  # STOP goes unanswered: one reply timeout, then the link is released
     assert time.monotonic() - t < 1.0
     assert box.closed
-    n_closed = len(world.truth.pulses)
-    time.sleep(0.05)
-    assert len(world.truth.pulses) == n_closed  # closing powered the box down
+    # Closing powered the box down: close() joined its pulse thread, so no pulse can follow
+    # (checked as a state, not by watching the wire for a while).
+    assert not pulse_thread_alive(world_name)
 
 
 def test_garbage_after_garbles_every_line_and_close_returns(world_name: str) -> None:
@@ -277,9 +284,7 @@ def test_garbage_after_garbles_every_line_and_close_returns(world_name: str) -> 
     t = time.monotonic()
     trig.close()  # the box hears STOP; its replies are garbage, so the driver gives up soon
     assert time.monotonic() - t < 1.5
-    n = len(world.truth.pulses)
-    time.sleep(0.05)
-    assert len(world.truth.pulses) == n
+    assert not pulse_thread_alive(world_name)  # close joined it: no pulse can follow
 
 
 # --- ground-truth journal -----------------------------------------------------------------
@@ -375,7 +380,11 @@ def test_journal_survives_sigkill_with_whole_lines(tmp_path: Path) -> None:
     try:
         assert child.stdout is not None
         assert child.stdout.readline().strip() == b"go"
-        time.sleep(0.2)
+        # Kill it mid-write once it has written a good many lines (a state, not a fixed delay).
+        deadline = time.monotonic() + 30.0
+        while not path.exists() or path.stat().st_size < 20_000:
+            assert time.monotonic() < deadline, "the child wrote too little"
+            time.sleep(0.01)
     finally:
         child.send_signal(signal.SIGKILL)
         child.wait()
