@@ -1,7 +1,8 @@
 """Event simulator against v2e's EventEmulator on the same frames: `python -m bench.event_sim_v2e`.
 
 A textured image (bench.event_sim's texture) translates at SPEED px per frame, 30 FPS,
-rendered at 1280x720 by default. The same float frames (0-255) go to v2e's
+rendered at 1280x720 by default, as 8-bit frames like a video's (`--dtype float32`: the
+float render, 0-255). The same frames go to v2e's
 `v2ecore.emulator.EventEmulator` (torch on the CPU) and to `firmware_sim.event_model.
 EventSimulator`, both configured alike, in two settings:
 
@@ -118,7 +119,7 @@ def _v2e_version() -> str:
         return "(version unknown)"
 
 
-def time_v2e(cls: type, kwargs: dict[str, Any], frames: list[NDArray[np.float32]]) -> tuple[float, int]:
+def time_v2e(cls: type, kwargs: dict[str, Any], frames: list[NDArray[Any]]) -> tuple[float, int]:
     emu = cls(device="cpu", seed=0, **kwargs)
     emu.generate_events(frames[0], 0.0)
     n = 0
@@ -131,7 +132,7 @@ def time_v2e(cls: type, kwargs: dict[str, Any], frames: list[NDArray[np.float32]
     return wall, n
 
 
-def time_ours(cfg: PixelModelConfig, frames: list[NDArray[np.float32]], threads: int) -> tuple[float, int]:
+def time_ours(cfg: PixelModelConfig, frames: list[NDArray[Any]], threads: int) -> tuple[float, int]:
     numba.set_num_threads(threads)
     h, w = frames[0].shape
     dt = round(1e6 / FPS)
@@ -144,10 +145,10 @@ def time_ours(cfg: PixelModelConfig, frames: list[NDArray[np.float32]], threads:
     return time.perf_counter() - t0, n
 
 
-def warm_up(cfg: PixelModelConfig) -> None:
+def warm_up(cfg: PixelModelConfig, dtype: str) -> None:
     """Compile (or load from numba's cache) every kernel the step uses, on 1 and 2 threads."""
     rng = np.random.default_rng(0)
-    small = [rng.uniform(0, 255, (24, 32)).astype(np.float32) for _ in range(3)]
+    small = [rng.uniform(0, 255, (24, 32)).astype(dtype) for _ in range(3)]
     for threads in (1, min(2, MAX_THREADS)):
         numba.set_num_threads(threads)
         sim = EventSimulator(32, 24, cfg)
@@ -155,14 +156,16 @@ def warm_up(cfg: PixelModelConfig) -> None:
             sim.step(f, i * 33_333)
 
 
-def run(width: int, height: int, n_frames: int, speed: float, repeats: int) -> None:
+def run(width: int, height: int, n_frames: int, speed: float, repeats: int, dtype: str) -> None:
     emulator, note = load_v2e()
     two = min(2, MAX_THREADS)
     tex = make_texture(width, height, int(speed * n_frames) + 16)
-    frames = [render(tex, -speed * i, width) for i in range(n_frames)]
+    frames: list[NDArray[Any]] = [render(tex, -speed * i, width) for i in range(n_frames)]
+    if dtype == "uint8":
+        frames = [np.round(f).astype(np.uint8) for f in frames]
     mpix = width * height * (n_frames - 1) / 1e6
     print(
-        f"scene: {width}x{height} float frames, {n_frames} frames at {FPS:.0f} FPS, "
+        f"scene: {width}x{height} {dtype} frames, {n_frames} frames at {FPS:.0f} FPS, "
         f"motion {speed:g} px/frame; best of {repeats}; "
         f"numba {numba.__version__} ({MAX_THREADS} threads available)"
     )
@@ -175,7 +178,7 @@ def run(width: int, height: int, n_frames: int, speed: float, repeats: int) -> N
     print(header)
     print("-" * len(header))
     for s in SETTINGS:
-        warm_up(s.ours)
+        warm_up(s.ours, dtype)
         best_v2e = best_1 = best_2 = float("inf")
         ev_v2e = ev_ours = 0
         for _ in range(repeats):  # interleaved, so both see the same load on a shared machine
@@ -209,10 +212,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="frames rendered (the first only sets the state)")
     ap.add_argument("--speed", type=float, default=6.0, help="px per frame")
     ap.add_argument("--repeats", type=int, default=2, help="runs per setting; the best is shown")
+    ap.add_argument("--dtype", choices=["uint8", "float32"], default="uint8", help="frame type fed to both")
     args = ap.parse_args()
     if args.frames < 2:
         ap.error("--frames must be at least 2")
-    run(args.width, args.height, args.frames, args.speed, args.repeats)
+    run(args.width, args.height, args.frames, args.speed, args.repeats, args.dtype)
 
 
 if __name__ == "__main__":

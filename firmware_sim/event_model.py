@@ -41,8 +41,11 @@ from rigd.core.events import EventArray
 log = logging.getLogger(__name__)
 
 _PARALLEL_LOCK = threading.Lock()
+_NO_TABLE = np.zeros((2, 0), np.float64)
 
 F32 = NDArray[np.float32]
+Frame = NDArray[np.float32] | NDArray[np.uint8]
+"""A frame as the step kernels read it: uint8 as given, any other input as float32."""
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -149,16 +152,39 @@ def init_state_kernel(  # pragma: no cover - numba
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _new_level(v: float, conv: LogInput, lp: float, prm: StepParams, dt_s: float) -> float:
-    """Log level of a pixel at the end of the step: the input's, low-passed from `lp` if asked."""
+def _level_gain(v: float, conv: LogInput, prm: StepParams, dt_s: float) -> tuple[float, float]:
+    """(log level of input value v, low-pass gain of the step: 1 - exp(-dt / tau); 1 when off)."""
     _leak, lowpass, lowpass_hz, lowpass_min, _refr = prm
     lv, inten = _to_log(v, conv)
     if lowpass:
         frac = max(inten / 255.0, lowpass_min)
         tau = 1.0 / (2.0 * math.pi * lowpass_hz * frac)
-        a = 1.0 - math.exp(-dt_s / tau)
-        return lp + a * (lv - lp)
-    return lv
+        return lv, 1.0 - math.exp(-dt_s / tau)
+    return lv, 1.0
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _filtered(lp: float, lv: float, a: float, lowpass: bool) -> float:
+    """Log level at the end of the step: the input's, low-passed from `lp` (gain a) if asked."""
+    return lp + a * (lv - lp) if lowpass else lv
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _new_level(v: float, conv: LogInput, lp: float, prm: StepParams, dt_s: float) -> float:
+    """Log level of a pixel at the end of the step from input value v and the level lp before."""
+    lv, a = _level_gain(v, conv, prm, dt_s)
+    return _filtered(lp, lv, a, prm[1])
+
+
+@njit(nogil=True, cache=True)
+def _level_table(conv: LogInput, prm: StepParams, dt_s: float) -> F64:  # pragma: no cover - numba
+    """(2, 256): `_level_gain` of every uint8 value, as the kernels compute it from float32 frames."""
+    table = np.empty((2, 256), np.float64)
+    for v in range(256):
+        lv, a = _level_gain(np.float32(v), conv, prm, dt_s)  # type: ignore[arg-type]
+        table[0, v] = lv
+        table[1, v] = a
+    return table
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -275,7 +301,7 @@ MAX_KEYED_SPAN = 1 << 30
 def _emit_block(  # pragma: no cover - numba
     b: int,
     rows: int,
-    frame: F32,
+    frame: Frame,
     conv: LogInput,
     px: Pixels,
     prm: StepParams,
@@ -287,8 +313,12 @@ def _emit_block(  # pragma: no cover - numba
     resume: I64,
     keys: I64,
     bucketed: I64,
+    table: F64,
 ) -> None:
     """Pass 1 for block b (rows [b*rows, (b+1)*rows)) from flat pixel index resume[b].
+
+    A uint8 frame is read through `table` (`_level_table`: log level and low-pass gain
+    per value, the same numbers), any other through `_level_gain`.
 
     Event keys go to keys[b*cap + filled[b]:(b+1)*cap] (cap = len(keys) // len(filled)),
     counted in hist[b]; the arithmetic is `step_kernel`'s. Stops before a pixel whose
@@ -297,7 +327,9 @@ def _emit_block(  # pragma: no cover - numba
     """
     level, ref, thr_on, thr_off, last_t = px
     leak_rate_hz = prm[0]
+    lowpass = prm[1]
     refractory_us = prm[4]
+    use_table = table.shape[1] == 256  # a uint8 frame (else the table is empty)
     h, w = frame.shape
     cap = keys.shape[0] // filled.shape[0]
     lo = b * cap
@@ -311,7 +343,12 @@ def _emit_block(  # pragma: no cover - numba
     for i in range(i0, i_end):
         for j in range(j0 if i == i0 else 0, w):
             lp = level[i, j]
-            ln = _new_level(frame[i, j], conv, lp, prm, dt_s)
+            if use_table:
+                v = int(frame[i, j])
+                ln = _filtered(lp, table[0, v], table[1, v], lowpass)
+            else:
+                lv, a = _level_gain(frame[i, j], conv, prm, dt_s)
+                ln = _filtered(lp, lv, a, lowpass)
             r = ref[i, j]
             k, sign, c, d0, slope, drift = _crossings(
                 lp, ln, r, thr_on[i, j], thr_off[i, j], leak_rate_hz, dt_s
@@ -432,7 +469,7 @@ def _sort_bucket(  # pragma: no cover - numba
 
 @njit(nogil=True, cache=True, parallel=True)
 def _emit_par(  # pragma: no cover - numba
-    frame: F32,
+    frame: Frame,
     conv: LogInput,
     px: Pixels,
     prm: StepParams,
@@ -445,14 +482,15 @@ def _emit_par(  # pragma: no cover - numba
     resume: I64,
     keys: I64,
     bucketed: I64,
+    table: F64,
 ) -> None:
     for b in prange(filled.shape[0]):
-        _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed)
+        _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed, table)
 
 
 @njit(nogil=True, cache=True)
 def _emit_ser(  # pragma: no cover - numba
-    frame: F32,
+    frame: Frame,
     conv: LogInput,
     px: Pixels,
     prm: StepParams,
@@ -465,9 +503,10 @@ def _emit_ser(  # pragma: no cover - numba
     resume: I64,
     keys: I64,
     bucketed: I64,
+    table: F64,
 ) -> None:
     for b in range(filled.shape[0]):
-        _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed)
+        _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed, table)
 
 
 @njit(nogil=True, cache=True, parallel=True)
@@ -637,8 +676,9 @@ class EventSimulator:
     def initialized(self) -> bool:
         return self.t_us is not None
 
-    def _prepare(self, frame: NDArray[np.generic], t_us: int) -> tuple[F32, float]:
-        """Check one input frame and return it as float32 with the scale of its values to DN."""
+    def _prepare(self, frame: NDArray[np.generic], t_us: int) -> tuple[Frame, float]:
+        """Check one input frame; return it as the kernels read it (uint8 kept, any other
+        dtype as float32), with the scale of its values to DN."""
         arr = np.asarray(frame)
         where = f"EventSimulator step {self.n_steps} (t={t_us} us)"
         if arr.shape != (self.height, self.width):
@@ -658,6 +698,8 @@ class EventSimulator:
                 if arr.dtype.kind in "ui" and arr.dtype.itemsize == 1:
                     full = 255.0
             scale = FULL_SCALE_DN / full
+        if arr.dtype == np.uint8:
+            return np.ascontiguousarray(arr), scale
         f32 = np.ascontiguousarray(arr, dtype=np.float32)
         if arr.dtype.kind == "f" and not np.isfinite(f32).all():
             raise ValueError(f"{where}: frame has NaN or infinite values")
@@ -671,11 +713,13 @@ class EventSimulator:
     def step(self, frame: NDArray[np.generic], t_us: int) -> EventArray:
         """Events of (previous t, t_us] given the frame at t_us; none on the first call."""
         t = int(t_us)
-        f32, scale = self._prepare(frame, t)
+        arr, scale = self._prepare(frame, t)
         cfg = self.config
         conv: LogInput = (cfg.input_kind == "log", scale, cfg.log_eps_dn, cfg.lin_log_knee_dn)
         if self.t_us is None:
-            init_state_kernel(f32, conv, self.level, self.ref, self._ref_offset)
+            init_state_kernel(
+                arr.astype(np.float32, copy=False), conv, self.level, self.ref, self._ref_offset
+            )
             self.t_us = t
             self.n_steps += 1
             return EventArray.empty()
@@ -690,7 +734,7 @@ class EventSimulator:
         # layer does not take concurrent parallel calls); the serial twins give the same events.
         par = self.parallel and _PARALLEL_LOCK.acquire(blocking=False)
         try:
-            events = self._run_passes(f32, conv, t0, t, noise, par)
+            events = self._run_passes(arr, conv, t0, t, noise, par)
         finally:
             if par:
                 _PARALLEL_LOCK.release()
@@ -699,12 +743,13 @@ class EventSimulator:
         return events
 
     def _run_passes(
-        self, f32: F32, conv: LogInput, t0: int, t1: int, noise: EventArray | None, par: bool
+        self, frame: Frame, conv: LogInput, t0: int, t1: int, noise: EventArray | None, par: bool
     ) -> EventArray:
-        """Emit, scatter and sort the events of (t0, t1] (see the comments above `_emit_block`)."""
+        """Emit and sort the events of (t0, t1] (see the comments above `_emit_block`)."""
         span = t1 - t0
         if span >= MAX_KEYED_SPAN:
-            return self._reference_step(f32, conv, t0, t1, noise)
+            return self._reference_step(frame.astype(np.float32, copy=False), conv, t0, t1, noise)
+        table = _level_table(conv, self._params, span * 1e-6) if frame.dtype == np.uint8 else _NO_TABLE
         bits = max(span - 1, 1).bit_length()
         shift = max(bits - COARSE_BITS, 0)
         n_buckets = ((span - 1) >> shift) + 1
@@ -724,7 +769,7 @@ class EventSimulator:
         emit = _emit_par if par else _emit_ser
         while True:
             emit(
-                f32,
+                frame,
                 conv,
                 px,
                 self._params,
@@ -737,6 +782,7 @@ class EventSimulator:
                 resume,
                 self._keys,
                 self._bucketed,
+                table,
             )
             if (resume >= end).all():
                 break
