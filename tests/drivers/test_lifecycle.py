@@ -67,7 +67,7 @@ class CountingCamera(RgbCamera):
         if self.fail_after is not None and self.grabs >= self.fail_after:
             raise OSError("cable pulled")
         self.grabs += 1
-        time.sleep(0.002)
+        time.sleep(0.002)  # a free-running camera's frame time; no check depends on it
         return Frame(np.zeros((8, 8), np.uint8), self.grabs * 1000, 1000, self.grabs, time.monotonic_ns())
 
 
@@ -147,7 +147,7 @@ def test_a_draining_acquisition_finishes_what_the_device_holds() -> None:
     pending = list(range(5))
 
     def grab(timeout_s: float) -> int | None:
-        time.sleep(0.01)
+        time.sleep(0.01)  # a device slow to give what it holds, so stop() comes first
         return pending.pop(0) if pending else None
 
     acq = Acquisition("drain", grab, DeliveryQueue[int](10), drain_on_stop=True)

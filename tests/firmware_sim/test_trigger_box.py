@@ -52,15 +52,6 @@ class RawPort:
                 return m.group(1).decode()
             self.bad_lines.append(raw)
 
-    def lines_for(self, seconds: float) -> list[str]:
-        out: list[str] = []
-        deadline = time.monotonic() + seconds
-        while True:
-            try:
-                out.append(self.line(max(0.0, deadline - time.monotonic())))
-            except TimeoutError:
-                return out
-
     def cmd(self, text: str, tag: int = 7) -> list[str]:
         """Send `text #tag`, return the tagged reply lines (T lines then the final line)."""
         self.send(f"{text} #{tag}\n".encode())
@@ -103,6 +94,13 @@ def rig(world: SimWorld) -> Iterator[tuple[SimTriggerBox, RawPort]]:
     box.close()
 
 
+def assert_next_is_pong(port: RawPort, tag: int = 99) -> None:
+    """The box answers in order: the next line after a PING is its PONG when nothing else is
+    pending (a check that no line is left over, instead of watching the port for a while)."""
+    port.send(f"PING #{tag}\n".encode())
+    assert port.line() == f"PONG #{tag}"
+
+
 def _pulses(lines: list[str]) -> list[tuple[int, int]]:
     return [(int(f[1]), int(f[2])) for f in (ln.split() for ln in lines) if f[0] == "P"]
 
@@ -126,8 +124,7 @@ def test_ready_after_boot_and_input_ignored_while_booting(world: SimWorld) -> No
         port.send(b"PING #1\n")  # before boot: the UART is not listening yet
         assert port.line(timeout=2.0) == "READY trigbox-sim 1.0.0"
         assert time.monotonic() - t_open >= 0.29
-        assert port.lines_for(0.2) == []  # the early PING got no reply
-        assert port.cmd("PING", 2) == ["PONG"]
+        assert_next_is_pong(port, 2)  # the early PING got no reply (it would come first)
     finally:
         port.close()
         box.close()
@@ -264,11 +261,11 @@ def test_random_garbage_gets_err_and_box_survives(
 def test_overlong_line_one_err_even_in_pieces(rig: tuple[SimTriggerBox, RawPort]) -> None:
     _, port = rig
     port.send(b"A" * 100)
+    # Real time on purpose: a pause on the link, so the line reaches the box in pieces.
     time.sleep(0.02)
     port.send(b"B" * 5000 + b"\n")
     assert port.line() == "ERR TOOLONG line exceeds 64 bytes"
-    assert port.cmd("PING") == ["PONG"]
-    assert port.lines_for(0.1) == []
+    assert_next_is_pong(port)  # no second ERR: the box answers in order, so it would come first
     port.send(b"P" * 64 + b"\n")  # exactly at the limit: parsed, unknown
     assert port.line().startswith("ERR UNKNOWN")
 
@@ -281,7 +278,8 @@ def test_pulse_schedule_exact_and_start_n_stops_by_itself(world: SimWorld) -> No
         port.cmd("ARM")
         t0 = int(port.cmd("START 60")[0].split()[2])
         run = _collect_run(port, 60)
-        assert port.lines_for(0.1) == []  # nothing after END
+        assert port.cmd("STATUS?")[0].startswith("STATUS IDLE count=60")
+        assert_next_is_pong(port)  # nothing after END (the run is over: no pulse line can follow)
         pulses = _pulses(run)
         assert pulses == [(k, t0 + round(k * 1e6 / 700)) for k in range(60)]
         assert port.cmd("STATUS?")[0].startswith("STATUS IDLE count=60 target=60")
@@ -299,15 +297,16 @@ def test_start_then_stop(rig: tuple[SimTriggerBox, RawPort]) -> None:
     port.cmd("WIDTH 100")
     port.cmd("ARM")
     port.cmd("START")
-    time.sleep(0.1)
-    port.send(b"STOP #3\n")
     lines: list[str] = []
+    while len(_pulses(lines)) <= 30:  # wait for 31 pulses, not for a fixed time
+        lines.append(port.line())
+    port.send(b"STOP #3\n")
     while not (line := port.line()).endswith("#3"):
         lines.append(line)
     count = int(line.split()[2])
     assert count > 30
     assert [k for k, _ in _pulses(lines)] == list(range(count))  # every pulse reported before OK STOP
-    assert port.lines_for(0.05) == []
+    assert_next_is_pong(port)  # the box is stopped: nothing after OK STOP
     assert box.state == "IDLE"
 
 
@@ -387,7 +386,21 @@ def test_garbage_fault_corrupts_some_lines_only(world: SimWorld) -> None:
     try:
         port.send(b"\n")
         port.send(b"RATE 2000\nWIDTH 10\nARM\nSTART 60\n")
-        lines = port.lines_for(0.3)
+        deadline = time.monotonic() + 30.0  # wait for the run's end, not for a fixed time
+        while box.count < 60 or box.state != "IDLE":
+            assert time.monotonic() < deadline, (box.count, box.state)
+            time.sleep(0.01)
+        lines: list[str] = []
+        for tag in range(100, 110):  # every line of the run is in before a PONG (it may be garbled)
+            port.send(f"PING #{tag}\n".encode())
+            try:
+                while (line := port.line(timeout=1.0)) != f"PONG #{tag}":
+                    lines.append(line)
+                break
+            except TimeoutError:
+                continue
+        else:
+            raise AssertionError("no PONG got through")
         good = [k for k, _ in _pulses(lines)]
         assert 30 < len(good) < 60  # about a third of the lines carry garbage, half of those stay readable
         assert good == sorted(good)

@@ -179,7 +179,7 @@ def _kill_script(path: Path, kill_at_append: int | None = None) -> str:
                 w.flush(journal=journal(k))
                 print(f"F {{k}}", flush=True)
                 last = time.monotonic()
-            time.sleep(0.0005)
+            time.sleep(0.0005)  # paces the writer (real time: the kills below land at random moments)
         """
     )
 
@@ -197,6 +197,8 @@ def _run_and_kill(path: Path, after_s: float, kill_at_append: int | None = None)
     assert proc.stdout is not None
     assert proc.stdout.readline().strip() == "START"
     if kill_at_append is None:
+        # Real time on purpose: a kill at a random moment of the writer's work. The checks
+        # adapt to how far it got (n_flushed), so none depends on how fast the machine was.
         time.sleep(after_s)
         proc.send_signal(signal.SIGKILL)
     out = proc.stdout.read()
@@ -670,7 +672,7 @@ def live_writer(tmp_path: Path) -> Iterator[Path]:
     path = tmp_path / "live.h5"
     script = textwrap.dedent(
         f"""
-        import time
+        import threading
         from pathlib import Path
         from tests.rigd.test_take_recover import append_step, open_writer
         w = open_writer(Path({str(path)!r}))
@@ -678,7 +680,7 @@ def live_writer(tmp_path: Path) -> Iterator[Path]:
             append_step(w, k)
         w.flush()
         print("ready", flush=True)
-        time.sleep(60)
+        threading.Event().wait()  # hold the take open until killed, however long the test takes
         """
     )
     proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE, text=True)

@@ -28,7 +28,11 @@ def _small_rig(path: Path) -> Path:
 
 
 def _wait_for_data(out_dir: Path, proc: subprocess.Popen[str], deadline_s: float = 60.0) -> Path:
-    """The take file, once it holds a few MB (frames are flowing); fails if the capture ends."""
+    """The take file, once it holds a few MB (frames are flowing); fails if the capture ends.
+
+    A state to wait for, polled, with a deadline generous for a loaded machine. The capture
+    runs on the real clock on purpose: an end-to-end run of the CLI that a signal interrupts
+    (on virtual time its 120 s could run out before the signal)."""
     deadline = time.monotonic() + deadline_s
     while time.monotonic() < deadline:
         assert proc.poll() is None, proc.communicate()
