@@ -414,6 +414,13 @@ class EventSensor(AcquiringDevice[EventPacket, EventSensorSettings]):
         """Next packet; event and trigger times never decrease across packets."""
         return self._read_next(timeout_s)
 
+    @property
+    def stream_time_us(self) -> int | None:
+        """Sensor time up to which everything has been read, events or not (a stream's time
+        words tell it); None where the device does not say. Lets a reader know a quiet sensor
+        has got past a time although no event came."""
+        return None
+
     def _size(self, item: EventPacket) -> int:
         return len(item.events)
 

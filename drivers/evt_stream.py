@@ -170,6 +170,11 @@ class EvtStreamSensor(EventSensor):
     def evt_format(self) -> str:
         return self.source.evt_format
 
+    @property
+    def stream_time_us(self) -> int | None:
+        """How far the decoded stream has got, its time words included (EVT 3.0)."""
+        return self._decoder.time_us
+
     def _do_configure(self, settings: EventSensorSettings) -> None:
         self.source.configure(settings)
 

@@ -375,12 +375,15 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         gen.final = stopping
         return self._encode(events, triggers, t_now)
 
-    def _encode(self, events: EventArray, triggers: TriggerEvents, true_end_us: float) -> _Packet | None:
-        if len(events) == 0 and len(triggers) == 0:
-            return None
+    def _encode(self, events: EventArray, triggers: TriggerEvents, true_end_us: float) -> _Packet:
+        """The slice's EVT buffer, ending with time words up to the slice end (as a sensor's
+        periodic TIME_HIGH words do), so the host knows how far the stream got even when the
+        scene is still."""
         n = len(events)
+        payload = self._encoder.encode(events, triggers)
+        mark = self._encoder.mark_time(self._clock.stamp(true_end_us) - 1)
         return _Packet(
-            self._encoder.encode(events, triggers),
+            payload + mark,
             time.monotonic_ns(),
             n,
             len(triggers),

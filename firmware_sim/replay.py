@@ -610,10 +610,12 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         t_dev -= self._base
         trig = TriggerEvents(track.trig_device[a:b] - self._base, track.trig_p[a:b], track.trig_channel[a:b])
         n = len(ev)
-        if n == 0 and b == a:
-            return None
         events = ev.with_time(t_dev)
-        payload = self._encoder.encode(events, trig)
+        # Time words up to the slice end: the host knows how far the stream got, events or not.
+        end_device, _ = rig_to_device(track.cmap, np.array([hi_rig - 1], np.int64))
+        payload = self._encoder.encode(events, trig) + self._encoder.mark_time(
+            int(end_device[0]) - self._base
+        )
         with self._lock:
             self._counts["events"] += n
             self._counts["triggers"] += b - a

@@ -74,6 +74,14 @@ def new_decoder_state() -> NDArray[np.int64]:
     return st
 
 
+def stream_time(st: NDArray[np.int64]) -> int | None:
+    """The stream's current time (us) after what was decoded, time words included; None
+    before the first TIME_HIGH. A sensor's periodic TIME_HIGH words move it on with no events."""
+    if not st[_ST_STARTED]:
+        return None
+    return (int(st[_ST_LOOP]) << 24) | (int(st[_ST_TH]) << 12) | int(st[_ST_TL])
+
+
 @njit(nogil=True, cache=True)
 def output_bound(buf: NDArray[np.uint16]) -> tuple[int, int]:
     """Upper bound on (events, trigger events) that `decode_kernel` emits for these words: ADDR_X
@@ -390,6 +398,24 @@ class Evt3Encoder(StreamEncoder):
 
     def __init__(self) -> None:
         super().__init__(encode_kernel, np.array([0, 0, -1, -1], np.int64), np.uint16, max_channel=0xF)
+
+    def mark_time(self, t_us: int) -> bytes:
+        """TIME_HIGH / TIME_LOW words that move the stream's time to `t_us` with no event, as a
+        sensor's periodic time words do: the reader learns the stream has got that far. A mark
+        before what was already encoded moves nothing."""
+        t = max(int(t_us), self._last_t)
+        st, words = self._state, []
+        thf = t >> 12
+        while st[0] == 0 or st[1] < thf:
+            st[0] = 1
+            st[1] += min(thf - int(st[1]), _TH_STEP)
+            st[2] = -1
+            words.append(0x8000 | (int(st[1]) & 0xFFF))
+        if st[2] != t & 0xFFF:
+            st[2] = t & 0xFFF
+            words.append(0x6000 | int(st[2]))
+        self._last_t = t
+        return np.asarray(words, "<u2").tobytes()
 
 
 def encode_evt3(events: EventArray, triggers: TriggerEvents | None = None) -> bytes:

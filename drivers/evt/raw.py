@@ -128,6 +128,7 @@ class StreamDecoder:
         self._word = int(mod.WORD_BYTES)
         self._max_per_word = int(mod.MAX_EVENTS_PER_WORD)
         self._state = mod.new_decoder_state()
+        self._mod = mod
         # kernels read native words; EVT 2.1 words are read as two u32 halves (layout-dependent)
         self._dtype = np.dtype({2: "<u2", 4: "<u4", 8: "<u4"}[self._word])
         self._step = 2 if self._word == 8 else 1
@@ -146,6 +147,13 @@ class StreamDecoder:
         self._pending = b""
         self._base = int(offset)
         self.bytes_consumed = 0
+
+    @property
+    def time_us(self) -> int | None:
+        """How far the stream has got (us, time words included); None where the format's
+        decoder does not say (only EVT 3.0 does) or before its first time word."""
+        fn = getattr(self._mod, "stream_time", None)
+        return None if fn is None else fn(self._state)
 
     @property
     def stats(self) -> dict[str, int]:

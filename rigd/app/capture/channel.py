@@ -335,13 +335,28 @@ class DeviceChannel:
                     raise
                 self._reconnect(exc)
                 continue
+            if item is not None:
+                self._deliver(item)
+            if isinstance(dev, EventSensor):
+                self._note_stream_time(dev)
             if item is None:
                 if done.is_set():
                     self._drop_held("the take ended before its restarted clock could be tied")
                     return
                 pace(done, asked)
-                continue
-            self._deliver(item)
+
+    def _note_stream_time(self, dev: EventSensor) -> None:
+        """How far a sensor's stream has got, events or not, for its window gate (on the old
+        clock of a sensor that came back restarted; not before that clock is tied again)."""
+        gate, t = self.gate, dev.stream_time_us
+        if gate is None or t is None:
+            return
+        reset = self.clock_reset
+        if reset is not None:
+            if reset.offset is None:
+                return
+            t += reset.offset.us
+        gate.note_stream_time(t)
 
     def _stop_reading(self) -> None:
         """The stop's bound ran out while the stopped device still delivered: leave the rest in

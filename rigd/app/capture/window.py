@@ -247,6 +247,12 @@ class WindowGate:
             self._rate = (float(t[-1]) - self._d0) / span
         return k
 
+    def note_stream_time(self, t_device_us: int) -> None:
+        """The sensor's stream has got to this device time (its time words say so, events or
+        not): a quiet sensor closes its window without waiting for an event past the end."""
+        if self.mode == "trigger_in" and self._d0 is not None and not self._held:
+            self._reached(int(t_device_us), self.end_device_us)
+
     # -- admitting ---------------------------------------------------------------------------
     def admit(self, item: Item) -> list[Item]:
         """The parts of `item` inside the window (held items come out once placeable)."""

@@ -1,0 +1,43 @@
+"""EVT 3.0 time words: a stream tells how far it got with no event, and a reader sees it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.evt import Evt3Encoder, StreamDecoder
+from rigd.core.events import EventArray, TriggerEvents
+
+
+def _events(t: list[int]) -> EventArray:
+    n = len(t)
+    return EventArray(
+        np.arange(n, dtype=np.uint16), np.zeros(n, np.uint16), np.ones(n, np.int8), np.asarray(t, np.int64)
+    )
+
+
+def test_time_marks_move_the_decoders_time_without_events() -> None:
+    enc = Evt3Encoder()
+    dec = StreamDecoder("evt3", width=64, height=8)
+    assert dec.time_us is None
+    got = dec.feed(enc.encode(_events([10, 20, 30])))
+    assert len(got.events) == 3
+    assert dec.time_us == 30
+    for mark in (4_095, 4_096, 9_000_123, 40_000_000):  # inside a TIME_HIGH, across, far, past a loop
+        got = dec.feed(enc.mark_time(mark))
+        assert len(got.events) == 0
+        assert dec.time_us == mark
+    # events after a mark decode at their own times
+    got = dec.feed(enc.encode(_events([40_000_001, 40_000_500]), TriggerEvents.empty()))
+    assert got.events.t.tolist() == [40_000_001, 40_000_500]
+
+
+def test_a_mark_behind_the_stream_moves_nothing() -> None:
+    enc = Evt3Encoder()
+    dec = StreamDecoder("evt3", width=64, height=8)
+    dec.feed(enc.encode(_events([5_000])))
+    assert enc.mark_time(100) == b""
+    assert dec.time_us == 5_000
+
+
+def test_other_formats_do_not_say() -> None:
+    assert StreamDecoder("evt2", width=64, height=8).time_us is None
