@@ -105,6 +105,10 @@ class _Generator:
 
 #: How far behind true time the generator encodes, so trigger edges are in before their slice.
 GENERATION_LAG_US = 50_000
+#: Real time only: a generator further behind than this skips ahead (counted, `lag_skipped_us`).
+MAX_LAG_US = 1_000_000
+#: Real time only: at stop, at most this much true time after the last slice is still made.
+_STOP_CATCH_UP_US = GENERATION_LAG_US + 2 * SLICE_US
 
 
 class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
@@ -168,6 +172,8 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             "triggers": 0,
             "bytes": 0,
             "packets_lost_unplugged": 0,
+            "lag_skipped_us": 0,
+            "lag_skips": 0,
         }
         self._unsubscribe = world.wire.subscribe(self._on_edge)
         self._unlisten = self._fault.listen(self._on_unplug)
@@ -346,6 +352,14 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         else:
             stopping = self._acq.stopping.wait(max(0.0, (wake - self._world.now_us()) * 1e-6))
             t_now = self._world.now_us() - (0 if stopping else GENERATION_LAG_US)
+            # A sensor cannot fall behind real time; a simulator on a busy CPU can. Past a bound
+            # it skips ahead (and at stop it makes one slice more, not the whole backlog): the
+            # skipped span is counted, so the host records it and stopping stays bounded.
+            limit = gen.t_prev + (_STOP_CATCH_UP_US if stopping else MAX_LAG_US)
+            if t_now > limit:
+                self._skip(gen, limit if stopping else gen.t_prev, t_now, restart=not stopping)
+                if stopping:
+                    t_now = limit
         if self._dead(self._world.now_us()):
             with self._lock:
                 self._note_unplug_locked([])
@@ -374,6 +388,32 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         gen.t_prev = t_now
         gen.final = stopping
         return self._encode(events, triggers, t_now)
+
+    def _skip(self, gen: _Generator, start: float, t_to: float, *, restart: bool) -> None:
+        """Give up generating true time [start, t_to) (real time only) and count it. Running
+        (`restart`), the pixels restart at `t_to` and the span's trigger edges are dropped
+        (counted); stopping, the span after the last slice is simply not made."""
+        if restart:
+            log_now = lin_log(self._scene.render_intensity(self._view, t_to))
+            if gen.model is not None:
+                gen.model.step(log_now, round(t_to))
+                self._model_t = round(t_to)
+            gen.last_log[...] = log_now
+            gen.ref[...] = log_now
+            gen.t_prev = t_to
+            dropped = self._take_triggers(t_to)
+        else:
+            dropped = TriggerEvents.empty()
+        with self._lock:
+            self._counts["lag_skipped_us"] += round(t_to - start)
+            self._counts["lag_skips"] += 1
+            self._counts["triggers_dropped"] += len(dropped)
+        log.warning(
+            "event sensor %s: the simulator fell %.2f s behind real time; %.2f s of events not made",
+            self._name,
+            (t_to - start) / 1e6,
+            (t_to - start) / 1e6,
+        )
 
     def _encode(self, events: EventArray, triggers: TriggerEvents, true_end_us: float) -> _Packet:
         """The slice's EVT buffer, ending with time words up to the slice end (as a sensor's

@@ -287,6 +287,12 @@ class DeviceChannel:
                 stats.extra["triggers_ignored"],
                 "trigger edges arrived while the camera was busy (slower than the trigger)",
             )
+        if skipped_s := stats.extra.get("lag_skipped_us", 0) / 1e6:
+            times = stats.extra.get("lag_skips", 0)
+            why = f"the simulator fell behind real time and did not make {skipped_s:.2f} s of events"
+            ledger.add(
+                name, "events", 0, f"{why} ({times} time(s); count unknown; a virtual clock never does)"
+            )
         if stats.extra.get("triggers_late"):
             ledger.add(
                 name,
