@@ -24,6 +24,7 @@ import pytest
 
 from drivers.base import EventPacket, Trigger
 from drivers.registry import open_device
+from firmware_sim.clock import Hold, VirtualClock
 from firmware_sim.trigger_box import find_trigger_box
 from firmware_sim.world import TRUTH_LOG_ENV, SimWorld, close_truth_journals, get_world, reset_world
 from rigd.core.devices import PulseBatch
@@ -75,16 +76,32 @@ def wait_true(world: SimWorld, true_us: float) -> None:
 # --- unplug / replug ----------------------------------------------------------------------
 
 
+def hold_at(world: SimWorld, true_us: float) -> tuple[Hold, threading.Event]:
+    """A hold that lets a virtual world's time run to `true_us` and keeps it there (the event
+    is set then), so the test looks at the world at an exact instant."""
+    hold = world.hold()
+    reached = threading.Event()
+
+    def sleeper() -> None:
+        assert hold.sleep_until(true_us)
+        reached.set()
+
+    threading.Thread(target=sleeper, name="test-hold-at", daemon=True).start()
+    return hold, reached
+
+
 def test_camera_unplug_fails_reads_and_opens_then_replug_continues_on_the_same_clock(
     world_name: str,
 ) -> None:
+    """Real time: on virtual time the world stops at the unplug instant (see the xfail test
+    `test_virtual_time_runs_past_an_unplug`); move this test onto it once that is fixed."""
     spec = f"sim://{world_name}/cam0?{SMALL}&offset_us=1503311&drift_ppm=80&unplug_at_s=0.25&unplug_for_s=0.3"
     world = get_world(world_name)
     cam = open_device("rgb_camera", spec)
     cam.configure(CameraSettings(exposure_us=2000))
     cam.start()
     th, edges = fire_for(world, 0.9, 50.0)
-    before, err = read_until_error(cam.read_frame)
+    before, err = read_until_error(cam.read_frame, limit_s=30.0)
     assert "unplugged" in str(err)
     fault = world.unplug_fault("cam0")
     assert fault.end_us - fault.start_us == pytest.approx(0.3e6)
@@ -129,6 +146,42 @@ def test_camera_unplug_fails_reads_and_opens_then_replug_continues_on_the_same_c
     assert again.stats().extra["triggers_ignored"] == 0
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="virtual clock bug: a sleeper without a hold (VirtualClock.call_at, the unplug timer) "
+    "woken alone at an instant leaves time there for good; _advance_locked jumps once and "
+    "only a later sleep/release would move it on",
+)
+def test_virtual_time_goes_on_after_a_sleeper_without_a_hold_wakes() -> None:
+    clock = VirtualClock()
+    clock.start()
+    hold = clock.hold()  # keeps time at 0 until the two sleepers are in
+    timer = threading.Thread(target=clock.sleep_until, args=(100.0,), daemon=True)  # no hold
+    timer.start()
+    assert clock.wait_sleepers(1)
+    woke = threading.Event()
+    threading.Thread(target=lambda: hold.sleep_until(200.0) and woke.set(), daemon=True).start()
+    ok = woke.wait(5)
+    assert ok, f"virtual time stuck at {clock.now_us()} us with nothing holding it"
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="virtual clock bug: time stops at unplug_at_s (the unplug timer's wake does not "
+    "move time on; see the test above)",
+)
+def test_virtual_time_runs_past_an_unplug(world_name: str) -> None:
+    world = get_world(world_name, clock="virtual")
+    cam = open_device("rgb_camera", f"sim://{world_name}/cam0?{SMALL}&unplug_at_s=0.05&clock=virtual")
+    cam.start()
+    _, reached = hold_at(world, 0.2e6)
+    world.clock.start()
+    try:
+        assert reached.wait(5), f"virtual time stuck at {world.now_us()} us"
+    finally:
+        cam.close()
+
+
 def test_counter_reset_and_bad_unplug_params(world_name: str) -> None:
     world = get_world(world_name)
     spec = f"sim://{world_name}/cam0?{SMALL}&unplug_at_s=0.05&unplug_for_s=0.1&counter_reset=1"
@@ -166,28 +219,40 @@ def test_counter_reset_and_bad_unplug_params(world_name: str) -> None:
 
 
 def test_event_sensor_unplug_reaches_read_events_and_replug_continues(world_name: str) -> None:
-    spec = f"sim://{world_name}/ev0?{SMALL}&offset_us=412775&drift_ppm=-95&unplug_at_s=0.3&unplug_for_s=0.25"
-    world = get_world(world_name)
+    """On virtual time: unplugged at 0.3 s, looked at 0.4 s, replugged at 0.55 s, read to 0.7 s."""
+    spec = (
+        f"sim://{world_name}/ev0?{SMALL}&offset_us=412775&drift_ppm=-95&unplug_at_s=0.3&unplug_for_s=0.25"
+        "&clock=virtual"
+    )
+    world = get_world(world_name, clock="virtual")
     sensor = open_device("event_sensor", spec)
     sensor.configure(EventSensorSettings())
     sensor.start()
-    before, err = read_until_error(sensor.read_events)
+    hold, reached = hold_at(world, 0.4e6)
+    world.clock.start()
+    before, err = read_until_error(sensor.read_events, limit_s=60.0)
     assert "unplugged" in str(err)
+    assert reached.wait(30)
     fault = world.unplug_fault("ev0")
+    assert (fault.start_us, fault.end_us) == (0.3e6, 0.55e6)
     with pytest.raises(DeviceError, match="no such device"):
         open_device("event_sensor", spec)
     sensor.close()
-    wait_true(world, fault.end_us)
+    assert hold.sleep_until(fault.end_us + 1000.0)
 
     again = open_device("event_sensor", spec)
     again.configure(EventSensorSettings())
     again.start()
+    hold.release()
+    hold, reached = hold_at(world, 0.7e6)
     after = []
-    deadline = time.monotonic() + 5.0  # a loaded machine may take a while for the first slice
-    while time.monotonic() < deadline and not any(len(p.events) for p in after):
-        if (p := again.read_events(0.1)) is not None:
+    while not reached.is_set():  # time runs while the host reads (the sensor waits for room)
+        if (p := again.read_events(0.05)) is not None:
             after.append(p)
-    again.stop()
+    while (p := again.read_events(0.05)) is not None:
+        after.append(p)
+    again.stop()  # at 0.7 s exactly: its last slice ends there
+    hold.release()
     while (p := again.read_events(0.1)) is not None:
         after.append(p)
     again.close()
@@ -202,6 +267,7 @@ def test_event_sensor_unplug_reaches_read_events_and_replug_continues(world_name
     # Everything the host got lies before the lost span, everything after it on the same clock.
     assert clock.true_at(ev_before.max()) <= lost_from <= fault.start_us
     assert clock.true_at(ev_after.min()) >= fault.end_us
+    assert clock.true_at(ev_after.max()) <= 0.7e6
     assert ev_after.min() > ev_before.max()
 
 
