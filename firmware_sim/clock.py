@@ -179,9 +179,15 @@ class VirtualClock:
         return self._sleep(true_us, stop, None)
 
     def call_at(self, true_us: float, fn: Callable[[], None], name: str) -> None:
+        """Run `fn` at `true_us`, with time held until it returns (it happens at that instant)."""
+        hold = self.hold()
+
         def run() -> None:
-            if self.sleep_until(true_us):
-                fn()
+            try:
+                if hold.sleep_until(true_us):
+                    fn()
+            finally:
+                hold.release()
 
         threading.Thread(target=run, name=name, daemon=True).start()
 
@@ -224,6 +230,10 @@ class VirtualClock:
                     self._waiting.discard(seq)
                     return False
                 self._cond.wait(_STOP_POLL_S if stop is not None else None)
+            if hold is None:
+                # Woken without a hold, this sleeper does not keep time here: the next deadline
+                # may come at once (nothing else would move time on if it was alone).
+                self._advance_locked()
             return True
 
     def _advance_locked(self) -> None:

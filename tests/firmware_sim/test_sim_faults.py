@@ -93,8 +93,8 @@ def hold_at(world: SimWorld, true_us: float) -> tuple[Hold, threading.Event]:
 def test_camera_unplug_fails_reads_and_opens_then_replug_continues_on_the_same_clock(
     world_name: str,
 ) -> None:
-    """Real time: on virtual time the world stops at the unplug instant (see the xfail test
-    `test_virtual_time_runs_past_an_unplug`); move this test onto it once that is fixed."""
+    """Real time, with edges fired from a test thread (`fire_for`); the same unplug on
+    virtual time is `test_virtual_time_runs_past_an_unplug` and the replay unplug test."""
     spec = f"sim://{world_name}/cam0?{SMALL}&offset_us=1503311&drift_ppm=80&unplug_at_s=0.25&unplug_for_s=0.3"
     world = get_world(world_name)
     cam = open_device("rgb_camera", spec)
@@ -146,12 +146,6 @@ def test_camera_unplug_fails_reads_and_opens_then_replug_continues_on_the_same_c
     assert again.stats().extra["triggers_ignored"] == 0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="virtual clock bug: a sleeper without a hold (VirtualClock.call_at, the unplug timer) "
-    "woken alone at an instant leaves time there for good; _advance_locked jumps once and "
-    "only a later sleep/release would move it on",
-)
 def test_virtual_time_goes_on_after_a_sleeper_without_a_hold_wakes() -> None:
     clock = VirtualClock()
     clock.start()
@@ -165,11 +159,6 @@ def test_virtual_time_goes_on_after_a_sleeper_without_a_hold_wakes() -> None:
     assert ok, f"virtual time stuck at {clock.now_us()} us with nothing holding it"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="virtual clock bug: time stops at unplug_at_s (the unplug timer's wake does not "
-    "move time on; see the test above)",
-)
 def test_virtual_time_runs_past_an_unplug(world_name: str) -> None:
     world = get_world(world_name, clock="virtual")
     cam = open_device("rgb_camera", f"sim://{world_name}/cam0?{SMALL}&unplug_at_s=0.05&clock=virtual")
