@@ -19,9 +19,15 @@ Non-idealities, each off unless configured (the scene decides what it needs):
 * shot noise: Poisson events of random polarity at `shot_noise_rate_hz` per pixel;
 * hot pixels: a fixed random subset fires ON events at `hot_pixel_rate_hz`.
 
-The per-pixel work is one numba kernel (nogil, so simulators in different threads run in
-parallel); noise draws are vectorized numpy with a generator seeded by (seed, step), so
-the same seed and frames give the same events whatever the threading.
+The step runs numba kernels on numba's threads (`prange` over blocks of rows, then over
+time buckets; nogil): each block emits its events as packed keys and buckets them by
+coarse time, then each bucket is counting-sorted by time into the output. The result is
+the serial reference's (`step_kernel` and a stable sort by time) to the bit, whatever the
+number of threads: the blocks are fixed and the sort is stable. uint8 frames are read
+through a per-step table of log levels and low-pass gains (the same numbers). Noise draws
+are vectorized numpy with a generator seeded by (seed, step), so the same seed and frames
+give the same events whatever the threading. Speed against v2e: `python -m
+bench.event_sim_v2e` (docs/event-simulator.md).
 """
 
 from __future__ import annotations
@@ -133,9 +139,11 @@ def _to_log(v: float, conv: LogInput) -> tuple[float, float]:
         return lv, max(inten, 0.0)
     inten = max(v * scale, 0.0)
     u = inten + eps
-    if u >= knee:
-        return math.log(u), inten
-    return log_knee + (u - knee) / knee, inten
+    # Both segments for every value, then a select: a dark/bright texture would otherwise
+    # mispredict the branch at every other pixel (log(max(u, knee)) is log(u) where used).
+    lg = math.log(max(u, knee))
+    lin = log_knee + (u - knee) / knee
+    return (lg if u >= knee else lin), inten
 
 
 @njit(nogil=True, cache=True)
