@@ -29,6 +29,8 @@ def replay_config(
     duration (pulses / rate). `faults` adds spec parameters per device name (`trigger` for the
     box), e.g. {"cam1": {"drop_frames": "3"}}."""
     path = take_path.resolve()
+    if not path.is_file():
+        raise ConfigError(f"cannot replay {take_path}: no such file")
     try:
         with Take(path) as take:
             recorded = take.config
