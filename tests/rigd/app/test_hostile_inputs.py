@@ -104,6 +104,10 @@ COMMANDS: dict[str, tuple[dict[str, Make], Callable[[Path, Path], list[str]]]] =
         CONFIG_INPUTS,
         lambda p, d: ["capture", "--local", "--config", str(p), "--duration", "1", "--out", str(d / "t")],
     ),
+    "capture --replay": (
+        INPUTS,
+        lambda p, d: ["capture", "--replay", str(p), "--sim-clock", "virtual", "--out", str(d / "t")],
+    ),
     "doctor --config": (CONFIG_INPUTS, lambda p, d: ["doctor", "--config", str(p)]),
     "serve --config": (CONFIG_INPUTS, lambda p, d: ["serve", "--config", str(p)]),
     "simulate-events": (INPUTS, lambda p, d: ["simulate-events", str(p), "--out", str(d / "sim.h5")]),
