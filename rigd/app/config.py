@@ -168,6 +168,14 @@ class RigConfig(BaseModel):
                 )
         return self
 
+    def on_virtual_time(self) -> bool:
+        """Whether the rig's simulated devices run on virtual time (`clock=virtual` in a spec):
+        its pulses then come at the simulation's pace, and wall-clock deadlines do not apply."""
+        from drivers.registry import DeviceSpec
+
+        specs = [self.trigger.spec, *(c.spec for c in self.cameras), *(s.spec for s in self.event_sensors)]
+        return any(DeviceSpec.parse(spec).params.get("clock") == "virtual" for spec in specs)
+
     def check_devices(self) -> None:
         """Check every device spec without opening anything (see `drivers.registry.check_spec`);
         the error names the config field."""

@@ -138,3 +138,31 @@ def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -
         assert np.array_equal(ea.p, eb.p)
     reset_world("det-a")
     reset_world("det-b")
+
+
+def test_a_slow_virtual_world_is_not_cut_by_wall_clock_deadlines(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A virtual rig much slower than real time (here ~40x) still gets all its pulses: no
+    wall-clock pulse deadline, no trigger-silence fault while the box answers."""
+    import time
+
+    import firmware_sim.event_sensor as es
+
+    real = es.generate_events
+
+    def slow(*args: object, **kw: object) -> object:
+        time.sleep(0.15)  # each 5 ms slice of each sensor: far slower than real time
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(es, "generate_events", slow)
+    reset_world("slow-virtual")
+    config = default_sim_rig(world="slow-virtual", seed=1, clock="virtual", resolution=(320, 180))
+    result = run_capture(config, tmp_path, 0.2)
+    reset_world("slow-virtual")
+    assert result.frames == {"cam0": 6, "cam1": 6, "cam2": 6}
+    assert result.end_reason == "all 6 pulses done", result.end_reason
+    with Take(result.path) as take:
+        report = take.sync_report
+        assert report is not None
+        assert not [loss for loss in report.losses if loss.count]

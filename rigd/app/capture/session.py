@@ -98,6 +98,7 @@ class CaptureSession:
             round(1e6 / self.rate) if margin is None else margin,
             None if self.n_pulses is None else self.n_pulses - 1,
         )
+        self._virtual = config.on_virtual_time()
         self._control = RunControl()
         self._faults = FaultBoard()
         self._ledger = LossLedger(self._faults, self._trigger_link)
@@ -294,7 +295,7 @@ class CaptureSession:
         trigger.device.arm()
         self._t_start = time.monotonic()
         trigger.device.start(self.n_pulses)
-        self._watchdog = TriggerWatchdog(trigger.device, self.rate, self._faults)
+        self._watchdog = TriggerWatchdog(trigger.device, self.rate, self._faults, probe_always=self._virtual)
         for live in [self._trigger_live, *(ch.live for ch in self._channels.values())]:
             live.samples.clear()
 
@@ -386,7 +387,10 @@ class CaptureSession:
         assert trigger is not None
         assert watchdog is not None
         n_total = self.n_pulses
-        deadline = None if n_total is None else time.monotonic() + n_total / self.rate * 1.5 + 5.0
+        # A rig on virtual time has no wall-clock pace to hold its pulses to.
+        deadline = (
+            None if n_total is None or self._virtual else time.monotonic() + n_total / self.rate * 1.5 + 5.0
+        )
         next_disk = 0.0
         while True:
             if (error := control.first_error) is not None:
@@ -519,10 +523,19 @@ class CaptureSession:
     def _wait_for_window(self, backlog_s: float) -> set[str]:
         """Until every device has delivered up to the end of the window (or is away), for at
         most `backlog_s`. A device that has is stopped at once (it makes nothing more for the
-        take, and a loaded host gets its CPU back for the others); their names."""
+        take, and a loaded host gets its CPU back for the others); their names. On virtual
+        time the devices cannot fall behind, only the simulation be slow: the bound then counts
+        from the last progress any of them made."""
         deadline = time.monotonic() + backlog_s
         stopped: set[str] = set()
+        progress: list[int | None] = []
         while self._control.first_error is None:
+            if self._virtual:
+                now_progress = [
+                    None if ch.gate is None else ch.gate.reached_us for ch in self._channels.values()
+                ]
+                if now_progress != progress:
+                    progress, deadline = now_progress, time.monotonic() + backlog_s
             behind = []
             for name, ch in self._channels.items():
                 if not ch.window_reached():
