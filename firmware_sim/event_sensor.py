@@ -174,6 +174,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             "packets_lost_unplugged": 0,
             "lag_skipped_us": 0,
             "lag_skips": 0,
+            "stop_not_made_us": 0,
         }
         self._unsubscribe = world.wire.subscribe(self._on_edge)
         self._unlisten = self._fault.listen(self._on_unplug)
@@ -390,28 +391,31 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         return self._encode(events, triggers, t_now)
 
     def _skip(self, gen: _Generator, start: float, t_to: float, *, restart: bool) -> None:
-        """Give up generating true time [start, t_to) (real time only) and count it. Running
-        (`restart`), the pixels restart at `t_to` and the span's trigger edges are dropped
-        (counted); stopping, the span after the last slice is simply not made."""
-        if restart:
-            log_now = lin_log(self._scene.render_intensity(self._view, t_to))
-            if gen.model is not None:
-                gen.model.step(log_now, round(t_to))
-                self._model_t = round(t_to)
-            gen.last_log[...] = log_now
-            gen.ref[...] = log_now
-            gen.t_prev = t_to
-            dropped = self._take_triggers(t_to)
-        else:
-            dropped = TriggerEvents.empty()
+        """Give up generating true time [start, t_to) (real time only). Running (`restart`),
+        the span is counted as lost (`lag_skipped_us`), its trigger edges are dropped (counted)
+        and the pixels restart at `t_to`. Stopping, the span after the last slice is simply not
+        made, as a stopped sensor makes nothing (`stop_not_made_us`; the host asked for the
+        stop, and a window it still needed is recorded by the capture as not delivered)."""
+        if not restart:
+            with self._lock:
+                self._counts["stop_not_made_us"] += round(t_to - start)
+            log.info("event sensor %s: stopped %.2f s behind real time", self._name, (t_to - start) / 1e6)
+            return
+        log_now = lin_log(self._scene.render_intensity(self._view, t_to))
+        if gen.model is not None:
+            gen.model.step(log_now, round(t_to))
+            self._model_t = round(t_to)
+        gen.last_log[...] = log_now
+        gen.ref[...] = log_now
+        gen.t_prev = t_to
+        dropped = self._take_triggers(t_to)
         with self._lock:
             self._counts["lag_skipped_us"] += round(t_to - start)
             self._counts["lag_skips"] += 1
             self._counts["triggers_dropped"] += len(dropped)
         log.warning(
-            "event sensor %s: the simulator fell %.2f s behind real time; %.2f s of events not made",
+            "event sensor %s: the simulator fell %.2f s behind real time; those events are not made",
             self._name,
-            (t_to - start) / 1e6,
             (t_to - start) / 1e6,
         )
 
