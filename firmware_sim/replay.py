@@ -46,7 +46,7 @@ from firmware_sim.trigger_box import BOX_PARAMS, START_LEAD_US, SimTriggerBox, o
 from firmware_sim.world import DeviceClock, SimWorld, Unpluggable, UnplugParams, get_world, unplug_params
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError, RigdError
-from rigd.core.events import TriggerEvents
+from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import DeviceSync, SyncReport
 from rigd.core.settings import CameraSettings, EventSensorSettings
@@ -62,6 +62,8 @@ _SENSOR_PARAMS = {"device", "clock", "buffer_packets", *_FAULT_PARAMS}
 #: A device runs at most this many buffers ahead of its reader on virtual time.
 _VIRTUAL_LEAD = 4
 _STOP_POLL_S = 0.05
+#: Events read from the take at a time by a replayed sensor (whole LZ4 chunks, once each).
+_READ_AHEAD = 1 << 20
 
 
 @dataclass(frozen=True, slots=True)
@@ -506,6 +508,10 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         self._lock = threading.Lock()
         self._encoder = Evt3Encoder()
         self._take: Take | None = None
+        self._buf = EventArray.empty()
+        """Events read ahead (rig time), from `_pos` in the file: slices are cut from it, so a
+        5 ms slice does not decompress whole chunks again."""
+        self._pos = 0
         self._t_prev: float | None = None
         self._final = False
         self._hold: Hold | None = None
@@ -527,6 +533,8 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         shift = self._timeline.wait(0.0)
         now = self._world.now_us()
         self._t_prev = None if shift is None else now
+        self._buf = EventArray.empty()
+        self._pos = 0 if shift is None else self._take.event_index(self._name, math.ceil(now + shift))
         self._base = reset_base(self._clock_reset, self._world, self._name, self._track.cmap, shift, now)
         self._final = False
         self._hold = self._world.hold() if self._world.virtual else None
@@ -597,13 +605,26 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
                 pass
         return packet
 
+    def _take_until(self, hi_rig: int) -> EventArray:
+        """The recorded events before rig time `hi_rig` not handed out yet, read ahead in blocks."""
+        assert self._take is not None
+        n = self._track.n_events
+        while self._pos < n and (len(self._buf) == 0 or int(self._buf.t[-1]) < hi_rig):
+            stop = min(self._pos + _READ_AHEAD, n)
+            block = self._take.events_by_index(self._name, self._pos, stop)
+            self._buf = EventArray.concatenate([self._buf, block])
+            self._pos = stop
+        k = int(np.searchsorted(self._buf.t, hi_rig, side="left"))
+        out, self._buf = self._buf[:k], self._buf[k:]
+        return out
+
     def _slice(self, t0: float, t1: float, shift: float) -> _Packet | None:
         """The recorded data of true time [t0, t1), in the sensor clock, encoded."""
         assert self._take is not None
         track = self._track
         lo_rig = None if math.isinf(t0) else math.ceil(t0 + shift)
         hi_rig = math.ceil(t1 + shift)
-        ev = self._take.events(self._name, lo_rig, hi_rig)
+        ev = self._take_until(hi_rig)
         t_dev, inexact = rig_to_device(track.cmap, ev.t)
         a = 0 if lo_rig is None else int(np.searchsorted(track.trig_rig, lo_rig, side="left"))
         b = int(np.searchsorted(track.trig_rig, hi_rig, side="left"))

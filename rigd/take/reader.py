@@ -443,6 +443,11 @@ class Take:
         lo, hi = self._index_range(sensor, t_start_us, t_end_us)
         return self._read_events(g, lo, hi, self._offset(sensor))
 
+    def event_index(self, sensor: str, t_us: int) -> int:
+        """Index of the first event at or after rig time `t_us` (the event count if none), for
+        reading on from there in blocks with `events_by_index`."""
+        return self._index_range(sensor, int(t_us), None)[0]
+
     def _index_range(self, sensor: str, t_start_us: int | None, t_end_us: int | None) -> tuple[int, int]:
         g = self._sensor_group(sensor)
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
