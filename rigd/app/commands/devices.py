@@ -12,6 +12,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from drivers.discovery import Discovery, discover, udev_rules, usb_speed_label, write_config_skeleton
@@ -74,9 +75,9 @@ def devices(
     try:
         if config is not None:
             notes = write_config_skeleton(found, config)
-            _err.print(f"wrote rig config skeleton {config}")
-            for note in notes:
-                _err.print(f"[yellow]edit:[/] {note}")
+            _err.print(f"wrote rig config skeleton {escape(str(config))}")
+            for note in notes:  # notes name TOML tables ([[cameras]]): not markup
+                _err.print(f"[yellow]edit:[/] {escape(note)}", soft_wrap=True)
         if udev is not None:
             udev.parent.mkdir(parents=True, exist_ok=True)
             udev.write_text(udev_rules(found.devices), encoding="utf-8")
@@ -85,5 +86,5 @@ def devices(
                 "&& sudo udevadm control --reload && sudo udevadm trigger"
             )
     except (OSError, ValueError) as exc:
-        _err.print(f"[bold red]error:[/] {exc}")
+        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(code=2) from exc

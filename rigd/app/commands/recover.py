@@ -36,6 +36,19 @@ _COLOURS = {
 }
 
 
+def _take_dir(config: Path | None) -> Path:
+    """The take directory a rig config names (the sim rig's when none is given)."""
+    from rigd.app.config import RigConfig, default_sim_rig
+    from rigd.core.errors import RigdError
+
+    try:
+        rig = RigConfig.load(config) if config is not None else default_sim_rig()
+    except RigdError as exc:
+        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        raise typer.Exit(code=2) from exc
+    return rig.service.take_dir
+
+
 def _recover_all(paths: list[Path], *, dry_run: bool) -> list[RecoveryReport | RecoveryProblem]:
     """Files as given, directories expanded to their unfinished takes; a file that cannot be
     read or sealed is a `RecoveryProblem` in the list, never the end of the run."""
@@ -52,14 +65,29 @@ def _recover_all(paths: list[Path], *, dry_run: bool) -> list[RecoveryReport | R
 
 def recover_command(
     paths: Annotated[
-        list[Path], typer.Argument(help="Take files, or directories to search for unfinished takes.")
-    ],
+        list[Path] | None,
+        typer.Argument(
+            help="Take files, or directories to search for unfinished takes (default: the rig "
+            "config's service.take_dir)."
+        ),
+    ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option("--config", "-c", help="Rig config whose take_dir to search (default: the sim rig's)."),
+    ] = None,
     dry_run: Annotated[
         bool, typer.Option("--dry-run", help="Report what would be trimmed and sealed; change nothing.")
     ] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the recovery reports as JSON.")] = False,
 ) -> None:
     """Repair and seal takes left unfinished by a crash (status recording, or a cut-short finalize)."""
+    if not paths:
+        take_dir = _take_dir(config)
+        if not take_dir.is_dir():
+            _err.print(f"no take directory {escape(str(take_dir))}: nothing to recover", soft_wrap=True)
+            raise typer.Exit(code=0)
+        paths = [take_dir]
+        _err.print(f"searching {escape(str(take_dir))} for unfinished takes", soft_wrap=True)
     try:
         results = _recover_all(paths, dry_run=dry_run)
     except TakeError as exc:  # a directory that cannot be listed

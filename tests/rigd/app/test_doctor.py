@@ -207,6 +207,19 @@ def test_devices_cli_says_plainly_when_nothing_is_attached(monkeypatch: pytest.M
     assert "usb: unavailable (no libusb)" in res.stdout
 
 
+def test_devices_config_notes_keep_their_toml_table_names(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The skeleton's notes name TOML tables; they must not be eaten as console markup."""
+    import rigd.app.commands.devices as mod
+
+    monkeypatch.setattr(mod, "discover", lambda: Discovery([SourceReport("usb", False, reason="no libusb")]))
+    res = CliRunner().invoke(_app(), ["devices", "--config", str(tmp_path / "skel.toml")])
+    assert res.exit_code == 0, res.output
+    assert "add [[cameras]] / [[event_sensors]] before capturing" in res.stderr
+    assert "add [] / []" not in res.stderr
+
+
 def test_doctor_cli_json_on_this_machine(tmp_path: Path) -> None:
     res = CliRunner().invoke(_app(), ["doctor", "--json", "--no-disk-test", "--out", str(tmp_path)])
     assert res.exit_code in (0, 1), res.output

@@ -17,6 +17,7 @@ import typer
 from typer.testing import CliRunner
 
 from rigd.app.commands.recover import recover_command
+from rigd.app.config import ServiceConfig, default_sim_rig
 from rigd.take.recover_dir import RecoveryProblem, move_aside, recover_dir, scan_dir
 from tests.rigd.test_take_recover import _unfinished
 
@@ -204,3 +205,23 @@ def test_recover_command_removes_the_ballast_a_killed_capture_left(tmp_path: Pat
     res = CliRunner().invoke(_app(), [str(d)])
     assert res.exit_code == 0, res.output
     assert not stale.exists()
+
+
+def test_recover_with_no_path_searches_the_configs_take_dir(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`rigd recover` as the README writes it: no path means the rig config's take_dir."""
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(_app(), [])
+    assert res.exit_code == 0, res.output
+    assert "no take directory takes: nothing to recover" in res.stderr
+    d, good, _ = _dir_with(tmp_path, [])
+    config = tmp_path / "rig.json"
+    config.write_text(
+        default_sim_rig().model_copy(update={"service": ServiceConfig(take_dir=d)}).model_dump_json()
+    )
+    res = CliRunner().invoke(_app(), ["--config", str(config)])
+    assert res.exit_code == 0, res.output
+    assert f"searching {d}" in " ".join(res.stderr.split())
+    for p in good:
+        assert any(str(p) in line and "sealed complete" in line for line in res.stdout.splitlines())
