@@ -97,7 +97,8 @@ def scan_dir(directory: str | Path) -> DirScan:
         try:
             needs = _needs(p)
         except READ_ERRORS as exc:
-            log.error("%s cannot be read as a take: %s", p, _why(exc, p))
+            # Returned, and reported once by the caller (`log_problems`, or the command's lines).
+            log.info("%s cannot be read as a take: %s", p, _why(exc, p))
             out.unreadable.append(RecoveryProblem(path=str(p), error=f"unreadable: {_why(exc, p)}"))
             continue
         if needs is None:
@@ -138,8 +139,15 @@ def recover_one(path: Path, *, dry_run: bool = False) -> RecoveryReport | Recove
     try:
         return recover_take(path, dry_run=dry_run)
     except READ_ERRORS as exc:
-        log.error("recovering %s failed: %s", path, _why(exc, path))
+        log.info("recovering %s failed: %s", path, _why(exc, path))  # the caller reports it
         return RecoveryProblem(path=str(path), error=_why(exc, path))
+
+
+def log_problems(results: list[RecoveryReport | RecoveryProblem]) -> None:
+    """Log each problem once, for a caller with no reader of its own (the daemon)."""
+    for r in results:
+        if isinstance(r, RecoveryProblem):
+            log.error("%s", r.line())
 
 
 def _move_problem(problem: RecoveryProblem, directory: Path) -> None:

@@ -384,7 +384,7 @@ class Daemon:
     def _recover(self) -> None:
         """Seal unfinished takes in take_dir. A file that cannot be read is reported and moved
         to take_dir/unreadable/ (kept); it never stops the daemon from starting and serving."""
-        from rigd.take.recover_dir import recover_dir
+        from rigd.take.recover_dir import log_problems, recover_dir
 
         def sealing(path: Path) -> None:
             log.warning("take %s was left unfinished; checking and sealing it", path)
@@ -396,6 +396,7 @@ class Daemon:
             log.error("recovery skipped: %s", exc)
             self.recovered.append({"path": str(self.svc.take_dir), "error": str(exc)})
             return
+        log_problems(results)
         self.recovered.extend(r.model_dump(mode="json") for r in results)
 
     def _finish_session(self, reason: str) -> None:

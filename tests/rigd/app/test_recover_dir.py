@@ -225,3 +225,15 @@ def test_recover_with_no_path_searches_the_configs_take_dir(
     assert f"searching {d}" in " ".join(res.stderr.split())
     for p in good:
         assert any(str(p) in line and "sealed complete" in line for line in res.stdout.splitlines())
+
+
+def test_recover_says_each_problem_once(tmp_path: Path) -> None:
+    """Through the real command line (its logging set up): a bad file is one report line,
+    not a log line and then the same again."""
+    from rigd.app.cli import app
+
+    d, _, bad = _dir_with(tmp_path, ["text", "zero"])
+    res = CliRunner().invoke(app, ["recover", str(d)])
+    assert res.exit_code == 1, res.output
+    for p in bad:
+        assert res.output.count(p.name) == 1, res.output
