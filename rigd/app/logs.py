@@ -13,11 +13,15 @@ SyslogLevelPrefix=, on by default), so `journalctl -p warning` works.
 
 from __future__ import annotations
 
+import atexit
 import json
 import logging
 import logging.handlers
 import os
 import sys
+import threading
+import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
@@ -129,6 +133,85 @@ def stderr_is_journal() -> bool:
     return (st.st_dev, st.st_ino) == (dev, ino)
 
 
+#: Identical warnings (same logger, level and message template) pass once per this many seconds.
+REPEAT_WINDOW_S = 10.0
+
+
+class RepeatFilter(logging.Filter):
+    """Lets a message template through once per window and counts the rest, so a device that
+    drops a frame every 33 ms writes one line and a summary, not thirty a second.
+
+    Records at ERROR and above always pass. When a template's window has passed, the next
+    record of any kind first brings out a summary of what was held back: how many, over how
+    long, and the first and last of them (their arguments give the range, e.g. frame numbers).
+    `flush` brings out what is pending (at exit; tests)."""
+
+    def __init__(
+        self,
+        handler: logging.Handler,
+        window_s: float = REPEAT_WINDOW_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        super().__init__()
+        self._handler = handler
+        self._window_s = window_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._seen: dict[tuple[str, int, str], list[Any]] = {}
+        """key -> [window start, count held back, first held record, last held record]"""
+        self._emitting = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self._emitting:
+            return True  # our own summary
+        now = self._clock()
+        self._emit_summaries(now, expired_only=True)
+        if record.levelno >= logging.ERROR:
+            return True
+        key = (record.name, record.levelno, str(record.msg))
+        with self._lock:
+            slot = self._seen.get(key)
+            if slot is None or now - slot[0] >= self._window_s:
+                self._seen[key] = [now, 0, None, None]
+                return True
+            slot[1] += 1
+            if slot[2] is None:
+                slot[2] = record
+            slot[3] = record
+            return False
+
+    def flush(self) -> None:
+        """Bring out every pending summary now."""
+        self._emit_summaries(self._clock(), expired_only=False)
+
+    def _emit_summaries(self, now: float, *, expired_only: bool) -> None:
+        with self._lock:
+            due = [
+                (key, slot)
+                for key, slot in self._seen.items()
+                if slot[1] and (not expired_only or now - slot[0] >= self._window_s)
+            ]
+            for key, _ in due:
+                del self._seen[key]
+        for _, (start, count, first, last) in due:
+            self._summary(count, now - start, first, last)
+
+    def _summary(self, count: int, span_s: float, first: logging.LogRecord, last: logging.LogRecord) -> None:
+        text = f"{count} more like this in {span_s:.0f} s, not shown: first {first.getMessage()!r}"
+        if count > 1:
+            text += f", last {last.getMessage()!r}"
+        stream = getattr(self._handler, "stream", None)
+        if stream is not None and getattr(stream, "closed", False):
+            return  # the handler was closed under us (someone else's teardown): nowhere to write
+        rec = logging.LogRecord(last.name, last.levelno, last.pathname, last.lineno, text, None, None)
+        rec.created = last.created
+        self._emitting = True
+        try:
+            self._handler.handle(rec)
+        finally:
+            self._emitting = False
+
+
 def setup_logging(level: int, fmt: LogFormat = "text", log_file: Path | None = None) -> None:
     """Configure the root logger: stderr, plus `log_file` when given, both in `fmt`.
 
@@ -141,6 +224,10 @@ def setup_logging(level: int, fmt: LogFormat = "text", log_file: Path | None = N
     root = logging.getLogger()
     for handler in [h for h in root.handlers if getattr(h, _OURS, False)]:
         root.removeHandler(handler)
+        for f in handler.filters:
+            if isinstance(f, RepeatFilter):  # what it held back is written before it goes
+                f.flush()
+                atexit.unregister(f.flush)
         handler.close()
 
     journal = stderr_is_journal()
@@ -154,6 +241,9 @@ def setup_logging(level: int, fmt: LogFormat = "text", log_file: Path | None = N
         handlers.append(file_handler)
     for handler in handlers:
         setattr(handler, _OURS, True)
+        repeats = RepeatFilter(handler)
+        handler.addFilter(repeats)
+        atexit.register(repeats.flush)
         root.addHandler(handler)
     root.setLevel(level)
     logging.captureWarnings(True)

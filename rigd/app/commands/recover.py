@@ -101,8 +101,8 @@ def recover_command(
     for r in results:
         if isinstance(r, RecoveryProblem):
             ok = False
-            if not json_out:
-                out.print(f"[bold red]{'ERROR':<17}[/] {escape(r.line())}")
+            if not json_out:  # the one message about it, where errors go
+                _err.print(f"[bold red]{'ERROR':<17}[/] {escape(r.line())}", soft_wrap=True, highlight=False)
             continue
         ok &= r.sealed
         if not json_out:

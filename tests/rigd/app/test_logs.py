@@ -148,3 +148,62 @@ def test_journal_stream_of_another_file_is_ignored(tmp_path: Path, monkeypatch: 
 def test_unknown_format() -> None:
     with pytest.raises(ValueError, match="unknown log format"):
         logs.setup_logging(logging.INFO, "xml")  # type: ignore[arg-type]
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _out(stream: io.StringIO) -> list[str]:
+    return stream.getvalue().splitlines()
+
+
+def test_repeated_warnings_are_one_line_and_a_summary() -> None:
+    """A camera dropping a frame per pulse: one line, then a count with the first and last."""
+    stream, clock = io.StringIO(), _Clock()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+    handler.addFilter(logs.RepeatFilter(handler, window_s=10.0, clock=clock))
+    log = logging.getLogger("test.repeats")
+    log.propagate = False
+    log.addHandler(handler)
+    log.setLevel(logging.DEBUG)
+    try:
+        for i in range(300):  # 300 drops in 9.97 s: one window
+            clock.t = i / 30
+            log.warning("camera %s: frame buffer full, frame %d dropped", "cam1", i)
+        log.error("an error always gets through (%d)", 1)
+        log.error("an error always gets through (%d)", 2)
+        assert _out(stream) == [
+            "WARNING camera cam1: frame buffer full, frame 0 dropped",
+            "ERROR an error always gets through (1)",
+            "ERROR an error always gets through (2)",
+        ]
+        clock.t = 10.5  # the window is over: the next record of any kind brings out the summary
+        log.info("something else")
+        lines = _out(stream)
+        assert lines[3] == (
+            "WARNING 299 more like this in 10 s, not shown: first 'camera cam1: frame buffer full, "
+            "frame 1 dropped', last 'camera cam1: frame buffer full, frame 299 dropped'"
+        )
+        assert lines[4] == "INFO something else"
+        log.warning("camera %s: frame buffer full, frame %d dropped", "cam1", 400)  # a new window
+        log.warning("camera %s: frame buffer full, frame %d dropped", "cam1", 401)
+        assert _out(stream)[5:] == ["WARNING camera cam1: frame buffer full, frame 400 dropped"]
+        handler.filters[0].flush()  # type: ignore[union-attr]
+        assert _out(stream)[6].startswith("WARNING 1 more like this in 0 s, not shown: first 'camera cam1")
+    finally:
+        log.removeHandler(handler)
+
+
+def test_setup_logging_aggregates_repeats(tmp_path: Path) -> None:
+    logs.setup_logging(logging.INFO, "text", tmp_path / "rigd.log")
+    log = logging.getLogger("test.setup.repeats")
+    for i in range(50):
+        log.warning("reader is behind, queue full: %d item(s) dropped so far", i)
+    text = (tmp_path / "rigd.log").read_text()
+    assert text.count("reader is behind") == 1

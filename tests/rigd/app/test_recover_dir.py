@@ -121,9 +121,11 @@ def test_recover_command_dir_with_bad_files(tmp_path: Path) -> None:
     assert res.exit_code == 1, res.output
     assert isinstance(res.exception, SystemExit), res.exception  # exit 1, nothing raised
     assert "Traceback" not in res.stdout
-    lines = res.stdout.splitlines()  # the report; log lines go to stderr
-    for p in bad:  # one line per problem, naming the file
-        assert sum(str(p) in line for line in lines) == 1, res.stdout
+    lines = res.stdout.splitlines()  # the report of what was sealed
+    errors = res.stderr.splitlines()  # one line per problem, naming the file, and nothing else on it
+    for p in bad:
+        assert sum(str(p) in line for line in errors) == 1, res.stderr
+        assert not any(str(p) in line for line in lines), res.stdout
     for p in good:
         assert any(str(p) in line and "sealed complete" in line for line in lines), res.stdout
 
