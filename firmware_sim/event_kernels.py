@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from firmware_sim.event_model import sort_by_time
+from firmware_sim.keyed_step import sort_by_time
 from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, log_lut
 from firmware_sim.world import DeviceClock
 from rigd.core.events import EventArray
