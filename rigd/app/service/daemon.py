@@ -17,10 +17,8 @@ from __future__ import annotations
 import ctypes
 import functools
 import gc
-import json
 import logging
 import os
-import queue
 import shutil
 import signal
 import threading
@@ -33,7 +31,7 @@ from types import FrameType
 from typing import Any, Literal
 
 import zmq
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 
 from rigd import __version__
 from rigd.app.capture import CaptureSession, SessionSnapshot, remove_stale_ballast
@@ -43,25 +41,29 @@ from rigd.app.service.client import find_daemon
 from rigd.app.service.endpoints import DaemonRunningError, apply_server_curve, bind, start_authenticator
 from rigd.app.service.metrics import MetricsExporter
 from rigd.app.service.protocol import (
-    ARGS_MODELS,
-    MAX_MESSAGE_BYTES,
     PROTOCOL_VERSION,
     CaptureArgs,
     DaemonState,
     DeviceTelemetry,
-    ErrorCode,
-    ErrorInfo,
     Fault,
     Reply,
-    Request,
     ShutdownArgs,
     StopArgs,
     TakeSummary,
     Telemetry,
     ThumbnailHeader,
 )
+from rigd.app.service.requests import (
+    RequestError,
+    decode_request,
+    error_info,
+    reply_bytes,
+    split_envelope,
+    validate_request,
+)
 from rigd.app.service.thumbnails import events_thumbnail, frame_thumbnail
-from rigd.core.errors import ConfigError, DeviceError, RigdError, TakeError
+from rigd.app.service.workers import WorkerPool
+from rigd.core.errors import ConfigError, RigdError, TakeError
 
 log = logging.getLogger(__name__)
 
@@ -89,194 +91,15 @@ POOL_QUEUE = 8
 _POOL_THREAD = "control-worker"
 
 #: Takes a command and a job that returns reply bytes and sees that the reply gets sent
-#: (raises `_RequestError` busy when it cannot take the job now).
+#: (raises `RequestError` busy when it cannot take the job now).
 _Defer = Callable[[str, Callable[[], bytes]], None]
 
 #: Where workers hand finished replies back to the control loop, which owns the socket.
 _REPLIES_ENDPOINT = "inproc://rigd-deferred-replies"
 
 
-class _RequestError(Exception):
-    def __init__(self, code: ErrorCode, message: str, field: str | None = None) -> None:
-        super().__init__(message)
-        self.info = ErrorInfo(code=code, message=message, field=field)
-
-
 def _utc() -> str:
     return datetime.now(UTC).isoformat(timespec="milliseconds")
-
-
-def _loc(prefix: str, loc: tuple[int | str, ...]) -> str:
-    return ".".join([prefix, *(str(x) for x in loc)]) if prefix else ".".join(str(x) for x in loc)
-
-
-def _reply_bytes(reply: Reply) -> bytes:
-    return reply.model_dump_json(exclude_none=True).encode()
-
-
-def _error_info(exc: Exception) -> ErrorInfo:
-    """The structured error a failed request is answered with (call inside `except`)."""
-    if isinstance(exc, _RequestError):
-        return exc.info
-    for kind, code in _ERROR_CODES:
-        if isinstance(exc, kind):
-            return ErrorInfo(code=code, message=str(exc))
-    log.error("request handler failed", exc_info=exc)
-    return ErrorInfo(code="internal", message=f"{type(exc).__name__}: {exc}")
-
-
-_ERROR_CODES: tuple[tuple[type[Exception], ErrorCode], ...] = (
-    (ConfigError, "config_error"),
-    (DeviceError, "device_error"),
-    (TakeError, "take_error"),
-)
-
-
-def _split_envelope(frames: list[bytes]) -> tuple[list[bytes], list[bytes]]:
-    """ROUTER framing: routing ids up to the empty delimiter a REQ peer adds, then the body
-    (a DEALER peer may send no delimiter: then the first frame is its id)."""
-    try:
-        cut = frames.index(b"", 1) + 1
-    except ValueError:
-        cut = 1
-    return frames[:cut], frames[cut:]
-
-
-def _decode(frames: list[bytes]) -> dict[str, Any]:
-    """The request body as a JSON object; `_RequestError` says what is wrong with it."""
-    if len(frames) != 1:
-        raise _RequestError("bad_request", f"a request is one message frame, got {len(frames)}")
-    raw = frames[0]
-    if len(raw) > MAX_MESSAGE_BYTES:
-        raise _RequestError("bad_request", f"request of {len(raw)} bytes; the limit is {MAX_MESSAGE_BYTES}")
-    try:
-        data = json.loads(raw.decode("utf-8"), object_pairs_hook=_object_no_duplicates)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _RequestError("bad_json", f"request is not UTF-8 JSON: {exc}") from None
-    except RecursionError:
-        raise _RequestError("bad_json", "request JSON is nested too deeply") from None
-    if not isinstance(data, dict):
-        raise _RequestError("bad_json", f"a request is a JSON object, got {type(data).__name__}")
-    if (where := _first_duplicate(data)) is not None:
-        raise _RequestError("bad_request", f"duplicate key {where!r} in the request", where)
-    return data
-
-
-class _DuplicateKeys(dict[str, Any]):
-    """A JSON object that named `duplicate` more than once (which value wins is up to the
-    parser, so such a request is refused rather than guessed at)."""
-
-    duplicate: str = ""
-
-
-def _object_no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """`object_pairs_hook` for json.loads: marks objects with a repeated key.
-
-    The hook cannot know where its object sits, so it marks it and `_first_duplicate` finds
-    the path afterwards, for an error that names the field."""
-    obj = dict(pairs)
-    if len(obj) == len(pairs):
-        return obj
-    seen: set[str] = set()
-    marked = _DuplicateKeys(obj)
-    for key, _ in pairs:
-        if key in seen:
-            marked.duplicate = key
-            break
-        seen.add(key)
-    return marked
-
-
-def _first_duplicate(data: Any) -> str | None:
-    """Dotted path of the first repeated key anywhere in a parsed request, or None.
-
-    Iterative: a request nested as deeply as json.loads allows must not overflow the stack."""
-    stack: list[tuple[str, Any]] = [("", data)]
-    while stack:
-        prefix, node = stack.pop()
-        if isinstance(node, _DuplicateKeys):
-            return f"{prefix}.{node.duplicate}" if prefix else node.duplicate
-        if isinstance(node, dict):
-            items: list[tuple[str, Any]] = list(node.items())
-        elif isinstance(node, list):
-            items = [(str(i), v) for i, v in enumerate(node)]
-        else:
-            continue
-        for key, value in reversed(items):
-            stack.append((f"{prefix}.{key}" if prefix else key, value))
-    return None
-
-
-def _validate(data: dict[str, Any]) -> tuple[str, BaseModel]:
-    """The command and its validated arguments."""
-    v = data.get("v")
-    if isinstance(v, int) and not isinstance(v, bool) and v != PROTOCOL_VERSION:
-        raise _RequestError(
-            "unsupported_version",
-            f"protocol version {v} is not spoken here (this daemon: {PROTOCOL_VERSION})",
-            "v",
-        )
-    try:
-        req = Request.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise _RequestError("bad_request", err["msg"], _loc("", err["loc"]) or None) from None
-    model = ARGS_MODELS.get(req.cmd)
-    if model is None:
-        raise _RequestError(
-            "unknown_command", f"unknown command {req.cmd!r} (known: {', '.join(ARGS_MODELS)})", "cmd"
-        )
-    try:
-        args = model.model_validate(req.args)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise _RequestError("bad_request", err["msg"], _loc("args", err["loc"])) from None
-    return req.cmd, args
-
-
-class _WorkerPool:
-    """A fixed number of threads working off a bounded queue: `submit` says at once whether
-    the job was taken, so the control loop can answer `busy` instead of piling up threads."""
-
-    def __init__(self, workers: int, depth: int, name: str) -> None:
-        self._queue: queue.Queue[Callable[[], None] | None] = queue.Queue(maxsize=depth)
-        self._threads = [
-            threading.Thread(target=self._run, name=f"{name}-{i}", daemon=True) for i in range(workers)
-        ]
-        self.failures = 0
-
-    def start(self) -> None:
-        for t in self._threads:
-            t.start()
-
-    def submit(self, job: Callable[[], None]) -> bool:
-        """Queue `job`; False when the queue is full."""
-        try:
-            self._queue.put_nowait(job)
-        except queue.Full:
-            return False
-        return True
-
-    def _run(self) -> None:
-        while (job := self._queue.get()) is not None:
-            try:
-                job()
-            except Exception:  # a failed job must not shrink the pool; logged with its traceback
-                self.failures += 1
-                log.exception("control worker job failed")
-
-    def close(self, timeout_s: float) -> None:
-        """Let queued jobs finish (up to `timeout_s` in all), then end the threads."""
-        deadline = time.monotonic() + timeout_s
-        for _ in self._threads:
-            try:
-                self._queue.put(None, timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Full:
-                log.warning("control workers still busy after %.0f s; not waiting for them", timeout_s)
-                return
-        for t in self._threads:
-            if t.is_alive():
-                t.join(timeout=max(0.0, deadline - time.monotonic()))
 
 
 class Daemon:
@@ -304,7 +127,7 @@ class Daemon:
         self._loop_beat = time.monotonic()
         self._idle_faults: list[Fault] = []
         self._workers: list[threading.Thread] = []
-        self._pool = _WorkerPool(POOL_WORKERS, POOL_QUEUE, _POOL_THREAD)
+        self._pool = WorkerPool(POOL_WORKERS, POOL_QUEUE, _POOL_THREAD)
         self._refused = 0  # requests refused busy since the pool last took one
         self._recovering = False
         self._disk_error: str | None = None
@@ -429,7 +252,7 @@ class Daemon:
                 if replies in ready:
                     self._forward_replies(replies, sock)
                 if sock in ready:
-                    envelope, body = _split_envelope(sock.recv_multipart(copy=True))
+                    envelope, body = split_envelope(sock.recv_multipart(copy=True))
                     reply = self.handle(body, defer=functools.partial(self._defer, envelope))
                     if reply is not None:
                         sock.send_multipart([*envelope, reply])
@@ -482,7 +305,7 @@ class Daemon:
                     "%s refused busy: %d workers busy, %d requests waiting", cmd, POOL_WORKERS, POOL_QUEUE
                 )
             self._refused += 1
-            raise _RequestError(
+            raise RequestError(
                 "busy",
                 f"{POOL_WORKERS} workers are busy and {POOL_QUEUE} requests wait for them; try again",
             )
@@ -499,17 +322,17 @@ class Daemon:
         """
         req_id: str | None = None
         try:
-            data = _decode(frames)
+            data = decode_request(frames)
             rid = data.get("id")
             req_id = rid if isinstance(rid, str) and len(rid) <= 64 else None
-            cmd, args = _validate(data)
+            cmd, args = validate_request(data)
             if defer is not None and cmd in _SLOW_COMMANDS:
                 job = self._claim(cmd, args)  # quick checks here; `busy` is answered at once
                 deferred_id = req_id
                 defer(cmd, lambda: self._answer(deferred_id, job))  # capture/recover: never busy here
                 return None
         except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
-            return _reply_bytes(Reply(id=req_id, ok=False, error=_error_info(exc)))
+            return reply_bytes(Reply(id=req_id, ok=False, error=error_info(exc)))
         return self._answer(req_id, lambda: getattr(self, f"_cmd_{cmd}")(args))
 
     @staticmethod
@@ -518,8 +341,8 @@ class Daemon:
         try:
             out = Reply(id=req_id, ok=True, result=fn())
         except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
-            out = Reply(id=req_id, ok=False, error=_error_info(exc))
-        return _reply_bytes(out)
+            out = Reply(id=req_id, ok=False, error=error_info(exc))
+        return reply_bytes(out)
 
     # -- commands ------------------------------------------------------------------------
     def _cmd_ping(self, _: BaseModel) -> dict[str, Any]:
@@ -540,9 +363,9 @@ class Daemon:
         self._reap()
         with self._lock:
             if self._session is not None:
-                raise _RequestError("busy", f"a take is already running: {self._session.path}")
+                raise RequestError("busy", f"a take is already running: {self._session.path}")
             if self._recovering:
-                raise _RequestError("busy", "unfinished takes are being recovered; try again when done")
+                raise RequestError("busy", "unfinished takes are being recovered; try again when done")
             session = CaptureSession(
                 self.config,
                 self.svc.take_dir,
@@ -573,7 +396,7 @@ class Daemon:
         with self._lock:
             session = self._session
             if session is None:
-                raise _RequestError("not_capturing", "no take is running")
+                raise RequestError("not_capturing", "no take is running")
             self._state = "stopping"
         session.request_stop(args.reason)
         return {"take": str(session.path), "stopping": True}
@@ -596,9 +419,9 @@ class Daemon:
         if cmd == "recover":
             with self._lock:
                 if self._session is not None:
-                    raise _RequestError("busy", "not while a take is running")
+                    raise RequestError("busy", "not while a take is running")
                 if self._recovering:
-                    raise _RequestError("busy", "a recovery is already running")
+                    raise RequestError("busy", "a recovery is already running")
                 self._recovering = True
             return self._run_recover
         return functools.partial(getattr(self, f"_cmd_{cmd}"), args)
@@ -617,7 +440,7 @@ class Daemon:
         with self._lock:
             running = self._session is not None and not self._session.done
         if running and not args.force:
-            raise _RequestError(
+            raise RequestError(
                 "busy", "a take is running; stop it first or pass force=true (it is finalized)"
             )
         self._stop.set()
