@@ -27,6 +27,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,7 +43,7 @@ from firmware_sim.event_kernels import MAX_STEP_PX, generate_events
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from firmware_sim.placement import Placement, check_ranges, place
 from firmware_sim.scene import lin_log
-from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal
+from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wait_for_room
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.events import EventArray, TriggerEvents
@@ -148,10 +149,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             facts={"evt_format": "evt3", "pixel_model": "ideal", "threshold": str(p.threshold)},
         )
         self._settings = EventSensorSettings()
-        self._fault = world.unplug_fault(name)
-        self._fault.check_present(self._info.spec)
-        self._opened_us = world.now_us()
-        self._unplug_noted = False
+        self._plug_in(world, name, self._info.spec)
         self._delivered_until_us = -math.inf
         self._journal = truth_journal()
         self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":{json.dumps(name)},"kind":"events"'
@@ -436,19 +434,27 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             true_end_us,
         )
 
+    def _give_up_waiting(self) -> Callable[[], bool]:
+        """When a sensor waiting for room stops waiting: unplugged, or stopped for a while
+        (the host may have stopped reading)."""
+        stopped_since: list[float] = []
+
+        def give_up() -> bool:
+            if self._dead(self._world.now_us()):
+                return True
+            if not self._acq.stopping.is_set():
+                return False
+            stopped_since[:] = stopped_since or [time.monotonic()]
+            return time.monotonic() - stopped_since[0] > _STOP_ROOM_WAIT_S
+
+        return give_up
+
     def _deliver(self, packet: _Packet) -> bool:
         """Into the FIFO, under the lock, so an unplug noted meanwhile finds it queued or not
         at all; a full FIFO loses it (counted with its events and trigger edges)."""
         if self._gen.hold is not None:
             # Virtual time waits for the host to make room instead of losing the packet.
-            give_up: float | None = None
-            while not self._acq.queue.wait_room(0.05, below=_VIRTUAL_LEAD_PACKETS):
-                if self._dead(self._world.now_us()):
-                    break
-                if self._acq.stopping.is_set():  # the host may have stopped reading: wait a while
-                    give_up = give_up or time.monotonic() + _STOP_ROOM_WAIT_S
-                    if time.monotonic() > give_up:
-                        break
+            wait_for_room(self._acq.queue, _VIRTUAL_LEAD_PACKETS, self._give_up_waiting())
         with self._lock:
             full = False
             if self._dead(self._world.now_us()):

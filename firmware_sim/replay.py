@@ -43,7 +43,15 @@ from drivers.serial_trigger import SerialTrigger
 from firmware_sim.clock import Hold
 from firmware_sim.event_sensor import SLICE_US, _Packet
 from firmware_sim.trigger_box import BOX_PARAMS, START_LEAD_US, SimTriggerBox, open_box_trigger
-from firmware_sim.world import DeviceClock, SimWorld, Unpluggable, UnplugParams, get_world, unplug_params
+from firmware_sim.world import (
+    DeviceClock,
+    SimWorld,
+    Unpluggable,
+    UnplugParams,
+    get_world,
+    unplug_params,
+    wait_for_room,
+)
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError, RigdError
 from rigd.core.events import EventArray, TriggerEvents
@@ -61,7 +69,6 @@ _CAMERA_PARAMS = {"device", "clock", "buffer_frames", "drop_frames", *_FAULT_PAR
 _SENSOR_PARAMS = {"device", "clock", "buffer_packets", *_FAULT_PARAMS}
 #: A device runs at most this many buffers ahead of its reader on virtual time.
 _VIRTUAL_LEAD = 4
-_STOP_POLL_S = 0.05
 #: Events read from the take at a time by a replayed sensor (whole LZ4 chunks, once each).
 _READ_AHEAD = 1 << 20
 
@@ -337,10 +344,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
             serial=f"{rec.path.name}/{name}",
             firmware="replay-1",
         )
-        self._fault = world.unplug_fault(name)
-        self._fault.check_present(spec.raw)
-        self._opened_us = world.now_us()
-        self._unplug_noted = False
+        self._plug_in(world, name, spec.raw)
         self._lock = threading.Lock()
         self._file: h5py.File | None = None
         self._next = 0
@@ -435,8 +439,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
         assert self._file is not None
         image = np.asarray(self._file[f"frames/{self._name}/images"][j])
         if self._hold is not None:
-            while not self._queue.wait_room(_STOP_POLL_S, below=_VIRTUAL_LEAD) and not self._stopping:
-                pass
+            wait_for_room(self._queue, _VIRTUAL_LEAD, lambda: self._stopping)
         return Frame(
             image=image,
             t_exposure_start_us=int(track.device_us[j]) - self._base,
@@ -501,10 +504,7 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
             firmware="replay-1",
             facts={"evt_format": "evt3"},
         )
-        self._fault = world.unplug_fault(name)
-        self._fault.check_present(spec.raw)
-        self._opened_us = world.now_us()
-        self._unplug_noted = False
+        self._plug_in(world, name, spec.raw)
         self._lock = threading.Lock()
         self._encoder = Evt3Encoder()
         self._take: Take | None = None
@@ -598,11 +598,7 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         packet = self._slice(self._t_prev, t_end, shift)
         self._t_prev = t_end
         if packet is not None and self._hold is not None:
-            while (
-                not self._acq.queue.wait_room(_STOP_POLL_S, below=_VIRTUAL_LEAD)
-                and not self._acq.stopping.is_set()
-            ):
-                pass
+            wait_for_room(self._acq.queue, _VIRTUAL_LEAD, self._acq.stopping.is_set)
         return packet
 
     def _take_until(self, hi_rig: int) -> EventArray:

@@ -31,7 +31,7 @@ from drivers.registry import DeviceSpec
 from firmware_sim.clock import Hold
 from firmware_sim.placement import Placement, check_ranges, place
 from firmware_sim.scene import View
-from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal
+from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wait_for_room
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.frames import Frame
@@ -112,12 +112,9 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             serial=f"{world.name}/{name}",
             firmware="sim-1",
         )
-        self._fault = world.unplug_fault(name)
-        self._fault.check_present(self._info.spec)
-        self._opened_us = world.now_us()
+        self._plug_in(world, name, self._info.spec)
         #: First start after a replug goes on counting from where the unplug left the counter.
         self._resume = self._fault.replugged_before(self._opened_us) and not p.counter_reset
-        self._unplug_noted = False
         self._busy_until_us = -math.inf
         self._journal = truth_journal()
         self._journal_head = f'{{"world":{json.dumps(world.name)},"dev":{json.dumps(name)},"kind":"frame"'
@@ -288,6 +285,10 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             except queue.Empty:
                 return None
 
+    def _stopped_or_dead(self) -> bool:
+        with self._lock:
+            return not self._started or self._dead(self._world.now_us())
+
     def _render(self, job: _Exposure) -> NDArray[np.uint8]:
         gray = self.pixel_format == "mono8"
         img = self._scene.render(self._view, job.true_us + job.exposure_us / 2.0, gray=gray)
@@ -319,11 +320,9 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         # A frame leaves the sensor only once its exposure is over.
         job.hold.sleep_until(t_end)
         if self._world.virtual:
-            # Virtual time waits for the host to make room instead of losing the frame.
-            while not self._queue.wait_room(0.05, below=_VIRTUAL_LEAD_FRAMES):
-                with self._lock:
-                    if not self._started or self._dead(self._world.now_us()):
-                        break  # stopped (the host may have stopped reading) or unplugged
+            # Virtual time waits for the host to make room instead of losing the frame (not once
+            # stopped, when the host may have stopped reading, or unplugged).
+            wait_for_room(self._queue, _VIRTUAL_LEAD_FRAMES, self._stopped_or_dead)
         frame = Frame(
             image=image,
             t_exposure_start_us=job.device_us,

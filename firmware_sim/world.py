@@ -27,10 +27,13 @@ from firmware_sim.clock import CLOCK_MODES, ClockMode, Hold, RealClock, VirtualC
 from rigd.core.errors import ConfigError, DeviceError
 
 if TYPE_CHECKING:
+    from drivers.lifecycle import DeliveryQueue
     from drivers.registry import DeviceSpec
 
 log = logging.getLogger(__name__)
 
+#: How often (wall s) a device waiting for room in its buffer looks whether to give up.
+_ROOM_POLL_S = 0.05
 #: Environment variable naming the ground-truth journal file (JSON lines, appended).
 TRUTH_LOG_ENV = "RIGD_SIM_TRUTH_LOG"
 
@@ -394,6 +397,15 @@ def close_truth_journals() -> None:
         journal.close()
 
 
+def wait_for_room(queue: DeliveryQueue[Any], below: int, give_up: Callable[[], bool]) -> None:
+    """On virtual time a device waits for its reader to make room in its buffer (fewer than
+    `below` items queued) instead of losing data; it stops waiting once `give_up()` (stopped,
+    unplugged) and the caller's put then counts what a full buffer costs."""
+    while not queue.wait_room(_ROOM_POLL_S, below=below):
+        if give_up():
+            return
+
+
 _worlds: dict[str, SimWorld] = {}
 _worlds_lock = threading.Lock()
 
@@ -441,6 +453,14 @@ class Unpluggable:
 
     def _note_unplug_locked(self, lost: list[Any]) -> None:
         raise NotImplementedError
+
+    def _plug_in(self, world: SimWorld, name: str, spec: str) -> None:
+        """Take the device name's unplug fault (refusing to open while it is unplugged) and
+        note when this object was opened: an unplug after that kills it for good."""
+        self._fault = world.unplug_fault(name)
+        self._fault.check_present(spec)
+        self._opened_us = world.now_us()
+        self._unplug_noted = False
 
     def _arm_unplug(self, unplug: UnplugParams | None, t0_us: float, *, lost_frames_on_edges: bool) -> None:
         """Armed once per world and device name: the replugged device is not unplugged again."""
