@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Capability, RgbCamera
+from drivers.cv_images import to_pixel_format
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
@@ -310,21 +311,6 @@ class _FolderSource(_Source):
         return image, t
 
 
-def _convert(image: Image, fmt: str, cv2: Any) -> Image:
-    """An OpenCV image (gray, BGR or BGRA) as contiguous mono8 (H, W) or rgb8 (H, W, 3)."""
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if fmt == "mono8":
-        if image.ndim == 2:
-            return np.ascontiguousarray(image)
-        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        return np.ascontiguousarray(cv2.cvtColor(image, code))
-    if image.ndim == 2:
-        return np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_GRAY2RGB))
-    code = cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB
-    return np.ascontiguousarray(cv2.cvtColor(image, code))
-
-
 class FileCamera(RgbCamera):
     """Replays a video file or an image folder through the RgbCamera interface (free run)."""
 
@@ -519,7 +505,7 @@ class FileCamera(RgbCamera):
             return None
         settings = self._settings
         frame = Frame(
-            image=_convert(image, self.pixel_format, self._cv2),
+            image=to_pixel_format(image, self.pixel_format, self._cv2),
             t_exposure_start_us=int(t_us),
             exposure_us=settings.exposure_us,
             frame_counter=self._index,

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Capability, RgbCamera
+from drivers.cv_images import to_pixel_format
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
@@ -55,19 +56,6 @@ def parse_v4l2_spec(spec: DeviceSpec) -> dict[str, Any]:
     if out["width"] < 0 or out["height"] < 0 or out["fps"] < 0 or out["buffers"] < 1:
         raise ConfigError(f"device spec {spec.raw!r}: width, height, fps must be >= 0 and buffers >= 1")
     return out
-
-
-def to_rgb(image: np.ndarray[Any, Any], cv2: Any) -> np.ndarray[Any, Any]:
-    """OpenCV delivers BGR; takes store RGB."""
-    if image.ndim == 3 and image.shape[2] == 3:
-        return np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-    return image
-
-
-def to_mono(image: np.ndarray[Any, Any], cv2: Any) -> np.ndarray[Any, Any]:
-    if image.ndim == 3:
-        return np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
-    return image
 
 
 class V4l2Camera(RgbCamera):
@@ -165,7 +153,7 @@ class V4l2Camera(RgbCamera):
             return None
         self._failures = 0
         cv2, settings = self._cv2, self._settings
-        image = to_mono(image, cv2) if settings.pixel_format == "mono8" else to_rgb(image, cv2)
+        image = to_pixel_format(image, settings.pixel_format, cv2)
         frame = Frame(
             image=image,
             t_exposure_start_us=host_ns // 1000 - settings.exposure_us,
