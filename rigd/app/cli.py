@@ -6,13 +6,14 @@ import json
 import logging
 import signal
 import sys
+from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from rigd import __version__
@@ -20,12 +21,16 @@ from rigd.app.commands.calibrate import calibrate_app
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
 from rigd.app.commands.guided import guided
+from rigd.app.commands.progress import StageProgress
 from rigd.app.commands.reconstruct import reconstruct
 from rigd.app.commands.recover import recover_command
 from rigd.app.commands.service import ConnectOpt, capture_via_daemon, find_for_command, serve, status, stop
 from rigd.app.config import RigConfig, default_sim_rig
 from rigd.app.service.client import DaemonClient
 from rigd.core.errors import ConfigError, RigdError
+
+if TYPE_CHECKING:
+    from rigd.app.capture import Progress as CaptureProgress
 
 app = typer.Typer(
     help="Capture daemon for a hybrid RGB + event-camera rig.",
@@ -111,7 +116,6 @@ def capture(
 ) -> None:
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
-    from rigd.app.capture import Progress as CaptureProgress
     from rigd.app.capture import new_take_path, run_capture
     from rigd.app.inspect import summarize
 
@@ -155,22 +159,8 @@ def capture(
     except RigdError as exc:
         raise _fail(exc) from exc
     duration = 5.0 if duration is None else duration
-    total = max(1, round(duration * rig.trigger.settings.rate_hz))
-    with Progress(
-        TextColumn("[bold]capturing[/]"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("pulses  {task.fields[detail]}"),
-        TimeRemainingColumn(),
-        console=console,
-        disable=json_out or not console.is_terminal,
-    ) as bar:
-        task = bar.add_task("capture", total=total, detail="")
-
-        def on_progress(p: CaptureProgress) -> None:
-            ev = sum(p.events.values())
-            bar.update(task, completed=p.pulses, detail=f"{ev / 1e6:.1f} Mev  queue {p.queue_depth}")
-
+    with StageProgress(console, "capture", quiet=json_out) as bar:
+        on_progress = _capture_progress(bar)
         path = new_take_path(out_dir, rig.name, label)
         try:
             result = run_capture(
@@ -198,6 +188,32 @@ def capture(
         name = signal.Signals(result.stop_signal).name
         console.print(f"stopped by {name}: take {result.path} was finalized", soft_wrap=True)
         raise typer.Exit(code=128 + result.stop_signal)
+
+
+#: What each phase of an in-process capture counts, and what it is doing (rigd.app.capture.results).
+_CAPTURE_PHASES: dict[str, tuple[str, str]] = {
+    "capturing": ("pulses", ""),
+    "waiting for devices": ("devices", "each device delivering up to the take's last pulse"),
+    "draining": ("queued items", "the writer writing what is still queued"),
+    "finalizing": ("", "fitting the device clocks and sealing the take"),
+}
+
+
+def _capture_progress(bar: StageProgress) -> Callable[[CaptureProgress], None]:
+    """The capture's progress callback: a new stage for every phase the take entered (the pulses
+    are out long before the take is written), the current phase's count and the events so far."""
+    shown = 0
+
+    def on_progress(p: CaptureProgress) -> None:
+        nonlocal shown
+        for phase in p.phases[shown:]:
+            unit, note = _CAPTURE_PHASES[phase]
+            bar.stage(phase, p.phase_total if phase == p.phase else None, unit, note)
+        shown = len(p.phases)
+        events = sum(p.events.values())
+        bar.advance_to(p.phase_done, f"{events / 1e6:.1f} Mev written  queue {p.queue_depth}")
+
+    return on_progress
 
 
 def _capture_remote(client: DaemonClient, duration: float, label: str | None, json_out: bool) -> None:

@@ -13,15 +13,30 @@ DeviceState = Literal["ok", "failed", "reconnecting", "idle"]
 SessionState = Literal["new", "starting", "capturing", "stopping", "done", "failed"]
 
 
+#: What a take does after its last pulse, in order: the devices deliver up to the window end,
+#: the writer empties its queue, the clocks are fitted and the take sealed. On a loaded host
+#: these can take longer than the pulses did, so a progress display names them.
+StopPhase = Literal["waiting for devices", "draining", "finalizing"]
+Phase = Literal["capturing"] | StopPhase
+
+
 @dataclass(slots=True)
 class Progress:
-    """What the pipeline reports while it runs (for progress bars and telemetry)."""
+    """What the pipeline reports while it runs (for progress bars and telemetry).
+
+    `phase_done` / `phase_total` count the current phase in its own unit (pulses; devices
+    that reached the window end; queued items written), None where it has none (finalizing).
+    `phases` lists every phase entered so far, so a reader polling now and then misses none."""
 
     pulses: int
     pulses_total: int
     frames: dict[str, int]
     events: dict[str, int]
     queue_depth: int
+    phase: Phase = "capturing"
+    phase_done: int | None = None
+    phase_total: int | None = None
+    phases: tuple[Phase, ...] = ("capturing",)
 
 
 @dataclass(slots=True)

@@ -36,7 +36,7 @@ from rigd.app.capture.items import WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.app.capture.preflight import check_rig
-from rigd.app.capture.results import CaptureResult, Progress, SessionSnapshot, SessionState
+from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
@@ -119,6 +119,8 @@ class CaptureSession:
         self._threads: list[threading.Thread] = []
         self._writer_thread: threading.Thread | None = None
         self._state: SessionState = "new"
+        self._phases: list[Phase] = ["capturing"]
+        self._drain_peak = 0
         self._t_wall = 0.0
         self._t_start: float | None = None
         self._control_thread: threading.Thread | None = None
@@ -186,13 +188,38 @@ class CaptureSession:
 
     def progress(self) -> Progress:
         counts = {name: ch.written for name, ch in self._channels.items()}
+        pulses = 0 if self._trigger is None else self._trigger.n_pulses
+        depth = self._queue.qsize()
+        phases = tuple(self._phases)
+        phase = phases[-1]
+        done: int | None = pulses
+        total: int | None = self.n_pulses
+        if phase == "waiting for devices":
+            channels = list(self._channels.values())
+            done, total = sum(ch.window_reached() for ch in channels), len(channels)
+        elif phase == "draining":
+            self._drain_peak = max(self._drain_peak, depth)
+            done, total = self._drain_peak - depth, self._drain_peak
+        elif phase == "finalizing":
+            done = total = None
         return Progress(
-            0 if self._trigger is None else self._trigger.n_pulses,
+            pulses,
             self.n_pulses or 0,
             {c.name: counts.get(c.name, 0) for c in self.config.cameras},
             {s.name: counts.get(s.name, 0) for s in self.config.event_sensors},
-            self._queue.qsize(),
+            depth,
+            phase,
+            done,
+            total,
+            phases,
         )
+
+    def _enter(self, phase: Phase) -> None:
+        """The take moves on to the next stop phase (see `results.StopPhase`)."""
+        if phase == "draining":
+            self._drain_peak = self._queue.qsize()
+        self._phases.append(phase)
+        log.debug("take %s: %s", self.path, phase)
 
     def snapshot(self) -> SessionSnapshot:
         now = time.monotonic()
@@ -432,8 +459,10 @@ class CaptureSession:
         t_stop = time.monotonic()
         emitted = self._stop_trigger(trigger)
         backlog_s = self.config.writer.stop_backlog_s
+        self._enter("waiting for devices")
         stopped = self._wait_for_window(backlog_s)
         t_waited = time.monotonic()
+        self._enter("draining")
         for ch in sorted(self._channels.values(), key=lambda c: c.kind != "event_sensor"):
             if ch.name not in stopped:
                 ch.stop()
@@ -459,6 +488,7 @@ class CaptureSession:
         self._writer_thread.join()
         self._writer_thread = None
         capture_s = time.monotonic() - self._t_start
+        self._enter("finalizing")
         if (error := self._control.first_error) is not None:
             raise error
         if writer.error is not None:

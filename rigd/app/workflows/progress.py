@@ -8,12 +8,14 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True, slots=True)
 class ProgressUpdate:
-    """One step of a workflow: which stage, about what, and how far (when countable)."""
+    """One step of a workflow: which stage, about what, and how far (when countable), in `unit`
+    (frames reconstructed, images searched): a display counts each stage in its own unit."""
 
     stage: str
     message: str
     done: int | None = None
     total: int | None = None
+    unit: str = ""
 
 
 ProgressCallback = Callable[[ProgressUpdate], None]

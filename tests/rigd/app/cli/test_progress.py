@@ -1,0 +1,76 @@
+"""Progress as a user meets it: every stage of a long command named, counted in its own unit, with
+the time it has left."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+from rich.console import Console
+from typer.testing import CliRunner
+
+from rigd.app.cli import app
+from rigd.app.commands.progress import StageProgress
+from rigd.app.workflows.progress import ProgressUpdate
+
+
+def test_capture_names_every_phase_after_the_pulses(small_rig: Path, tmp_path: Path) -> None:
+    r = CliRunner().invoke(
+        app, ["capture", "--local", "--config", str(small_rig), "--duration", "1", "--out", str(tmp_path)]
+    )
+    assert r.exit_code == 0, r.output
+    lines = [line for line in r.stderr.splitlines() if line.startswith("capture: ")]
+    assert [line.split(" (")[0].split(":")[1].strip() for line in lines] == [
+        "capturing",
+        "waiting for devices",
+        "draining",
+        "finalizing",
+    ]
+    assert "(30 pulses)" in lines[0]
+    assert "queued items" in lines[2]
+    assert "sealing the take" in lines[3]
+
+
+def test_json_capture_prints_no_progress(small_rig: Path, tmp_path: Path) -> None:
+    r = CliRunner().invoke(
+        app,
+        ["capture", "--local", "--json", "--config", str(small_rig), "-d", "0.5", "--out", str(tmp_path)],
+    )
+    assert r.exit_code == 0, r.output
+    assert "capture: " not in r.stderr
+
+
+def _terminal() -> tuple[Console, io.StringIO]:
+    buf = io.StringIO()
+    return Console(file=buf, force_terminal=True, width=160, color_system=None), buf
+
+
+def test_the_bar_counts_each_stage_in_its_unit_with_time_left() -> None:
+    console, buf = _terminal()
+    with StageProgress(console, "capture") as bar:
+        bar.stage("capturing", 30, "pulses")
+        bar.advance_to(30)
+        bar.stage("draining", 400, "queued items", "the writer writing what is still queued")
+        bar.advance_to(100)
+    text = buf.getvalue()
+    assert "capture: draining" in text
+    assert "100/400" in text
+    assert "queued items" in text
+    assert "left" in text  # "about N s left" or "estimating time left", never a blank
+
+
+def test_an_uncounted_stage_shows_the_time_so_far() -> None:
+    console, buf = _terminal()
+    with StageProgress(console, "capture") as bar:
+        bar.stage("finalizing", None, "", "fitting the device clocks and sealing the take")
+    assert "so far" in buf.getvalue()
+
+
+def test_workflow_updates_start_a_stage_per_message() -> None:
+    plain = Console(file=io.StringIO(), width=160)
+    with StageProgress(plain, "calibrate") as bar:
+        bar(ProgressUpdate("reconstruct", "hpf", 0, 10, "frames"))
+        bar(ProgressUpdate("reconstruct", "hpf", 5, 10, "frames"))
+        bar(ProgressUpdate("detect", "hpf", 0, 10, "frames searched"))
+    lines = plain.file.getvalue().splitlines()  # type: ignore[attr-defined]
+    assert lines == ["calibrate: reconstruct (10 frames): hpf", "calibrate: detect (10 frames searched): hpf"]
