@@ -1,0 +1,124 @@
+# ruff: noqa: N803, N806  (R follows the notation of the calibration literature)
+"""COLMAP sparse model of the calibrated rig, one registered image per (timestep, camera).
+
+    sparse/0/cameras.bin   one PINHOLE camera per rig camera (fx, fy, cx, cy of the new K)
+    sparse/0/images.bin    image per frame: qvec/tvec world -> camera (OpenCV axes, the rig frame),
+                           name <cam>/<t:06d>.png, its 2-D observations of the points
+    sparse/0/points3D.bin  the triangulated initial point cloud with its two-view tracks
+    images/<cam>/<t:06d>.png
+    times.json             per image name: t_us (mid-exposure, rig us), time in [0, 1], split
+
+Binary layout as COLMAP's src/colmap/scene/reconstruction_io.cc writes it (little endian):
+cameras: u64 n, then u32 id, i32 model, u64 width, u64 height, f64 params[]; images: u64 n, then
+u32 id, f64 qw qx qy qz, f64 tx ty tz, u32 camera_id, name NUL-terminated, u64 n2d, then per 2-D
+point f64 x, f64 y, i64 point3D_id (-1: none); points3D: u64 n, then u64 id, f64 xyz, u8 rgb,
+f64 error, u64 track length, then per element u32 image_id, u32 point2D_idx.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rigd.app.export.common import ExportPlan
+from rigd.app.export.points import PointCloud, triangulate
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+#: COLMAP's model id of PINHOLE (fx, fy, cx, cy).
+PINHOLE = 1
+
+
+def rotmat_to_qvec(R: F64) -> F64:
+    """(w, x, y, z) unit quaternion of a rotation matrix, w >= 0 (Shepperd's method)."""
+    m = np.asarray(R, np.float64)
+    tr = np.trace(m)
+    cand = np.array([tr, m[0, 0], m[1, 1], m[2, 2]])
+    i = int(np.argmax(cand))
+    if i == 0:
+        s = 2.0 * np.sqrt(1.0 + tr)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif i == 1:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif i == 2:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    qv = np.array(q)
+    qv /= np.linalg.norm(qv)
+    return qv if qv[0] >= 0 else -qv
+
+
+def image_name(plan: ExportPlan, k: int, j: int) -> str:
+    return f"{plan.cameras[j].name}/{k:06d}.png"
+
+
+def write_model(plan: ExportPlan, cloud: PointCloud, dest: Path) -> None:
+    """cameras.bin, images.bin and points3D.bin of the plan's frames and the cloud."""
+    cams, fr = plan.cameras, plan.frames
+    C, T = len(cams), fr.pulses.size
+    dest.mkdir(parents=True, exist_ok=True)
+    with (dest / "cameras.bin").open("wb") as f:
+        f.write(struct.pack("<Q", C))
+        for j, c in enumerate(cams):
+            f.write(struct.pack("<IiQQ", j + 1, PINHOLE, c.size[0], c.size[1]))
+            f.write(struct.pack("<4d", c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]))
+    # Each point is seen in two images of one timestep: (k, i) and (k, j).
+    n = len(cloud)
+    v = cloud.views
+    obs_image = np.concatenate([v[:, 0] * C + v[:, 1], v[:, 0] * C + v[:, 2]])
+    obs_uv = np.concatenate([cloud.uv[:, 0], cloud.uv[:, 1]])
+    obs_point = np.concatenate([np.arange(n), np.arange(n)])
+    order = np.argsort(obs_image, kind="stable")
+    starts = np.searchsorted(obs_image[order], np.arange(T * C + 1))
+    point2d_idx = np.empty(2 * n, np.int64)  # index of each observation within its image
+    point2d_idx[order] = np.arange(2 * n) - starts[obs_image[order]]
+    with (dest / "images.bin").open("wb") as f:
+        f.write(struct.pack("<Q", T * C))
+        for k in range(T):
+            for j, c in enumerate(cams):
+                img = k * C + j
+                f.write(struct.pack("<I4d3dI", img + 1, *rotmat_to_qvec(c.R), *c.t, j + 1))
+                f.write(image_name(plan, k, j).encode() + b"\0")
+                sel = order[starts[img] : starts[img + 1]]
+                f.write(struct.pack("<Q", sel.size))
+                rows = np.zeros(sel.size, dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+                rows["x"], rows["y"], rows["id"] = obs_uv[sel, 0], obs_uv[sel, 1], obs_point[sel] + 1
+                f.write(rows.tobytes())
+    with (dest / "points3D.bin").open("wb") as f:
+        f.write(struct.pack("<Q", n))
+        for p in range(n):
+            f.write(struct.pack("<Q3d3Bd", p + 1, *cloud.xyz[p], *cloud.rgb[p], cloud.error_px[p]))
+            f.write(struct.pack("<Q", 2))
+            for o in (p, p + n):
+                f.write(struct.pack("<II", int(obs_image[o]) + 1, int(point2d_idx[o])))
+
+
+def write(plan: ExportPlan) -> None:
+    fr = plan.frames
+    plan.write_images(lambda k, j: f"images/{image_name(plan, k, j)}")
+    cloud = triangulate(plan)
+    write_model(plan, cloud, plan.out / "sparse" / "0")
+    time01 = fr.time01()
+    times = {
+        image_name(plan, k, j): {
+            "t_us": int(fr.t_us[k, j]),
+            "time": float(time01[k, j]),
+            "timestep": k,
+            "split": "train" if fr.train[k] else "test",
+        }
+        for k in range(fr.pulses.size)
+        for j in range(len(plan.cameras))
+    }
+    (plan.out / "times.json").write_text(json.dumps(times, indent=1))
+    log.info("colmap: %d images, %d points", fr.pulses.size * len(plan.cameras), len(cloud))

@@ -1,0 +1,103 @@
+# ruff: noqa: N806  (K follows the notation of the calibration literature)
+"""DSEC layout: what DSEC's EventSlicer (and tonic.datasets.DSEC) read.
+
+    events/<sensor>/events.h5       events/x (u16), events/y (u16), events/t (u32 us since t_offset;
+                                    i8 would wrap, so int64 when the span exceeds 2^32 us),
+                                    events/p (u8: 1 ON, 0 OFF), ms_to_idx (u64), t_offset (i64, rig us)
+    events/<sensor>/rectify_map.h5  rectify_map (H, W, 2) f32: undistorted position of every raw
+                                    pixel (only for a calibrated sensor)
+    images/<cam>/rectified/<t:06d>.png   undistorted frames
+    images/<cam>/timestamps.txt          mid-exposure time of each image, rig us, one per line
+    images/<cam>/exposure_timestamps.txt "start_us, end_us" per image
+    split.json                           train / test timesteps
+
+Events are cropped to the frames' span (first exposure start to last exposure end). `ms_to_idx[i]`
+is the first event with t >= i*1000 (relative to t_offset), for i = 0 .. ceil(span / 1000), so any
+window inside the span can be sliced (EventSlicer rounds the window end up to the next ms).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+
+import h5py
+import numpy as np
+
+from rigd.app.export.common import ExportPlan
+from rigd.app.export.sensors import rectify_map, sensor_calibration
+from rigd.app.workflows.progress import ProgressUpdate
+
+log = logging.getLogger(__name__)
+
+#: Events per read/write step (bounded memory).
+BLOCK = 1 << 22
+
+
+def write_events(plan: ExportPlan, sensor: str) -> int:
+    """events.h5 of one sensor over the frames' span; returns the number of events."""
+    take = plan.take
+    t0, t1 = plan.frames.span_us
+    lo, hi = take.event_index(sensor, t0), take.event_index(sensor, t1)
+    n = hi - lo
+    t_dtype = np.uint32 if t1 - t0 < 2**32 else np.int64
+    dest = plan.out / "events" / sensor
+    dest.mkdir(parents=True, exist_ok=True)
+    n_ms = math.ceil((t1 - t0) / 1000) + 1
+    edges = np.arange(n_ms, dtype=np.int64) * 1000
+    ms_to_idx = np.full(n_ms, n, np.uint64)
+    kw = {"chunks": True, "compression": "gzip", "compression_opts": 1, "shuffle": True}
+    with h5py.File(dest / "events.h5", "w") as f:
+        g = f.create_group("events")
+        dx = g.create_dataset("x", (n,), np.uint16, **kw)
+        dy = g.create_dataset("y", (n,), np.uint16, **kw)
+        dt = g.create_dataset("t", (n,), t_dtype, **kw)
+        dp = g.create_dataset("p", (n,), np.uint8, **kw)
+        done = 0
+        last = -1  # relative time of the last event written so far
+        for start in range(lo, hi, BLOCK):
+            ev = take.events_by_index(sensor, start, min(start + BLOCK, hi))
+            rel = ev.t - t0
+            s = slice(done, done + len(ev))
+            dx[s], dy[s], dt[s], dp[s] = ev.x, ev.y, rel.astype(t_dtype), (ev.p > 0).astype(np.uint8)
+            # Edges whose first event falls in this block: last < edge <= rel[-1].
+            if len(ev):
+                a = int(np.searchsorted(edges, last, side="right"))
+                b = int(np.searchsorted(edges, int(rel[-1]), side="right"))
+                ms_to_idx[a:b] = done + np.searchsorted(rel, edges[a:b], side="left")
+                last = int(rel[-1])
+            done += len(ev)
+            plan.progress(ProgressUpdate(f"events {sensor}", f"{done}/{n} events", done, n))
+        f.create_dataset("ms_to_idx", data=ms_to_idx)
+        f.create_dataset("t_offset", data=np.int64(t0))
+        f.attrs["polarity"] = "p: 1 ON, 0 OFF (rigd.take.reader.Take gives +1/-1)"
+    calib = sensor_calibration(plan, sensor)
+    if calib is not None:
+        K, dist, K_rect = (np.asarray(calib[k], np.float64) for k in ("K", "dist", "K_rect"))
+        size = (int(calib["image_size"][0]), int(calib["image_size"][1]))
+        with h5py.File(dest / "rectify_map.h5", "w") as f:
+            f.create_dataset("rectify_map", data=rectify_map(K, dist, K_rect, size), compression="gzip")
+    return n
+
+
+def write(plan: ExportPlan) -> None:
+    fr, cams = plan.frames, plan.cameras
+    plan.write_images(lambda k, j: f"images/{cams[j].name}/rectified/{k:06d}.png")
+    for j, c in enumerate(cams):
+        d = plan.out / "images" / c.name
+        (d / "timestamps.txt").write_text("".join(f"{int(v)}\n" for v in fr.t_us[:, j]))
+        start = fr.t_us[:, j] - fr.exposure_us[:, j] // 2
+        end = start + fr.exposure_us[:, j]
+        (d / "exposure_timestamps.txt").write_text(
+            "# exposure_start_timestamp_us, exposure_end_timestamp_us\n"
+            + "".join(f"{int(a)}, {int(b)}\n" for a, b in zip(start, end, strict=True))
+        )
+    split = {
+        "train": [int(k) for k in np.flatnonzero(fr.train)],
+        "test": [int(k) for k in np.flatnonzero(~fr.train)],
+    }
+    (plan.out / "split.json").write_text(json.dumps(split))
+    for sensor in plan.take.event_sensors:
+        n = write_events(plan, sensor)
+        log.info("dsec: %s %d events", sensor, n)
