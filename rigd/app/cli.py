@@ -20,6 +20,7 @@ from rigd import __version__
 from rigd.app.commands.calibrate import calibrate_app
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
+from rigd.app.commands.export import export
 from rigd.app.commands.guided import guided
 from rigd.app.commands.progress import StageProgress
 from rigd.app.commands.reconstruct import reconstruct
@@ -373,6 +374,7 @@ _add_plugin_commands()
 calibrate_app.command("guided")(guided)
 app.add_typer(calibrate_app, name="calibrate", help="Calibrate cameras and event sensors.")
 app.command("reconstruct")(reconstruct)
+app.command("export")(export)
 app.command("devices")(devices)
 app.command("doctor")(doctor)
 app.command("serve")(serve)
