@@ -38,7 +38,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -60,6 +60,15 @@ I64 = NDArray[np.int64]
 METHODS = ("window", "hpf", "integrate")
 #: The method `detect_in_reconstructions` and the rig calibration use by default.
 ACCURATE_METHOD = "integrate"
+
+#: Told where a calibration is: (stage, method, done, total); stages "reconstruct" and "calibrate"
+#: are not counted (None), "detect" counts the frames searched for the board. A calibration on a
+#: long take runs for minutes, and whoever shows it wants to say how far it got.
+StageCallback = Callable[[str, str, int | None, int | None], None]
+
+
+def _quiet(stage: str, method: str, done: int | None, total: int | None) -> None:
+    """The default `StageCallback`: callers that show nothing need not pass one."""
 
 
 @dataclass(frozen=True)
@@ -366,6 +375,7 @@ def detect_in_reconstructions(
     params: ReconstructionParams | None = None,
     names: Sequence[str] | None = None,
     sensor: str = "ev",
+    on_progress: StageCallback = _quiet,
 ) -> FrameDetections:
     """Reconstruct at `times_us` and detect the board in each frame; `names` label the views
     (default `<sensor>@<t_us>`); the rig calibration matches views across devices by them."""
@@ -374,7 +384,9 @@ def detect_in_reconstructions(
     labels = list(names) if names is not None else _labels(sensor, times)
     if len(labels) != times.size:
         raise CalibrationError(f"{len(labels)} names for {times.size} times")
-    dets, rejected = _detect_frames(reconstruct(events, size, times, method, p), labels, method, p, board)
+    on_progress("reconstruct", method, None, None)
+    imgs = reconstruct(events, size, times, method, p)
+    dets, rejected = _detect_frames(imgs, labels, method, p, board, on_progress)
     return FrameDetections({d.name: d for d in dets}, rejected)
 
 
@@ -383,12 +395,18 @@ def _labels(sensor: str, times: I64) -> list[str]:
 
 
 def _detect_frames(
-    imgs: F32, labels: Sequence[str], method: str, params: ReconstructionParams, board: BoardSpec
+    imgs: F32,
+    labels: Sequence[str],
+    method: str,
+    params: ReconstructionParams,
+    board: BoardSpec,
+    on_progress: StageCallback = _quiet,
 ) -> tuple[list[Detection], list[RejectedView]]:
     """The board in each reconstructed frame (named by its label), in order; the misses rejected."""
     dets: list[Detection] = []
     rejected: list[RejectedView] = []
-    for name, img in zip(labels, imgs, strict=True):
+    for i, (name, img) in enumerate(zip(labels, imgs, strict=True)):
+        on_progress("detect", method, i, len(labels))
         d = detect(detector_image(img, method, params), board, name=name)
         if d is None:
             rejected.append(RejectedView(name=name, reason=f"board {board} not found in the reconstruction"))
@@ -407,6 +425,7 @@ def calibrate_events(
     params: ReconstructionParams | None = None,
     model: str = "k1k2",
     max_views: int = 40,
+    on_progress: StageCallback = _quiet,
 ) -> E2CalibResult:
     """Calibrate an event sensor's intrinsics with every method in `methods`.
 
@@ -425,7 +444,9 @@ def calibrate_events(
     for m in methods:
         if m not in METHODS:
             raise CalibrationError(f"unknown reconstruction method {m!r}; choose from {', '.join(METHODS)}")
-        results.append(_calibrate_method(m, events, size, times, board, sensor, p, model, max_views))
+        results.append(
+            _calibrate_method(m, events, size, times, board, sensor, p, model, max_views, on_progress)
+        )
     return E2CalibResult(
         sensor=sensor,
         board=str(board),
@@ -446,13 +467,17 @@ def _calibrate_method(
     params: ReconstructionParams,
     model: str,
     max_views: int,
+    on_progress: StageCallback = _quiet,
 ) -> MethodResult:
     """Reconstruct, detect and calibrate with one method, timing each stage."""
     t0 = time.perf_counter()
+    on_progress("reconstruct", method, None, None)
     imgs = reconstruct(events, size, times, method, params)
     t1 = time.perf_counter()
-    dets, rejected = _detect_frames(imgs, _labels(sensor, times), method, params, board)
+    dets, rejected = _detect_frames(imgs, _labels(sensor, times), method, params, board, on_progress)
+    on_progress("detect", method, len(imgs), len(imgs))
     t2 = time.perf_counter()
+    on_progress("calibrate", method, None, None)
     intr: IntrinsicsResult | None = None
     err: str | None = None
     try:

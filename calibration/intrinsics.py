@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -519,15 +519,18 @@ def _view_results(usable: Sequence[Detection], fit: ModelFit) -> list[ViewResult
 
 
 def detect_images(
-    paths: Sequence[str | Path], board: BoardSpec
+    paths: Sequence[str | Path], board: BoardSpec, on_image: Callable[[int, int], None] | None = None
 ) -> tuple[list[Detection], list[RejectedView], list[str]]:
     """Detect the board in image files: detections, rejected files (board not found) and warnings
-    (board partly outside). A file that cannot be read or has another size raises, naming it."""
+    (board partly outside). A file that cannot be read or has another size raises, naming it.
+    `on_image(done, total)` is told before each file and once all are done (a progress display)."""
     dets: list[Detection] = []
     rej: list[RejectedView] = []
     warn: list[str] = []
     size: tuple[int, int] | None = None
-    for p in paths:
+    for i, p in enumerate(paths):
+        if on_image is not None:
+            on_image(i, len(paths))
         img = load_image(p)
         this = (int(img.shape[1]), int(img.shape[0]))
         if size is not None and this != size:
@@ -551,6 +554,8 @@ def detect_images(
         dets.append(d)
     if rej and len(rej) > len(dets):
         warn.append(f"board not found in {len(rej)} of {len(rej) + len(dets)} images; check the board spec")
+    if on_image is not None:
+        on_image(len(paths), len(paths))
     return dets, rej, warn
 
 
@@ -591,6 +596,7 @@ def calibrate_images(
     model: str = "auto",
     max_edge_width_px: float = DEFAULT_MAX_EDGE_WIDTH_PX,
     allow_few_views: bool = False,
+    on_image: Callable[[int, int], None] | None = None,
 ) -> IntrinsicsResult:
     """Detect and calibrate from image files; NoBoardFoundError names the files when none shows it.
 
@@ -599,7 +605,7 @@ def calibrate_images(
     """
     if not paths:
         raise CalibrationError(f"camera {camera}: no images given")
-    dets, rej, warn = detect_images(paths, board)
+    dets, rej, warn = detect_images(paths, board, on_image)
     if 2 * len(rej) > len(paths) and not allow_few_views:
         names = {r.name for r in rej}
         hint = suggest_board(paths, board, [p for p in paths if Path(p).name in names])

@@ -22,6 +22,7 @@ from calibration.e2calib import METHODS
 from calibration.extrinsics import RigResult
 from calibration.intrinsics import IntrinsicsResult
 from calibration.io import dumps_summary
+from rigd.app.commands.progress import StageProgress
 from rigd.app.workflows.calibrate import (
     EventsCalibration,
     EventsOptions,
@@ -93,7 +94,9 @@ def intrinsics_cmd(
             "into_take": into_take,
             "allow_few_views": allow_few_views,
         }
-        result = run_intrinsics(IntrinsicsOptions(images=images, board=board, camera=camera, **shared))
+        options = IntrinsicsOptions(images=images, board=board, camera=camera, **shared)
+        with StageProgress(_err, "calibrate intrinsics", quiet=json_out) as bar:
+            result = run_intrinsics(options, bar)
     except RigdError as exc:
         raise _fail(exc) from exc
     _warn(result)
@@ -158,7 +161,9 @@ def rig_cmd(
             raise RigdError("--events needs a TAKE (event sensors have no image files)")
         source = TakeSource(path=take, events=events) if take is not None else _image_sets(camera or [])
         shared: dict[str, Any] = {"out": out, "model": model, "report": report, "into_take": into_take}
-        calib = run_rig(RigOptions(board=spec, source=source, reference=reference, kalibr=kalibr, **shared))
+        options = RigOptions(board=spec, source=source, reference=reference, kalibr=kalibr, **shared)
+        with StageProgress(_err, "calibrate rig", quiet=json_out) as bar:
+            calib = run_rig(options, bar)
     except RigdError as exc:
         raise _fail(exc) from exc
     for r in calib.intrinsics.values():
@@ -209,7 +214,8 @@ def events_cmd(
             model=model,
             into_take=into_take,
         )
-        calib = run_events(options)
+        with StageProgress(_err, "calibrate events", quiet=json_out) as bar:
+            calib = run_events(options, bar)
     except RigdError as exc:
         raise _fail(exc) from exc
     _warn(calib.intrinsics)

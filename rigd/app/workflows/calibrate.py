@@ -11,6 +11,7 @@ from __future__ import annotations
 import glob
 import logging
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -24,6 +25,7 @@ from calibration.e2calib import (
     E2CalibResult,
     MethodResult,
     ReconstructionParams,
+    StageCallback,
     calibrate_events,
     detect_in_reconstructions,
 )
@@ -146,9 +148,13 @@ class EventsCalibration(BaseModel):
 def run_intrinsics(options: IntrinsicsOptions, progress: ProgressCallback = no_progress) -> IntrinsicsResult:
     """Detect, select the lens model, calibrate, and write the result (and report, take entry)."""
     o = options
-    progress(ProgressUpdate("calibrate", f"{o.camera}: {len(o.images)} images"))
     result = calibrate_images(
-        o.images, o.board, camera=o.camera, model=o.model, allow_few_views=o.allow_few_views
+        o.images,
+        o.board,
+        camera=o.camera,
+        model=o.model,
+        allow_few_views=o.allow_few_views,
+        on_image=_image_progress(o.camera, progress),
     )
     progress(ProgressUpdate("write", f"{o.camera} -> {o.out}"))
     write_result(result, o.out)
@@ -157,6 +163,17 @@ def run_intrinsics(options: IntrinsicsOptions, progress: ProgressCallback = no_p
     if o.report is not None:
         write_report(o.report, [result], samples={o.camera: load_image(o.images[0])})
     return result
+
+
+def _image_progress(camera: str, progress: ProgressCallback) -> Callable[[int, int], None]:
+    """Images searched for the board, as workflow progress; the lens-model fit follows."""
+
+    def on_image(done: int, total: int) -> None:
+        progress(ProgressUpdate("detect", camera, done, total, "images searched for the board"))
+        if done == total:
+            progress(ProgressUpdate("calibrate", f"{camera}: choosing and fitting the lens model"))
+
+    return on_image
 
 
 def _store_intrinsics(take: Path, result: IntrinsicsResult, source: str, device: str | None = None) -> None:
@@ -222,9 +239,8 @@ def image_set_views(
     """Intrinsics per camera and the views they share, from image files."""
     intr: dict[str, IntrinsicsResult] = {}
     views: Views = {}
-    for n, (cam, files) in enumerate(sets.items()):
-        progress(ProgressUpdate("detect", f"{cam}: {len(files)} images", n, len(sets)))
-        dets, rej, warn = detect_images(files, board)
+    for cam, files in sets.items():
+        dets, rej, warn = detect_images(files, board, _image_progress(cam, progress))
         keys = {f.name: _file_view_key(f, i) for i, f in enumerate(files)}
         intr[cam] = calibrate_intrinsics(dets, board, camera=cam, model=model, rejected=rej, warnings=warn)
         for d in dets:
@@ -250,17 +266,15 @@ def take_views(
     intr: dict[str, IntrinsicsResult] = {}
     views: Views = {}
     with open_take(source.path) as take:
-        for n, cam in enumerate(take.cameras):
-            progress(ProgressUpdate("detect", cam, n, len(take.cameras)))
-            found, result = _camera_views(take, cam, board, model)
+        for cam in take.cameras:
+            found, result = _camera_views(take, cam, board, model, progress)
             _merge_views(views, cam, found)
             if result is not None:
                 intr[cam] = result
         if source.events and take.event_sensors:
             keys, times = _pulse_instants(take)
             for sensor in take.event_sensors:
-                progress(ProgressUpdate("reconstruct", sensor))
-                found, result = _event_sensor_views(take, sensor, board, model, keys, times, source)
+                found, result = _event_sensor_views(take, sensor, board, model, keys, times, source, progress)
                 _merge_views(views, sensor, found)
                 if result is not None:
                     intr[sensor] = result
@@ -273,7 +287,7 @@ def _merge_views(views: Views, device: str, found: dict[str, Detection]) -> None
 
 
 def _camera_views(
-    take: Take, cam: str, board: BoardSpec, model: str
+    take: Take, cam: str, board: BoardSpec, model: str, progress: ProgressCallback = no_progress
 ) -> tuple[dict[str, Detection], IntrinsicsResult | None]:
     """The board in every frame of one camera, keyed by pulse; None when it is in none of them."""
     series = take.frames(cam)
@@ -281,6 +295,7 @@ def _camera_views(
     found: dict[str, Detection] = {}
     rejected: list[RejectedView] = []
     for i in range(len(series)):
+        progress(ProgressUpdate("detect", cam, i, len(series), "frames searched for the board"))
         frame = series[i]
         key = _pulse_key(frame.pulse_index, i)
         d = detect(np.asarray(frame.image), board, name=f"{cam}#{key}")
@@ -292,6 +307,7 @@ def _camera_views(
     if not dets:
         log.warning("take %s: board not found in any frame of camera %s", take.path, cam)
         return found, None
+    progress(ProgressUpdate("calibrate", f"{cam}: fitting the lens model to {len(dets)} views"))
     return found, calibrate_intrinsics(dets, board, camera=cam, model=model, rejected=rejected)
 
 
@@ -317,6 +333,7 @@ def _event_sensor_views(
     keys: list[str],
     times: NDArray[np.int64],
     source: TakeSource,
+    progress: ProgressCallback = no_progress,
 ) -> tuple[dict[str, Detection], IntrinsicsResult | None]:
     """The board in frames of one sensor reconstructed at the pulse instants, keyed by pulse; None
     when the sensor has no events or the board is in no reconstruction (it leaves the rig)."""
@@ -326,7 +343,14 @@ def _event_sensor_views(
         return {}, None
     names = [f"{sensor}#{k}" for k in keys]
     rec = detect_in_reconstructions(
-        ev, take.geometry(sensor), times, board, params=source.event_params, names=names, sensor=sensor
+        ev,
+        take.geometry(sensor),
+        times,
+        board,
+        params=source.event_params,
+        names=names,
+        sensor=sensor,
+        on_progress=stage_progress(sensor, progress, len(keys)),
     )
     if not rec.detections:
         log.warning("take %s: board not found in any reconstruction of %s", take.path, sensor)
@@ -402,6 +426,25 @@ def _check_board_seen(
     )
 
 
+#: What each e2calib stage counts, for a progress display.
+_STAGE_UNITS = {"reconstruct": "", "detect": "frames searched for the board", "calibrate": ""}
+
+
+def stage_progress(sensor: str, progress: ProgressCallback, count: int) -> StageCallback:
+    """A `calibration.e2calib` stage callback that reports as workflow progress (`count` frames
+    are reconstructed per method)."""
+
+    def on_stage(stage: str, method: str, done: int | None, total: int | None) -> None:
+        what = {
+            "reconstruct": f"{sensor}, {method}: reconstructing {count} frames from the events",
+            "detect": f"{sensor}, {method}",
+            "calibrate": f"{sensor}, {method}: fitting the lens model",
+        }.get(stage, f"{sensor}, {method}")
+        progress(ProgressUpdate(stage, what, done, total, _STAGE_UNITS.get(stage, "")))
+
+    return on_stage
+
+
 def calibrate_take_events(
     take_path: Path,
     sensor: str,
@@ -410,27 +453,44 @@ def calibrate_take_events(
     rate_hz: float | None = None,
     params: ReconstructionParams | None = None,
     model: str = "k1k2",
+    progress: ProgressCallback = no_progress,
 ) -> E2CalibResult:
     """e2calib on one sensor of a take (see calibration.e2calib), at `event_times`.
 
     A few frames spread over the take are checked first, so a take without a board fails at once.
     """
     times = event_times(take_path, sensor, rate_hz)
+    progress(ProgressUpdate("read", f"{sensor}: events of {take_path.name}"))
     with open_take(take_path) as take:
         events = take.events(sensor)
         size = take.geometry(sensor)
+    progress(ProgressUpdate("check", f"{sensor}: is the board in a few frames over the take?"))
     _check_board_seen(take_path, sensor, events, size, times, board, methods, params)
     return calibrate_events(
-        events, size, times, board, sensor=sensor, methods=methods, params=params, model=model
+        events,
+        size,
+        times,
+        board,
+        sensor=sensor,
+        methods=methods,
+        params=params,
+        model=model,
+        on_progress=stage_progress(sensor, progress, times.size),
     )
 
 
 def run_events(options: EventsOptions, progress: ProgressCallback = no_progress) -> EventsCalibration:
     """Every reconstruction method on one sensor; the one with the lowest RMS is written."""
     o = options
-    progress(ProgressUpdate("calibrate", f"{o.sensor}: {', '.join(o.methods)}"))
     res = calibrate_take_events(
-        o.take, o.sensor, o.board, o.methods, o.rate_hz, ReconstructionParams(cutoff_hz=o.cutoff_hz), o.model
+        o.take,
+        o.sensor,
+        o.board,
+        o.methods,
+        o.rate_hz,
+        ReconstructionParams(cutoff_hz=o.cutoff_hz),
+        o.model,
+        progress,
     )
     best = res.best()
     if best.intrinsics is None:  # best() only returns a calibrated method

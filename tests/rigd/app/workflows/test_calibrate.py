@@ -66,7 +66,10 @@ def test_intrinsics_writes_result_report_and_take_entry(stereo_take: Path, tmp_p
         stored = take.calibration
     assert stored is not None
     np.testing.assert_allclose(stored["cam0"]["K"], result.camera_matrix())
-    assert [u.stage for u in updates] == ["calibrate", "write"]
+    stages = [u.stage for u in updates]
+    assert stages == ["detect"] * 17 + ["calibrate", "write"]  # 16 images searched, then done
+    assert [u.done for u in updates[:17]] == list(range(17))
+    assert {u.unit for u in updates[:17]} == {"images searched for the board"}
 
 
 def test_intrinsics_without_the_board_is_a_calibration_error(tmp_path: Path) -> None:
@@ -108,8 +111,15 @@ def test_rig_from_image_sets(tmp_path: Path) -> None:
     np.testing.assert_allclose(fs.getNode("left_T").mat().ravel(), t)
     fs.release()
     assert (tmp_path / "camchain.yaml").exists()
-    assert [u.stage for u in updates] == ["detect", "detect", "calibrate", "write"]
-    assert [u.done for u in updates[:2]] == [0, 1]
+    per_camera = [(u.stage, u.message) for u in updates if u.done is None or u.done == u.total]
+    assert per_camera == [
+        ("detect", "left"),
+        ("calibrate", "left: choosing and fitting the lens model"),
+        ("detect", "right"),
+        ("calibrate", "right: choosing and fitting the lens model"),
+        ("calibrate", "rig: 2 devices, 16 views"),
+        ("write", f"rig -> {tmp_path / 'rig.yaml'}"),
+    ]
 
 
 def test_rig_from_a_take_recovers_the_baseline_and_stores_it(stereo_take: Path, tmp_path: Path) -> None:
