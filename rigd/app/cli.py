@@ -27,7 +27,7 @@ from rigd.app.commands.reconstruct import reconstruct
 from rigd.app.commands.recover import recover_command
 from rigd.app.commands.service import ConnectOpt, capture_via_daemon, find_for_command, serve, status, stop
 from rigd.app.config import RigConfig, default_sim_rig
-from rigd.app.service.client import DaemonClient
+from rigd.app.service.client import DaemonClient, DaemonUnavailableError
 from rigd.core.errors import ConfigError, RigdError
 
 if TYPE_CHECKING:
@@ -228,12 +228,38 @@ def _capture_remote(client: DaemonClient, duration: float, label: str | None, js
     ) as bar:
         task = bar.add_task("capture", total=None, detail="")
 
+        taken: list[str] = []
+
         def on_status(t: dict[str, Any]) -> None:
+            if t.get("take") and not taken:
+                taken.append(t["take"])
             faults = t.get("faults") or []
             detail = f"queue {t.get('queue_depth')}" + (f"  faults: {len(faults)}" if faults else "")
             bar.update(task, completed=t.get("pulses") or 0, detail=detail)
 
         capture_via_daemon(client, duration, label, json_out, on_status)
+    if not json_out and taken:
+        _print_daemon_take(client, taken[0])
+
+
+def _print_daemon_take(client: DaemonClient, path: str) -> None:
+    """The summary an in-process capture prints, for a take the daemon wrote: read from the file
+    (the daemon answers on a local socket, so its take is on this host), with the daemon's count of
+    bytes written."""
+    from rigd.app.inspect import summarize
+
+    try:
+        last = client.call("status").get("last_take") or {}
+    except DaemonUnavailableError:  # gone since the take ended: the file still has the summary
+        last = {}
+    try:
+        summary = summarize(Path(path))
+    except (OSError, RigdError) as exc:
+        console.print(f"no summary: cannot read {path} here ({exc}); `rigd inspect` it where it is")
+        return
+    _print_summary(summary)
+    if last.get("path") == path and last.get("bytes_written"):
+        out.print(f"wrote {last['bytes_written'] / 1e6:.1f} MB")
 
 
 @app.command()
