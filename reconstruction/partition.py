@@ -65,8 +65,13 @@ def window_counts(events: EventArray, t0_us: int, t1_us: int, window_us: int) ->
     return np.bincount(k, minlength=n_win).astype(np.int64)
 
 
-def _boundaries(counts: NDArray[np.int64], n_pix: int, cfg: PartitionConfig) -> list[int]:
-    """Window indices where segments start (first is 0). Loop over windows, not events."""
+def segment_starts(counts: NDArray[np.int64], n_pix: int, cfg: PartitionConfig) -> list[int]:
+    """Window indices where segments start (first is 0). Loop over windows, not events.
+
+    Causal: a boundary depends only on the windows up to it. `n_pix` is the pixel count the
+    counts come from (all sensors' pixels for a rig-level segmentation), so the budget stays in
+    events per pixel whatever the resolution and sensor count.
+    """
     act = counts.astype(np.float64) / n_pix
     starts = [0]
     acc = 0.0
@@ -81,6 +86,31 @@ def _boundaries(counts: NDArray[np.int64], n_pix: int, cfg: PartitionConfig) -> 
             starts.append(k + 1)
             acc = 0.0
     return starts
+
+
+def map_shape(width: int, height: int, scale: float) -> tuple[int, int]:
+    """(rows, cols) of the reduced-resolution event maps of a width x height sensor."""
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+def interval_maps(
+    events: EventArray, width: int, height: int, cuts: NDArray[np.int64], scale: float
+) -> NDArray[np.int32]:
+    """(len(cuts) - 1, rows, cols) signed event counts in [cuts[k], cuts[k + 1]) at reduced resolution.
+
+    The increments between keyframe candidates: their prefix sums are the accumulated maps
+    E(tau), so a long stream can be summed block by block (`cuts` sorted, events time-sorted).
+    """
+    sh, sw = map_shape(width, height, scale)
+    n_int = max(0, len(cuts) - 1)
+    if n_int == 0 or len(events) == 0:
+        return np.zeros((n_int, sh, sw), np.int32)
+    lo, hi = np.searchsorted(events.t, [cuts[0], cuts[-1]], side="left")
+    ev = events[int(lo) : int(hi)]
+    k = np.searchsorted(cuts, ev.t, side="right") - 1
+    pix = (ev.y.astype(np.int64) * sh // height) * sw + ev.x.astype(np.int64) * sw // width
+    inc = np.bincount(k * (sw * sh) + pix, weights=ev.p.astype(np.float64), minlength=n_int * sw * sh)
+    return inc.reshape(n_int, sh, sw).astype(np.int32)
 
 
 def _accumulated_maps(
@@ -109,7 +139,7 @@ def canonical_keyframe_bruteforce(maps: NDArray[np.floating[Any]]) -> int:
     return int(np.argmin(v))
 
 
-_BLOCK_ELEMS = 1 << 22
+_BLOCK_ELEMS = 1 << 20
 """Pixels are processed in column blocks of about this many (map, pixel) elements (bounded memory)."""
 _MAX_RECHECK = 64
 """Near-tied candidates (float input) re-evaluated with the reference expression, at most."""
@@ -128,10 +158,11 @@ def _deviation_sums(flat: NDArray[Any]) -> NDArray[Any]:
     shifted by their minimum first, so the prefix sums stay at the scale of the column's range.
     """
     n, n_pix = flat.shape
-    v = np.zeros(n, dtype=flat.dtype)
+    integer = np.issubdtype(flat.dtype, np.integer)
+    acc_dtype = np.dtype(np.int64) if integer else flat.dtype  # int32 input is summed in int64
+    v = np.zeros(n, dtype=acc_dtype)
     cols = max(1, _BLOCK_ELEMS // max(n, 1))
     idx = np.arange(n, dtype=np.int64)
-    integer = np.issubdtype(flat.dtype, np.integer)
     for c0 in range(0, n_pix, cols):  # blocks of pixels, vectorised inside: no per-map loop
         block = np.ascontiguousarray(flat[:, c0 : c0 + cols].T)  # (pixels, n): sort along rows
         if integer and block.size and block.max() < 2**15:  # values are >= 0 (shifted by the caller)
@@ -139,7 +170,7 @@ def _deviation_sums(flat: NDArray[Any]) -> NDArray[Any]:
         elif integer and block.size and block.max() < 2**31:
             block = block.astype(np.int32)
         order = np.argsort(block, axis=1, kind="stable" if block.dtype == np.int16 else None)
-        s = np.take_along_axis(block, order, axis=1).astype(flat.dtype)
+        s = np.take_along_axis(block, order, axis=1).astype(acc_dtype)
         s -= s[:, :1]  # shift by the pixel's minimum (exact for int64)
         prefix = np.zeros((s.shape[0], n + 1), dtype=s.dtype)
         np.cumsum(s, axis=1, out=prefix[:, 1:])  # prefix[:, k] = S_k
@@ -161,7 +192,7 @@ def _deviation_sums(flat: NDArray[Any]) -> NDArray[Any]:
     return v
 
 
-def canonical_keyframe(maps: NDArray[np.floating[Any]], *, small_n: int = _SMALL_N) -> int:
+def canonical_keyframe(maps: NDArray[Any], *, small_n: int = _SMALL_N) -> int:
     """Index of the canonical keyframe (Eq. 3): argmin_i sum_j ||E_i - E_j||_1 over a (n, h, w) stack.
 
     Same result as `canonical_keyframe_bruteforce` (lowest index among ties) in O(h w n log n) time
@@ -181,6 +212,10 @@ def canonical_keyframe(maps: NDArray[np.floating[Any]], *, small_n: int = _SMALL
         raise ValueError("event maps must be finite")
     if n <= small_n:  # below the crossover the reference itself is the faster
         return canonical_keyframe_bruteforce(maps)
+    if np.issubdtype(maps.dtype, np.integer):  # event counts: exact, summed in int64, no float copy
+        ints = maps.reshape(n, -1)
+        ints = ints - ints.min(axis=0)  # one copy, in the input's width (int32 for `interval_maps`)
+        return int(np.argmin(_deviation_sums(ints)))
     flat = maps.reshape(n, -1).astype(np.float64)
     n_pix = flat.shape[1]
     low = flat.min(axis=0)
@@ -224,7 +259,7 @@ def partition(
     if t1 <= t0:
         raise ValueError(f"empty interval [{t0}, {t1})")
     counts = window_counts(events, t0, t1, cfg.window_us)
-    starts = _boundaries(counts, width * height, cfg)
+    starts = segment_starts(counts, width * height, cfg)
     edges = [t0 + s * cfg.window_us for s in starts] + [t1]
     cand = np.asarray(candidate_times_us if candidate_times_us is not None else [], np.int64)
     segs: list[Segment] = []

@@ -1,47 +1,212 @@
-"""`rigd reconstruct TAKE... --out DIR [--scheduler ADDR]`: denoise, partition and snapshots per take.
+"""`rigd reconstruct TAKE... --out DIR`: denoise, segment, keyframes and snapshots per take.
 
-Parses the arguments, runs `rigd.app.workflows.reconstruct` (the outputs are described there)
-under a rich progress bar (on a terminal) and prints one line per take and sensor, or one line
-per take that failed; exit code 1 when any did.
+Parses the arguments into `ReconstructOptions` (every knob, the paper's values as defaults; the
+outputs are described in `rigd.app.workflows.reconstruct`), shows progress in events per stage
+with rate and time left (a rich bar on a terminal, one line per finished stage otherwise) and
+prints one line per take; exit code 1 when any take failed.
 Register with `app.command("reconstruct")(reconstruct)`.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import Progress
+from rich.progress import (
+    BarColumn,
+    Progress,
+    ProgressColumn,
+    Task,
+    TaskID,
+    TextColumn,
+    TimeRemainingColumn,
+)
+from rich.text import Text
 
 from rigd.app.workflows.progress import ProgressUpdate
-from rigd.app.workflows.reconstruct import ReconstructOptions, run_reconstruct
+from rigd.app.workflows.reconstruct import (
+    LOCAL_SCHEDULERS,
+    ReconstructOptions,
+    TakeReconstruction,
+    run_reconstruct,
+)
+from rigd.app.workflows.reconstruct_tasks import FilterKnobs
 
 _err = Console(stderr=True)
+_UNITS = {"filter": "events", "keyframes": "events", "snapshots": "snapshots"}
+_LABELS = {
+    "filter": "filter + activity",
+    "keyframes": "keyframe maps",
+    "snapshots": "snapshots",
+}
+
+
+class _RateColumn(ProgressColumn):
+    """Items per second in the task's own unit (Mev/s for events)."""
+
+    def render(self, task: Task) -> Text:
+        speed = task.finished_speed or task.speed
+        if not speed:
+            return Text("")
+        unit = task.fields.get("unit", "")
+        if unit == "events":
+            return Text(f"{speed / 1e6:.2f} Mev/s")
+        return Text(f"{speed:.1f} {unit}/s")
+
+
+class _Shown:
+    """Routes workflow progress to a rich bar per take and stage, or to one line per finished stage."""
+
+    def __init__(self, progress: Progress, terminal: bool) -> None:
+        self.progress = progress
+        self.terminal = terminal
+        self.tasks: dict[tuple[str, str], TaskID] = {}
+        self.started: dict[tuple[str, str], float] = {}
+
+    def __call__(self, u: ProgressUpdate) -> None:
+        if u.stage == "take":  # a new take: its stages get bars and lines of their own
+            self.tasks.clear()
+            return
+        if u.stage not in _UNITS or u.total is None:
+            return
+        key = (u.message, u.stage)
+        done = u.done or 0
+        if key not in self.tasks:
+            self.started[key] = time.perf_counter()
+            label = f"{Path(u.message).name}: {_LABELS[u.stage]}"
+            self.tasks[key] = self.progress.add_task(label, total=max(u.total, 1), unit=_UNITS[u.stage])
+        self.progress.update(self.tasks[key], completed=done)
+        if not self.terminal and done >= u.total > 0:
+            dt = time.perf_counter() - self.started[key]
+            rate = u.total / dt if dt > 0 else 0.0
+            shown = f"{rate / 1e6:.2f} Mev/s" if _UNITS[u.stage] == "events" else f"{rate:.1f}/s"
+            what = f"{_LABELS[u.stage]}: {u.total:,} {_UNITS[u.stage]}"
+            _err.print(
+                f"{escape(u.message)}: {what} in {dt:.1f} s ({shown})",
+                soft_wrap=True,
+                highlight=False,
+            )
+
+
+def _line(r: TakeReconstruction) -> str:
+    parts = [f"{r.segments} segment{'s' if r.segments != 1 else ''}"]
+    for sensor, s in r.sensors.items():
+        share = f" ({100 * s.events_kept / s.events_in:.1f} %)" if s.events_in else ""
+        parts.append(f"{sensor} kept {s.events_kept:,} of {s.events_in:,} events{share}")
+    n = sum(s.events_in for s in r.sensors.values())
+    rate = f", {n / r.seconds / 1e6:.2f} Mev/s" if r.seconds > 0 else ""
+    return f"{r.take}: " + "; ".join(parts) + f" in {r.seconds:.1f} s{rate}"
 
 
 def reconstruct(
     takes: Annotated[list[Path], typer.Argument(help="Take files (.h5).", exists=True, dir_okay=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")],
     scheduler: Annotated[
-        str | None, typer.Option("--scheduler", help="Dask distributed scheduler address; local if omitted.")
+        str,
+        typer.Option(
+            "--scheduler",
+            help=f"Dask scheduler: {', '.join(LOCAL_SCHEDULERS)} (local), or a dask.distributed address.",
+        ),
+    ] = "threads",
+    workers: Annotated[
+        int | None, typer.Option("--workers", min=1, help="Local workers (default: one per core).")
     ] = None,
+    no_filter: Annotated[
+        bool, typer.Option("--no-filter", help="Skip the background-activity filter.")
+    ] = False,
+    filter_window_us: Annotated[
+        int, typer.Option("--filter-window-us", min=1, help="Filter: support window, us (paper: 30).")
+    ] = 30,
+    filter_radius: Annotated[
+        int,
+        typer.Option("--filter-radius", min=1, max=8, help="Filter: neighbourhood radius, px (paper: 3)."),
+    ] = 3,
+    filter_support: Annotated[
+        int,
+        typer.Option("--filter-support", min=0, help="Filter: same-polarity neighbours needed (paper: 2)."),
+    ] = 2,
+    threshold: Annotated[
+        float,
+        typer.Option(
+            "--threshold", min=0.0, help="Partition: activity budget per segment, kept events per pixel."
+        ),
+    ] = 2.0,
+    partition_window_us: Annotated[
+        int, typer.Option("--partition-window-us", min=100, help="Partition: activity window, us.")
+    ] = 5_000,
+    instant_weight: Annotated[
+        float, typer.Option("--instant-weight", min=0.0, help="Partition: weight of one window's activity.")
+    ] = 1.0,
+    min_segment_us: Annotated[
+        int, typer.Option("--min-segment-us", min=0, help="Partition: shortest segment, us.")
+    ] = 10_000,
+    map_scale: Annotated[
+        float, typer.Option("--map-scale", min=0.01, max=1.0, help="Keyframe maps: resolution scale.")
+    ] = 0.25,
+    max_candidates: Annotated[
+        int,
+        typer.Option("--max-candidates", min=0, help="Keyframe candidates per segment at most (0: all)."),
+    ] = 256,
+    keyframe_camera: Annotated[
+        str | None,
+        typer.Option("--keyframe-camera", help="Camera whose mid-exposure times are the candidates."),
+    ] = None,
+    e2i: Annotated[
+        str, typer.Option("--e2i", help="Snapshots: highpass (paper-style) or direct integration.")
+    ] = "highpass",
+    contrast: Annotated[
+        float, typer.Option("--contrast", min=0.0, help="Snapshots: contrast, log units.")
+    ] = 0.3,
+    cutoff_hz: Annotated[
+        float, typer.Option("--cutoff-hz", min=0.0, help="Snapshots: high-pass cutoff, Hz.")
+    ] = 5.0,
 ) -> None:
-    """Denoise, partition into motion-aware segments and reconstruct keyframe snapshots per take."""
-    options = ReconstructOptions(takes=takes, out=out, scheduler=scheduler)
-    with Progress(console=_err, transient=False, disable=not _err.is_terminal) as progress:
-        bar = progress.add_task("reconstruct", total=len(takes))
-
-        def advance(update: ProgressUpdate) -> None:
-            progress.update(bar, completed=update.done)
-
-        results = run_reconstruct(options, advance)
+    """Denoise, segment the rig's sequence by motion, choose keyframes and reconstruct snapshots per take."""
+    if e2i not in ("highpass", "direct"):
+        _err.print(
+            f"[bold red]error:[/] --e2i must be highpass or direct, got {escape(e2i)!r}", highlight=False
+        )
+        raise typer.Exit(code=2)
+    options = ReconstructOptions(
+        takes=takes,
+        out=out,
+        scheduler=scheduler,
+        workers=workers,
+        filter=FilterKnobs(
+            enabled=not no_filter,
+            window_us=filter_window_us,
+            radius_px=filter_radius,
+            min_support=filter_support,
+        ),
+        threshold=threshold,
+        partition_window_us=partition_window_us,
+        instant_weight=instant_weight,
+        min_segment_us=min_segment_us,
+        map_scale=map_scale,
+        max_candidates=max_candidates,
+        keyframe_camera=keyframe_camera,
+        e2i=e2i,
+        contrast=contrast,
+        cutoff_hz=cutoff_hz,
+    )
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed:,.0f}/{task.total:,.0f} {task.fields[unit]}"),
+        _RateColumn(),
+        TimeRemainingColumn(),
+    )
+    terminal = _err.is_terminal
+    with Progress(*columns, console=_err, transient=False, disable=not terminal) as progress:
+        results = run_reconstruct(options, _Shown(progress, terminal))
     for r in results:
         if r.error is not None:
             _err.print(f"[bold red]error:[/] {escape(r.error)}", soft_wrap=True, highlight=False)
-        for sensor, s in r.sensors.items():
-            _err.print(f"{r.take} {sensor}: {s.events_kept}/{s.events_in} events kept, {s.segments} segments")
+        else:
+            _err.print(escape(_line(r)), soft_wrap=True, highlight=False)
     if any(r.error is not None for r in results):
         raise typer.Exit(code=1)

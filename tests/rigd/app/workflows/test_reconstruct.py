@@ -1,4 +1,6 @@
-"""The reconstruction workflow called directly: one take through Dask on local threads."""
+"""`rigd reconstruct`'s workflow on small takes: block-wise results equal whole-stream ones, one
+rig-level segmentation, keyframes among the RGB mid-exposure times, the same output on every
+scheduler, progress in events."""
 
 from __future__ import annotations
 
@@ -6,33 +8,264 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
+from typer.testing import CliRunner
 
+from reconstruction.filters import background_activity_filter
+from reconstruction.partition import (
+    PartitionConfig,
+    canonical_keyframe_bruteforce,
+    interval_maps,
+    segment_starts,
+    window_counts,
+)
+from rigd.app.cli import app
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.app.workflows.reconstruct import ReconstructOptions, reconstruct_take, run_reconstruct
+from rigd.app.workflows.reconstruct_tasks import FilterKnobs
+from rigd.core.devices import DeviceInfo, PulseBatch
+from rigd.core.events import EventArray
+from rigd.core.frames import Frame
+from rigd.core.schema import SyncReport
+from rigd.core.settings import WriterConfig
+from rigd.core.timebase import ClockMap
+from rigd.take import TakeWriter
+from rigd.take.reader import Take
 from tests.rigd.test_take_roundtrip import make_take
 
+W, H = 96, 64
+PERIOD_US = 33_333
+EXPOSURE_US = 8_000
 
-def test_reconstruct_writes_segments_and_snapshots_per_sensor(tmp_path: Path) -> None:
-    path = make_take(tmp_path / "t.h5", n_events=60_000).path
+
+def bar_sweeps(sweeps: list[tuple[int, int]], seed: int = 0) -> EventArray:
+    """A vertical bar sweeping the sensor once per (start us, duration us): every pixel of a column
+    fires within 10 us of the others, so the paper's filter keeps them."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for t0, dur in sweeps:
+        col_t = t0 + (np.arange(W) * dur) // W
+        xs, ys = np.meshgrid(np.arange(W), np.arange(H))
+        t = col_t[xs.ravel()] + rng.integers(0, 10, xs.size)
+        parts.append((xs.ravel(), ys.ravel(), np.ones(xs.size, np.int64), t))
+    x, y, p, t = (np.concatenate(c) for c in zip(*parts, strict=True))
+    order = np.argsort(t, kind="stable")
+    return EventArray.from_arrays(x[order], y[order], p[order], t[order])
+
+
+def noise(n: int, t0: int, t1: int, seed: int) -> EventArray:
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(t0, t1, n))
+    return EventArray.from_arrays(rng.integers(0, W, n), rng.integers(0, H, n), rng.integers(0, 2, n), t)
+
+
+def by_time(*parts: EventArray) -> EventArray:
+    ev = EventArray.concatenate(list(parts))
+    return ev[np.argsort(ev.t, kind="stable")]
+
+
+def write_take(path: Path, events: dict[str, EventArray], span_us: int, *, block: int = 1024) -> Path:
+    """A finalized take (identity clocks) with cam0 at 30 Hz over the span and the given sensors."""
+    cfg = WriterConfig(event_compression="lz4", event_chunk=block, fsync=False)
+    w = TakeWriter(path, rig_config_json="{}", take_id=path.stem, config=cfg, rigd_version="t")
+    w.add_trigger(DeviceInfo(kind="trigger", spec="sim://t/trigger"))
+    w.add_camera("cam0", DeviceInfo(kind="rgb_camera", spec="sim://t/cam0"), (8, 8), np.uint8, "{}")
+    for name in events:
+        w.add_event_sensor(name, DeviceInfo(kind="event_sensor", spec=f"sim://t/{name}"), W, H, "{}")
+    for name, ev in events.items():
+        w.append_events(name, ev)
+    frame_t = np.arange(0, span_us, PERIOD_US, dtype=np.int64)
+    for i, t in enumerate(frame_t):
+        w.append_frame("cam0", Frame(np.zeros((8, 8), np.uint8), int(t), EXPOSURE_US, i, i))
+    n = len(frame_t)
+    w.append_pulses(PulseBatch(np.arange(n, dtype=np.int64), frame_t, np.arange(n, dtype=np.int64)))
+    maps = {d: ClockMap(0, 0) for d in ["cam0", *events]}
+    report = SyncReport(rate_hz=30.0, n_pulses=n, t_first_pulse_us=0, t_last_pulse_us=int(frame_t[-1]))
+    w.finalize(maps, {"cam0": np.arange(n, dtype=np.int64)}, report)
+    w.close()
+    return path
+
+
+SPAN = 1_000_000
+
+
+@pytest.fixture(scope="module")
+def moving_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two sensors: fast sweeps in two bursts and background noise; the second sensor sees them later."""
+    d = tmp_path_factory.mktemp("rec")
+    sweeps = [(100_000 + k * 12_000, 8_000) for k in range(8)] + [
+        (600_000 + k * 12_000, 8_000) for k in range(8)
+    ]
+    ev0 = by_time(bar_sweeps(sweeps, 1), noise(20_000, 0, SPAN, 2))
+    ev1 = by_time(bar_sweeps([(t + 3_000, d) for t, d in sweeps], 3), noise(20_000, 0, SPAN, 4))
+    return write_take(d / "moving.h5", {"ev0": ev0, "ev1": ev1}, SPAN)
+
+
+def options(tmp: Path, **kw: object) -> ReconstructOptions:
+    return ReconstructOptions(takes=[], out=tmp, scheduler="sync", block_events=4096, **kw)
+
+
+def test_blocks_give_the_whole_stream_result(moving_take: Path, tmp_path: Path) -> None:
+    """Kept counts and segments from 4096-event blocks equal one pass of the filter over each stream."""
+    r = reconstruct_take(moving_take, options(tmp_path))
+    cfg = PartitionConfig()
+    counts = None
+    with Take(moving_take) as take:
+        t0 = min(take.event_span(s)[0] for s in ("ev0", "ev1"))  # type: ignore[index]
+        t1 = max(take.event_span(s)[1] for s in ("ev0", "ev1")) + 1  # type: ignore[index]
+        for s in ("ev0", "ev1"):
+            kept = background_activity_filter(take.events(s), W, H)
+            assert r.sensors[s].events_kept == len(kept)
+            assert r.sensors[s].events_in == take.event_count(s)
+            c = window_counts(kept, t0, t1, cfg.window_us)
+            counts = c if counts is None else counts + c
+    doc = json.loads((tmp_path / "moving" / "segments.json").read_text())
+    starts = segment_starts(np.asarray(counts), 2 * W * H, cfg)
+    assert [s["t_start_us"] for s in doc["segments"]] == [t0 + k * cfg.window_us for k in starts]
+    assert r.segments == len(starts) >= 3  # the two bursts cut the sequence; the noise alone does not
+
+
+def test_keyframes_are_the_brute_force_argmin_over_mid_exposures(moving_take: Path, tmp_path: Path) -> None:
+    reconstruct_take(moving_take, options(tmp_path))
+    doc = json.loads((tmp_path / "moving" / "segments.json").read_text())
+    assert doc["candidates"]["source"] == "cam0 mid-exposure"
+    mids = np.arange(0, SPAN, PERIOD_US, dtype=np.int64) + EXPOSURE_US // 2
+    with Take(moving_take) as take:
+        kept = {s: background_activity_filter(take.events(s), W, H) for s in ("ev0", "ev1")}
+    checked = 0
+    for seg in doc["segments"]:
+        a, b = seg["t_start_us"], seg["t_end_us"]
+        taus = mids[(mids >= a) & (mids < b)]
+        if len(taus) == 0:
+            assert seg["keyframe_us"] == a
+            continue
+        cuts = np.concatenate([[a], taus, [b]]).astype(np.int64)
+        cuts = np.unique(cuts)
+        maps = []
+        for s in ("ev0", "ev1"):
+            inc = interval_maps(kept[s], W, H, cuts, 0.25)
+            acc = np.concatenate([np.zeros((1, *inc.shape[1:]), np.int64), np.cumsum(inc, axis=0)])
+            maps.append(acc[np.searchsorted(cuts, taus)].reshape(len(taus), -1))
+        expect = taus[canonical_keyframe_bruteforce(np.concatenate(maps, axis=1).astype(np.float64))]
+        assert seg["keyframe_us"] == expect
+        checked += 1
+    assert checked >= 3
+
+
+def test_every_scheduler_writes_the_same(moving_take: Path, tmp_path: Path) -> None:
+    outs = {}
+    for sched in ("sync", "threads", "processes"):
+        o = ReconstructOptions(
+            takes=[moving_take], out=tmp_path / sched, scheduler=sched, workers=2, block_events=8192
+        )
+        (r,) = run_reconstruct(o)
+        assert r.error is None
+        doc = json.loads((tmp_path / sched / "moving" / "segments.json").read_text())
+        with np.load(tmp_path / sched / "moving" / "ev1" / "snapshots.npz") as z:
+            outs[sched] = (doc["segments"], z["times_us"].tolist(), z["log_intensity"].copy())
+    ref = outs["sync"]
+    for sched, got in outs.items():
+        assert got[0] == ref[0], sched
+        assert got[1] == ref[1] == [s["keyframe_us"] for s in ref[0]], sched
+        np.testing.assert_array_equal(got[2], ref[2], err_msg=sched)
+
+
+def test_static_scene_is_one_segment(tmp_path: Path) -> None:
+    path = write_take(tmp_path / "still.h5", {"ev0": noise(50_000, 0, SPAN, 7)}, SPAN)
+    r = reconstruct_take(path, options(tmp_path))
+    assert r.segments == 1
+    assert r.sensors["ev0"].events_kept < 0.05 * r.sensors["ev0"].events_in  # noise has no support
+
+
+def test_unfiltered_noise_fills_the_budget(tmp_path: Path) -> None:
+    """Without the filter the same noise is activity: the knob changes what the partition sees."""
+    path = write_take(tmp_path / "still.h5", {"ev0": noise(50_000, 0, SPAN, 7)}, SPAN)
+    r = reconstruct_take(path, options(tmp_path, filter=FilterKnobs(enabled=False), threshold=1.0))
+    assert r.sensors["ev0"].events_kept == 50_000
+    assert r.segments >= 5  # 50k events on 6144 px: 8 per px against a budget of 1
+
+
+def test_progress_counts_events_per_stage(moving_take: Path, tmp_path: Path) -> None:
     updates: list[ProgressUpdate] = []
-    results = run_reconstruct(ReconstructOptions(takes=[path], out=tmp_path / "out"), updates.append)
-    assert [r.take for r in results] == [str(path)]
-    ev0 = results[0].sensors["ev0"]
-    assert ev0.events_in == 60_000
-    assert 0 < ev0.events_kept <= ev0.events_in
-    dest = tmp_path / "out" / "take-1" / "ev0"
-    segments = json.loads((dest / "segments.json").read_text())["segments"]
-    assert len(segments) == ev0.segments > 0
-    with np.load(dest / "snapshots.npz") as snaps:
-        assert snaps["log_intensity"].shape[0] == ev0.segments
-        assert snaps["times_us"].dtype == np.int64
-    assert updates == [ProgressUpdate("reconstruct", str(path), 1, 1)]
+    o = ReconstructOptions(
+        takes=[moving_take], out=tmp_path, scheduler="threads", workers=2, block_events=4096
+    )
+    (r,) = run_reconstruct(o, updates.append)
+    n = sum(s.events_in for s in r.sensors.values())
+    for stage in ("filter", "keyframes"):
+        mine = [u for u in updates if u.stage == stage]
+        assert mine[0].done == 0
+        assert mine[-1].done == mine[-1].total
+        assert [u.done for u in mine] == sorted(u.done or 0 for u in mine)
+        assert len(mine) > 10
+    assert [u for u in updates if u.stage == "filter"][-1].total == n
+    snaps = [u for u in updates if u.stage == "snapshots"]
+    assert snaps[-1].done == snaps[-1].total == 2 * r.segments
 
 
-def test_one_take_without_dask_gives_the_same_result(tmp_path: Path) -> None:
+def test_highpass_snapshot_matches_integrating_the_whole_stream(moving_take: Path, tmp_path: Path) -> None:
+    """The windowed high-pass snapshot differs from one over the whole history by < 1e-3 log units."""
+    from reconstruction.e2i import reconstruct
+
+    reconstruct_take(moving_take, options(tmp_path))
+    with np.load(tmp_path / "moving" / "ev0" / "snapshots.npz") as z:
+        times, snaps = z["times_us"], z["log_intensity"]
+    with Take(moving_take) as take:
+        kept = background_activity_filter(take.events("ev0"), W, H)
+    full = reconstruct(kept, W, H, times, "highpass", contrast=0.3, cutoff_hz=5.0)
+    assert np.abs(full - snaps).max() < 1e-3
+
+
+def test_cli_knobs_and_summary_line(moving_take: Path, tmp_path: Path) -> None:
+    r = CliRunner().invoke(
+        app,
+        [
+            "reconstruct",
+            str(moving_take),
+            "--out",
+            str(tmp_path),
+            "--scheduler",
+            "sync",
+            "--filter-window-us",
+            "1000",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    *stages, line = r.output.strip().splitlines()
+    # Off a terminal: one line per finished stage, in its unit, then the take's summary.
+    assert [ln.split(": ")[1] for ln in stages] == ["filter + activity", "keyframe maps", "snapshots"]
+    assert all(ln.startswith(f"{moving_take}: ") for ln in stages)
+    assert " events in " in stages[0]
+    assert "Mev/s" in stages[0]
+    assert line.startswith(f"{moving_take}: ")
+    assert "segments" in line
+    assert "ev0 kept" in line
+    assert "Mev/s" in line
+    doc = json.loads((tmp_path / "moving" / "segments.json").read_text())
+    assert doc["options"]["filter"]["window_us"] == 1000
+    wide = doc["sensors"]["ev0"]["events_kept"]
+    narrow = reconstruct_take(moving_take, options(tmp_path / "n")).sensors["ev0"].events_kept
+    assert wide > narrow  # a longer window supports more of the noise
+
+
+def test_unknown_keyframe_camera_is_one_line(moving_take: Path, tmp_path: Path) -> None:
+    r = CliRunner().invoke(
+        app, ["reconstruct", str(moving_take), "--out", str(tmp_path), "--keyframe-camera", "cam7"]
+    )
+    assert r.exit_code == 1
+    (line,) = r.output.strip().splitlines()
+    assert "cam7" in line
+    assert "cam0" in line
+    assert str(moving_take) in line
+
+
+def test_old_style_take_still_reconstructs(tmp_path: Path) -> None:
     path = make_take(tmp_path / "t.h5", n_events=60_000).path
-    direct = reconstruct_take(path, tmp_path / "a")
-    (batch,) = run_reconstruct(ReconstructOptions(takes=[path], out=tmp_path / "b"))
-    assert direct == batch
-    a = (tmp_path / "a" / "take-1" / "ev0" / "segments.json").read_text()
-    assert a == (tmp_path / "b" / "take-1" / "ev0" / "segments.json").read_text()
+    (r,) = run_reconstruct(ReconstructOptions(takes=[path], out=tmp_path / "out"))
+    assert r.error is None
+    assert r.sensors["ev0"].events_in == 60_000
+    doc = json.loads((tmp_path / "out" / "take-1" / "segments.json").read_text())
+    assert len(doc["segments"]) == r.segments > 0
+    with np.load(tmp_path / "out" / "take-1" / "ev0" / "snapshots.npz") as snaps:
+        assert snaps["log_intensity"].shape[0] == r.segments
+        assert snaps["times_us"].dtype == np.int64
