@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import signal
 import sys
@@ -14,7 +13,6 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-from rich.table import Table
 
 from rigd import __version__
 from rigd.app.commands.calibrate import calibrate_app
@@ -32,6 +30,7 @@ from rigd.core.errors import ConfigError, RigdError
 
 if TYPE_CHECKING:
     from rigd.app.capture import Progress as CaptureProgress
+    from rigd.take.reader import TakeSummary
 
 app = typer.Typer(
     help="Capture daemon for a hybrid RGB + event-camera rig.",
@@ -354,46 +353,11 @@ def _add_plugin_commands() -> None:
         app.command(ep.name)(command)
 
 
-def _print_summary(summary: object) -> None:
-    data = json.loads(summary.model_dump_json())  # type: ignore[attr-defined]
-    out.print(f"status: {data.get('status')}   schema {data.get('schema_version')}")
-    if data.get("end_reason"):
-        out.print(f"ended: {data['end_reason']}")
-    if data.get("recovered_utc"):
-        out.print(f"recovered after a crash at {data['recovered_utc']} (data after the last flush is lost)")
-    cams = Table("camera", "frames", "fps", "shape", "dropped", "missing pulses", "sync rms us", "max us")
-    cams.columns[3].no_wrap = True
-    for name, c in data.get("cameras", {}).items():
-        cams.add_row(
-            name,
-            str(c.get("frames")),
-            f"{c.get('fps') or 0:.2f}",
-            "x".join(str(v) for v in c.get("shape", [])),
-            str(c.get("dropped_frames")),
-            str(c.get("missing_pulses")),
-            _fmt(c.get("sync_rms_us")),
-            _fmt(c.get("sync_max_us")),
-        )
-    out.print(cams)
-    sens = Table("sensor", "events", "Mev/s", "triggers", "missing pulses", "sync rms us", "max us")
-    for name, s in data.get("event_sensors", {}).items():
-        sens.add_row(
-            name,
-            f"{s.get('events'):,}",
-            f"{(s.get('event_rate_hz') or 0) / 1e6:.3f}",
-            str(s.get("triggers")),
-            str(s.get("missing_pulses")),
-            _fmt(s.get("sync_rms_us")),
-            _fmt(s.get("sync_max_us")),
-        )
-    out.print(sens)
-    for key in ("pulses", "pulses_seen_by_no_device", "losses", "warnings", "problems"):
-        if data.get(key):
-            out.print(f"{key}: {data[key]}")
+def _print_summary(summary: TakeSummary) -> None:
+    from rigd.app.inspect import summary_renderables
 
-
-def _fmt(v: object) -> str:
-    return f"{v:.2f}" if isinstance(v, int | float) else "-"
+    for part in summary_renderables(summary):
+        out.print(part, soft_wrap=isinstance(part, str), highlight=False)
 
 
 _add_plugin_commands()

@@ -8,6 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from rich.console import RenderableType
+from rich.table import Table
 
 from rigd.core.errors import TakeError
 from rigd.take.reader import Take, TakeSummary
@@ -54,6 +56,95 @@ def status_hint(summary: TakeSummary) -> str | None:
     return f"{path}: take status {status!r} is not complete"
 
 
+#: What a missing value shows as in a table.
+MISSING = "—"
+
+
+def _cell(value: object, fmt: str = "{}") -> str:
+    return MISSING if value is None else fmt.format(value)
+
+
+def clock_label(summary: TakeSummary, pulses: int | None = None) -> str:
+    """What the take's times are in, for people: the rig timebase only when a trigger box gave
+    it one; a take finalized without pulses (a converted recording, a simulated one) keeps each
+    device's own clock under an identity map, and an unsealed take is still in device time."""
+    if summary.time_domain != "rig":
+        return "device clocks (not yet mapped to the rig)"
+    if (summary.pulses if pulses is None else pulses) == 0:
+        return "the recording's own clock (no trigger box)"
+    return "rig time (trigger box clock)"
+
+
+def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
+    """The summary `rigd capture` and `rigd inspect` print: a status line, a table per device
+    kind present, and losses, warnings and problems as a table and sentences."""
+    parts: list[RenderableType] = [
+        f"status: {summary.status}   schema {summary.schema_version}   times: {clock_label(summary)}"
+    ]
+    if summary.end_reason:
+        parts.append(f"ended: {summary.end_reason}")
+    if summary.recovered_utc:
+        parts.append(
+            f"recovered after a crash at {summary.recovered_utc} (data after the last flush is lost)"
+        )
+    if summary.failure_reason:
+        parts.append(f"failed: {summary.failure_reason}")
+    if summary.cameras:
+        cams = Table("camera", "frames", "fps", "shape", "dropped", "missing pulses", "sync rms µs", "max µs")
+        cams.columns[3].no_wrap = True
+        for name, c in summary.cameras.items():
+            cams.add_row(
+                name,
+                f"{c.frames:,}",
+                _cell(c.fps, "{:.2f}"),
+                "x".join(str(v) for v in c.shape) or MISSING,
+                _cell(c.dropped_frames),
+                _cell(c.missing_pulses),
+                _cell(c.sync_rms_us, "{:.2f}"),
+                _cell(c.sync_max_us, "{:.2f}"),
+            )
+        parts.append(cams)
+    if summary.event_sensors:
+        sens = Table(
+            "sensor", "events", "Mev/s", "size", "triggers", "missing pulses", "sync rms µs", "max µs"
+        )
+        for name, e in summary.event_sensors.items():
+            sens.add_row(
+                name,
+                f"{e.events:,}",
+                MISSING if e.event_rate_hz is None else f"{e.event_rate_hz / 1e6:.3f}",
+                f"{e.width}x{e.height}",
+                f"{e.triggers:,}",
+                _cell(e.missing_pulses),
+                _cell(e.sync_rms_us, "{:.2f}"),
+                _cell(e.sync_max_us, "{:.2f}"),
+            )
+        parts.append(sens)
+    if not summary.cameras and not summary.event_sensors:
+        parts.append("no cameras and no event sensors in this take")
+    parts.append(_pulse_line(summary))
+    if summary.losses:
+        losses = Table("lost from", "what", "count", "why", title="losses", title_justify="left")
+        losses.columns[3].overflow = "fold"
+        for rec in summary.losses:
+            losses.add_row(rec.device, rec.what, f"{rec.count:,}", rec.reason)
+        parts.append(losses)
+    parts.extend(f"warning: {w}" for w in summary.warnings)
+    parts.extend(f"problem: {p}" for p in summary.problems)
+    return parts
+
+
+def _pulse_line(summary: TakeSummary) -> str:
+    if summary.pulses == 0:
+        return "trigger pulses: none (no trigger box)"
+    line = f"trigger pulses: {summary.pulses:,}"
+    unseen = summary.pulses_seen_by_no_device
+    if unseen:
+        shown = ", ".join(str(i) for i in unseen[:10]) + (", ..." if len(unseen) > 10 else "")
+        line += f"; {len(unseen)} seen by no device ({shown})"
+    return line
+
+
 def _to_bgr8(img: NDArray[np.generic]) -> NDArray[np.uint8]:
     a = np.asarray(img)
     if a.dtype != np.uint8:
@@ -96,6 +187,21 @@ def _tile(img: NDArray[np.uint8], width: int, height: int, label: str) -> NDArra
     return out
 
 
+Span = tuple[int, int]
+
+
+def _sample_span(cameras: list[Span], sensors: list[Span], rig: bool) -> Span:
+    """The span the sheet's columns sample. On one timebase: where every device has data, else
+    where every camera has frames (an event sensor's span can run past the last frame, and a
+    column there would only repeat it; an event tile with no events says so). Without one
+    timebase each row spreads over its own data, so all of it."""
+    for spans in (cameras + sensors, cameras) if rig else ():
+        if spans and (lo := max(s[0] for s in spans)) < (hi := min(s[1] for s in spans)):
+            return lo, hi
+    spans = cameras + sensors
+    return min(s[0] for s in spans), max(s[1] for s in spans)
+
+
 def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -> Path:
     """Contact sheet: one row per camera (n frames spread over the take) and one per event
     sensor (10 ms event images at the same rig times). Returns the PNG path."""
@@ -104,18 +210,18 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
     out = Path(out_png)
     with Take(path) as take:
         rig = take.time_domain == "rig"
-        spans: list[tuple[int, int]] = []
+        report = take.sync_report
+        pulses = 0 if report is None else report.n_pulses
+        domain = "rig" if rig and pulses else "own clock" if rig else "device"
+        cam_spans: list[Span] = []
         for cam in take.cameras:
             ts = take.frames(cam).timestamps_us
             if ts.size:
-                spans.append((int(ts[0]), int(ts[-1])))
-        for sen in take.event_sensors:
-            span = take.event_span(sen)
-            if span:
-                spans.append(span)
-        if not spans:
+                cam_spans.append((int(ts[0]), int(ts[-1])))
+        ev_spans = [span for sen in take.event_sensors if (span := take.event_span(sen))]
+        if not cam_spans and not ev_spans:
             raise TakeError(f"{take.path}: nothing to draw: no frames and no events")
-        t0, t1 = min(s[0] for s in spans), max(s[1] for s in spans)
+        t0, t1 = _sample_span(cam_spans, ev_spans, rig)
         # n times evenly inside the span, away from the ragged start and end.
         times = np.linspace(t0, t1, n_frames + 2)[1:-1].astype(np.int64)
         tile_w = max(32, _MAX_SHEET_WIDTH // n_frames)
@@ -125,7 +231,6 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
         aspect = max(sh[0] / sh[1] for sh in shapes)
         tile_h = max(24, min(_MAX_TILE_HEIGHT, round(tile_w * aspect)))
         rows: list[NDArray[np.uint8]] = []
-        domain = "rig" if rig else "device"
         for cam in take.cameras:
             fs = take.frames(cam)
             tiles = []
@@ -150,7 +255,8 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
                     k = int((t - t0) * max(n - 1, 0) // max(t1 - t0, 1))
                     ev = take.events_by_index(sen, k, k + 100_000)
                 img = event_image(ev.x, ev.y, ev.p, width, height)
-                label = f"{sen} t={int(t) / 1e6:.3f}s {len(ev)} ev ({domain})"
+                t_ev = int(t) if rig or not len(ev) else int(ev.t[0])
+                label = f"{sen} t={t_ev / 1e6:.3f}s {len(ev)} ev ({domain})"
                 tiles.append(_tile(img, tile_w, tile_h, label))
             rows.append(np.hstack(tiles))
     sheet = np.vstack(rows)
