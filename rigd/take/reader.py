@@ -1,8 +1,10 @@
 """Read-only access to take files for training jobs.
 
-Nothing here loads a whole event dataset unless asked for all of it: time windows are
-narrowed with the DSEC `ms_to_idx` index and finished with a binary search on the few
-milliseconds of `t` around each edge.
+Nothing here loads a whole event dataset unless asked for all of it: a time window is
+narrowed with the DSEC `ms_to_idx` index to the events of the milliseconds it touches, whose
+`t` is read once and searched for both edges; `x, y, p` are then read for exactly the window.
+Dataset handles stay open for the Take's life, so a read costs no lookups and HDF5 decodes
+only the chunks the window overlaps (random training windows: docs/take-format.md).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import json
 import logging
 import math
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self, overload
@@ -56,8 +59,39 @@ log = logging.getLogger(__name__)
 
 #: Events read per step by iter_events (bounded memory, few HDF5 calls).
 _READ_BLOCK = 1 << 20
-#: Raw-data chunk cache per open file: holds a few compressed event chunks across windows.
-_CHUNK_CACHE_BYTES = 64 << 20
+#: Raw-data chunk cache per open dataset: keeps the chunks a window shares with the next one
+#: (sequential reads, overlapping windows) decoded; random windows rarely share a chunk.
+_CHUNK_CACHE_BYTES = 16 << 20
+#: A time window whose ms bracket holds at most this many events reads its `t` in one call.
+_WINDOW_T_MAX = 1 << 22
+
+
+@dataclass(slots=True)
+class _EventColumns:
+    """Open handles of one sensor's event datasets: opening a dataset per read costs a name
+    lookup and starts it with an empty chunk cache."""
+
+    x: h5py.Dataset
+    y: h5py.Dataset
+    p: h5py.Dataset
+    t: h5py.Dataset
+    ms_to_idx: h5py.Dataset | None
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+
+def _ms_bracket(ms_to_idx: h5py.Dataset, rel: int, n: int) -> tuple[int, int]:
+    """[lo, hi): the events that may hold the first `t >= rel` (t relative to t_offset), from
+    the ms index entries floor(rel/1000) and ceil(rel/1000), read in one call."""
+    n_ms = int(ms_to_idx.shape[0])
+    a, b = rel // 1000, max(-(-rel // 1000), 0)
+    s, e = max(a, 0), min(b, n_ms - 1)
+    vals = np.asarray(ms_to_idx[s : e + 1], dtype=np.int64) if s <= e else np.zeros(0, np.int64)
+    lo = 0 if a < 0 else (n if a >= n_ms else int(vals[0]))
+    hi = n if b >= n_ms else int(vals[b - s])
+    return lo, max(lo, hi)
 
 
 class CameraSummary(BaseModel):
@@ -205,6 +239,7 @@ class Take:
             self._f.close()
             raise
         self._t_offset: dict[str, int] = {}
+        self._columns: dict[str, _EventColumns] = {}
 
     def _check_header(self) -> None:
         f = self._f
@@ -383,6 +418,14 @@ class Take:
         n, _, m = self._tail(g)
         return n + m
 
+    def _cols(self, g: h5py.Group) -> _EventColumns:
+        cols = self._columns.get(g.name)
+        if cols is None:
+            ms = g.get("ms_to_idx")
+            cols = _EventColumns(g["x"], g["y"], g["p"], g["t"], ms if isinstance(ms, h5py.Dataset) else None)
+            self._columns[g.name] = cols
+        return cols
+
     def _read_events(self, g: h5py.Group, lo: int, hi: int, t_offset: int) -> EventArray:
         n, slot, m = self._tail(g)
         main = self._read_main(g, lo, min(hi, n), t_offset)
@@ -398,24 +441,43 @@ class Take:
         )
         return EventArray.concatenate([main, tail])
 
-    def _read_main(self, g: h5py.Group, lo: int, hi: int, t_offset: int) -> EventArray:
+    def _read_main(
+        self, g: h5py.Group, lo: int, hi: int, t_offset: int, t_rel: NDArray[np.int64] | None = None
+    ) -> EventArray:
+        """Events [lo, hi) of the main datasets; `t_rel`: their `t`, when already read."""
+        c = self._cols(g)
         hi = max(lo, hi)
-        t = np.asarray(g["t"][lo:hi], dtype=np.int64) + np.int64(t_offset)
-        p = g["p"][lo:hi].astype(np.int8) * np.int8(2) - np.int8(1)
-        return EventArray(g["x"][lo:hi], g["y"][lo:hi], p, t)
+        t = np.asarray(c.t[lo:hi] if t_rel is None else t_rel, dtype=np.int64) + np.int64(t_offset)
+        p = np.asarray(c.p[lo:hi]).astype(np.int8) * np.int8(2) - np.int8(1)
+        x = np.asarray(c.x[lo:hi], dtype=np.uint16)
+        return EventArray(x, np.asarray(c.y[lo:hi], dtype=np.uint16), p, t)
 
     def _first_index(self, g: h5py.Group, ms_to_idx: h5py.Dataset, rel: int, n: int) -> int:
         """First event index with t (relative to t_offset) >= rel: ms_to_idx bracket, then search."""
-        n_ms = int(ms_to_idx.shape[0])
-        ms_lo = rel // 1000
-        lo = 0 if ms_lo < 0 else (n if ms_lo >= n_ms else int(ms_to_idx[ms_lo]))
-        ms_hi = -(-rel // 1000)
-        ms_hi = max(ms_hi, 0)
-        hi = n if ms_hi >= n_ms else int(ms_to_idx[ms_hi])
+        lo, hi = _ms_bracket(ms_to_idx, rel, n)
         if lo >= hi:
             return lo
-        t = g["t"][lo:hi]
-        return lo + int(np.searchsorted(t, rel, side="left"))
+        return lo + int(np.searchsorted(self._cols(g).t[lo:hi], rel, side="left"))
+
+    def _window(self, sensor: str, t_start_us: int, t_end_us: int) -> EventArray:
+        """Events with t_start_us <= t < t_end_us: `t` of the window's ms bracket is read once
+        and searched for both edges, `x, y, p` only for the window itself."""
+        g = self._sensor_group(sensor)
+        self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
+        c = self._cols(g)
+        if c.ms_to_idx is None:
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/ms_to_idx is missing")
+        off, n = self._offset(sensor), c.n
+        rel0, rel1 = int(t_start_us) - off, max(int(t_end_us), int(t_start_us)) - off
+        lo, _ = _ms_bracket(c.ms_to_idx, rel0, n)
+        _, hi = _ms_bracket(c.ms_to_idx, rel1, n)
+        if hi - lo > _WINDOW_T_MAX:  # a long span: search each edge's bracket on its own
+            i, j = self._first_index(g, c.ms_to_idx, rel0, n), self._first_index(g, c.ms_to_idx, rel1, n)
+            return self._read_main(g, i, max(i, j), off)
+        t = np.asarray(c.t[lo:hi], dtype=np.int64)
+        i = int(np.searchsorted(t, rel0, side="left"))
+        j = max(i, int(np.searchsorted(t, rel1, side="left")))
+        return self._read_main(g, lo + i, lo + j, off, t[i:j])
 
     def event_count(self, sensor: str) -> int:
         return self._n_events(self._sensor_group(sensor))
@@ -440,6 +502,8 @@ class Take:
         g = self._sensor_group(sensor)
         if t_start_us is None and t_end_us is None:
             return self._read_events(g, 0, self._n_events(g), self._offset(sensor))
+        if t_start_us is not None and t_end_us is not None:
+            return self._window(sensor, t_start_us, t_end_us)
         lo, hi = self._index_range(sensor, t_start_us, t_end_us)
         return self._read_events(g, lo, hi, self._offset(sensor))
 
@@ -451,14 +515,45 @@ class Take:
     def _index_range(self, sensor: str, t_start_us: int | None, t_end_us: int | None) -> tuple[int, int]:
         g = self._sensor_group(sensor)
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
-        if "ms_to_idx" not in g:
+        c = self._cols(g)
+        ms = c.ms_to_idx
+        if ms is None:
             raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/ms_to_idx is missing")
-        ms = g["ms_to_idx"]
-        n = int(g["t"].shape[0])
+        n = c.n
         off = self._offset(sensor)
         lo = 0 if t_start_us is None else self._first_index(g, ms, int(t_start_us) - off, n)
         hi = n if t_end_us is None else self._first_index(g, ms, int(t_end_us) - off, n)
         return lo, max(lo, hi)
+
+    def event_histogram(self, sensor: str, bin_us: int = 10_000) -> tuple[int, NDArray[np.int64]]:
+        """Events per bin of `bin_us` (a multiple of 1 ms), from the ms index alone: a training
+        job weighs windows by activity without reading the events. Returns the rig time of bin
+        0's start and the counts; bins are aligned to `t_offset` and cover first to last event.
+        """
+        if bin_us <= 0 or bin_us % 1000:
+            raise TakeError(f"{self.path}: bin_us must be a positive multiple of 1000, got {bin_us}")
+        g = self._sensor_group(sensor)
+        self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
+        c = self._cols(g)
+        if c.ms_to_idx is None:
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/ms_to_idx is missing")
+        n, off = c.n, self._offset(sensor)
+        if n == 0:
+            return off, np.zeros(0, np.int64)
+        k0, k1 = int(c.t[0]) // bin_us, int(c.t[n - 1]) // bin_us + 1
+        edges = np.arange(k0, k1 + 1, dtype=np.int64) * bin_us  # relative to t_offset
+        idx = np.full(edges.size, n, np.int64)
+        n_ms, step = int(c.ms_to_idx.shape[0]), bin_us // 1000
+        ms = edges // 1000
+        on = (edges >= 0) & (ms < n_ms)
+        if on.any():
+            a, b = int(ms[on][0]), int(ms[on][-1])
+            idx[on] = np.asarray(c.ms_to_idx[a : b + 1 : step], dtype=np.int64)
+        neg = edges < 0  # before t_offset (the events before the first pulse): search their t
+        if neg.any():
+            before = int(c.ms_to_idx[0]) if n_ms else n
+            idx[neg] = np.searchsorted(np.asarray(c.t[:before], dtype=np.int64), edges[neg], side="left")
+        return off + k0 * bin_us, np.diff(idx)
 
     def iter_events(
         self, sensor: str, window_us: int, t_start_us: int | None = None, t_end_us: int | None = None
