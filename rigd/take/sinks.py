@@ -40,6 +40,9 @@ _FRAME_BLOCK = 64
 _SMALL_BLOCK = 4096
 #: Chunk length of small 1-D datasets (frame times, triggers, pulses, ms_to_idx).
 SMALL_CHUNK = 4096
+#: Buffered events are written (as whole chunks) once this many are held, so small chunks do
+#: not cost one resize and four HDF5 writes each.
+EVENT_WRITE_BLOCK = 1 << 18
 
 
 @dataclass(slots=True)
@@ -183,7 +186,7 @@ class EventSink:
         self.last_t = int(events.t[-1])
         self.stats.items += n
         self.stats.raw_bytes += 13 * n
-        if self.n_buffered >= self.chunk:
+        if self.n_buffered >= max(self.chunk, EVENT_WRITE_BLOCK):
             self.write_events(whole_chunks_only=True)
 
     def add_triggers(self, triggers: TriggerEvents, host_time_ns: int | None) -> None:
