@@ -192,7 +192,7 @@ def _deviation_sums(flat: NDArray[Any]) -> NDArray[Any]:
     return v
 
 
-def canonical_keyframe(maps: NDArray[Any], *, small_n: int = _SMALL_N) -> int:
+def canonical_keyframe(maps: NDArray[Any], *, small_n: int = _SMALL_N, overwrite: bool = False) -> int:
     """Index of the canonical keyframe (Eq. 3): argmin_i sum_j ||E_i - E_j||_1 over a (n, h, w) stack.
 
     Same result as `canonical_keyframe_bruteforce` (lowest index among ties) in O(h w n log n) time
@@ -204,6 +204,7 @@ def canonical_keyframe(maps: NDArray[Any], *, small_n: int = _SMALL_N) -> int:
     candidates within a rounding bound of the minimum (normally one) are then re-evaluated with the
     reference's own expression, so near-ties are decided as the reference decides them.
     Up to `small_n` maps the reference itself runs (faster there; tests pass 0 to check the other path).
+    `overwrite=True` lets integer maps be shifted in place (no copy of the stack).
     """
     n = maps.shape[0]
     if n <= 2:  # one map, or two equidistant ones: the first
@@ -214,7 +215,10 @@ def canonical_keyframe(maps: NDArray[Any], *, small_n: int = _SMALL_N) -> int:
         return canonical_keyframe_bruteforce(maps)
     if np.issubdtype(maps.dtype, np.integer):  # event counts: exact, summed in int64, no float copy
         ints = maps.reshape(n, -1)
-        ints = ints - ints.min(axis=0)  # one copy, in the input's width (int32 for `interval_maps`)
+        if overwrite:  # the caller's scratch array: shift it in place instead of copying
+            ints -= ints.min(axis=0)
+        else:
+            ints = ints - ints.min(axis=0)  # one copy, in the input's width (int32 for `interval_maps`)
         return int(np.argmin(_deviation_sums(ints)))
     flat = maps.reshape(n, -1).astype(np.float64)
     n_pix = flat.shape[1]

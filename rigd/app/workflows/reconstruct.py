@@ -271,7 +271,7 @@ def _keyframe(
         maps[:, col : col + sh * sw] = acc[cand_cuts - a].reshape(len(cand_cuts), -1)
         col += sh * sw
         del acc
-    return int(cuts[cand_cuts[canonical_keyframe(maps)]])
+    return int(cuts[cand_cuts[canonical_keyframe(maps, overwrite=True)]])
 
 
 def reconstruct_take(
