@@ -20,6 +20,7 @@ from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
 from rigd.app.commands.export import export
 from rigd.app.commands.guided import guided
+from rigd.app.commands.help import RigdTyper
 from rigd.app.commands.progress import StageProgress
 from rigd.app.commands.reconstruct import reconstruct
 from rigd.app.commands.recover import recover_command
@@ -32,7 +33,7 @@ if TYPE_CHECKING:
     from rigd.app.capture import Progress as CaptureProgress
     from rigd.take.reader import TakeSummary
 
-app = typer.Typer(
+app = RigdTyper(
     help="Capture daemon for a hybrid RGB + event-camera rig.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,

@@ -22,6 +22,7 @@ from calibration.e2calib import METHODS
 from calibration.extrinsics import RigResult
 from calibration.intrinsics import IntrinsicsResult
 from calibration.io import dumps_summary
+from rigd.app.commands.help import RigdTyper
 from rigd.app.commands.progress import StageProgress
 from rigd.app.workflows.calibrate import (
     EventsCalibration,
@@ -37,7 +38,7 @@ from rigd.app.workflows.calibrate import (
 )
 from rigd.core.errors import RigdError
 
-calibrate_app = typer.Typer(
+calibrate_app = RigdTyper(
     help="Calibrate cameras: intrinsics, event-sensor intrinsics (e2calib), rig extrinsics.",
     no_args_is_help=True,
 )
