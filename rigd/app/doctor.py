@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from drivers.discovery import Discovery, discover
+from drivers.discovery import Discovery, SourceReport, discover
 from drivers.registry import DeviceSpec
 from rigd.app.config import RigConfig
 from rigd.core.errors import ConfigError
@@ -280,7 +280,7 @@ def run_checks(
     checks += _guard("clock source", lambda: _check_clocksource(r))
     checks += _guard("socket buffers", lambda: _check_rmem(r, plan))
     checks += _guard("hdf5 plugins", lambda: _check_hdf5(r, rig))
-    checks += _guard("backends", lambda: _check_backends(r, rig))
+    checks += _guard("backends", lambda: _check_backends(r, rig, found()))
     return checks
 
 
@@ -541,7 +541,10 @@ _BACKENDS = {
 }
 
 
-def _check_backends(r: Readings, rig: RigConfig | None) -> list[Check]:
+def _check_backends(r: Readings, rig: RigConfig | None, found: Discovery | None = None) -> list[Check]:
+    """A backend `rigd devices` also looks through is judged by that same look (its source report:
+    pyusb importable but without a libusb backend is unusable, for both commands); the others by
+    whether their module imports."""
     used: set[str] = set()
     if rig is not None:
         for spec_text in [
@@ -553,7 +556,12 @@ def _check_backends(r: Readings, rig: RigConfig | None) -> list[Check]:
             if spec is not None:
                 used.add(spec.scheme)
     out: list[Check] = []
+    sources = {} if found is None else {s.source: s for s in found.sources}
     for scheme, (module, how) in _BACKENDS.items():
+        source = sources.get(scheme)
+        if source is not None:
+            out.append(_source_check(scheme, source, scheme in used, rig is not None, how))
+            continue
         reason = r.module_reason(module)
         if reason is None:
             out.append(Check(f"backend {scheme}", "OK", f"{module} installed"))
@@ -562,6 +570,18 @@ def _check_backends(r: Readings, rig: RigConfig | None) -> list[Check]:
         else:
             out.append(Check(f"backend {scheme}", "OK", f"{module} not installed (not used by this config)"))
     return out
+
+
+def _source_check(scheme: str, source: SourceReport, used: bool, have_rig: bool, how: str) -> Check:
+    """A backend as `rigd devices` found it: usable (and how many devices), or unusable and why."""
+    name = f"backend {scheme}"
+    if source.available:
+        return Check(name, "OK", f"usable ({len(source.devices)} device(s) found)")
+    if used:
+        return Check(name, "FAIL", f"the config uses {scheme}:// but it is unusable: {source.reason}", how)
+    if have_rig:
+        return Check(name, "OK", f"unusable ({source.reason}); not used by this config")
+    return Check(name, "WARN", f"unusable: {source.reason}", how)
 
 
 def summary_status(checks: list[Check]) -> Status:
