@@ -12,8 +12,13 @@ Per frame (`GuidedSession.offer`):
    the SB detector costs ~100 ms on a frame without the board and would stall a live feed. (The
    cheaper cv2.checkChessboard misses boards with squares under ~10 px, so it is not used.) Set
    `fast_detect=False` for lenses whose views only the SB detector finds (strong distortion).
-2. *Still*: the largest corner motion since the previous offered frame is below `still_px`
-   (a moving board smears and its corners are exposed at different instants with rolling shutters).
+2. *Still*: the board smears by less than `still_px` during one exposure. With `exposure_us`
+   known, the smear is the largest corner speed (corner motion since the previous offered frame
+   over the time between the two) times the exposure; without it, the corner motion itself.
+   Why not the raw motion between offered frames: a live feed skips frames while the session
+   works, so that motion grows with the host's load, not with the blur; on the sim rig (board
+   moving ~1 px per 33 ms frame, 8 ms exposure) it measured 1.5-6 px between offered frames
+   although the smear is ~0.2 px, and a 1 px limit kept 2 views in 120 s.
    *Sharp*: the board's edge width is below `max_edge_width_px` (the sharpness measure of boards.py).
 3. *Novel*: the view is not a near-duplicate of a kept one (mean corner distance < `dup_px` and
    tilt within `dup_deg` of it), and its coverage bin holds fewer than `max_per_bin` views.
@@ -40,7 +45,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -87,6 +92,7 @@ class Feedback(BaseModel):
     detected: bool
     n_corners: int = 0
     motion_px: float | None = Field(None, description="largest corner motion since the previous frame")
+    blur_px: float | None = Field(None, description="largest corner smear during one exposure (px)")
     still: bool = False
     edge_width_px: float | None = None
     sharp: bool = False
@@ -121,6 +127,7 @@ class _FrameState(NamedTuple):
     motion: float | None
     still: bool
     sharp: bool
+    blur: float | None = None
 
 
 @dataclass
@@ -182,8 +189,11 @@ class GuidedSession:
     model: str = "k1k2"
     hint_method: Literal["information", "emptiest"] = "information"
     fast_detect: bool = True
+    exposure_us: float | None = None  # with it, `still_px` bounds the smear in one exposure
     views: list[_View] = field(default_factory=list, init=False)
+    view_errors: list[float] = field(default_factory=list, init=False)
     _prev: Detection | None = field(default=None, init=False, repr=False)
+    _prev_t: int | None = field(default=None, init=False, repr=False)
     _K: F64 = field(init=False, repr=False)
     _dist: F64 = field(init=False, repr=False)
     _sigmas: dict[str, float] = field(default_factory=dict, init=False)
@@ -220,6 +230,11 @@ class GuidedSession:
         return self._K.copy()
 
     @property
+    def last_detection(self) -> Detection | None:
+        """The board found in the last offered frame (for drawing its corners), or None."""
+        return self._prev
+
+    @property
     def sigmas(self) -> dict[str, float]:
         return dict(self._sigmas)
 
@@ -249,6 +264,7 @@ class GuidedSession:
     def offer_detection(self, det: Detection | None, t_us: int) -> Feedback:
         """`offer` after detection (for callers that detect themselves, and tests)."""
         prev, self._prev = self._prev, det
+        prev_t, self._prev_t = self._prev_t, int(t_us)
         if det is None:
             return self._feedback(t_us, None, reason="board not found")
         if det.image_size != self.image_size:
@@ -256,23 +272,25 @@ class GuidedSession:
                 f"frame size {det.image_size} differs from the session's {self.image_size}"
             )
         motion = self._motion(prev, det)
-        still = motion is not None and motion < self.still_px
+        blur = self._blur(motion, None if prev_t is None else int(t_us) - prev_t)
+        still = blur is not None and blur < self.still_px
         ew = det.edge_width_px
         sharp = not math.isfinite(ew) or ew <= self.max_edge_width_px
-        kw = _FrameState(motion, still, sharp)
+        kw = _FrameState(motion, still, sharp, blur)
         if self.done:
             return self._feedback(t_us, det, reason="target uncertainty reached", state=kw)
         if det.n < 6:
             return self._feedback(t_us, det, reason=f"only {det.n} corners seen", state=kw)
-        if motion is None:
+        if motion is None or blur is None:
             return self._feedback(t_us, det, reason="board appeared: hold it still", state=kw)
         if not still:
+            what = "smear" if self.exposure_us else "motion"
             return self._feedback(
-                t_us, det, reason=f"moving ({motion:.1f} px > {self.still_px:g} px)", state=kw
+                t_us, det, reason=f"moving ({what} {blur:.1f} px > {self.still_px:g} px)", state=kw
             )
         if not sharp:
-            blur = f"blurred (edge width {ew:.1f} px > {self.max_edge_width_px:g} px)"
-            return self._feedback(t_us, det, reason=blur, state=kw)
+            why = f"blurred (edge width {ew:.1f} px > {self.max_edge_width_px:g} px)"
+            return self._feedback(t_us, det, reason=why, state=kw)
         view = self._make_view(det, t_us)
         why_not = self._redundant(view)
         if why_not:
@@ -285,10 +303,56 @@ class GuidedSession:
             TILT_BINS[view.tilt],
             *view.angles,
         )
+        self.view_errors.append(math.nan)
         if len(self.views) >= self.min_views:
             self._recalibrate()
         self._hint = self._choose_hint()
         return self._feedback(t_us, det, reason=f"captured view {len(self.views)}", captured=True, state=kw)
+
+    def drop_view(self, index: int) -> None:
+        """Forget kept view `index` (0-based; the technician judged it bad): re-fit and re-hint."""
+        if not 0 <= index < len(self.views):
+            raise CalibrationError(f"no view {index + 1}: the session holds {len(self.views)}")
+        del self.views[index]
+        del self.view_errors[index]
+        log.info("dropped view %d; %d left", index + 1, len(self.views))
+        if len(self.views) >= self.min_views:
+            self._recalibrate()
+        else:
+            self._sigmas, self._rms = {}, None
+            self.view_errors = [math.nan] * len(self.views)
+        self._hint = self._choose_hint()
+
+    def view_list(self) -> list[dict[str, Any]]:
+        """The kept views for a display: where, which tilt, RMS error (None before a calibration)."""
+        return [
+            {
+                "index": i,
+                "t_us": v.t_us,
+                "cell": self._cell_name(v.cell),
+                "tilt": TILT_BINS[v.tilt],
+                "rms_px": None if not math.isfinite(e) else round(e, 4),
+            }
+            for i, (v, e) in enumerate(zip(self.views, self.view_errors, strict=True))
+        ]
+
+    def hint_outline(self) -> list[list[float]] | None:
+        """Image corners (4 x [x, y]) of the board at the next pose the hint asks for (a ghost
+        outline to draw), or None when there is no hint or the session is done."""
+        if self._hint is None or self.done:
+            return None
+        depths = [float(np.linalg.norm(v.tvec)) for v in self.views]
+        bc, br = self.board.inner_corners
+        sq = self.board.square_m
+        depth = (
+            float(np.median(depths)) if depths else self._K[0, 0] * (bc + 1) * sq / (0.4 * self.image_size[0])
+        )
+        pose = self._synthetic_pose(self._hint.cell, self._hint.tilt, depth)
+        if pose is None:
+            return None
+        outline = np.array([[-sq, -sq, 0], [bc * sq, -sq, 0], [bc * sq, br * sq, 0], [-sq, br * sq, 0]])
+        p = cv2.projectPoints(outline, pose[0], pose[1], self._K, self._dist)[0].reshape(-1, 2)
+        return [[round(float(x), 1), round(float(y), 1)] for x, y in p]
 
     def result(self, camera: str = "cam0", model: str | None = None) -> IntrinsicsResult:
         """The full calibration of the kept views (outlier rejection, warnings, per-view data)."""
@@ -322,6 +386,14 @@ class GuidedSession:
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
         ok, _ = cv2.findChessboardCorners(np.ascontiguousarray(img), self.board.inner_corners, flags=flags)
         return bool(ok)
+
+    def _blur(self, motion: float | None, dt_us: int | None) -> float | None:
+        """Smear in one exposure from the motion over `dt_us` (module docstring, step 2)."""
+        if motion is None or self.exposure_us is None:
+            return motion
+        if dt_us is None or dt_us <= 0:
+            return None
+        return motion * min(1.0, self.exposure_us / dt_us)
 
     @staticmethod
     def _motion(prev: Detection | None, det: Detection) -> float | None:
@@ -387,6 +459,7 @@ class GuidedSession:
             return
         self._K, self._dist, self._rms = fit.K, fit.dist, fit.rms
         self._sigmas = {n: float(fit.std[i]) for i, n in enumerate(SIGMA_NAMES)}
+        self.view_errors = [float(e) for e in np.asarray(fit.per_view, np.float64).ravel()]
         for v, rv, tv in zip(self.views, fit.rvecs, fit.tvecs, strict=True):
             v.rvec, v.tvec = rv, tv
             v.angles = tilt_angles(rv)
@@ -531,7 +604,7 @@ class GuidedSession:
         state: _FrameState | None = None,
         captured: bool = False,
     ) -> Feedback:
-        motion, still, sharp = state if state is not None else (None, False, False)
+        motion, still, sharp, blur = state if state is not None else (None, False, False, None)
         cov = self.coverage()
         hint = self._hint
         return Feedback(
@@ -539,6 +612,7 @@ class GuidedSession:
             detected=det is not None,
             n_corners=det.n if det is not None else 0,
             motion_px=motion,
+            blur_px=blur,
             still=still,
             edge_width_px=(
                 det.edge_width_px if det is not None and math.isfinite(det.edge_width_px) else None

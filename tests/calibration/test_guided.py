@@ -248,3 +248,57 @@ def test_cli_end_to_end_on_sim_rig(tmp_path: Path) -> None:
     bad = CliRunner().invoke(app, ["guided", "--camera", "nope", "--out", str(out), "--max-seconds", "1"])
     assert bad.exit_code == 2
     assert "no RGB camera 'nope'" in bad.output
+
+
+def shifted(det: Detection, dx: float) -> Detection:
+    """The same detection with every corner moved `dx` px to the right."""
+    points = det.image_points + np.array([dx, 0.0])
+    return Detection(det.name, det.image_size, points, det.ids, det.object_points, det.edge_width_px)
+
+
+def test_stillness_is_the_smear_in_one_exposure(board: BoardSpec, dets: list[Detection]) -> None:
+    """With the exposure known, `still_px` bounds the smear (speed x exposure), not the motion
+    between offered frames: the sim board moves ~3.5 px between the frames a busy session looks
+    at (~130 ms apart) but smears ~0.2 px in its 8 ms exposure, and must be captured."""
+    s = GuidedSession(board, SIZE, still_px=1.0, exposure_us=8000)
+    s.offer_detection(dets[0], 0)
+    fb = s.offer_detection(shifted(dets[0], 3.5), 130_000)
+    assert fb.motion_px == pytest.approx(3.5)
+    assert fb.blur_px == pytest.approx(3.5 * 8000 / 130_000)
+    assert fb.still
+    assert fb.captured
+    # The same 3.5 px in one 33 ms frame interval smears 0.85 px: still; in 10 ms it is 2.8 px: moving.
+    s.offer_detection(dets[1], 1_000_000)
+    fast = s.offer_detection(shifted(dets[1], 3.5), 1_010_000)
+    assert fast.blur_px == pytest.approx(2.8)
+    assert not fast.still
+    assert "smear 2.8 px" in fast.reason
+    # Without the exposure, the motion itself is judged (the engine's behaviour for callers
+    # that do not know it).
+    s2 = GuidedSession(board, SIZE, still_px=1.0)
+    s2.offer_detection(dets[0], 0)
+    assert not s2.offer_detection(shifted(dets[0], 3.5), 130_000).still
+
+
+def test_drop_view_refits_and_lists_views(board: BoardSpec, dets: list[Detection]) -> None:
+    s = GuidedSession(board, SIZE, min_views=5)
+    for i, d in enumerate(dets[:7]):
+        hold(s, d, i * 100_000)
+    n = len(s.views)
+    assert n >= 6
+    listed = s.view_list()
+    assert [v["index"] for v in listed] == list(range(n))
+    assert all(v["rms_px"] is not None and v["rms_px"] < 1.0 for v in listed)
+    before = s.sigmas
+    s.drop_view(0)
+    assert len(s.views) == n - 1
+    assert s.sigmas != before  # re-fitted without the dropped view
+    while len(s.views) >= 5:
+        s.drop_view(len(s.views) - 1)
+    assert s.sigmas == {}  # below min_views: no calibration claimed
+    assert all(v["rms_px"] is None for v in s.view_list())
+    with pytest.raises(Exception, match="no view 99"):
+        s.drop_view(98)
+    outline = s.hint_outline()
+    assert outline is not None
+    assert len(outline) == 4

@@ -28,6 +28,7 @@ from rigd.app.workflows.guided import (
     GuidedOutcome,
     GuidedProgress,
     run_guided,
+    verdict,
 )
 from rigd.core.errors import RigdError
 
@@ -95,7 +96,11 @@ def _panel(fb: Feedback, camera: str, session: GuidedSession, target: float, lef
 
 def guided(
     camera: Annotated[str, typer.Option("--camera", "-c", help="RGB camera of the rig to calibrate.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output: .yaml/.yml/.xml (OpenCV) or .json.")],
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Output: .yaml/.yml/.xml (OpenCV) or .json; default CAMERA.yaml."),
+    ] = None,
+    report: Annotated[Path | None, typer.Option("--report", help="Also write an HTML report here.")] = None,
     config: Annotated[
         Path | None,
         typer.Option("--config", help="Rig config (default: the built-in sim rig watching a moving board)."),
@@ -109,7 +114,7 @@ def guided(
     max_seconds: Annotated[float, typer.Option("--max-seconds", help="Give up after this long.")] = 120.0,
     still_px: Annotated[
         float,
-        typer.Option("--still-px", help="Still below this corner motion per frame (px)."),
+        typer.Option("--still-px", help="Still: the board smears less than this in one exposure (px)."),
     ] = 1.0,
     min_views: Annotated[int, typer.Option("--min-views", help="Views before the first calibration.")] = 6,
     model: Annotated[str, typer.Option("--model", help="Lens model of the session and the result.")] = "k1k2",
@@ -139,6 +144,7 @@ def guided(
         options = GuidedOptions(
             camera=camera,
             out=out,
+            report=report,
             config=config,
             board=board,
             target_sigma_px=target_sigma,
@@ -155,29 +161,28 @@ def guided(
     finally:
         if live is not None:
             live.stop()
-    _report(outcome, out, target_sigma, max_seconds, json_out)
+    _report(outcome, options, json_out)
 
 
-def _report(
-    outcome: GuidedOutcome, out: Path, target_sigma: float, max_seconds: float, json_out: bool
-) -> None:
+def _report(outcome: GuidedOutcome, options: GuidedOptions, json_out: bool) -> None:
     """The verdict on stderr (JSON on stdout); exit 1 unless the target was reached."""
+    reached, text = verdict(outcome, options.target_sigma_px, options.min_views)
     result = outcome.result
     if result is None:
-        _err.print(
-            f"[bold red]{outcome.camera}: only {outcome.n_views} view(s) captured in {max_seconds:g} s; "
-            "nothing written[/]"
-        )
+        _err.print(f"[bold red]{outcome.camera}: {text} in {options.max_seconds:g} s[/]")
         raise typer.Exit(code=1)
     for w in result.warnings:
         _err.print(f"[yellow]warning:[/] {w}")
     sig = ", ".join(f"{k} {result.std_devs[k]:.3f}" for k in ("fx", "fy", "cx", "cy"))
-    verdict = "target reached" if outcome.done else f"time ran out before the {target_sigma:g} px target"
+    written = str(options.out_path) + (f" (report {options.report})" if options.report else "")
     _err.print(
-        f"{outcome.camera}: {verdict}; {len(result.views)} views, model {result.model}, "
-        f"RMS {result.rms_px:.3f} px, std dev (px) {sig} -> {out}"
+        f"{outcome.camera}: {text}; {len(result.views)} views, model {result.model}, "
+        f"RMS {result.rms_px:.3f} px, std dev (px) {sig} -> {written}",
+        markup=False,
+        highlight=False,
+        soft_wrap=True,
     )
     if json_out:
         typer.echo(dumps_summary(result))
-    if not outcome.done:
+    if not reached:
         raise typer.Exit(code=1)

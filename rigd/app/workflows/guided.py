@@ -18,14 +18,16 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.boards import parse_board
-from calibration.guided import Feedback, GuidedSession
+from calibration.guided import SIGMA_NAMES, Feedback, GuidedSession
 from calibration.intrinsics import IntrinsicsResult
 from calibration.io import write_result
+from calibration.report import write_report
 from drivers.base import RgbCamera, Trigger
 from drivers.registry import open_device
 from rigd.app.config import CameraConfig, RigConfig, default_sim_rig
 from rigd.app.workflows.calibrate import Board
 from rigd.core.errors import RigdError
+from rigd.core.frames import Frame
 
 log = logging.getLogger(__name__)
 
@@ -42,12 +44,14 @@ MIN_VIEWS_TO_WRITE = 3
 
 class GuidedOptions(BaseModel):
     """One camera of the rig (`config`, else the sim rig at `resolution`, default SIM_RESOLUTION)
-    and when to stop."""
+    and when to stop. `still_px` bounds the board's smear during one exposure (see
+    calibration.guided); `out` defaults to `<camera>.yaml` in the working directory."""
 
     model_config = ConfigDict(frozen=True)
 
     camera: str
-    out: Path
+    out: Path | None = None
+    report: Path | None = None
     config: Path | None = None
     board: Board = Field(default_factory=lambda: parse_board(DEFAULT_BOARD))
     target_sigma_px: float = 0.5
@@ -56,6 +60,10 @@ class GuidedOptions(BaseModel):
     min_views: int = 6
     model: str = "k1k2"
     resolution: tuple[int, int] | None = None
+
+    @property
+    def out_path(self) -> Path:
+        return self.out if self.out is not None else Path(f"{self.camera}.yaml")
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,37 +103,150 @@ def _ignore(progress: GuidedProgress) -> None:
     """The default callback: callers that show nothing need not pass one."""
 
 
-def run_guided(options: GuidedOptions, progress: Callable[[GuidedProgress], None] = _ignore) -> GuidedOutcome:
-    """Open the camera, run the session until done or out of time, close, write the result."""
-    o = options
-    cfg = RigConfig.load(o.config) if o.config is not None else guided_sim_rig(o.resolution or SIM_RESOLUTION)
-    cam_cfg = _camera_config(cfg, o.camera)
-    trigger, cam = _open(cfg, cam_cfg)
+def run_guided(
+    options: GuidedOptions, progress: Callable[[GuidedProgress], None] = _ignore, rig: RigConfig | None = None
+) -> GuidedOutcome:
+    """Open the camera, run the session until done or out of time, close, write the result.
+
+    `rig`: the rig config to use instead of `options.config` (the daemon's own, for the console)."""
+    run = GuidedRun(options, rig)
+    started = run.open()
     try:
-        session = _session(o, cam)
-        shape = cam.frame_shape
-        progress(GuidedStarted(o.camera, cam_cfg.spec, (int(shape[1]), int(shape[0])), session.hint_text()))
-        frames, skipped = _stream(o, trigger, cam, session, progress)
+        progress(started)
+        t_end = time.monotonic() + options.max_seconds
+        while time.monotonic() < t_end and not run.session.done:
+            looked = run.step()
+            if looked is not None:
+                progress(GuidedFrame(looked[0], run.session, t_end - time.monotonic()))
     finally:
-        _shutdown(trigger, cam)
-    log.info("guided: %d frames looked at, %d stale frames skipped", frames, skipped)
-    result = None
-    if len(session.views) >= MIN_VIEWS_TO_WRITE:
-        result = session.result(camera=o.camera)
-        write_result(result, o.out)
-    return GuidedOutcome(
-        camera=o.camera,
-        done=session.done,
-        n_views=len(session.views),
-        frames=frames,
-        skipped=skipped,
-        result=result,
-    )
+        run.close()
+    return run.finish()
+
+
+class GuidedRun:
+    """A guided session on open devices, driven one frame at a time (the CLI loops over `step`,
+    the web console runs it on a worker and lets the technician drop views and finish)."""
+
+    def __init__(self, options: GuidedOptions, rig: RigConfig | None = None) -> None:
+        self.options = options
+        o = options
+        if rig is None:
+            rig = RigConfig.load(o.config) if o.config else guided_sim_rig(o.resolution or SIM_RESOLUTION)
+        self.rig = rig
+        self.cam_cfg = _camera_config(rig, o.camera)
+        self._devices: tuple[Trigger, RgbCamera] | None = None
+        self._session: GuidedSession | None = None
+        self.frames = 0
+        self.skipped = 0
+
+    @property
+    def session(self) -> GuidedSession:
+        if self._session is None:
+            raise RigdError("the guided session is not open")
+        return self._session
+
+    def open(self) -> GuidedStarted:
+        """Open and start the trigger and the camera; make the session."""
+        trigger, cam = _open(self.rig, self.cam_cfg)
+        try:
+            self._session = _session(self.options, cam, self.cam_cfg.settings.exposure_us)
+            cam.start()
+            trigger.arm()
+            trigger.start()
+        except BaseException:
+            _shutdown(trigger, cam)
+            raise
+        self._devices = (trigger, cam)
+        shape = cam.frame_shape
+        return GuidedStarted(
+            self.options.camera, self.cam_cfg.spec, (int(shape[1]), int(shape[0])), self._session.hint_text()
+        )
+
+    def step(self, timeout_s: float = 0.5) -> tuple[Feedback, Frame] | None:
+        """Offer the newest frame to the session; None when no frame came within `timeout_s`."""
+        if self._devices is None:
+            raise RigdError("the guided session's devices are closed")
+        trigger, cam = self._devices
+        frame = cam.read_frame(timeout_s)
+        if frame is None:
+            return None
+        # Live feed: always look at the newest frame; stale ones would lag the technician.
+        while (newer := cam.read_frame(0.0)) is not None:
+            frame, self.skipped = newer, self.skipped + 1
+        trigger.read_pulses(0.0)  # nobody needs the pulse records; keep the queue short
+        self.frames += 1
+        return self.session.offer(np.asarray(frame.image), frame.t_exposure_start_us), frame
+
+    def close(self) -> None:
+        """Stop and close the devices (idempotent)."""
+        if self._devices is not None:
+            _shutdown(*self._devices)
+            self._devices = None
+
+    def finish(self) -> GuidedOutcome:
+        """Close the devices; write the calibration (and report) when enough views were kept."""
+        self.close()
+        o, session = self.options, self.session
+        log.info("guided: %d frames looked at, %d stale frames skipped", self.frames, self.skipped)
+        result = None
+        if len(session.views) >= MIN_VIEWS_TO_WRITE:
+            result = session.result(camera=o.camera)
+            write_result(result, o.out_path)
+            if o.report is not None:
+                write_report(o.report, [result])
+        return GuidedOutcome(
+            camera=o.camera,
+            done=session.done,
+            n_views=len(session.views),
+            frames=self.frames,
+            skipped=self.skipped,
+            result=result,
+        )
+
+
+def verdict(outcome: GuidedOutcome, target_sigma_px: float, min_views: int) -> tuple[bool, str]:
+    """(target reached, the verdict in words), judged on the calibration that was written.
+
+    Why not `outcome.done` alone: the session judges the target on its running fast fit, and only
+    from `min_views` views on, while the written result is the full calibration of the views
+    kept; so "time ran out before the target" could sit next to four std devs below it."""
+    result = outcome.result
+    if result is None:
+        return False, f"only {outcome.n_views} view(s) captured; nothing written"
+    sig = {k: result.std_devs[k] for k in SIGMA_NAMES}
+    above = [f"{k} {v:.3f}" for k, v in sig.items() if not v <= target_sigma_px]
+    if not above and outcome.n_views >= min_views:
+        return True, "target reached"
+    if not above:
+        return False, (
+            f"time ran out at {outcome.n_views} of {min_views} views: the std devs are below the "
+            f"{target_sigma_px:g} px target, but from fewer views than asked for"
+        )
+    return False, f"time ran out before the {target_sigma_px:g} px target ({', '.join(above)} px above it)"
 
 
 def guided_sim_rig(resolution: tuple[int, int]) -> RigConfig:
     """The built-in sim rig, in its own world, with mono frames of `resolution`."""
     return default_sim_rig(world=SIM_WORLD, resolution=resolution, pixel_format="mono8")
+
+
+def own_sim_world(rig: RigConfig, suffix: str = "-guided") -> RigConfig:
+    """The rig with its sim devices moved to a world of their own (`<world><suffix>`).
+
+    Why: a sim world holds one scene; the daemon's takes made the sprites scene in the rig's
+    world, and the board scene cannot join it. Real devices are left as they are."""
+
+    def moved(spec: str) -> str:
+        if not spec.startswith("sim://"):
+            return spec
+        world, sep, rest = spec.removeprefix("sim://").partition("/")
+        return f"sim://{world}{suffix}{sep}{rest}"
+
+    data = rig.model_dump(mode="json")
+    data["trigger"]["spec"] = moved(data["trigger"]["spec"])
+    for dev in [*data["cameras"], *data["event_sensors"]]:
+        dev["spec"] = moved(dev["spec"])
+    return RigConfig.from_data(data)
 
 
 def _with_board_scene(spec: str) -> str:
@@ -161,7 +282,7 @@ def _open(cfg: RigConfig, cam_cfg: CameraConfig) -> tuple[Trigger, RgbCamera]:
     return trigger, cam
 
 
-def _session(o: GuidedOptions, cam: RgbCamera) -> GuidedSession:
+def _session(o: GuidedOptions, cam: RgbCamera, exposure_us: float | None) -> GuidedSession:
     shape = cam.frame_shape
     return GuidedSession(
         o.board,
@@ -170,34 +291,8 @@ def _session(o: GuidedOptions, cam: RgbCamera) -> GuidedSession:
         still_px=o.still_px,
         min_views=o.min_views,
         model=o.model,
+        exposure_us=exposure_us,
     )
-
-
-def _stream(
-    o: GuidedOptions,
-    trigger: Trigger,
-    cam: RgbCamera,
-    session: GuidedSession,
-    progress: Callable[[GuidedProgress], None],
-) -> tuple[int, int]:
-    """Offer the newest frame to the session until it is done or time runs out; (looked at, skipped)."""
-    frames = skipped = 0
-    cam.start()
-    trigger.arm()
-    trigger.start()
-    t_end = time.monotonic() + o.max_seconds
-    while time.monotonic() < t_end and not session.done:
-        frame = cam.read_frame(0.5)
-        if frame is None:
-            continue
-        # Live feed: always look at the newest frame; stale ones would lag the technician.
-        while (newer := cam.read_frame(0.0)) is not None:
-            frame, skipped = newer, skipped + 1
-        trigger.read_pulses(0.0)  # nobody needs the pulse records; keep the queue short
-        frames += 1
-        fb = session.offer(np.asarray(frame.image), frame.t_exposure_start_us)
-        progress(GuidedFrame(fb, session, t_end - time.monotonic()))
-    return frames, skipped
 
 
 def _shutdown(trigger: Trigger, cam: RgbCamera) -> None:

@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
+from unittest.mock import MagicMock
 
 import pytest
 
 from calibration.errors import CalibrationError
+from calibration.intrinsics import IntrinsicsResult
 from calibration.io import read_opencv_yaml
 from rigd.app.workflows.guided import (
     MIN_VIEWS_TO_WRITE,
     GuidedFrame,
     GuidedOptions,
+    GuidedOutcome,
     GuidedProgress,
     GuidedStarted,
     run_guided,
+    verdict,
 )
 from rigd.core.errors import RigdError
 
@@ -55,3 +59,50 @@ def test_bad_session_settings_close_the_devices_and_raise(tmp_path: Path) -> Non
     for _ in range(2):
         with pytest.raises(CalibrationError, match="unknown lens model"):
             run_guided(options)
+
+
+def _outcome(n_views: int, sigmas: dict[str, float], done: bool) -> GuidedOutcome:
+    result = MagicMock(spec=IntrinsicsResult)
+    result.std_devs = sigmas
+    return GuidedOutcome(
+        camera="cam0", done=done, n_views=n_views, frames=100, skipped=0, result=None
+    ).model_copy(update={"result": result})
+
+
+def test_verdict_is_judged_on_the_written_result() -> None:
+    """The CLI's last line once said "time ran out before the 0.5 px target" next to four std devs
+    below 0.5: `done` is the session's running judgement (from min_views views, on its fast fit),
+    while the line printed the written result's std devs. The verdict now reads the result."""
+    low = {"fx": 0.3, "fy": 0.3, "cx": 0.2, "cy": 0.25}
+    reached, text = verdict(_outcome(6, low, done=False), 0.5, 6)
+    assert reached
+    assert text == "target reached"
+    reached, text = verdict(_outcome(4, low, done=False), 0.5, 6)
+    assert not reached
+    assert "4 of 6 views" in text
+    assert "below the 0.5 px target" in text
+    reached, text = verdict(_outcome(8, {**low, "fx": 0.7}, done=False), 0.5, 6)
+    assert not reached
+    assert "fx 0.700" in text
+    assert "fy" not in text
+    none = GuidedOutcome(camera="cam0", done=False, n_views=2, frames=10, skipped=0, result=None)
+    assert verdict(none, 0.5, 6) == (False, "only 2 view(s) captured; nothing written")
+
+
+@pytest.mark.slow
+def test_cli_as_the_readme_writes_it_finishes_on_the_sim(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`rigd calibrate guided --camera cam0` with no other option: writes cam0.yaml in the working
+    directory and reaches the target on the sim board (its default still_px judges the smear)."""
+    from typer.testing import CliRunner
+
+    from rigd.app.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(app, ["calibrate", "guided", "--camera", "cam0", "--max-seconds", "90"])
+    assert r.exit_code == 0, r.output
+    assert "target reached" in r.output
+    assert "time ran out" not in r.output
+    _, _, size = read_opencv_yaml(tmp_path / "cam0.yaml")
+    assert size == (640, 360)
