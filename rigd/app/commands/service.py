@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -68,9 +69,19 @@ def serve(
     metrics_port: Annotated[
         int | None, typer.Option("--metrics-port", help="Prometheus port (0: any free port; -1: off).")
     ] = None,
+    http: Annotated[
+        str, typer.Option("--http", help="Web console address HOST:PORT (beyond loopback: needs a token).")
+    ] = "127.0.0.1:8750",
+    no_http: Annotated[bool, typer.Option("--no-http", help="No web console.")] = False,
+    http_token: Annotated[
+        str | None,
+        typer.Option(
+            "--http-token", envvar="RIGD_HTTP_TOKEN", help="Console token (required beyond loopback)."
+        ),
+    ] = None,
 ) -> None:
-    """Run the capture daemon: control socket, telemetry, metrics; Ctrl-C/SIGTERM to stop."""
-    from rigd.app.service.daemon import run_daemon
+    """Run the capture daemon: control socket, telemetry, metrics, web console; Ctrl-C/SIGTERM to stop."""
+    from rigd.app.service.daemon import Attachment, run_daemon
 
     try:
         rig = RigConfig.load(config) if config else default_sim_rig()
@@ -88,9 +99,39 @@ def serve(
             data["service"].update({k: str(v) if isinstance(v, Path) else v for k, v in overrides.items()})
             rig = RigConfig.from_data(data, source=f"{config or 'sim rig'} + command line")
         rig.check_devices()
-        run_daemon(rig)
+        attachments: list[Attachment] = []
+        console = None
+        if not no_http:
+            from rigd.app.console.security import parse_bind
+            from rigd.app.console.server import ConsoleServer
+
+            host, port = parse_bind(http)
+            console = ConsoleServer(host, port, token=http_token)  # refuses remote without a token
+            attachments.append(console)
+        attachments.append(Announcer(console))
+        run_daemon(rig, attachments)
     except RigdError as exc:
         raise _fail(exc) from exc
+
+
+class Announcer:
+    """Says where the daemon listens once everything is bound, then `ready` (stdout, flushed)."""
+
+    def __init__(self, console: Any = None) -> None:
+        self.console = console
+
+    def start(self, daemon: Any) -> None:
+        svc = daemon.config.service
+        lines = [f"control: {svc.control_endpoint}", f"telemetry: {svc.telemetry_endpoint}"]
+        lines.append(f"metrics: {daemon.metrics_url or 'off'}")
+        lines.append(f"console: {self.console.url if self.console is not None else 'off'}")
+        lines.append(f"takes: {svc.take_dir}")
+        lines.append("ready")
+        typer.echo("\n".join(lines))
+        sys.stdout.flush()
+
+    def close(self) -> None:
+        """Nothing to release."""
 
 
 def status(
@@ -163,10 +204,30 @@ def stop(
             res = client.call("stop", reason="rigd stop")
         except RigdError as exc:
             raise _fail(exc) from exc
-        typer.echo(f"stopping {res['take']}")
-        if wait:
-            last = wait_for_take(client, res["take"])
-            _report_last(last)
+        if not wait:
+            typer.echo(f"stopping {res['take']}")
+            return
+        last = wait_for_take(client, res["take"])
+        typer.echo(f"stopped take {last['path']}")
+        typer.echo(f"  {take_summary_line(last)}")
+        if last.get("error"):
+            _err.print(f"[bold red]error:[/] {last['error']}")
+            raise typer.Exit(code=1)
+
+
+def take_summary_line(last: dict[str, Any]) -> str:
+    """One line an operator reads: status, why it ended, frames, events, size, losses."""
+    frames = sum(last.get("frames", {}).values())
+    events = sum(last.get("events", {}).values())
+    losses = last.get("losses", [])
+    parts = [
+        last["status"] + (f" ({last['end_reason']})" if last.get("end_reason") else ""),
+        f"{frames:,} frames from {len(last.get('frames', {}))} cameras",
+        f"{events:,} events from {len(last.get('events', {}))} sensors",
+        f"{last.get('bytes_written', 0) / 1e6:.1f} MB",
+        f"{len(losses)} loss record(s)" if losses else "nothing lost",
+    ]
+    return ", ".join(parts)
 
 
 def wait_for_take(client: DaemonClient, path: str, on_status: Any = None) -> dict[str, Any]:

@@ -23,12 +23,12 @@ import shutil
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import zmq
 from pydantic import BaseModel
@@ -98,6 +98,15 @@ _Defer = Callable[[str, Callable[[], bytes]], None]
 _REPLIES_ENDPOINT = "inproc://rigd-deferred-replies"
 
 
+class Attachment(Protocol):
+    """Something served alongside the daemon (the web console, the start-up announcement):
+    started in order once the sockets are bound, before `ready`; closed in reverse at exit."""
+
+    def start(self, daemon: Daemon) -> None: ...
+
+    def close(self) -> None: ...
+
+
 def _utc() -> str:
     return datetime.now(UTC).isoformat(timespec="milliseconds")
 
@@ -105,8 +114,11 @@ def _utc() -> str:
 class Daemon:
     """The daemon's state; `serve()` runs until `shutdown()` or a signal."""
 
-    def __init__(self, config: RigConfig, *, metrics: bool = True) -> None:
+    def __init__(
+        self, config: RigConfig, *, metrics: bool = True, attachments: Sequence[Attachment] = ()
+    ) -> None:
         self.config = config
+        self._attachments = list(attachments)
         self.svc = config.service
         self._lock = threading.RLock()
         self._session: CaptureSession | None = None
@@ -158,6 +170,7 @@ class Daemon:
             self._auth = start_authenticator(self._ctx, self.svc.curve)
             for sock in (rep, pub):
                 apply_server_curve(sock, self.svc.curve)
+        started: list[Attachment] = []
         try:
             bind(rep, control, "control")
             bind(pub, self.svc.telemetry_endpoint, "telemetry")
@@ -167,6 +180,9 @@ class Daemon:
                 target=self._telemetry_loop, args=(pub,), name="telemetry", daemon=True
             )
             telemetry.start()
+            for att in self._attachments:
+                att.start(self)
+                started.append(att)
             self._ready.set()
             sdnotify.notify("READY=1", f"STATUS=serving on {control}", f"MAINPID={os.getpid()}")
             log.info(
@@ -178,6 +194,8 @@ class Daemon:
             self._stop.set()
             telemetry.join(timeout=5)
         finally:
+            for att in reversed(started):
+                att.close()
             rep.close(linger=0)
             pub.close(linger=0)
             if self._metrics is not None:
@@ -189,6 +207,15 @@ class Daemon:
                 if ep.startswith("ipc://"):
                     Path(ep.removeprefix("ipc://")).unlink(missing_ok=True)
             log.info("rigd daemon stopped")
+
+    @property
+    def metrics_url(self) -> str | None:
+        return None if self._metrics is None else self._metrics.url
+
+    def current_session(self) -> CaptureSession | None:
+        """The running take's session (for live previews), or None."""
+        with self._lock:
+            return self._session
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         return self._ready.wait(timeout)
@@ -613,9 +640,9 @@ def _fault(f: Any) -> Fault:
     return Fault(code=f.code, device=f.device, message=f.message, since_utc=f.since_utc)
 
 
-def run_daemon(config: RigConfig) -> None:
+def run_daemon(config: RigConfig, attachments: Sequence[Attachment] = ()) -> None:
     """Entry point of `rigd serve`."""
-    daemon = Daemon(config)
+    daemon = Daemon(config, attachments=attachments)
     daemon.install_signal_handlers()
     try:
         daemon.serve()

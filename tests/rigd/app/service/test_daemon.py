@@ -243,7 +243,9 @@ def test_cli_talks_to_daemon(start_daemon: Any, monkeypatch: pytest.MonkeyPatch)
     assert "s ago" in res.output
     res = runner.invoke(app, ["stop", "--connect", ep])
     assert res.exit_code == 0, res.output
-    assert "complete, stopped: rigd stop" in res.output
+    assert "stopped take " in res.output  # what it stopped: the take's path, then its summary line
+    assert "complete (stopped: rigd stop)" in res.output
+    assert "frames from 3 cameras" in res.output
 
 
 def test_cli_without_daemon(runtime_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -1,0 +1,260 @@
+"""The web console's routes (Starlette): pages, live data, takes, and the take controls.
+
+Starting and stopping a take go through `Daemon.handle`, the function that answers the control
+socket, with a control-protocol request made from the form: the same validation, the same
+`busy` rules and the same errors, so the console can do nothing the socket would refuse.
+Live data comes from `live.LivePublisher` slots (bounded rate, latest value only); the stream
+to a browser is server-sent events, one JSON document per publisher version.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
+from starlette.middleware import Middleware
+from starlette.requests import Request
+from starlette.responses import HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
+from starlette.routing import Mount, Route
+from starlette.staticfiles import StaticFiles
+
+from rigd.app.console.live import EVENT_WINDOWS_MS, LivePublisher
+from rigd.app.console.security import TOKEN_COOKIE, ConsoleSecurity, SecurityMiddleware
+from rigd.app.console.takes import TakeList
+from rigd.app.service.protocol import PROTOCOL_VERSION, CaptureArgs, StopArgs
+from rigd.core.errors import RigdError
+
+log = logging.getLogger(__name__)
+
+STATIC = resources.files("rigd.app.console") / "static"
+#: Notes kept with a take (a text file next to it: `<take>.notes.txt`).
+NOTES_SUFFIX = ".notes.txt"
+_NO_STORE = {"Cache-Control": "no-store"}
+
+
+class StartBody(BaseModel):
+    """Start a take from the console: the control protocol's capture arguments plus notes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    duration_s: float | None = Field(None, description="Seconds; None: until stopped.")
+    label: str | None = Field(None, description="Take name part (letters, digits, _ . -).")
+    notes: str | None = Field(None, max_length=4000, description="Kept next to the take as text.")
+
+
+class StopBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    reason: str = Field("stopped from the console", max_length=200)
+
+
+class WindowBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    window_ms: int
+
+
+@dataclass
+class ConsoleContext:
+    """What the routes work with: the daemon, its live publisher, the take list, the security."""
+
+    daemon: Any
+    live: LivePublisher
+    takes: TakeList
+    security: ConsoleSecurity
+    guided: Any = None
+    closing: threading.Event = field(default_factory=threading.Event)
+    _seq: int = 0
+
+    def next_id(self) -> str:
+        self._seq += 1
+        return f"console-{self._seq}"
+
+
+def _error(status: int, code: str, message: str, fld: str | None = None) -> JSONResponse:
+    return JSONResponse({"ok": False, "error": {"code": code, "message": message, "field": fld}}, status)
+
+
+async def read_body(request: Request, model: type[BaseModel]) -> BaseModel | JSONResponse:
+    """The request body as `model`, or the error response (bad JSON, unknown fields)."""
+    try:
+        data = json.loads(await request.body() or b"{}")
+        return model.model_validate(data)
+    except json.JSONDecodeError as exc:
+        return _error(400, "bad_json", f"body is not JSON: {exc.msg}")
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        return _error(400, "bad_request", str(err["msg"]), ".".join(str(p) for p in err["loc"]))
+
+
+_STATUS_BY_CODE = {"busy": 409, "not_capturing": 409, "device_error": 503, "internal": 500}
+
+
+def control_call(ctx: ConsoleContext, cmd: str, args: dict[str, Any]) -> JSONResponse:
+    """Send one control-protocol request through the daemon's own request handler."""
+    req = {"v": PROTOCOL_VERSION, "id": ctx.next_id(), "cmd": cmd, "args": args}
+    raw = ctx.daemon.handle([json.dumps(req).encode()])
+    reply = json.loads(raw)
+    if reply.get("ok"):
+        return JSONResponse(reply)
+    code = reply["error"]["code"]
+    return JSONResponse(reply, _STATUS_BY_CODE.get(code, 400))
+
+
+def _page(ctx: ConsoleContext, name: str) -> str:
+    html = (STATIC / name).read_text(encoding="utf-8")
+    return html.replace("{{TOKEN}}", ctx.security.token)
+
+
+def build_app(ctx: ConsoleContext) -> Starlette:
+    """The Starlette application of the console (routes below)."""
+
+    async def page(request: Request) -> Response:
+        token = request.query_params.get("token")
+        name = "calibrate.html" if request.url.path.startswith("/calibrate") else "dashboard.html"
+        if token is not None and ctx.security.token_ok(token):
+            # Trade the token in the address for a cookie, and drop it from the address bar.
+            resp: Response = RedirectResponse(request.url.path, 303)
+            resp.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+            return resp
+        return HTMLResponse(_page(ctx, name), headers=_NO_STORE)
+
+    async def status(request: Request) -> Response:
+        doc = await run_in_threadpool(ctx.live.fresh_status)
+        return JSONResponse(doc, headers=_NO_STORE)
+
+    async def live(request: Request) -> Response:
+        async def stream() -> AsyncIterator[bytes]:
+            seen = seen_guided = -1
+            yield b"retry: 1000\n\n"
+            while not ctx.closing.is_set():
+                ctx.live.want()
+                version, doc = ctx.live.state.status.get()
+                if doc is not None and version != seen:
+                    seen = version
+                    yield f"event: status\ndata: {json.dumps(doc)}\n\n".encode()
+                guided = ctx.guided.status_doc() if ctx.guided is not None else None
+                if guided is not None and guided["version"] != seen_guided:
+                    seen_guided = guided["version"]
+                    yield f"event: guided\ndata: {json.dumps(guided)}\n\n".encode()
+                await asyncio.sleep(ctx.live.interval_s)
+
+        return StreamingResponse(stream(), media_type="text/event-stream", headers=_NO_STORE)
+
+    async def preview(request: Request) -> Response:
+        device = request.path_params["device"]
+        ctx.live.want()
+        with ctx.live.state.lock:
+            slot = ctx.live.state.previews.get(device)
+        value = None if slot is None else slot.get()[1]
+        if value is None:
+            return _error(404, "not_found", f"no preview of {device!r} yet (previews come while a take runs)")
+        return Response(value.jpeg, media_type="image/jpeg", headers=_NO_STORE)
+
+    async def set_window(request: Request) -> Response:
+        body = await read_body(request, WindowBody)
+        if isinstance(body, JSONResponse):
+            return body
+        assert isinstance(body, WindowBody)
+        if body.window_ms not in EVENT_WINDOWS_MS:
+            allowed = list(EVENT_WINDOWS_MS)
+            return _error(400, "bad_request", f"window_ms must be one of {allowed}", "window_ms")
+        ctx.live.event_window_ms = body.window_ms
+        return JSONResponse({"ok": True, "window_ms": body.window_ms})
+
+    async def start_take(request: Request) -> Response:
+        body = await read_body(request, StartBody)
+        if isinstance(body, JSONResponse):
+            return body
+        assert isinstance(body, StartBody)
+        if ctx.guided is not None and ctx.guided.running:
+            return _error(409, "busy", "a guided calibration holds the devices; finish or cancel it first")
+        args = body.model_dump(include=set(CaptureArgs.model_fields), exclude_none=True)
+        resp = await run_in_threadpool(control_call, ctx, "capture", args)
+        if resp.status_code == 200 and body.notes:
+            path = Path(json.loads(bytes(resp.body))["result"]["take"])
+            await run_in_threadpool(_write_notes, path, body.notes)
+        return resp
+
+    async def stop_take(request: Request) -> Response:
+        body = await read_body(request, StopBody)
+        if isinstance(body, JSONResponse):
+            return body
+        assert isinstance(body, StopBody)
+        args = body.model_dump(include=set(StopArgs.model_fields))
+        return await run_in_threadpool(control_call, ctx, "stop", args)
+
+    async def takes(request: Request) -> Response:
+        running = (await run_in_threadpool(ctx.live.fresh_status)).get("take")
+
+        def listing() -> list[dict[str, Any]]:
+            out = []
+            for e in ctx.takes.entries(running):
+                doc = e.model_dump(mode="json")
+                doc["notes"] = _read_notes(Path(e.path))
+                out.append(doc)
+            return out
+
+        try:
+            return JSONResponse({"takes": await run_in_threadpool(listing)}, headers=_NO_STORE)
+        except RigdError as exc:
+            return _error(500, "take_error", str(exc))
+
+    async def take_preview(request: Request) -> Response:
+        try:
+            jpeg = await run_in_threadpool(
+                ctx.takes.preview, request.path_params["name"], request.path_params["camera"]
+            )
+        except RigdError as exc:
+            return _error(404, "not_found", str(exc))
+        return Response(jpeg, media_type="image/jpeg", headers={"Cache-Control": "max-age=60"})
+
+    async def take_rates(request: Request) -> Response:
+        try:
+            rates = await run_in_threadpool(ctx.takes.event_rates, request.path_params["name"])
+        except RigdError as exc:
+            return _error(404, "not_found", str(exc))
+        return JSONResponse(rates)
+
+    routes: list[Route | Mount] = [
+        Route("/", page),
+        Route("/calibrate", page),
+        Route("/api/status", status),
+        Route("/api/live", live),
+        Route("/api/preview/{device}.jpg", preview),
+        Route("/api/event-window", set_window, methods=["POST"]),
+        Route("/api/takes", takes),
+        Route("/api/takes/start", start_take, methods=["POST"]),
+        Route("/api/takes/stop", stop_take, methods=["POST"]),
+        Route("/api/takes/{name}/preview/{camera}.jpg", take_preview),
+        Route("/api/takes/{name}/rates", take_rates),
+        Mount("/static", StaticFiles(directory=str(STATIC)), name="static"),
+    ]
+    if ctx.guided is not None:
+        routes[-1:-1] = ctx.guided.routes()
+    return Starlette(routes=routes, middleware=[Middleware(SecurityMiddleware, security=ctx.security)])
+
+
+def _notes_path(take: Path) -> Path:
+    return take.with_name(take.name + NOTES_SUFFIX)
+
+
+def _write_notes(take: Path, notes: str) -> None:
+    _notes_path(take).write_text(notes, encoding="utf-8")
+
+
+def _read_notes(take: Path) -> str | None:
+    try:
+        return _notes_path(take).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None

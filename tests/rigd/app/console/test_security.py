@@ -1,0 +1,147 @@
+"""Console security: remote binds need a token, state changes need it, cross-site posts are refused."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import httpx
+import pytest
+from starlette.applications import Starlette
+from starlette.middleware import Middleware
+from starlette.requests import Request
+from starlette.responses import JSONResponse
+from starlette.routing import Route
+from starlette.testclient import TestClient
+
+from rigd.app.console.security import TOKEN_HEADER, ConsoleSecurity, SecurityMiddleware, parse_bind
+from rigd.app.console.server import ConsoleServer
+from rigd.core.errors import ConfigError
+from tests.rigd.app.console.conftest import ConsoleDaemon
+
+TOKEN = "t0ken-for-the-console-tests"
+
+
+def _app(security: ConsoleSecurity) -> TestClient:
+    """A tiny app behind the middleware: what gets through is answered 200."""
+    calls: list[str] = []
+
+    async def ok(request: Request) -> JSONResponse:
+        calls.append(request.method)
+        return JSONResponse({"ok": True})
+
+    app = Starlette(
+        routes=[Route("/api/x", ok, methods=["GET", "POST"])],
+        middleware=[Middleware(SecurityMiddleware, security=security)],
+    )
+    client = TestClient(app, base_url="http://127.0.0.1:8750")
+    client.calls = calls
+    return client
+
+
+def test_remote_bind_without_token_refuses_to_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("RIGD_HTTP_TOKEN", raising=False)
+    with pytest.raises(ConfigError, match="beyond loopback; that needs a token"):
+        ConsoleServer("0.0.0.0", 8750)
+    with pytest.raises(ConfigError, match="at least 16 characters"):
+        ConsoleServer("0.0.0.0", 8750, token="short")
+    assert ConsoleServer("0.0.0.0", 8750, token=TOKEN).security.token_required_to_read
+    monkeypatch.setenv("RIGD_HTTP_TOKEN", TOKEN)
+    assert ConsoleServer("192.168.1.5", 8750).security.token == TOKEN
+
+
+def test_remote_bind_without_token_cli_exits_2(monkeypatch: pytest.MonkeyPatch) -> None:
+    from typer.testing import CliRunner
+
+    from rigd.app.cli import app
+
+    monkeypatch.delenv("RIGD_HTTP_TOKEN", raising=False)
+    r = CliRunner().invoke(app, ["serve", "--http", "0.0.0.0:8750", "--metrics-port", "-1"])
+    assert r.exit_code == 2, r.output
+    assert "needs a token" in r.output
+
+
+def test_parse_bind() -> None:
+    assert parse_bind("127.0.0.1:9000") == ("127.0.0.1", 9000)
+    assert parse_bind(":9000") == ("127.0.0.1", 9000)
+    assert parse_bind("[::1]:9000") == ("::1", 9000)
+    assert parse_bind("localhost") == ("localhost", 8750)
+    with pytest.raises(ConfigError):
+        parse_bind("host:port")
+
+
+def test_state_change_without_token_is_refused() -> None:
+    client = _app(ConsoleSecurity.for_bind("127.0.0.1", TOKEN))
+    assert client.get("/api/x").status_code == 200  # reading is open on loopback
+    r = client.post("/api/x", json={})
+    assert r.status_code == 403
+    assert TOKEN_HEADER in r.json()["error"]["message"]
+    assert client.post("/api/x", json={}, headers={TOKEN_HEADER: "wrong-token-xxxxxxxx"}).status_code == 403
+    assert client.post("/api/x", json={}, headers={TOKEN_HEADER: TOKEN}).status_code == 200
+    assert client.calls == ["GET", "POST"]
+
+
+def test_cross_origin_and_form_posts_are_refused() -> None:
+    client = _app(ConsoleSecurity.for_bind("127.0.0.1", TOKEN))
+    ok = {TOKEN_HEADER: TOKEN}
+    # A cross-site HTML form: form-encoded, foreign Origin, no token header.
+    r = client.post("/api/x", data={"duration_s": "5"}, headers={"Origin": "http://evil.example"})
+    assert r.status_code == 403
+    # Even with the token, a foreign origin or a form encoding is refused.
+    assert client.post("/api/x", json={}, headers={**ok, "Origin": "http://evil.example"}).status_code == 403
+    assert client.post("/api/x", data={"a": "1"}, headers=ok).status_code == 415
+    plain = {**ok, "Content-Type": "text/plain"}
+    assert client.post("/api/x", content=b"{}", headers=plain).status_code == 415
+    assert client.post("/api/x", json={}, headers={**ok, "Sec-Fetch-Site": "cross-site"}).status_code == 403
+    same = {**ok, "Origin": "http://127.0.0.1:8750"}
+    assert client.post("/api/x", json={}, headers=same).status_code == 200
+    assert client.calls == ["POST"]
+
+
+def test_dns_rebinding_host_is_refused() -> None:
+    client = _app(ConsoleSecurity.for_bind("127.0.0.1", TOKEN))
+    assert client.get("/api/x", headers={"Host": "attacker.example:8750"}).status_code == 421
+    assert client.get("/api/x", headers={"Host": "localhost:8750"}).status_code == 200
+
+
+def test_remote_console_needs_the_token_to_read() -> None:
+    client = _app(ConsoleSecurity.for_bind("0.0.0.0", TOKEN))
+    assert client.get("/api/x").status_code == 401
+    assert client.get("/api/x", headers={TOKEN_HEADER: TOKEN}).status_code == 200
+    client.cookies.set("rigd_token", TOKEN)
+    assert client.get("/api/x").status_code == 200
+    # The cookie alone does not make a POST: the header is required (no CSRF through cookies).
+    assert client.post("/api/x", json={}).status_code == 403
+
+
+def test_console_of_a_daemon(console_daemon: Callable[..., ConsoleDaemon]) -> None:
+    """Against a live daemon: /api/status is the telemetry document; a take cannot be started
+    without the token or from a cross-site form, and the refused requests start nothing."""
+    cd = console_daemon()
+    base = cd.url.rstrip("/")
+    with httpx.Client(base_url=base, timeout=10) as http:
+        status = http.get("/api/status").json()
+        assert status["state"] == "idle"
+        assert {d["name"] for d in status["devices"]} == {"trigger", "cam0", "cam1", "cam2", "ev0", "ev1"}
+        page = http.get("/").text
+        assert cd.console.security.token in page
+        r = http.post("/api/takes/start", json={"duration_s": 1})
+        assert r.status_code == 403
+        r = http.post(
+            "/api/takes/start",
+            data={"duration_s": "1"},
+            headers={"Origin": "http://evil.example", TOKEN_HEADER: cd.console.security.token},
+        )
+        assert r.status_code == 403
+        # The control socket's own validation answers a bad request from the console too.
+        tok = {TOKEN_HEADER: cd.console.security.token}
+        r = http.post("/api/takes/start", json={"duration_s": -1}, headers=tok)
+        assert r.status_code == 400
+        assert r.json()["error"]["field"] == "args.duration_s"
+        r = http.post("/api/takes/start", json={"label": "bad name!"}, headers=tok)
+        assert r.status_code == 400
+        assert r.json()["error"]["field"] == "args.label"
+        r = http.post("/api/takes/stop", json={}, headers=tok)
+        assert r.status_code == 409
+        assert r.json()["error"]["code"] == "not_capturing"
+        assert http.get("/api/status").json()["state"] == "idle"
+        assert not list((cd.config.service.take_dir).glob("*.h5"))
