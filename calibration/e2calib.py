@@ -490,7 +490,7 @@ def _calibrate_method(
         )
     except CalibrationError as exc:
         err = str(exc)
-        log.warning("sensor %s, method %s: %s", sensor, method, exc)
+        log.info("sensor %s, method %s: %s", sensor, method, exc)  # in .error: the caller reports it
     t3 = time.perf_counter()
     detected = len(imgs) - len(rejected)
     log.info(

@@ -198,8 +198,8 @@ def calibrate_rig(
     poses = [_camera_pose(i, c, cam_T[i], cov, per_cam_sq[i]) for i, c in enumerate(cams)]
     if len(problem.vids) < 5:
         warnings.append(f"only {len(problem.vids)} shared views; the extrinsics rest on few board poses")
-    for w in warnings:
-        log.warning("%s", w)
+    for w in warnings:  # returned in .warnings: the caller reports them, once
+        log.info("%s", w)
     r = sol.fun
     return RigResult(
         reference=cams[0],

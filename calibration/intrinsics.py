@@ -401,8 +401,8 @@ def calibrate_intrinsics(
     if reject_outliers:
         fit = _reject_outlier_views(usable, size, lens, fit, camera, rej)
     warn.extend(_degeneracy_warnings(usable, fit, size, lens))
-    for w in warn:
-        log.warning("camera %s: %s", camera, w)
+    for w in warn:  # returned in .warnings: the caller reports them, once
+        log.info("camera %s: %s", camera, w)
     return IntrinsicsResult(
         camera=camera,
         board=str(board),

@@ -59,8 +59,10 @@ def _fail(exc: Exception) -> typer.Exit:
 
 
 def _warn(result: IntrinsicsResult | RigResult) -> None:
+    """Say the result's warnings, once: the library returns them instead of logging them."""
+    who = f"{result.camera}: " if isinstance(result, IntrinsicsResult) else "rig: "
     for w in result.warnings:
-        _err.print(f"[yellow]warning:[/] {w}")
+        _err.print(f"[yellow]warning:[/] {who}{escape(w)}", soft_wrap=True, highlight=False)
     for r in getattr(result, "rejected", []):
         _err.print(f"[yellow]rejected:[/] {r.name}: {r.reason}")
 

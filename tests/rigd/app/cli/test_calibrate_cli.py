@@ -1,5 +1,5 @@
-"""`rigd calibrate` tells where it is: each stage in its own unit (frames searched for the board,
-images searched), so a run of minutes does not look hung."""
+"""`rigd calibrate` as a user meets it: each stage in its own unit (frames searched for the board,
+images searched), so a run of minutes does not look hung; each warning said once."""
 
 from __future__ import annotations
 
@@ -65,3 +65,14 @@ def test_calibrate_rig_from_a_take_counts_frames_per_camera(tmp_path: Path) -> N
     assert "detect (6 frames searched for the board): cam0" in stages
     assert "detect (6 frames searched for the board): cam1" in stages
     assert any(s.startswith("calibrate") for s in stages)
+
+
+def test_calibration_warnings_are_said_once(board_take: Path, tmp_path: Path) -> None:
+    out = tmp_path / "ev0.yaml"
+    r = runner.invoke(app, ["calibrate", "events", str(board_take), "-s", "ev0", "-b", BOARD, "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    lines = r.stderr.splitlines()
+    said = [line.removeprefix("warning: ev0: ") for line in lines if line.startswith("warning:")]
+    assert said, r.stderr  # this take's board covers little of the image: there is something to say
+    for text in said:
+        assert r.stderr.count(text) == 1, (text, r.stderr)
