@@ -20,7 +20,10 @@ Conventions (docs/export.md):
 from __future__ import annotations
 
 import logging
+import os
+from collections import deque
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -39,6 +42,9 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
+
+#: Threads that undistort, resize and encode frames (cv2 releases the GIL).
+IMAGE_THREADS = min(4, os.cpu_count() or 1)
 
 #: Relative output path of (timestep k, camera j).
 PathOf = Callable[[int, int], str]
@@ -295,21 +301,39 @@ class ExportPlan:
         return int(self.frames.index.size)
 
     def write_images(self, path_of: PathOf, stage: str = "images") -> None:
-        """Write every exported frame through `path_of(timestep, camera)`, reporting progress."""
+        """Write every exported frame through `path_of(timestep, camera)`, reporting progress.
+
+        Frames are read here (HDF5 reads are serialised anyway) and undistorted, resized and
+        encoded on a few threads: cv2 releases the GIL, and encoding is most of the time."""
         total, done = self.images(), 0
-        params = [cv2.IMWRITE_JPEG_QUALITY, self.options.jpeg_quality]
-        for j, cam in enumerate(self.cameras):
-            fs = self.take.frames(cam.name)
-            for k in range(self.frames.pulses.size):
-                img = cam.process(fs[int(self.frames.index[k, j])].image)
-                dest = self.out / path_of(k, j)
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                jpeg = dest.suffix.lower() in (".jpg", ".jpeg")
-                if not cv2.imwrite(str(dest), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), params if jpeg else []):
-                    raise TakeError(f"could not write {dest}")
-                done += 1
-                if done % 10 == 0 or done == total:
-                    self.progress(ProgressUpdate(stage, f"{done}/{total} frames", done, total))
+        jobs: deque[Future[None]] = deque()
+
+        def finish_oldest() -> None:
+            nonlocal done
+            jobs.popleft().result()  # re-raises a failed write here
+            done += 1
+            if done % 10 == 0 or done == total:
+                self.progress(ProgressUpdate(stage, f"{done}/{total} frames", done, total))
+
+        with ThreadPoolExecutor(max_workers=IMAGE_THREADS) as pool:
+            for j, cam in enumerate(self.cameras):
+                fs = self.take.frames(cam.name)
+                for k in range(self.frames.pulses.size):
+                    dest = self.out / path_of(k, j)
+                    dest.parent.mkdir(parents=True, exist_ok=True)
+                    raw = fs[int(self.frames.index[k, j])].image
+                    jobs.append(pool.submit(self._write_one, cam, raw, dest))
+                    while len(jobs) > 2 * IMAGE_THREADS or (jobs and jobs[0].done()):
+                        finish_oldest()
+            while jobs:
+                finish_oldest()
+
+    def _write_one(self, cam: Camera, raw: NDArray[np.generic], dest: Path) -> None:
+        img = cv2.cvtColor(cam.process(raw), cv2.COLOR_RGB2BGR)
+        jpeg = dest.suffix.lower() in (".jpg", ".jpeg")
+        params = [cv2.IMWRITE_JPEG_QUALITY, self.options.jpeg_quality] if jpeg else []
+        if not cv2.imwrite(str(dest), img, params):
+            raise TakeError(f"could not write {dest}")
 
     def image(self, k: int, j: int) -> U8:
         """Exported (undistorted, resized) RGB image of timestep k, camera j."""

@@ -6,6 +6,7 @@
                                     events/p (u8: 1 ON, 0 OFF), ms_to_idx (u64), t_offset (i64, rig us)
     events/<sensor>/rectify_map.h5  rectify_map (H, W, 2) f32: undistorted position of every raw
                                     pixel (only for a calibrated sensor)
+    calibration/cameras.json        K_rect, resolution, T_cam_world (4x4, OpenCV) of every device
     images/<cam>/rectified/<t:06d>.png   undistorted frames
     images/<cam>/timestamps.txt          mid-exposure time of each image, rig us, one per line
     images/<cam>/exposure_timestamps.txt "start_us, end_us" per image
@@ -81,6 +82,41 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
     return n
 
 
+def write_calibration(plan: ExportPlan) -> None:
+    """calibration/cameras.json: every device's rectified pinhole and world -> camera pose.
+
+    DSEC ships its own cam_to_cam.yaml; this is rigd's plain-JSON equivalent, one entry per camera
+    (K_rect of the exported images) and per calibrated event sensor (K_rect of rectify_map)."""
+    devices: dict[str, dict[str, object]] = {}
+    for c in plan.cameras:
+        devices[c.name] = {
+            "K_rect": c.K.tolist(),
+            "resolution": list(c.size),
+            "T_cam_world": c.w2c.tolist(),
+            "K": c.K_src.tolist(),
+            "dist": c.dist.tolist(),
+        }
+    for sensor in plan.take.event_sensors:
+        calib = sensor_calibration(plan, sensor)
+        if calib is None:
+            continue
+        entry: dict[str, object] = {
+            "K_rect": calib["K_rect"],
+            "resolution": calib["image_size"],
+            "K": calib["K"],
+            "dist": calib["dist"],
+        }
+        if "R" in calib:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = calib["R"], calib["t"]
+            entry["T_cam_world"] = T.tolist()
+        devices[sensor] = entry
+    dest = plan.out / "calibration" / "cameras.json"
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"convention": "x_cam = T_cam_world @ [x_world, 1] (OpenCV axes, metres)", "devices": devices}
+    dest.write_text(json.dumps(doc, indent=1))
+
+
 def write(plan: ExportPlan) -> None:
     fr, cams = plan.frames, plan.cameras
     plan.write_images(lambda k, j: f"images/{cams[j].name}/rectified/{k:06d}.png")
@@ -93,6 +129,7 @@ def write(plan: ExportPlan) -> None:
             "# exposure_start_timestamp_us, exposure_end_timestamp_us\n"
             + "".join(f"{int(a)}, {int(b)}\n" for a, b in zip(start, end, strict=True))
         )
+    write_calibration(plan)
     split = {
         "train": [int(k) for k in np.flatnonzero(fr.train)],
         "test": [int(k) for k in np.flatnonzero(~fr.train)],

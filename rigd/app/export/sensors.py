@@ -6,7 +6,8 @@ Layout under the export directory (docs/export.md):
     events/<sensor>/calibration.json   K, dist, image_size, R, t (rig frame), K_rect, t0_us
     events/<sensor>/undistort_map.npz  map_x, map_y (undistorted pixel -> raw pixel, cv2.remap),
                                        rectify_map (raw pixel -> undistorted pixel, DSEC's)
-    events/<sensor>/voxels.h5          voxels (T, bins, H, W) float32 in raw sensor pixels;
+    events/<sensor>/voxels.h5          voxels (T, bins, H, W) float32 in raw sensor pixels, Zstd
+                                       (`import hdf5plugin` before h5py reads it);
                                        window_us (T, 2) = (previous timestep, this timestep]
     segments/<sensor>.json             segments.json of `rigd reconstruct` + export times
 """
@@ -20,6 +21,7 @@ from typing import Any
 
 import cv2
 import h5py
+import hdf5plugin
 import numpy as np
 from numpy.typing import NDArray
 
@@ -98,7 +100,11 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
     dest.mkdir(parents=True, exist_ok=True)
     with h5py.File(dest / "voxels.h5", "w") as f:
         ds = f.create_dataset(
-            "voxels", (len(times), bins, h, w), np.float32, chunks=(1, bins, h, w), compression="lzf"
+            "voxels",
+            (len(times), bins, h, w),
+            np.float32,
+            chunks=(1, bins, h, w),
+            **hdf5plugin.Zstd(clevel=1),
         )
         for k, (a, b) in enumerate(win):
             # (a, b]: events at a belong to the previous window, events at b to this one.

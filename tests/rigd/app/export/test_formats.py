@@ -19,6 +19,7 @@ from typing import Any
 
 import cv2
 import h5py
+import hdf5plugin  # noqa: F401  (voxels.h5 is Zstd-compressed)
 import numpy as np
 import pycolmap
 import pytest
