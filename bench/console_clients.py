@@ -1,0 +1,184 @@
+"""What open web consoles cost the capture: throughput and telemetry latency with 0, 1 and 10 clients.
+
+    python -m bench.console_clients [--duration 8] [--resolution 640x360] [--clients 0,1,10]
+
+Runs the daemon with its web console in this process on the sim rig (real time) and, for each
+client count, one take of `--duration` seconds while that many clients behave like a dashboard
+tab: each follows the live stream (server-sent events, /api/live) and fetches the preview JPEG of
+every device whose version changed, one fetch at a time, as the page does. Prints per client
+count: frames/s and events/s written, loss records, the writer queue's peak, and the telemetry
+latency a client sees (receipt time minus the document's sampling time: median and p95), the
+documents and JPEGs each client got, and the daemon process's CPU seconds per take second (the
+clients run in a child process, so their own CPU is not counted).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import shutil
+import statistics
+import tempfile
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from rigd.app.config import RigConfig, default_sim_rig
+from rigd.app.console.server import ConsoleServer
+from rigd.app.service.daemon import Daemon
+
+
+@dataclass
+class ClientStats:
+    docs: int = 0
+    jpegs: int = 0
+    latencies_s: list[float] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+
+
+def client(url: str, stop: threading.Event, stats: ClientStats) -> None:
+    """A dashboard tab: follow /api/live, fetch each changed preview (latest only, one at a time)."""
+    shown: dict[str, int] = {}
+    try:
+        with httpx.Client(base_url=url, timeout=10) as http, http.stream("GET", "/api/live") as live:
+            event = ""
+            for line in live.iter_lines():
+                if stop.is_set():
+                    return
+                if line.startswith("event: "):
+                    event = line[7:]
+                    continue
+                if not line.startswith("data: ") or event != "status":
+                    continue
+                doc = json.loads(line[6:])
+                sampled = datetime.fromisoformat(doc["time_utc"]).timestamp()
+                stats.latencies_s.append(time.time() - sampled)
+                stats.docs += 1
+                for dev, version in doc.get("previews", {}).items():
+                    if shown.get(dev) != version:
+                        shown[dev] = version
+                        if http.get(f"/api/preview/{dev}.jpg").status_code == 200:
+                            stats.jpegs += 1
+    except httpx.HTTPError as exc:
+        if not stop.is_set():
+            stats.errors.append(str(exc))
+
+
+def rig(take_dir: Path, runtime: Path, resolution: tuple[int, int]) -> RigConfig:
+    cfg = default_sim_rig(world=f"bench-{uuid.uuid4().hex[:6]}", resolution=resolution)
+    data = cfg.model_dump(mode="json")
+    data["writer"]["disk_reserve_mb"] = 0
+    data["service"].update(
+        {
+            "metrics_port": None,
+            "take_dir": str(take_dir),
+            "control": f"ipc://{runtime}/control.sock",
+            "telemetry": f"ipc://{runtime}/telemetry.sock",
+        }
+    )
+    return RigConfig.from_data(data)
+
+
+def clients_process(url: str, n: int, stop: Any, out: Any) -> None:
+    """Run `n` clients on threads in this (child) process until `stop`; put their stats in `out`."""
+    flag = threading.Event()
+    stats = [ClientStats() for _ in range(n)]
+    threads = [threading.Thread(target=client, args=(url, flag, s), daemon=True) for s in stats]
+    for t in threads:
+        t.start()
+    stop.wait()
+    flag.set()
+    for t in threads:
+        t.join(timeout=15)
+    out.put([(s.docs, s.jpegs, s.latencies_s, s.errors) for s in stats])
+
+
+def run_level(daemon: Daemon, url: str, n_clients: int, duration_s: float) -> dict[str, float]:
+    """One take with `n_clients` clients in a child process (their CPU is not the daemon's)."""
+    mp = multiprocessing.get_context("spawn")
+    stop, out = mp.Event(), mp.Queue()
+    proc = mp.Process(target=clients_process, args=(url, n_clients, stop, out), daemon=True)
+    proc.start()
+    time.sleep(3.0)  # let the child start and the clients connect before the take
+    cpu0, t0 = os.times(), time.monotonic()
+    request = {"v": 1, "cmd": "capture", "args": {"duration_s": duration_s}}
+    reply = json.loads(daemon.handle([json.dumps(request).encode()]) or b"{}")
+    if not reply["ok"]:
+        raise SystemExit(f"capture refused: {reply['error']}")
+    peak_queue = 0
+    while True:
+        t = daemon.telemetry()
+        peak_queue = max(peak_queue, t.queue_depth)
+        if t.state == "idle":
+            break
+        time.sleep(0.2)
+    wall = time.monotonic() - t0
+    cpu1 = os.times()
+    stop.set()
+    stats = [ClientStats(d, j, lat, err) for d, j, lat, err in out.get(timeout=60)]
+    proc.join(timeout=15)
+    last = t.last_take
+    assert last is not None
+    lat = sorted(x for s in stats for x in s.latencies_s)
+    return {
+        "clients": n_clients,
+        "fps": sum(last.frames.values()) / duration_s,
+        "eps": sum(last.events.values()) / duration_s,
+        "losses": len(last.losses),
+        "peak_queue": peak_queue,
+        "lat_med_ms": 1e3 * statistics.median(lat) if lat else float("nan"),
+        "lat_p95_ms": 1e3 * lat[int(0.95 * (len(lat) - 1))] if lat else float("nan"),
+        "docs_per_client_s": sum(s.docs for s in stats) / max(n_clients, 1) / wall,
+        "jpegs_per_client_s": sum(s.jpegs for s in stats) / max(n_clients, 1) / wall,
+        "cpu_per_s": ((cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)) / wall,
+        "errors": sum(len(s.errors) for s in stats),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration", type=float, default=8.0, help="seconds of each take")
+    ap.add_argument("--resolution", default="640x360", help="sim frame size WIDTHxHEIGHT")
+    ap.add_argument("--clients", default="0,1,10", help="client counts to run, comma-separated")
+    args = ap.parse_args()
+    w, h = (int(v) for v in args.resolution.split("x"))
+    levels = [int(c) for c in args.clients.split(",")]
+    work = Path(tempfile.mkdtemp(prefix="rigd-bench-console-"))
+    os.chmod(work, 0o700)
+    try:
+        cfg = rig(work / "takes", work, (w, h))
+        console = ConsoleServer("127.0.0.1", 0)
+        daemon = Daemon(cfg, attachments=[console])
+        th = threading.Thread(target=daemon.serve, name="bench-daemon", daemon=True)
+        th.start()
+        if not daemon.wait_ready(60):
+            raise SystemExit("daemon did not start")
+        rows = [run_level(daemon, console.url, n, args.duration) for n in levels]
+        daemon.shutdown()
+        th.join(timeout=60)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    print(f"sim rig {w}x{h}, 3 cameras + 2 event sensors at 30 Hz, {args.duration:g} s per take, real time")
+    print(
+        f"{'clients':>7} {'frames/s':>9} {'events/s':>10} {'losses':>6} {'queue':>6} "
+        f"{'lat med ms':>10} {'lat p95 ms':>10} {'docs/s/cl':>9} {'jpeg/s/cl':>9} "
+        f"{'CPU s/s':>7} {'errors':>6}"
+    )
+    for r in rows:
+        print(
+            f"{r['clients']:>7} {r['fps']:>9.1f} {r['eps']:>10,.0f} {r['losses']:>6} {r['peak_queue']:>6} "
+            f"{r['lat_med_ms']:>10.1f} {r['lat_p95_ms']:>10.1f} {r['docs_per_client_s']:>9.2f} "
+            f"{r['jpegs_per_client_s']:>9.1f} {r['cpu_per_s']:>7.2f} {r['errors']:>6}"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,70 @@
+"""`rigd serve` in its own process: it says where it listens, serves the console, and stops cleanly."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.rigd.app.console.conftest import console_rig
+
+REPO = Path(__file__).resolve().parents[4]
+
+
+def _read_until_ready(proc: subprocess.Popen[str], deadline_s: float = 60.0) -> dict[str, str]:
+    """The `name: value` lines `rigd serve` prints before `ready`."""
+    assert proc.stdout is not None
+    lines: dict[str, str] = {}
+    deadline = time.monotonic() + deadline_s
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            pytest.fail(f"rigd serve exited ({proc.wait()}) before 'ready': {lines}")
+        line = line.strip()
+        if line == "ready":
+            return lines
+        name, sep, value = line.partition(": ")
+        if sep:
+            lines[name] = value
+    pytest.fail(f"no 'ready' within {deadline_s} s: {lines}")
+
+
+def test_serve_prints_its_endpoints_serves_the_console_and_stops_cleanly(
+    tmp_path: Path, runtime_dir: Path
+) -> None:
+    cfg = console_rig(tmp_path / "takes", runtime_dir)
+    cfg_path = tmp_path / "rig.json"
+    cfg_path.write_text(json.dumps(cfg.model_dump(mode="json")))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rigd.app.cli", "serve", "--config", str(cfg_path), "--http", "127.0.0.1:0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        cwd=REPO,
+        env={**os.environ, "RIGD_HTTP_TOKEN": ""},
+    )
+    try:
+        lines = _read_until_ready(proc)
+        assert lines["control"] == cfg.service.control_endpoint
+        assert lines["metrics"] == "off"
+        url = lines["console"]
+        assert url.startswith("http://127.0.0.1:")
+        assert not url.endswith(":0/")  # the port it got, not the one asked for
+        status = httpx.get(url + "api/status", timeout=10).json()
+        assert status["state"] == "idle"
+        # An open live stream must not hold the shutdown up.
+        with httpx.stream("GET", url + "api/live", timeout=10) as live:
+            next(live.iter_lines())
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
