@@ -3,10 +3,13 @@
 
     sparse/0/cameras.bin   one PINHOLE camera per rig camera (fx, fy, cx, cy of the new K)
     sparse/0/images.bin    image per frame: qvec/tvec world -> camera (OpenCV axes, the rig frame),
-                           name <cam>/<t:06d>.png, its 2-D observations of the points
+                           name <cam>/<t:06d>.jpg, its 2-D observations of the points
     sparse/0/points3D.bin  the triangulated initial point cloud with its two-view tracks
-    images/<cam>/<t:06d>.png
+    images/<cam>/<t:06d>.jpg
     times.json             per image name: t_us (mid-exposure, rig us), time in [0, 1], split
+  and the tree of 4DGaussians' multi-view loader (write_multiview):
+    sparse_/cameras.bin, images.bin (one image per camera), points3D_multipleview.bin,
+    poses_bounds_multipleview.npy, cam<NN>/frame_<NNNNN>.jpg (hard links to images/)
 
 Binary layout as COLMAP's src/colmap/scene/reconstruction_io.cc writes it (little endian):
 cameras: u64 n, then u32 id, i32 model, u64 width, u64 height, f64 params[]; images: u64 n, then
@@ -19,6 +22,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
 import struct
 from pathlib import Path
 
@@ -60,7 +65,27 @@ def rotmat_to_qvec(R: F64) -> F64:
 
 
 def image_name(plan: ExportPlan, k: int, j: int) -> str:
-    return f"{plan.cameras[j].name}/{k:06d}.png"
+    return f"{plan.cameras[j].name}/{k:06d}.jpg"
+
+
+def _write_cameras(plan: ExportPlan, dest: Path) -> None:
+    with (dest / "cameras.bin").open("wb") as f:
+        f.write(struct.pack("<Q", len(plan.cameras)))
+        for j, c in enumerate(plan.cameras):
+            f.write(struct.pack("<IiQQ", j + 1, PINHOLE, c.size[0], c.size[1]))
+            f.write(struct.pack("<4d", c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]))
+
+
+def _write_points(cloud: PointCloud, path: Path, tracks: NDArray[np.int64] | None) -> None:
+    """points3D.bin; tracks (N, 2, 2) of (image_id, point2D_idx) per observation, or none."""
+    with path.open("wb") as f:
+        f.write(struct.pack("<Q", len(cloud)))
+        for p in range(len(cloud)):
+            f.write(struct.pack("<Q3d3Bd", p + 1, *cloud.xyz[p], *cloud.rgb[p], cloud.error_px[p]))
+            if tracks is None:
+                f.write(struct.pack("<Q", 0))
+            else:
+                f.write(struct.pack("<Q", 2) + tracks[p].astype("<u4").tobytes())
 
 
 def write_model(plan: ExportPlan, cloud: PointCloud, dest: Path) -> None:
@@ -68,11 +93,7 @@ def write_model(plan: ExportPlan, cloud: PointCloud, dest: Path) -> None:
     cams, fr = plan.cameras, plan.frames
     C, T = len(cams), fr.pulses.size
     dest.mkdir(parents=True, exist_ok=True)
-    with (dest / "cameras.bin").open("wb") as f:
-        f.write(struct.pack("<Q", C))
-        for j, c in enumerate(cams):
-            f.write(struct.pack("<IiQQ", j + 1, PINHOLE, c.size[0], c.size[1]))
-            f.write(struct.pack("<4d", c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]))
+    _write_cameras(plan, dest)
     # Each point is seen in two images of one timestep: (k, i) and (k, j).
     n = len(cloud)
     v = cloud.views
@@ -95,13 +116,44 @@ def write_model(plan: ExportPlan, cloud: PointCloud, dest: Path) -> None:
                 rows = np.zeros(sel.size, dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
                 rows["x"], rows["y"], rows["id"] = obs_uv[sel, 0], obs_uv[sel, 1], obs_point[sel] + 1
                 f.write(rows.tobytes())
-    with (dest / "points3D.bin").open("wb") as f:
-        f.write(struct.pack("<Q", n))
-        for p in range(n):
-            f.write(struct.pack("<Q3d3Bd", p + 1, *cloud.xyz[p], *cloud.rgb[p], cloud.error_px[p]))
-            f.write(struct.pack("<Q", 2))
-            for o in (p, p + n):
-                f.write(struct.pack("<II", int(obs_image[o]) + 1, int(point2d_idx[o])))
+    tracks = np.stack([obs_image + 1, point2d_idx], axis=1).reshape(2, n, 2).transpose(1, 0, 2)
+    _write_points(cloud, dest / "points3D.bin", tracks)
+
+
+def write_multiview(plan: ExportPlan, cloud: PointCloud) -> None:
+    """The tree of 4DGaussians' multi-view loader (scene/multipleview_dataset.py): sparse_/ with
+    one image per camera named image<NN>.jpg (the loader takes NN from name[5:-4] and reads
+    cam<NN>/frame_<i+1:05d>.jpg), points3D_multipleview.bin (tracks left empty: the loader
+    reads xyz and rgb), and poses_bounds_multipleview.npy (LLFF poses of its test-video path).
+    The frames are hard links to images/ (copies where links are not possible)."""
+    dest = plan.out / "sparse_"
+    dest.mkdir(parents=True, exist_ok=True)
+    _write_cameras(plan, dest)
+    with (dest / "images.bin").open("wb") as f:
+        f.write(struct.pack("<Q", len(plan.cameras)))
+        for j, c in enumerate(plan.cameras):
+            f.write(struct.pack("<I4d3dI", j + 1, *rotmat_to_qvec(c.R), *c.t, j + 1))
+            f.write(f"image{j + 1:02d}.jpg".encode() + b"\0" + struct.pack("<Q", 0))
+    _write_points(cloud, dest / "points3D.bin", None)  # a complete model for COLMAP tools
+    _write_points(cloud, plan.out / "points3D_multipleview.bin", None)
+    for j in range(len(plan.cameras)):
+        folder = plan.out / f"cam{j + 1:02d}"
+        folder.mkdir(exist_ok=True)
+        for k in range(plan.frames.pulses.size):
+            src, link = plan.out / "images" / image_name(plan, k, j), folder / f"frame_{k + 1:05d}.jpg"
+            try:
+                os.link(src, link)
+            except OSError:
+                shutil.copyfile(src, link)
+    depth = np.concatenate([(cloud.xyz @ c.R.T + c.t)[:, 2] for c in plan.cameras])
+    near, far = np.percentile(depth[depth > 0], [0.1, 99.9]) * np.array([0.9, 1.1])
+    rows = []
+    for c in plan.cameras:
+        c2w = c.R.T
+        # LLFF columns: down, right, backwards, centre, then (h, w, focal)
+        pose = np.stack([c2w[:, 1], c2w[:, 0], -c2w[:, 2], c.centre, [c.size[1], c.size[0], c.K[0, 0]]], 1)
+        rows.append(np.concatenate([pose.ravel(), [near, far]]))
+    np.save(plan.out / "poses_bounds_multipleview.npy", np.array(rows))
 
 
 def write(plan: ExportPlan) -> None:
@@ -109,6 +161,7 @@ def write(plan: ExportPlan) -> None:
     plan.write_images(lambda k, j: f"images/{image_name(plan, k, j)}")
     cloud = triangulate(plan)
     write_model(plan, cloud, plan.out / "sparse" / "0")
+    write_multiview(plan, cloud)
     time01 = fr.time01()
     times = {
         image_name(plan, k, j): {

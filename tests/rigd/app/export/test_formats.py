@@ -144,6 +144,31 @@ def read_colmap(root: Path) -> dict[str, list[View]]:
     return out
 
 
+def read_4dgaussians_multiview(root: Path) -> list[View]:
+    """As 4DGaussians' scene/multipleview_dataset.py reads it: sparse_ poses, one focal length
+    (camera 1's) with the principal point at the image centre, cam<NN>/frame_<i+1>.jpg."""
+    rec = pycolmap.Reconstruction(str(root / "sparse_"))
+    cam1 = rec.cameras[1]
+    f, w, h = cam1.params[0], cam1.width, cam1.height
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
+    times = json.loads((root / "times.json").read_text())
+    cam_names = sorted({k.split("/")[0] for k in times})
+    views = []
+    for im in rec.images.values():
+        number = im.name[5:-4]
+        folder = root / f"cam{number.zfill(2)}"
+        pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+        w2c = np.eye(4)
+        w2c[:3, :] = pose.matrix()
+        n = len(list(folder.iterdir()))
+        for i in range(n):
+            # the frame's time from the export's own times (the loader uses i / n)
+            cam_name = cam_names[int(number) - 1]
+            info = times[f"{cam_name}/{i:06d}.jpg"]
+            views.append(View(cam_name, folder / f"frame_{i + 1:05d}.jpg", K, w2c, info["t_us"]))
+    return views
+
+
 def read_dsec_frames(root: Path) -> list[View]:
     calib = json.loads((root / "calibration" / "cameras.json").read_text())["devices"]
     views = []
@@ -216,6 +241,16 @@ def test_trainer_format_projects_ground_truth(exported: Fixture, fmt: str) -> No
     views = reader(exported.out[fmt])
     assert {len(views["train"]), len(views["test"])} == {45}  # 30 timesteps x 3 cameras, half each
     _check(exported, views["train"] + views["test"], fmt)
+
+
+def test_4dgaussians_multiview_tree_projects_ground_truth(exported: Fixture) -> None:
+    views = read_4dgaussians_multiview(exported.out["colmap"])
+    assert len(views) == 90
+    _check(exported, views, "4dgaussians multiview")
+    poses = np.load(exported.out["colmap"] / "poses_bounds_multipleview.npy")
+    assert poses.shape == (3, 17)
+    near, far = poses[:, -2].min(), poses[:, -1].max()
+    assert 0 < near < far
 
 
 def test_dsec_frames_project_ground_truth(exported: Fixture) -> None:
