@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from pydantic import ValidationError
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import (
@@ -171,28 +172,48 @@ def reconstruct(
             f"[bold red]error:[/] --e2i must be highpass or direct, got {escape(e2i)!r}", highlight=False
         )
         raise typer.Exit(code=2)
-    options = ReconstructOptions(
-        takes=takes,
-        out=out,
-        scheduler=scheduler,
-        workers=workers,
-        filter=FilterKnobs(
+    try:
+        filt = FilterKnobs(
             enabled=not no_filter,
             window_us=filter_window_us,
             radius_px=filter_radius,
             min_support=filter_support,
-        ),
-        threshold=threshold,
-        partition_window_us=partition_window_us,
-        instant_weight=instant_weight,
-        min_segment_us=min_segment_us,
-        map_scale=map_scale,
-        max_candidates=max_candidates,
-        keyframe_camera=keyframe_camera,
-        e2i=e2i,
-        contrast=contrast,
-        cutoff_hz=cutoff_hz,
-    )
+        )
+        options = ReconstructOptions(
+            takes=takes,
+            out=out,
+            scheduler=scheduler,
+            workers=workers,
+            filter=filt,
+            threshold=threshold,
+            partition_window_us=partition_window_us,
+            instant_weight=instant_weight,
+            min_segment_us=min_segment_us,
+            map_scale=map_scale,
+            max_candidates=max_candidates,
+            keyframe_camera=keyframe_camera,
+            e2i=e2i,
+            contrast=contrast,
+            cutoff_hz=cutoff_hz,
+        )
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        name = str(err["loc"][-1]) if err["loc"] else ""
+        flag = _FILTER_FLAGS.get(name, "--" + name.replace("_", "-"))
+        _err.print(f"[bold red]error:[/] {escape(flag)}: {escape(err['msg'])}", highlight=False)
+        raise typer.Exit(code=2) from None
+    _run(options)
+
+
+#: FilterKnobs fields by the flag that sets them.
+_FILTER_FLAGS = {
+    "window_us": "--filter-window-us",
+    "radius_px": "--filter-radius",
+    "min_support": "--filter-support",
+}
+
+
+def _run(options: ReconstructOptions) -> None:
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),

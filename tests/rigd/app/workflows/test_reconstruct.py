@@ -269,3 +269,22 @@ def test_old_style_take_still_reconstructs(tmp_path: Path) -> None:
     with np.load(tmp_path / "out" / "take-1" / "ev0" / "snapshots.npz") as snaps:
         assert snaps["log_intensity"].shape[0] == r.segments
         assert snaps["times_us"].dtype == np.int64
+
+
+@pytest.mark.parametrize(
+    ("args", "flag"),
+    [
+        (["--threshold", "0"], "--threshold"),
+        (["--filter-support", "99"], "--filter-support"),
+        (["--e2i", "e2vid"], "--e2i"),
+        (["--cutoff-hz", "0"], "--cutoff-hz"),
+    ],
+)
+def test_bad_knob_is_one_line_naming_the_flag(
+    moving_take: Path, tmp_path: Path, args: list[str], flag: str
+) -> None:
+    r = CliRunner().invoke(app, ["reconstruct", str(moving_take), "--out", str(tmp_path / "o"), *args])
+    assert r.exit_code == 2, r.output
+    (line,) = r.output.strip().splitlines()
+    assert line.startswith(f"error: {flag}")
+    assert not (tmp_path / "o").exists()
