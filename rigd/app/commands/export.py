@@ -41,6 +41,10 @@ def export(
         typer.Option("--segments", help="`rigd reconstruct --out` directory: carry its segments/keyframes."),
     ] = None,
     voxel_bins: Annotated[int, typer.Option("--voxel-bins", help="Time bins of the event voxel grids.")] = 5,
+    seg: Annotated[
+        bool,
+        typer.Option("--seg", help="dynamic3dgs: write all-foreground seg/ masks (its train.py reads them)."),
+    ] = False,
 ) -> None:
     """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap)
     or for event loaders (dsec); see docs/export.md."""
@@ -54,6 +58,7 @@ def export(
             resize=parse_size(resize) if resize else None,
             segments=segments,
             voxel_bins=voxel_bins,
+            seg=seg,
         )
     except ValidationError as exc:
         err = exc.errors()[0]

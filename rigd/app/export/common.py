@@ -70,6 +70,7 @@ class ExportOptions(BaseModel):
     )
     voxel_bins: int = Field(5, ge=1, description="Time bins of the per-frame event voxel grids.")
     point_frames: int = Field(6, ge=1, description="Timesteps used to triangulate the initial point cloud.")
+    seg: bool = Field(False, description="dynamic3dgs: also write all-foreground seg/ masks.")
     jpeg_quality: int = Field(95, ge=50, le=100, description="JPEG quality where a format needs JPEG.")
 
     @field_validator("format", mode="before")

@@ -9,7 +9,7 @@ Dynamic3DGaussians trains on every entry of a meta file in timestep order, one t
 entry of `fn`; here the train meta holds the even timesteps and the test meta the odd ones
 (the paper's 15-of-30 FPS split). `cam_id` is the camera's position in the rig (0, 1, 2, ...).
 Its train.py also opens `seg/<fn>.png`; no segmentation is known, so `seg/` is only written on
-request (`seg=True`: every pixel foreground), and every point of the cloud has seg = 1.
+request (`--seg`: every pixel foreground, value 1), and every point of the cloud has seg = 1.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import numpy as np
 
 from rigd.app.export.common import ExportPlan
 from rigd.app.export.points import triangulate
+from rigd.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -31,10 +32,12 @@ def fn(k: int, j: int) -> str:
     return f"{j}/{k:06d}.jpg"
 
 
-def write(plan: ExportPlan, *, seg: bool = False) -> None:
+def write(plan: ExportPlan) -> None:
     cams, fr = plan.cameras, plan.frames
     if len({c.size for c in cams}) != 1:
-        raise ValueError("Dynamic3DGaussians needs one image size for every camera")
+        sizes = {c.name: c.size for c in cams}
+        raise ConfigError(f"dynamic3dgs needs one image size for every camera ({sizes}): pass --resize WxH")
+    seg = plan.options.seg
     plan.write_images(lambda k, j: f"ims/{fn(k, j)}")
     if seg:
         for k in range(fr.pulses.size):

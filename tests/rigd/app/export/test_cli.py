@@ -7,6 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import h5py
 import numpy as np
 import pytest
@@ -131,3 +132,16 @@ def test_export_with_segments(takes: tuple[Path, Path], tmp_path: Path) -> None:
     frames = json.loads((out / "transforms.json").read_text())["frames"]
     steps = {f["timestep"]: f["t_us"] for f in frames if f["camera"] == "cam0"}
     assert abs(steps[got["keyframe_step"]] - t_mid) <= 20_000
+
+
+def test_dynamic3dgs_seg_masks(takes: tuple[Path, Path], tmp_path: Path) -> None:
+    _, take = takes
+    out = tmp_path / "o"
+    r = runner.invoke(app, ["export", str(take), "--format", "dynamic3dgs", "--out", str(out), "--seg"])
+    assert r.exit_code == 0, r.output
+    meta = json.loads((out / "train_meta.json").read_text())
+    fn = meta["fn"][0][0]
+    mask = cv2.imread(str(out / "seg" / fn.replace(".jpg", ".png")), cv2.IMREAD_UNCHANGED)
+    assert mask is not None
+    assert mask.shape == (RES[1], RES[0])
+    assert np.all(mask == 1)
