@@ -255,7 +255,7 @@ def select_model(
                 n_params=model.n_params,
                 train_rms_px=train,
                 cv_rms_px=cv_rms,
-                note="kept" if kept else "",
+                note="kept" if kept or best is None else _not_kept(model, cv_rms, best, best_cv),
             )
         )
         log.info(
@@ -271,11 +271,25 @@ def select_model(
         raise CalibrationError(f"no lens model could be fitted to {len(dets)} views")
     for s in scores:
         if s.note == "kept" and s.model != best.name:
-            s.note = "superseded"
+            s.note = "beaten by a richer model by more than the margin"
     for s in scores:
         if s.model == best.name:
             s.note = "chosen"
     return best, scores
+
+
+def _not_kept(model: LensModel, cv_rms: float, kept: LensModel, kept_cv: float) -> str:
+    """Why a richer model lost: its held-out RMS did not beat the kept one's by CV_MARGIN, so its
+    extra parameters would fit noise rather than the lens."""
+    gain = 1.0 - cv_rms / kept_cv
+    n = model.n_params - kept.n_params
+    extra = f"{n} more parameter{'s' if n != 1 else ''}"
+    if gain <= 0:
+        return f"held-out RMS no lower than {kept.name}'s: {extra} for nothing"
+    return (
+        f"held-out RMS {gain * 100:.1f} % lower than {kept.name}'s, less than the {CV_MARGIN * 100:g} % "
+        f"asked of {extra}"
+    )
 
 
 def _unscored(model: LensModel, why: str) -> ModelScore:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import html
 import logging
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from numpy.typing import NDArray
 
 from calibration.errors import CalibrationError
 from calibration.extrinsics import RigResult
-from calibration.intrinsics import IntrinsicsResult, undistort
+from calibration.intrinsics import CV_MARGIN, IntrinsicsResult, undistort
 
 log = logging.getLogger(__name__)
 
@@ -53,20 +54,43 @@ def _png(img: U8) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode()
 
 
-def bar_graph(names: Sequence[str], values: Sequence[float], title: str, w: int = 800, h: int = 320) -> U8:
-    """Per-view RMS bars with the mean as a dashed line."""
+def nice_step(span: float, max_ticks: int = 6) -> float:
+    """A tick step of 1, 2 or 5 times a power of ten giving at most `max_ticks` steps over `span`."""
+    raw = max(span, 1e-12) / max_ticks
+    power = 10.0 ** math.floor(math.log10(raw))
+    return next(m * power for m in (1.0, 2.0, 5.0, 10.0) if m * power >= raw)
+
+
+def _tick_text(v: float, step: float) -> str:
+    decimals = max(0, -math.floor(math.log10(step) + 1e-9))
+    return f"{v:.{decimals}f}"
+
+
+def bar_graph(
+    names: Sequence[str],
+    values: Sequence[float],
+    title: str,
+    w: int = 800,
+    h: int = 320,
+    overall_rms: float | None = None,
+) -> U8:
+    """Per-view RMS bars on round ticks, with a dashed line at `overall_rms` (the RMS over every
+    corner of every view, the headline number) when given, else at the mean of the bars. The two
+    differ: views with more corners weigh more in the overall RMS, and an RMS is not a mean."""
     img = np.full((h, w, 3), 255, np.uint8)
     left, bottom, top = 60, 60, 30
-    vmax = max(max(values, default=1e-3) * 1.15, 1e-3)
+    step = nice_step(max(max(values, default=1e-3) * 1.1, 1e-3))
+    vmax = step * math.ceil(max(max(values, default=1e-3) * 1.1, 1e-3) / step)
     n = max(len(values), 1)
     bw = (w - left - 10) / n
     cv2.putText(img, title, (left, 20), _FONT, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.line(img, (left, h - bottom), (w - 10, h - bottom), (0, 0, 0), 1)
     cv2.line(img, (left, top), (left, h - bottom), (0, 0, 0), 1)
-    for k in range(5):
-        v = vmax * k / 4
+    for k in range(round(vmax / step) + 1):
+        v = k * step
         y = int(h - bottom - (h - bottom - top) * v / vmax)
-        cv2.putText(img, f"{v:.2f}", (5, y + 4), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.line(img, (left - 4, y), (left, y), (0, 0, 0), 1)
+        cv2.putText(img, _tick_text(v, step), (5, y + 4), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     for i, (name, v) in enumerate(zip(names, values, strict=True)):
         x0 = int(left + i * bw + 2)
         y = int(h - bottom - (h - bottom - top) * v / vmax)
@@ -74,11 +98,12 @@ def bar_graph(names: Sequence[str], values: Sequence[float], title: str, w: int 
         org = (x0, h - bottom + 12)
         cv2.putText(img, name[-10:], org, _FONT, 0.3, (0, 0, 0), 1, cv2.LINE_AA)
     if values:
-        mean = float(np.mean(values))
-        y = int(h - bottom - (h - bottom - top) * mean / vmax)
+        level = float(np.mean(values)) if overall_rms is None else overall_rms
+        text = f"mean of views {level:.4f} px" if overall_rms is None else f"RMS, all corners {level:.4f} px"
+        y = int(h - bottom - (h - bottom - top) * level / vmax)
         for x in range(left, w - 10, 12):
             cv2.line(img, (x, y), (x + 6, y), (0, 0, 200), 1)
-        cv2.putText(img, f"mean {mean:.3f} px", (w - 150, y - 5), _FONT, 0.4, (0, 0, 200), 1, cv2.LINE_AA)
+        cv2.putText(img, text, (w - 230, y - 5), _FONT, 0.4, (0, 0, 200), 1, cv2.LINE_AA)
     return img
 
 
@@ -118,14 +143,25 @@ def _frustum(R: np.ndarray, t: np.ndarray, size: float) -> np.ndarray:
     return np.vstack([c, (R.T @ corners.T).T + c])
 
 
+#: A label drawn at a 3-D point: (point, text, colour).
+Mark = tuple[np.ndarray, str, tuple[int, int, int]]
+
+
+def _length_text(m: float) -> str:
+    return f"{m * 1000:g} mm" if m < 0.01 else f"{m * 100:g} cm" if m < 1 else f"{m:g} m"
+
+
 def _plot_3d(
     polys: list[tuple[np.ndarray, tuple[int, int, int], bool]],
     axes: tuple[int, int],
     labels: tuple[str, str],
     w: int = 400,
     h: int = 400,
+    marks: Sequence[Mark] = (),
+    title: str = "",
 ) -> U8:
-    """Orthographic projection of 3-D polylines onto two axes (0=X, 1=Y, 2=Z)."""
+    """Orthographic projection of 3-D polylines onto two axes (0=X, 1=Y, 2=Z), with a title, the
+    `marks` written beside their points, and a scale bar (the plot has no other length on it)."""
     img = np.full((h, w, 3), 255, np.uint8)
     pts = np.vstack([p for p, _, _ in polys])[:, list(axes)]
     lo, hi = pts.min(axis=0), pts.max(axis=0)
@@ -138,9 +174,21 @@ def _plot_3d(
 
     for poly, col, closed in polys:
         cv2.polylines(img, [to_px(poly)], closed, col, 1, cv2.LINE_AA)
-    cv2.putText(
-        img, f"{labels[0]} right, {labels[1]} down (m)", (10, h - 10), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA
-    )
+    for point, text, col in marks:
+        x, y = to_px(np.asarray(point, np.float64).reshape(1, 3))[0]
+        cv2.circle(img, (int(x), int(y)), 3, col, -1, cv2.LINE_AA)
+        cv2.putText(img, text, (int(x) + 5, int(y) - 5), _FONT, 0.45, col, 1, cv2.LINE_AA)
+    if title:
+        cv2.putText(img, title, (10, 18), _FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    bar_m = nice_step(span, 4)
+    bar_px = round(bar_m / span * (w - 40))
+    x1, y0 = w - 12, h - 28
+    cv2.line(img, (x1 - bar_px, y0), (x1, y0), (0, 0, 0), 2)
+    for x in (x1 - bar_px, x1):
+        cv2.line(img, (x, y0 - 4), (x, y0 + 4), (0, 0, 0), 1)
+    cv2.putText(img, _length_text(bar_m), (x1 - bar_px, y0 - 7), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    axes_text = f"{labels[0]} right, {labels[1]} down"
+    cv2.putText(img, axes_text, (10, h - 10), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     return img
 
 
@@ -156,8 +204,11 @@ def _cam_polys(
 def extrinsics_plots(result: IntrinsicsResult | RigResult, board_size_m: float = 0.2) -> tuple[U8, U8]:
     """Top (X-Z) and side (Z-Y) views: boards around the camera, or the rig's camera frusta."""
     polys: list[tuple[np.ndarray, tuple[int, int, int], bool]] = []
+    marks: list[Mark] = []
     if isinstance(result, IntrinsicsResult):
+        title = f"{result.camera} (black) and its {len(result.views)} board poses"
         polys += _cam_polys(np.eye(3), np.zeros(3), board_size_m * 0.5, (0, 0, 0))
+        marks.append((np.zeros(3), result.camera, (0, 0, 0)))
         for i, v in enumerate(result.views):
             R = cv2.Rodrigues(np.asarray(v.rvec))[0]
             t = np.asarray(v.tvec)
@@ -171,11 +222,16 @@ def extrinsics_plots(result: IntrinsicsResult | RigResult, board_size_m: float =
             )
             polys.append(((R @ sq.T).T + t, _color(i), True))
     else:
+        title = f"cameras in the frame of {result.reference}"
         centers = np.array([c.center_m for c in result.cameras])
         size = max(float(np.ptp(centers, axis=0).max()) * 0.15, 0.02)
         for i, c in enumerate(result.cameras):
             polys += _cam_polys(np.asarray(c.R), np.asarray(c.t), size, _color(i))
-    return _plot_3d(polys, (0, 2), ("X", "Z")), _plot_3d(polys, (2, 1), ("Z", "Y"))
+            marks.append((np.asarray(c.center_m), c.camera, _color(i)))
+    return (
+        _plot_3d(polys, (0, 2), ("X", "Z"), marks=marks, title=f"top: {title}"),
+        _plot_3d(polys, (2, 1), ("Z", "Y"), marks=marks, title=f"side: {title}"),
+    )
 
 
 def _num(v: float | None) -> str:
@@ -192,8 +248,9 @@ def intrinsics_report(result: IntrinsicsResult, sample_image: np.ndarray | None 
     parts = [
         f"<h2>Camera {html.escape(result.camera)}</h2>",
         f"<p>Board {html.escape(result.board)}, image {result.image_size[0]}x{result.image_size[1]}, "
-        f"model <b>{html.escape(result.model)}</b>, RMS <b>{result.rms_px:.4f} px</b> over "
-        f"{len(result.views)} views.</p>",
+        f"model <b>{html.escape(result.model)}</b>, reprojection RMS <b>{result.rms_px:.4f} px</b> over "
+        f"every corner of {len(result.views)} views (the camera's own fit: intrinsics and one board "
+        "pose per view; <code>avg_reprojection_error</code> in the OpenCV YAML).</p>",
     ]
     K = result.camera_matrix()
     sd = result.std_devs
@@ -218,8 +275,13 @@ def intrinsics_report(result: IntrinsicsResult, sample_image: np.ndarray | None 
             for s in result.model_scores
         )
         parts.append(
-            "<h3>Lens model selection (k-fold over views)</h3><table><tr><th>model</th><th>params</th>"
-            f"<th>train RMS px</th><th>held-out RMS px</th><th></th></tr>{rows}</table>"
+            "<h3>Lens model selection (k-fold over views)</h3>"
+            "<p>Models are tried from the fewest parameters up. A richer model replaces the one kept so "
+            f"far only when its held-out RMS is at least {CV_MARGIN * 100:g} % lower: below that, its "
+            "extra parameters fit the noise of these views rather than the lens, and a lower held-out "
+            "RMS alone does not choose it.</p>"
+            "<table><tr><th>model</th><th>params</th>"
+            f"<th>train RMS px</th><th>held-out RMS px</th><th>outcome</th></tr>{rows}</table>"
         )
     if result.warnings:
         parts.append(
@@ -234,8 +296,15 @@ def intrinsics_report(result: IntrinsicsResult, sample_image: np.ndarray | None 
     names = [v.name for v in result.views]
     parts.append(
         _img_tag(
-            _png(bar_graph(names, [v.rms_px for v in result.views], "Reprojection error per view (px)")),
-            "reprojection error per view",
+            _png(
+                bar_graph(
+                    names,
+                    [v.rms_px for v in result.views],
+                    "Reprojection RMS per view (px)",
+                    overall_rms=result.rms_px,
+                )
+            ),
+            "reprojection RMS per view; dashed: the RMS over every corner of every view (the headline)",
         )
     )
     parts.append(_img_tag(_png(coverage_map(result)), "coverage of the image by detected corners"))
@@ -254,18 +323,34 @@ def intrinsics_report(result: IntrinsicsResult, sample_image: np.ndarray | None 
     return "\n".join(parts)
 
 
-def rig_report(rig: RigResult) -> str:
+def _vec(v: Sequence[float], digits: int) -> str:
+    return "(" + ", ".join(f"{x:+.{digits}f}" for x in v) + ")"
+
+
+def rig_report(rig: RigResult, intrinsics: Sequence[IntrinsicsResult] = ()) -> str:
+    """The rig's poses, each camera's two RMS values side by side, saying which fit each is from."""
+    own = {r.camera: r for r in intrinsics}
     rows = "".join(
-        f"<tr><td>{html.escape(c.camera)}</td><td>{np.round(c.t, 4).tolist()}</td>"
-        f"<td>{np.round(c.t_std_m, 6).tolist()}</td><td>{np.round(np.degrees(c.rvec), 3).tolist()}</td>"
-        f"<td>{np.round(c.rot_std_deg, 4).tolist()}</td><td>{c.rms_px:.3f}</td></tr>"
+        f"<tr><td>{html.escape(c.camera)}</td><td>{_vec(c.center_m, 4)}</td><td>{_vec(c.t, 4)}</td>"
+        f"<td>{_vec(c.t_std_m, 5)}</td><td>{np.degrees(np.linalg.norm(c.rvec)):.3f}</td>"
+        f"<td>{max(c.rot_std_deg, default=0.0):.4f}</td><td>{c.rms_px:.3f} ({c.n_views})</td>"
+        f"<td>{_own_rms(own.get(c.camera))}</td></tr>"
         for c in rig.cameras
     )
     parts = [
         f"<h2>Rig extrinsics (reference {html.escape(rig.reference)})</h2>",
-        f"<p>{rig.n_views} shared views, RMS {rig.rms_px:.4f} px.</p>",
-        "<table><tr><th>camera</th><th>t (m)</th><th>t std (m)</th><th>rvec (deg)</th>"
-        f"<th>rot std (deg)</th><th>RMS px</th></tr>{rows}</table>",
+        f"<p>{rig.n_views} views seen by two or more cameras, joint reprojection RMS "
+        f"{rig.rms_px:.4f} px.</p>",
+        f"<p><b>centre</b>: where the camera is, in the frame of {html.escape(rig.reference)} (x right, "
+        "y down, z forward, metres). <b>T</b>: the translation of the transform into the camera "
+        "(x_cam = R x_ref + T), as written to the YAML. <b>Rig RMS</b> is from the joint fit: "
+        "intrinsics fixed, one board pose per view shared by every camera, shared views only. "
+        "<b>Own RMS</b> is the camera's intrinsic calibration (its own board pose per view, all of its "
+        "views), the YAML's <code>avg_reprojection_error</code>. The rig RMS is usually the larger: "
+        "the board pose shared across cameras is one constraint more, on other views.</p>",
+        "<table><tr><th>camera</th><th>centre (m)</th><th>T (m)</th><th>T std (m)</th>"
+        "<th>rotation from reference (deg)</th><th>rot std (deg)</th><th>rig RMS px (views)</th>"
+        f"<th>own RMS px (views)</th></tr>{rows}</table>",
     ]
     if rig.warnings:
         parts.append("<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in rig.warnings) + "</ul>")
@@ -273,7 +358,12 @@ def rig_report(rig: RigResult) -> str:
     parts.append(
         _img_tag(
             _png(
-                bar_graph(names, list(rig.per_view_rms_px.values()), "Rig reprojection error per view (px)")
+                bar_graph(
+                    names,
+                    list(rig.per_view_rms_px.values()),
+                    "Rig reprojection RMS per view (px)",
+                    overall_rms=rig.rms_px,
+                )
             ),
             "rig reprojection error per view",
         )
@@ -281,6 +371,10 @@ def rig_report(rig: RigResult) -> str:
     top, side = extrinsics_plots(rig)
     parts.append(_img_tag(_png(np.hstack([top, side])), "camera frusta: top view (X-Z) and side view (Z-Y)"))
     return "\n".join(parts)
+
+
+def _own_rms(result: IntrinsicsResult | None) -> str:
+    return "" if result is None else f"{result.rms_px:.3f} ({len(result.views)})"
 
 
 def write_report(
@@ -293,7 +387,7 @@ def write_report(
     """Write the HTML file; `samples` maps camera name to an image shown undistorted."""
     body = [intrinsics_report(r, (samples or {}).get(r.camera)) for r in intrinsics]
     if rig is not None:
-        body.append(rig_report(rig))
+        body.append(rig_report(rig, intrinsics))
     style = (
         "body{font-family:sans-serif;max-width:1000px;margin:auto}table{border-collapse:collapse}"
         "td,th{border:1px solid #ccc;padding:2px 6px}img{max-width:100%}"

@@ -45,7 +45,7 @@ def test_yaml_json_kalibr_and_report(real_detections, tmp_path: Path) -> None:
     write_report(tmp_path / "r.html", [res], samples={"left": np.zeros((512, 640), np.uint8) + 100})
     html = (tmp_path / "r.html").read_text()
     assert html.count("data:image/png;base64,") == 5
-    assert "reprojection error per view" in html
+    assert "reprojection RMS per view" in html
 
 
 def test_cli_intrinsics_json_yaml_report(tmp_path: Path) -> None:

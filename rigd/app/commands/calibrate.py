@@ -29,6 +29,7 @@ from rigd.app.workflows.calibrate import (
     EventsOptions,
     ImageSets,
     IntrinsicsOptions,
+    RigCalibration,
     RigOptions,
     TakeSource,
     glob_images,
@@ -175,8 +176,34 @@ def rig_cmd(
     if json_out:
         typer.echo(dumps_summary(calib.rig))
     else:
-        for c in calib.rig.cameras:
-            _err.print(f"{c.camera}: t={np.round(c.t, 4).tolist()} m, RMS {c.rms_px:.3f} px")
+        _print_rig(calib, out)
+
+
+def _print_rig(calib: RigCalibration, out: Path) -> None:
+    """Each device's place in the rig and its two reprojection RMS values, each named for the fit
+    it comes from (they differ: see the report's rig section)."""
+    rig = calib.rig
+    _err.print(
+        f"rig frame: {rig.reference} (x right, y down, z forward, m); {rig.n_views} shared views, "
+        f"joint RMS {rig.rms_px:.3f} px -> {out}",
+        highlight=False,
+    )
+    for c in rig.cameras:
+        if c.camera == rig.reference:
+            where = "the reference (origin of the rig frame)"
+        else:
+            centre = ", ".join(f"{v:+.4f}" for v in c.center_m)
+            std = max(c.t_std_m, default=0.0)
+            turn = float(np.degrees(np.linalg.norm(c.rvec)))
+            where = f"centre at ({centre}) m ±{std:.4f} m in {rig.reference}'s frame, rotated {turn:.2f}°"
+        own = calib.intrinsics[c.camera]
+        _err.print(
+            f"{c.camera}: {where}; RMS {own.rms_px:.3f} px own fit ({len(own.views)} views, "
+            f"avg_reprojection_error), {c.rms_px:.3f} px rig fit ({c.n_views} shared views, intrinsics "
+            "fixed, one board pose per view for all cameras)",
+            soft_wrap=True,
+            highlight=False,
+        )
 
 
 @calibrate_app.command("events")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import cv2
 import pytest
 from typer.testing import CliRunner
 
@@ -76,3 +77,72 @@ def test_calibration_warnings_are_said_once(board_take: Path, tmp_path: Path) ->
     assert said, r.stderr  # this take's board covers little of the image: there is something to say
     for text in said:
         assert r.stderr.count(text) == 1, (text, r.stderr)
+
+
+def test_rig_output_says_what_each_number_is(tmp_path: Path) -> None:
+    take = stereo_board_take(tmp_path / "stereo.h5", n_views=8)
+    out, report = tmp_path / "rig.yaml", tmp_path / "rig.html"
+    r = runner.invoke(
+        app, ["calibrate", "rig", str(take), "-b", STEREO_BOARD, "-o", str(out), "--report", str(report)]
+    )
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.stderr.split())
+    assert "t=[" not in text
+    assert "cam0: the reference (origin of the rig frame)" in text
+    centre = re.search(r"cam1: centre at \(([-+0-9., ]+)\) m ±[0-9.]+ m in cam0's frame", text)
+    assert centre is not None, text
+    x = float(centre.group(1).split(",")[0])
+    assert 0.09 < x < 0.11  # cam1 sits 10 cm to the right of cam0
+    fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    yaml_rms = fs.getNode("cam1_avg_reprojection_error").real()
+    fs.release()
+    line = next(line for line in r.stderr.splitlines() if line.startswith("cam1: centre"))
+    own = re.search(
+        r"RMS ([0-9.]+) px own fit \(\d+ views, avg_reprojection_error\), ([0-9.]+) px rig fit", line
+    )
+    assert own is not None, line
+    assert float(own.group(1)) == pytest.approx(yaml_rms, abs=6e-4)
+    html = report.read_text()
+    assert "rig RMS px (views)" in html
+    assert "own RMS px (views)" in html
+    assert "avg_reprojection_error" in html
+
+
+def test_intrinsics_report_says_why_a_model_was_chosen(tmp_path: Path) -> None:
+    take = stereo_board_take(tmp_path / "stereo.h5", n_views=10)
+    report = tmp_path / "rig.html"
+    r = runner.invoke(
+        app,
+        [
+            "calibrate",
+            "rig",
+            str(take),
+            "-b",
+            STEREO_BOARD,
+            "-o",
+            str(tmp_path / "rig.yaml"),
+            "--report",
+            str(report),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    html = report.read_text()
+    assert "at least 2 % lower" in html
+    rows = re.findall(
+        r"<tr><td>(\w+)</td><td>\d+</td><td>([0-9.]*)</td><td>([0-9.]*)</td><td>([^<]*)</td></tr>", html
+    )
+    assert rows
+    for model, _train, held_out, outcome in rows:
+        assert outcome, f"{model}: no outcome"
+        if held_out and outcome != "chosen":
+            assert "lower than" in outcome or "no lower than" in outcome or "beaten" in outcome, outcome
+    assert "RMS, all corners" not in html  # drawn into the figure, not the page text
+    assert "dashed: the RMS over every corner" in html
+
+
+def test_report_ticks_are_round_numbers() -> None:
+    from calibration.report import nice_step
+
+    assert nice_step(0.1386) == pytest.approx(0.05)
+    assert nice_step(0.9) == pytest.approx(0.2)
+    assert nice_step(3.0) == pytest.approx(0.5)
