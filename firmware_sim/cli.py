@@ -8,6 +8,7 @@ imports `firmware_sim`.
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -18,6 +19,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from firmware_sim.event_model import PixelModelConfig
 from firmware_sim.frames_to_events import FramesToEvents, open_source, simulate_to_raw, simulate_to_take
 from rigd.core.errors import RigdError
+from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +104,8 @@ def simulate_events(
     except (ValueError, OSError, RigdError) as exc:  # a take that cannot be read: TakeFormatError
         console.print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(code=2) from exc
+    described = _describe(source.description, input_path, camera)
+    console.print(f"input: {described}", soft_wrap=True, highlight=False)
     try:
         size = _size(source, width, height)
         f2e = FramesToEvents(
@@ -144,8 +148,33 @@ def simulate_events(
     mean_sub = summary.substeps_total / max(summary.frames - 1, 1)
     console.print(
         f"{summary.frames} frames -> {summary.events} events in {summary.path} "
-        f"({summary.wall_s:.1f} s; sub-steps mean {mean_sub:.1f}, max {summary.substeps_max})"
+        f"({summary.wall_s:.1f} s; sub-steps mean {mean_sub:.1f}, max {summary.substeps_max})",
+        soft_wrap=True,
+        highlight=False,
     )
+    if f2e.capped_steps:
+        steps = max(summary.frames - 1, 1)
+        bound = f2e.max_px_per_step or 1.0
+        console.print(
+            f"[yellow]warning:[/] {f2e.capped_steps} of {steps} frame steps hit the sub-step cap "
+            f"(--max-substeps {f2e.max_substeps}; up to {f2e.capped_motion_px:.0f} px of motion per frame, "
+            f"{bound:g} px per sub-step asked): their events are coarser in time than asked. Raise "
+            f"--max-substeps to {math.ceil(f2e.capped_motion_px / bound)}, or give a higher --fps or "
+            "smaller frames (--width) if the motion is real.",
+            soft_wrap=True,
+            highlight=False,
+        )
+
+
+def _describe(description: str, input_path: Path, camera: str | None) -> str:
+    """What is read; for a take without --camera, which camera that is and how to pick another."""
+    if camera is not None or input_path.suffix.lower() not in (".h5", ".hdf5"):
+        return description
+    with Take(input_path) as take:
+        cams = take.cameras
+    if len(cams) < 2:
+        return description
+    return f"{description} (the first of {', '.join(cams)}; --camera picks another)"
 
 
 def _size(source: Any, width: int | None, height: int | None) -> tuple[int, int]:

@@ -165,6 +165,11 @@ class FramesToEvents:
         self._grid: tuple[F32, F32] | None = None
         self.substeps_total = 0
         self.substeps_max = 0
+        self.capped_steps = 0
+        """Frame steps whose motion asked for more than `max_substeps` (their events are coarser
+        in time than `max_px_per_step` promises; the caller warns once with the count)."""
+        self.capped_motion_px = 0.0
+        """The largest motion (px) among the capped steps."""
 
     @property
     def size(self) -> tuple[int, int]:
@@ -243,7 +248,11 @@ class FramesToEvents:
             f01 = self._flow(prev, gray)
             motion = self._motion(f01)
             bound = self.max_px_per_step if self.max_px_per_step is not None else 1.0
-            n = min(max(1, math.ceil(motion / bound - 1e-9)), self.max_substeps)
+            wanted = max(1, math.ceil(motion / bound - 1e-9))
+            n = min(wanted, self.max_substeps)
+            if wanted > self.max_substeps:
+                self.capped_steps += 1
+                self.capped_motion_px = max(self.capped_motion_px, motion)
         n = min(n, t - t0)
         parts: list[EventArray] = []
         if n > 1:
