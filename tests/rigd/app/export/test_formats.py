@@ -29,6 +29,7 @@ from bench.e2calib import capture_board_take
 from firmware_sim.board_scene import BoardScene
 from firmware_sim.world import get_world
 from rigd.app.export import ExportOptions, run_export
+from rigd.app.workflows.progress import ProgressUpdate, no_progress
 from rigd.take.calibration import store_calibration
 from rigd.take.reader import open_take
 
@@ -54,6 +55,7 @@ class Fixture:
     scene: BoardScene
     truth_us: dict[str, dict[int, float]]  # camera -> rig mid-exposure us -> true render time
     out: dict[str, Path]
+    progress: list[ProgressUpdate]
 
 
 def _truth_times(take: Path) -> dict[str, dict[int, float]]:
@@ -89,12 +91,14 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> Fixture:
     assert isinstance(scene, BoardScene)
     _store_truth(cap.path, scene)
     out = {}
+    updates: list[ProgressUpdate] = []
     for fmt in ("dynamic3dgs", "nerfstudio", "colmap", "dsec"):
         out[fmt] = root / fmt
-        run_export(ExportOptions(take=cap.path, format=fmt, out=out[fmt]))
+        callback = updates.append if fmt == "dsec" else no_progress
+        run_export(ExportOptions(take=cap.path, format=fmt, out=out[fmt]), callback)
     out["resized"] = root / "resized"
     run_export(ExportOptions(take=cap.path, format="nerfstudio", out=out["resized"], resize=(384, 216)))
-    return Fixture(cap.path, scene, _truth_times(cap.path), out)
+    return Fixture(cap.path, scene, _truth_times(cap.path), out, updates)
 
 
 # --- independent readers ------------------------------------------------------------------
@@ -434,3 +438,16 @@ def test_nonzero_dist_round_trip(exported: Fixture, tmp_path: Path) -> None:
     print(f"dist round trip: {len(checked)} views, max {max(checked):.3f} px")
     assert len(checked) >= 5
     assert max(checked) < 0.5
+
+
+def test_progress_counts_up_to_each_stage_total(exported: Fixture) -> None:
+    stages: dict[str, list[ProgressUpdate]] = {}
+    for u in exported.progress:
+        stages.setdefault(u.stage, []).append(u)
+    assert {"images", "events ev0", "events ev1", "voxels ev0", "voxels ev1"} <= set(stages), stages.keys()
+    images = stages["images"]
+    assert images[0].done == 0
+    assert images[-1].done == images[-1].total == 90
+    done = [u.done for u in images]
+    assert done == sorted(d for d in done if d is not None)
+    assert stages["voxels ev0"][-1].done == 30
