@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+from rich.progress import Progress, TextColumn
 
 from rigd import __version__
 from rigd.app.commands.calibrate import calibrate_app
@@ -218,24 +218,31 @@ def _capture_progress(bar: StageProgress) -> Callable[[CaptureProgress], None]:
 
 
 def _capture_remote(client: DaemonClient, duration: float, label: str | None, json_out: bool) -> None:
-    with Progress(
-        TextColumn("[bold]capturing (daemon)[/]"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("pulses  {task.fields[detail]}"),
-        console=console,
-        disable=json_out or not console.is_terminal,
-    ) as bar:
-        task = bar.add_task("capture", total=None, detail="")
-
-        taken: list[str] = []
+    """Follow a daemon's take: seconds of pulses against the duration asked for, then its stopping
+    (draining, fitting the clocks, sealing), then the summary an in-process capture prints."""
+    taken: list[str] = []
+    with StageProgress(console, "capture (daemon)", quiet=json_out) as bar:
+        shown: list[str] = []
 
         def on_status(t: dict[str, Any]) -> None:
+            state = t.get("state")
             if t.get("take") and not taken:
                 taken.append(t["take"])
+            if not taken or t.get("take") != taken[0]:
+                return  # before the take shows up, or after it ended
+            if state == "capturing" and not shown:
+                bar.stage("capturing", max(1, round(duration)), "s of pulses")
+                shown.append("capturing")
+            elif state == "stopping" and "stopping" not in shown:
+                note = "the daemon drains its queue, fits the device clocks and seals the take"
+                bar.stage("stopping", None, "", note)
+                shown.append("stopping")
             faults = t.get("faults") or []
-            detail = f"queue {t.get('queue_depth')}" + (f"  faults: {len(faults)}" if faults else "")
-            bar.update(task, completed=t.get("pulses") or 0, detail=detail)
+            detail = f"{t.get('pulses') or 0:,} pulses  queue {t.get('queue_depth')}"
+            detail += f"  faults: {len(faults)}" if faults else ""
+            elapsed = min(round(t.get("take_elapsed_s") or 0.0), max(1, round(duration)))
+            done = elapsed if state == "capturing" else None
+            bar.advance_to(done, detail)
 
         capture_via_daemon(client, duration, label, json_out, on_status)
     if not json_out and taken:
