@@ -35,7 +35,6 @@ from calibration.io import write_json
 from rigd.app.console.live import LatestSlot, LivePublisher
 from rigd.app.workflows.guided import DEFAULT_BOARD, GuidedOptions, GuidedRun, own_sim_world, verdict
 from rigd.core.errors import RigdError
-from rigd.core.frames import Frame
 
 log = logging.getLogger(__name__)
 
@@ -171,8 +170,8 @@ class GuidedController:
                 looked = run.step(0.5)
                 if looked is None:
                     continue
-                fb, frame = looked
-                self._publish(run, fb.model_dump(mode="json"), frame, t_end)
+                fb, image = looked
+                self._publish(run, fb.model_dump(mode="json"), image, t_end)
             if self._stop.is_set() and not self._finish.is_set():
                 run.close()
                 self._set_doc(state="cancelled", camera=o.camera)
@@ -185,14 +184,14 @@ class GuidedController:
             run.close()
             self._set_doc(state="failed", camera=o.camera, error=f"{type(exc).__name__}: {exc}")
 
-    def _publish(self, run: GuidedRun, fb: dict[str, Any], frame: Frame, t_end: float) -> None:
+    def _publish(self, run: GuidedRun, fb: dict[str, Any], image: np.ndarray, t_end: float) -> None:
         session = run.session
         ghost = session.hint_outline()
         now = time.monotonic()
         if now - self._last_image >= self.live.interval_s:
             self._last_image = now
             det = session.last_detection
-            img = annotate(np.asarray(frame.image), None if det is None else det.image_points, ghost)
+            img = annotate(image, None if det is None else det.image_points, ghost)
             width = 640
             if img.shape[1] > width:
                 size = (width, round(img.shape[0] * width / img.shape[1]))

@@ -9,12 +9,14 @@ calibration is written with `calibration.io.write_result` whenever enough views 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.boards import parse_board
@@ -24,10 +26,10 @@ from calibration.io import write_result
 from calibration.report import write_report
 from drivers.base import RgbCamera, Trigger
 from drivers.registry import open_device
-from rigd.app.config import CameraConfig, RigConfig, default_sim_rig
+from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, default_sim_rig
 from rigd.app.workflows.calibrate import Board
+from rigd.app.workflows.guided_feeds import CameraFeed, ImageFeed, open_event_feed, shutdown
 from rigd.core.errors import RigdError
-from rigd.core.frames import Frame
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +127,10 @@ def run_guided(
 
 class GuidedRun:
     """A guided session on open devices, driven one frame at a time (the CLI loops over `step`,
-    the web console runs it on a worker and lets the technician drop views and finish)."""
+    the web console runs it on a worker and lets the technician drop views and finish).
+
+    `options.camera` names an RGB camera or an event sensor of the rig; an event sensor is seen
+    through images reconstructed from its events (rigd.app.workflows.guided_feeds)."""
 
     def __init__(self, options: GuidedOptions, rig: RigConfig | None = None) -> None:
         self.options = options
@@ -133,11 +138,14 @@ class GuidedRun:
         if rig is None:
             rig = RigConfig.load(o.config) if o.config else guided_sim_rig(o.resolution or SIM_RESOLUTION)
         self.rig = rig
-        self.cam_cfg = _camera_config(rig, o.camera)
-        self._devices: tuple[Trigger, RgbCamera] | None = None
+        self.device_cfg = _device_config(rig, o.camera)
+        self._feed: ImageFeed | None = None
         self._session: GuidedSession | None = None
         self.frames = 0
-        self.skipped = 0
+
+    @property
+    def skipped(self) -> int:
+        return 0 if self._feed is None else self._feed.skipped
 
     @property
     def session(self) -> GuidedSession:
@@ -146,42 +154,48 @@ class GuidedRun:
         return self._session
 
     def open(self) -> GuidedStarted:
-        """Open and start the trigger and the camera; make the session."""
-        trigger, cam = _open(self.rig, self.cam_cfg)
-        try:
-            self._session = _session(self.options, cam, self.cam_cfg.settings.exposure_us)
-            cam.start()
-            trigger.arm()
-            trigger.start()
-        except BaseException:
-            _shutdown(trigger, cam)
-            raise
-        self._devices = (trigger, cam)
-        shape = cam.frame_shape
-        return GuidedStarted(
-            self.options.camera, self.cam_cfg.spec, (int(shape[1]), int(shape[0])), self._session.hint_text()
-        )
+        """Open and start the trigger and the device; make the session."""
+        dev = self.device_cfg
+        feed: ImageFeed
+        if isinstance(dev, CameraConfig):
+            trigger, cam = _open(self.rig, dev)
+            try:
+                self._session = _session(self.options, cam.frame_shape, dev.settings.exposure_us)
+                cam.start()
+                trigger.arm()
+                trigger.start()
+            except BaseException:
+                shutdown(trigger, cam)
+                raise
+            feed = CameraFeed(trigger, cam)
+        else:
+            feed = open_event_feed(self.rig, dev)
+            try:
+                w, h = feed.size
+                # Events need the board to move: a reconstruction has no exposure to smear in.
+                self._session = _session(self.options, (h, w), None, still_px=math.inf)
+            except BaseException:
+                feed.close()
+                raise
+        self._feed = feed
+        return GuidedStarted(self.options.camera, dev.spec, feed.size, self.session.hint_text())
 
-    def step(self, timeout_s: float = 0.5) -> tuple[Feedback, Frame] | None:
-        """Offer the newest frame to the session; None when no frame came within `timeout_s`."""
-        if self._devices is None:
+    def step(self, timeout_s: float = 0.5) -> tuple[Feedback, NDArray[np.uint8]] | None:
+        """Offer the newest image to the session; None when none came within `timeout_s`."""
+        if self._feed is None:
             raise RigdError("the guided session's devices are closed")
-        trigger, cam = self._devices
-        frame = cam.read_frame(timeout_s)
-        if frame is None:
+        got = self._feed.read(timeout_s)
+        if got is None:
             return None
-        # Live feed: always look at the newest frame; stale ones would lag the technician.
-        while (newer := cam.read_frame(0.0)) is not None:
-            frame, self.skipped = newer, self.skipped + 1
-        trigger.read_pulses(0.0)  # nobody needs the pulse records; keep the queue short
+        image, t_us = got
         self.frames += 1
-        return self.session.offer(np.asarray(frame.image), frame.t_exposure_start_us), frame
+        return self.session.offer(image, t_us), image
 
     def close(self) -> None:
         """Stop and close the devices (idempotent)."""
-        if self._devices is not None:
-            _shutdown(*self._devices)
-            self._devices = None
+        if self._feed is not None:
+            self._feed.close()
+            self._feed = None
 
     def finish(self) -> GuidedOutcome:
         """Close the devices; write the calibration (and report) when enough views were kept."""
@@ -256,12 +270,20 @@ def _with_board_scene(spec: str) -> str:
     return spec + ("&" if "?" in spec else "?") + "scene=board"
 
 
-def _camera_config(cfg: RigConfig, camera: str) -> CameraConfig:
+def _device_config(cfg: RigConfig, name: str) -> CameraConfig | EventSensorConfig:
+    """The camera or event sensor called `name`, watching the board scene on the sim."""
     for cam in cfg.cameras:
-        if cam.name == camera:
+        if cam.name == name:
             return cam.model_copy(update={"spec": _with_board_scene(cam.spec)})
+    for sensor in cfg.event_sensors:
+        if sensor.name == name:
+            return sensor.model_copy(update={"spec": _with_board_scene(sensor.spec)})
     names = ", ".join(c.name for c in cfg.cameras) or "none"
-    raise RigdError(f"rig {cfg.name!r} has no RGB camera {camera!r} (cameras: {names})")
+    sensors = ", ".join(c.name for c in cfg.event_sensors) or "none"
+    raise RigdError(
+        f"rig {cfg.name!r} has no RGB camera {name!r} nor an event sensor of that name "
+        f"(cameras: {names}; event sensors: {sensors})"
+    )
 
 
 def _open(cfg: RigConfig, cam_cfg: CameraConfig) -> tuple[Trigger, RgbCamera]:
@@ -282,23 +304,15 @@ def _open(cfg: RigConfig, cam_cfg: CameraConfig) -> tuple[Trigger, RgbCamera]:
     return trigger, cam
 
 
-def _session(o: GuidedOptions, cam: RgbCamera, exposure_us: float | None) -> GuidedSession:
-    shape = cam.frame_shape
+def _session(
+    o: GuidedOptions, shape: tuple[int, ...], exposure_us: float | None, still_px: float | None = None
+) -> GuidedSession:
     return GuidedSession(
         o.board,
         (int(shape[1]), int(shape[0])),
         target_sigma_px=o.target_sigma_px,
-        still_px=o.still_px,
+        still_px=o.still_px if still_px is None else still_px,
         min_views=o.min_views,
         model=o.model,
         exposure_us=exposure_us,
     )
-
-
-def _shutdown(trigger: Trigger, cam: RgbCamera) -> None:
-    """Stop and close both devices; one failing must not keep the others running."""
-    for stop in (trigger.stop, cam.stop, cam.close, trigger.close):
-        try:
-            stop()
-        except Exception as exc:  # noqa: BLE001  (shutdown must reach every device)
-            log.error("guided: %s failed during shutdown: %s", stop.__qualname__, exc)

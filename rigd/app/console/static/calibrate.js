@@ -10,7 +10,7 @@ async function loadDevices() {
   const sel = document.getElementById("gdevice");
   sel.replaceChildren(
     ...info.devices.cameras.map((c) => el("option", { value: c, text: `${c} (camera)` })),
-    ...info.devices.event_sensors.map((s) => el("option", { value: s, disabled: "", text: `${s} (event sensor: rigd calibrate events TAKE.h5 --sensor ${s})` })),
+    ...info.devices.event_sensors.map((s) => el("option", { value: s, text: `${s} (event sensor, frames reconstructed from its events)` })),
   );
   document.getElementById("gboard").value = info.devices.board;
   if (info.status) render(info.status);

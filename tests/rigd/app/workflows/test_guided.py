@@ -106,3 +106,24 @@ def test_cli_as_the_readme_writes_it_finishes_on_the_sim(
     assert "time ran out" not in r.output
     _, _, size = read_opencv_yaml(tmp_path / "cam0.yaml")
     assert size == (640, 360)
+
+
+@pytest.mark.slow
+def test_event_sensor_session_on_reconstructed_frames(tmp_path: Path) -> None:
+    """An event sensor goes through the same session on images reconstructed from its events
+    (e2calib's hpf): the sim board is found in them, views are kept and a calibration written."""
+    out = tmp_path / "ev0.yaml"
+    options = GuidedOptions(
+        camera="ev0", out=out, resolution=(320, 180), max_seconds=20.0, min_views=3, target_sigma_px=50.0
+    )
+    updates: list[GuidedProgress] = []
+    outcome = run_guided(options, updates.append)
+    started = updates[0]
+    assert isinstance(started, GuidedStarted)
+    assert started.frame_size == (320, 180)
+    assert "ev0" in started.spec
+    assert "scene=board" in started.spec
+    assert outcome.n_views >= 3, [u.feedback.reason for u in updates[1:] if isinstance(u, GuidedFrame)][-20:]
+    assert outcome.result is not None
+    _, _, size = read_opencv_yaml(out)
+    assert size == (320, 180)

@@ -1,0 +1,138 @@
+"""Live image feeds for guided calibration: a camera's newest frame, or an event sensor's events
+reconstructed into a gray image the e2calib way.
+
+Why a feed: the guided session (calibration.guided) only needs an image and its time. A camera
+gives frames; an event sensor gives events, which `calibration.e2calib` turns into images. The
+live reconstruction is e2calib's ``hpf`` (per-pixel leaky integration of log intensity, 1 Hz
+corner): it forgets history within about a second, so the last EVENT_HISTORY_US of events give
+the same image as the whole stream would, at a cost bounded by that window. The offline
+``integrate`` method (more accurate, see docs/calibration.md) needs the whole stream and stays with
+`rigd calibrate events` on a take.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.e2calib import ReconstructionParams, detector_image, reconstruct
+from drivers.base import EventSensor, RgbCamera, Trigger
+from drivers.registry import open_device
+from rigd.app.config import EventSensorConfig, RigConfig
+from rigd.core.events import EventArray
+
+log = logging.getLogger(__name__)
+
+#: Events kept for the live reconstruction (the hpf history decays within ~1/(2 pi 1 Hz)).
+EVENT_HISTORY_US = 2_000_000
+#: New events a live event image waits for (its period, in the sensor's time).
+EVENT_FRAME_US = 100_000
+#: Live reconstruction method (see the module docstring).
+EVENT_METHOD = "hpf"
+
+
+class ImageFeed(Protocol):
+    """Newest image (gray or colour) and its time in the device clock, or None on timeout."""
+
+    size: tuple[int, int]
+    skipped: int
+
+    def read(self, timeout_s: float) -> tuple[NDArray[np.uint8], int] | None: ...
+
+    def close(self) -> None: ...
+
+
+def shutdown(trigger: Trigger, device: RgbCamera | EventSensor) -> None:
+    """Stop and close both devices; one failing must not keep the other running."""
+    for stop in (trigger.stop, device.stop, device.close, trigger.close):
+        try:
+            stop()
+        except Exception as exc:  # noqa: BLE001  (shutdown must reach every device)
+            log.error("guided: %s failed during shutdown: %s", stop.__qualname__, exc)
+
+
+class CameraFeed:
+    """The newest frame of a started camera (older ones are skipped: a live feed must not lag)."""
+
+    def __init__(self, trigger: Trigger, cam: RgbCamera) -> None:
+        self.trigger, self.cam = trigger, cam
+        shape = cam.frame_shape
+        self.size = (int(shape[1]), int(shape[0]))
+        self.skipped = 0
+
+    def read(self, timeout_s: float) -> tuple[NDArray[np.uint8], int] | None:
+        frame = self.cam.read_frame(timeout_s)
+        if frame is None:
+            return None
+        while (newer := self.cam.read_frame(0.0)) is not None:
+            frame, self.skipped = newer, self.skipped + 1
+        self.trigger.read_pulses(0.0)  # nobody needs the pulse records; keep the queue short
+        return np.asarray(frame.image), int(frame.t_exposure_start_us)
+
+    def close(self) -> None:
+        shutdown(self.trigger, self.cam)
+
+
+class EventFeed:
+    """Images reconstructed from a started event sensor's recent events (module docstring)."""
+
+    def __init__(self, trigger: Trigger, sensor: EventSensor) -> None:
+        self.trigger, self.sensor = trigger, sensor
+        self.size = sensor.geometry
+        self.skipped = 0
+        self.params = ReconstructionParams()
+        self._parts: list[EventArray] = []
+        self._last_image_t: int | None = None
+
+    def read(self, timeout_s: float) -> tuple[NDArray[np.uint8], int] | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            packet = self.sensor.read_events(max(0.0, deadline - time.monotonic()))
+            self.trigger.read_pulses(0.0)
+            if packet is not None and len(packet.events):
+                self._parts.append(packet.events)
+            t_end = self._t_end()
+            if t_end is not None and (
+                self._last_image_t is None or t_end - self._last_image_t >= EVENT_FRAME_US
+            ):
+                break
+            if time.monotonic() >= deadline:
+                return None
+        events = EventArray.concatenate(self._parts)
+        keep = np.flatnonzero(events.t >= t_end - EVENT_HISTORY_US)
+        events = events[keep]
+        self._parts = [events]
+        self._last_image_t = t_end
+        img = reconstruct(events, self.size, [t_end], EVENT_METHOD, self.params)[0]
+        return detector_image(img, EVENT_METHOD, self.params), t_end
+
+    def _t_end(self) -> int | None:
+        last = [int(p.t[-1]) for p in self._parts if len(p)]
+        return max(last) if last else None
+
+    def close(self) -> None:
+        shutdown(self.trigger, self.sensor)
+
+
+def open_event_feed(rig: RigConfig, sensor_cfg: EventSensorConfig) -> EventFeed:
+    """Open, configure and start the trigger and the event sensor."""
+    trigger = open_device("trigger", rig.trigger.spec)
+    try:
+        trigger.configure(rig.trigger.settings)
+        sensor = open_device("event_sensor", sensor_cfg.spec)
+    except BaseException:
+        trigger.close()
+        raise
+    try:
+        sensor.configure(sensor_cfg.settings)
+        sensor.start()
+        trigger.arm()
+        trigger.start()
+    except BaseException:
+        shutdown(trigger, sensor)
+        raise
+    return EventFeed(trigger, sensor)
