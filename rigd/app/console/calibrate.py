@@ -4,7 +4,8 @@ The worker offers the newest frame to the session as fast as detection allows (a
 the browser sees, at the console's rate, the frame with the detected corners and the ghost outline
 of the next pose drawn in, the coverage, the sigmas against the target and the kept views. The
 technician can drop a view and finish: the calibration is written as OpenCV YAML and JSON with
-an HTML report into the console's calibration directory, and the page links the files.
+an HTML report into the console's calibration directory (and, when asked, into a complete take's
+`/calibration/<device>`), and the page links the files.
 
 The guided run opens the rig's devices itself, so it is refused while a take runs, and the
 console refuses to start a take while it runs (on the sim rig it uses a world of its own).
@@ -33,8 +34,10 @@ from calibration.errors import CalibrationError
 from calibration.guided import SIGMA_NAMES, TILT_BINS
 from calibration.io import write_json
 from rigd.app.console.live import LatestSlot, LivePublisher
+from rigd.app.console.takes import TakeList
 from rigd.app.workflows.guided import DEFAULT_BOARD, GuidedOptions, GuidedRun, own_sim_world, verdict
 from rigd.core.errors import RigdError
+from rigd.take.calibration import store_calibration
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +55,12 @@ class GuidedStartBody(BaseModel):
     min_views: int = Field(6, ge=3, le=100)
     still_px: float = Field(1.0, gt=0, le=100)
     max_seconds: float = Field(600.0, gt=0, le=3600)
+
+
+class FinishBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    into_take: str | None = Field(None, description="Also store the result in this take of take_dir.")
 
 
 class DropBody(BaseModel):
@@ -84,10 +93,12 @@ def annotate(image: np.ndarray, corners: np.ndarray | None, ghost: list[list[flo
 class GuidedController:
     """At most one guided run at a time, for the console (see the module docstring)."""
 
-    def __init__(self, daemon: Any, live: LivePublisher, out_dir: Path) -> None:
+    def __init__(self, daemon: Any, live: LivePublisher, out_dir: Path, takes: TakeList) -> None:
         self.daemon = daemon
         self.live = live
         self.out_dir = out_dir
+        self.takes = takes
+        self._into_take: Path | None = None
         self._lock = threading.Lock()
         self._run: GuidedRun | None = None
         self._thread: threading.Thread | None = None
@@ -150,6 +161,7 @@ class GuidedController:
         self._stop.clear()
         self._finish.clear()
         self._drops = []
+        self._into_take = None
         self._run = run
         self._set_doc(state="running", camera=body.camera, spec=started.spec, hint=started.first_hint)
         self._thread = threading.Thread(target=self._work, args=(run,), name="console-guided", daemon=True)
@@ -226,6 +238,11 @@ class GuidedController:
             files = {"yaml": o.out_path.name, "json": json_path.name}
             if o.report is not None:
                 files["report"] = o.report.name
+            if self._into_take is not None:
+                summary = outcome.result.summary()
+                source = f"guided calibration from the console ({outcome.n_views} views)"
+                store_calibration(self._into_take, o.camera, intrinsics=summary, source=source)
+                files["take"] = self._into_take.name
             sig = {k: round(outcome.result.std_devs[k], 4) for k in SIGMA_NAMES}
         else:
             sig = {}
@@ -247,10 +264,23 @@ class GuidedController:
         with self._lock:
             self._drops.append(index)
 
-    def finish(self) -> None:
+    def finish(self, into_take: str | None = None) -> None:
+        """End the session and write the result (and store it in take `into_take` of take_dir)."""
         if not self.running:
             raise RigdError("no guided calibration is running")
+        path = None
+        if into_take is not None:
+            path = self.takes.path_of(into_take)
+            entry = self.takes.entry(path)
+            if entry.status != "complete":
+                raise RigdError(f"take {into_take} is {entry.status}; calibrations go into complete takes")
+            if self.run_device() not in entry.cameras + entry.event_sensors:
+                raise RigdError(f"take {into_take} has no device {self.run_device()!r}")
+        self._into_take = path
         self._finish.set()
+
+    def run_device(self) -> str | None:
+        return None if self._run is None else self._run.options.camera
 
     def cancel(self) -> None:
         self._stop.set()
@@ -285,8 +315,9 @@ class GuidedController:
 
         async def finish(request: Request) -> Response:
             try:
-                self.finish()
-            except RigdError as exc:
+                body = FinishBody.model_validate(json.loads(await request.body() or b"{}"))
+                await run_in_threadpool(self.finish, body.into_take)
+            except (json.JSONDecodeError, ValidationError, RigdError) as exc:
                 return _bad(str(exc))
             return JSONResponse({"ok": True})
 

@@ -63,11 +63,12 @@ class ConsoleServer:
 
         svc = daemon.config.service
         live = LivePublisher(DaemonSource(daemon), rate_hz=self.rate_hz, thumbnail_width=svc.thumbnail_width)
-        guided = GuidedController(daemon, live, out_dir=self.guided_out or svc.take_dir / "calibration")
+        takes = TakeList(svc.take_dir, svc.thumbnail_width)
+        guided = GuidedController(daemon, live, self.guided_out or svc.take_dir / "calibration", takes)
         self.ctx = ConsoleContext(
             daemon=daemon,
             live=live,
-            takes=TakeList(svc.take_dir, svc.thumbnail_width),
+            takes=takes,
             security=self.security,
             guided=guided,
         )

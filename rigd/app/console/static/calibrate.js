@@ -14,6 +14,12 @@ async function loadDevices() {
   );
   document.getElementById("gboard").value = info.devices.board;
   if (info.status) render(info.status);
+  const tr = await fetch("/api/takes", { credentials: "same-origin" });
+  if (tr.ok) {
+    const { takes } = await tr.json();
+    document.getElementById("gtake").append(...takes.filter((t) => t.status === "complete")
+      .map((t) => el("option", { value: t.name, text: t.name })));
+  }
 }
 
 function renderCoverage(doc) {
@@ -77,7 +83,9 @@ function render(doc) {
   }
   if (doc.state === "finished") {
     const res = document.getElementById("gresult");
-    const links = Object.entries(doc.files).map(([kind, name]) => el("a", { href: `/api/guided/files/${encodeURIComponent(name)}`, target: "_blank", "data-testid": `guided-file-${kind}`, style: "margin-right:1em", text: `${kind}: ${name}` }));
+    const links = Object.entries(doc.files).map(([kind, name]) => kind === "take"
+      ? el("span", { "data-testid": "guided-file-take", style: "margin-right:1em", text: `stored in take ${name}` })
+      : el("a", { href: `/api/guided/files/${encodeURIComponent(name)}`, target: "_blank", "data-testid": `guided-file-${kind}`, style: "margin-right:1em", text: `${kind}: ${name}` }));
     const sig = Object.entries(doc.sigmas).map(([k, v]) => `${k} ${v.toFixed(3)}`).join(", ");
     res.replaceChildren(el("p", { class: doc.reached ? "hint" : "action", text: `${doc.camera}: ${doc.verdict}; ${doc.n_views} views${sig ? "; std dev (px) " + sig : ""}` }), el("p", {}, ...links));
   }
@@ -98,7 +106,10 @@ document.getElementById("gform").addEventListener("submit", async (e) => {
     msg.textContent = `calibrating ${r.result.camera} (${r.result.frame_size.join("x")})`;
   } catch (err) { msg.textContent = "not started: " + err.message; }
 });
-document.getElementById("gfinish").addEventListener("click", () => postJSON("/api/guided/finish").catch((e) => { document.getElementById("gmsg").textContent = e.message; }));
+document.getElementById("gfinish").addEventListener("click", () => {
+  const take = document.getElementById("gtake").value;
+  postJSON("/api/guided/finish", { into_take: take || null }).catch((e) => { document.getElementById("gmsg").textContent = e.message; });
+});
 document.getElementById("gcancel").addEventListener("click", () => postJSON("/api/guided/cancel").catch((e) => { document.getElementById("gmsg").textContent = e.message; }));
 
 const es = new EventSource("/api/live");

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 
+import h5py
 import httpx
 import pytest
 
 from calibration.io import read_opencv_yaml
+from rigd.app.console.security import TOKEN_HEADER
 from tests.rigd.app.console.browser import chromium_page
 from tests.rigd.app.console.conftest import ConsoleDaemon
 
@@ -21,6 +24,18 @@ def test_guided_session_from_the_page_to_the_written_calibration(
     from playwright.sync_api import expect
 
     cd = console_daemon(resolution=(320, 180))
+    base = cd.url.rstrip("/")
+    tok = {TOKEN_HEADER: cd.console.security.token}
+    # A short take to store the calibration into; guided calibration is refused while it runs.
+    with httpx.Client(base_url=base, timeout=30, headers=tok) as http:
+        take = Path(http.post("/api/takes/start", json={"duration_s": 1.0}).json()["result"]["take"])
+        r = http.post("/api/guided/start", json={"camera": "cam0"})
+        assert r.status_code == 409, r.text
+        assert "guided calibration needs it idle" in r.json()["error"]["message"]
+        deadline = time.monotonic() + 60
+        while http.get("/api/status").json()["state"] != "idle":
+            assert time.monotonic() < deadline, "the take did not end"
+            time.sleep(0.1)
     with chromium_page() as page:
         page.goto(cd.url + "calibrate")
         expect(page.get_by_test_id("guided-device")).to_contain_text("cam0 (camera)")
@@ -30,6 +45,9 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         page.get_by_test_id("guided-min-views").fill("5")
         page.get_by_test_id("guided-start").click()
         expect(page.get_by_test_id("guided-state")).to_have_text("running")
+        # ... and no take starts while the session holds the devices.
+        r = httpx.post(base + "/api/takes/start", json={}, headers=tok, timeout=10)
+        assert r.status_code == 409
         # The live image with the corners drawn, refreshed.
         page.wait_for_function("document.querySelector('[data-testid=guided-image]').dataset.version !== '0'")
         expect(page.get_by_test_id("guided-hint")).to_contain_text("next:")
@@ -52,6 +70,7 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         expect(done).to_have_count(1, timeout=150_000)
         expect(page.get_by_test_id("guided-coverage").locator("td")).to_have_count(9)
         page.screenshot(path=str(tmp_path / "console-calibrate-done.png"), full_page=True)
+        page.get_by_test_id("guided-into-take").select_option(take.name)
         page.get_by_test_id("guided-finish").click()
         expect(page.get_by_test_id("guided-state")).to_have_text("finished")
         expect(page.get_by_test_id("guided-result")).to_contain_text("target reached")
@@ -59,6 +78,7 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         expect(yaml_link).to_be_visible()
         expect(page.get_by_test_id("guided-file-report")).to_be_visible()
         expect(page.get_by_test_id("guided-file-json")).to_be_visible()
+        expect(page.get_by_test_id("guided-file-take")).to_contain_text(take.name)
         href = yaml_link.get_attribute("href")
         assert href is not None
     body = httpx.get(cd.url.rstrip("/") + href, timeout=10)
@@ -68,3 +88,5 @@ def test_guided_session_from_the_page_to_the_written_calibration(
     _, _, size = read_opencv_yaml(written[0])
     assert size == (320, 180)
     assert list((cd.config.service.take_dir / "calibration").glob("cam0-*.html"))
+    with h5py.File(take, "r") as f:
+        assert tuple(f["calibration/cam0/image_size"][()]) == (320, 180)
