@@ -95,7 +95,14 @@ def _panel(fb: Feedback, camera: str, session: GuidedSession, target: float, lef
 
 
 def guided(
-    camera: Annotated[str, typer.Option("--camera", "-c", help="RGB camera of the rig to calibrate.")],
+    camera: Annotated[
+        str,
+        typer.Option(
+            "--camera",
+            "-c",
+            help="RGB camera (or event sensor, through frames reconstructed from its events).",
+        ),
+    ],
     out: Annotated[
         Path | None,
         typer.Option("--out", "-o", help="Output: .yaml/.yml/.xml (OpenCV) or .json; default CAMERA.yaml."),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -68,3 +69,21 @@ def test_serve_prints_its_endpoints_serves_the_console_and_stops_cleanly(
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_a_taken_console_port_stops_the_start_with_a_config_error(tmp_path: Path, runtime_dir: Path) -> None:
+    """The console's port is bound like the daemon's other endpoints: taken, the daemon does not
+    start (one line, exit 2 from `rigd serve`) and leaves nothing bound behind."""
+    from rigd.app.console.server import ConsoleServer
+    from rigd.app.service.daemon import Daemon
+    from rigd.core.errors import ConfigError
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        cfg = console_rig(tmp_path / "takes", runtime_dir)
+        daemon = Daemon(cfg, attachments=[ConsoleServer("127.0.0.1", port)])
+        with pytest.raises(ConfigError, match=f"127.0.0.1:{port}: the console could not listen"):
+            daemon.serve()
+    assert not Path(cfg.service.control_endpoint.removeprefix("ipc://")).exists()
