@@ -10,10 +10,11 @@ to a browser is server-sent events, one JSON document per publisher version.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import logging
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -43,9 +44,10 @@ _NO_STORE = {"Cache-Control": "no-store"}
 
 
 class StartBody(BaseModel):
-    """Start a take from the console: the control protocol's capture arguments plus notes."""
+    """Start a take from the console: the control protocol's capture arguments plus notes
+    (strict like the control socket: "5" is not a duration)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     duration_s: float | None = Field(None, description="Seconds; None: until stopped.")
     label: str | None = Field(None, description="Take name part (letters, digits, _ . -).")
@@ -53,13 +55,13 @@ class StartBody(BaseModel):
 
 
 class StopBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     reason: str = Field("stopped from the console", max_length=200)
 
 
 class WindowBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     window_ms: int
 
@@ -74,11 +76,11 @@ class ConsoleContext:
     security: ConsoleSecurity
     guided: Any = None
     closing: threading.Event = field(default_factory=threading.Event)
-    _seq: int = 0
+    _ids: Iterator[int] = field(default_factory=itertools.count)
 
     def next_id(self) -> str:
-        self._seq += 1
-        return f"console-{self._seq}"
+        """Request ids for the control protocol (itertools.count: safe across worker threads)."""
+        return f"console-{next(self._ids)}"
 
 
 def _error(status: int, code: str, message: str, fld: str | None = None) -> JSONResponse:

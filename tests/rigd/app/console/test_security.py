@@ -145,3 +145,20 @@ def test_console_of_a_daemon(console_daemon: Callable[..., ConsoleDaemon]) -> No
         assert r.json()["error"]["code"] == "not_capturing"
         assert http.get("/api/status").json()["state"] == "idle"
         assert not list((cd.config.service.take_dir).glob("*.h5"))
+
+
+def test_start_body_is_strict_like_the_control_socket(console_daemon: Callable[..., ConsoleDaemon]) -> None:
+    cd = console_daemon()
+    tok = {TOKEN_HEADER: cd.console.security.token}
+    with httpx.Client(base_url=cd.url.rstrip("/"), timeout=10, headers=tok) as http:
+        for body, field in (
+            ({"duration_s": "5"}, "duration_s"),
+            ({"nope": 1}, "nope"),
+            ({"notes": 3}, "notes"),
+        ):
+            r = http.post("/api/takes/start", json=body)
+            assert r.status_code == 400, r.text
+            assert r.json()["error"]["field"] == field
+        assert http.post("/api/event-window", json={"window_ms": 15}).status_code == 400
+        assert http.post("/api/event-window", json={"window_ms": 20}).json()["window_ms"] == 20
+        assert http.get("/api/status").json()["state"] == "idle"
