@@ -53,6 +53,16 @@ def _check_out(out: Path) -> None:
         raise ConfigError(f"--out {out}: exists and is not an empty directory")
 
 
+def _disk_bytes(root: Path) -> int:
+    """Bytes under root, each file once (the colmap tree hard-links its frames)."""
+    seen: dict[tuple[int, int], int] = {}
+    for p in root.rglob("*"):
+        if p.is_file():
+            st = p.stat()
+            seen[(st.st_dev, st.st_ino)] = st.st_size
+    return sum(seen.values())
+
+
 def run_export(options: ExportOptions, progress: ProgressCallback = no_progress) -> ExportResult:
     """Write the take in the chosen format under options.out (created)."""
     if not options.take.is_file():
@@ -93,7 +103,7 @@ def run_export(options: ExportOptions, progress: ProgressCallback = no_progress)
             bytes=0,
         )
     result.wall_s = round(time.perf_counter() - start, 3)
-    result.bytes = sum(p.stat().st_size for p in options.out.rglob("*") if p.is_file())
+    result.bytes = _disk_bytes(options.out)
     (options.out / "export.json").write_text(json.dumps(result.model_dump(), indent=2))
     log.info("exported %s as %s to %s in %.1f s", options.take, options.format, options.out, result.wall_s)
     return result
