@@ -236,6 +236,12 @@ def verdict(outcome: GuidedOutcome, target_sigma_px: float, min_views: int) -> t
             f"time ran out at {outcome.n_views} of {min_views} views: the std devs are below the "
             f"{target_sigma_px:g} px target, but from fewer views than asked for"
         )
+    if outcome.done:
+        # The running fit met the target; the full calibration (outlier rejection) did not.
+        return False, (
+            f"the session's running fit met the {target_sigma_px:g} px target, but the written "
+            f"calibration did not ({', '.join(above)} px above it)"
+        )
     return False, f"time ran out before the {target_sigma_px:g} px target ({', '.join(above)} px above it)"
 
 

@@ -85,6 +85,10 @@ def test_verdict_is_judged_on_the_written_result() -> None:
     assert not reached
     assert "fx 0.700" in text
     assert "fy" not in text
+    reached, text = verdict(_outcome(8, {**low, "cy": 0.6}, done=True), 0.5, 6)
+    assert not reached
+    assert "time ran out" not in text
+    assert "cy 0.600" in text
     none = GuidedOutcome(camera="cam0", done=False, n_views=2, frames=10, skipped=0, result=None)
     assert verdict(none, 0.5, 6) == (False, "only 2 view(s) captured; nothing written")
 
