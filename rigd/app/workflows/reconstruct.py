@@ -27,7 +27,9 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import os
 import time
+import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -304,7 +306,7 @@ def _phases(
     total = plan.n_events
     sensors = list(plan.blocks)
     if not sensors or total == 0:
-        _write(plan, o, [], {}, {s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors})
+        _write(plan, o, [], {s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors})
         return TakeReconstruction(
             take=name, sensors={s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors}
         )
@@ -365,24 +367,10 @@ def _phases(
     progress(ProgressUpdate("keyframes", name, 0, n_mapped))
     keys = [int(k) for k in run.compute(key_tasks, count_events("keyframes", n_mapped))]
 
-    # Phase 3: one snapshot per sensor and keyframe.
+    # Phase 3: one snapshot per sensor and keyframe, streamed to disk in batches (memory does not
+    # grow with the number of keyframes).
     warm = highpass_warmup_us(o.cutoff_hz)
-    snap_tasks = [
-        delayed(snapshot)(
-            path,
-            s,
-            (k - warm) if o.e2i == "highpass" else int(edges[g]),
-            k,
-            filt,
-            o.e2i,
-            o.contrast,
-            o.cutoff_hz,
-            o.block_events,
-        )
-        for s in sensors
-        for g, k in enumerate(keys)
-    ]
-    n_snaps = len(snap_tasks)
+    n_snaps = len(sensors) * len(keys)
     snapped = [0]
 
     def on_snapshot(r: Any) -> None:
@@ -391,7 +379,27 @@ def _phases(
             progress(ProgressUpdate("snapshots", name, snapped[0], n_snaps))
 
     progress(ProgressUpdate("snapshots", name, 0, n_snaps))
-    snaps: list[Snapshot] = run.compute(snap_tasks, on_snapshot)
+    batch = max(8, 4 * (o.workers or os.cpu_count() or 1))
+    for s in sensors:
+        w, h = plan.geometry[s]
+        with _SnapshotFile(o.out / plan.take_id / s / "snapshots.npz", len(keys), h, w) as dest:
+            for i in range(0, len(keys), batch):
+                tasks = [
+                    delayed(snapshot)(
+                        path,
+                        s,
+                        (k - warm) if o.e2i == "highpass" else int(edges[g]),
+                        k,
+                        filt,
+                        o.e2i,
+                        o.contrast,
+                        o.cutoff_hz,
+                        o.block_events,
+                    )
+                    for g, k in enumerate(keys[i : i + batch], start=i)
+                ]
+                for snap in run.compute(tasks, on_snapshot):
+                    dest.append(snap.t_us, snap.image)
 
     segments = []
     for g, k in enumerate(keys):
@@ -402,8 +410,7 @@ def _phases(
         s: SensorReconstruction(events_in=sum(h - lo for lo, h in plan.blocks[s]), events_kept=kept[s])
         for s in sensors
     }
-    by_sensor = {s: [x for x in snaps if x.sensor == s] for s in sensors}
-    _write(plan, o, segments, by_sensor, per_sensor, n_candidates=sum(len(c) for c in chosen))
+    _write(plan, o, segments, per_sensor, n_candidates=sum(len(c) for c in chosen))
     log.info(
         "%s: %d segments; %s",
         plan.take_id,
@@ -423,7 +430,6 @@ def _write(
     plan: _Plan,
     o: ReconstructOptions,
     segments: list[Segment],
-    snaps: dict[str, list[Snapshot]],
     sensors: dict[str, SensorReconstruction],
     n_candidates: int = 0,
 ) -> None:
@@ -444,15 +450,50 @@ def _write(
         "segments": [asdict(s) for s in segments],
     }
     (base / "segments.json").write_text(json.dumps(doc, indent=2))
-    for sensor, items in snaps.items():
-        dest = base / sensor
-        dest.mkdir(parents=True, exist_ok=True)
-        items = sorted(items, key=lambda x: x.t_us)
-        w, h = plan.geometry[sensor]
-        images = np.stack([x.image for x in items]) if items else np.zeros((0, h, w), np.float32)
-        np.savez_compressed(
-            dest / "snapshots.npz", times_us=np.array([x.t_us for x in items], np.int64), log_intensity=images
-        )
+
+
+class _SnapshotFile:
+    """`snapshots.npz` (`times_us`, `log_intensity` (n, H, W) float32) written one image at a time.
+
+    The npz is a zip of .npy members; the image member's header is written first (n is known), then
+    each image's bytes as it comes, so only one snapshot is ever held. It is written to a temporary
+    name and renamed when complete: a failed run leaves no half file under the real name.
+    """
+
+    def __init__(self, path: Path, n: int, height: int, width: int) -> None:
+        self.path = path
+        self._n, self._shape = n, (height, width)
+        self._times: list[int] = []
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = path.with_name(path.name + ".partial")
+        self._zip = zipfile.ZipFile(self._tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
+        self._member = self._zip.open("log_intensity.npy", "w", force_zip64=True)
+        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False}
+        np.lib.format.write_array_header_2_0(self._member, header | {"shape": (n, height, width)})
+
+    def append(self, t_us: int, image: NDArray[np.float32]) -> None:
+        if image.shape != self._shape or len(self._times) >= self._n:
+            raise RigdError(f"{self.path}: snapshot {len(self._times)} of shape {image.shape} does not fit")
+        self._member.write(np.ascontiguousarray(image, np.float32).tobytes())
+        self._times.append(int(t_us))
+
+    def __enter__(self) -> _SnapshotFile:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self._member.close()
+        if exc_type is None and len(self._times) != self._n:
+            self._zip.close()
+            self._tmp.unlink(missing_ok=True)
+            raise RigdError(f"{self.path}: {len(self._times)} of {self._n} snapshots written")
+        if exc_type is None:
+            with self._zip.open("times_us.npy", "w") as f:
+                np.lib.format.write_array(f, np.asarray(self._times, np.int64))
+        self._zip.close()
+        if exc_type is None:
+            self._tmp.replace(self.path)
+        else:
+            self._tmp.unlink(missing_ok=True)
 
 
 def _failed(path: Path, exc: Exception) -> TakeReconstruction:

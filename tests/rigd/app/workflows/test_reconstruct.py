@@ -288,3 +288,44 @@ def test_bad_knob_is_one_line_naming_the_flag(
     (line,) = r.output.strip().splitlines()
     assert line.startswith(f"error: {flag}")
     assert not (tmp_path / "o").exists()
+
+
+def test_snapshot_file_streams_and_leaves_nothing_half_written(tmp_path: Path) -> None:
+    from rigd.app.workflows.reconstruct import _SnapshotFile
+    from rigd.core.errors import RigdError
+
+    path = tmp_path / "s" / "snapshots.npz"
+    images = np.random.default_rng(0).normal(size=(3, 4, 5)).astype(np.float32)
+    with _SnapshotFile(path, 3, 4, 5) as f:
+        for i, im in enumerate(images):
+            f.append(10 * i, im)
+    with np.load(path) as z:
+        np.testing.assert_array_equal(z["log_intensity"], images)
+        assert z["times_us"].tolist() == [0, 10, 20]
+    bad = tmp_path / "b" / "snapshots.npz"
+
+    def wrong_shape() -> None:
+        with _SnapshotFile(bad, 2, 4, 5) as f:
+            f.append(0, images[0])
+            f.append(1, np.zeros((5, 4), np.float32))
+
+    def too_few() -> None:
+        with _SnapshotFile(bad, 2, 4, 5) as f:
+            f.append(0, images[0])
+
+    with pytest.raises(RigdError, match="does not fit"):
+        wrong_shape()
+    with pytest.raises(RigdError, match="1 of 2 snapshots"):
+        too_few()
+    assert list(bad.parent.iterdir()) == []
+
+
+def test_many_segments_one_snapshot_each(moving_take: Path, tmp_path: Path) -> None:
+    o = options(tmp_path, filter=FilterKnobs(enabled=False), threshold=0.2)
+    r = reconstruct_take(moving_take, o)
+    assert r.segments > 20
+    doc = json.loads((tmp_path / "moving" / "segments.json").read_text())
+    for s in ("ev0", "ev1"):
+        with np.load(tmp_path / "moving" / s / "snapshots.npz") as z:
+            assert z["log_intensity"].shape == (r.segments, H, W)
+            assert z["times_us"].tolist() == [seg["keyframe_us"] for seg in doc["segments"]]
