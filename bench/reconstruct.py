@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -84,7 +85,7 @@ def run_cli(label: str, take: Path, args: list[str], timeout_s: float, cwd: Path
             )
         except subprocess.TimeoutExpired:
             popen.kill()
-            popen.communicate()
+            _, err = popen.communicate()
             ok, note = False, f"did not finish in {timeout_s:.0f} s"
         wall = time.perf_counter() - t0
         stop.set()
@@ -94,9 +95,10 @@ def run_cli(label: str, take: Path, args: list[str], timeout_s: float, cwd: Path
             doc = json.loads(doc_path.read_text())
             kept = sum(s["events_kept"] for s in doc["sensors"].values())
             segments = len(doc["segments"])
-        if not segments:  # the baseline: one document per sensor
+        if not segments:  # the baseline: one document per sensor, kept counts in its output lines
             for doc_path in Path(out).glob("*/*/segments.json"):
                 segments += len(json.loads(doc_path.read_text())["segments"])
+            kept = sum(int(m.group(1)) for m in re.finditer(r"(\d+)/\d+ events kept", err if ok else ""))
     with Take(take) as t:
         events = sum(t.event_count(s) for s in t.event_sensors)
     return Run(label, wall, peak[0] if peak else 0.0, events, kept, segments, ok, note)
@@ -104,16 +106,15 @@ def run_cli(label: str, take: Path, args: list[str], timeout_s: float, cwd: Path
 
 def table(title: str, runs: list[Run]) -> None:
     print(f"\n{title}")
-    head = f"{'run':<44} {'wall s':>8} {'Mev/s':>7} {'peak MB':>8} {'kept %':>7} {'segments':>8}  note"
+    cols = ("events", 11), ("wall s", 8), ("Mev/s", 7), ("peak MB", 8), ("kept %", 7), ("segments", 8)
+    head = f"{'run':<44} " + " ".join(f"{c:>{w}}" for c, w in cols) + "  note"
     print(head)
     print("-" * len(head))
     for r in runs:
         kept = f"{100 * r.kept / r.events:.2f}" if r.ok and r.events else "-"
         segs = str(r.segments) if r.ok else "-"
-        print(
-            f"{r.label:<44} {r.wall_s:8.1f} {r.mev_s:7.2f} {r.peak_mb:8.0f} {kept:>7} {segs:>8}  {r.note}",
-            flush=True,
-        )
+        cells = f"{r.events:11,} {r.wall_s:8.1f} {r.mev_s:7.2f} {r.peak_mb:8.0f} {kept:>7} {segs:>8}"
+        print(f"{r.label:<44} {cells}  {r.note}", flush=True)
 
 
 def capture(seconds: float, out: Path) -> Path:
