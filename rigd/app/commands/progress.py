@@ -2,12 +2,14 @@
 (pulses, queued items, frames reconstructed, views detected) with the time it has left.
 
 A bar that counted one unit through the whole run would sit full while the rest happens, so every
-stage starts its own count. Where stderr is not a terminal (a pipe, a journal, a test), each stage
-is one line instead, so what a command was doing is still on record.
+stage starts its own count. Where stderr is not a terminal (a pipe, a journal, a test) there is no
+bar; with `rigd -v` each stage is one line instead, so what a command was doing is on record, and
+without it the output stays what scripts read (a failure is its one error line).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from types import TracebackType
 
@@ -41,13 +43,18 @@ class StageProgress:
     """A stage-by-stage progress display for one command (a context manager).
 
     `stage()` starts a stage: its name, its total in `unit` (None: not countable) and a note;
-    `advance_to()` moves the current stage's count. `quiet` shows nothing (a `--json` run)."""
+    `advance_to()` moves the current stage's count. `quiet` shows nothing (a `--json` run);
+    `lines` (off a terminal) prints a line per stage, by default when logging is at INFO (`-v`)."""
 
-    def __init__(self, console: Console, title: str, *, quiet: bool = False) -> None:
+    def __init__(
+        self, console: Console, title: str, *, quiet: bool = False, lines: bool | None = None
+    ) -> None:
         self._console = console
         self._title = title
-        self._quiet = quiet
         self._live = not quiet and console.is_terminal
+        if lines is None:
+            lines = logging.getLogger().isEnabledFor(logging.INFO)
+        self._lines = not quiet and not self._live and lines
         self._bar = Progress(
             TextColumn("[bold]{task.description}[/]"),
             BarColumn(),
@@ -76,7 +83,7 @@ class StageProgress:
         if self._task is not None:
             self._bar.update(self._task, visible=False)
         self._task = self._bar.add_task(description, total=total, unit=unit, detail=note)
-        if not self._quiet and not self._live:
+        if self._lines:
             count = "" if total is None else f" ({total:,} {unit})"
             tail = f": {note}" if note else ""
             self._console.print(f"{description}{count}{tail}", soft_wrap=True, highlight=False)

@@ -45,7 +45,7 @@ def test_calibrate_events_reports_frames_per_stage(board_take: Path, tmp_path: P
         "-o",
         str(out),
     ]
-    r = runner.invoke(app, args)
+    r = runner.invoke(app, ["-v", *args])
     assert r.exit_code == 0, r.output
     stages = _stages(r.stderr, "calibrate events")
     names = [re.split(r"[ :]", s)[0] for s in stages]
@@ -59,7 +59,7 @@ def test_calibrate_events_reports_frames_per_stage(board_take: Path, tmp_path: P
 def test_calibrate_rig_from_a_take_counts_frames_per_camera(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=6)
     r = runner.invoke(
-        app, ["calibrate", "rig", str(take), "-b", STEREO_BOARD, "-o", str(tmp_path / "rig.yaml")]
+        app, ["-v", "calibrate", "rig", str(take), "-b", STEREO_BOARD, "-o", str(tmp_path / "rig.yaml")]
     )
     assert r.exit_code == 0, r.output
     stages = _stages(r.stderr, "calibrate rig")

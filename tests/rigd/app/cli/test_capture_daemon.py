@@ -3,6 +3,7 @@ capture."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -55,7 +56,10 @@ class _ScriptedDaemon:
         return self.answers.pop(0) if len(self.answers) > 1 else self.answers[0]
 
 
-def test_a_daemon_take_shows_its_capturing_and_stopping_stages(capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_daemon_take_shows_its_capturing_and_stopping_stages(
+    capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO)  # as `rigd -v`: off a terminal, a line per stage
     cli._capture_remote(_ScriptedDaemon(), 2.0, None, False)  # type: ignore[arg-type]
     err = capsys.readouterr().err
     stages = [line for line in err.splitlines() if line.startswith("capture (daemon): ")]

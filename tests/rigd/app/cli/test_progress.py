@@ -16,7 +16,8 @@ from rigd.app.workflows.progress import ProgressUpdate
 
 def test_capture_names_every_phase_after_the_pulses(small_rig: Path, tmp_path: Path) -> None:
     r = CliRunner().invoke(
-        app, ["capture", "--local", "--config", str(small_rig), "--duration", "1", "--out", str(tmp_path)]
+        app,
+        ["-v", "capture", "--local", "--config", str(small_rig), "--duration", "1", "--out", str(tmp_path)],
     )
     assert r.exit_code == 0, r.output
     lines = [line for line in r.stderr.splitlines() if line.startswith("capture: ")]
@@ -31,11 +32,12 @@ def test_capture_names_every_phase_after_the_pulses(small_rig: Path, tmp_path: P
     assert "sealing the take" in lines[3]
 
 
-def test_json_capture_prints_no_progress(small_rig: Path, tmp_path: Path) -> None:
-    r = CliRunner().invoke(
-        app,
-        ["capture", "--local", "--json", "--config", str(small_rig), "-d", "0.5", "--out", str(tmp_path)],
-    )
+def test_off_a_terminal_stage_lines_need_verbose_and_json_has_none(small_rig: Path, tmp_path: Path) -> None:
+    args = ["capture", "--local", "--config", str(small_rig), "-d", "0.5", "--out", str(tmp_path)]
+    r = CliRunner().invoke(app, args)  # a script reading the output gets the summary alone
+    assert r.exit_code == 0, r.output
+    assert "capture: " not in r.stderr
+    r = CliRunner().invoke(app, ["-v", *args, "--json"])
     assert r.exit_code == 0, r.output
     assert "capture: " not in r.stderr
 
@@ -68,7 +70,7 @@ def test_an_uncounted_stage_shows_the_time_so_far() -> None:
 
 def test_workflow_updates_start_a_stage_per_message() -> None:
     plain = Console(file=io.StringIO(), width=160)
-    with StageProgress(plain, "calibrate") as bar:
+    with StageProgress(plain, "calibrate", lines=True) as bar:
         bar(ProgressUpdate("reconstruct", "hpf", 0, 10, "frames"))
         bar(ProgressUpdate("reconstruct", "hpf", 5, 10, "frames"))
         bar(ProgressUpdate("detect", "hpf", 0, 10, "frames searched"))
