@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
@@ -34,6 +35,8 @@ T = TypeVar("T")
 DEFAULT_RATE_HZ = 5.0
 #: The publisher sleeps when nobody asked for live data for this long (s).
 IDLE_AFTER_S = 3.0
+#: Span of the write rate shown (s): longer than the writer's flush interval.
+RATE_WINDOW_S = 3.0
 #: Event-frame windows a browser may choose (ms); the default is the first.
 EVENT_WINDOWS_MS: tuple[int, ...] = (10, 20, 40)
 
@@ -133,8 +136,7 @@ class LivePublisher:
         self._last_wanted = -1e9
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._last_bytes = 0
-        self._last_t = clock()
+        self._written: deque[tuple[float, int]] = deque()
         self._tick_lock = threading.Lock()
         self._last_tick = -1e9
         self.ticks = 0
@@ -186,9 +188,7 @@ class LivePublisher:
         t = self.source.telemetry()
         now = self._clock()
         self._last_tick = now
-        rate = max(0.0, (t.bytes_written - self._last_bytes) / max(now - self._last_t, 1e-6))
-        self._last_bytes, self._last_t = t.bytes_written, now
-        t.write_rate_bytes_s = rate
+        t.write_rate_bytes_s = self._write_rate(now, t.bytes_written)
         doc = t.model_dump(mode="json")
         if t.state in ("capturing", "stopping"):
             self._previews(t.time_utc)
@@ -196,6 +196,18 @@ class LivePublisher:
         doc["event_window_ms"] = self.event_window_ms
         self.state.status.put(doc)
         self.ticks += 1
+
+    def _write_rate(self, now: float, written: int) -> float:
+        """Bytes/s over the last RATE_WINDOW_S: the take file grows at each flush (1 s), so a rate
+        between two 5 Hz ticks would be zero most of the time."""
+        w = self._written
+        if w and written < w[-1][1]:  # a new take
+            w.clear()
+        w.append((now, written))
+        while len(w) > 2 and now - w[1][0] >= RATE_WINDOW_S:
+            w.popleft()
+        t0, b0 = w[0]
+        return max(0.0, (written - b0) / (now - t0)) if now > t0 else 0.0
 
     def _previews(self, time_utc: str) -> None:
         for name, frame in self.source.latest_frames().items():

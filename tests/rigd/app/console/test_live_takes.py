@@ -138,3 +138,16 @@ def test_take_list_says_what_a_take_needs(take: Path) -> None:
     assert by_name[take.name].status == "complete"
     with pytest.raises(Exception, match="not a take name"):
         takes.path_of("../etc/passwd")
+
+
+def test_write_rate_spans_flushes() -> None:
+    """The take file grows once a second (at each flush); the rate shown must not drop to zero
+    between flushes."""
+    now = [0.0]
+    live = LivePublisher(FakeSource(), rate_hz=5.0, clock=lambda: now[0])
+    rates = []
+    for i in range(40):  # 8 s at 5 Hz, 1 MB flushed every second
+        now[0] = i * 0.2
+        rates.append(live._write_rate(now[0], (i // 5) * 1_000_000))
+    assert min(rates[10:]) > 0.5e6
+    assert max(rates[10:]) < 1.6e6
