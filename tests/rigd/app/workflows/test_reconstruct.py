@@ -163,6 +163,18 @@ def test_every_scheduler_writes_the_same(moving_take: Path, tmp_path: Path) -> N
         doc = json.loads((tmp_path / sched / "moving" / "segments.json").read_text())
         with np.load(tmp_path / sched / "moving" / "ev1" / "snapshots.npz") as z:
             outs[sched] = (doc["segments"], z["times_us"].tolist(), z["log_intensity"].copy())
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        o = ReconstructOptions(
+            takes=[moving_take], out=tmp_path / "dist", scheduler=cluster.scheduler_address
+        )
+        (r,) = run_reconstruct(o.model_copy(update={"block_events": 8192}))
+        assert r.error is None
+    doc = json.loads((tmp_path / "dist" / "moving" / "segments.json").read_text())
+    with np.load(tmp_path / "dist" / "moving" / "ev1" / "snapshots.npz") as z:
+        outs["distributed"] = (doc["segments"], z["times_us"].tolist(), z["log_intensity"].copy())
     ref = outs["sync"]
     for sched, got in outs.items():
         assert got[0] == ref[0], sched
