@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 from rich.console import Console
-from rich.progress import Progress, TextColumn
 
 from rigd import __version__
 from rigd.app.commands.calibrate import calibrate_app
@@ -316,25 +315,29 @@ def convert_cmd(
 
     if not src.exists():
         raise _fail(FileNotFoundError(f"no such file: {src}"))
-    with Progress(
-        TextColumn("[bold]converting[/]"),
-        TextColumn("{task.completed:,} events"),
-        console=console,
-        disable=not console.is_terminal,
-    ) as bar:
-        task = bar.add_task("convert", total=None)
+    with StageProgress(console, "convert") as bar:
+        bar.stage("converting", _events_in(src, sensor), "events", f"{src.name} -> {dst.name}")
         try:
-            n = convert(
-                src,
-                dst,
-                sensor=sensor,
-                fmt=fmt,
-                strict=strict,
-                on_progress=lambda k: bar.update(task, completed=k),
-            )
+            n = convert(src, dst, sensor=sensor, fmt=fmt, strict=strict, on_progress=bar.advance_to)
         except RigdError as exc:
             raise _fail(exc) from exc
     out.print(f"{dst}: {n:,} events")
+
+
+def _events_in(src: Path, sensor: str | None) -> int | None:
+    """Events a conversion will write, when known up front: a take's sensor count (a RAW or DAT
+    recording is only counted by decoding it, so its bar shows the count and the time so far)."""
+    if src.suffix.lower() not in (".h5", ".hdf5"):
+        return None
+    from rigd.take.reader import Take
+
+    try:
+        with Take(src) as take:
+            names = take.event_sensors
+            name = sensor if sensor is not None else (names[0] if len(names) == 1 else None)
+            return take.event_count(name) if name in names else None
+    except (OSError, RigdError):
+        return None  # convert says what is wrong with the file
 
 
 @app.command("default-config")

@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 from rigd.app.cli import app
 from rigd.app.commands.progress import StageProgress
 from rigd.app.workflows.progress import ProgressUpdate
+from tests.rigd.test_take_roundtrip import make_take
 
 
 def test_capture_names_every_phase_after_the_pulses(small_rig: Path, tmp_path: Path) -> None:
@@ -76,3 +77,13 @@ def test_workflow_updates_start_a_stage_per_message() -> None:
         bar(ProgressUpdate("detect", "hpf", 0, 10, "frames searched"))
     lines = plain.file.getvalue().splitlines()  # type: ignore[attr-defined]
     assert lines == ["calibrate: reconstruct (10 frames): hpf", "calibrate: detect (10 frames searched): hpf"]
+
+
+def test_convert_counts_events_against_the_take_total(tmp_path: Path) -> None:
+    take = make_take(tmp_path / "take.h5").path
+    r = CliRunner().invoke(app, ["-v", "convert", str(take), str(tmp_path / "ev.raw")])
+    assert r.exit_code == 0, r.output
+    assert "convert: converting (20,000 events): take.h5 -> ev.raw" in r.stderr
+    r = CliRunner().invoke(app, ["-v", "convert", str(tmp_path / "ev.raw"), str(tmp_path / "back.h5")])
+    assert r.exit_code == 0, r.output
+    assert "convert: converting: ev.raw -> back.h5" in r.stderr  # a recording is counted by decoding it
