@@ -38,8 +38,8 @@ class _ScriptedDaemon:
     take = "/takes/rig-1.h5"
 
     def __init__(self) -> None:
-        base = {"take": self.take, "queue_depth": 3, "faults": [], "last_take": None}
-        self.answers = [
+        base: dict[str, Any] = {"take": self.take, "queue_depth": 3, "faults": [], "last_take": None}
+        self.answers: list[dict[str, Any]] = [
             {**base, "state": "capturing", "pulses": 30, "take_elapsed_s": 1.0},
             {**base, "state": "capturing", "pulses": 60, "take_elapsed_s": 2.0},
             {**base, "state": "stopping", "pulses": 60, "take_elapsed_s": 2.2},
