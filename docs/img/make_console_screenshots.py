@@ -53,7 +53,7 @@ def shoot(url: str, out: Path) -> None:
         expect(page.get_by_test_id("state")).to_have_text("capturing")
         for dev in ("cam0", "cam1", "cam2", "ev0", "ev1"):
             tile = f"document.querySelector('[data-testid=view-{dev}]')"
-            page.wait_for_function(f"Number({tile}.dataset.version) > 2")
+            page.wait_for_function(f"Number({tile}.dataset.version) > 15")
         page.screenshot(path=str(out / "console-dashboard.png"))
         page.get_by_test_id("stop").click()
         expect(page.get_by_test_id("state")).to_have_text("idle")

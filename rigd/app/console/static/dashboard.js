@@ -68,7 +68,7 @@ function render(doc) {
   const freePct = doc.disk_total_bytes ? (100 * doc.disk_free_bytes / doc.disk_total_bytes).toFixed(0) : "?";
   document.getElementById("disk").textContent = `disk: ${fmtBytes(doc.disk_free_bytes)} free (${freePct} %)`;
   document.getElementById("flush").textContent = doc.last_flush_age_s === null || doc.last_flush_age_s === undefined
-    ? "flush: -" : `flushed ${doc.last_flush_age_s.toFixed(1)} s ago (longest ${(doc.flush_max_s * 1000).toFixed(0)} ms): a crash now loses at most that`;
+    ? "flush: -" : `flushed ${doc.last_flush_age_s.toFixed(1)} s ago: a crash now would lose the last ${doc.last_flush_age_s.toFixed(1)} s (longest flush ${(doc.flush_max_s * 1000).toFixed(0)} ms)`;
   const faults = document.getElementById("faults");
   faults.replaceChildren(...(doc.faults.length ? doc.faults.map((f) =>
     el("li", { text: `${f.device ? f.device + ": " : ""}${FAULT_WORDS[f.code] || f.code} (${f.message}; since ${f.since_utc})` }))
