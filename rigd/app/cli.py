@@ -211,7 +211,9 @@ def _capture_progress(bar: StageProgress) -> Callable[[CaptureProgress], None]:
             bar.stage(phase, p.phase_total if phase == p.phase else None, unit, note)
         shown = len(p.phases)
         events = sum(p.events.values())
-        bar.advance_to(p.phase_done, f"{events / 1e6:.1f} Mev written  queue {p.queue_depth}")
+        note = _CAPTURE_PHASES[p.phase][1]
+        numbers = f"{events / 1e6:.1f} Mev written  queue {p.queue_depth}"
+        bar.advance_to(p.phase_done, f"{note}; {numbers}" if note else numbers, p.phase_total)
 
     return on_progress
 

@@ -12,12 +12,23 @@ from __future__ import annotations
 import logging
 import math
 from types import TracebackType
+from typing import Any
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, Task, TaskID, TextColumn
+from rich.progress import BarColumn, Progress, ProgressColumn, Task, TaskID, TextColumn
 from rich.text import Text
 
 from rigd.app.workflows.progress import ProgressUpdate
+
+
+class CountColumn(ProgressColumn):
+    """`done/total` for a counted stage, `done` alone for an open-ended one, nothing for one with no
+    count at all (rich's own column shows `0/?`)."""
+
+    def render(self, task: Task) -> Text:
+        if task.total is not None:
+            return Text(f"{int(task.completed):,}/{int(task.total):,}", style="progress.download")
+        return Text(f"{int(task.completed):,}" if task.completed else "", style="progress.download")
 
 
 class TimeLeftColumn(ProgressColumn):
@@ -58,7 +69,7 @@ class StageProgress:
         self._bar = Progress(
             TextColumn("[bold]{task.description}[/]"),
             BarColumn(),
-            MofNCompleteColumn(),
+            CountColumn(),
             TextColumn("{task.fields[unit]}  {task.fields[detail]}"),
             TimeLeftColumn(),
             console=console,
@@ -88,14 +99,16 @@ class StageProgress:
             tail = f": {note}" if note else ""
             self._console.print(f"{description}{count}{tail}", soft_wrap=True, highlight=False)
 
-    def advance_to(self, done: int | None, detail: str | None = None) -> None:
-        """The current stage's count (and a note beside it)."""
+    def advance_to(self, done: int | None, detail: str | None = None, total: int | None = None) -> None:
+        """The current stage's count (and a note beside it; a new total where it grew)."""
         if self._task is None:
             return
-        if detail is None:
-            self._bar.update(self._task, completed=done or 0)
-        else:
-            self._bar.update(self._task, completed=done or 0, detail=detail)
+        fields: dict[str, Any] = {"completed": done or 0}
+        if detail is not None:
+            fields["detail"] = detail
+        if total is not None:
+            fields["total"] = total
+        self._bar.update(self._task, **fields)
 
     def __call__(self, update: ProgressUpdate) -> None:
         """A workflow's `ProgressCallback`: a new stage or message starts a stage."""
