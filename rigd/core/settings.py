@@ -60,7 +60,12 @@ class WriterConfig(BaseModel):
 
     event_compression: Literal["none", "lz4", "zstd", "gzip"] = "lz4"
     frame_compression: Literal["none", "lz4", "zstd", "gzip"] = "none"
-    event_chunk: int = Field(1 << 18, ge=1024, description="Events per HDF5 chunk.")
+    event_chunk: int = Field(
+        1 << 15,
+        ge=1024,
+        description="Events per HDF5 chunk of x, y, p, t: a random 50 ms window decodes about "
+        "its own events plus one chunk per column (bench.random_windows, decision 0012).",
+    )
     queue_items: int = Field(256, ge=4, description="Bound of the acquisition -> writer queue.")
     queue_put_timeout_s: float = Field(
         2.0, gt=0, description="How long an acquisition thread waits on a full queue before counting a drop."
