@@ -16,7 +16,7 @@ import typer
 from typer.core import TyperArgument, TyperCommand, TyperGroup, TyperOption
 
 if TYPE_CHECKING:
-    from typer._click.core import Context, Parameter  # the click typer builds on (its own copy)
+    from typer._click.core import Command, Context, Parameter  # the click typer builds on (its own copy)
 
 #: Typer's type labels (without the angle brackets) -> the placeholder shown.
 _PLACEHOLDERS = {"str": "TEXT", "int": "INT", "float": "FLOAT", "path": "PATH", "bool": "BOOL"}
@@ -68,6 +68,16 @@ class RigdCommand(TyperCommand):
 class RigdGroup(TyperGroup):
     def get_params(self, ctx: Context) -> list[Parameter]:
         return tidy_params(super().get_params(ctx), ctx)
+
+    def get_command(self, ctx: Context, cmd_name: str) -> Command | None:
+        """A sub-command or sub-group, with rigd's placeholders even when it was made by a plain
+        `typer.Typer` (a command registered from another package)."""
+        cmd = super().get_command(ctx, cmd_name)
+        if type(cmd) is TyperCommand:
+            cmd.__class__ = RigdCommand
+        elif type(cmd) is TyperGroup:
+            cmd.__class__ = RigdGroup
+        return cmd
 
 
 class RigdTyper(typer.Typer):

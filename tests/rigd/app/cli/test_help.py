@@ -48,3 +48,26 @@ def test_help_uses_one_placeholder_style(path: list[str]) -> None:
     for piece in rest:
         assert PLACEHOLDER.match(piece), f"{usage!r}: {piece!r}"
     assert "{" not in usage
+
+
+def test_a_plain_typer_sub_app_gets_the_same_placeholders() -> None:
+    import typer
+
+    from rigd.app.commands.help import RigdTyper
+
+    root = RigdTyper(no_args_is_help=True)
+    sub = typer.Typer()
+
+    @sub.command("go")
+    def go(take: str, fast: bool = False, out: str = "x") -> None:
+        """A command from another package."""
+
+    @root.command("version")
+    def version() -> None:
+        """Keeps the root a group."""
+
+    root.add_typer(sub, name="plugin")
+    r = CliRunner().invoke(root, ["plugin", "go", "--help"], prog_name="rigd", env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert not PY_TYPES.search(r.stdout), r.stdout
+    assert "rigd plugin go [OPTIONS] TAKE" in r.stdout
