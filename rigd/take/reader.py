@@ -59,9 +59,10 @@ log = logging.getLogger(__name__)
 
 #: Events read per step by iter_events (bounded memory, few HDF5 calls).
 _READ_BLOCK = 1 << 20
-#: Raw-data chunk cache per open dataset: keeps the chunks a window shares with the next one
-#: (sequential reads, overlapping windows) decoded; random windows rarely share a chunk.
-_CHUNK_CACHE_BYTES = 16 << 20
+#: Raw-data chunk cache per open dataset (held for the Take's life, so per column and sensor):
+#: keeps the chunk a sequential read shares with the next block decoded; random windows rarely
+#: share one, and 16 MiB read them no faster (bench.random_windows' takes).
+_CHUNK_CACHE_BYTES = 4 << 20
 #: A time window whose ms bracket holds at most this many events reads its `t` in one call.
 _WINDOW_T_MAX = 1 << 22
 
