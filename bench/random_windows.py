@@ -56,7 +56,9 @@ def synth_block(seconds: float, rate: float, seed: int = 0) -> EventArray:
     n = int(seconds * rate)
     inst = rate * (1 + 0.8 * np.sin(np.linspace(0, 8 * np.pi * seconds, n)))  # ~4 bursts per second
     t = np.cumsum(rng.exponential(1e6 / inst))
-    t = (t * ((seconds * 1e6 - 1) / t[-1])).astype(np.int64)  # exactly `rate` on average, and
+    # Scaled to end just below `seconds`: exactly `rate` on average, and the block repeats
+    # (shifted by `seconds`) without time going back.
+    t = (t * ((seconds * 1e6 - 1) / t[-1])).astype(np.int64)
     k = 8
     which = rng.integers(0, k, n)
     phase, speed = rng.uniform(0, 2 * np.pi, k), rng.uniform(0.5, 3.0, k)
@@ -67,7 +69,7 @@ def synth_block(seconds: float, rate: float, seed: int = 0) -> EventArray:
     x = np.clip(np.rint(cx + rng.normal(0, 8, n)), 0, WIDTH - 1)
     y = np.clip(np.rint(cy + rng.normal(0, 90, n)), 0, HEIGHT - 1)
     p = rng.random(n) < np.where(np.cos(arg) > 0, 0.8, 0.2)
-    return EventArray.from_arrays(x, y, p, t)  # below `seconds`: repeats without going back
+    return EventArray.from_arrays(x, y, p, t)
 
 
 def packets(block: EventArray, seconds: float) -> list[tuple[int, int, int]]:
