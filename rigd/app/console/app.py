@@ -179,8 +179,6 @@ def build_app(ctx: ConsoleContext) -> Starlette:
         if isinstance(body, JSONResponse):
             return body
         assert isinstance(body, StartBody)
-        if ctx.guided is not None and ctx.guided.running:
-            return _error(409, "busy", "a guided calibration holds the devices; finish or cancel it first")
         args = body.model_dump(include=set(CaptureArgs.model_fields), exclude_none=True)
         resp = await run_in_threadpool(control_call, ctx, "capture", args)
         if resp.status_code == 200 and body.notes:

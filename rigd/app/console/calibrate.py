@@ -7,8 +7,9 @@ technician can drop a view and finish: the calibration is written as OpenCV YAML
 an HTML report into the console's calibration directory (and, when asked, into a complete take's
 `/calibration/<device>`), and the page links the files.
 
-The guided run opens the rig's devices itself, so it is refused while a take runs, and the
-console refuses to start a take while it runs (on the sim rig it uses a world of its own).
+The guided run opens the rig's devices itself, so it holds them in the daemon (`hold_devices`):
+it is refused while a take runs, and a take asked for meanwhile, from the console or the control
+socket, is answered `busy` (on the sim rig it uses a world of its own).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from calibration.guided import SIGMA_NAMES, TILT_BINS
 from calibration.io import write_json
 from rigd.app.console.live import LatestSlot, LivePublisher
 from rigd.app.console.takes import TakeList
+from rigd.app.service.requests import RequestError
 from rigd.app.workflows.guided import DEFAULT_BOARD, GuidedOptions, GuidedRun, own_sim_world, verdict
 from rigd.core.errors import RigdError
 from rigd.take.calibration import store_calibration
@@ -156,8 +158,13 @@ class GuidedController:
             still_px=body.still_px,
             min_views=body.min_views,
         )
-        run = GuidedRun(options, own_sim_world(self.daemon.config))
-        started = run.open()
+        self.daemon.hold_devices(f"the guided calibration of {body.camera} (web console)")
+        try:
+            run = GuidedRun(options, own_sim_world(self.daemon.config))
+            started = run.open()
+        except BaseException:
+            self.daemon.release_devices()
+            raise
         self._stop.clear()
         self._finish.clear()
         self._drops = []
@@ -195,6 +202,8 @@ class GuidedController:
             log.exception("console: guided calibration of %s failed", o.camera)
             run.close()
             self._set_doc(state="failed", camera=o.camera, error=f"{type(exc).__name__}: {exc}")
+        finally:
+            self.daemon.release_devices()
 
     def _publish(self, run: GuidedRun, fb: dict[str, Any], image: np.ndarray, t_end: float) -> None:
         session = run.session
@@ -302,7 +311,7 @@ class GuidedController:
                 return _bad(str(exc))
             try:
                 return JSONResponse({"ok": True, "result": await run_in_threadpool(self.start, body)})
-            except RigdError as exc:
+            except (RigdError, RequestError) as exc:
                 return JSONResponse({"ok": False, "error": {"code": "busy", "message": str(exc)}}, 409)
 
         async def drop(request: Request) -> Response:

@@ -142,6 +142,7 @@ class Daemon:
         self._pool = WorkerPool(POOL_WORKERS, POOL_QUEUE, _POOL_THREAD)
         self._refused = 0  # requests refused busy since the pool last took one
         self._recovering = False
+        self._holder: str | None = None  # who holds the devices outside a take (see hold_devices)
         self._disk_error: str | None = None
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -216,6 +217,21 @@ class Daemon:
         """The running take's session (for live previews), or None."""
         with self._lock:
             return self._session
+
+    def hold_devices(self, holder: str) -> None:
+        """Keep takes from starting while something else (a guided calibration) uses the devices;
+        `busy` when a take runs or another holder has them. `release_devices` gives them back."""
+        self._reap()
+        with self._lock:
+            if self._session is not None:
+                raise RequestError("busy", f"a take is running: {self._session.path}")
+            if self._holder is not None:
+                raise RequestError("busy", f"the devices are held by {self._holder}")
+            self._holder = holder
+
+    def release_devices(self) -> None:
+        with self._lock:
+            self._holder = None
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         return self._ready.wait(timeout)
@@ -393,6 +409,8 @@ class Daemon:
                 raise RequestError("busy", f"a take is already running: {self._session.path}")
             if self._recovering:
                 raise RequestError("busy", "unfinished takes are being recovered; try again when done")
+            if self._holder is not None:
+                raise RequestError("busy", f"the devices are held by {self._holder}; try again when done")
             session = CaptureSession(
                 self.config,
                 self.svc.take_dir,

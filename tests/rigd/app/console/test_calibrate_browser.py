@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -48,6 +49,10 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         # ... and no take starts while the session holds the devices.
         r = httpx.post(base + "/api/takes/start", json={}, headers=tok, timeout=10)
         assert r.status_code == 409
+        assert "held by the guided calibration of cam0" in r.json()["error"]["message"]
+        # The control socket's own path answers the same: the session holds the devices.
+        reply = json.loads(cd.daemon.handle([b'{"v": 1, "cmd": "capture", "args": {}}']) or b"{}")
+        assert reply["error"]["code"] == "busy"
         # The live image with the corners drawn, refreshed.
         page.wait_for_function("document.querySelector('[data-testid=guided-image]').dataset.version !== '0'")
         expect(page.get_by_test_id("guided-hint")).to_contain_text("next:")
