@@ -1,15 +1,14 @@
 """`rigd reconstruct TAKE... --out DIR`: denoise, segment, keyframes and snapshots per take.
 
 Parses the arguments into `ReconstructOptions` (every knob, the paper's values as defaults; the
-outputs are described in `rigd.app.workflows.reconstruct`), shows progress in events per stage
-with rate and time left (a rich bar on a terminal, one line per finished stage otherwise) and
-prints one line per take; exit code 1 when any take failed.
+outputs are described in `rigd.app.workflows.reconstruct`), shows progress per stage in its own
+unit with the time left (`StageProgress`: a bar on a terminal, a line per stage with `rigd -v`
+otherwise) and prints one line per take with its rate; exit code 1 when any take failed.
 Register with `app.command("reconstruct")(reconstruct)`.
 """
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Annotated
 
@@ -17,18 +16,8 @@ import typer
 from pydantic import ValidationError
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    Progress,
-    ProgressColumn,
-    Task,
-    TaskID,
-    TextColumn,
-    TimeRemainingColumn,
-)
-from rich.text import Text
 
-from rigd.app.workflows.progress import ProgressUpdate
+from rigd.app.commands.progress import StageProgress
 from rigd.app.workflows.reconstruct import (
     LOCAL_SCHEDULERS,
     ReconstructOptions,
@@ -38,59 +27,6 @@ from rigd.app.workflows.reconstruct import (
 from rigd.app.workflows.reconstruct_tasks import FilterKnobs
 
 _err = Console(stderr=True)
-_UNITS = {"filter": "events", "keyframes": "events", "snapshots": "snapshots"}
-_LABELS = {
-    "filter": "filter + activity",
-    "keyframes": "keyframe maps",
-    "snapshots": "snapshots",
-}
-
-
-class _RateColumn(ProgressColumn):
-    """Items per second in the task's own unit (Mev/s for events)."""
-
-    def render(self, task: Task) -> Text:
-        speed = task.finished_speed or task.speed
-        if not speed:
-            return Text("")
-        unit = task.fields.get("unit", "")
-        if unit == "events":
-            return Text(f"{speed / 1e6:.2f} Mev/s")
-        return Text(f"{speed:.1f} {unit}/s")
-
-
-class _Shown:
-    """Routes workflow progress to a rich bar per take and stage, or to one line per finished stage."""
-
-    def __init__(self, progress: Progress, terminal: bool) -> None:
-        self.progress = progress
-        self.terminal = terminal
-        self.tasks: dict[tuple[str, str], TaskID] = {}
-        self.started: dict[tuple[str, str], float] = {}
-
-    def __call__(self, u: ProgressUpdate) -> None:
-        if u.stage == "take":  # a new take: its stages get bars and lines of their own
-            self.tasks.clear()
-            return
-        if u.stage not in _UNITS or u.total is None:
-            return
-        key = (u.message, u.stage)
-        done = u.done or 0
-        if key not in self.tasks:
-            self.started[key] = time.perf_counter()
-            label = f"{Path(u.message).name}: {_LABELS[u.stage]}"
-            self.tasks[key] = self.progress.add_task(label, total=max(u.total, 1), unit=_UNITS[u.stage])
-        self.progress.update(self.tasks[key], completed=done)
-        if not self.terminal and done >= u.total > 0:
-            dt = time.perf_counter() - self.started[key]
-            rate = u.total / dt if dt > 0 else 0.0
-            shown = f"{rate / 1e6:.2f} Mev/s" if _UNITS[u.stage] == "events" else f"{rate:.1f}/s"
-            what = f"{_LABELS[u.stage]}: {u.total:,} {_UNITS[u.stage]}"
-            _err.print(
-                f"{escape(u.message)}: {what} in {dt:.1f} s ({shown})",
-                soft_wrap=True,
-                highlight=False,
-            )
 
 
 def _line(r: TakeReconstruction) -> str:
@@ -214,16 +150,8 @@ _FILTER_FLAGS = {
 
 
 def _run(options: ReconstructOptions) -> None:
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed:,.0f}/{task.total:,.0f} {task.fields[unit]}"),
-        _RateColumn(),
-        TimeRemainingColumn(),
-    )
-    terminal = _err.is_terminal
-    with Progress(*columns, console=_err, transient=False, disable=not terminal) as progress:
-        results = run_reconstruct(options, _Shown(progress, terminal))
+    with StageProgress(_err, "reconstruct") as progress:
+        results = run_reconstruct(options, progress)
     for r in results:
         if r.error is not None:
             _err.print(f"[bold red]error:[/] {escape(r.error)}", soft_wrap=True, highlight=False)

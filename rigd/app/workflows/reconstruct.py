@@ -60,6 +60,8 @@ from rigd.take.reader import Take
 log = logging.getLogger(__name__)
 
 LOCAL_SCHEDULERS = ("threads", "processes", "sync")
+#: The progress stages, each counted in its own unit (events, events, snapshots).
+STAGE_FILTER, STAGE_MAPS, STAGE_SNAPSHOTS = "filter + activity", "keyframe maps", "snapshots"
 
 
 class ReconstructOptions(BaseModel):
@@ -321,15 +323,15 @@ def _phases(
         def on_result(r: Any) -> None:
             if isinstance(r, BlockScan | BlockMaps):
                 done[0] += r.n_events
-                progress(ProgressUpdate(stage, name, done[0], n_total))
+                progress(ProgressUpdate(stage, name, done[0], n_total, "events"))
 
         return on_result
 
-    progress(ProgressUpdate("filter", name, 0, total))
+    progress(ProgressUpdate(STAGE_FILTER, name, 0, total, "events"))
     scan_tasks = [
         delayed(scan_block)(path, s, lo, hi, grid, filt) for s in sensors for lo, hi in plan.blocks[s]
     ]
-    scans: list[BlockScan] = run.compute(scan_tasks, count_events("filter", total))
+    scans: list[BlockScan] = run.compute(scan_tasks, count_events(STAGE_FILTER, total))
     counts = np.zeros(grid.n, np.int64)
     kept = {s: 0 for s in sensors}
     for sc in scans:
@@ -364,8 +366,8 @@ def _phases(
         deps = [t for _, i_a, i_b, t in map_tasks if i_a < b and i_b >= a]
         key_tasks.append(delayed(_keyframe)(a, b, cand_cuts, cuts, shapes, *deps))
     n_mapped = sum(sc.n_events for sc in scans if sc.n_kept)
-    progress(ProgressUpdate("keyframes", name, 0, n_mapped))
-    keys = [int(k) for k in run.compute(key_tasks, count_events("keyframes", n_mapped))]
+    progress(ProgressUpdate(STAGE_MAPS, name, 0, n_mapped, "events"))
+    keys = [int(k) for k in run.compute(key_tasks, count_events(STAGE_MAPS, n_mapped))]
 
     # Phase 3: one snapshot per sensor and keyframe, streamed to disk in batches (memory does not
     # grow with the number of keyframes).
@@ -376,9 +378,9 @@ def _phases(
     def on_snapshot(r: Any) -> None:
         if isinstance(r, Snapshot):
             snapped[0] += 1
-            progress(ProgressUpdate("snapshots", name, snapped[0], n_snaps))
+            progress(ProgressUpdate(STAGE_SNAPSHOTS, name, snapped[0], n_snaps, "snapshots"))
 
-    progress(ProgressUpdate("snapshots", name, 0, n_snaps))
+    progress(ProgressUpdate(STAGE_SNAPSHOTS, name, 0, n_snaps, "snapshots"))
     batch = max(8, 4 * (o.workers or os.cpu_count() or 1))
     for s in sensors:
         w, h = plan.geometry[s]
@@ -517,13 +519,11 @@ def run_reconstruct(
     runner = _Runner(o.scheduler, o.workers)
     results = []
     try:
-        for i, path in enumerate(o.takes):
-            progress(ProgressUpdate("take", str(path), i, len(o.takes)))
+        for path in o.takes:
             try:
                 results.append(reconstruct_take(path, o, progress, runner))
             except (RigdError, OSError) as exc:
                 results.append(_failed(path, exc))
-        progress(ProgressUpdate("take", "", len(o.takes), len(o.takes)))
     finally:
         runner.close()
     return results
