@@ -159,9 +159,11 @@ def test_rigd_reconstruct_on_a_captured_sim_take(tmp_path: Path) -> None:
     take = run_capture(cfg, tmp_path, 1.0).path
     res = CliRunner().invoke(app, ["reconstruct", str(take), "--out", str(tmp_path / "out")])
     assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "out" / take.stem / "segments.json").read_text())
+    assert doc["segments"]
+    assert doc["candidates"]["source"] == "cam0 mid-exposure"
     for sensor in ("ev0", "ev1"):
-        seg = json.loads((tmp_path / "out" / take.stem / sensor / "segments.json").read_text())
-        assert seg
+        assert doc["sensors"][sensor]["events_in"] > 0
         assert (tmp_path / "out" / take.stem / sensor / "snapshots.npz").stat().st_size > 0
 
 
@@ -183,4 +185,5 @@ def test_reconstruct_on_a_distributed_scheduler(tmp_path: Path) -> None:
         options = ReconstructOptions(takes=[take], out=tmp_path / "out", scheduler=c.scheduler_address)
         results = run_reconstruct(options)
     assert results[0].sensors["ev0"].events_in > 0
-    assert (tmp_path / "out" / take.stem / "ev0" / "segments.json").exists()
+    assert (tmp_path / "out" / take.stem / "segments.json").exists()
+    assert (tmp_path / "out" / take.stem / "ev0" / "snapshots.npz").exists()
