@@ -172,6 +172,7 @@ class Daemon:
             for sock in (rep, pub):
                 apply_server_curve(sock, self.svc.curve)
         started: list[Attachment] = []
+        telemetry: threading.Thread | None = None
         try:
             bind(rep, control, "control")
             bind(pub, self.svc.telemetry_endpoint, "telemetry")
@@ -192,9 +193,12 @@ class Daemon:
             self._serve_loop(rep)
             sdnotify.notify("STOPPING=1", "STATUS=stopping")
             self._finish_session("daemon shutting down")
-            self._stop.set()
-            telemetry.join(timeout=5)
         finally:
+            # Also when a bind or an attachment failed: the telemetry thread must not outlive its
+            # socket (it would log a failed tick every second for the rest of the process).
+            self._stop.set()
+            if telemetry is not None:
+                telemetry.join(timeout=5)
             for att in reversed(started):
                 att.close()
             rep.close(linger=0)
