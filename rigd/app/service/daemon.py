@@ -620,6 +620,11 @@ class Daemon:
                 if self.svc.thumbnail_interval_s > 0 and now >= next_thumb:
                     self._publish_thumbnails(pub)
                     next_thumb = now + self.svc.thumbnail_interval_s
+            except zmq.ZMQError as exc:
+                if exc.errno in (zmq.ENOTSOCK, zmq.ETERM):  # the socket is gone: nothing to publish on
+                    log.error("telemetry socket closed (%s); telemetry stops", exc)
+                    return
+                log.exception("telemetry tick failed")
             except Exception:
                 # Telemetry must not take the daemon down; the next tick tries again.
                 log.exception("telemetry tick failed")
