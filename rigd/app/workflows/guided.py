@@ -24,11 +24,15 @@ from calibration.guided import SIGMA_NAMES, Feedback, GuidedSession
 from calibration.intrinsics import IntrinsicsResult
 from calibration.io import write_result
 from calibration.report import write_report
-from drivers.base import RgbCamera, Trigger
-from drivers.registry import open_device
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, default_sim_rig
 from rigd.app.workflows.calibrate import Board
-from rigd.app.workflows.guided_feeds import CameraFeed, ImageFeed, open_event_feed, shutdown
+from rigd.app.workflows.guided_feeds import (
+    CameraFeed,
+    ImageFeed,
+    open_event_feed,
+    open_with_trigger,
+    shutdown,
+)
 from rigd.core.errors import RigdError
 
 log = logging.getLogger(__name__)
@@ -158,7 +162,7 @@ class GuidedRun:
         dev = self.device_cfg
         feed: ImageFeed
         if isinstance(dev, CameraConfig):
-            trigger, cam = _open(self.rig, dev)
+            trigger, cam = open_with_trigger(self.rig, dev)
             try:
                 self._session = _session(self.options, cam.frame_shape, dev.settings.exposure_us)
                 cam.start()
@@ -290,24 +294,6 @@ def _device_config(cfg: RigConfig, name: str) -> CameraConfig | EventSensorConfi
         f"rig {cfg.name!r} has no RGB camera {name!r} nor an event sensor of that name "
         f"(cameras: {names}; event sensors: {sensors})"
     )
-
-
-def _open(cfg: RigConfig, cam_cfg: CameraConfig) -> tuple[Trigger, RgbCamera]:
-    """Open and configure the trigger and the camera (order of rigd.app.capture)."""
-    trigger = open_device("trigger", cfg.trigger.spec)
-    try:
-        trigger.configure(cfg.trigger.settings)
-        cam = open_device("rgb_camera", cam_cfg.spec)
-    except BaseException:
-        trigger.close()
-        raise
-    try:
-        cam.configure(cam_cfg.settings)
-    except BaseException:
-        cam.close()
-        trigger.close()
-        raise
-    return trigger, cam
 
 
 def _session(

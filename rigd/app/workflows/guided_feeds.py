@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Protocol
+from typing import Protocol, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from calibration.e2calib import ReconstructionParams, detector_image, reconstruct
 from drivers.base import EventSensor, RgbCamera, Trigger
 from drivers.registry import open_device
-from rigd.app.config import EventSensorConfig, RigConfig
+from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig
 from rigd.core.events import EventArray
 
 log = logging.getLogger(__name__)
@@ -118,17 +118,39 @@ class EventFeed:
         shutdown(self.trigger, self.sensor)
 
 
-def open_event_feed(rig: RigConfig, sensor_cfg: EventSensorConfig) -> EventFeed:
-    """Open, configure and start the trigger and the event sensor."""
+@overload
+def open_with_trigger(rig: RigConfig, dev: CameraConfig) -> tuple[Trigger, RgbCamera]: ...
+@overload
+def open_with_trigger(rig: RigConfig, dev: EventSensorConfig) -> tuple[Trigger, EventSensor]: ...
+def open_with_trigger(
+    rig: RigConfig, dev: CameraConfig | EventSensorConfig
+) -> tuple[Trigger, RgbCamera | EventSensor]:
+    """Open and configure the trigger, then the device (rigd.app.capture's order); what opened is
+    closed again when a later step fails."""
     trigger = open_device("trigger", rig.trigger.spec)
     try:
         trigger.configure(rig.trigger.settings)
-        sensor = open_device("event_sensor", sensor_cfg.spec)
+        device: RgbCamera | EventSensor = (
+            open_device("rgb_camera", dev.spec)
+            if isinstance(dev, CameraConfig)
+            else open_device("event_sensor", dev.spec)
+        )
     except BaseException:
         trigger.close()
         raise
     try:
-        sensor.configure(sensor_cfg.settings)
+        device.configure(dev.settings)  # type: ignore[arg-type]  # kind of dev = kind of device, above
+    except BaseException:
+        device.close()
+        trigger.close()
+        raise
+    return trigger, device
+
+
+def open_event_feed(rig: RigConfig, sensor_cfg: EventSensorConfig) -> EventFeed:
+    """Open, configure and start the trigger and the event sensor."""
+    trigger, sensor = open_with_trigger(rig, sensor_cfg)
+    try:
         sensor.start()
         trigger.arm()
         trigger.start()
