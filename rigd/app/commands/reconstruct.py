@@ -103,11 +103,6 @@ def reconstruct(
     ] = 5.0,
 ) -> None:
     """Denoise, segment the rig's sequence by motion, choose keyframes and reconstruct snapshots per take."""
-    if e2i not in ("highpass", "direct"):
-        _err.print(
-            f"[bold red]error:[/] --e2i must be highpass or direct, got {escape(e2i)!r}", highlight=False
-        )
-        raise typer.Exit(code=2)
     try:
         filt = FilterKnobs(
             enabled=not no_filter,

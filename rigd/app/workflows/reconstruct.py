@@ -40,7 +40,13 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from reconstruction.partition import PartitionConfig, Segment, canonical_keyframe, segment_starts
+from reconstruction.partition import (
+    PartitionConfig,
+    Segment,
+    canonical_keyframe,
+    map_shape,
+    segment_starts,
+)
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
 from rigd.app.workflows.reconstruct_tasks import (
     BlockMaps,
@@ -285,15 +291,13 @@ def reconstruct_take(
     runner: _Runner | None = None,
 ) -> TakeReconstruction:
     """The three phases on one take; writes its outputs. Raises RigdError / OSError on a bad take."""
-    from dask import delayed
-
     o = options
     own = runner is None
     run = runner or _Runner(o.scheduler, o.workers)
     started = time.perf_counter()
     try:
         plan = _plan(path, o)
-        result = _phases(plan, o, run, progress, delayed)
+        result = _phases(plan, o, run, progress)
     finally:
         if own:
             run.close()
@@ -301,17 +305,18 @@ def reconstruct_take(
 
 
 def _phases(
-    plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback, delayed: Any
+    plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback
 ) -> TakeReconstruction:
+    from dask import delayed  # dask is checked by _Runner, with its own message
+
     path, filt, cfg = plan.path, o.filter, o.partition_config()
     name = str(path)
     total = plan.n_events
     sensors = list(plan.blocks)
     if not sensors or total == 0:
-        _write(plan, o, [], {s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors})
-        return TakeReconstruction(
-            take=name, sensors={s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors}
-        )
+        empty = {s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors}
+        _write(plan, o, [], empty)
+        return TakeReconstruction(take=name, sensors=empty)
 
     # Phase 1: filter and count.
     grid = Grid(plan.t0_us, cfg.window_us, max(1, -(-(plan.t1_us - plan.t0_us) // cfg.window_us)))
@@ -348,7 +353,7 @@ def _phases(
         for a, b in itertools.pairwise(edges)
     ]
     cuts = np.unique(np.concatenate([edges, *chosen]))
-    shapes = {s: _map_shape(plan.geometry[s], cfg.map_scale) for s in sensors}
+    shapes = {s: map_shape(*plan.geometry[s], cfg.map_scale) for s in sensors}
     map_tasks: list[tuple[str, int, int, Any]] = []
     for sc in scans:
         if sc.n_kept == 0:
@@ -420,12 +425,6 @@ def _phases(
         ", ".join(f"{s} kept {v.events_kept} of {v.events_in}" for s, v in per_sensor.items()),
     )
     return TakeReconstruction(take=name, segments=len(segments), sensors=per_sensor)
-
-
-def _map_shape(geometry: tuple[int, int], scale: float) -> tuple[int, int]:
-    from reconstruction.partition import map_shape
-
-    return map_shape(geometry[0], geometry[1], scale)
 
 
 def _write(

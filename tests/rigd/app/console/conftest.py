@@ -6,7 +6,6 @@ import os
 import shutil
 import tempfile
 import threading
-import time
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -17,6 +16,7 @@ import pytest
 from rigd.app.config import RigConfig, default_sim_rig
 from rigd.app.console.server import ConsoleServer
 from rigd.app.service.daemon import Daemon
+from tests.rigd.app.service.conftest import serve_in_thread
 
 
 def console_rig(take_dir: Path, runtime: Path, *, resolution: tuple[int, int] = (160, 120)) -> RigConfig:
@@ -67,21 +67,7 @@ def console_daemon(runtime_dir: Path, tmp_path: Path) -> Iterator[Callable[..., 
         cfg = console_rig(tmp_path / "takes", runtime_dir, resolution=resolution)
         console = ConsoleServer("127.0.0.1", 0, **console_kw)  # type: ignore[arg-type]
         daemon = Daemon(cfg, attachments=[console])
-        errors: list[BaseException] = []
-
-        def run() -> None:
-            try:
-                daemon.serve()
-            except BaseException as exc:  # noqa: BLE001 - surfaced below
-                errors.append(exc)
-
-        th = threading.Thread(target=run, name="console-daemon", daemon=True)
-        th.start()
-        deadline = time.monotonic() + 30
-        while not daemon.wait_ready(0.1):
-            if errors:
-                raise errors[0]
-            assert time.monotonic() < deadline, "daemon did not become ready"
+        th, _ = serve_in_thread(daemon, "console-daemon")
         cd = ConsoleDaemon(daemon, console, th, cfg)
         running.append(cd)
         return cd

@@ -65,6 +65,27 @@ def endpoints(runtime: Path) -> dict[str, str]:
     return {"control": f"ipc://{runtime}/control.sock", "telemetry": f"ipc://{runtime}/telemetry.sock"}
 
 
+def serve_in_thread(daemon: Daemon, name: str) -> tuple[threading.Thread, list[BaseException]]:
+    """`daemon.serve()` in a daemon thread, returned once it is ready (a start-up error is raised);
+    later errors are collected in the returned list for the test to surface."""
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            daemon.serve()
+        except BaseException as exc:  # noqa: BLE001 - surfaced by the test through `errors`
+            errors.append(exc)
+
+    th = threading.Thread(target=run, name=name, daemon=True)
+    th.start()
+    deadline = time.monotonic() + 30
+    while not daemon.wait_ready(0.1):
+        if errors:
+            raise errors[0]
+        assert time.monotonic() < deadline, "daemon did not become ready"
+    return th, errors
+
+
 @pytest.fixture
 def start_daemon(runtime_dir: Path, tmp_path: Path) -> Iterator[object]:
     """Factory: start a Daemon in a thread on a small sim rig; stopped at teardown."""
@@ -76,21 +97,7 @@ def start_daemon(runtime_dir: Path, tmp_path: Path) -> Iterator[object]:
         data["service"].update(endpoints(runtime_dir))
         cfg = RigConfig.from_data(data)
         daemon = Daemon(cfg)
-        errors: list[BaseException] = []
-
-        def run() -> None:
-            try:
-                daemon.serve()
-            except BaseException as exc:  # noqa: BLE001 - surfaced by the test through `errors`
-                errors.append(exc)
-
-        th = threading.Thread(target=run, name="daemon-under-test", daemon=True)
-        th.start()
-        deadline = time.monotonic() + 30
-        while not daemon.wait_ready(0.1):
-            if errors:
-                raise errors[0]
-            assert time.monotonic() < deadline, "daemon did not become ready"
+        th, errors = serve_in_thread(daemon, "daemon-under-test")
         client = DaemonClient(cfg.service.control_endpoint, timeout_s=10)
         rd = RunningDaemon(daemon, th, client, cfg, errors)
         running.append(rd)
