@@ -2,8 +2,9 @@
 
 Commands that act on the rig talk to a running daemon when one answers at the control
 endpoint; `capture` and `devices` fall back to doing the work in-process when none does.
-Exit codes: 0 done, 1 the take ended with an error, 2 bad input / request refused,
-3 no daemon running (status, stop), or the daemon stopped answering during `capture`.
+Exit codes: 0 done, 1 the take ended with an error (for `serve`: its control loop failed, the
+take was finalized; systemd restarts it), 2 bad input / request refused, 3 no daemon running
+(status, stop), or the daemon stopped answering during `capture`.
 """
 
 from __future__ import annotations
@@ -28,6 +29,10 @@ _err = Console(stderr=True)
 
 #: Exit code of `rigd capture` when the daemon stops answering before the take is over.
 DAEMON_LOST_EXIT = 3
+
+#: Exit code of `rigd serve` when its control loop failed (the take was finalized): not 2,
+#: which the systemd unit does not restart (RestartPreventExitStatus=2, for config errors).
+CONTROL_PLANE_FAILED_EXIT = 1
 
 #: How long `capture` waits for the daemon to open the devices and start the trigger.
 CAPTURE_START_TIMEOUT_S = 120.0
@@ -81,7 +86,7 @@ def serve(
     ] = None,
 ) -> None:
     """Run the capture daemon: control socket, telemetry, metrics, web console; Ctrl-C/SIGTERM to stop."""
-    from rigd.app.service.daemon import Attachment, run_daemon
+    from rigd.app.service.daemon import Attachment, ControlPlaneError, run_daemon
 
     try:
         rig = RigConfig.load(config) if config else default_sim_rig()
@@ -110,6 +115,8 @@ def serve(
             attachments.append(console)
         attachments.append(Announcer(console))
         run_daemon(rig, attachments)
+    except ControlPlaneError as exc:
+        raise _fail(exc, code=CONTROL_PLANE_FAILED_EXIT) from exc
     except RigdError as exc:
         raise _fail(exc) from exc
 

@@ -9,7 +9,10 @@ keeps answering (`status` says `starting`, `stop` is queued) and feeding the sys
 
 Every request gets a reply: malformed input is answered with a structured error, and a bug
 in a handler is logged and answered as `internal` while the daemon goes on serving.
-SIGTERM/SIGINT finalize the running take before exiting.
+SIGTERM/SIGINT finalize the running take before exiting. Should the control loop die anyway
+(an exception escaping it), the running take is finalized and `serve` raises
+`ControlPlaneError`: a daemon nobody can talk to must not go on recording (`rigd serve`
+exits non-zero, and systemd restarts it).
 """
 
 from __future__ import annotations
@@ -96,6 +99,10 @@ _Defer = Callable[[str, Callable[[], bytes]], None]
 
 #: Where workers hand finished replies back to the control loop, which owns the socket.
 _REPLIES_ENDPOINT = "inproc://rigd-deferred-replies"
+
+
+class ControlPlaneError(RigdError):
+    """The control loop died (a bug); the running take was finalized and the daemon exits."""
 
 
 class Attachment(Protocol):
@@ -190,7 +197,15 @@ class Daemon:
             log.info(
                 "rigd %s serving on %s (telemetry %s)", __version__, control, self.svc.telemetry_endpoint
             )
-            self._serve_loop(rep)
+            try:
+                self._serve_loop(rep)
+            except Exception as exc:
+                # Nobody can stop a take through a dead control socket: finalize it now, then
+                # exit non-zero (the cause is logged with its traceback).
+                log.critical("control loop failed; finalizing the running take and exiting", exc_info=exc)
+                sdnotify.notify("STOPPING=1", "STATUS=control loop failed; finalizing the take")
+                self._finish_session(f"control loop failed: {type(exc).__name__}")
+                raise ControlPlaneError(f"the control loop failed ({type(exc).__name__}: {exc})") from exc
             sdnotify.notify("STOPPING=1", "STATUS=stopping")
             self._finish_session("daemon shutting down")
         finally:
@@ -367,6 +382,12 @@ class Daemon:
         With `defer`, a slow command (capture, devices, recover) hands its work to `defer` and
         returns None: the reply comes from that job. Without it, everything is answered here.
         """
+        try:
+            return self._handle(frames, defer)
+        except Exception as exc:  # noqa: BLE001 - a bug here must not end the control loop
+            return reply_bytes(Reply(ok=False, error=error_info(exc)))
+
+    def _handle(self, frames: list[bytes], defer: _Defer | None) -> bytes | None:
         req_id: str | None = None
         try:
             data = decode_request(frames)
@@ -673,6 +694,9 @@ def run_daemon(config: RigConfig, attachments: Sequence[Attachment] = ()) -> Non
     daemon.install_signal_handlers()
     try:
         daemon.serve()
+    except ControlPlaneError:
+        sdnotify.notify("STATUS=control loop failed; take finalized")
+        raise
     except RigdError:
         sdnotify.notify("STATUS=failed to start")
         raise

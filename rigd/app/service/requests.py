@@ -35,7 +35,31 @@ def _loc(prefix: str, loc: tuple[int | str, ...]) -> str:
 
 
 def reply_bytes(reply: Reply) -> bytes:
-    return reply.model_dump_json(exclude_none=True).encode()
+    """The reply as UTF-8 JSON; never raises.
+
+    A reply holding text that is not valid Unicode (a file name that is not UTF-8 comes back
+    from the file system as lone surrogates) cannot be encoded: it is answered with a
+    structured error naming where the text was, instead of ending the control loop."""
+    try:
+        return reply.model_dump_json(exclude_none=True).encode()
+    except ValueError as exc:  # PydanticSerializationError is a ValueError
+        where = _first_problem(reply.model_dump()) or ("", "")
+        log.error("reply to request %s cannot be encoded (%s at %s)", printable(reply.id), exc, where[0])
+        fallback = Reply(
+            id=None if reply.id is None else printable(reply.id),
+            ok=False,
+            error=ErrorInfo(
+                code="internal",
+                message=f"the reply could not be encoded as JSON: {where[1] or printable(str(exc))}"
+                + (f" at {where[0]}" if where[0] else ""),
+            ),
+        )
+        return fallback.model_dump_json(exclude_none=True).encode()
+
+
+def printable(text: str | None) -> str:
+    """`text` with anything UTF-8 cannot encode (lone surrogates) written as a backslash escape."""
+    return "" if text is None else text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def error_info(exc: Exception) -> ErrorInfo:
@@ -70,25 +94,57 @@ def decode_request(frames: list[bytes]) -> dict[str, Any]:
     """The request body as a JSON object; `RequestError` says what is wrong with it."""
     if len(frames) != 1:
         raise RequestError("bad_request", f"a request is one message frame, got {len(frames)}")
-    raw = frames[0]
-    if len(raw) > MAX_MESSAGE_BYTES:
-        raise RequestError("bad_request", f"request of {len(raw)} bytes; the limit is {MAX_MESSAGE_BYTES}")
+    return parse_json_object(frames[0])
+
+
+def parse_json_object(
+    raw: bytes, what: str = "request", max_bytes: int = MAX_MESSAGE_BYTES
+) -> dict[str, Any]:
+    """`raw` as a JSON object, as strictly as the control socket reads requests; the web console
+    reads its request bodies with it too, so both refuse the same input.
+
+    Refused (`RequestError`, naming the field where it can): more than `max_bytes`, not UTF-8
+    JSON, nested too deeply, not an object, a key repeated in one object (which value wins
+    is up to the parser, so it is refused rather than guessed at), text that is not valid
+    Unicode (a lone surrogate such as \\ud800 is valid JSON but cannot be encoded again, so
+    it would break the reply), and integers of more than MAX_INT_DIGITS digits."""
+    if len(raw) > max_bytes:
+        raise RequestError("bad_request", f"{what} of {len(raw)} bytes; the limit is {max_bytes}")
     try:
-        data = json.loads(raw.decode("utf-8"), object_pairs_hook=_object_no_duplicates)
+        data = json.loads(raw.decode("utf-8"), object_pairs_hook=_object_no_duplicates, parse_int=_parse_int)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RequestError("bad_json", f"request is not UTF-8 JSON: {exc}") from None
+        raise RequestError("bad_json", f"{what} is not UTF-8 JSON: {exc}") from None
     except RecursionError:
-        raise RequestError("bad_json", "request JSON is nested too deeply") from None
+        raise RequestError("bad_json", f"{what} JSON is nested too deeply") from None
     if not isinstance(data, dict):
-        raise RequestError("bad_json", f"a request is a JSON object, got {type(data).__name__}")
-    if (where := _first_duplicate(data)) is not None:
-        raise RequestError("bad_request", f"duplicate key {where!r} in the request", where)
+        raise RequestError("bad_json", f"a {what} is a JSON object, got {type(data).__name__}")
+    problem = _first_problem(data)
+    if problem is not None:
+        where, message = problem
+        raise RequestError("bad_request", f"{message} in the {what}", where or None)
     return data
 
 
+#: Longest integer a request may hold: no field needs more, and beyond about 4300 digits
+#: Python refuses to convert one at all (a ValueError that is no JSON error).
+MAX_INT_DIGITS = 64
+
+
+class _LongInt:
+    """Stands for an integer literal of more than MAX_INT_DIGITS digits (refused after parsing,
+    where its field can be named)."""
+
+    def __init__(self, digits: int) -> None:
+        self.digits = digits
+
+
+def _parse_int(text: str) -> int | _LongInt:
+    digits = len(text.lstrip("-"))
+    return _LongInt(digits) if digits > MAX_INT_DIGITS else int(text)
+
+
 class _DuplicateKeys(dict[str, Any]):
-    """A JSON object that named `duplicate` more than once (which value wins is up to the
-    parser, so such a request is refused rather than guessed at)."""
+    """A JSON object that named `duplicate` more than once."""
 
     duplicate: str = ""
 
@@ -96,7 +152,7 @@ class _DuplicateKeys(dict[str, Any]):
 def _object_no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     """`object_pairs_hook` for json.loads: marks objects with a repeated key.
 
-    The hook cannot know where its object sits, so it marks it and `_first_duplicate` finds
+    The hook cannot know where its object sits, so it marks it and `_first_problem` finds
     the path afterwards, for an error that names the field."""
     obj = dict(pairs)
     if len(obj) == len(pairs):
@@ -111,24 +167,53 @@ def _object_no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return marked
 
 
-def _first_duplicate(data: Any) -> str | None:
-    """Dotted path of the first repeated key anywhere in a parsed request, or None.
+def _bad_text(text: str) -> bool:
+    if text.isascii():
+        return False
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    return False
 
-    Iterative: a request nested as deeply as json.loads allows must not overflow the stack."""
+
+def _first_problem(data: Any) -> tuple[str, str] | None:
+    """(dotted path, what is wrong) of the first repeated key, over-long integer or text that
+    is not valid Unicode (in a key or a value) anywhere in parsed JSON, or None.
+
+    Iterative: a document nested as deeply as json.loads allows must not overflow the stack.
+    Paths are printable (a bad key is written escaped)."""
     stack: list[tuple[str, Any]] = [("", data)]
     while stack:
-        prefix, node = stack.pop()
+        path, node = stack.pop()
         if isinstance(node, _DuplicateKeys):
-            return f"{prefix}.{node.duplicate}" if prefix else node.duplicate
+            return _join(path, printable(node.duplicate)), f"duplicate key {printable(node.duplicate)!r}"
+        if isinstance(node, _LongInt):
+            return path, f"an integer of {node.digits} digits (at most {MAX_INT_DIGITS})"
+        if isinstance(node, str):
+            if _bad_text(node):
+                return path, "text that is not valid Unicode (a lone surrogate)"
+            continue
         if isinstance(node, dict):
-            items: list[tuple[str, Any]] = list(node.items())
-        elif isinstance(node, list):
+            items: list[tuple[str, Any]] = []
+            for key, value in node.items():
+                key_text = str(key)
+                if _bad_text(key_text):
+                    return _join(
+                        path, printable(key_text)
+                    ), "a key that is not valid Unicode (a lone surrogate)"
+                items.append((key_text, value))
+        elif isinstance(node, list | tuple):
             items = [(str(i), v) for i, v in enumerate(node)]
         else:
             continue
         for key, value in reversed(items):
-            stack.append((f"{prefix}.{key}" if prefix else key, value))
+            stack.append((_join(path, key), value))
     return None
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
 
 
 def validate_request(data: dict[str, Any]) -> tuple[str, BaseModel]:
