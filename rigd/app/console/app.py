@@ -5,6 +5,11 @@ socket, with a control-protocol request made from the form: the same validation,
 `busy` rules and the same errors, so the console can do nothing the socket would refuse.
 Live data comes from `live.LivePublisher` slots (bounded rate, latest value only); the stream
 to a browser is server-sent events, one JSON document per publisher version.
+
+Request bodies are read as strictly as the control socket reads requests: at most
+MAX_BODY_BYTES (refused with 413 before more is read, with or without a Content-Length), and
+parsed by the control socket's own `parse_json_object` (no repeated keys, no lone surrogates,
+no over-long integers, bounded nesting), so hostile input is a 4xx naming the field.
 """
 
 from __future__ import annotations
@@ -28,11 +33,13 @@ from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from rigd.app.console.live import EVENT_WINDOWS_MS, LivePublisher
 from rigd.app.console.security import TOKEN_COOKIE, ConsoleSecurity, SecurityMiddleware
-from rigd.app.console.takes import TakeList
-from rigd.app.service.protocol import PROTOCOL_VERSION, CaptureArgs, StopArgs
+from rigd.app.console.takes import TakeList, read_text_nofollow, write_text_nofollow
+from rigd.app.service.protocol import MAX_MESSAGE_BYTES, PROTOCOL_VERSION, CaptureArgs, StopArgs
+from rigd.app.service.requests import RequestError, parse_json_object
 from rigd.core.errors import RigdError
 
 log = logging.getLogger(__name__)
@@ -41,6 +48,11 @@ STATIC = resources.files("rigd.app.console") / "static"
 #: Notes kept with a take (a text file next to it: `<take>.notes.txt`).
 NOTES_SUFFIX = ".notes.txt"
 _NO_STORE = {"Cache-Control": "no-store"}
+#: Largest request body read (the control socket's message limit): the biggest legitimate body,
+#: a start with 4000 characters of notes, is well under it.
+MAX_BODY_BYTES = MAX_MESSAGE_BYTES
+#: Largest notes file read back for the take list (what the console writes is at most 16 kB).
+MAX_NOTES_BYTES = 64 * 1024
 
 
 class StartBody(BaseModel):
@@ -87,16 +99,71 @@ def _error(status: int, code: str, message: str, fld: str | None = None) -> JSON
     return JSONResponse({"ok": False, "error": {"code": code, "message": message, "field": fld}}, status)
 
 
+class BodyTooLargeError(Exception):
+    """A request body went over MAX_BODY_BYTES while it was being read."""
+
+
+def _too_large() -> JSONResponse:
+    return _error(413, "too_large", f"request body over {MAX_BODY_BYTES} bytes")
+
+
+class BodyLimitMiddleware:
+    """Refuse request bodies over `limit` bytes with 413: at once when Content-Length says so,
+    else (chunked) as soon as the bytes received pass it; nothing beyond `limit` is buffered."""
+
+    def __init__(self, app: ASGIApp, limit: int = MAX_BODY_BYTES) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for key, value in scope["headers"]:
+            if key == b"content-length" and (not value.isdigit() or int(value) > self.limit):
+                await _too_large()(scope, receive, send)
+                return
+        received = 0
+        started = False
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.limit:
+                    raise BodyTooLargeError()
+            return message
+
+        async def tracked_send(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, limited_receive, tracked_send)
+        except BodyTooLargeError:
+            if started:
+                raise
+            await _too_large()(scope, receive, send)
+
+
 async def read_body(request: Request, model: type[BaseModel]) -> BaseModel | JSONResponse:
-    """The request body as `model`, or the error response (bad JSON, unknown fields)."""
+    """The request body as `model`, or the error response: 413 over MAX_BODY_BYTES, 400 for
+    what the control socket's parser refuses (bad JSON, a repeated key, a lone surrogate, an
+    over-long integer, deep nesting) and for unknown fields or wrong types, naming the field."""
     try:
-        data = json.loads(await request.body() or b"{}")
+        raw = await request.body()
+    except BodyTooLargeError:
+        return _too_large()
+    try:
+        data = parse_json_object(raw or b"{}", what="body", max_bytes=MAX_BODY_BYTES)
         return model.model_validate(data)
-    except json.JSONDecodeError as exc:
-        return _error(400, "bad_json", f"body is not JSON: {exc.msg}")
+    except RequestError as exc:
+        return _error(400, exc.info.code, exc.info.message, exc.info.field)
     except ValidationError as exc:
         err = exc.errors()[0]
-        return _error(400, "bad_request", str(err["msg"]), ".".join(str(p) for p in err["loc"]))
+        return _error(400, "bad_request", str(err["msg"]), ".".join(str(p) for p in err["loc"]) or None)
 
 
 _STATUS_BY_CODE = {"busy": 409, "not_capturing": 409, "device_error": 503, "internal": 500}
@@ -182,8 +249,14 @@ def build_app(ctx: ConsoleContext) -> Starlette:
         args = body.model_dump(include=set(CaptureArgs.model_fields), exclude_none=True)
         resp = await run_in_threadpool(control_call, ctx, "capture", args)
         if resp.status_code == 200 and body.notes:
-            path = Path(json.loads(bytes(resp.body))["result"]["take"])
-            await run_in_threadpool(_write_notes, path, body.notes)
+            reply = json.loads(bytes(resp.body))
+            path = Path(reply["result"]["take"])
+            try:
+                await run_in_threadpool(_write_notes, path, body.notes)
+            except OSError as exc:  # the take runs; the page says the notes were not kept
+                log.warning("console: notes of %s not written: %s", path.name, exc)
+                reply["notes_error"] = f"notes not written: {exc.strerror or exc}"
+                return JSONResponse(reply)
         return resp
 
     async def stop_take(request: Request) -> Response:
@@ -242,7 +315,8 @@ def build_app(ctx: ConsoleContext) -> Starlette:
     ]
     if ctx.guided is not None:
         routes[-1:-1] = ctx.guided.routes()
-    return Starlette(routes=routes, middleware=[Middleware(SecurityMiddleware, security=ctx.security)])
+    middleware = [Middleware(SecurityMiddleware, security=ctx.security), Middleware(BodyLimitMiddleware)]
+    return Starlette(routes=routes, middleware=middleware)
 
 
 def _notes_path(take: Path) -> Path:
@@ -250,11 +324,14 @@ def _notes_path(take: Path) -> Path:
 
 
 def _write_notes(take: Path, notes: str) -> None:
-    _notes_path(take).write_text(notes, encoding="utf-8")
+    """Never through a symlink planted where the notes go (OSError, answered as an error)."""
+    write_text_nofollow(_notes_path(take), notes)
 
 
 def _read_notes(take: Path) -> str | None:
+    """None when there are none; a symlink or something unreadable is said so in the listing."""
     try:
-        return _notes_path(take).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        return None
+        return read_text_nofollow(_notes_path(take), MAX_NOTES_BYTES)
+    except OSError as exc:
+        log.info("console: notes of %s not read: %s", take.name, exc)  # the listing says so
+        return f"(notes not read: {exc.strerror or exc})"

@@ -10,12 +10,17 @@ an HTML report into the console's calibration directory (and, when asked, into a
 The guided run opens the rig's devices itself, so it holds them in the daemon (`hold_devices`):
 it is refused while a take runs, and a take asked for meanwhile, from the console or the control
 socket, is answered `busy` (on the sim rig it uses a world of its own).
+
+Files are written and served only as plain files directly in the calibration directory, which
+must not itself be a symlink: a link planted there is refused, never followed.
 """
 
 from __future__ import annotations
 
-import json
 import logging
+import mimetypes
+import os
+import stat
 import threading
 import time
 from datetime import UTC, datetime
@@ -24,18 +29,19 @@ from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
-from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
 from calibration.boards import parse_board
 from calibration.errors import CalibrationError
 from calibration.guided import SIGMA_NAMES, TILT_BINS
 from calibration.io import write_json
+from rigd.app.console.app import read_body
 from rigd.app.console.live import LatestSlot, LivePublisher
-from rigd.app.console.takes import TakeList
+from rigd.app.console.takes import TakeList, file_in, plain_dir
 from rigd.app.service.requests import RequestError
 from rigd.app.workflows.guided import DEFAULT_BOARD, GuidedOptions, GuidedRun, own_sim_world, verdict
 from rigd.core.errors import RigdError
@@ -44,6 +50,8 @@ from rigd.take.calibration import store_calibration
 log = logging.getLogger(__name__)
 
 _NO_STORE = {"Cache-Control": "no-store"}
+#: Largest calibration file served (results and reports are far smaller).
+MAX_FILE_BYTES = 64 * 1024 * 1024
 
 
 class GuidedStartBody(BaseModel):
@@ -62,7 +70,15 @@ class GuidedStartBody(BaseModel):
 class FinishBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    into_take: str | None = Field(None, description="Also store the result in this take of take_dir.")
+    into_take: str | None = Field(
+        None, max_length=200, description="Also store the result in this take of take_dir."
+    )
+
+
+class CancelBody(BaseModel):
+    """Nothing: but a body is read as strictly as any other (no unknown fields)."""
+
+    model_config = ConfigDict(extra="forbid")
 
 
 class DropBody(BaseModel):
@@ -139,6 +155,9 @@ class GuidedController:
     def start(self, body: GuidedStartBody) -> dict[str, Any]:
         if self.running:
             raise RigdError("a guided calibration is already running")
+        known = self.devices()
+        if body.camera not in known["cameras"] + known["event_sensors"]:
+            raise RequestError("bad_request", f"no device {body.camera!r} in the rig", "camera")
         state = self.daemon.telemetry().state
         if state != "idle":
             raise RigdError(f"the rig is {state}: guided calibration needs it idle (stop the take first)")
@@ -148,6 +167,7 @@ class GuidedController:
             raise RigdError(f"board {body.board!r}: {exc}") from exc
         stamp = _stamp()
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        plain_dir(self.out_dir, "calibration directory")
         options = GuidedOptions(
             camera=body.camera,
             out=self.out_dir / f"{body.camera}-{stamp}.yaml",
@@ -237,8 +257,9 @@ class GuidedController:
         )
 
     def _write(self, run: GuidedRun) -> None:
-        outcome = run.finish()
         o = run.options
+        _refuse_links(o.out_path, o.out_path.with_suffix(".json"), o.report)
+        outcome = run.finish()
         reached, text = verdict(outcome, o.target_sigma_px, o.min_views)
         files: dict[str, str] = {}
         if outcome.result is not None:
@@ -288,6 +309,20 @@ class GuidedController:
         self._into_take = path
         self._finish.set()
 
+    def _read_file(self, name: str) -> bytes:
+        """Calibration file `name`: a plain file of the calibration directory, opened without
+        following a link swapped in since the check, at most MAX_FILE_BYTES."""
+        path = file_in(plain_dir(self.out_dir, "calibration directory"), name, "calibration file")
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK), "rb") as f:
+            st = os.fstat(f.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise RigdError(f"calibration file {name!r} is not a regular file")
+            if st.st_size > MAX_FILE_BYTES:
+                raise RigdError(
+                    f"calibration file {name!r} has {st.st_size} bytes; served up to {MAX_FILE_BYTES}"
+                )
+            return f.read(MAX_FILE_BYTES)
+
     def run_device(self) -> str | None:
         return None if self._run is None else self._run.options.camera
 
@@ -305,32 +340,44 @@ class GuidedController:
             return JSONResponse({"devices": self.devices(), "status": self.status_doc()}, headers=_NO_STORE)
 
         async def start(request: Request) -> Response:
-            try:
-                body = GuidedStartBody.model_validate(json.loads(await request.body() or b"{}"))
-            except (json.JSONDecodeError, ValidationError) as exc:
-                return _bad(str(exc))
+            body = await read_body(request, GuidedStartBody)
+            if isinstance(body, JSONResponse):
+                return body
+            assert isinstance(body, GuidedStartBody)
             try:
                 return JSONResponse({"ok": True, "result": await run_in_threadpool(self.start, body)})
-            except (RigdError, RequestError) as exc:
+            except RequestError as exc:
+                status = 400 if exc.info.code == "bad_request" else 409
+                return JSONResponse({"ok": False, "error": exc.info.model_dump()}, status)
+            except RigdError as exc:
                 return JSONResponse({"ok": False, "error": {"code": "busy", "message": str(exc)}}, 409)
 
         async def drop(request: Request) -> Response:
+            body = await read_body(request, DropBody)
+            if isinstance(body, JSONResponse):
+                return body
+            assert isinstance(body, DropBody)
             try:
-                body = DropBody.model_validate(json.loads(await request.body() or b"{}"))
                 self.drop(body.index)
-            except (json.JSONDecodeError, ValidationError, RigdError) as exc:
+            except RigdError as exc:
                 return _bad(str(exc))
             return JSONResponse({"ok": True})
 
         async def finish(request: Request) -> Response:
+            body = await read_body(request, FinishBody)
+            if isinstance(body, JSONResponse):
+                return body
+            assert isinstance(body, FinishBody)
             try:
-                body = FinishBody.model_validate(json.loads(await request.body() or b"{}"))
                 await run_in_threadpool(self.finish, body.into_take)
-            except (json.JSONDecodeError, ValidationError, RigdError) as exc:
+            except RigdError as exc:
                 return _bad(str(exc))
             return JSONResponse({"ok": True})
 
         async def cancel(request: Request) -> Response:
+            body = await read_body(request, CancelBody)
+            if isinstance(body, JSONResponse):
+                return body
             self.cancel()
             return JSONResponse({"ok": True})
 
@@ -343,10 +390,12 @@ class GuidedController:
 
         async def files(request: Request) -> Response:
             name = request.path_params["name"]
-            path = self.out_dir / name
-            if "/" in name or name.startswith(".") or not path.is_file():
-                return JSONResponse({"ok": False, "error": {"code": "not_found", "message": name}}, 404)
-            return FileResponse(path)
+            try:
+                data = await run_in_threadpool(self._read_file, name)
+            except (RigdError, OSError) as exc:
+                return JSONResponse({"ok": False, "error": {"code": "not_found", "message": str(exc)}}, 404)
+            media = mimetypes.guess_type(name)[0] or "application/octet-stream"
+            return Response(data, media_type=media, headers=_NO_STORE)
 
         return [
             Route("/api/guided", info),
@@ -357,6 +406,15 @@ class GuidedController:
             Route("/api/guided/image.jpg", image),
             Route("/api/guided/files/{name}", files),
         ]
+
+
+def _refuse_links(*paths: Path | None) -> None:
+    """Refuse to write where a symlink waits (planted by someone who can write take_dir)."""
+    for path in paths:
+        if path is not None and path.is_symlink():
+            raise RigdError(f"{path} is a symbolic link; the console does not write through links")
+        if path is not None:
+            plain_dir(path.parent, "calibration directory")
 
 
 def _bad(message: str) -> JSONResponse:

@@ -3,11 +3,17 @@
 Reading a take opens its HDF5 file, so results are cached per (path, size, mtime): a browser
 refreshing the list every few seconds costs one `stat` per take, not a read. The take being
 written is listed from its name only (it is open in the writer).
+
+Whoever can write into take_dir must not make the console read or write elsewhere: a symlink
+there (named like a take, or a notes or calibration file) is never followed, and a name is
+only ever looked up as a plain file directly in its directory (`file_in`).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import stat
 import threading
 from pathlib import Path
 from typing import Any
@@ -15,6 +21,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, Field
 
+from rigd.app.service.requests import printable
 from rigd.app.service.thumbnails import frame_thumbnail
 from rigd.core.errors import RigdError
 from rigd.take.reader import open_take
@@ -25,6 +32,80 @@ log = logging.getLogger(__name__)
 MAX_TAKES = 50
 #: Bins of the event-rate plot of one sensor.
 RATE_BINS = 120
+#: Longest file name the console looks up (file systems allow 255 bytes).
+MAX_NAME_CHARS = 200
+
+
+def check_name(name: str, what: str = "file") -> None:
+    """Refuse a name that is not one plain file name: too long, a path, hidden, or not text."""
+    shown = repr(name[:60]) + ("..." if len(name) > 60 else "")
+    if len(name) > MAX_NAME_CHARS:
+        raise RigdError(f"{what} name {shown} has {len(name)} characters; the limit is {MAX_NAME_CHARS}")
+    if not name or "/" in name or "\\" in name or "\x00" in name or name.startswith("."):
+        raise RigdError(f"{shown} is not a {what} name")
+    if not _utf8(name):
+        raise RigdError(f"{shown} is not a {what} name (not valid Unicode)")
+
+
+def file_in(directory: Path, name: str, what: str = "file") -> Path:
+    """`directory/name` when it is a plain file right there: not a symlink, not a path that
+    resolves outside `directory`; RigdError (saying why) otherwise."""
+    check_name(name, what)
+    path = directory / name
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        raise RigdError(f"no {what} {name!r} in {directory}") from None
+    except OSError as exc:
+        raise RigdError(f"{what} {name!r}: {exc.strerror}") from None
+    if stat.S_ISLNK(st.st_mode):
+        raise RigdError(f"{what} {name!r} is a symbolic link; the console does not follow links")
+    if not stat.S_ISREG(st.st_mode):
+        raise RigdError(f"{what} {name!r} is not a regular file")
+    if path.resolve().parent != directory.resolve():
+        raise RigdError(f"{what} {name!r} is not in {directory}")
+    return path
+
+
+def _utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def plain_dir(directory: Path, what: str) -> Path:
+    """`directory` when it is a real directory (not a symlink to one); RigdError otherwise."""
+    try:
+        st = directory.lstat()
+    except OSError as exc:
+        raise RigdError(f"{what} {directory}: {exc.strerror}") from None
+    if stat.S_ISLNK(st.st_mode):
+        raise RigdError(f"{what} {directory} is a symbolic link; the console does not follow links")
+    if not stat.S_ISDIR(st.st_mode):
+        raise RigdError(f"{what} {directory} is not a directory")
+    return directory
+
+
+def read_text_nofollow(path: Path, limit: int) -> str | None:
+    """The text of `path` (at most `limit` bytes), or None when there is none; never through a
+    symlink (OSError ELOOP) and never from anything but a regular file."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except FileNotFoundError:
+        return None
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise OSError(f"{path} is not a regular file")
+        return f.read(limit).decode("utf-8", "replace")
+
+
+def write_text_nofollow(path: Path, text: str) -> None:
+    """Write `text` to `path`, never through a symlink (OSError ELOOP when `path` is one)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o644)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(text)
 
 
 class TakeEntry(BaseModel):
@@ -56,25 +137,44 @@ class TakeList:
         self.width = thumbnail_width
         self._lock = threading.Lock()
         self._cache: dict[tuple[str, int, float], TakeEntry] = {}
+        self._skipped: set[str] = set()
 
     def path_of(self, name: str) -> Path:
-        """The take called `name` in take_dir; refuses anything else (no path tricks)."""
-        if "/" in name or "\\" in name or name.startswith(".") or not name.endswith(".h5"):
+        """The take called `name` in take_dir; refuses anything else (no path tricks, no links)."""
+        check_name(name, "take")
+        if not name.endswith(".h5"):
             raise RigdError(f"{name!r} is not a take name")
-        path = self.take_dir / name
-        if not path.is_file():
-            raise RigdError(f"no take {name!r} in {self.take_dir}")
-        return path
+        return file_in(self.take_dir, name, "take")
+
+    def _takes(self) -> list[tuple[Path, os.stat_result]]:
+        """The plain `*.h5` files of take_dir with their lstat; a symlink or anything else named
+        like a take is left out (and said so in the log, once per name)."""
+        out = []
+        for path in self.take_dir.glob("*.h5"):
+            try:
+                st = path.lstat()
+            except FileNotFoundError:  # removed while listing
+                continue
+            if not stat.S_ISREG(st.st_mode):
+                why = "is a symbolic link" if stat.S_ISLNK(st.st_mode) else "is not a regular file"
+            elif not _utf8(path.name):
+                why = "has a name that is not UTF-8"
+            else:
+                out.append((path, st))
+                continue
+            if path.name not in self._skipped:
+                self._skipped.add(path.name)
+                log.warning("console: %s in %s %s; not listed", printable(path.name), self.take_dir, why)
+        return out
 
     def entries(self, running: str | None = None) -> list[TakeEntry]:
         try:
-            files = sorted(self.take_dir.glob("*.h5"), key=lambda p: p.stat().st_mtime, reverse=True)
+            files = sorted(self._takes(), key=lambda p: p[1].st_mtime, reverse=True)
         except OSError as exc:
             raise RigdError(f"cannot list {self.take_dir}: {exc.strerror}") from exc
         out = []
-        for path in files[:MAX_TAKES]:
+        for path, st in files[:MAX_TAKES]:
             if running is not None and Path(running).name == path.name:
-                st = path.stat()
                 out.append(
                     TakeEntry(
                         name=path.name,
@@ -89,7 +189,7 @@ class TakeList:
         return out
 
     def entry(self, path: Path) -> TakeEntry:
-        st = path.stat()
+        st = path.lstat()
         key = (str(path), st.st_size, st.st_mtime)
         with self._lock:
             hit = self._cache.get(key)
