@@ -307,6 +307,7 @@ class Daemon:
         poller.register(sock, zmq.POLLIN)
         poller.register(replies, zmq.POLLIN)
         self._pool.start()
+        pool_closed = False
         try:
             while not self._stop.is_set():
                 self._loop_beat = time.monotonic()
@@ -321,9 +322,12 @@ class Daemon:
             # A capture still opening its devices answers its client before the socket goes.
             for worker in self._workers:
                 worker.join(timeout=_WORKER_GRACE_S)
+            pool_closed = True
             self._pool.close(_WORKER_GRACE_S)
             self._forward_replies(replies, sock)
         finally:
+            if not pool_closed:  # the loop failed: its workers must not outlive it
+                self._pool.close(_WORKER_GRACE_S)
             replies.close(linger=0)
 
     @staticmethod

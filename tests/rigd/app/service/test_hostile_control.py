@@ -9,6 +9,8 @@ import json
 import random
 import signal
 import subprocess
+import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -20,12 +22,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from rigd.app.service.client import DaemonClient
+from rigd.app.config import RigConfig
+from rigd.app.service.client import DaemonClient, find_daemon
 from rigd.app.service.daemon import ControlPlaneError, Daemon
 from rigd.app.service.protocol import ARGS_MODELS, COMMANDS, PROTOCOL_VERSION, Reply
 from rigd.app.service.requests import MAX_INT_DIGITS, reply_bytes
 from rigd.take.reader import open_take
-from tests.rigd.app.service.conftest import RunningDaemon, endpoints, small_rig, spawn_daemon
+from tests.rigd.app.service.conftest import REPO, RunningDaemon, endpoints, small_rig
 
 #: Lone surrogates as JSON escapes (valid JSON, text no encoder can write back).
 SURROGATES = ["\\ud800", "\\udbff", "\\udc00", "\\udfff", "\\udc80"]
@@ -292,6 +295,8 @@ def test_a_dead_control_loop_finalizes_the_take_and_ends_serve(
     assert len(rd.errors) == 1, rd.errors
     assert isinstance(rd.errors[0], ControlPlaneError), rd.errors
     assert rd.daemon.current_session() is None
+    workers = [t for t in threading.enumerate() if t.name.startswith("control-worker")]
+    assert not workers, workers  # the failed loop closed its worker pool
     with open_take(take) as t:
         assert t.status == "complete"
         assert "control loop failed" in (t.summary().end_reason or "")
@@ -320,6 +325,39 @@ def test_rigd_serve_exits_1_with_one_line_when_its_control_loop_dies(
     assert isinstance(result.exception, SystemExit)  # reported, not raised
 
 
+def _spawn_with_console_on_any_port(cfg: RigConfig, runtime: Path, log_path: Path) -> subprocess.Popen[bytes]:
+    """`rigd serve` in a process of its own, as `spawn_daemon` starts it, but with its console on
+    a free port (the default one may be taken on a shared host)."""
+    cfg_path = runtime / "rig.json"
+    data = cfg.model_dump(mode="json")
+    data["service"].update(endpoints(runtime))
+    cfg_path.write_text(json.dumps(data))
+    with log_path.open("ab") as log:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "rigd.app.cli",
+                "serve",
+                "--config",
+                str(cfg_path),
+                "--http",
+                "127.0.0.1:0",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            cwd=REPO,
+        )
+    deadline = time.monotonic() + 120
+    while (client := find_daemon(endpoints(runtime)["control"], timeout_s=0.5)) is None:
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise AssertionError(f"daemon did not start: {log_path.read_text()[-2000:]}")
+        time.sleep(0.1)
+    client.close()
+    return proc
+
+
 @pytest.mark.slow
 def test_recording_daemon_survives_a_lone_surrogate_and_stops_on_sigterm(
     runtime_dir: Path, tmp_path: Path
@@ -328,7 +366,7 @@ def test_recording_daemon_survives_a_lone_surrogate_and_stops_on_sigterm(
     sent; the daemon answers it and the next ping, and SIGTERM finalizes the take and ends it."""
     cfg = small_rig("hostile-proc", take_dir=str(tmp_path / "takes"))
     log_path = tmp_path / "daemon.log"
-    proc = spawn_daemon(cfg, runtime_dir, log_path)
+    proc = _spawn_with_console_on_any_port(cfg, runtime_dir, log_path)
     client = DaemonClient(endpoints(runtime_dir)["control"], timeout_s=10.0)
     try:
         take = Path(client.call("capture", timeout_s=120)["take"])
