@@ -102,9 +102,12 @@ def read_text_nofollow(path: Path, limit: int) -> str | None:
 
 
 def write_text_nofollow(path: Path, text: str) -> None:
-    """Write `text` to `path`, never through a symlink (OSError ELOOP when `path` is one)."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o644)
+    """Write `text` to `path`, never through a symlink (OSError ELOOP when `path` is one) and
+    only into a regular file (a FIFO planted there fails at once instead of blocking)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_NONBLOCK, 0o666)
     with os.fdopen(fd, "w", encoding="utf-8") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise OSError(f"{path} is not a regular file")
         f.write(text)
 
 

@@ -449,6 +449,15 @@ def test_notes_are_never_written_through_a_link(tmp_path: Path) -> None:
     with pytest.raises(OSError, match="symbolic links"):  # ELOOP: Too many levels of symbolic links
         console_app._write_notes(take, "overwritten?")
     assert target.read_text() == "keep me"
+    # a FIFO planted where the notes go: refused at once, not a write that blocks forever
+    fifo_take = tmp_path / "f.h5"
+    os.mkfifo(tmp_path / f"f.h5{console_app.NOTES_SUFFIX}")
+    with pytest.raises(OSError, match="No such device"):  # ENXIO: no reader, O_NONBLOCK
+        console_app._write_notes(fifo_take, "x")
+    assert (
+        console_app._read_notes(fifo_take)
+        == f"(notes not read: {tmp_path}/f.h5.notes.txt is not a regular file)"
+    )
 
 
 def test_calibration_results_are_never_written_through_a_link(tmp_path: Path) -> None:
