@@ -41,7 +41,7 @@ from calibration.guided import SIGMA_NAMES, TILT_BINS
 from calibration.io import write_json
 from rigd.app.console.app import read_body
 from rigd.app.console.live import LatestSlot, LivePublisher
-from rigd.app.console.takes import TakeList, file_in, plain_dir
+from rigd.app.console.takes import TakeList, check_name, file_in, plain_dir
 from rigd.app.service.requests import RequestError
 from rigd.app.workflows.guided import DEFAULT_BOARD, GuidedOptions, GuidedRun, own_sim_world, verdict
 from rigd.core.errors import RigdError
@@ -312,6 +312,7 @@ class GuidedController:
     def _read_file(self, name: str) -> bytes:
         """Calibration file `name`: a plain file of the calibration directory, opened without
         following a link swapped in since the check, at most MAX_FILE_BYTES."""
+        check_name(name, "calibration file")  # the name first: a bad one is refused as such
         path = file_in(plain_dir(self.out_dir, "calibration directory"), name, "calibration file")
         with os.fdopen(os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK), "rb") as f:
             st = os.fstat(f.fileno())
