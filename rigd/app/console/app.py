@@ -25,12 +25,12 @@ from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.middleware import Middleware
 from starlette.requests import Request
-from starlette.responses import HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
+from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from rigd.app.console.live import EVENT_WINDOWS_MS, LivePublisher
-from rigd.app.console.security import TOKEN_COOKIE, ConsoleSecurity, SecurityMiddleware
+from rigd.app.console.security import ConsoleSecurity, SecurityMiddleware
 from rigd.app.console.takes import TakeList
 from rigd.app.service.protocol import PROTOCOL_VERSION, CaptureArgs, StopArgs
 from rigd.core.errors import RigdError
@@ -122,13 +122,8 @@ def build_app(ctx: ConsoleContext) -> Starlette:
     """The Starlette application of the console (routes below)."""
 
     async def page(request: Request) -> Response:
-        token = request.query_params.get("token")
+        # The login (`?token=` traded for a cookie) is the security middleware's.
         name = "calibrate.html" if request.url.path.startswith("/calibrate") else "dashboard.html"
-        if token is not None and ctx.security.token_ok(token):
-            # Trade the token in the address for a cookie, and drop it from the address bar.
-            resp: Response = RedirectResponse(request.url.path, 303)
-            resp.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
-            return resp
         return HTMLResponse(_page(ctx, name), headers=_NO_STORE)
 
     async def status(request: Request) -> Response:
