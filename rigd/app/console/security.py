@@ -128,9 +128,8 @@ class ConsoleSecurity:
 
     def authenticated(self, conn: HTTPConnection) -> bool:
         """The request carries the secret: the header, or the login cookie of this port."""
-        port = int((conn.scope.get("server") or ("", 0))[1] or 0)
         return self.token_ok(conn.headers.get(TOKEN_HEADER)) or self.token_ok(
-            conn.cookies.get(cookie_name(port))
+            conn.cookies.get(cookie_name(_port(conn)))
         )
 
     def refusal(self, conn: HTTPConnection) -> tuple[int, str] | None:
@@ -166,9 +165,9 @@ class ConsoleSecurity:
         if not self.token_ok(candidate):
             return _refused(conn, 401, "wrong console token in the login URL; `rigd console-url` prints it")
         rest = urlencode([(k, v) for k, v in conn.query_params.multi_items() if k != "token"])
-        resp = RedirectResponse(conn.url.path + (f"?{rest}" if rest else ""), 303, headers=_NO_STORE)
-        port = int((conn.scope.get("server") or ("", 0))[1] or 0)
-        resp.set_cookie(cookie_name(port), self.token, httponly=True, samesite="strict", path="/")
+        path = "/" + conn.url.path.lstrip("/")  # "//host/x" would leave the console
+        resp = RedirectResponse(path + (f"?{rest}" if rest else ""), 303, headers=_NO_STORE)
+        resp.set_cookie(cookie_name(_port(conn)), self.token, httponly=True, samesite="strict", path="/")
         return resp
 
     @staticmethod
@@ -177,12 +176,19 @@ class ConsoleSecurity:
         return parts.scheme in ("http", "https") and parts.netloc == conn.headers.get("host")
 
 
+def _port(conn: HTTPConnection) -> int:
+    """The port the request came in on (the console's, also for port 0 binds)."""
+    server = conn.scope.get("server") or ("", 0)
+    return int(server[1] or 0)
+
+
 def _refused(conn: HTTPConnection, status: int, message: str) -> Response:
     """JSON for programs; a short page for a person's browser (which asks for HTML)."""
     if "text/html" in conn.headers.get("accept", ""):
         page = f"<!doctype html><title>rigd console</title><p>{html.escape(message)}</p>"
         return HTMLResponse(page, status, headers=_NO_STORE)
-    body = {"ok": False, "error": {"code": "forbidden", "message": message}}
+    code = "unauthorized" if status == 401 else "forbidden"
+    body = {"ok": False, "error": {"code": code, "message": message}}
     return JSONResponse(body, status, headers=_NO_STORE)
 
 

@@ -99,6 +99,9 @@ def test_the_login_url_sets_a_strict_httponly_cookie_and_cleans_the_address(
         assert cookie.startswith(f"{cookie_name(cd.console.port)}=")
         for attribute in ("HttpOnly", "SameSite=strict", "Path=/"):
             assert attribute.lower() in cookie.lower(), cookie
+        # The redirect never leaves the console ("//host" would be another site).
+        r = browser.get(cd.url + "/evil.example/?token=" + cd.console.security.token)
+        assert (r.status_code, r.headers["location"]) == (303, "/evil.example/")
         page = browser.get(cd.url + "calibrate")
         assert page.status_code == 200
         assert page.headers["cache-control"] == "no-store"

@@ -49,7 +49,8 @@ def test_serve_prints_its_endpoints_serves_the_console_and_stops_cleanly(
         stderr=subprocess.DEVNULL,
         text=True,
         cwd=REPO,
-        env={**os.environ, "RIGD_HTTP_TOKEN": ""},
+        # No configured token (one is made), stdout not the journal (the login URL is printed).
+        env={**{k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}, "RIGD_HTTP_TOKEN": ""},
     )
     try:
         lines = _read_until_ready(proc)
