@@ -146,8 +146,9 @@ class Announcer:
 
 
 def console_url(connect: ConnectOpt = None) -> None:
-    """Print the web console's login URL (it carries the console's secret: only the daemon's user
-    can read it, from the daemon's owner-only runtime directory)."""
+    """Print the web console's login URL (for the daemon's user only).
+
+    The URL carries the console's secret, read from the daemon's owner-only runtime directory."""
     from rigd.app.console.login import NoConsoleLoginError, login_path, read_login
 
     path = login_path(control_endpoint(connect))
