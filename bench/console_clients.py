@@ -4,12 +4,13 @@
 
 Runs the daemon with its web console in this process on the sim rig (real time) and, for each
 client count, one take of `--duration` seconds while that many clients behave like a dashboard
-tab: each follows the live stream (server-sent events, /api/live) and fetches the preview JPEG of
-every device whose version changed, one fetch at a time, as the page does. Prints per client
-count: frames/s and events/s written, loss records, the writer queue's peak, and the telemetry
-latency a client sees (receipt time minus the document's sampling time: median and p95), the
-documents and JPEGs each client got, and the daemon process's CPU seconds per take second (the
-clients run in a child process, so their own CPU is not counted).
+tab (sending the console's secret, as a logged-in browser does): each follows the live stream
+(server-sent events, /api/live) and fetches the preview JPEG of every device whose version
+changed, one fetch at a time, as the page does. Prints per client count: frames/s and events/s
+written, loss records, the writer queue's peak, and the telemetry latency a client sees (receipt
+time minus the document's sampling time: median and p95), the documents and JPEGs each client
+got, and the daemon process's CPU seconds per take second (the clients run in a child process,
+so their own CPU is not counted).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from typing import Any
 import httpx
 
 from rigd.app.config import RigConfig, default_sim_rig
+from rigd.app.console.security import TOKEN_HEADER
 from rigd.app.console.server import ConsoleServer
 from rigd.app.service.daemon import Daemon
 
@@ -44,11 +46,15 @@ class ClientStats:
     errors: list[str] = field(default_factory=list)
 
 
-def client(url: str, stop: threading.Event, stats: ClientStats) -> None:
+def client(url: str, token: str, stop: threading.Event, stats: ClientStats) -> None:
     """A dashboard tab: follow /api/live, fetch each changed preview (latest only, one at a time)."""
     shown: dict[str, int] = {}
+    auth = {TOKEN_HEADER: token}
     try:
-        with httpx.Client(base_url=url, timeout=10) as http, http.stream("GET", "/api/live") as live:
+        with (
+            httpx.Client(base_url=url, timeout=10, headers=auth) as http,
+            http.stream("GET", "/api/live") as live,
+        ):
             event = ""
             for line in live.iter_lines():
                 if stop.is_set():
@@ -87,11 +93,11 @@ def rig(take_dir: Path, runtime: Path, resolution: tuple[int, int]) -> RigConfig
     return RigConfig.from_data(data)
 
 
-def clients_process(url: str, n: int, stop: Any, out: Any) -> None:
+def clients_process(url: str, token: str, n: int, stop: Any, out: Any) -> None:
     """Run `n` clients on threads in this (child) process until `stop`; put their stats in `out`."""
     flag = threading.Event()
     stats = [ClientStats() for _ in range(n)]
-    threads = [threading.Thread(target=client, args=(url, flag, s), daemon=True) for s in stats]
+    threads = [threading.Thread(target=client, args=(url, token, flag, s), daemon=True) for s in stats]
     for t in threads:
         t.start()
     stop.wait()
@@ -101,11 +107,13 @@ def clients_process(url: str, n: int, stop: Any, out: Any) -> None:
     out.put([(s.docs, s.jpegs, s.latencies_s, s.errors) for s in stats])
 
 
-def run_level(daemon: Daemon, url: str, n_clients: int, duration_s: float) -> dict[str, float]:
+def run_level(daemon: Daemon, console: ConsoleServer, n_clients: int, duration_s: float) -> dict[str, float]:
     """One take with `n_clients` clients in a child process (their CPU is not the daemon's)."""
     mp = multiprocessing.get_context("spawn")
     stop, out = mp.Event(), mp.Queue()
-    proc = mp.Process(target=clients_process, args=(url, n_clients, stop, out), daemon=True)
+    proc = mp.Process(
+        target=clients_process, args=(console.url, console.security.token, n_clients, stop, out), daemon=True
+    )
     proc.start()
     time.sleep(3.0)  # let the child start and the clients connect before the take
     cpu0, t0 = os.times(), time.monotonic()
@@ -161,7 +169,7 @@ def main() -> None:
         th.start()
         if not daemon.wait_ready(60):
             raise SystemExit("daemon did not start")
-        rows = [run_level(daemon, console.url, n, args.duration) for n in levels]
+        rows = [run_level(daemon, console, n, args.duration) for n in levels]
         daemon.shutdown()
         th.join(timeout=60)
     finally:

@@ -3,8 +3,9 @@
     python docs/img/make_console_screenshots.py [--out docs/img]
 
 Starts the daemon with its console on the sim rig (320x180, private endpoints, a temporary take
-directory), drives the pages with the system chromium (/usr/bin/chromium, headless): the dashboard
-during a take, the take list after it, and the guided calibration page on the sim board.
+directory), logs in through the console's login URL as an operator does, and drives the pages
+with the system chromium (/usr/bin/chromium, headless): the dashboard during a take, the take
+list after it, and the guided calibration page on the sim board.
 """
 
 from __future__ import annotations
@@ -39,14 +40,14 @@ def rig(work: Path) -> RigConfig:
     return RigConfig.from_data(data)
 
 
-def shoot(url: str, out: Path) -> None:
+def shoot(login_url: str, url: str, out: Path) -> None:
     with sync_playwright() as pw:
         browser = pw.chromium.launch(
             executable_path="/usr/bin/chromium", headless=True, args=["--no-sandbox"]
         )
         page = browser.new_page(viewport={"width": 1280, "height": 860})
         page.set_default_timeout(120_000)
-        page.goto(url)
+        page.goto(login_url)  # sets the login cookie, lands on the dashboard
         page.get_by_test_id("take-name").fill("walk-1")
         page.get_by_test_id("take-notes").fill("operator walks through the scene")
         page.get_by_test_id("start").click()
@@ -83,7 +84,7 @@ def main() -> None:
     try:
         if not daemon.wait_ready(60):
             raise SystemExit("daemon did not start")
-        shoot(console.url, args.out)
+        shoot(console.login_url, console.url, args.out)
     finally:
         daemon.shutdown()
         th.join(timeout=60)

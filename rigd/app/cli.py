@@ -23,7 +23,15 @@ from rigd.app.commands.help import RigdTyper
 from rigd.app.commands.progress import StageProgress
 from rigd.app.commands.reconstruct import reconstruct
 from rigd.app.commands.recover import recover_command
-from rigd.app.commands.service import ConnectOpt, capture_via_daemon, find_for_command, serve, status, stop
+from rigd.app.commands.service import (
+    ConnectOpt,
+    capture_via_daemon,
+    console_url,
+    find_for_command,
+    serve,
+    status,
+    stop,
+)
 from rigd.app.config import RigConfig, default_sim_rig
 from rigd.app.service.client import DaemonClient, DaemonUnavailableError
 from rigd.core.errors import ConfigError, RigdError
@@ -383,6 +391,7 @@ app.command("doctor")(doctor)
 app.command("serve")(serve)
 app.command("recover")(recover_command)
 app.command("status")(status)
+app.command("console-url")(console_url)
 app.command("stop")(stop)
 
 

@@ -89,6 +89,11 @@ class ServiceConfig(BaseModel):
     thumbnail_width: int = Field(320, ge=16, le=4096)
     metrics_host: str = Field("127.0.0.1", description="Prometheus exporter address.")
     metrics_port: int | None = Field(9464, ge=0, le=65535, description="None turns the exporter off.")
+    metrics_token_file: Path | None = Field(
+        None,
+        description="File (mode 0600) holding a bearer token every scrape must send; required "
+        "when metrics_host is not loopback.",
+    )
     reconnect_interval_s: float = Field(1.0, ge=0.0, le=60.0, description="0: a lost device is written off.")
     recover_on_start: bool = Field(True, description="Seal takes a crash left unfinished before serving.")
     curve: CurveConfig | None = None

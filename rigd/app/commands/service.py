@@ -1,4 +1,4 @@
-"""`rigd serve`, `rigd status`, `rigd stop`, and the daemon side of `rigd capture`.
+"""`rigd serve`, `rigd status`, `rigd stop`, `rigd console-url`, and the daemon side of `rigd capture`.
 
 Commands that act on the rig talk to a running daemon when one answers at the control
 endpoint; `capture` and `devices` fall back to doing the work in-process when none does.
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -122,7 +123,12 @@ def serve(
 
 
 class Announcer:
-    """Says where the daemon listens once everything is bound, then `ready` (stdout, flushed)."""
+    """Says where the daemon listens once everything is bound, then `ready` (stdout, flushed).
+
+    The console line is its login URL (it carries the secret, as Jupyter's does): stdout is the
+    operator's terminal. When stdout is the systemd journal (`JOURNAL_STREAM`), which others may
+    read (groups adm, systemd-journal), it is the bare address and a pointer to `rigd console-url`.
+    """
 
     def __init__(self, console: Any = None) -> None:
         self.console = console
@@ -131,7 +137,12 @@ class Announcer:
         svc = daemon.config.service
         lines = [f"control: {svc.control_endpoint}", f"telemetry: {svc.telemetry_endpoint}"]
         lines.append(f"metrics: {daemon.metrics_url or 'off'}")
-        lines.append(f"console: {self.console.url if self.console is not None else 'off'}")
+        if self.console is None:
+            lines.append("console: off")
+        elif os.environ.get("JOURNAL_STREAM"):
+            lines.append(f"console: {self.console.url} (login URL: rigd console-url)")
+        else:
+            lines.append(f"console: {self.console.login_url}")
         lines.append(f"takes: {svc.take_dir}")
         lines.append("ready")
         typer.echo("\n".join(lines))
@@ -139,6 +150,22 @@ class Announcer:
 
     def close(self) -> None:
         """Nothing to release."""
+
+
+def console_url(connect: ConnectOpt = None) -> None:
+    """Print the web console's login URL (for the daemon's user only).
+
+    The URL carries the console's secret, read from the daemon's owner-only runtime directory."""
+    from rigd.app.console.login import NoConsoleLoginError, login_path, read_login
+
+    path = login_path(control_endpoint(connect))
+    try:
+        login = read_login(path)
+    except NoConsoleLoginError as exc:
+        raise _fail(exc, code=3) from exc
+    except RigdError as exc:
+        raise _fail(exc) from exc
+    typer.echo(login.login_url)
 
 
 def status(

@@ -30,13 +30,13 @@ from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.middleware import Middleware
 from starlette.requests import Request
-from starlette.responses import HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
+from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from rigd.app.console.live import EVENT_WINDOWS_MS, LivePublisher
-from rigd.app.console.security import TOKEN_COOKIE, ConsoleSecurity, SecurityMiddleware
+from rigd.app.console.security import ConsoleSecurity, SecurityMiddleware
 from rigd.app.console.takes import TakeList, read_text_nofollow, write_text_nofollow
 from rigd.app.service.protocol import MAX_MESSAGE_BYTES, PROTOCOL_VERSION, CaptureArgs, StopArgs
 from rigd.app.service.requests import RequestError, parse_json_object
@@ -189,13 +189,8 @@ def build_app(ctx: ConsoleContext) -> Starlette:
     """The Starlette application of the console (routes below)."""
 
     async def page(request: Request) -> Response:
-        token = request.query_params.get("token")
+        # The login (`?token=` traded for a cookie) is the security middleware's.
         name = "calibrate.html" if request.url.path.startswith("/calibrate") else "dashboard.html"
-        if token is not None and ctx.security.token_ok(token):
-            # Trade the token in the address for a cookie, and drop it from the address bar.
-            resp: Response = RedirectResponse(request.url.path, 303)
-            resp.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
-            return resp
         return HTMLResponse(_page(ctx, name), headers=_NO_STORE)
 
     async def status(request: Request) -> Response:

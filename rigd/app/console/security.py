@@ -1,15 +1,19 @@
 """Who may talk to the web console, and how a browser is kept from being used against it.
 
-The console can start takes and write calibration files, so it gets the same care as the
-control socket:
+The console can start takes and write calibration files, so it is at least as private as the
+control socket (an owner-only IPC socket): loopback is not authentication, since every local
+user can connect to 127.0.0.1.
 
-* It listens on loopback unless told otherwise; any other address needs a token
-  (`--http-token` or `RIGD_HTTP_TOKEN`) and the server refuses to start without one.
-* Every state-changing request (POST) carries the token in the `X-Rigd-Token` header. On
-  loopback without a configured token one is made at start; the page embeds it, so only a page
-  the console served (same origin: other sites cannot read it) can use it.
-* With a remote bind every request needs the token: the header, or the `rigd_token` cookie
-  (HttpOnly, SameSite=Strict) that visiting `/?token=...` once sets.
+* Every request needs the console's secret, on loopback too: the `X-Rigd-Token` header, or the
+  cookie (HttpOnly, SameSite=Strict, named per port) that opening the login URL
+  (`/?token=...`, or any page with `?token=`) sets before redirecting to the clean address.
+  Without it every route, static files included, answers 401. The secret is made at start
+  (or given: `--http-token`, `RIGD_HTTP_TOKEN`) and kept for the operator in a 0600 file in the
+  daemon's owner-only runtime directory (`login.py`); tokens are compared in constant time.
+* It listens on loopback unless told otherwise; any other address needs an explicit token and
+  the server refuses to start without one.
+* A state-changing request (POST) also carries the token in the header (the page embeds it; the
+  page is served only to a logged-in browser), so a cookie alone never changes anything.
 * Cross-site requests are refused: a POST must be JSON (a cross-site HTML form can only send
   form encodings or text/plain without a CORS preflight, which the console never grants), its
   Origin, when present, must be the console's own, and `Sec-Fetch-Site: cross-site` is refused.
@@ -20,15 +24,16 @@ control socket:
 from __future__ import annotations
 
 import hmac
+import html
 import ipaddress
 import logging
 import os
 import secrets
 from dataclasses import dataclass
-from urllib.parse import urlsplit
+from urllib.parse import urlencode, urlsplit
 
 from starlette.requests import HTTPConnection
-from starlette.responses import JSONResponse, Response
+from starlette.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from rigd.core.errors import ConfigError
@@ -38,10 +43,11 @@ log = logging.getLogger(__name__)
 TOKEN_ENV = "RIGD_HTTP_TOKEN"
 TOKEN_HEADER = "x-rigd-token"
 TOKEN_COOKIE = "rigd_token"
-#: Tokens shorter than this are refused: a remote console must not be guessable.
+#: Tokens shorter than this are refused: the console must not be guessable.
 MIN_TOKEN_CHARS = 16
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 _LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1", "[::1]"})
+_NO_STORE = {"Cache-Control": "no-store"}
 
 
 def is_loopback(host: str) -> bool:
@@ -75,13 +81,24 @@ def parse_bind(text: str, default_port: int = 8750) -> tuple[str, int]:
     return host, port
 
 
+def cookie_name(port: int) -> str:
+    """The login cookie of the console on `port`: browsers keep cookies per host, not per port,
+    so two consoles on one machine must not overwrite each other's."""
+    return f"{TOKEN_COOKIE}_{port}"
+
+
+_LOGIN_HELP = (
+    "this console needs its login URL: open the one `rigd serve` printed, "
+    "or print it again with `rigd console-url`"
+)
+
+
 @dataclass(frozen=True)
 class ConsoleSecurity:
     """The token and where the console listens (see the module docstring)."""
 
     host: str
     token: str
-    token_required_to_read: bool
 
     @classmethod
     def for_bind(cls, host: str, token: str | None) -> ConsoleSecurity:
@@ -89,16 +106,15 @@ class ConsoleSecurity:
         token = token or os.environ.get(TOKEN_ENV) or None
         if token is not None and len(token) < MIN_TOKEN_CHARS:
             raise ConfigError(f"the console token must have at least {MIN_TOKEN_CHARS} characters")
-        if not is_loopback(host):
-            if token is None:
-                raise ConfigError(
-                    f"--http {host}: the console listens beyond loopback; that needs a token "
-                    f"(--http-token or {TOKEN_ENV}) or a loopback address"
-                )
-            return cls(host, token, token_required_to_read=True)
-        return cls(host, token or secrets.token_urlsafe(24), token_required_to_read=False)
+        if not is_loopback(host) and token is None:
+            raise ConfigError(
+                f"--http {host}: the console listens beyond loopback; that needs a token "
+                f"(--http-token or {TOKEN_ENV}) or a loopback address"
+            )
+        return cls(host, token or secrets.token_urlsafe(32))
 
     def token_ok(self, candidate: str | None) -> bool:
+        """Constant-time comparison (no timing oracle on the secret)."""
         return candidate is not None and hmac.compare_digest(candidate.encode(), self.token.encode())
 
     def host_ok(self, host_header: str | None) -> bool:
@@ -110,18 +126,19 @@ class ConsoleSecurity:
         name = urlsplit(f"//{host_header}").hostname or ""
         return name in _LOOPBACK_NAMES or is_loopback(name)
 
+    def authenticated(self, conn: HTTPConnection) -> bool:
+        """The request carries the secret: the header, or the login cookie of this port."""
+        return self.token_ok(conn.headers.get(TOKEN_HEADER)) or self.token_ok(
+            conn.cookies.get(cookie_name(_port(conn)))
+        )
+
     def refusal(self, conn: HTTPConnection) -> tuple[int, str] | None:
         """Why this request is refused (status, message), or None when it may go on."""
         if not self.host_ok(conn.headers.get("host")):
             return 421, "unknown Host for this console"
+        if not self.authenticated(conn):
+            return 401, _LOGIN_HELP
         method = conn.scope.get("method", "GET")
-        token = conn.headers.get(TOKEN_HEADER)
-        if self.token_required_to_read and not (
-            self.token_ok(token)
-            or self.token_ok(conn.cookies.get(TOKEN_COOKIE))
-            or (method == "GET" and self.token_ok(conn.query_params.get("token")))
-        ):
-            return 401, "this console needs its token"
         if conn.scope["type"] != "http" or method in _SAFE_METHODS:
             return None
         if conn.headers.get("sec-fetch-site") == "cross-site":
@@ -132,9 +149,26 @@ class ConsoleSecurity:
         ctype = conn.headers.get("content-type", "").split(";")[0].strip().lower()
         if ctype != "application/json":
             return 415, "state-changing requests must be application/json"
-        if not self.token_ok(token):
+        if not self.token_ok(conn.headers.get(TOKEN_HEADER)):
             return 403, f"missing or wrong {TOKEN_HEADER} header"
         return None
+
+    def login(self, conn: HTTPConnection) -> Response | None:
+        """A GET with `?token=`: with the right one, the cookie and a redirect to the same address
+        without the token (out of the address bar and history); with a wrong one, 401. None for
+        any other request."""
+        if conn.scope["type"] != "http" or conn.scope.get("method") not in ("GET", "HEAD"):
+            return None
+        candidate = conn.query_params.get("token")
+        if candidate is None or not self.host_ok(conn.headers.get("host")):
+            return None
+        if not self.token_ok(candidate):
+            return _refused(conn, 401, "wrong console token in the login URL; `rigd console-url` prints it")
+        rest = urlencode([(k, v) for k, v in conn.query_params.multi_items() if k != "token"])
+        path = "/" + conn.url.path.lstrip("/")  # "//host/x" would leave the console
+        resp = RedirectResponse(path + (f"?{rest}" if rest else ""), 303, headers=_NO_STORE)
+        resp.set_cookie(cookie_name(_port(conn)), self.token, httponly=True, samesite="strict", path="/")
+        return resp
 
     @staticmethod
     def _same_origin(origin: str, conn: HTTPConnection) -> bool:
@@ -142,8 +176,25 @@ class ConsoleSecurity:
         return parts.scheme in ("http", "https") and parts.netloc == conn.headers.get("host")
 
 
+def _port(conn: HTTPConnection) -> int:
+    """The port the request came in on (the console's, also for port 0 binds)."""
+    server = conn.scope.get("server") or ("", 0)
+    return int(server[1] or 0)
+
+
+def _refused(conn: HTTPConnection, status: int, message: str) -> Response:
+    """JSON for programs; a short page for a person's browser (which asks for HTML)."""
+    if "text/html" in conn.headers.get("accept", ""):
+        page = f"<!doctype html><title>rigd console</title><p>{html.escape(message)}</p>"
+        return HTMLResponse(page, status, headers=_NO_STORE)
+    code = "unauthorized" if status == 401 else "forbidden"
+    body = {"ok": False, "error": {"code": code, "message": message}}
+    return JSONResponse(body, status, headers=_NO_STORE)
+
+
 class SecurityMiddleware:
-    """ASGI middleware applying `ConsoleSecurity.refusal` to every HTTP and WebSocket request."""
+    """ASGI middleware: the login exchange, then `ConsoleSecurity.refusal` on every HTTP and
+    WebSocket request."""
 
     def __init__(self, app: ASGIApp, security: ConsoleSecurity) -> None:
         self.app = app
@@ -154,6 +205,15 @@ class SecurityMiddleware:
             await self.app(scope, receive, send)
             return
         conn = HTTPConnection(scope)
+        login = self.security.login(conn)
+        if login is not None:
+            log.info(
+                "console login %s from %s",
+                "refused" if login.status_code >= 400 else "accepted",
+                scope.get("client"),
+            )
+            await login(scope, receive, send)
+            return
         refused = self.security.refusal(conn)
         if refused is None:
             await self.app(scope, receive, send)
@@ -163,6 +223,4 @@ class SecurityMiddleware:
         if scope["type"] == "websocket":
             await send({"type": "websocket.close", "code": 1008})
             return
-        body = {"ok": False, "error": {"code": "forbidden", "message": message}}
-        response: Response = JSONResponse(body, status)
-        await response(scope, receive, send)
+        await _refused(conn, status, message)(scope, receive, send)

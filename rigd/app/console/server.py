@@ -3,21 +3,25 @@
 Why in-process: the console reads the daemon's live state (latest frames, telemetry) without a
 copy through a socket and answers requests with the daemon's own request handler. uvicorn runs on
 a thread of its own (signal handling stays with the daemon's main thread) and is shut down by
-setting `should_exit`, with a short grace for open live streams.
+setting `should_exit`, with a short grace for open live streams. Once it listens, its login (address
+and secret) is written next to the control socket for `rigd console-url` (see `login.py`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import threading
 from pathlib import Path
 from typing import Any
 
 import uvicorn
+from starlette.applications import Starlette
 
 from rigd.app.console.app import ConsoleContext, build_app
 from rigd.app.console.live import DEFAULT_RATE_HZ, DaemonSource, LivePublisher
+from rigd.app.console.login import ConsoleLogin, login_path, remove_login, write_login
 from rigd.app.console.security import ConsoleSecurity
 from rigd.app.console.takes import TakeList
 from rigd.core.errors import ConfigError
@@ -48,6 +52,8 @@ class ConsoleServer:
         self.rate_hz = rate_hz
         self.guided_out = guided_out
         self.ctx: ConsoleContext | None = None
+        self.app: Starlette | None = None
+        self.login_file: Path | None = None
         self._server: uvicorn.Server | None = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -56,6 +62,14 @@ class ConsoleServer:
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"http://{host}:{self.port}/"
+
+    @property
+    def login_url(self) -> str:
+        """The address that logs a browser in (it carries the secret: show it to the operator only)."""
+        return self.login().login_url
+
+    def login(self) -> ConsoleLogin:
+        return ConsoleLogin(url=self.url, token=self.security.token, pid=os.getpid())
 
     def start(self, daemon: Any) -> None:
         """Build the app for `daemon`, bind, serve on a thread; ConfigError if the port is taken."""
@@ -72,7 +86,7 @@ class ConsoleServer:
             security=self.security,
             guided=guided,
         )
-        app = build_app(self.ctx)
+        app = self.app = build_app(self.ctx)
         config = uvicorn.Config(
             app,
             host=self.host,
@@ -99,7 +113,13 @@ class ConsoleServer:
         sockets = [s for srv in server.servers for s in srv.sockets]
         if sockets:
             self.port = int(sockets[0].getsockname()[1])
-        log.info("console serving on %s", self.url)
+        self.login_file = login_path(svc.control_endpoint)
+        try:
+            write_login(self.login_file, self.login())
+        except ConfigError:
+            self.close()
+            raise
+        log.info("console serving on %s (login URL in %s)", self.url, self.login_file)
 
     def _run(self, server: uvicorn.Server) -> None:
         try:
@@ -112,7 +132,10 @@ class ConsoleServer:
             self._error = OSError(f"cannot bind {self.host}:{self.port} (in use, or no permission)")
 
     def close(self) -> None:
-        """Stop live streams and the server; idempotent."""
+        """Stop live streams and the server, remove the login file; idempotent."""
+        if self.login_file is not None:
+            remove_login(self.login_file, self.security.token)
+            self.login_file = None
         if self.ctx is not None:
             self.ctx.closing.set()
             if self.ctx.guided is not None:

@@ -138,7 +138,7 @@ class Daemon:
         self._ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
         self._auth: Any = None
         self._metrics = (
-            MetricsExporter(self.svc.metrics_host, self.svc.metrics_port)
+            MetricsExporter(self.svc.metrics_host, self.svc.metrics_port, self.svc.metrics_token_file)
             if (metrics and self.svc.metrics_port is not None)
             else None
         )

@@ -18,26 +18,40 @@ shows 2e-06 s as 2 µs.
 
 Thread safety: `update()` runs on the daemon's thread while the HTTP thread scrapes; each
 metric is thread-safe, a scrape may see a snapshot half applied (harmless for monitoring).
+
+Who may scrape (docs/security.md): on loopback, any local user, unless a bearer token is
+configured (`service.metrics_token_file`), which then every scrape needs. Beyond loopback the
+token is required: the exporter refuses to start without one, as the control socket refuses a
+non-private bind without CurveZMQ keys.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hmac
+import ipaddress
 import logging
+import socket
+import stat
 import threading
 import time
 from collections.abc import Iterable
-from typing import get_args
-from wsgiref.simple_server import WSGIServer
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, get_args
+from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Info, ProcessCollector, start_http_server
+from prometheus_client import CollectorRegistry, Counter, Gauge, Info, ProcessCollector, make_wsgi_app
 from prometheus_client.core import CounterMetricFamily, Metric
+from prometheus_client.exposition import ThreadingWSGIServer
 from prometheus_client.registry import Collector
 
 from rigd import __version__
 from rigd.app.service import sdnotify
 from rigd.app.service.protocol import DaemonState, DeviceTelemetry, Fault, TakeSummary, Telemetry
 from rigd.core.errors import ConfigError
+
+if TYPE_CHECKING:
+    from wsgiref.types import StartResponse, WSGIApplication, WSGIEnvironment
 
 log = logging.getLogger(__name__)
 
@@ -82,10 +96,81 @@ class _Deltas:
         self._last.clear()
 
 
+#: Bearer tokens shorter than this are refused (guessable).
+MIN_TOKEN_CHARS = 16
+
+
+def _is_loopback(host: str) -> bool:
+    host = host.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def read_token_file(path: Path) -> str:
+    """The bearer token in `path` (surrounding whitespace dropped); ConfigError naming the key when
+    it cannot be read, is readable by group or others (a secret), or is too short."""
+    where = f"service.metrics_token_file: {path}"
+    try:
+        mode = path.stat().st_mode
+        text = path.read_text(encoding="utf-8").strip()
+    except OSError as exc:
+        raise ConfigError(f"{where}: cannot read it: {exc.strerror}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{where}: not a text file") from exc
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise ConfigError(f"{where}: readable by group or others (mode {stat.S_IMODE(mode):o}); chmod 600 it")
+    if len(text) < MIN_TOKEN_CHARS:
+        raise ConfigError(f"{where}: the token must have at least {MIN_TOKEN_CHARS} characters")
+    return text
+
+
+def bearer_only(app: WSGIApplication, token: str) -> WSGIApplication:
+    """`app` behind `Authorization: Bearer <token>` (compared in constant time); 401 otherwise."""
+    expected = f"Bearer {token}".encode()
+
+    def guarded(environ: WSGIEnvironment, start_response: StartResponse) -> Iterable[bytes]:
+        got = str(environ.get("HTTP_AUTHORIZATION", "")).encode()
+        if hmac.compare_digest(got, expected):
+            return app(environ, start_response)
+        body = b"rigd metrics need the bearer token of service.metrics_token_file\n"
+        start_response(
+            "401 Unauthorized",
+            [
+                ("Content-Type", "text/plain; charset=utf-8"),
+                ("Content-Length", str(len(body))),
+                ("WWW-Authenticate", 'Bearer realm="rigd metrics"'),
+            ],
+        )
+        return [body]
+
+    return guarded
+
+
+class _QuietHandler(WSGIRequestHandler):
+    """No access log on stderr (scrapes every few seconds)."""
+
+    def log_message(self, format: str, *args: Any) -> None:
+        """Scrapes are not logged."""
+
+
 class MetricsExporter:
     """Serves rigd's metrics on http://HOST:PORT/metrics from the last `update()`."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT) -> None:
+    def __init__(
+        self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, token_file: Path | None = None
+    ) -> None:
+        """ConfigError, before anything binds, for a non-loopback host without a token file (or a
+        token file that is unreadable, open to others or too short)."""
+        if token_file is None and not _is_loopback(host):
+            raise ConfigError(
+                f"service.metrics_host: {host} would serve metrics beyond loopback without "
+                "authentication; set service.metrics_token_file (a bearer token) or a loopback address"
+            )
+        self._token = read_token_file(token_file) if token_file is not None else None
         self._host = host
         self._port = port
         self._server: WSGIServer | None = None
@@ -216,18 +301,29 @@ class MetricsExporter:
         """
         if self._server is not None:
             raise RuntimeError("metrics exporter already started")
+        app = make_wsgi_app(self.registry)
+        if self._token is not None:
+            app = bearer_only(app, self._token)
         try:
-            # prometheus_client >= 0.20 returns the server and its thread, so we can read the
-            # bound port and shut it down (close() must free the port, e.g. for a restart).
-            self._server, self._thread = start_http_server(
-                self._port, addr=self._host, registry=self.registry
+            family = socket.getaddrinfo(self._host.strip("[]"), self._port, type=socket.SOCK_STREAM)[0][0]
+
+            class _Server(ThreadingWSGIServer):
+                address_family = family
+
+            # Our own server (not start_http_server): the app may sit behind the bearer check,
+            # and we keep the server to read the bound port and to free it in close().
+            server = make_server(
+                self._host.strip("[]"), self._port, app, _Server, handler_class=_QuietHandler
             )
         except OSError as exc:
             raise ConfigError(
                 f"service.metrics_port: cannot serve metrics on {self._host}:{self._port}: {exc}"
             ) from exc
+        self._server = server
+        self._thread = threading.Thread(target=server.serve_forever, name="metrics-http", daemon=True)
+        self._thread.start()
         self.up.set(1)
-        log.info("metrics on %s", self.url)
+        log.info("metrics on %s%s", self.url, " (bearer token required)" if self._token else "")
 
     def close(self) -> None:
         """Stop serving and free the port; idempotent."""

@@ -11,9 +11,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import httpx
 import pytest
 
 from rigd.app.config import RigConfig, default_sim_rig
+from rigd.app.console.login import login_path, read_login
+from rigd.app.console.security import TOKEN_HEADER
 from rigd.app.console.server import ConsoleServer
 from rigd.app.service.daemon import Daemon
 from tests.rigd.app.service.conftest import serve_in_thread
@@ -48,6 +51,20 @@ class ConsoleDaemon:
     @property
     def url(self) -> str:
         return self.console.url
+
+    @property
+    def login_url(self) -> str:
+        """What `rigd console-url` prints for this daemon (read from its login file)."""
+        return read_login(login_path(self.config.service.control_endpoint)).login_url
+
+    @property
+    def auth(self) -> dict[str, str]:
+        """The header a program (not a browser) sends on every request."""
+        return {TOKEN_HEADER: self.console.security.token}
+
+    def http(self, timeout_s: float = 10.0) -> httpx.Client:
+        """A client of this console that sends the secret with every request."""
+        return httpx.Client(base_url=self.url.rstrip("/"), timeout=timeout_s, headers=self.auth)
 
 
 @pytest.fixture

@@ -12,7 +12,6 @@ import httpx
 import pytest
 
 from calibration.io import read_opencv_yaml
-from rigd.app.console.security import TOKEN_HEADER
 from tests.rigd.app.console.browser import chromium_page
 from tests.rigd.app.console.conftest import ConsoleDaemon
 
@@ -26,9 +25,9 @@ def test_guided_session_from_the_page_to_the_written_calibration(
 
     cd = console_daemon(resolution=(320, 180))
     base = cd.url.rstrip("/")
-    tok = {TOKEN_HEADER: cd.console.security.token}
+    tok = cd.auth
     # A short take to store the calibration into; guided calibration is refused while it runs.
-    with httpx.Client(base_url=base, timeout=30, headers=tok) as http:
+    with cd.http(timeout_s=30) as http:
         take = Path(http.post("/api/takes/start", json={"duration_s": 1.0}).json()["result"]["take"])
         r = http.post("/api/guided/start", json={"camera": "cam0"})
         assert r.status_code == 409, r.text
@@ -38,7 +37,9 @@ def test_guided_session_from_the_page_to_the_written_calibration(
             assert time.monotonic() < deadline, "the take did not end"
             time.sleep(0.1)
     with chromium_page() as page:
-        page.goto(cd.url + "calibrate")
+        # Logged in as an operator is: the login URL, with the page's address after it.
+        page.goto(cd.login_url.replace("/?", "/calibrate?"))
+        assert page.url == cd.url + "calibrate"
         expect(page.get_by_test_id("guided-device")).to_contain_text("cam0 (camera)")
         expect(page.get_by_test_id("guided-device")).to_contain_text("ev0 (event sensor")
         page.get_by_test_id("guided-device").select_option("cam0")
@@ -86,7 +87,8 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         expect(page.get_by_test_id("guided-file-take")).to_contain_text(take.name)
         href = yaml_link.get_attribute("href")
         assert href is not None
-    body = httpx.get(cd.url.rstrip("/") + href, timeout=10)
+    assert httpx.get(base + href, timeout=10).status_code == 401  # the file needs the login too
+    body = httpx.get(base + href, headers=tok, timeout=10)
     assert body.status_code == 200
     written = list((cd.config.service.take_dir / "calibration").glob("cam0-*.yaml"))
     assert len(written) == 1

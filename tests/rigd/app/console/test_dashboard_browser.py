@@ -22,7 +22,12 @@ def test_dashboard_live_views_start_stop_and_take_list(
 
     cd = console_daemon()
     with chromium_page() as page:
-        page.goto(cd.url)
+        # Without the login, the browser gets the page that says how to log in, and nothing else.
+        assert page.goto(cd.url).status == 401
+        expect(page.locator("body")).to_contain_text("rigd console-url")
+        # The operator opens the login URL (`rigd console-url`); it lands on a clean address.
+        page.goto(cd.login_url)
+        assert page.url == cd.url
         expect(page.get_by_test_id("state")).to_have_text("idle")
         page.get_by_test_id("take-name").fill("browser-take")
         page.get_by_test_id("take-notes").fill("started by the browser test")

@@ -1,10 +1,11 @@
-"""Console security: remote binds need a token, state changes need it, cross-site posts are refused."""
+"""Console security: remote binds need a token, every request needs it, cross-site posts are refused.
+
+The login itself (every route, the login URL, other users) is tested in test_console_auth.py."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-import httpx
 import pytest
 from starlette.applications import Starlette
 from starlette.middleware import Middleware
@@ -13,7 +14,13 @@ from starlette.responses import JSONResponse
 from starlette.routing import Route
 from starlette.testclient import TestClient
 
-from rigd.app.console.security import TOKEN_HEADER, ConsoleSecurity, SecurityMiddleware, parse_bind
+from rigd.app.console.security import (
+    TOKEN_HEADER,
+    ConsoleSecurity,
+    SecurityMiddleware,
+    cookie_name,
+    parse_bind,
+)
 from rigd.app.console.server import ConsoleServer
 from rigd.core.errors import ConfigError
 from tests.rigd.app.console.conftest import ConsoleDaemon
@@ -44,7 +51,7 @@ def test_remote_bind_without_token_refuses_to_start(monkeypatch: pytest.MonkeyPa
         ConsoleServer("0.0.0.0", 8750)
     with pytest.raises(ConfigError, match="at least 16 characters"):
         ConsoleServer("0.0.0.0", 8750, token="short")
-    assert ConsoleServer("0.0.0.0", 8750, token=TOKEN).security.token_required_to_read
+    assert ConsoleServer("0.0.0.0", 8750, token=TOKEN).security.token == TOKEN
     monkeypatch.setenv("RIGD_HTTP_TOKEN", TOKEN)
     assert ConsoleServer("192.168.1.5", 8750).security.token == TOKEN
 
@@ -71,11 +78,12 @@ def test_parse_bind() -> None:
 
 def test_state_change_without_token_is_refused() -> None:
     client = _app(ConsoleSecurity.for_bind("127.0.0.1", TOKEN))
-    assert client.get("/api/x").status_code == 200  # reading is open on loopback
+    assert client.get("/api/x").status_code == 401  # loopback is not authentication
+    assert client.get("/api/x", headers={TOKEN_HEADER: TOKEN}).status_code == 200
     r = client.post("/api/x", json={})
-    assert r.status_code == 403
-    assert TOKEN_HEADER in r.json()["error"]["message"]
-    assert client.post("/api/x", json={}, headers={TOKEN_HEADER: "wrong-token-xxxxxxxx"}).status_code == 403
+    assert r.status_code == 401
+    assert "rigd console-url" in r.json()["error"]["message"]
+    assert client.post("/api/x", json={}, headers={TOKEN_HEADER: "wrong-token-xxxxxxxx"}).status_code == 401
     assert client.post("/api/x", json={}, headers={TOKEN_HEADER: TOKEN}).status_code == 200
     assert client.calls == ["GET", "POST"]
 
@@ -83,9 +91,13 @@ def test_state_change_without_token_is_refused() -> None:
 def test_cross_origin_and_form_posts_are_refused() -> None:
     client = _app(ConsoleSecurity.for_bind("127.0.0.1", TOKEN))
     ok = {TOKEN_HEADER: TOKEN}
-    # A cross-site HTML form: form-encoded, foreign Origin, no token header.
-    r = client.post("/api/x", data={"duration_s": "5"}, headers={"Origin": "http://evil.example"})
-    assert r.status_code == 403
+    # A cross-site HTML form: form-encoded, foreign Origin, no token header. The browser does not
+    # send the SameSite=Strict cookie with it (401); were it sent, the form is still refused.
+    form = {"duration_s": "5"}
+    assert client.post("/api/x", data=form, headers={"Origin": "http://evil.example"}).status_code == 401
+    client.cookies.set(cookie_name(8750), TOKEN)
+    assert client.post("/api/x", data=form, headers={"Origin": "http://evil.example"}).status_code == 403
+    client.cookies.clear()
     # Even with the token, a foreign origin or a form encoding is refused.
     assert client.post("/api/x", json={}, headers={**ok, "Origin": "http://evil.example"}).status_code == 403
     assert client.post("/api/x", data={"a": "1"}, headers=ok).status_code == 415
@@ -99,15 +111,16 @@ def test_cross_origin_and_form_posts_are_refused() -> None:
 
 def test_dns_rebinding_host_is_refused() -> None:
     client = _app(ConsoleSecurity.for_bind("127.0.0.1", TOKEN))
-    assert client.get("/api/x", headers={"Host": "attacker.example:8750"}).status_code == 421
-    assert client.get("/api/x", headers={"Host": "localhost:8750"}).status_code == 200
+    ok = {TOKEN_HEADER: TOKEN}
+    assert client.get("/api/x", headers={**ok, "Host": "attacker.example:8750"}).status_code == 421
+    assert client.get("/api/x", headers={**ok, "Host": "localhost:8750"}).status_code == 200
 
 
 def test_remote_console_needs_the_token_to_read() -> None:
     client = _app(ConsoleSecurity.for_bind("0.0.0.0", TOKEN))
     assert client.get("/api/x").status_code == 401
     assert client.get("/api/x", headers={TOKEN_HEADER: TOKEN}).status_code == 200
-    client.cookies.set("rigd_token", TOKEN)
+    client.cookies.set(cookie_name(8750), TOKEN)
     assert client.get("/api/x").status_code == 200
     # The cookie alone does not make a POST: the header is required (no CSRF through cookies).
     assert client.post("/api/x", json={}).status_code == 403
@@ -117,15 +130,14 @@ def test_console_of_a_daemon(console_daemon: Callable[..., ConsoleDaemon]) -> No
     """Against a live daemon: /api/status is the telemetry document; a take cannot be started
     without the token or from a cross-site form, and the refused requests start nothing."""
     cd = console_daemon()
-    base = cd.url.rstrip("/")
-    with httpx.Client(base_url=base, timeout=10) as http:
+    with cd.http() as http:
         status = http.get("/api/status").json()
         assert status["state"] == "idle"
         assert {d["name"] for d in status["devices"]} == {"trigger", "cam0", "cam1", "cam2", "ev0", "ev1"}
         page = http.get("/").text
-        assert cd.console.security.token in page
-        r = http.post("/api/takes/start", json={"duration_s": 1})
-        assert r.status_code == 403
+        assert cd.console.security.token in page  # for the page's POSTs; served only logged in
+        r = http.post("/api/takes/start", json={"duration_s": 1}, headers={TOKEN_HEADER: ""})
+        assert r.status_code == 401
         r = http.post(
             "/api/takes/start",
             data={"duration_s": "1"},
@@ -149,8 +161,7 @@ def test_console_of_a_daemon(console_daemon: Callable[..., ConsoleDaemon]) -> No
 
 def test_start_body_is_strict_like_the_control_socket(console_daemon: Callable[..., ConsoleDaemon]) -> None:
     cd = console_daemon()
-    tok = {TOKEN_HEADER: cd.console.security.token}
-    with httpx.Client(base_url=cd.url.rstrip("/"), timeout=10, headers=tok) as http:
+    with cd.http() as http:
         for body, field in (
             ({"duration_s": "5"}, "duration_s"),
             ({"nope": 1}, "nope"),

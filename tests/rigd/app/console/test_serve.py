@@ -49,22 +49,40 @@ def test_serve_prints_its_endpoints_serves_the_console_and_stops_cleanly(
         stderr=subprocess.DEVNULL,
         text=True,
         cwd=REPO,
-        env={**os.environ, "RIGD_HTTP_TOKEN": ""},
+        # No configured token (one is made), stdout not the journal (the login URL is printed).
+        env={**{k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}, "RIGD_HTTP_TOKEN": ""},
     )
     try:
         lines = _read_until_ready(proc)
         assert lines["control"] == cfg.service.control_endpoint
         assert lines["metrics"] == "off"
-        url = lines["console"]
+        login = lines["console"]  # the login URL, as Jupyter prints its own
+        url, _, query = login.partition("?token=")
         assert url.startswith("http://127.0.0.1:")
+        assert query
         assert not url.endswith(":0/")  # the port it got, not the one asked for
-        status = httpx.get(url + "api/status", timeout=10).json()
-        assert status["state"] == "idle"
-        # An open live stream must not hold the shutdown up.
-        with httpx.stream("GET", url + "api/live", timeout=10) as live:
-            next(live.iter_lines())
-            proc.send_signal(signal.SIGTERM)
-            assert proc.wait(timeout=30) == 0
+        assert httpx.get(url + "api/status", timeout=10).status_code == 401
+        # `rigd console-url` prints the same URL again (for whoever can read the runtime dir).
+        again = subprocess.run(
+            [sys.executable, "-m", "rigd.app.cli", "console-url", "--connect", cfg.service.control_endpoint],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            timeout=120,
+        )
+        assert (again.returncode, again.stdout.strip()) == (0, login), again.stderr
+        # A browser-like client: the login URL sets the cookie and redirects to the clean address.
+        with httpx.Client(timeout=10, follow_redirects=True) as browser:
+            landed = browser.get(login)
+            assert (landed.status_code, str(landed.url)) == (200, url)
+            assert browser.get(url + "api/status").json()["state"] == "idle"
+            # An open live stream must not hold the shutdown up.
+            with browser.stream("GET", url + "api/live") as live:
+                next(live.iter_lines())
+                proc.send_signal(signal.SIGTERM)
+                assert proc.wait(timeout=30) == 0
+        # The login went with the daemon.
+        assert not (runtime_dir / "console-login.json").exists()
     finally:
         if proc.poll() is None:
             proc.kill()

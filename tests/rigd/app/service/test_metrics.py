@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import socket
+import subprocess
+import sys
+import urllib.error
 import urllib.request
+import uuid
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -14,6 +20,7 @@ from rigd import __version__
 from rigd.app.service.metrics import MetricsExporter
 from rigd.app.service.protocol import DeviceTelemetry, Fault, TakeSummary, Telemetry
 from rigd.core.errors import ConfigError
+from tests.rigd.app.service.conftest import REPO, endpoints, small_rig
 
 TAKE_A = "/var/lib/rigd/takes/take-A.h5"
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
@@ -282,3 +289,77 @@ def test_port_taken_raises() -> None:
         with pytest.raises(ConfigError, match=r"metrics_port.*in use"):
             exp.start()
         exp.close()
+
+
+# -- who may scrape (docs/security.md) ----------------------------------------------------------
+
+
+def _get(url: str, headers: dict[str, str] | None = None) -> int:
+    req = urllib.request.Request(url, headers=headers or {})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as resp:
+            return int(resp.status)
+    except urllib.error.HTTPError as exc:
+        return exc.code
+
+
+def _token_file(tmp_path: Path, token: str, mode: int = 0o600) -> Path:
+    path = tmp_path / "metrics.token"
+    path.write_text(token + "\n")
+    path.chmod(mode)
+    return path
+
+
+def test_metrics_beyond_loopback_without_a_token_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(
+        ConfigError, match=r"service\.metrics_host: 0\.0\.0\.0 .*set service\.metrics_token_file"
+    ):
+        MetricsExporter("0.0.0.0", 0)
+    # With a token file it may listen anywhere (not bound here: the test stays on loopback).
+    MetricsExporter("0.0.0.0", 0, token_file=_token_file(tmp_path, "x" * 24))
+
+
+def test_metrics_beyond_loopback_stop_rigd_serve_with_one_line(tmp_path: Path, runtime_dir: Path) -> None:
+    """Like the control socket's non-private bind: exit 2, one line naming the key, nothing bound."""
+    cfg = small_rig(
+        f"m-{uuid.uuid4().hex[:6]}",
+        metrics_host="0.0.0.0",
+        metrics_port=0,
+        take_dir=str(tmp_path / "takes"),
+        **endpoints(runtime_dir),
+    )
+    cfg_path = tmp_path / "rig.json"
+    cfg_path.write_text(json.dumps(cfg.model_dump(mode="json")))
+    r = subprocess.run(
+        [sys.executable, "-m", "rigd.app.cli", "serve", "--config", str(cfg_path), "--no-http"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr
+    assert "service.metrics_host: 0.0.0.0" in r.stderr
+    assert "service.metrics_token_file" in r.stderr
+    assert not (runtime_dir / "control.sock").exists()
+
+
+def test_a_token_file_makes_every_scrape_need_the_bearer_token(tmp_path: Path) -> None:
+    token = "s3cret-metrics-token-0123456789"
+    with MetricsExporter(port=0, token_file=_token_file(tmp_path, token)) as exp:
+        assert _get(exp.url) == 401
+        assert _get(exp.url, {"Authorization": "Bearer wrong-token-0123456789"}) == 401
+        assert _get(exp.url, {"Authorization": f"Basic {token}"}) == 401
+        assert _get(exp.url, {"Authorization": f"Bearer {token}"}) == 200
+
+
+@pytest.mark.parametrize(
+    ("token", "mode", "why"),
+    [("x" * 24, 0o644, "readable by group or others"), ("short", 0o600, "at least 16 characters")],
+)
+def test_a_bad_token_file_is_refused_naming_it(tmp_path: Path, token: str, mode: int, why: str) -> None:
+    path = _token_file(tmp_path, token, mode)
+    with pytest.raises(ConfigError, match=f"service.metrics_token_file: {path}: .*{why}"):
+        MetricsExporter(port=0, token_file=path)
+    with pytest.raises(ConfigError, match="cannot read it"):
+        MetricsExporter(port=0, token_file=tmp_path / "missing")
