@@ -189,13 +189,15 @@ class EvtStreamSensor(EventSensor):
         skipped = {k: v for k, v in self._decoder.stats.items() if v}
         if skipped:
             log.warning("%s: decoder skipped %s", self.label, skipped)
+        if self._decoder.time_jumps:
+            log.warning("%s: stream time jumped back %d time(s)", self.label, self._decoder.time_jumps)
 
     def _read(self, timeout_s: float) -> EventPacket | None:
         deadline = time.monotonic() + max(timeout_s, 0.0)
         while True:
             got = self.source.read_bytes(max(0.0, deadline - time.monotonic()))
             if got is None:
-                return None
+                return self._flushed()
             data, host_ns = got
             decoded = self._decoder.feed(data)
             self._bytes += len(data)
@@ -204,10 +206,21 @@ class EvtStreamSensor(EventSensor):
             if time.monotonic() >= deadline:
                 return None
 
+    def _flushed(self) -> EventPacket | None:
+        """Once stopped and drained: what the decoder held back at a time jump it could not yet
+        confirm, decided now (no more bytes will tell), so nothing stays behind unreported."""
+        if self.acquiring or not self._decoder.holding:
+            return None
+        decoded = self._decoder.flush()
+        if len(decoded.events) or len(decoded.triggers):
+            return EventPacket(decoded.events, decoded.triggers, time.monotonic_ns())
+        return None
+
     def _counters(self) -> tuple[int, dict[str, int]]:
         dev = self.source.stats()
         extra = dict(dev.extra)
         extra["bytes_decoded"] = self._bytes
         for kind, n in self._decoder.stats.items():
             extra[f"decoder_skipped_{kind}"] = n
+        extra.update({f"decoder_{k}": v for k, v in self._decoder.jump_stats.items()})
         return dev.device_dropped, extra

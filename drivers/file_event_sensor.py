@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.base import Capability, EventPacket, EventSensor
-from drivers.evt import Decoded, RawReader, read_dat
+from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, read_dat
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, EventDataError
@@ -38,6 +38,7 @@ class FileEventSensor(EventSensor):
         loop: bool = False,
         chunk_bytes: int = 1 << 20,
         strict: bool = False,
+        jump_confirm: int = JUMP_CONFIRM,
         spec: str = "",
     ) -> None:
         super().__init__(EventSensorSettings(enable_trigger_in=False))
@@ -49,6 +50,7 @@ class FileEventSensor(EventSensor):
         if pace < 0 or not np.isfinite(pace):
             raise ConfigError(f"event file {self.path}: pace must be >= 0, got {pace}")
         self.pace, self.loop, self.chunk_bytes, self.strict = pace, loop, chunk_bytes, strict
+        self.jump_confirm = jump_confirm
         self._label = f"event file sensor {self.path}"
         self._is_dat = self.path.suffix.lower() == ".dat"
         self._dat_skipped: dict[str, int] = {}
@@ -90,7 +92,10 @@ class FileEventSensor(EventSensor):
                 raise ConfigError(f"event file {self.path}: no geometry in the header and no events")
             self._fmt, serial, fields = "dat", "", dict(hdr.fields)
         else:
-            with RawReader(self.path, self.chunk_bytes, strict=strict) as reader:  # checks the header
+            # checks the header (and jump_confirm)
+            with RawReader(
+                self.path, self.chunk_bytes, strict=strict, jump_confirm=self.jump_confirm
+            ) as reader:
                 raw_hdr = reader.header
             self._geometry = (raw_hdr.width, raw_hdr.height)
             self._fmt, serial, fields = raw_hdr.fmt, raw_hdr.serial_number or "", raw_hdr.fields
@@ -110,7 +115,7 @@ class FileEventSensor(EventSensor):
         """Decode until the first trigger edge (DAT files hold none); once, on first asking."""
         if self._is_dat:
             return False
-        with RawReader(self.path, self.chunk_bytes, strict=False) as reader:
+        with RawReader(self.path, self.chunk_bytes, strict=False, jump_confirm=self.jump_confirm) as reader:
             found = any(len(chunk.triggers) for chunk in reader)
         log.debug("%s: trigger edges in the recording: %s", self.label, found)
         return found
@@ -139,6 +144,7 @@ class FileEventSensor(EventSensor):
             extra.update({f"decoder_skipped_{k}": v for k, v in self._reader.stats.items()})
             if self._reader.decoder.skipped_offsets:
                 extra["decoder_first_skipped_offset"] = self._reader.decoder.skipped_offsets[0]
+            extra.update({f"decoder_{k}": v for k, v in self._reader.decoder.jump_stats.items()})
         extra.update({f"decoder_skipped_{k}": v for k, v in self._dat_skipped.items()})
         return 0, extra
 
@@ -151,7 +157,9 @@ class FileEventSensor(EventSensor):
             self._dat_skipped = hdr.skipped
             self._chunks = iter([Decoded(ev, TriggerEvents.empty())])
         else:
-            self._reader = RawReader(self.path, self.chunk_bytes, strict=self.strict)
+            self._reader = RawReader(
+                self.path, self.chunk_bytes, strict=self.strict, jump_confirm=self.jump_confirm
+            )
             self._chunks = iter(self._reader)
 
     def _close_reader(self) -> None:
@@ -234,8 +242,8 @@ def _split(d: Decoded, t_due: int) -> tuple[Decoded, Decoded]:
 
 
 def open_file_event_sensor(spec: DeviceSpec) -> FileEventSensor:
-    """Factory for `file:///abs/path.raw?pace=1&loop=1&strict=0` (also `.dat`)."""
-    spec.check_params({"pace", "loop", "strict", "chunk_bytes"})
+    """Factory for `file:///abs/path.raw?pace=1&loop=1&strict=0&jump_confirm=2` (also `.dat`)."""
+    spec.check_params({"pace", "loop", "strict", "chunk_bytes", "jump_confirm"})
     path = (spec.location + spec.path) if spec.location else spec.path
     if not path:
         raise ConfigError(f"device spec {spec.raw!r}: no file path")
@@ -245,5 +253,6 @@ def open_file_event_sensor(spec: DeviceSpec) -> FileEventSensor:
         loop=bool(spec.int_param("loop", 0)),
         strict=bool(spec.int_param("strict", 0)),
         chunk_bytes=spec.int_param("chunk_bytes", 1 << 20),
+        jump_confirm=spec.int_param("jump_confirm", JUMP_CONFIRM),
         spec=spec.raw,
     )

@@ -9,6 +9,8 @@ from drivers.evt.errors import KIND_NAMES, EvtDecodeError
 from drivers.evt.evt2 import Evt2Encoder, encode_evt2
 from drivers.evt.evt3 import Evt3Encoder, encode_evt3
 from drivers.evt.evt21 import Evt21Encoder, encode_evt21
+from drivers.evt.jumps import TimeJump
+from drivers.evt.kernels import JUMP_CONFIRM
 from drivers.evt.raw import (
     FORMATS,
     Decoded,
@@ -24,6 +26,7 @@ from drivers.evt.raw import (
 
 __all__ = [
     "FORMATS",
+    "JUMP_CONFIRM",
     "KIND_NAMES",
     "DatHeader",
     "Decoded",
@@ -34,6 +37,7 @@ __all__ = [
     "RawHeader",
     "RawReader",
     "StreamDecoder",
+    "TimeJump",
     "decode_bytes",
     "encode",
     "encode_evt2",

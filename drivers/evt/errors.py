@@ -27,7 +27,20 @@ N_CODES = 10
 MAX_SKIP_OFFSETS = 8
 SKIP_COUNT = N_CODES
 SKIP_POS = N_CODES + 1
-STATS_SIZE = SKIP_POS + MAX_SKIP_OFFSETS
+# Then the time jumps a kernel accepted in this call (see `kernels.record_jump`): slot JUMP_COUNT
+# counts them, JUMP_REC.. holds JUMP_FIELDS values each (word position, old and new TIME_HIGH base
+# on the stream's clock, the shift applied from there on, events decoded while confirming). A
+# kernel whose slots are full stops before the next jump; the decoder empties them after each call.
+MAX_JUMP_RECORDS = 4
+JUMP_FIELDS = 5
+JUMP_COUNT = SKIP_POS + MAX_SKIP_OFFSETS
+JUMP_REC = JUMP_COUNT + 1
+STATS_SIZE = JUMP_REC + MAX_JUMP_RECORDS * JUMP_FIELDS
+
+# Not a violation: a kernel returns HOLD (with the position of a TIME_HIGH that falls) when the
+# words it has do not yet tell a time jump from a corrupt word; the decoder keeps the words from
+# there and decodes them with the next bytes (or at the end of the stream, see `StreamDecoder`).
+HOLD = 100
 
 KIND_NAMES: dict[int, str] = {
     NON_MONOTONIC_TIME_HIGH: "non_monotonic_time_high",

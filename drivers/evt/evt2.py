@@ -2,8 +2,10 @@
 """EVT 2.0 (32-bit little-endian words) decoder kernel and streaming encoder, OpenEB semantics.
 
 t = TIME_HIGH << 6 | ts, a 34-bit time base that rolls over every 2^34 us (~4.77 h): a TIME_HIGH
-that falls by >= 2^27 is a roll-over (loop += 2^34), a smaller fall a non-monotonic violation
-whose word is skipped. Words before the first TIME_HIGH are skipped, as OpenEB does. An event or
+that falls by >= 2^27 is a roll-over (loop += 2^34); a smaller fall is a jump back in time when
+the TIME_HIGH values after it confirm it (`kernels.JUMP_CONFIRM`; later times are shifted so the
+new base follows the old one, and the jump is recorded), else a non-monotonic violation whose word
+is skipped. Words before the first TIME_HIGH are skipped, as OpenEB does. An event or
 trigger edge earlier than the last one emitted (a corrupt ts or TIME_HIGH) is dropped and counted
 as non_monotonic_time, so the output time never runs backwards. A TIME_HIGH jump (a step over 16,
 or a roll-over) that the next TIME_HIGH in the buffer contradicts is skipped as time_high_jump.
@@ -22,6 +24,9 @@ from numpy.typing import NDArray
 from drivers.evt.encoder import EncodeKernel, StreamEncoder
 from drivers.evt.errors import (
     BEFORE_TIME_HIGH,
+    HOLD,
+    JUMP_COUNT,
+    MAX_JUMP_RECORDS,
     NON_MONOTONIC_TIME,
     NON_MONOTONIC_TIME_HIGH,
     OK,
@@ -32,6 +37,10 @@ from drivers.evt.errors import (
 from drivers.evt.kernels import (
     I8,
     I64,
+    JUMP_ACCEPT,
+    JUMP_LOOKAHEAD,
+    JUMP_REJECT,
+    JUMP_UNDECIDED,
     TRIG_T,
     U8,
     U16,
@@ -46,6 +55,7 @@ from drivers.evt.kernels import (
     last_time,
     put_checked,
     put_trigger,
+    record_jump,
     skipped,
     violation,
 )
@@ -53,7 +63,9 @@ from rigd.core.events import EventArray, TriggerEvents
 
 WORD_BYTES = 4
 MAX_EVENTS_PER_WORD = 1
-STATE_SIZE = 5  # started, loop, time_high, last event time, last trigger time
+# started, loop, time_high (the stream's clock), the shift added to every time from the last
+# accepted jump back on (whole 64 us periods), last event time, last trigger time
+STATE_SIZE = 6
 
 TH_HALF = 1 << 27
 TH_STEP = TH_HALF - 1
@@ -64,7 +76,7 @@ _EXT_TRIGGER = 0xA << 28
 
 def new_decoder_state() -> NDArray[np.int64]:
     """Fresh state: no time base, nothing emitted."""
-    return np.array([0, 0, 0, -1, -1], np.int64)
+    return np.array([0, 0, 0, 0, -1, -1], np.int64)
 
 
 def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
@@ -88,6 +100,36 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
             q += 1
         return False
 
+    @njit(inline="always")
+    def jump_verdict(  # pragma: no cover - numba
+        buf: U32, pos: int, th: int, v: int, cfg: DecodeConfig
+    ) -> tuple[int, int]:
+        """Whether TIME_HIGH v at `pos`, a small fall from th, starts a jump back in time, and the
+        events before the deciding word (`evt3._jump_verdict`'s rule, 28-bit counter)."""
+        need = cfg[4] - 1
+        prev = v
+        held = 0
+        q = pos + 1
+        stop = min(buf.shape[0] // (2 if masked else 1), pos + 1 + JUMP_LOOKAHEAD)
+        while q < stop:
+            wq = np.int64(buf[2 * q + hi]) if masked else np.int64(buf[q])
+            tq = wq >> 28
+            if tq == 0x8:
+                vq = wq & 0xFFFFFFF
+                if vq != prev:
+                    if vq < prev or vq >= th:
+                        return JUMP_REJECT, held
+                    need -= 1
+                    if need <= 0:
+                        return JUMP_ACCEPT, held
+                    prev = vq
+            elif tq <= 1:
+                held += ctpop(np.int64(buf[2 * q + 1 - hi])) if masked else 1
+            q += 1
+        if cfg[3] or q >= pos + 1 + JUMP_LOOKAHEAD:
+            return JUMP_REJECT, held
+        return JUMP_UNDECIDED, held
+
     @njit(nogil=True, cache=True)
     def decode_kernel(
         buf: U32, pos: int, end: int, st: I64, out: DecodeOut, n: int, nt: int, stats: I64, cfg: DecodeConfig
@@ -99,7 +141,8 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
         started = st[0]
         loop = st[1]
         th = st[2]
-        tbase = (loop << 34) | (th << 6)
+        shift = st[3]
+        tbase = ((loop << 34) | (th << 6)) + shift
         err = OK
         while pos < end:
             if n > cap or nt >= tcap:
@@ -117,7 +160,7 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                 else:
                     t = tbase | ((w >> 22) & 0x3F)
                     pol = 1 if typ == 1 else -1
-                    if t < last_time(out[T], n, st[3]):  # would go back in time: dropped
+                    if t < last_time(out[T], n, st[4]):  # would go back in time: dropped
                         if strict:
                             stats[NON_MONOTONIC_TIME] += 1
                             err = NON_MONOTONIC_TIME
@@ -134,10 +177,24 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
             elif typ == 0x8:  # EVT_TIME_HIGH
                 v = w & 0xFFFFFFF
                 fell = started != 0 and v < th
-                if fell and th - v < TH_HALF:  # a small fall: the word is skipped
-                    err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
-                    if err:
+                if fell and th - v < TH_HALF:  # a small fall: a jump back in time, or a corrupt word
+                    verdict, held = jump_verdict(buf, pos, th, v, cfg)
+                    if verdict == JUMP_UNDECIDED:
+                        err = HOLD  # the decoder comes back here with more words
                         break
+                    if verdict == JUMP_REJECT:
+                        err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
+                        if err:
+                            break
+                    else:
+                        if stats[JUMP_COUNT] >= MAX_JUMP_RECORDS:
+                            break  # the decoder takes the records and comes back here
+                        # the new base goes on one period after the old one: later times shifted
+                        shift += (th - v + 1) << 6
+                        old, new = (loop << 34) | (th << 6), (loop << 34) | (v << 6)
+                        record_jump(stats, pos, old, new, shift, held)
+                        th = v
+                        tbase = ((loop << 34) | (th << 6)) + shift
                 elif (
                     started != 0
                     and (v - th) + (1 << 28 if fell else 0) > _TH_NEAR
@@ -151,13 +208,13 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                         loop += 1
                     started = 1
                     th = v
-                    tbase = (loop << 34) | (th << 6)
+                    tbase = ((loop << 34) | (th << 6)) + shift
             elif typ == 0xA:  # EXT_TRIGGER
                 if started == 0:
                     stats[BEFORE_TIME_HIGH] += 1
                 else:
                     t = tbase | ((w >> 22) & 0x3F)
-                    if t < last_time(out[TRIG_T], nt, st[4]):  # would go back in time: dropped
+                    if t < last_time(out[TRIG_T], nt, st[5]):  # would go back in time: dropped
                         err = violation(stats, NON_MONOTONIC_TIME, strict, pos)
                         if err:
                             break
@@ -173,6 +230,7 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
         st[0] = started
         st[1] = loop
         st[2] = th
+        st[3] = shift
         keep_last_times(st, out, n, nt)
         return pos, n, nt, err
 

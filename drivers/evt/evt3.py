@@ -2,11 +2,13 @@
 """EVT 3.0 (16-bit stateful words) decoder kernel and streaming encoder, OpenEB semantics.
 
 Time is t = loop << 24 | TIME_HIGH << 12 | TIME_LOW; `loop` increments when TIME_HIGH falls by
->= 2048 (the 24-bit counter rolled over); a smaller fall is a non-monotonic violation and the
-word is skipped (tolerant) so time never runs backwards. TIME_HIGH resets TIME_LOW to 0, like
-OpenEB's decoder. A TIME_LOW below the previous one under the same TIME_HIGH is passed through as
-OpenEB does (the real Gen4.1 sample contains such words). Words before the first TIME_HIGH are
-skipped (the stream was joined mid-way).
+>= 2048 (the 24-bit counter rolled over); a smaller fall is a jump back in time when the
+TIME_HIGH values after it confirm it (see `kernels.JUMP_CONFIRM`): the decoder then shifts every
+later time so the new base follows the old one and records the jump; otherwise it is a
+non-monotonic violation and the word is skipped (tolerant), so time never runs backwards.
+TIME_HIGH resets TIME_LOW to 0, like OpenEB's decoder. A TIME_LOW below the previous one under
+the same TIME_HIGH is passed through as OpenEB does (the real Gen4.1 sample contains such words).
+Words before the first TIME_HIGH are skipped (the stream was joined mid-way).
 
 The kernels run in numba with all decoder state in a small int64 array so that a stream may be
 cut anywhere between words; byte chunks cut mid-word are re-assembled by the caller.
@@ -24,6 +26,9 @@ from drivers.evt.encoder import StreamEncoder
 from drivers.evt.errors import (
     BEFORE_TIME_HIGH,
     EVENT_WITHOUT_Y,
+    HOLD,
+    JUMP_COUNT,
+    MAX_JUMP_RECORDS,
     NON_MONOTONIC_TIME,
     NON_MONOTONIC_TIME_HIGH,
     OK,
@@ -35,6 +40,10 @@ from drivers.evt.errors import (
 from drivers.evt.kernels import (
     I8,
     I64,
+    JUMP_ACCEPT,
+    JUMP_LOOKAHEAD,
+    JUMP_REJECT,
+    JUMP_UNDECIDED,
     TRIG_T,
     U8,
     U16,
@@ -48,6 +57,7 @@ from drivers.evt.kernels import (
     put_checked,
     put_run,
     put_trigger,
+    record_jump,
     skipped,
     violation,
 )
@@ -58,10 +68,12 @@ log = logging.getLogger(__name__)
 WORD_BYTES = 2
 MAX_EVENTS_PER_WORD = 12
 
-# decoder state slots; the last two are the times of the last event and trigger edge emitted
-# (before this call's outputs), so that no later one is emitted earlier
-_ST_STARTED, _ST_LOOP, _ST_TH, _ST_TL, _ST_Y, _ST_BASE, _ST_VPOL, ST_TEV, ST_TTR = range(9)
-STATE_SIZE = 9
+# decoder state slots: loop, TIME_HIGH and TIME_LOW are the stream's own clock; ST_SHIFT (a
+# multiple of 4096 us) is added to every time from the last accepted jump back on; the last two
+# are the times of the last event and trigger edge emitted (before this call's outputs), so that
+# no later one is emitted earlier
+_ST_STARTED, _ST_LOOP, _ST_TH, _ST_TL, _ST_Y, _ST_BASE, _ST_VPOL, ST_SHIFT, ST_TEV, ST_TTR = range(10)
+STATE_SIZE = 10
 
 
 def new_decoder_state() -> NDArray[np.int64]:
@@ -79,7 +91,7 @@ def stream_time(st: NDArray[np.int64]) -> int | None:
     before the first TIME_HIGH. A sensor's periodic TIME_HIGH words move it on with no events."""
     if not st[_ST_STARTED]:
         return None
-    return (int(st[_ST_LOOP]) << 24) | (int(st[_ST_TH]) << 12) | int(st[_ST_TL])
+    return ((int(st[_ST_LOOP]) << 24) | (int(st[_ST_TH]) << 12) | int(st[_ST_TL])) + int(st[ST_SHIFT])
 
 
 @njit(nogil=True, cache=True)
@@ -149,6 +161,43 @@ def _refuted(buf: U16, pos: int, th: int, v12: int) -> bool:  # pragma: no cover
     return False
 
 
+@njit(inline="always")
+def _jump_verdict(  # pragma: no cover - numba
+    buf: U16, pos: int, th: int, v12: int, cfg: DecodeConfig
+) -> tuple[int, int]:
+    """Whether the TIME_HIGH v12 at `pos`, a small fall from th, starts a jump back in time: the
+    next TIME_HIGH values (repeats aside) rise from it and stay below th until cfg's confirm count
+    of values was seen (accept), or one falls or reaches th (reject: the old base goes on, so the
+    word was corrupt). Undecided when the buffer ends first, unless it is the stream's last
+    (cfg final) or JUMP_LOOKAHEAD words were looked at (reject). Also returns the events in the
+    words before the deciding one (exact for valid words): what acceptance keeps."""
+    need = cfg[4] - 1
+    prev = v12
+    held = 0
+    q = pos + 1
+    stop = min(buf.shape[0], pos + 1 + JUMP_LOOKAHEAD)
+    while q < stop:
+        w = np.int64(buf[_U64(q)])
+        typ = w >> 12
+        if typ == 0x8:
+            v = w & 0xFFF
+            if v != prev:
+                if v < prev or v >= th:
+                    return JUMP_REJECT, held
+                need -= 1
+                if need <= 0:
+                    return JUMP_ACCEPT, held
+                prev = v
+        elif typ == 0x2:
+            held += 1
+        elif typ == 0x4 or typ == 0x5:
+            held += ctpop(w & (0xFFF if typ == 0x4 else 0xFF))
+        q += 1
+    if cfg[3] or q >= pos + 1 + JUMP_LOOKAHEAD:
+        return JUMP_REJECT, held
+    return JUMP_UNDECIDED, held
+
+
 # This reference kernel and `evt3_fast.decode_kernel` are kept as two kernels on purpose: each is
 # the other's oracle (tests compare them word by word), the fast one falls back to this one for
 # every irregular word, and each loop's shape is what makes it fast or exact (see evt3_fast's
@@ -173,7 +222,9 @@ def decode_kernel(
     word takes the slow path, which drops the events and triggers that would go back in time as
     non_monotonic_time (strict mode stops there) until the time base is back at or past them.
     """
-    width, height, strict = cfg
+    width = cfg[0]
+    height = cfg[1]
+    strict = cfg[2]
     cap = out[X].shape[0] - 12
     tcap = out[TRIG_T].shape[0]
     started = st[0]
@@ -182,7 +233,8 @@ def decode_kernel(
     y = st[4]
     base = st[5] if st[5] >= 0 else NOBASE
     vpol = st[6]
-    tcur = (loop << 24) | (th << 12) | st[3]
+    shift = st[ST_SHIFT]
+    tcur = ((loop << 24) | (th << 12) | st[3]) + shift
     wm1 = width - 1
     err = OK
     while pos < end:
@@ -260,10 +312,24 @@ def decode_kernel(
         elif typ == 0x8:
             v12 = w & 0xFFF
             fell = started != 0 and v12 < th
-            if fell and th - v12 < 2048:  # a small fall: the word is skipped
-                err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
-                if err:
+            if fell and th - v12 < 2048:  # a small fall: a jump back in time, or a corrupt word
+                verdict, held = _jump_verdict(buf, pos, th, v12, cfg)
+                if verdict == JUMP_UNDECIDED:
+                    err = HOLD  # the decoder comes back here with more words
                     break
+                if verdict == JUMP_REJECT:
+                    err = violation(stats, NON_MONOTONIC_TIME_HIGH, strict, pos)
+                    if err:
+                        break
+                else:
+                    if stats[JUMP_COUNT] >= MAX_JUMP_RECORDS:
+                        break  # the decoder takes the records and comes back here
+                    # the new base goes on one period after the old one: later times are shifted
+                    shift += (th - v12 + 1) << 12
+                    old, new = (loop << 24) | (th << 12), (loop << 24) | (v12 << 12)
+                    record_jump(stats, pos, old, new, shift, held)
+                    th = v12
+                    tcur = ((loop << 24) | (th << 12)) + shift
             elif (
                 started != 0 and (v12 - th) + (4096 if fell else 0) > TH_JUMP and _refuted(buf, pos, th, v12)
             ):
@@ -275,7 +341,7 @@ def decode_kernel(
                     loop += 1
                 started = 1
                 th = v12
-                tcur = (loop << 24) | (th << 12)
+                tcur = ((loop << 24) | (th << 12)) + shift
         elif typ == 0xA:
             if started == 0:
                 stats[BEFORE_TIME_HIGH] += 1
@@ -301,6 +367,7 @@ def decode_kernel(
     st[4] = y
     st[5] = base if base < NOBASE else -1
     st[6] = vpol
+    st[ST_SHIFT] = shift
     keep_last_times(st, out, n, nt)
     return pos, n, nt, err
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from drivers.evt.evt3 import NOBASE, TH_JUMP
+from drivers.evt.evt3 import NOBASE, ST_SHIFT, ST_TEV, ST_TTR, TH_JUMP
 from drivers.evt.evt3 import decode_kernel as reference_kernel
 from drivers.evt.kernels import (
     I64,
@@ -65,7 +65,8 @@ def decode_kernel(
     buf: U16, pos: int, end: int, st: I64, out: DecodeOut, n: int, nt: int, stats: I64, cfg: DecodeConfig
 ) -> tuple[int, int, int, int]:
     """Decode words buf[pos:end]; contract of `evt3.decode_kernel` (returns (pos, n, nt, err))."""
-    width, height, _ = cfg
+    width = cfg[0]
+    height = cfg[1]
     cap = out[X].shape[0] - 12
     tcap = out[TRIG_T].shape[0]
     # vector base and polarity packed in one register: bp = base << 8 | (vpol & 0xFF); the int8
@@ -74,10 +75,12 @@ def decode_kernel(
     bplim = ((width - 12) << 8) | 0xFF
     while pos < end:
         y = st[4]
-        # time packed as loop << 24 | TIME_HIGH << 12 | TIME_LOW; TIME_HIGH and loop derived from it
-        tcur = (st[1] << 24) | (st[2] << 12) | st[3]
+        # time packed as loop << 24 | TIME_HIGH << 12 | TIME_LOW, plus the shift of the jumps back
+        # accepted so far (whole 4096 us periods); TIME_HIGH and loop derived from it less the shift
+        sh = st[ST_SHIFT]
+        tcur = ((st[1] << 24) | (st[2] << 12) | st[3]) + sh
         bp = (st[5] << 8) | (st[6] & 0xFF) if st[5] >= 0 else NOBASE
-        if st[0] != 0 and 0 <= y < height and tcur >= last_time(out[T], n, st[7]):
+        if st[0] != 0 and 0 <= y < height and tcur >= last_time(out[T], n, st[ST_TEV]):
             while pos < end:
                 bend = min(end, pos + (cap - n) // 12)  # no capacity check inside the block
                 if bend <= pos:
@@ -128,19 +131,20 @@ def decode_kernel(
                         tcur = (tcur & ~0xFFF) | tl
                     elif typ == 0x8:
                         v12 = w & 0xFFF
-                        th = (tcur >> 12) & 0xFFF
-                        tnew = (tcur & ~0xFFFFFF) | (v12 << 12)
+                        traw = tcur - sh
+                        th = (traw >> 12) & 0xFFF
+                        tnew = (traw & ~0xFFFFFF) | (v12 << 12)
                         if v12 < th:
                             if th - v12 < 2048:
-                                break  # non-monotonic: the reference counts or raises it
+                                break  # a jump back or a corrupt word: the reference tells which
                             tnew += 1 << 24
-                        elif tnew < tcur:
+                        elif tnew < traw:
                             break  # the same TIME_HIGH again takes TIME_LOW back to 0
-                        if (tnew >> 12) - (tcur >> 12) > TH_JUMP:
+                        if (tnew >> 12) - (traw >> 12) > TH_JUMP:
                             break  # a jump: the reference checks it against the next TIME_HIGH
-                        tcur = tnew
+                        tcur = tnew + sh
                     elif typ == 0xA:
-                        if nt >= tcap or tcur < last_time(out[TRIG_T], nt, st[8]):
+                        if nt >= tcap or tcur < last_time(out[TRIG_T], nt, st[ST_TTR]):
                             break
                         nt = put_trigger(out, nt, tcur, w & 1, (w >> 8) & 0xF)
                     elif typ == 0x7 or typ >= 0xE:
@@ -150,9 +154,10 @@ def decode_kernel(
                     pos += 1
                 if pos < bend:
                     break
-            st[1] = tcur >> 24
-            st[2] = (tcur >> 12) & 0xFFF
-            st[3] = tcur & 0xFFF
+            traw = tcur - sh
+            st[1] = traw >> 24
+            st[2] = (traw >> 12) & 0xFFF
+            st[3] = traw & 0xFFF
             st[4] = y
             if bp < NOBASE:
                 st[5] = bp >> 8

@@ -17,7 +17,16 @@ from numba import njit, types
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
-from drivers.evt.errors import MAX_SKIP_OFFSETS, OK, OUT_OF_RANGE_XY, SKIP_COUNT, SKIP_POS
+from drivers.evt.errors import (
+    JUMP_COUNT,
+    JUMP_FIELDS,
+    JUMP_REC,
+    MAX_SKIP_OFFSETS,
+    OK,
+    OUT_OF_RANGE_XY,
+    SKIP_COUNT,
+    SKIP_POS,
+)
 
 U8 = NDArray[np.uint8]
 U16 = NDArray[np.uint16]
@@ -32,8 +41,27 @@ I64 = NDArray[np.int64]
 # before that class were renamed would then fail to load (numba issue #6018).
 X, Y, P, T, TRIG_T, TRIG_P, TRIG_CH = range(7)
 DecodeOut = tuple[U16, U16, I8, I64, I64, U8, U8]
-DecodeConfig = tuple[int, int, bool]  # what a decoder fixes for its stream: width, height, strict
+# What a decoder fixes for its stream: width, height, strict, final (no more bytes will come: a
+# time jump still undecided is decided now), and how many TIME_HIGH values confirm a jump back.
+DecodeConfig = tuple[int, int, bool, bool, int]
 DecodeKernel = Callable[..., tuple[int, int, int, int]]
+
+# A TIME_HIGH that falls (less than half the counter: not a roll-over) is a jump back in time
+# when it is the first of JUMP_CONFIRM increasing TIME_HIGH values that all stay below the old
+# one: a sensor re-based or two recordings joined. One corrupt word never is: the stream's next
+# new TIME_HIGH value goes on from the old base (cameras repeat a value, then step it by one).
+JUMP_CONFIRM = 2
+# Words looked at after such a TIME_HIGH before it is judged a corrupt word: bounds what the
+# decoder holds back while it decides (4 MiB of EVT 3.0, ~1000x a camera's TIME_HIGH period).
+JUMP_LOOKAHEAD = 1 << 21
+# What `jump_verdict`s say about such a TIME_HIGH.
+JUMP_REJECT, JUMP_ACCEPT, JUMP_UNDECIDED = 0, 1, 2
+
+
+def decode_config(
+    width: int, height: int, strict: bool, *, final: bool = False, confirm: int = JUMP_CONFIRM
+) -> DecodeConfig:
+    return (int(width), int(height), bool(strict), bool(final), int(confirm))
 
 
 def decode_out(n_events: int, n_triggers: int) -> DecodeOut:
@@ -130,7 +158,8 @@ def put_checked(  # pragma: no cover - numba
 ) -> tuple[int, bool]:
     """Events at x0 + i for each set bit i of m; pixels outside the sensor are counted as
     out_of_range_xy instead. Returns (new n, whether any pixel was outside)."""
-    width, height, _ = cfg
+    width = cfg[0]
+    height = cfg[1]
     bad = 0
     while m != 0:
         x = x0 + cttz(m)
@@ -160,3 +189,18 @@ def put_trigger(out: DecodeOut, nt: int, t: int, p: int, channel: int) -> int:  
     out[TRIG_P][nt] = p
     out[TRIG_CH][nt] = channel
     return nt + 1
+
+
+@njit(inline="always")
+def record_jump(  # pragma: no cover - numba
+    stats: I64, pos: int, old_base: int, new_base: int, shift: int, held: int
+) -> None:
+    """Keep an accepted time jump for the decoder (a free slot is the caller's to check)."""
+    k = stats[JUMP_COUNT]
+    r = JUMP_REC + k * JUMP_FIELDS
+    stats[r] = pos
+    stats[r + 1] = old_base
+    stats[r + 2] = new_base
+    stats[r + 3] = shift
+    stats[r + 4] = held
+    stats[JUMP_COUNT] = k + 1

@@ -21,6 +21,8 @@ from numpy.typing import NDArray
 
 from drivers.evt import evt2, evt3, evt3_fast, evt21
 from drivers.evt.errors import (
+    HOLD,
+    JUMP_COUNT,
     KIND_NAMES,
     MAX_SKIP_OFFSETS,
     SKIP_COUNT,
@@ -29,7 +31,8 @@ from drivers.evt.errors import (
     TRUNCATED,
     EvtDecodeError,
 )
-from drivers.evt.kernels import DecodeKernel, decode_out
+from drivers.evt.jumps import MAX_KEPT_JUMPS, TimeJump, jump_counters, take_jumps
+from drivers.evt.kernels import JUMP_CONFIRM, DecodeConfig, DecodeKernel, decode_config, decode_out
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 
@@ -105,6 +108,13 @@ class StreamDecoder:
     edge earlier than the last one emitted: output time never runs backwards, so a corrupt word
     costs the events it corrupts and not a take (whose writer refuses out-of-order batches).
     `skipped_offsets` holds the absolute byte offsets of the first few skipped items.
+
+    A TIME_HIGH that falls a little is a jump back in time (not a corrupt word) when the next
+    `jump_confirm` - 1 new TIME_HIGH values go on rising from it below the old one: every later
+    time is then shifted so the new base follows the old one, and the jump is recorded in
+    `time_jumps` (the first few in full in `jumps`). Until the bytes tell, the words from that
+    TIME_HIGH on are held back (kept for the next `feed`; `finish` or `flush` decides with what
+    there is), so the result never depends on where the chunks were cut.
     """
 
     def __init__(
@@ -115,11 +125,17 @@ class StreamDecoder:
         height: int = 720,
         strict: bool = False,
         offset: int = 0,
+        jump_confirm: int = JUMP_CONFIRM,
     ) -> None:
         if fmt not in FORMATS:
             raise EventDataError(f"unknown EVT format {fmt!r}; expected one of {FORMATS}")
         if not (0 < width <= 2048 and 0 < height <= 2048):
             raise EventDataError(f"sensor geometry {width}x{height} outside 1..2048")
+        if not 2 <= jump_confirm <= 64:
+            raise EventDataError(
+                f"jump_confirm {jump_confirm} outside 2..64 (TIME_HIGH values that confirm a jump back; "
+                "1 would take a single corrupt word for one)"
+            )
         self.fmt = fmt
         self.width = int(width)
         self.height = int(height)
@@ -139,12 +155,19 @@ class StreamDecoder:
             "evt3": evt3_fast.decode_kernel if USE_EVT3_FAST else evt3.decode_kernel,
         }
         self._kernel = kernels[fmt]
-        self._cfg = (self.width, self.height, self.strict)
+        self.jump_confirm = int(jump_confirm)
+        self._cfg = decode_config(self.width, self.height, self.strict, confirm=self.jump_confirm)
+        self._final_cfg = decode_config(
+            self.width, self.height, self.strict, final=True, confirm=self.jump_confirm
+        )
         # optional counting pass sizing the outputs exactly (EVT 3.0)
         self._bound: Callable[[NDArray[Any]], tuple[int, int]] | None = getattr(mod, "output_bound", None)
         self._stats = np.zeros(STATS_SIZE, np.int64)
         self.skipped_offsets: list[int] = []
-        self._pending = b""
+        self.jumps: list[TimeJump] = []
+        self.time_jumps = 0
+        self._jump_held = 0
+        self._pending = b""  # bytes not decoded yet: a partial word, or words held at a time jump
         self._base = int(offset)
         self.bytes_consumed = 0
 
@@ -160,19 +183,32 @@ class StreamDecoder:
         """Skipped items by kind (events for pixel-level kinds, words otherwise)."""
         return {name: int(self._stats[code]) for code, name in KIND_NAMES.items()}
 
+    @property
+    def jump_stats(self) -> dict[str, int]:
+        """Counters of the accepted time jumps (`jumps.jump_counters`); empty when none."""
+        return jump_counters(self.jumps, self.time_jumps, self._jump_held)
+
+    @property
+    def holding(self) -> bool:
+        """Whether words are held back at a TIME_HIGH not yet told a jump or a corrupt word."""
+        return len(self._pending) >= self._word
+
     def _words(self, raw: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[Any]]:
         """Whole words' bytes and their view as the kernel's words."""
         if raw.ctypes.data % self._word:
             raw = raw.copy()  # chunk cut mid-word left the body unaligned; one memcpy
         return raw, raw.view(self._dtype)
 
-    def _run(self, raw: NDArray[np.uint8], buf: NDArray[Any], out: _Out, abs_start: int) -> None:
+    def _run(
+        self, raw: NDArray[np.uint8], buf: NDArray[Any], out: _Out, abs_start: int, cfg: DecodeConfig
+    ) -> int:
+        """Decode the words; returns how many: fewer than all when the kernel holds the rest back."""
         pos, end = 0, buf.shape[0] // self._step
         ws = self._word
         while pos < end:
             seen = int(self._stats[SKIP_COUNT])
             pos, out.n, out.nt, err = self._kernel(
-                buf, pos, end, self._state, out.arrays, out.n, out.nt, self._stats, self._cfg
+                buf, pos, end, self._state, out.arrays, out.n, out.nt, self._stats, cfg
             )
             if self._stats[SKIP_COUNT] > seen:  # word positions of this call's first skips
                 self.skipped_offsets += [
@@ -180,6 +216,10 @@ class StreamDecoder:
                     for w in self._stats[SKIP_POS + seen : SKIP_POS + self._stats[SKIP_COUNT]]
                 ]
                 self._stats[SKIP_COUNT] = len(self.skipped_offsets)
+            if self._stats[JUMP_COUNT]:
+                self._took(take_jumps(self._stats, abs_start, ws))
+            if err == HOLD:
+                return pos
             if err:
                 word = bytes(raw[pos * ws : (pos + 1) * ws])[::-1].hex()
                 off = abs_start + pos * ws
@@ -190,10 +230,27 @@ class StreamDecoder:
                 )
             if pos < end:
                 out.grow(self._max_per_word)
+        return end
+
+    def _took(self, jumps: list[TimeJump]) -> None:
+        for jump in jumps:
+            self.time_jumps += 1
+            self._jump_held += jump.held_events
+            if len(self.jumps) < MAX_KEPT_JUMPS:
+                self.jumps.append(jump)
+                log.warning("%s", jump.line(self.fmt))
 
     def feed(self, data: bytes | bytearray | memoryview | NDArray[np.uint8]) -> Decoded:
-        """Decode the next chunk; any trailing partial word is kept for the next call."""
+        """Decode the next chunk; a trailing partial word, and the words from a TIME_HIGH that
+        the bytes so far do not tell a jump or a corrupt word, are kept for the next call."""
         arr = np.frombuffer(data, np.uint8) if len(data) else np.empty(0, np.uint8)
+        if self.holding:  # rare: one copy to decode the held words on with the new ones
+            arr = np.concatenate([np.frombuffer(self._pending, np.uint8), arr])
+            self._pending = b""
+        return self._decode(arr, self._cfg)
+
+    def _decode(self, arr: NDArray[np.uint8], cfg: DecodeConfig) -> Decoded:
+        """Decode what is pending (at most a partial word) and then arr."""
         ws = self._word
         total = len(self._pending) + arr.shape[0]
         nwords = total // ws
@@ -215,18 +272,33 @@ class StreamDecoder:
         else:
             cap_events = min(nwords * self._max_per_word, max(nwords * ws, 256)) + self._max_per_word + 1
             out = _Out(cap_events, 16 + nwords // 64)
+        done = 0
         if head is not None:
-            self._run(*self._words(head), out, start)
+            if not self._run(*self._words(head), out, start, cfg):
+                # a TIME_HIGH to judge with the words after it: decode it with them (rare: a copy)
+                self._pending = b""
+                return self._decode(np.concatenate([head, arr]), cfg)
+            self.bytes_consumed += ws
             start += ws
-            self._pending = b""
         if whole:
-            self._run(body, words, out, start)
-        self._pending = arr[whole:].tobytes()
-        self.bytes_consumed += nwords * ws
+            done = self._run(body, words, out, start, cfg)
+        self._pending = arr[done * ws :].tobytes()
+        self.bytes_consumed += done * ws
         return out.result()
 
+    def flush(self) -> Decoded:
+        """Decide held words now, with no more bytes to come (a live stream that stopped): a
+        jump still unconfirmed is taken for a corrupt word, as at the end of a stream."""
+        if not self.holding:
+            return Decoded.empty()
+        held = np.frombuffer(self._pending, np.uint8)
+        self._pending = b""
+        return self._decode(held, self._final_cfg)
+
     def finish(self) -> Decoded:
-        """End of stream: a leftover partial word is a truncation (raised or counted)."""
+        """End of stream: held words are decided (`flush`), and a leftover partial word is a
+        truncation (raised or counted). Returns what the held words decode to."""
+        out = self.flush()
         if self._pending:
             off = self._base + self.bytes_consumed
             n = len(self._pending)
@@ -243,10 +315,10 @@ class StreamDecoder:
                 self.skipped_offsets.append(off)
                 self._stats[SKIP_COUNT] = len(self.skipped_offsets)
             log.warning("%s stream ends with %d byte(s) of a partial word at offset %d", self.fmt, n, off)
-        return Decoded.empty()
+        return out
 
     def log_stats(self) -> None:
-        """Report skipped items once, so tolerant decoding is never silent."""
+        """Report skipped items and accepted time jumps once, so tolerant decoding is never silent."""
         skipped = {k: v for k, v in self.stats.items() if v}
         if skipped:
             log.warning(
@@ -254,6 +326,13 @@ class StreamDecoder:
                 self.fmt,
                 skipped,
                 self.skipped_offsets,
+            )
+        if self.time_jumps:
+            log.warning(
+                "%s stream time jumped back %d time(s), first at byte offsets %s; later times shifted",
+                self.fmt,
+                self.time_jumps,
+                [j.offset for j in self.jumps],
             )
 
 
@@ -264,13 +343,18 @@ def decode_bytes(
     width: int = 1280,
     height: int = 720,
     strict: bool = False,
+    jump_confirm: int = JUMP_CONFIRM,
 ) -> Decoded:
     """Decode a complete in-memory stream (no header)."""
-    dec = StreamDecoder(fmt, width=width, height=height, strict=strict)
-    out = dec.feed(data)
-    dec.finish()
+    dec = StreamDecoder(fmt, width=width, height=height, strict=strict, jump_confirm=jump_confirm)
+    out = _joined(dec.feed(data), dec.finish())
     dec.log_stats()
     return out
+
+
+def _joined(a: Decoded, b: Decoded) -> Decoded:
+    """a then b, without a copy when b is empty (the usual end of a stream)."""
+    return a if not len(b.events) and not len(b.triggers) else Decoded.concatenate([a, b])
 
 
 # ---------------------------------------------------------------- RAW header
@@ -411,6 +495,7 @@ class RawReader:
         fmt: str | None = None,
         width: int | None = None,
         height: int | None = None,
+        jump_confirm: int = JUMP_CONFIRM,
     ) -> None:
         self.path = Path(path)
         self._f: BinaryIO = self.path.open("rb")
@@ -428,6 +513,7 @@ class RawReader:
                 height=height or self.header.height,
                 strict=strict,
                 offset=self.header.size,
+                jump_confirm=jump_confirm,
             )
         except EvtDecodeError:
             self._f.close()
@@ -448,7 +534,9 @@ class RawReader:
                 if not chunk:
                     break
                 yield self.decoder.feed(chunk)
-            self.decoder.finish()
+            tail = self.decoder.finish()  # words held at a time jump still undecided
+            if len(tail.events) or len(tail.triggers):
+                yield tail
             self.decoder.log_stats()
         finally:
             self.close()
@@ -469,7 +557,9 @@ class RawReader:
         self.close()
 
 
-def read_raw(path: str | Path, *, strict: bool = False, fmt: str | None = None) -> tuple[RawHeader, Decoded]:
+def read_raw(
+    path: str | Path, *, strict: bool = False, fmt: str | None = None, jump_confirm: int = JUMP_CONFIRM
+) -> tuple[RawHeader, Decoded]:
     """Decode a whole RAW file."""
     with Path(path).open("rb") as f:
         hdr = parse_raw_header(f)
@@ -482,9 +572,10 @@ def read_raw(path: str | Path, *, strict: bool = False, fmt: str | None = None) 
             data = np.concatenate([data, np.frombuffer(rest, np.uint8)])
     if fmt is not None:
         hdr.fmt = fmt
-    dec = StreamDecoder(hdr.fmt, width=hdr.width, height=hdr.height, strict=strict, offset=hdr.size)
-    out = dec.feed(data)
-    dec.finish()
+    dec = StreamDecoder(
+        hdr.fmt, width=hdr.width, height=hdr.height, strict=strict, offset=hdr.size, jump_confirm=jump_confirm
+    )
+    out = _joined(dec.feed(data), dec.finish())
     dec.log_stats()
     return hdr, out
 

@@ -3,9 +3,11 @@
 A recording converted to a take keeps the sensor's own clock (there is no trigger box to tie
 it to): the take's clock map is the identity and its report says so. What the decoder skipped
 (corrupt words, events that would go back in time) becomes a loss record naming the first byte
-offsets. An input that cannot be read, or that decodes to nothing, is a ConvertError naming the
-file, and the take being written is removed: convert leaves no half-done take behind. Converting back writes
-the events and trigger edges of one sensor, re-encoded in the chosen EVT format.
+offsets; a time jump back that it accepted (two recordings joined) becomes a warning naming where
+and by how much later times were shifted. An input that cannot be read, or that decodes to nothing,
+is a ConvertError naming the file, and the take being written is removed: convert leaves no
+half-done take behind. Converting back writes the events and trigger edges of one sensor,
+re-encoded in the chosen EVT format.
 """
 
 from __future__ import annotations
@@ -114,6 +116,17 @@ def _skips(source: RawReader | DatHeader) -> tuple[dict[str, int], list[int]]:
     return dict(source.skipped), source.skipped_offsets
 
 
+def _jump_lines(source: RawReader | DatHeader) -> list[str]:
+    """The take's warning lines for the decoder's accepted time jumps back (DAT files have none)."""
+    if not isinstance(source, RawReader):
+        return []
+    dec = source.decoder
+    lines = [j.line(dec.fmt) for j in dec.jumps]
+    if dec.time_jumps > len(dec.jumps):
+        lines.append(f"{dec.fmt} stream time jumped back {dec.time_jumps - len(dec.jumps)} more time(s)")
+    return lines
+
+
 def _first_data(
     src: Path, chunks: Iterator[tuple[EventArray, TriggerEvents]], source: RawReader | DatHeader
 ) -> Iterator[tuple[EventArray, TriggerEvents]]:
@@ -201,6 +214,7 @@ def _write_take(
                     )
                 )
                 log.warning("%s: decoder skipped %s; recorded as losses in %s", src, text, dst)
+            warnings += _jump_lines(source)  # kept, with later times shifted: said, not lost
             report = SyncReport(
                 rate_hz=0.0,
                 n_pulses=0,

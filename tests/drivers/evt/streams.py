@@ -25,15 +25,16 @@ def real_body(name: str) -> bytes:
 
 
 def feed_chunks(dec: StreamDecoder, data: bytes, sizes: list[int]) -> Iterator[Decoded]:
-    """`dec.feed` over data cut into pieces of `sizes` (cycled), then `dec.finish()`; what came
-    before a strict-mode error has been yielded when it raises."""
+    """`dec.feed` over data cut into pieces of `sizes` (cycled), then `dec.finish()` (what words
+    held back at the end decode to); what came before a strict-mode error has been yielded when
+    it raises."""
     pos = i = 0
     while pos < len(data):
         k = sizes[i % len(sizes)]
         yield dec.feed(memoryview(data)[pos : pos + k])
         pos += k
         i += 1
-    dec.finish()
+    yield dec.finish()
 
 
 def assert_same(a: EventArray | TriggerEvents, b: EventArray | TriggerEvents) -> None:

@@ -12,6 +12,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.evt import Decoded, Evt3Encoder, EvtDecodeError, StreamDecoder, evt3, evt3_fast, raw
+from drivers.evt.errors import STATS_SIZE
+from drivers.evt.kernels import decode_config
 from drivers.evt.raw import _Out
 from rigd.core.events import EventArray, TriggerEvents
 from tests.drivers.evt.streams import (
@@ -214,10 +216,10 @@ def _run_small(data: bytes, kernel: Callable[..., tuple[int, int, int, int]]) ->
     words = np.frombuffer(data, "<u2")
     out = _Out(13, 1)
     stt = evt3.new_decoder_state()
-    stats = np.zeros(8, np.int64)
+    stats = np.zeros(STATS_SIZE, np.int64)
     pos = 0
     calls = 0
-    cfg = (1280, 720, False)
+    cfg = decode_config(1280, 720, False)
     while pos < words.size:
         pos, out.n, out.nt, err = kernel(words, pos, words.size, stt, out.arrays, out.n, out.nt, stats, cfg)
         assert err == 0
