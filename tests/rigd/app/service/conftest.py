@@ -123,7 +123,8 @@ def wait_idle(client: DaemonClient, timeout: float = 60.0) -> dict[str, object]:
 def spawn_daemon(
     config: RigConfig, runtime: Path, log_path: Path, env: dict[str, str] | None = None
 ) -> subprocess.Popen[bytes]:
-    """`rigd serve` in its own process (for SIGKILL and memory tests)."""
+    """`rigd serve` in its own process (for SIGKILL and memory tests), its console on a free port
+    so that daemons of tests running side by side never collide on the default one."""
     cfg_path = runtime / f"rig-{uuid.uuid4().hex[:6]}.json"
     data = config.model_dump(mode="json")
     data["service"].update(endpoints(runtime))
@@ -131,7 +132,7 @@ def spawn_daemon(
     full_env = {**os.environ, **(env or {})}
     log = log_path.open("ab")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "rigd.app.cli", "serve", "--config", str(cfg_path)],
+        [sys.executable, "-m", "rigd.app.cli", "serve", "--config", str(cfg_path), "--http", "127.0.0.1:0"],
         stdout=log,
         stderr=subprocess.STDOUT,
         env=full_env,
