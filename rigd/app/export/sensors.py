@@ -20,13 +20,12 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import h5py
 import hdf5plugin
 import numpy as np
 from numpy.typing import NDArray
 
 from reconstruction.representations import voxel_grid
-from rigd.app.export.common import ExportPlan, pinhole_for
+from rigd.app.export.common import ExportPlan, h5_output, pinhole_for
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError
 
@@ -98,7 +97,8 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
     times = plan.frames.step_times_us
     win = voxel_windows(times)
     dest.mkdir(parents=True, exist_ok=True)
-    with h5py.File(dest / "voxels.h5", "w") as f:
+    with h5_output(dest / "voxels.h5") as out:
+        f = out.file
         ds = f.create_dataset(
             "voxels",
             (len(times), bins, h, w),
@@ -110,6 +110,7 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
             # (a, b]: events at a belong to the previous window, events at b to this one.
             ev = plan.take.events(sensor, int(a) + 1, int(b) + 1)
             ds[k] = voxel_grid(ev, w, h, bins, int(a), int(b))
+            out.check()
             if (k + 1) % 10 == 0 or k + 1 == len(times):
                 plan.progress(
                     ProgressUpdate(f"voxels {sensor}", f"{k + 1}/{len(times)} grids", k + 1, len(times))
