@@ -29,7 +29,7 @@ from rigd.core.errors import ConfigError, RigdError
 
 log = logging.getLogger(__name__)
 
-#: What the staging directory holds besides the export: who writes it (removed before the rename).
+#: What the staging directory holds besides the export: who writes it (removed after the rename).
 MARKER = ".rigd-export-partial.json"
 
 #: Top-level names an export writes (every format): a directory holding only these is an export.
@@ -97,27 +97,25 @@ def check_target(out: Path, force: bool) -> list[Path]:
         raise ConfigError(f"--out {out}: parent {out.parent} is not a directory")
     if out.is_symlink() or (out.exists() and not out.is_dir()):
         raise ConfigError(f"--out {out}: is a file, not a directory; choose another --out")
-    leftovers: list[Path] = []
     partial, old = partial_of(out), old_of(out)
+    if partial.exists() and _is_locked(partial):
+        raise ConfigError(
+            f"--out {out}: another rigd export is writing it now ({_describe_partial(partial)}, "
+            f"in {partial}); wait for it to finish"
+        )
+    left = []
     if partial.exists():
-        if _is_locked(partial):
-            raise ConfigError(
-                f"--out {out}: another rigd export is writing it now ({_describe_partial(partial)}, "
-                f"in {partial}); wait for it to finish"
-            )
-        if not force:
-            raise ConfigError(
-                f"--out {out}: an earlier export to it did not finish and left {partial} "
-                f"({_describe_partial(partial)}); pass --force to remove it and export again"
-            )
-        leftovers.append(partial)
+        left.append(
+            f"an earlier export to it did not finish and left {partial} ({_describe_partial(partial)})"
+        )
     if old.exists():
-        if not force:
-            raise ConfigError(
-                f"--out {out}: an earlier --force replacement was interrupted and left the previous "
-                f"export in {old}; pass --force to remove it and export again"
-            )
-        leftovers.append(old)
+        left.append(f"an earlier --force replacement was interrupted and left the previous export in {old}")
+    if left and not force:
+        it = "them" if len(left) > 1 else "it"
+        raise ConfigError(
+            f"--out {out}: " + "; ".join(left) + f"; pass --force to remove {it} and export again"
+        )
+    leftovers = [p for p in (partial, old) if p.exists()]
     if out.is_dir():
         entries = sorted(p.name for p in out.iterdir())
         if not entries:
@@ -169,7 +167,6 @@ class Staging:
 
     def commit(self) -> None:
         """Move the complete export to `out` (replacing a previous export there)."""
-        (self.dir / MARKER).unlink()
         old = old_of(self.out)
         if self.out.is_dir() and any(self.out.iterdir()):
             os.rename(self.out, old)
@@ -181,6 +178,7 @@ class Staging:
             raise ExportWriteError(
                 f"--out {self.out}: it was filled while the export was written; the export is in {self.dir}"
             ) from exc
+        (self.out / MARKER).unlink()
         self._unlock()
         if old.exists():
             shutil.rmtree(old)
