@@ -190,9 +190,14 @@ class _OutputFile(io.RawIOBase):
         return view.nbytes
 
     def truncate(self, size: int | None = None) -> int:
+        """Set the file's end (HDF5 does at close: its end of allocated space, often past the last
+        write); after a failure only the written part is on disk, and the file is removed."""
         size = self._pos if size is None else size
-        if self.error is None and size <= os.fstat(self._fd).st_size:
-            os.ftruncate(self._fd, size)
+        if self.error is None:
+            try:
+                os.ftruncate(self._fd, size)
+            except OSError as exc:
+                self.error = exc
         return size
 
     def flush(self) -> None:

@@ -90,13 +90,22 @@ def _is_locked(d: Path) -> bool:
 def check_target(out: Path, force: bool) -> list[Path]:
     """Refuse an `--out` that cannot take the export, naming what is there and the way out.
 
-    Returns the leftovers of earlier runs that `--force` allows to remove (removed at `begin`)."""
+    Returns the leftovers of earlier runs that `--force` allows to remove (`Staging` removes them)."""
     if not out.parent.exists():
         raise ConfigError(f"--out {out}: parent directory {out.parent} does not exist")
     if not out.parent.is_dir():
         raise ConfigError(f"--out {out}: parent {out.parent} is not a directory")
-    if out.is_symlink() or (out.exists() and not out.is_dir()):
+    if out.is_symlink():
+        raise ConfigError(f"--out {out}: is a symbolic link; choose another --out")
+    if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a directory; choose another --out")
+    try:
+        return _leftovers_of(out, force)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot be read: {exc.strerror or exc}") from exc
+
+
+def _leftovers_of(out: Path, force: bool) -> list[Path]:
     partial, old = partial_of(out), old_of(out)
     if partial.exists() and _is_locked(partial):
         raise ConfigError(
