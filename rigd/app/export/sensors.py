@@ -124,6 +124,24 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
     return len(times)
 
 
+def _read_segments(src: Path) -> dict[str, Any]:
+    """A segments.json with an integer keyframe_us (rig us) in every segment; a ConfigError names
+    the file and the first bad entry (NaN, a float, a missing key, not JSON)."""
+    try:
+        data = json.loads(src.read_text())
+        segments = data.get("segments", []) if isinstance(data, dict) else None
+        if not isinstance(segments, list):
+            raise ValueError("no list of segments")
+        for i, s in enumerate(segments):
+            key = s.get("keyframe_us") if isinstance(s, dict) else None
+            if not isinstance(key, int) or isinstance(key, bool) or abs(key) >= 2**63:
+                raise ValueError(f"segment {i}: keyframe_us {key!r} is not an int64 of rig us")
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"--segments {src}: {exc}") from exc
+    data["segments"] = segments
+    return dict(data)
+
+
 def write_segments(plan: ExportPlan) -> list[Path]:
     """Copy `rigd reconstruct`'s segments.json of this take (one per sensor), adding each
     keyframe's export time in [0, 1] and its nearest exported timestep."""
@@ -139,9 +157,9 @@ def write_segments(plan: ExportPlan) -> list[Path]:
     times = fr.step_times_us
     written = []
     for src in found:
-        data = json.loads(src.read_text())
-        for s in data.get("segments", []):
-            key = int(s["keyframe_us"])
+        data = _read_segments(src)
+        for s in data["segments"]:
+            key = s["keyframe_us"]
             s["keyframe_time"] = (key - fr.t0_us) / max(fr.t1_us - fr.t0_us, 1)
             s["keyframe_step"] = int(np.argmin(np.abs(times - key)))
         name = src.parent.name if src.parent != root / plan.take.take_id else "segments"

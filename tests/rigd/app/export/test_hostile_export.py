@@ -26,6 +26,7 @@ from rigd.app.cli import app
 from rigd.app.export import bounds
 from rigd.app.export.common import FORMATS, parse_count, parse_size
 from rigd.core.errors import ConfigError
+from rigd.take.reader import open_take
 
 runner = CliRunner()
 REPO = Path(__file__).resolve().parents[4]
@@ -528,4 +529,41 @@ def test_killed_export_leaves_no_output_and_rerun_says_what_to_do(
     assert (out / "export.json").is_file()
     assert (out / "split.json").is_file()
     assert _leftovers(out.parent) == []
+    assert _digest(take) == before
+
+
+# --- --segments ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        "not json",
+        '{"segments": [{"keyframe_us": NaN}]}',
+        '{"segments": [{"keyframe_us": Infinity}]}',
+        '{"segments": [{"keyframe_us": 1e400}]}',
+        '{"segments": [{"keyframe_us": 1.5}]}',
+        '{"segments": [{"keyframe_us": true}]}',
+        '{"segments": [{"keyframe_us": 1000000000000000000000000000000}]}',
+        '{"segments": [{}]}',
+        '{"segments": [7]}',
+        '{"segments": 5}',
+        "[1, 2]",
+        "\udcff",
+    ],
+)
+def test_hostile_segments_file_is_one_line(takes: tuple[Path, Path], tmp_path: Path, content: str) -> None:
+    _, take = takes
+    before = _digest(take)
+    with open_take(take) as tk:
+        take_id = tk.take_id
+    seg = tmp_path / "recon" / take_id / "ev0" / "segments.json"
+    seg.parent.mkdir(parents=True)
+    seg.write_bytes(content.encode("utf-8", "surrogateescape"))
+    out = tmp_path / "o"
+    code, output = _export(take, out, "--format", "nerfstudio", "--segments", str(tmp_path / "recon"))
+    assert code == 2, output
+    _one_line(output, f"--segments {seg}")
+    assert not out.exists()
+    assert _leftovers(tmp_path) == []
     assert _digest(take) == before
