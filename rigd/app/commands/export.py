@@ -2,7 +2,9 @@
 
 Parses the arguments into `ExportOptions`, runs `rigd.app.export.run_export` under a rich
 progress bar (on a terminal: frames, grids or events written / total of the current stage) and
-prints one summary line; any RigdError is one line on stderr and exit code 2.
+prints one summary line. A refused input (bad knob, a size over its bound, an `--out` that cannot
+take the export) is one line on stderr and exit code 2; a failed write (disk full) is one line and
+exit code 1, with the partial output removed.
 Register with `app.command("export")(export)`.
 """
 
@@ -17,16 +19,16 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 
-from rigd.app.export import FORMATS, ExportOptions, parse_size, run_export
+from rigd.app.export import FORMATS, ExportOptions, ExportWriteError, parse_count, parse_size, run_export
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError, RigdError
 
 _err = Console(stderr=True)
 
 
-def _fail(message: str) -> typer.Exit:
+def _fail(message: str, code: int = 2) -> typer.Exit:
     _err.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True, highlight=False)
-    return typer.Exit(code=2)
+    return typer.Exit(code=code)
 
 
 def export(
@@ -40,10 +42,16 @@ def export(
         Path | None,
         typer.Option("--segments", help="`rigd reconstruct --out` directory: carry its segments/keyframes."),
     ] = None,
-    voxel_bins: Annotated[int, typer.Option("--voxel-bins", help="Time bins of the event voxel grids.")] = 5,
+    voxel_bins: Annotated[
+        str, typer.Option("--voxel-bins", metavar="INT", help="Time bins of the event voxel grids.")
+    ] = "5",
     seg: Annotated[
         bool,
         typer.Option("--seg", help="dynamic3dgs: write all-foreground seg/ masks (its train.py reads them)."),
+    ] = False,
+    force: Annotated[
+        bool,
+        typer.Option("--force", help="Replace an earlier export at --out (or what an interrupted one left)."),
     ] = False,
 ) -> None:
     """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap)
@@ -57,8 +65,9 @@ def export(
             out=out,
             resize=parse_size(resize) if resize else None,
             segments=segments,
-            voxel_bins=voxel_bins,
+            voxel_bins=parse_count("--voxel-bins", voxel_bins),
             seg=seg,
+            force=force,
         )
     except ValidationError as exc:
         err = exc.errors()[0]
@@ -82,6 +91,8 @@ def export(
 
         try:
             result = run_export(options, advance)
+        except ExportWriteError as exc:
+            raise _fail(str(exc), code=1) from exc
         except RigdError as exc:
             raise _fail(str(exc)) from exc
     _err.print(

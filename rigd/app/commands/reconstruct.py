@@ -25,6 +25,7 @@ from rigd.app.workflows.reconstruct import (
     run_reconstruct,
 )
 from rigd.app.workflows.reconstruct_tasks import FilterKnobs
+from rigd.core.errors import RigdError
 
 _err = Console(stderr=True)
 
@@ -46,7 +47,8 @@ def reconstruct(
         str,
         typer.Option(
             "--scheduler",
-            help=f"Dask scheduler: {', '.join(LOCAL_SCHEDULERS)} (local), or a dask.distributed address.",
+            help=f"Dask scheduler: {', '.join(LOCAL_SCHEDULERS)} (local), or a dask.distributed address "
+            "(tcp://HOST:PORT).",
         ),
     ] = "threads",
     workers: Annotated[
@@ -131,7 +133,8 @@ def reconstruct(
         err = exc.errors()[0]
         name = str(err["loc"][-1]) if err["loc"] else ""
         flag = _FILTER_FLAGS.get(name, "--" + name.replace("_", "-"))
-        _err.print(f"[bold red]error:[/] {escape(flag)}: {escape(err['msg'])}", highlight=False)
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        _err.print(f"[bold red]error:[/] {escape(flag)}: {escape(msg)}", soft_wrap=True, highlight=False)
         raise typer.Exit(code=2) from None
     _run(options)
 
@@ -145,8 +148,12 @@ _FILTER_FLAGS = {
 
 
 def _run(options: ReconstructOptions) -> None:
-    with StageProgress(_err, "reconstruct") as progress:
-        results = run_reconstruct(options, progress)
+    try:
+        with StageProgress(_err, "reconstruct") as progress:
+            results = run_reconstruct(options, progress)
+    except RigdError as exc:  # the scheduler (a take's own failure is in its result)
+        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
+        raise typer.Exit(code=2) from None
     for r in results:
         if r.error is not None:
             _err.print(f"[bold red]error:[/] {escape(r.error)}", soft_wrap=True, highlight=False)

@@ -14,14 +14,34 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
-from rigd.app.export import colmap, dsec, dynamic3dgs, nerfstudio
-from rigd.app.export.common import FORMATS, ExportOptions, ExportPlan, cameras_of, frame_table, parse_size
-from rigd.app.export.sensors import write_event_products
+from rigd.app.export import bounds, colmap, dsec, dynamic3dgs, nerfstudio
+from rigd.app.export.common import (
+    FORMATS,
+    IMAGE_THREADS,
+    Camera,
+    ExportOptions,
+    ExportPlan,
+    FrameTable,
+    cameras_of,
+    frame_table,
+    parse_count,
+    parse_size,
+)
+from rigd.app.export.sensors import voxel_windows, write_event_products
+from rigd.app.export.staging import ExportWriteError, Staging, check_target
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
-from rigd.core.errors import ConfigError, TakeError
-from rigd.take.reader import open_take
+from rigd.core.errors import TakeError
+from rigd.take.reader import Take, open_take
 
-__all__ = ["FORMATS", "ExportOptions", "ExportResult", "parse_size", "run_export"]
+__all__ = [
+    "FORMATS",
+    "ExportOptions",
+    "ExportResult",
+    "ExportWriteError",
+    "parse_count",
+    "parse_size",
+    "run_export",
+]
 
 log = logging.getLogger(__name__)
 
@@ -46,13 +66,6 @@ class ExportResult(BaseModel):
     bytes: int
 
 
-def _check_out(out: Path) -> None:
-    if not out.parent.is_dir():
-        raise ConfigError(f"--out {out}: parent directory {out.parent} does not exist")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(f"--out {out}: exists and is not an empty directory")
-
-
 def _disk_bytes(root: Path) -> int:
     """Bytes under root, each file once (the colmap tree hard-links its frames)."""
     seen: dict[tuple[int, int], int] = {}
@@ -63,11 +76,48 @@ def _disk_bytes(root: Path) -> int:
     return sum(seen.values())
 
 
+def check_sizes(options: ExportOptions, take: Take, frames: FrameTable) -> None:
+    """Every size knob against the format's and the machine's bounds (rigd.app.export.bounds)."""
+    budget = bounds.Budget(bounds.available_memory())
+    if options.resize is not None:
+        bounds.check_resize(options.resize, options.format, IMAGE_THREADS, budget)
+    geometry = {s: take.geometry(s) for s in take.event_sensors}
+    bounds.check_voxel_bins(options.voxel_bins, geometry, voxel_windows(frames.step_times_us), budget)
+
+
+def _write_failed(options: ExportOptions, staging: Staging, exc: BaseException) -> ExportWriteError | None:
+    """Remove the partial output after a failure; the error to raise instead of exc (None: exc)."""
+    try:
+        staging.discard()
+    except OSError as rm:
+        return ExportWriteError(
+            f"--out {options.out}: the export failed ({exc}) and its partial output in {staging.dir} "
+            f"could not be removed ({rm}); remove it by hand"
+        )
+    kept = "unchanged" if options.out.exists() else "not created"
+    if isinstance(exc, OSError):
+        what = " ".join((exc.strerror or str(exc)).split())
+        where = ""
+        if exc.filename:
+            name = Path(exc.filename)
+            where = f" ({name.relative_to(staging.dir) if name.is_relative_to(staging.dir) else name})"
+        return ExportWriteError(
+            f"--out {options.out}: writing the {options.format} export failed: {what}{where}; "
+            f"the partial output was removed, {options.out} is {kept}"
+        )
+    if isinstance(exc, MemoryError):
+        return ExportWriteError(
+            f"--out {options.out}: out of memory while writing the {options.format} export; "
+            f"the partial output was removed, {options.out} is {kept}"
+        )
+    return None
+
+
 def run_export(options: ExportOptions, progress: ProgressCallback = no_progress) -> ExportResult:
-    """Write the take in the chosen format under options.out (created)."""
+    """Write the take in the chosen format to options.out: staged beside it, renamed when complete."""
     if not options.take.is_file():
         raise TakeError(f"no such take: {options.take}")
-    _check_out(options.out)
+    leftovers = check_target(options.out, options.force)
     start = time.perf_counter()
     with open_take(options.take) as take:
         if take.time_domain != "rig":
@@ -76,34 +126,54 @@ def run_export(options: ExportOptions, progress: ProgressCallback = no_progress)
             raise TakeError(f"{take.path}: no RGB camera to export")
         cameras = cameras_of(take, options.resize)
         frames = frame_table(take, take.cameras)
-        options.out.mkdir(exist_ok=True)
-        plan = ExportPlan(options=options, take=take, cameras=cameras, frames=frames, progress=progress)
-        progress(ProgressUpdate("images", f"0/{plan.images()} frames", 0, plan.images()))
-        writer = {
-            "dynamic3dgs": dynamic3dgs.write,
-            "nerfstudio": nerfstudio.write,
-            "colmap": colmap.write,
-            "dsec": dsec.write,
-        }[options.format]
-        writer(plan)
-        write_event_products(plan)
-        result = ExportResult(
-            take=str(take.path),
-            take_id=take.take_id,
-            format=options.format,
-            out=str(options.out),
-            timesteps=int(frames.pulses.size),
-            cameras=[c.name for c in cameras],
-            train=int(frames.train.sum()),
-            test=int((~frames.train).sum()),
-            event_sensors=take.event_sensors,
-            t0_us=frames.t0_us,
-            t1_us=frames.t1_us,
-            wall_s=0.0,
-            bytes=0,
-        )
-    result.wall_s = round(time.perf_counter() - start, 3)
-    result.bytes = _disk_bytes(options.out)
-    (options.out / "export.json").write_text(json.dumps(result.model_dump(), indent=2))
+        check_sizes(options, take, frames)
+        staging = Staging(options.out, leftovers, {"take": str(take.path), "format": options.format})
+        try:
+            result = _write(options, take, cameras, frames, staging.dir, progress, start)
+            staging.commit()
+        except BaseException as exc:
+            replaced = _write_failed(options, staging, exc)
+            if replaced is not None:
+                raise replaced from exc
+            raise
     log.info("exported %s as %s to %s in %.1f s", options.take, options.format, options.out, result.wall_s)
+    return result
+
+
+def _write(
+    options: ExportOptions,
+    take: Take,
+    cameras: list[Camera],
+    frames: FrameTable,
+    out: Path,
+    progress: ProgressCallback,
+    start: float,
+) -> ExportResult:
+    """Every file of the export under `out` (the staging directory), export.json last."""
+    plan = ExportPlan(options=options, take=take, cameras=cameras, frames=frames, progress=progress, out=out)
+    progress(ProgressUpdate("images", f"0/{plan.images()} frames", 0, plan.images()))
+    writer = {
+        "dynamic3dgs": dynamic3dgs.write,
+        "nerfstudio": nerfstudio.write,
+        "colmap": colmap.write,
+        "dsec": dsec.write,
+    }[options.format]
+    writer(plan)
+    write_event_products(plan)
+    result = ExportResult(
+        take=str(take.path),
+        take_id=take.take_id,
+        format=options.format,
+        out=str(options.out),
+        timesteps=int(frames.pulses.size),
+        cameras=[c.name for c in cameras],
+        train=int(frames.train.sum()),
+        test=int((~frames.train).sum()),
+        event_sensors=take.event_sensors,
+        t0_us=frames.t0_us,
+        t1_us=frames.t1_us,
+        wall_s=round(time.perf_counter() - start, 3),
+        bytes=_disk_bytes(out),
+    )
+    (out / "export.json").write_text(json.dumps(result.model_dump(), indent=2))
     return result

@@ -23,10 +23,9 @@ import json
 import logging
 import math
 
-import h5py
 import numpy as np
 
-from rigd.app.export.common import ExportPlan
+from rigd.app.export.common import ExportPlan, h5_output
 from rigd.app.export.sensors import rectify_map, sensor_calibration
 from rigd.app.workflows.progress import ProgressUpdate
 
@@ -49,7 +48,8 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
     edges = np.arange(n_ms, dtype=np.int64) * 1000
     ms_to_idx = np.full(n_ms, n, np.uint64)
     kw = {"chunks": True, "compression": "gzip", "compression_opts": 1, "shuffle": True}
-    with h5py.File(dest / "events.h5", "w") as f:
+    with h5_output(dest / "events.h5") as out:
+        f = out.file
         g = f.create_group("events")
         dx = g.create_dataset("x", (n,), np.uint16, **kw)
         dy = g.create_dataset("y", (n,), np.uint16, **kw)
@@ -69,6 +69,7 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
                 ms_to_idx[a:b] = done + np.searchsorted(rel, edges[a:b], side="left")
                 last = int(rel[-1])
             done += len(ev)
+            out.check()
             plan.progress(ProgressUpdate(f"events {sensor}", f"{done}/{n} events", done, n))
         f.create_dataset("ms_to_idx", data=ms_to_idx)
         f.create_dataset("t_offset", data=np.int64(t0))
@@ -77,8 +78,9 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
     if calib is not None:
         K, dist, K_rect = (np.asarray(calib[k], np.float64) for k in ("K", "dist", "K_rect"))
         size = (int(calib["image_size"][0]), int(calib["image_size"][1]))
-        with h5py.File(dest / "rectify_map.h5", "w") as f:
-            f.create_dataset("rectify_map", data=rectify_map(K, dist, K_rect, size), compression="gzip")
+        with h5_output(dest / "rectify_map.h5") as out:
+            rmap = rectify_map(K, dist, K_rect, size)
+            out.file.create_dataset("rectify_map", data=rmap, compression="gzip")
     return n
 
 

@@ -17,10 +17,9 @@ from __future__ import annotations
 import json
 import logging
 
-import cv2
 import numpy as np
 
-from rigd.app.export.common import ExportPlan
+from rigd.app.export.common import ExportPlan, write_image
 from rigd.app.export.points import triangulate
 from rigd.core.errors import ConfigError
 
@@ -44,7 +43,7 @@ def write(plan: ExportPlan) -> None:
             for j, c in enumerate(cams):
                 dest = plan.out / "seg" / fn(k, j).replace(".jpg", ".png")
                 dest.parent.mkdir(parents=True, exist_ok=True)
-                cv2.imwrite(str(dest), np.ones((c.size[1], c.size[0]), np.uint8))
+                write_image(dest, np.ones((c.size[1], c.size[0]), np.uint8))
     time01 = fr.time01()
     w, h = cams[0].size
     for split, mask in (("train", fr.train), ("test", ~fr.train)):

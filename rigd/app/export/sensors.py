@@ -20,13 +20,12 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import h5py
 import hdf5plugin
 import numpy as np
 from numpy.typing import NDArray
 
 from reconstruction.representations import voxel_grid
-from rigd.app.export.common import ExportPlan, pinhole_for
+from rigd.app.export.common import ExportPlan, h5_output, pinhole_for
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError
 
@@ -98,7 +97,8 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
     times = plan.frames.step_times_us
     win = voxel_windows(times)
     dest.mkdir(parents=True, exist_ok=True)
-    with h5py.File(dest / "voxels.h5", "w") as f:
+    with h5_output(dest / "voxels.h5") as out:
+        f = out.file
         ds = f.create_dataset(
             "voxels",
             (len(times), bins, h, w),
@@ -110,6 +110,7 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
             # (a, b]: events at a belong to the previous window, events at b to this one.
             ev = plan.take.events(sensor, int(a) + 1, int(b) + 1)
             ds[k] = voxel_grid(ev, w, h, bins, int(a), int(b))
+            out.check()
             if (k + 1) % 10 == 0 or k + 1 == len(times):
                 plan.progress(
                     ProgressUpdate(f"voxels {sensor}", f"{k + 1}/{len(times)} grids", k + 1, len(times))
@@ -121,6 +122,24 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
         f.attrs["polarity"] = "voxel values sum +1 (ON) / -1 (OFF) with bilinear weights in time"
         f.attrs["pixels"] = "raw sensor pixels; undistort with undistort_map.npz (map_x, map_y)"
     return len(times)
+
+
+def _read_segments(src: Path) -> dict[str, Any]:
+    """A segments.json with an integer keyframe_us (rig us) in every segment; a ConfigError names
+    the file and the first bad entry (NaN, a float, a missing key, not JSON)."""
+    try:
+        data = json.loads(src.read_text())
+        segments = data.get("segments", []) if isinstance(data, dict) else None
+        if not isinstance(segments, list):
+            raise ValueError("no list of segments")
+        for i, s in enumerate(segments):
+            key = s.get("keyframe_us") if isinstance(s, dict) else None
+            if not isinstance(key, int) or isinstance(key, bool) or abs(key) >= 2**63:
+                raise ValueError(f"segment {i}: keyframe_us {key!r} is not an int64 of rig us")
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"--segments {src}: {exc}") from exc
+    data["segments"] = segments
+    return dict(data)
 
 
 def write_segments(plan: ExportPlan) -> list[Path]:
@@ -138,9 +157,9 @@ def write_segments(plan: ExportPlan) -> list[Path]:
     times = fr.step_times_us
     written = []
     for src in found:
-        data = json.loads(src.read_text())
-        for s in data.get("segments", []):
-            key = int(s["keyframe_us"])
+        data = _read_segments(src)
+        for s in data["segments"]:
+            key = s["keyframe_us"]
             s["keyframe_time"] = (key - fr.t0_us) / max(fr.t1_us - fr.t0_us, 1)
             s["keyframe_step"] = int(np.argmin(np.abs(times - key)))
         name = src.parent.name if src.parent != root / plan.take.take_id else "segments"

@@ -28,6 +28,7 @@ import itertools
 import json
 import logging
 import os
+import re
 import time
 import zipfile
 from collections.abc import Callable, Sequence
@@ -38,7 +39,7 @@ from typing import Any, Literal
 import h5py
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from reconstruction.partition import (
     PartitionConfig,
@@ -66,6 +67,15 @@ from rigd.take.reader import Take
 log = logging.getLogger(__name__)
 
 LOCAL_SCHEDULERS = ("threads", "processes", "sync")
+#: A dask.distributed address: PROTOCOL://HOST:PORT (HOST a name, IPv4 or [IPv6]), HOST:PORT
+#: (tcp), or an in-process scheduler's inproc://... address.
+_ADDRESS = re.compile(
+    r"((?:tcp|tls|ucx|ws|wss)://)?(?P<host>[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\])"
+    r":(?P<port>[0-9]{1,5})|inproc://\S+"
+)
+SCHEDULER_FORMS = f"{', '.join(LOCAL_SCHEDULERS)}, or a dask.distributed address tcp://HOST:PORT"
+#: Seconds to wait for a distributed scheduler to answer (dask's default is 30).
+CONNECT_TIMEOUT_S = 5
 #: The progress stages, each counted in its own unit (events, events, snapshots).
 STAGE_FILTER, STAGE_MAPS, STAGE_SNAPSHOTS = "filter + activity", "keyframe maps", "snapshots"
 
@@ -79,6 +89,19 @@ class ReconstructOptions(BaseModel):
     out: Path
     scheduler: str | None = None
     """None or "threads": local threads; "processes"; "sync" (one thread); else a distributed address."""
+
+    @field_validator("scheduler")
+    @classmethod
+    def _known_scheduler(cls, v: str | None) -> str | None:
+        """A typo (`thread`) or a malformed address fails here, before any take is read."""
+        if v is None or v in LOCAL_SCHEDULERS:
+            return v
+        m = _ADDRESS.fullmatch(v)
+        if m is None or (m["port"] is not None and not 1 <= int(m["port"]) <= 65535):
+            shown = repr(v if len(v) <= 60 else v[:57] + "...")
+            raise ValueError(f"{shown}: expected {SCHEDULER_FORMS} (port 1-65535)")
+        return v
+
     workers: int | None = Field(None, ge=1)
     filter: FilterKnobs = FilterKnobs()
     partition_window_us: int = Field(5_000, ge=100)
@@ -166,7 +189,19 @@ class _Runner:
                     f"--scheduler {self.name}: a distributed scheduler needs dask.distributed "
                     "(pip install distributed)"
                 ) from exc
-            self._client = Client(self.name)
+            try:
+                self._client = Client(self.name, timeout=CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError) as exc:
+                raise ConfigError(
+                    f"--scheduler {self.name}: no dask.distributed scheduler answered within "
+                    f"{CONNECT_TIMEOUT_S} s ({' '.join(str(exc).split())}); start one with "
+                    f"`dask scheduler` or use {', '.join(LOCAL_SCHEDULERS)}"
+                ) from exc
+            except ValueError as exc:  # an address dask cannot parse
+                raise ConfigError(
+                    f"--scheduler {self.name}: not a usable dask.distributed address "
+                    f"({' '.join(str(exc).split())}); expected {SCHEDULER_FORMS}"
+                ) from exc
 
     def close(self) -> None:
         if self._client is not None:
@@ -514,8 +549,12 @@ def run_reconstruct(
     A take failing with a RigdError or OSError (h5py's read errors) gets `error` set; the others run.
     """
     o = options
-    o.out.mkdir(parents=True, exist_ok=True)
-    runner = _Runner(o.scheduler, o.workers)
+    runner = _Runner(o.scheduler, o.workers)  # first: an unreachable scheduler leaves nothing behind
+    try:
+        o.out.mkdir(parents=True, exist_ok=True)
+    except BaseException:
+        runner.close()
+        raise
     results = []
     try:
         for path in o.takes:
