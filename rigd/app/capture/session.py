@@ -35,7 +35,7 @@ from rigd.app.capture.finalize import finalize_take, software_synced
 from rigd.app.capture.items import WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
-from rigd.app.capture.preflight import check_rig
+from rigd.app.capture.preflight import check_rig, warm_up
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
@@ -356,6 +356,7 @@ class CaptureSession:
         trigger.configure()
         for ch in self._channels.values():
             ch.configure()
+        warm_up([("trigger", trigger.device), *((name, ch.device) for name, ch in self._channels.items())])
 
     def _create_take(self, trigger: TriggerChannel) -> TakeWriter:
         config = self.config
