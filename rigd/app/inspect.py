@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from rich.console import RenderableType
+from rich.markup import escape
 from rich.table import Table
 
 from rigd.core.errors import TakeError
@@ -75,11 +76,29 @@ def clock_label(summary: TakeSummary, pulses: int | None = None) -> str:
     return "rig time (trigger box clock)"
 
 
+#: How each verdict's first line looks (rich markup).
+_VERDICT_STYLE = {
+    "complete": "bold green",
+    "degraded": "bold yellow",
+    "failed": "bold red",
+    "unfinished": "bold red",
+}
+
+
+def verdict_markup(summary: TakeSummary) -> str:
+    """The summary's first line: the verdict and why (rich markup; the reasons are escaped)."""
+    line = summary.verdict_line()
+    head, sep, rest = line.partition(" — ")
+    return f"[{_VERDICT_STYLE[summary.verdict]}]verdict: {escape(head)}[/]{sep}{escape(rest)}"
+
+
 def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
-    """The summary `rigd capture` and `rigd inspect` print: a status line, a table per device
-    kind present, and losses, warnings and problems as a table and sentences."""
+    """The summary `rigd capture` and `rigd inspect` print: the verdict first (did the take keep
+    everything), a status line, a table per device kind present, and losses, warnings and
+    problems as a table and sentences."""
     parts: list[RenderableType] = [
-        f"status: {summary.status}   schema {summary.schema_version}   times: {clock_label(summary)}"
+        verdict_markup(summary),
+        f"status: {summary.status}   schema {summary.schema_version}   times: {clock_label(summary)}",
     ]
     if summary.end_reason:
         parts.append(f"ended: {summary.end_reason}")
