@@ -12,7 +12,7 @@ from rich.console import RenderableType
 from rich.markup import escape
 from rich.table import Table
 
-from rigd.core.errors import TakeError
+from rigd.core.errors import TakeError, TakeFormatError
 from rigd.take.reader import Take, TakeSummary
 from rigd.take.recover import needs_recovery
 from rigd.take.validate import validate_take
@@ -28,10 +28,18 @@ _LABEL_BAR = 18
 
 
 def summarize(path: str | Path) -> TakeSummary:
-    """Summary of a take with its validation problems; one that cannot be opened raises TakeError."""
+    """Summary of a take with its validation problems; one that cannot be opened, or whose data
+    HDF5 refuses to read (a failed write left it damaged), raises TakeError in one line."""
     problems = validate_take(path)
-    with Take(path) as take:
-        summary = take.summary()
+    try:
+        with Take(path) as take:
+            summary = take.summary()
+    except (OSError, RuntimeError, KeyError) as exc:  # h5py's errors for a damaged file
+        hdf5 = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise TakeFormatError(
+            f"{path}: damaged, its data cannot be read (HDF5: {hdf5}); `rigd recover {path}` seals "
+            "what can be read and says what it cannot"
+        ) from exc
     summary.problems = problems
     return summary
 

@@ -25,9 +25,9 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from drivers.base import Capability
+from drivers.base import Capability, RgbCamera
 from rigd import __version__
-from rigd.app.capture.ballast import Ballast, remove_stale_ballast
+from rigd.app.capture.ballast import Ballast, check_ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
 from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import DiskUsage, DiskWatch, FaultBoard, FlushWatch, TriggerWatchdog
@@ -352,6 +352,12 @@ class CaptureSession:
                     for name, ch in self._channels.items()
                 ),
             ]
+        )
+        cameras = [ch.device for ch in self._channels.values() if isinstance(ch.device, RgbCamera)]
+        check_ballast(
+            self.config.writer,
+            (math.prod(cam.frame_shape) * cam.frame_dtype.itemsize for cam in cameras),
+            len(self._channels) - len(cameras),
         )
         trigger.configure()
         for ch in self._channels.values():
