@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -12,10 +13,12 @@ import pytest
 from typer.testing import CliRunner
 
 from rigd.app.cli import STRICT_EXIT, app
+from rigd.app.commands.service import take_summary_line, verdict_text
 from rigd.app.console.takes import TakeList
 from rigd.app.inspect import summarize
 from rigd.core.schema import DeviceSync, LossRecord, SyncReport
 from rigd.take.verdict import TakeVerdict, take_verdict
+from tests.rigd.app.service.conftest import RunningDaemon, runtime_dir, start_daemon  # noqa: F401
 from tests.rigd.test_take_roundtrip import make_take
 
 FRAMES = {"cam0": 90}
@@ -206,3 +209,40 @@ def test_the_console_take_list_carries_the_verdict(clean_take: Path, tmp_path: P
     entries = {e.name: e for e in TakeList(tmp_path).entries()}
     assert (entries["a.h5"].verdict, entries["a.h5"].verdict_reasons) == ("degraded", ["cam0: 2 frames lost"])
     assert (entries["b.h5"].verdict, entries["b.h5"].verdict_reasons) == ("complete", [])
+
+
+def test_the_daemon_status_lines_carry_the_verdict() -> None:
+    last = {
+        "path": "/takes/a.h5",
+        "status": "complete",
+        "verdict": "degraded",
+        "verdict_reasons": ["ev0: 3 of 90 pulses missing"],
+        "frames": {"cam0": 90},
+        "events": {"ev0": 10},
+        "bytes_written": 1_000_000,
+        "losses": [],
+    }
+    assert verdict_text(last) == "degraded — ev0: 3 of 90 pulses missing"
+    assert take_summary_line(last).startswith("degraded, 90 frames")
+    old_daemon = {k: v for k, v in last.items() if not k.startswith("verdict")}
+    assert verdict_text(old_daemon).startswith("unknown")
+
+
+def test_a_daemon_take_reports_its_verdict_and_capture_strict_follows_it(
+    start_daemon: Callable[..., RunningDaemon],  # noqa: F811
+) -> None:
+    rd = start_daemon()
+    endpoint = rd.config.service.control_endpoint
+    res = CliRunner().invoke(app, ["capture", "--connect", endpoint, "--duration", "0.5", "--strict"])
+    last = rd.client.call("status")["last_take"]
+    assert last["status"] == "complete", last
+    assert last["verdict"] in ("complete", "degraded"), last
+    assert (last["verdict"] == "degraded") == bool(last["verdict_reasons"]), last
+    if last["verdict"] == "complete":
+        assert res.exit_code == 0, res.output
+    else:  # a loaded host can make a sim sensor fall behind: the take then says so
+        assert res.exit_code == STRICT_EXIT, res.output
+        assert "is not complete: degraded" in res.stderr
+    assert f"take: {last['path']} ({last['verdict']}" in res.stdout
+    shown = CliRunner().invoke(app, ["status", "--connect", endpoint])
+    assert f"verdict: {last['verdict']}" in shown.stdout, shown.output
