@@ -169,6 +169,12 @@ class Device(abc.ABC):
                 self._closed = True
                 self._do_close()
 
+    def warm_up(self) -> None:  # noqa: B027 - optional hook, most devices compile nothing
+        """Compile what acquiring will run (numba kernels: EVT codecs, simulator pixels) before
+        the take starts. On a cold JIT cache that takes seconds, and a device that spends them
+        on its first packets falls behind its data; the capture preflight calls this once per
+        device while the trigger is still off (`rigd.app.capture.preflight.warm_up`)."""
+
     def _check_open(self) -> None:
         """DeviceError naming the device when it is closed or gone."""
         if self._closed:

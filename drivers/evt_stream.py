@@ -15,7 +15,7 @@ import time
 from typing import Generic, Protocol, TypeVar
 
 from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
-from drivers.evt import StreamDecoder
+from drivers.evt import StreamDecoder, warm_up_decoder
 from drivers.lifecycle import Acquisition, DeliveryQueue, Signal
 from rigd.core.devices import DeviceInfo
 from rigd.core.settings import EventSensorSettings
@@ -53,6 +53,10 @@ class ByteSource(Protocol):
 
     def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
         """Next buffer and the host monotonic time (ns) it arrived, or None on timeout."""
+        ...
+
+    def warm_up(self) -> None:
+        """Compile what making the bytes runs (a simulator's kernels); see `Device.warm_up`."""
         ...
 
     def stats(self) -> AcquisitionStats:
@@ -108,6 +112,9 @@ class GrabbingSource(abc.ABC, Generic[T]):
 
     def close(self) -> None:
         self._do_close()
+
+    def warm_up(self) -> None:
+        """Nothing to compile by default (a camera's firmware makes its bytes)."""
 
     def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
         self._check_present()
@@ -174,6 +181,11 @@ class EvtStreamSensor(EventSensor):
     def stream_time_us(self) -> int | None:
         """How far the decoded stream has got, its time words included (EVT 3.0)."""
         return self._decoder.time_us
+
+    def warm_up(self) -> None:
+        """The source's kernels, then this stream's decoder (on a sample of its format)."""
+        self.source.warm_up()
+        warm_up_decoder(self.source.evt_format, *self.source.geometry)
 
     def _do_configure(self, settings: EventSensorSettings) -> None:
         self.source.configure(settings)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.base import Capability, EventPacket, EventSensor
-from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, read_dat
+from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, read_dat, warm_up_decoder
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, EventDataError
@@ -127,6 +127,11 @@ class FileEventSensor(EventSensor):
     @property
     def evt_format(self) -> str:
         return self._fmt
+
+    def warm_up(self) -> None:
+        """The RAW decoder of the file's format (a DAT file is read by numpy alone)."""
+        if not self._is_dat:
+            warm_up_decoder(self._fmt, *self._geometry)
 
     def _do_start(self) -> None:
         self._open_pass()

@@ -19,7 +19,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from firmware_sim.keyed_step import sort_by_time
-from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, log_lut
+from firmware_sim.scene import LOG_LUT_SCALE, Scene, View, lin_log, log_lut
 from firmware_sim.world import DeviceClock
 from rigd.core.events import EventArray
 
@@ -381,3 +381,31 @@ def generate_events(
 
 
 _LUT = log_lut()
+
+
+#: Slices `warm_up_generator` tries at most until the fused kernel has run (objects in view).
+_WARM_SLICES = 200
+
+
+def warm_up_generator(
+    scene: Scene, view: View, threshold: float, clock: DeviceClock, t_us: float
+) -> EventArray:
+    """Compile (or load from numba's cache) the kernels `generate_events` and `to_array` run,
+    on throwaway copies of the log image and reference from `t_us` on: slices of `step_us`
+    until the fused kernel has run once (an object was in view), at most `_WARM_SLICES`.
+    Returns the events of the last slice (for warming an encoder on the same types)."""
+    step_us = 5_000.0
+    last_log = lin_log(scene.render_intensity(view, t_us))
+    ref = last_log.copy()
+    events = EventArray.empty()
+    t = t_us
+    for _ in range(_WARM_SLICES):
+        buf = generate_events(scene, view, last_log, ref, threshold, t, t + step_us, clock)
+        t += step_us
+        if buf.n:
+            events = buf.to_array()
+        if _render_events_kernel.signatures or not scene.objects:
+            break
+    one = np.zeros(1, np.uint16)
+    sort_by_time(one, one.copy(), np.ones(1, np.int8), np.zeros(1, np.int64), 0, 0)  # the counting sort
+    return events

@@ -39,7 +39,7 @@ from drivers.evt_stream import EvtStreamSensor, GrabbingSource
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from firmware_sim.clock import Hold
-from firmware_sim.event_kernels import MAX_STEP_PX, generate_events
+from firmware_sim.event_kernels import MAX_STEP_PX, generate_events, warm_up_generator
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from firmware_sim.placement import Placement, check_ranges, place
 from firmware_sim.scene import lin_log
@@ -213,6 +213,22 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             self._delivered_until_us = t_start
         self._arm_unplug(self._unplug, t_start, lost_frames_on_edges=False)
         log.info("event sensor %s started at true %.0f us", self._name, t_start)
+
+    def warm_up(self) -> None:
+        """Compile the firmware's kernels (render and compare, sort, EVT 3.0 encode; the full
+        pixel model's when set) on throwaway state, before the take: a simulator compiling them
+        on its first slices falls seconds behind real time and skips what it did not make."""
+        t_us = self._world.now_us()
+        events = warm_up_generator(self._scene, self._view, self._p.threshold, self._clock, t_us)
+        if self._p.pixel_model is not None:
+            model = EventSimulator(*self._geometry, self._p.pixel_model)
+            for k in range(2):
+                t = t_us + k * SLICE_US
+                model.step(lin_log(self._scene.render_intensity(self._view, t)), round(t))
+        triggers = TriggerEvents(np.array([0], np.int64), np.array([1], np.uint8), np.zeros(1, np.uint8))
+        encoder = Evt3Encoder()
+        encoder.encode(events.with_time(events.t - events.t.min()) if len(events) else events, triggers)
+        encoder.encode(EventArray.empty(), TriggerEvents.empty())
 
     def _do_stop(self) -> None:
         with self._lock:

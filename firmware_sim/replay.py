@@ -527,6 +527,14 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
     def configure(self, settings: EventSensorSettings) -> None:
         self._check_present()
 
+    def warm_up(self) -> None:
+        """Compile the EVT 3.0 encoder a slice runs, on a throwaway encoder and a tiny sample."""
+        one = np.zeros(1, np.uint16)
+        events = EventArray(one, one.copy(), np.ones(1, np.int8), np.ones(1, np.int64))
+        Evt3Encoder().encode(
+            events, TriggerEvents(np.zeros(1, np.int64), np.ones(1, np.uint8), np.zeros(1, np.uint8))
+        )
+
     def _do_start(self) -> None:
         if self._take is None:
             self._take = Take(self._rec.path)

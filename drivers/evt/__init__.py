@@ -21,6 +21,7 @@ from drivers.evt.raw import (
     encode,
     parse_raw_header,
     read_raw,
+    warm_up_decoder,
     write_raw,
 )
 
@@ -46,6 +47,7 @@ __all__ = [
     "parse_raw_header",
     "read_dat",
     "read_raw",
+    "warm_up_decoder",
     "write_dat",
     "write_raw",
 ]

@@ -601,3 +601,15 @@ def write_raw(
     with Path(path).open("wb") as f:
         f.write(header.to_bytes())
         f.write(payload)
+
+
+def warm_up_decoder(fmt: str, width: int = 1280, height: int = 720) -> None:
+    """Compile (or load from numba's cache) the stream decoder of `fmt` for the argument types a
+    live stream gives it, so a take's first packets find it ready instead of waiting seconds for
+    a cold JIT cache. A throwaway decoder is fed words of zeros cut mid-word (whatever they
+    decode to, or are skipped as, is thrown away with it): numba compiles a kernel whole, so
+    any words do."""
+    decoder = StreamDecoder(fmt, width=width, height=height)
+    data = bytes(64 * decoder._word + 1)
+    decoder.feed(data[:33])
+    decoder.feed(data[33:])

@@ -84,6 +84,18 @@ def _main(
 
 #: Signals that end an in-process take cleanly (drained and finalized), as Ctrl-C does.
 _STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: Exit code of `capture --strict` / `inspect --strict` for a take that is not complete
+#: (degraded: it lost data; docs/take-format.md, *Verdict*).
+STRICT_EXIT = 3
+
+StrictOpt = Annotated[
+    bool,
+    typer.Option(
+        "--strict",
+        help=f"Exit {STRICT_EXIT} unless the take's verdict is complete (nothing lost: no loss record, "
+        "missing pulse, dropped frame or silent device).",
+    ),
+]
 
 
 def _fail(exc: Exception) -> typer.Exit:
@@ -121,6 +133,7 @@ def capture(
             "the same take for the same seed.",
         ),
     ] = "real",
+    strict: StrictOpt = False,
 ) -> None:
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
@@ -151,7 +164,9 @@ def capture(
                         "drop --config/--out to capture through it, or pass --local to capture in-process"
                     )
                 )
-            _capture_remote(client, 5.0 if duration is None else duration, label, json_out)
+            last = _capture_remote(client, 5.0 if duration is None else duration, label, json_out)
+        if strict:
+            _check_strict(last["path"], last.get("verdict"), last.get("verdict_reasons") or [])
         return
     out_dir = out_dir or Path("takes")
     clock: Literal["real", "virtual"] = "virtual" if sim_clock == "virtual" else "real"
@@ -186,8 +201,8 @@ def capture(
     if json_out:
         out.print_json(summary.model_dump_json())
     else:
-        typer.echo(f"take: {result.path}")
-        _print_summary(summary)
+        # The verdict first: whether the take kept everything is what the operator reads first.
+        _print_summary(summary, take_line=f"take: {result.path}")
         out.print(
             f"wrote {result.bytes_written / 1e6:.1f} MB in {result.wall_s:.1f} s "
             f"({result.bytes_written / 1e6 / max(result.wall_s, 1e-9):.1f} MB/s)"
@@ -196,6 +211,27 @@ def capture(
         name = signal.Signals(result.stop_signal).name
         console.print(f"stopped by {name}: take {result.path} was finalized", soft_wrap=True)
         raise typer.Exit(code=128 + result.stop_signal)
+    if strict:
+        _check_strict(str(result.path), summary.verdict, summary.verdict_reasons)
+
+
+def _check_strict(path: str, verdict: str | None, reasons: list[str]) -> None:
+    """`--strict`: one line and exit STRICT_EXIT unless the take holds everything."""
+    if verdict == "complete":
+        return
+    from rigd.take.verdict import TakeVerdict
+
+    why = (
+        "unknown (the daemon did not say)"
+        if verdict is None
+        else TakeVerdict.model_validate({"verdict": verdict, "reasons": reasons}).line(
+            limit=len(reasons) or 1
+        )
+    )
+    console.print(
+        f"--strict: take {path} is not complete: {why}", soft_wrap=True, markup=False, highlight=False
+    )
+    raise typer.Exit(code=STRICT_EXIT)
 
 
 #: What each phase of an in-process capture counts, and what it is doing (rigd.app.capture.results).
@@ -226,9 +262,12 @@ def _capture_progress(bar: StageProgress) -> Callable[[CaptureProgress], None]:
     return on_progress
 
 
-def _capture_remote(client: DaemonClient, duration: float, label: str | None, json_out: bool) -> None:
+def _capture_remote(
+    client: DaemonClient, duration: float, label: str | None, json_out: bool
+) -> dict[str, Any]:
     """Follow a daemon's take: seconds of pulses against the duration asked for, then its stopping
-    (draining, fitting the clocks, sealing), then the summary an in-process capture prints."""
+    (draining, fitting the clocks, sealing), then the summary an in-process capture prints; the
+    daemon's summary of the take."""
     taken: list[str] = []
     with StageProgress(console, "capture (daemon)", quiet=json_out) as bar:
         shown: list[str] = []
@@ -253,9 +292,10 @@ def _capture_remote(client: DaemonClient, duration: float, label: str | None, js
             done = elapsed if state == "capturing" else None
             bar.advance_to(done, detail)
 
-        capture_via_daemon(client, duration, label, json_out, on_status)
+        last = capture_via_daemon(client, duration, label, json_out, on_status)
     if not json_out and taken:
         _print_daemon_take(client, taken[0])
+    return last
 
 
 def _print_daemon_take(client: DaemonClient, path: str) -> None:
@@ -285,8 +325,9 @@ def inspect(
     thumbnails: Annotated[
         Path | None, typer.Option("--thumbnails", help="Write a contact sheet of frames and event images.")
     ] = None,
+    strict: StrictOpt = False,
 ) -> None:
-    """Validate a take against the schema and print its summary."""
+    """Validate a take against the schema and print its summary, its verdict first."""
     from rigd.app.inspect import status_hint, summarize, write_thumbnails
 
     if not take.exists():
@@ -308,6 +349,8 @@ def inspect(
         console.print(hint, soft_wrap=True)
     if summary.problems or hint is not None:
         raise typer.Exit(code=1)
+    if strict:
+        _check_strict(str(take), summary.verdict, summary.verdict_reasons)
 
 
 @app.command("convert")
@@ -374,10 +417,16 @@ def _add_plugin_commands() -> None:
         app.command(ep.name)(command)
 
 
-def _print_summary(summary: TakeSummary) -> None:
+def _print_summary(summary: TakeSummary, take_line: str | None = None) -> None:
+    """The summary, its verdict line first; `take_line` (the take's path) goes right after it."""
     from rigd.app.inspect import summary_renderables
 
-    for part in summary_renderables(summary):
+    parts = summary_renderables(summary)
+    if take_line is not None:
+        out.print(parts[0], soft_wrap=True, highlight=False)
+        typer.echo(take_line)
+        parts = parts[1:]
+    for part in parts:
         out.print(part, soft_wrap=isinstance(part, str), highlight=False)
 
 

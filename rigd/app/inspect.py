@@ -9,9 +9,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from rich.console import RenderableType
+from rich.markup import escape
 from rich.table import Table
 
-from rigd.core.errors import TakeError
+from rigd.core.errors import TakeError, TakeFormatError
 from rigd.take.reader import Take, TakeSummary
 from rigd.take.recover import needs_recovery
 from rigd.take.validate import validate_take
@@ -27,10 +28,18 @@ _LABEL_BAR = 18
 
 
 def summarize(path: str | Path) -> TakeSummary:
-    """Summary of a take with its validation problems; one that cannot be opened raises TakeError."""
+    """Summary of a take with its validation problems; one that cannot be opened, or whose data
+    HDF5 refuses to read (a failed write left it damaged), raises TakeError in one line."""
     problems = validate_take(path)
-    with Take(path) as take:
-        summary = take.summary()
+    try:
+        with Take(path) as take:
+            summary = take.summary()
+    except (OSError, RuntimeError, KeyError) as exc:  # h5py's errors for a damaged file
+        hdf5 = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise TakeFormatError(
+            f"{path}: damaged, its data cannot be read (HDF5: {hdf5}); `rigd recover {path}` seals "
+            "what can be read and says what it cannot"
+        ) from exc
     summary.problems = problems
     return summary
 
@@ -75,11 +84,29 @@ def clock_label(summary: TakeSummary, pulses: int | None = None) -> str:
     return "rig time (trigger box clock)"
 
 
+#: How each verdict's first line looks (rich markup).
+_VERDICT_STYLE = {
+    "complete": "bold green",
+    "degraded": "bold yellow",
+    "failed": "bold red",
+    "unfinished": "bold red",
+}
+
+
+def verdict_markup(summary: TakeSummary) -> str:
+    """The summary's first line: the verdict and why (rich markup; the reasons are escaped)."""
+    line = summary.verdict_line()
+    head, sep, rest = line.partition(" — ")
+    return f"[{_VERDICT_STYLE[summary.verdict]}]verdict: {escape(head)}[/]{sep}{escape(rest)}"
+
+
 def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
-    """The summary `rigd capture` and `rigd inspect` print: a status line, a table per device
-    kind present, and losses, warnings and problems as a table and sentences."""
+    """The summary `rigd capture` and `rigd inspect` print: the verdict first (did the take keep
+    everything), a status line, a table per device kind present, and losses, warnings and
+    problems as a table and sentences."""
     parts: list[RenderableType] = [
-        f"status: {summary.status}   schema {summary.schema_version}   times: {clock_label(summary)}"
+        verdict_markup(summary),
+        f"status: {summary.status}   schema {summary.schema_version}   times: {clock_label(summary)}",
     ]
     if summary.end_reason:
         parts.append(f"ended: {summary.end_reason}")

@@ -54,6 +54,7 @@ from rigd.core.schema import (
 from rigd.take.calibration import read_calibration
 from rigd.take.h5file import attr_text, describe_open_error
 from rigd.take.tails import tail_rows
+from rigd.take.verdict import TakeVerdict, Verdict, take_verdict
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +135,14 @@ class TakeSummary(BaseModel):
     path: str
     take_id: str
     status: str
+    verdict: Verdict = Field(
+        "complete",
+        description="complete (nothing lost), degraded (sealed but lost data), failed or unfinished; "
+        "computed from the stored records (rigd.take.verdict).",
+    )
+    verdict_reasons: list[str] = Field(
+        default_factory=list, description="Why the verdict is not complete: one reason per loss."
+    )
     schema_version: str
     time_domain: str
     failure_reason: str | None = None
@@ -150,6 +159,10 @@ class TakeSummary(BaseModel):
     losses: list[LossRecord] = Field(default_factory=list)
     warnings: list[str] = Field(default_factory=list)
     problems: list[str] = Field(default_factory=list, description="Validation problems (rigd.app.inspect).")
+
+    def verdict_line(self) -> str:
+        """`complete: nothing lost`, or the verdict and its first reasons (`TakeVerdict.line`)."""
+        return TakeVerdict(verdict=self.verdict, reasons=self.verdict_reasons).line()
 
 
 def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
@@ -687,15 +700,27 @@ class Take:
                 sync_max_us=_finite(d.residual_max_us) if d else None,
             )
         pulses_node = self._f.get(f"{TRIGGER_GROUP}/pulses/index")
-        reason = self._f.attrs.get("failure_reason")
+        raw_reason = self._f.attrs.get("failure_reason")
+        reason = None if raw_reason is None else attr_text(raw_reason)
+        status, recovered = self.status, self.recovered_utc
+        verdict = take_verdict(
+            status,
+            report,
+            {k: c.frames for k, c in cams.items()},
+            {k: e.events for k, e in sens.items()},
+            recovered_utc=recovered,
+            failure_reason=reason,
+        )
         return TakeSummary(
             path=str(self.path),
             take_id=self.take_id,
-            status=self.status,
+            status=status,
+            verdict=verdict.verdict,
+            verdict_reasons=verdict.reasons,
             schema_version=self.schema_version,
             time_domain=self.time_domain,
-            failure_reason=None if reason is None else attr_text(reason),
-            recovered_utc=self.recovered_utc,
+            failure_reason=reason,
+            recovered_utc=recovered,
             end_reason=self.end_reason,
             cameras=cams,
             event_sensors=sens,

@@ -119,6 +119,7 @@ class RecoveryReport(BaseModel):
         kept = f"{sum(self.frames.values())} frames, {sum(self.events.values())} events, {self.pulses} pulses"
         cut = f"; trimmed {len(self.trims)} group(s)" if self.trims else ""
         lost = sum(r.count for r in self.losses_added)
+        unknown = sum(1 for r in self.losses_added if r.count == 0)
         head = {
             "sealed": "sealed complete" + (" (finalize resumed)" if self.finalize_resumed else ""),
             "sealed_failed": "sealed FAILED",
@@ -130,7 +131,8 @@ class RecoveryReport(BaseModel):
         if self.outcome in ("in_use", "not_needed"):
             return f"{self.path}: {head}"
         why = f": {self.reason}" if self.reason else ""
-        return f"{self.path}: {head}{why} ({kept}{cut}; {lost} item(s) recorded as lost)"
+        more = f" and {unknown} loss(es) of unknown count" if unknown else ""
+        return f"{self.path}: {head}{why} ({kept}{cut}; {lost} item(s){more} recorded as lost)"
 
 
 @dataclass(slots=True)
@@ -237,10 +239,17 @@ def _reading(path: Path, what: str) -> Iterator[None]:
     line naming the file and the step, instead of a bare OSError or KeyError."""
     try:
         yield
+    except TakeFormatError as exc:
+        raise TakeFormatError(f"{exc}; {_NOTHING_SAVED}") from exc
     except (OSError, KeyError, ValueError) as exc:
         raise TakeFormatError(
-            f"{path}: damaged beyond what recovery repairs ({what}): {type(exc).__name__}: {exc}"
+            f"{path}: damaged beyond what recovery repairs ({what}): {type(exc).__name__}: {exc}; "
+            f"{_NOTHING_SAVED}"
         ) from exc
+
+
+#: What a take recovery cannot read comes to: it stops before writing anything.
+_NOTHING_SAVED = "recovery saved nothing of this take and left the file as it was"
 
 
 def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:

@@ -106,6 +106,11 @@ _JOURNAL_MIN_BYTES = 4096
 #: Writers whose file could not be closed even with its pending writes discarded: HDF5 (2.0)
 #: crashes the process when the objects of such a file are freed, so they are kept.
 _UNCLOSABLE: list[TakeWriter] = []
+#: Raw-data chunk cache of each dataset while writing (HDF5 2.0's default is 8 MiB). The writer
+#: writes whole chunks (events, one frame per chunk), so a cache only holds them back: dirty
+#: chunks that a full disk leaves nowhere to go when the take is marked failed and closed. The
+#: disk ballast must cover what they can hold (`rigd.app.capture.ballast`).
+WRITE_CHUNK_CACHE_BYTES = 1 << 20
 
 
 class TakeWriter:
@@ -135,7 +140,7 @@ class TakeWriter:
         try:
             # Default (earliest) file format: no superblock status flags, so a take left by a
             # crashed process opens without h5clear.
-            f = h5py.File(path, "w-")
+            f = h5py.File(path, "w-", rdcc_nbytes=WRITE_CHUNK_CACHE_BYTES)
         except (OSError, FileExistsError) as exc:
             raise TakeError(f"cannot create take file {path}: {exc}") from exc
         self._attach(path, f, config, state="recording")

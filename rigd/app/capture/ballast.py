@@ -1,14 +1,20 @@
-"""Disk space held back while a take runs, so a full disk still lets the take be closed."""
+"""Disk space held back while a take runs, so a full disk still lets the take be closed, and
+how much a rig needs of it."""
 
 from __future__ import annotations
 
 import errno
 import logging
+import math
 import os
 import uuid
+from collections.abc import Iterable
 from pathlib import Path
 
-from rigd.core.errors import TakeError
+from rigd.core.errors import ConfigError, TakeError
+from rigd.core.settings import WriterConfig
+from rigd.take.sinks import EVENT_WRITE_BLOCK
+from rigd.take.writer import WRITE_CHUNK_CACHE_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -82,3 +88,45 @@ def remove_stale_ballast(directory: Path) -> int:
         log.info("removed stale disk ballast %s (its capture was killed)", p)
         n += 1
     return n
+
+
+#: Bytes of one event as the take stores it uncompressed (x, y uint16; p uint8; t int64): what
+#: a codec stores at worst.
+_EVENT_BYTES = 13
+#: The per-item series (trigger-in edges, frame times, pulses: int64 at most) are chunked and
+#: buffered by this many rows (`rigd.take.sinks`); a failed take writes at most two partial
+#: chunks of each.
+_SERIES_ROWS = 4096
+_SERIES_BYTES = 2 * _SERIES_ROWS * 8
+#: HDF5 metadata a take writes when it is marked failed and closed (object headers, chunk
+#: indexes, the superblock), its status attributes and the loss journal.
+_METADATA_BYTES = 1 << 20
+
+
+def minimum_ballast_bytes(writer: WriterConfig, frame_bytes: Iterable[int], n_event_sensors: int) -> int:
+    """What marking a take failed and closing it on a full disk writes at most, once the
+    ballast is given up: per event sensor its buffered events (a write block plus a chunk,
+    uncompressed at worst), the chunks its four event columns hold in HDF5's chunk cache
+    (`WRITE_CHUNK_CACHE_BYTES` each) and its five trigger-in series; per camera its cached
+    frames (a frame larger than the cache is written through) and six frame series; the pulse
+    series; the file's metadata and journal. With less, the take's `failed` mark and metadata
+    may not reach the disk, and a take whose first flush never did cannot be read back (HDF5:
+    "addr overflow"). `frame_bytes`: one frame of each camera."""
+    per_sensor = (EVENT_WRITE_BLOCK + writer.event_chunk) * _EVENT_BYTES
+    per_sensor += 4 * WRITE_CHUNK_CACHE_BYTES + 5 * _SERIES_BYTES
+    cameras = sum(min(n, WRITE_CHUNK_CACHE_BYTES) + 6 * _SERIES_BYTES for n in frame_bytes)
+    return n_event_sensors * per_sensor + cameras + 3 * _SERIES_BYTES + _METADATA_BYTES
+
+
+def check_ballast(writer: WriterConfig, frame_bytes: Iterable[int], n_event_sensors: int) -> None:
+    """Refuse a take whose `writer.disk_ballast_mb` is below `minimum_ballast_bytes` for this
+    rig (ConfigError, one line naming the setting and the minimum)."""
+    frames = list(frame_bytes)
+    need_mb = math.ceil(minimum_ballast_bytes(writer, frames, n_event_sensors) / 1e6)
+    if writer.disk_ballast_mb < need_mb:
+        raise ConfigError(
+            f"not starting a take: writer.disk_ballast_mb = {writer.disk_ballast_mb} is below the "
+            f"{need_mb} MB this rig needs to close a take on a full disk ({n_event_sensors} event "
+            f"sensor(s) at writer.event_chunk = {writer.event_chunk}, {len(frames)} camera(s)); "
+            f"set it to at least {need_mb}"
+        )

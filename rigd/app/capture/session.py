@@ -25,9 +25,9 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from drivers.base import Capability
+from drivers.base import Capability, RgbCamera
 from rigd import __version__
-from rigd.app.capture.ballast import Ballast, remove_stale_ballast
+from rigd.app.capture.ballast import Ballast, check_ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
 from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import DiskUsage, DiskWatch, FaultBoard, FlushWatch, TriggerWatchdog
@@ -35,7 +35,7 @@ from rigd.app.capture.finalize import finalize_take, software_synced
 from rigd.app.capture.items import WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
-from rigd.app.capture.preflight import check_rig
+from rigd.app.capture.preflight import check_rig, warm_up
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
@@ -353,9 +353,16 @@ class CaptureSession:
                 ),
             ]
         )
+        cameras = [ch.device for ch in self._channels.values() if isinstance(ch.device, RgbCamera)]
+        check_ballast(
+            self.config.writer,
+            (math.prod(cam.frame_shape) * cam.frame_dtype.itemsize for cam in cameras),
+            len(self._channels) - len(cameras),
+        )
         trigger.configure()
         for ch in self._channels.values():
             ch.configure()
+        warm_up([("trigger", trigger.device), *((name, ch.device) for name, ch in self._channels.items())])
 
     def _create_take(self, trigger: TriggerChannel) -> TakeWriter:
         config = self.config

@@ -24,6 +24,7 @@ from rich.table import Table
 from rigd.app.config import RigConfig, default_control_endpoint, default_sim_rig
 from rigd.app.service.client import DaemonClient, DaemonRequestError, DaemonUnavailableError, find_daemon
 from rigd.core.errors import ConfigError, RigdError
+from rigd.take.verdict import TakeVerdict
 
 log = logging.getLogger(__name__)
 _err = Console(stderr=True)
@@ -224,8 +225,19 @@ def print_status(t: dict[str, Any], out: Console) -> None:
         out.print(
             f"last take: {last['path']} ({last['status']})"
             + (f": {last['error']}" if last.get("error") else "")
-            + (f", {last['end_reason']}" if last.get("end_reason") else "")
+            + (f", {last['end_reason']}" if last.get("end_reason") else ""),
+            soft_wrap=True,
         )
+        out.print(f"  verdict: {verdict_text(last)}", soft_wrap=True, highlight=False, markup=False)
+
+
+def verdict_text(last: dict[str, Any]) -> str:
+    """A daemon take's verdict and why (`rigd.take.verdict`); a daemon from before verdicts
+    sends none, and its take's verdict is then unknown here (`rigd inspect` computes it)."""
+    verdict = last.get("verdict")
+    if verdict is None:
+        return f"unknown (the daemon does not say; `rigd inspect {last['path']}` does)"
+    return TakeVerdict(verdict=verdict, reasons=last.get("verdict_reasons") or []).line()
 
 
 def stop(
@@ -255,7 +267,7 @@ def take_summary_line(last: dict[str, Any]) -> str:
     events = sum(last.get("events", {}).values())
     losses = last.get("losses", [])
     parts = [
-        last["status"] + (f" ({last['end_reason']})" if last.get("end_reason") else ""),
+        last.get("verdict", last["status"]) + (f" ({last['end_reason']})" if last.get("end_reason") else ""),
         f"{frames:,} frames from {len(last.get('frames', {}))} cameras",
         f"{events:,} events from {len(last.get('events', {}))} sensors",
         f"{last.get('bytes_written', 0) / 1e6:.1f} MB",
@@ -278,7 +290,7 @@ def wait_for_take(client: DaemonClient, path: str, on_status: Any = None) -> dic
 
 def _report_last(last: dict[str, Any]) -> None:
     ended = f", {last['end_reason']}" if last.get("end_reason") else ""
-    typer.echo(f"take: {last['path']} ({last['status']}{ended})")
+    typer.echo(f"take: {last['path']} ({last.get('verdict', last['status'])}{ended})")
     if last.get("error"):
         _err.print(f"[bold red]error:[/] {last['error']}")
         raise typer.Exit(code=1)
@@ -286,8 +298,8 @@ def _report_last(last: dict[str, Any]) -> None:
 
 def capture_via_daemon(
     client: DaemonClient, duration: float | None, label: str | None, json_out: bool, progress: Any
-) -> None:
-    """Ask the daemon for a take and follow it to the end."""
+) -> dict[str, Any]:
+    """Ask the daemon for a take and follow it to the end; the daemon's summary of it."""
     try:
         res = client.call("capture", timeout_s=CAPTURE_START_TIMEOUT_S, duration_s=duration, label=label)
     except DaemonRequestError as exc:
@@ -317,6 +329,7 @@ def capture_via_daemon(
         typer.echo(json.dumps(last, indent=2))
     if last.get("error") or not json_out:
         _report_last(last)
+    return last
 
 
 def _daemon_lost(client: DaemonClient, path: str, exc: DaemonUnavailableError) -> typer.Exit:

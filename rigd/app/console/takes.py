@@ -119,6 +119,12 @@ class TakeEntry(BaseModel):
     size_bytes: int
     mtime: float
     status: str = Field(description="complete, recording (unfinished), failed, unreadable or running")
+    verdict: str | None = Field(
+        None,
+        description="complete (nothing lost), degraded (sealed but lost data), failed or unfinished "
+        "(rigd.take.verdict); None while running or when unreadable.",
+    )
+    verdict_reasons: list[str] = Field(default_factory=list, description="Why the verdict is not complete.")
     end_reason: str | None = None
     recovered: bool = False
     frames: dict[str, int] = Field(default_factory=dict)
@@ -260,6 +266,8 @@ def _read_entry(path: Path, size: int, mtime: float) -> TakeEntry:
     return TakeEntry(
         **base,
         status=s.status,
+        verdict=s.verdict,
+        verdict_reasons=s.verdict_reasons,
         end_reason=s.end_reason,
         recovered=s.recovered_utc is not None,
         frames={k: v.frames for k, v in s.cameras.items()},

@@ -67,6 +67,7 @@ from rigd.app.service.requests import (
 from rigd.app.service.thumbnails import events_thumbnail, frame_thumbnail
 from rigd.app.service.workers import WorkerPool
 from rigd.core.errors import ConfigError, RigdError, TakeError
+from rigd.take.verdict import take_verdict
 
 log = logging.getLogger(__name__)
 
@@ -535,9 +536,12 @@ class Daemon:
             res = session.result
             if res is not None:
                 rep = res.report
+                verdict = take_verdict("complete", rep, res.frames, res.events)
                 self._last_take = TakeSummary(
                     path=str(res.path),
                     status="complete",
+                    verdict=verdict.verdict,
+                    verdict_reasons=verdict.reasons,
                     frames=res.frames,
                     events=res.events,
                     bytes_written=res.bytes_written,
@@ -550,6 +554,8 @@ class Daemon:
                 self._last_take = TakeSummary(
                     path=str(session.path),
                     status="failed",
+                    verdict="failed",
+                    verdict_reasons=[f"{type(err).__name__}: {err}" if err else "unknown"],
                     frames={d.name: d.total for d in snap.devices if d.kind == "rgb_camera"},
                     events={d.name: d.total for d in snap.devices if d.kind == "event_sensor"},
                     bytes_written=snap.bytes_written,

@@ -153,6 +153,10 @@ class DeviceTelemetry(_Strict):
 class TakeSummary(_Strict):
     path: str
     status: str
+    verdict: Literal["complete", "degraded", "failed", "unfinished"] = Field(
+        "complete", description="complete: nothing lost; degraded: sealed but lost data (rigd.take.verdict)."
+    )
+    verdict_reasons: list[str] = Field(default_factory=list, description="Why the verdict is not complete.")
     frames: dict[str, int]
     events: dict[str, int]
     bytes_written: int

@@ -110,6 +110,13 @@ async function loadTakes() {
     const summary = t.status === "running" ? "recording now…"
       : `${t.status}${t.end_reason ? " (" + t.end_reason + ")" : ""}${t.recovered ? ", recovered" : ""}; ${frames.toLocaleString()} frames, ${events.toLocaleString()} events, ${t.pulses} pulses, ${fmtBytes(t.size_bytes)}, ${t.losses ? t.losses + " loss record(s)" : "nothing lost"}`;
     const info = el("td", {}, el("div", { text: summary }));
+    if (t.verdict) {
+      // The verdict: did the take keep everything (a degraded one is sealed but lost data).
+      const cls = t.verdict === "complete" ? "ok" : t.verdict === "degraded" ? "warn" : "bad";
+      const why = t.verdict_reasons.length ? " — " + t.verdict_reasons.join("; ") : "";
+      info.prepend(el("div", { class: "verdict", "data-testid": "take-verdict" },
+        el("span", { class: "pill " + cls, text: t.verdict }), el("span", { class: "msg", text: why })));
+    }
     if (t.notes) info.append(el("div", { class: "msg", text: "notes: " + t.notes }));
     if (t.action) info.append(el("div", { class: "action", "data-testid": "take-action", text: t.action }));
     const thumbs = el("td", { class: "thumbs" });

@@ -36,18 +36,23 @@ def _resize(where: Path, mb: int) -> None:
     subprocess.run(["mount", "-o", f"remount,size={mb}m", str(where)], check=True)
 
 
+#: The smallest ballast this rig is allowed (`rigd.app.capture.ballast.minimum_ballast_bytes`);
+#: the disk sizes below are the ballast plus 1 to 27 MB of room for data.
+BALLAST_MB = 19
+
+
 def _rig() -> RigConfig:
     cfg = default_sim_rig(world=f"full-{uuid.uuid4().hex[:8]}", resolution=(160, 120), pixel_format="mono8")
     data = cfg.model_dump(mode="json")
     # Small event chunks: the tail slots (two chunks per sensor) stay small, so the disk fills
     # at data flushes, not at the first allocation.
     data["writer"].update(
-        {"disk_reserve_mb": 0, "disk_ballast_mb": 1, "flush_interval_s": 0.25, "event_chunk": 4096}
+        {"disk_reserve_mb": 0, "disk_ballast_mb": BALLAST_MB, "flush_interval_s": 0.25, "event_chunk": 4096}
     )
     return RigConfig.from_data(data)
 
 
-@pytest.mark.parametrize("size_mb", [2, 5, 9, 16, 28])
+@pytest.mark.parametrize("size_mb", [BALLAST_MB + room for room in (1, 4, 8, 15, 27)])
 def test_whatever_the_disk_does_what_was_flushed_is_recovered(small_disk: Path, size_mb: int) -> None:
     _resize(small_disk, size_mb)
     with pytest.raises(TakeError, match="rigd recover") as stopped:
@@ -55,7 +60,7 @@ def test_whatever_the_disk_does_what_was_flushed_is_recovered(small_disk: Path, 
     flushed = "last flush (None)" not in str(stopped.value)
     [take] = list(small_disk.glob("*.h5"))
     _resize(small_disk, 128)  # space freed, as the message asks
-    if size_mb >= 9:
+    if size_mb >= BALLAST_MB + 8:
         assert flushed, stopped.value  # the larger disks fill after data was flushed
     if not flushed:
         # Nothing but the layout was ever flushed: recovery seals an empty take or says in one

@@ -21,7 +21,7 @@ from rigd.app.config import RigConfig, default_sim_rig
 def _small_rig(path: Path) -> Path:
     cfg = default_sim_rig(world=f"sig-{uuid.uuid4().hex[:8]}", resolution=(160, 120))
     data = cfg.model_dump(mode="json")
-    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 4})
+    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 24})
     out = path / "rig.json"
     out.write_text(RigConfig.from_data(data).model_dump_json())
     return out

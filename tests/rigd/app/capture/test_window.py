@@ -201,7 +201,7 @@ def test_writer_config_validates_the_window_settings() -> None:
 def _sim_rig(tag: str, **writer: object) -> object:
     cfg = default_sim_rig(world=f"{tag}-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
     data = cfg.model_dump(mode="json")
-    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 0, **writer})
+    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 24, **writer})
     return type(cfg).model_validate(data)
 
 

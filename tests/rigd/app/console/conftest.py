@@ -27,7 +27,7 @@ def console_rig(take_dir: Path, runtime: Path, *, resolution: tuple[int, int] = 
     cfg = default_sim_rig(world=f"con-{uuid.uuid4().hex[:6]}", resolution=resolution, pixel_format="mono8")
     data = cfg.model_dump(mode="json")
     data["writer"]["disk_reserve_mb"] = 0
-    data["writer"]["disk_ballast_mb"] = 4
+    data["writer"]["disk_ballast_mb"] = 24  # the minimum for this rig is about 20
     data["service"].update(
         {
             "metrics_port": None,

@@ -37,7 +37,7 @@ def small_rig(world: str, *, extra: dict[str, str] | None = None, **service: obj
     if extra and "trigger" in extra:
         data["trigger"]["spec"] += "&" + extra["trigger"]
     data["writer"]["disk_reserve_mb"] = 0
-    data["writer"]["disk_ballast_mb"] = 4
+    data["writer"]["disk_ballast_mb"] = 24  # the minimum for this rig is about 20
     data["service"].update({"metrics_port": None, "thumbnail_interval_s": 0.5, "telemetry_interval_s": 0.2})
     data["service"].update(service)
     return RigConfig.from_data(data)

@@ -175,7 +175,7 @@ def test_disk_full_stops_closes_reports_and_recovers(small_tmpfs: Path, start_da
 
     cfg = small_rig(_world(), take_dir=str(small_tmpfs / "takes"))
     data = cfg.model_dump(mode="json")
-    data["writer"]["disk_ballast_mb"] = 12
+    data["writer"]["disk_ballast_mb"] = 22  # the minimum for this rig: 21
     data["writer"]["event_chunk"] = 1 << 16
     rd = start_daemon(type(cfg).from_data(data))
     path = Path(rd.client.call("capture")["take"])
@@ -193,7 +193,7 @@ def test_disk_full_stops_closes_reports_and_recovers(small_tmpfs: Path, start_da
     assert any(f["code"] == "disk_full" for f in t["faults"]), t["faults"]
     assert rd.client.call("ping")["state"] == "idle"  # the daemon goes on
     free = shutil.disk_usage(small_tmpfs).free
-    assert free < 16_000_000  # the disk really filled (only the ballast came back)
+    assert free < 26_000_000  # the disk really filled (only the ballast came back)
     with h5py.File(path, "r") as f:  # plain h5py opens it; what was flushed is there
         status = f.attrs["status"]
         n = f["frames/cam0/t_exposure_start_device_us"].shape[0]
