@@ -42,6 +42,7 @@ from drivers.registry import DeviceSpec
 from drivers.serial_trigger import SerialTrigger
 from firmware_sim.clock import Hold
 from firmware_sim.event_sensor import SLICE_US, _Packet
+from firmware_sim.spec_params import ReplayCameraParams, ReplaySensorParams, ReplayTriggerParams, check_params
 from firmware_sim.trigger_box import BOX_PARAMS, START_LEAD_US, SimTriggerBox, open_box_trigger
 from firmware_sim.world import (
     DeviceClock,
@@ -298,6 +299,7 @@ class ReplayTriggerBox(SimTriggerBox):
 def open_replay_trigger(spec: DeviceSpec) -> SerialTrigger:
     """Factory for `replay:///abs/take.h5?device=trigger` (+ the box's fault switches)."""
     spec.check_params({*BOX_PARAMS, "device"} - {"offset_us", "drift_ppm", "jitter_us"})
+    check_params(spec, ReplayTriggerParams, "replayed trigger box")
     world, _, _ = replay_world(spec)
     return open_box_trigger(spec, world, ReplayTriggerBox)
 
@@ -452,6 +454,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
 def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
     """Factory for `replay:///abs/take.h5?device=cam0[&buffer_frames=&drop_frames=&unplug_at_s=]`."""
     spec.check_params(_CAMERA_PARAMS)
+    check_params(spec, ReplayCameraParams, f"replayed camera {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
     buffer_frames = spec.int_param("buffer_frames", 32)
     if buffer_frames < 1:
@@ -652,6 +655,7 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
 def open_replay_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
     """Factory for `replay:///abs/take.h5?device=ev0[&buffer_packets=&unplug_at_s=]`."""
     spec.check_params(_SENSOR_PARAMS)
+    check_params(spec, ReplaySensorParams, f"replayed event sensor {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
     buffer_packets = spec.int_param("buffer_packets", 1024)
     if buffer_packets < 1:
