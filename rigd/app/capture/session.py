@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import shutil
 import signal
 import threading
@@ -41,7 +42,7 @@ from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnap
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
-from rigd.core.errors import RigdError, TakeError
+from rigd.core.errors import ConfigError, RigdError, TakeError
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.settings import EventSensorSettings
@@ -71,6 +72,25 @@ class StopWait:
     stuck: tuple[str, ...] = ()
 
 
+def check_duration(duration_s: float, what: str = "duration") -> None:
+    """A take's length: more than 0 s and at most `MAX_DURATION_S` (NaN and inf refused)."""
+    if not 0 < duration_s <= MAX_DURATION_S:
+        raise ConfigError(
+            f"{what} {duration_s:g} s: a take lasts more than 0 s and at most {MAX_DURATION_S:g} s (7 days)"
+        )
+
+
+def check_out_dir(out_dir: Path, what: str = "take directory") -> None:
+    """The take directory is one, or can be made, and is writable, before a device is opened."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"{what} {out_dir}: not a directory")
+    base = next((d for d in (out_dir, *out_dir.parents) if d.exists()), Path("."))
+    if not base.is_dir():
+        raise ConfigError(f"{what} {out_dir}: {base} is not a directory")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what} {out_dir}: {base} is not writable")
+
+
 def new_take_path(out_dir: Path, rig_name: str, label: str | None = None) -> Path:
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     middle = f"-{label}" if label else ""
@@ -98,11 +118,8 @@ class CaptureSession:
         reconnect_interval_s: float | None = None,
         disk_usage: DiskUsage = shutil.disk_usage,
     ) -> None:
-        if duration_s is not None and not 0 < duration_s <= MAX_DURATION_S:
-            raise RigdError(
-                f"duration {duration_s:g} s: a take lasts more than 0 s and at most "
-                f"{MAX_DURATION_S:g} s (7 days)"
-            )
+        if duration_s is not None:
+            check_duration(duration_s)
         self.config = config
         self.rate = config.trigger.settings.rate_hz
         self.n_pulses = None if duration_s is None else max(1, round(duration_s * self.rate))
@@ -162,6 +179,7 @@ class CaptureSession:
             raise RigdError("a capture session can only be started once")
         self._state = "starting"
         self._t_wall = time.monotonic()
+        check_out_dir(self.out_dir)
         made = [d for d in (self.out_dir, *self.out_dir.parents) if not d.exists()]
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
