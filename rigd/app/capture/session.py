@@ -523,7 +523,8 @@ class CaptureSession:
                 self._stops.start(ch.name, ch.stop)
         stuck = self._stops.join(t_waited + backlog_s)
         t_stopped = time.monotonic()
-        self.stop_wait = StopWait(not behind, tuple(behind), t_waited - t_stop, tuple(stuck))
+        delivered = not behind and self._control.first_error is None
+        self.stop_wait = StopWait(delivered, tuple(behind), t_waited - t_stop, tuple(stuck))
         read_deadline = t_stopped + backlog_s
         for ch in self._channels.values():
             ch.read_deadline = read_deadline
