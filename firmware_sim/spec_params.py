@@ -49,7 +49,7 @@ def _index_list(value: str) -> str:
     if len(parts) > MAX_INDEX_LIST:
         raise ValueError(f"more than {MAX_INDEX_LIST} indices")
     for part in parts:
-        if not part.isdigit() or int(part) > 2**31 - 1:
+        if not (part.isascii() and part.isdigit()) or int(part) > 2**31 - 1:
             raise ValueError(f"{part!r} is not an index in 0..{2**31 - 1}")
     return value
 

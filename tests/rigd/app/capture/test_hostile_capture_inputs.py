@@ -127,6 +127,16 @@ def test_spec_parameter_is_refused_naming_device_parameter_and_range(
         assert f"allowed: {allowed_range(model, param)}" in msg, msg
 
 
+@pytest.mark.parametrize("kind", ["sim camera", "sim trigger", "replay camera", "replay trigger"])
+@pytest.mark.parametrize("value", ["1,x", "1,\u00b2", "-3", "99999999999", "1.5"])
+def test_index_lists_are_refused_naming_the_bad_entry(kind: str, value: str) -> None:
+    dev_kind, _model, prefix, device = KINDS[kind]
+    param = "drop_pulses" if dev_kind == "trigger" else "drop_frames"
+    with pytest.raises(ConfigError, match=f"\\({device}\\): {param}=.* is not an index") as err:
+        open_device(dev_kind, f"{prefix}{param}={value}")  # type: ignore[call-overload]
+    assert "\n" not in str(err.value)
+
+
 def test_every_sim_spec_parameter_has_a_model_field() -> None:
     """The factories' own lists of parameters and the models agree: no parameter escapes."""
     from firmware_sim.placement import PLACEMENT_PARAMS
