@@ -32,17 +32,19 @@ class RunControl:
         self.stopping = False
         """The take has entered its stop (the control thread is ending it)."""
         self.hurry = threading.Event()
-        """A stop was asked for while the take was already stopping (a signal after the end of a
-        `--duration` take, say): the stop's waits end at their wall-clock bound, never later."""
+        """A signal asked for the stop, or a stop was asked for while the take was already
+        stopping (after the end of a `--duration` take, say): the stop's waits end at their
+        wall-clock bound, never later (not even on virtual time)."""
         self._errors: list[BaseException] = []
 
-    def request_stop(self, reason: str, *, fault: bool = False) -> None:
-        """`fault`: the rig stopped itself (disk, trigger); the take's report says why."""
+    def request_stop(self, reason: str, *, fault: bool = False, hurry: bool = False) -> None:
+        """`fault`: the rig stopped itself (disk, trigger); the take's report says why. `hurry`
+        (a signal): the stop's waits end at their wall-clock bound, never later."""
         with self._lock:
             if self.stop_reason is None:
                 self.stop_reason = reason
                 self.stop_by_fault = fault
-            if self.stopping:
+            if self.stopping or hurry:
                 self.hurry.set()
         self.stop_requested.set()
 

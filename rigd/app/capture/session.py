@@ -216,9 +216,10 @@ class CaptureSession:
                 log.warning("leaving directory %s: %s", d, exc.strerror)
                 return
 
-    def request_stop(self, reason: str = "stop requested") -> None:
-        """Stop after the current pulse; the take is finalized as usual."""
-        self._control.request_stop(reason)
+    def request_stop(self, reason: str = "stop requested", *, hurry: bool = False) -> None:
+        """Stop after the current pulse; the take is finalized as usual. `hurry` (a signal): the
+        stop's waits end at `writer.stop_backlog_s` of wall-clock time, even on virtual time."""
+        self._control.request_stop(reason, hurry=hurry)
 
     def wait(self, timeout: float | None = None) -> CaptureResult | None:
         """The result once done (None on timeout); re-raises what ended the take."""
@@ -616,8 +617,8 @@ class CaptureSession:
         (it makes nothing more for the take, and a loaded host gets its CPU back for the
         others), on its own thread (`BoundedCalls`). On virtual time the devices cannot fall
         behind, only the simulation be slow: the bound then counts from the last progress one
-        of those still behind made, unless a stop is asked for while the take stops (a
-        signal), which ends the wait at the bound."""
+        of those still behind made, unless a signal asked for the stop (or a stop came while
+        the take was stopping): then the wait ends at the bound."""
         control = self._control
         deadline = time.monotonic() + backlog_s
         progress: dict[str, int | None] = {}
@@ -785,7 +786,7 @@ class StopOnSignals:
         log.warning(
             "%s: stopping take %s; it is finalized as usual (again to abandon it)", name, self._session.path
         )
-        self._session.request_stop(f"{name} received")
+        self._session.request_stop(f"{name} received", hurry=True)
 
 
 def run_capture(
