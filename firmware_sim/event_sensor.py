@@ -43,6 +43,7 @@ from firmware_sim.event_kernels import MAX_STEP_PX, generate_events, warm_up_gen
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from firmware_sim.placement import Placement, check_ranges, place
 from firmware_sim.scene import lin_log
+from firmware_sim.spec_params import SimEventSensorParams, check_params
 from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wait_for_room
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
@@ -533,6 +534,7 @@ def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
 
     Fault switches: `unplug_at_s=`, `unplug_for_s=`, `clock_reset=1` (docs/sim-faults.md).
     """
+    check_params(spec, SimEventSensorParams, f"event sensor {spec.path.strip('/') or '?'}")
     where = place(spec, {"threshold", "buffer_packets", "pixel_model", *_MODEL_PARAMS})
     params = SensorParams(
         threshold=spec.float_param("threshold", 0.3),

@@ -42,6 +42,7 @@ from drivers.registry import DeviceSpec
 from drivers.serial_trigger import SerialTrigger
 from firmware_sim.clock import Hold
 from firmware_sim.event_sensor import SLICE_US, _Packet
+from firmware_sim.spec_params import ReplayCameraParams, ReplaySensorParams, ReplayTriggerParams, check_params
 from firmware_sim.trigger_box import BOX_PARAMS, START_LEAD_US, SimTriggerBox, open_box_trigger
 from firmware_sim.world import (
     DeviceClock,
@@ -102,8 +103,39 @@ class SensorTrack:
     n_events: int
 
 
+#: Rig and device times a replay accepts: within +-2^45 us (about 1.1 years of clock), the
+#: headroom the sim's own clocks have (`firmware_sim.spec_params.MAX_OFFSET_US`).
+MAX_TIME_US = 2**45
+#: A device clock runs within +-1000 ppm of the rig clock (crystals: about +-100 ppm).
+MAX_RATE_ERROR = 1e-3
+#: The longest take a replay plays (the capture's own bound).
+MAX_SPAN_US = 7 * 86400 * 10**6
+
+
 def _clock_map(sync: DeviceSync) -> ClockMap:
     return ClockMap(sync.device_ref_us, sync.rig_ref_us, sync.rate, sync.frac_us)
+
+
+def check_clock_map(path: Path, sync: DeviceSync, lo_rig: int, hi_rig: int) -> None:
+    """A recorded clock fit must map the take's span to device times a device can have: a
+    finite rate near 1 and times within +-MAX_TIME_US (an EVT stream is encoded from time 0 on,
+    so a device time of 2^62 would be a terabyte of time words)."""
+    where = f"replay {path}: the sync report's clock map of {sync.device}"
+    if not (math.isfinite(sync.rate) and abs(sync.rate - 1.0) <= MAX_RATE_ERROR):
+        raise ConfigError(
+            f"{where} has rate {sync.rate!r}; a device clock runs within 1 +- {MAX_RATE_ERROR:g}"
+        )
+    if not (math.isfinite(sync.frac_us) and abs(sync.frac_us) <= 1.0):
+        raise ConfigError(f"{where} has frac_us {sync.frac_us!r}; it is within +-1 us")
+    for name, value in (("device_ref_us", sync.device_ref_us), ("rig_ref_us", sync.rig_ref_us)):
+        if abs(value) > MAX_TIME_US:
+            raise ConfigError(f"{where} has {name} {value}, outside +-{MAX_TIME_US} us")
+    span = _clock_map(sync).to_device(np.array([lo_rig, hi_rig], np.int64))
+    if np.abs(span).max() > MAX_TIME_US:
+        raise ConfigError(
+            f"{where} puts the take's span at device times {int(span[0])}..{int(span[1])} us, "
+            f"outside +-{MAX_TIME_US} us"
+        )
 
 
 class Recording:
@@ -132,6 +164,19 @@ class Recording:
             if self.pulse_index.size == 0:
                 raise ConfigError(f"replay {path}: the take has no trigger pulses to replay")
             self._pulses = dict(zip(self.pulse_index.tolist(), self.pulse_t.tolist(), strict=True))
+            lo, hi = int(self.pulse_t.min()), int(self.pulse_t.max())
+            if max(abs(lo), abs(hi)) > MAX_TIME_US or hi - lo > MAX_SPAN_US:
+                raise ConfigError(
+                    f"replay {path}: the trigger pulses lie at {lo}..{hi} us; a replay plays pulses "
+                    f"within +-{MAX_TIME_US} us spanning at most 7 days"
+                )
+            if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 10_000):
+                raise ConfigError(
+                    f"replay {path}: the sync report's rate_hz {self.rate_hz!r} is not 0..10000 Hz"
+                )
+            margin = round(2e6 / self.rate_hz)  # the take window reaches one period past the pulses
+            for fit in report.devices.values():
+                check_clock_map(path, fit, lo - margin, hi + margin)
             self.config: dict[str, Any] = take.config
             self.sensors: dict[str, SensorTrack] = {}
             with h5py.File(path, "r") as f:
@@ -298,6 +343,7 @@ class ReplayTriggerBox(SimTriggerBox):
 def open_replay_trigger(spec: DeviceSpec) -> SerialTrigger:
     """Factory for `replay:///abs/take.h5?device=trigger` (+ the box's fault switches)."""
     spec.check_params({*BOX_PARAMS, "device"} - {"offset_us", "drift_ppm", "jitter_us"})
+    check_params(spec, ReplayTriggerParams, "replayed trigger box")
     world, _, _ = replay_world(spec)
     return open_box_trigger(spec, world, ReplayTriggerBox)
 
@@ -452,6 +498,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
 def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
     """Factory for `replay:///abs/take.h5?device=cam0[&buffer_frames=&drop_frames=&unplug_at_s=]`."""
     spec.check_params(_CAMERA_PARAMS)
+    check_params(spec, ReplayCameraParams, f"replayed camera {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
     buffer_frames = spec.int_param("buffer_frames", 32)
     if buffer_frames < 1:
@@ -660,6 +707,7 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
 def open_replay_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
     """Factory for `replay:///abs/take.h5?device=ev0[&buffer_packets=&unplug_at_s=]`."""
     spec.check_params(_SENSOR_PARAMS)
+    check_params(spec, ReplaySensorParams, f"replayed event sensor {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
     buffer_packets = spec.int_param("buffer_packets", 1024)
     if buffer_packets < 1:

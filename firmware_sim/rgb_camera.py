@@ -31,6 +31,7 @@ from drivers.registry import DeviceSpec
 from firmware_sim.clock import Hold
 from firmware_sim.placement import Placement, check_ranges, place
 from firmware_sim.scene import View
+from firmware_sim.spec_params import SimCameraParams, check_params
 from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wait_for_room
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
@@ -125,7 +126,15 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         self._jobs: queue.SimpleQueue[_Exposure] = queue.SimpleQueue()
         self._free_run: threading.Thread | None = None
         self._stop_free_run = threading.Event()
-        self._counts = {"exposures": 0, "transport_dropped": 0, "triggers_ignored": 0, "unplug_lost": 0}
+        self._closing = threading.Event()
+        """Set by close(): an exposure still running is abandoned (its frame never leaves)."""
+        self._counts = {
+            "exposures": 0,
+            "transport_dropped": 0,
+            "triggers_ignored": 0,
+            "unplug_lost": 0,
+            "closed_mid_exposure": 0,
+        }
         self._unsubscribe = world.wire.subscribe(self._on_edge)
         self._unlisten = self._fault.listen(self._on_unplug)
 
@@ -173,6 +182,10 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             self._free_run.join()
             self._free_run = None
 
+    def _stop_for_close(self) -> None:
+        self._closing.set()  # before the stop joins the acquisition thread, which may be exposing
+        super()._stop_for_close()
+
     def _do_close(self) -> None:
         self._unsubscribe()
         self._unlisten()
@@ -200,7 +213,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
     def _counters(self) -> tuple[int, dict[str, int]]:
         with self._lock:
             counts = dict(self._counts)
-        return counts["transport_dropped"] + counts["unplug_lost"], counts
+        return counts["transport_dropped"] + counts["unplug_lost"] + counts["closed_mid_exposure"], counts
 
     # --- unplug fault ---------------------------------------------------------------------
 
@@ -317,8 +330,15 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             self._lose_unplugged(job)  # unplugged before the exposure ended: no frame leaves
             return
         image = self._render(job)
-        # A frame leaves the sensor only once its exposure is over.
-        job.hold.sleep_until(t_end)
+        # A frame leaves the sensor only once its exposure is over (or never, once closed).
+        if not job.hold.sleep_until(t_end, self._closing):
+            with self._lock:
+                self._counts["closed_mid_exposure"] += 1
+            truth.add_frame(self._name, job.counter, job.true_us, delivered=False)
+            log.warning(
+                "camera %s: closed during the exposure of frame %d; it is lost", self._name, job.counter
+            )
+            return
         if self._world.virtual:
             # Virtual time waits for the host to make room instead of losing the frame (not once
             # stopped, when the host may have stopped reading, or unplugged).
@@ -358,6 +378,7 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
     Fault switches: `busy_us=`, `unplug_at_s=`, `unplug_for_s=`, `counter_reset=1`,
     `clock_reset=1`, `open_delay_s=` (docs/sim-faults.md).
     """
+    check_params(spec, SimCameraParams, f"camera {spec.path.strip('/') or '?'}")
     where = place(
         spec, {"format", "buffer_frames", "drop_frames", "busy_us", "counter_reset", "open_delay_s"}
     )

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from firmware_sim.clock import Hold
+from firmware_sim.spec_params import SimTriggerParams, check_params
 from firmware_sim.world import DeviceClock, Edge, SimWorld, spec_world, truth_journal
 from rigd.core.errors import ConfigError
 
@@ -102,6 +103,10 @@ class _CommandError(Exception):
         self.message = message
 
 
+#: A box's edge jitter (its std) must be this many times smaller than the trigger period.
+JITTER_PERIODS = 20
+
+
 class SimTriggerBox:
     """Trigger-box firmware running in two threads on the master side of a pty."""
 
@@ -120,7 +125,7 @@ class SimTriggerBox:
         silent_after: int = 0,
         garbage_after: int = 0,
     ) -> None:
-        if jitter_us < 0 or garbage_every < 0 or boot_ms < 0:
+        if not jitter_us >= 0 or garbage_every < 0 or boot_ms < 0:
             raise ConfigError("sim trigger box: jitter_us, garbage_every and boot_ms must be >= 0")
         for name, value in (("silent_after", silent_after), ("garbage_after", garbage_after)):
             if value < 0:
@@ -390,6 +395,15 @@ class SimTriggerBox:
             raise _CommandError(
                 "BADARG", f"rate {text[:16]!r} not a decimal in {MIN_RATE_HZ}..{MAX_RATE_HZ:g} Hz"
             )
+        period_us = 1e6 / float(text)
+        if self.jitter_us * JITTER_PERIODS > period_us:
+            # Edges that jitter by a sizeable part of the period land in the wrong period (or
+            # far in the future): the sim refuses the rate rather than fire nonsense.
+            raise _CommandError(
+                "BADARG",
+                f"rate {text[:16]} Hz: its {period_us:.0f} us period is not {JITTER_PERIODS}x the "
+                f"box's edge jitter_us={self.jitter_us:g}",
+            )
         with self._lock:
             if self._state == RUNNING:
                 raise _CommandError("STATE", "RATE not allowed while RUNNING")
@@ -647,6 +661,7 @@ def find_trigger_box(world: SimWorld) -> SimTriggerBox | None:
 def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
     """Factory for `sim://<world>/trigger?...` (see `open_box_trigger`)."""
     spec.check_params(BOX_PARAMS)
+    check_params(spec, SimTriggerParams, "trigger box")
     return open_box_trigger(spec, spec_world(spec), SimTriggerBox)
 
 

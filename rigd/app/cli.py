@@ -138,10 +138,18 @@ def capture(
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
     from rigd.app.capture import new_take_path, run_capture
+    from rigd.app.capture.session import check_duration, check_out_dir
     from rigd.app.inspect import summarize
 
     if sim_clock not in ("real", "virtual"):
         raise _fail(ConfigError(f"--sim-clock {sim_clock!r}: use real or virtual"))
+    try:  # before a daemon is asked, a device opened or a file made
+        if duration is not None:
+            check_duration(duration, "--duration")
+        if out_dir is not None:
+            check_out_dir(out_dir, "--out")
+    except RigdError as exc:
+        raise _fail(exc) from exc
     if replay is not None and config is not None:
         raise _fail(ConfigError("--replay plays a take's own rig: drop --config"))
     if sim_clock == "virtual" and config is not None:

@@ -12,16 +12,16 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from rigd.core.errors import ConfigError
-from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings, WriterConfig
+from rigd.core.settings import STRICT, CameraSettings, EventSensorSettings, TriggerSettings, WriterConfig
 
 _NAME = r"^[A-Za-z][A-Za-z0-9_-]{0,31}$"
 
 
 class CameraConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     name: str = Field(pattern=_NAME, description="Name in the take (`frames/<name>`).")
     spec: str = Field(description="Backend spec, e.g. `sim://default/cam0` or `genicam://SERIAL`.")
@@ -29,7 +29,7 @@ class CameraConfig(BaseModel):
 
 
 class EventSensorConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     name: str = Field(pattern=_NAME, description="Name in the take (`events/<name>`).")
     spec: str = Field(description="Backend spec, e.g. `sim://default/ev0` or `file://rec.raw`.")
@@ -37,7 +37,7 @@ class EventSensorConfig(BaseModel):
 
 
 class TriggerConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     spec: str = Field(description="Trigger box port or spec, e.g. `/dev/ttyACM0`.")
     settings: TriggerSettings = Field(default_factory=TriggerSettings)
@@ -70,20 +70,24 @@ _LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
 class CurveConfig(BaseModel):
     """CurveZMQ keys (`rigd keys` writes them): the only way to listen beyond loopback."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
-    server_secret_key: Path = Field(description="Daemon's secret key file (zmq.auth format).")
-    authorized_keys_dir: Path = Field(description="Directory of the client public keys allowed in.")
+    server_secret_key: Path = Field(strict=False, description="Daemon's secret key file (zmq.auth format).")
+    authorized_keys_dir: Path = Field(
+        strict=False, description="Directory of the client public keys allowed in."
+    )
 
 
 class ServiceConfig(BaseModel):
     """How `rigd serve` listens and reports; defaults are local and owner-only."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     control: str | None = Field(None, description="ZeroMQ control endpoint; None: IPC in the runtime dir.")
     telemetry: str | None = Field(None, description="ZeroMQ endpoint of the telemetry PUB socket.")
-    take_dir: Path = Field(Path("takes"), description="Where takes are written (and recovered on start).")
+    take_dir: Path = Field(
+        Path("takes"), strict=False, description="Where takes are written (and recovered on start)."
+    )
     telemetry_interval_s: float = Field(1.0, ge=0.05, le=60.0)
     thumbnail_interval_s: float = Field(2.0, ge=0.0, le=3600.0, description="0 turns thumbnails off.")
     thumbnail_width: int = Field(320, ge=16, le=4096)
@@ -126,7 +130,7 @@ class ServiceConfig(BaseModel):
 
 
 class RigConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     name: str = "rig"
     trigger: TriggerConfig
@@ -241,6 +245,9 @@ class RigConfig(BaseModel):
             for err in exc.errors():
                 where = ".".join(str(x) for x in err["loc"])
                 msg = str(err["msg"]).removeprefix("Value error, ")
+                given = err.get("input")
+                if isinstance(given, bool | int | float | str) and err["type"] != "value_error":
+                    msg += f" (given: {given!r})"  # strict: `true` or "30" is not a number here
                 parts.append(f"{where}: {msg}" if where else msg)
             raise ConfigError(f"rig config {source}: " + "; ".join(parts)) from None
 

@@ -5,8 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import ValidationError
-
 from rigd.app.config import RigConfig
 from rigd.core.errors import ConfigError, RigdError
 from rigd.take import Take
@@ -43,12 +41,17 @@ def replay_config(
         raise ConfigError(
             f"cannot replay {take_path}: the take was never finalized; run `rigd recover` first"
         )
-    try:
-        config = RigConfig.model_validate(recorded)
-    except ValidationError as exc:
+    if "trigger" not in recorded or n_pulses == 0:
+        source = recorded.get("converted_from")
+        made = f"made by `rigd convert` from {source}" if source else "recorded without a trigger"
         raise ConfigError(
-            f"cannot replay {take_path}: its recorded rig config does not load: {exc}"
-        ) from None
+            f"cannot replay {take_path}: it has no trigger box and no trigger pulses ({made}); "
+            "a replay plays a take recorded by `rigd capture`"
+        )
+    try:
+        config = RigConfig.from_data(recorded, source=f"recorded in {take_path}")
+    except ConfigError as exc:
+        raise ConfigError(f"cannot replay {take_path}: {exc}") from None
     faults = faults or {}
     unknown = sorted(set(faults) - cameras - sensors - {"trigger"})
     if unknown:

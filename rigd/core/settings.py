@@ -1,30 +1,42 @@
-"""Settings models shared by the drivers, the rig config and the take writer."""
+"""Settings models shared by the drivers, the rig config and the take writer.
+
+They are read from rig config files, so they are strict (pydantic strict mode: `true` is not
+1 Hz, "30" is not a number, 1.5 is not an integer) and every number is bounded by what a device
+or a take can do: a file cannot ask for a 1e30-event chunk or an infinite timeout.
+"""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+#: Strict, finite, no extra keys: what every settings model read from a file is.
+STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
 class CameraSettings(BaseModel):
     """Acquisition settings of a camera; backends reject what they cannot do."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     trigger_mode: Literal["hardware", "free_run"] = "hardware"
-    exposure_us: int = Field(10_000, gt=0, description="Exposure time in microseconds.")
-    gain_db: float = Field(0.0, ge=0.0)
+    exposure_us: int = Field(10_000, gt=0, le=10_000_000, description="Exposure time in microseconds.")
+    gain_db: float = Field(0.0, ge=0.0, le=60.0)
     pixel_format: Literal["mono8", "rgb8"] | None = Field(
         None, description="None keeps the camera's default format."
     )
-    free_run_fps: float = Field(30.0, gt=0.0)
+    free_run_fps: float = Field(30.0, gt=0.0, le=10_000.0)
+
+
+#: A sensor coordinate, strict inside the ROI tuple (a list in a file).
+_Coord = Annotated[int, Field(strict=True, ge=0, le=65535)]
 
 
 class EventSensorSettings(BaseModel):
     """Acquisition settings of an event sensor."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     trigger_in_channel: int = Field(0, ge=0, le=255)
     enable_trigger_in: bool = True
@@ -35,40 +47,46 @@ class EventSensorSettings(BaseModel):
     sync_master: str | None = Field(
         None, description="For a slave: the rig name of the event sensor whose clock it shares."
     )
-    biases: dict[str, int] = Field(
+    biases: dict[str, Annotated[int, Field(ge=-(2**31), le=2**31 - 1)]] = Field(
         default_factory=dict, description="Sensor biases by name, e.g. bias_diff_on."
     )
-    roi: tuple[int, int, int, int] | None = Field(None, description="(x, y, width, height) window, or None.")
+    roi: tuple[_Coord, _Coord, _Coord, _Coord] | None = Field(
+        None, strict=False, description="(x, y, width, height) window, or None (a list in a file)."
+    )
     erc_rate_ev_s: float | None = Field(
-        None, gt=0, description="Event rate controller limit, events/s; dropped events are counted."
+        None, gt=0, le=1e10, description="Event rate controller limit, events/s; dropped events are counted."
     )
 
 
 class TriggerSettings(BaseModel):
     """What the trigger source should emit."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     rate_hz: float = Field(30.0, gt=0.0, le=10_000.0)
-    pulse_width_us: int = Field(1000, gt=0)
+    pulse_width_us: int = Field(1000, gt=0, le=1_000_000)
 
 
 class WriterConfig(BaseModel):
     """How takes are written; compression is a measured choice (see bench/)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     event_compression: Literal["none", "lz4", "zstd", "gzip"] = "lz4"
     frame_compression: Literal["none", "lz4", "zstd", "gzip"] = "none"
     event_chunk: int = Field(
         1 << 15,
         ge=1024,
+        le=1 << 22,
         description="Events per HDF5 chunk of x, y, p, t: a random 50 ms window decodes about "
         "its own events plus one chunk per column (bench.random_windows, decision 0012).",
     )
-    queue_items: int = Field(256, ge=4, description="Bound of the acquisition -> writer queue.")
+    queue_items: int = Field(256, ge=4, le=65536, description="Bound of the acquisition -> writer queue.")
     queue_put_timeout_s: float = Field(
-        2.0, gt=0, description="How long an acquisition thread waits on a full queue before counting a drop."
+        2.0,
+        gt=0,
+        le=600.0,
+        description="How long an acquisition thread waits on a full queue before counting a drop.",
     )
     flush_interval_s: float = Field(
         1.0,
@@ -84,11 +102,13 @@ class WriterConfig(BaseModel):
     disk_reserve_mb: int = Field(
         1024,
         ge=0,
+        le=10_000_000,
         description="A take does not start, and a running one stops cleanly, below this much free disk.",
     )
     disk_ballast_mb: int = Field(
         64,
         ge=0,
+        le=65_536,
         description="Disk space held while a take runs and freed if the disk fills anyway, so the "
         "take can still be closed.",
     )

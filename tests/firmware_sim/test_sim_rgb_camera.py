@@ -61,9 +61,14 @@ def world_name() -> Iterator[str]:
 
 
 def open_cam(world: str, name: str = "cam0", extra: str = "") -> SimRgbCamera:
-    return open_sim_camera(
-        DeviceSpec.parse(f"sim://{world}/{name}?offset_us=1503311&drift_ppm=80&width=320&height=180{extra}")
-    )
+    """A sim camera; `extra` ("&k=v...") adds parameters or replaces the defaults (a spec that
+    gives one twice is refused)."""
+    params = {"offset_us": "1503311", "drift_ppm": "80", "width": "320", "height": "180"}
+    for kv in filter(None, extra.split("&")):
+        key, value = kv.split("=", 1)
+        params[key] = value
+    query = "&".join(f"{k}={v}" for k, v in params.items())
+    return open_sim_camera(DeviceSpec.parse(f"sim://{world}/{name}?{query}"))
 
 
 def test_one_frame_per_rising_edge_with_exact_device_stamps(world_name: str) -> None:

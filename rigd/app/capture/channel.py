@@ -253,7 +253,7 @@ class DeviceChannel:
         gate = self.gate
         if self.live.state != "ok" or gate is None or gate.end_device_us is None:
             return True
-        return gate.closed
+        return gate.reached_end()
 
     def collect_counters(self) -> None:
         """Turn the device's counters into loss records: what the device lost, what the

@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import shutil
 import signal
 import threading
 import time
 import uuid
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
@@ -29,7 +31,7 @@ from drivers.base import Capability, RgbCamera
 from rigd import __version__
 from rigd.app.capture.ballast import Ballast, check_ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
-from rigd.app.capture.control import RunControl
+from rigd.app.capture.control import BoundedCalls, RunControl
 from rigd.app.capture.faults import DiskUsage, DiskWatch, FaultBoard, FlushWatch, TriggerWatchdog
 from rigd.app.capture.finalize import finalize_take, software_synced
 from rigd.app.capture.items import WriterQueue
@@ -40,7 +42,7 @@ from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnap
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
-from rigd.core.errors import RigdError, TakeError
+from rigd.core.errors import ConfigError, RigdError, TakeError
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.settings import EventSensorSettings
@@ -52,6 +54,41 @@ log = logging.getLogger(__name__)
 #: window's end is known before the devices deliver data past it (the box is stopped at once;
 #: the window ends at the earlier of its last pulse and this one).
 STOP_LEAD_S = 0.1
+#: The longest take a capture is asked for (the control socket's bound too): 7 days.
+MAX_DURATION_S = 7 * 86400.0
+#: What closing the devices may take at the very end, beyond the stop's own bound.
+CLOSE_BOUND_S = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class StopWait:
+    """How the stop's wait for the devices ended: `all_delivered` (every device delivered up to
+    the end of the take window), else the bound (`writer.stop_backlog_s`) ran out with `behind`
+    not there; `stuck`: devices whose stop did not return within the bound."""
+
+    all_delivered: bool
+    behind: tuple[str, ...]
+    waited_s: float
+    stuck: tuple[str, ...] = ()
+
+
+def check_duration(duration_s: float, what: str = "duration") -> None:
+    """A take's length: more than 0 s and at most `MAX_DURATION_S` (NaN and inf refused)."""
+    if not 0 < duration_s <= MAX_DURATION_S:
+        raise ConfigError(
+            f"{what} {duration_s:g} s: a take lasts more than 0 s and at most {MAX_DURATION_S:g} s (7 days)"
+        )
+
+
+def check_out_dir(out_dir: Path, what: str = "take directory") -> None:
+    """The take directory is one, or can be made, and is writable, before a device is opened."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"{what} {out_dir}: not a directory")
+    base = next((d for d in (out_dir, *out_dir.parents) if d.exists()), Path("."))
+    if not base.is_dir():
+        raise ConfigError(f"{what} {out_dir}: {base} is not a directory")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what} {out_dir}: {base} is not writable")
 
 
 def new_take_path(out_dir: Path, rig_name: str, label: str | None = None) -> Path:
@@ -81,8 +118,8 @@ class CaptureSession:
         reconnect_interval_s: float | None = None,
         disk_usage: DiskUsage = shutil.disk_usage,
     ) -> None:
-        if duration_s is not None and duration_s <= 0:
-            raise RigdError(f"duration must be positive, got {duration_s}")
+        if duration_s is not None:
+            check_duration(duration_s)
         self.config = config
         self.rate = config.trigger.settings.rate_hz
         self.n_pulses = None if duration_s is None else max(1, round(duration_s * self.rate))
@@ -127,6 +164,9 @@ class CaptureSession:
         self._result: CaptureResult | None = None
         self._error: BaseException | None = None
         self._done = threading.Event()
+        self._stops = BoundedCalls("device stop")
+        self.stop_wait: StopWait | None = None
+        """How the stop's wait for the devices ended (None until the take has stopped)."""
 
     # -- public API ----------------------------------------------------------------------
     @property
@@ -139,6 +179,8 @@ class CaptureSession:
             raise RigdError("a capture session can only be started once")
         self._state = "starting"
         self._t_wall = time.monotonic()
+        check_out_dir(self.out_dir)
+        made = [d for d in (self.out_dir, *self.out_dir.parents) if not d.exists()]
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             remove_stale_ballast(self.out_dir)
@@ -150,6 +192,7 @@ class CaptureSession:
             self._state = "failed"
             self._error = exc
             self._done.set()
+            self._remove_made_dirs(made)
             raise
         log.info(
             "capturing %s pulses at %.3f Hz into %s",
@@ -162,9 +205,21 @@ class CaptureSession:
         self._control_thread.start()
         return self.path
 
-    def request_stop(self, reason: str = "stop requested") -> None:
-        """Stop after the current pulse; the take is finalized as usual."""
-        self._control.request_stop(reason)
+    def _remove_made_dirs(self, made: list[Path]) -> None:
+        """A take that did not start leaves no directory it made behind (when nothing is in it)."""
+        for d in made:
+            try:
+                d.rmdir()
+            except FileNotFoundError:
+                continue
+            except OSError as exc:  # not empty: something else wrote there meanwhile
+                log.warning("leaving directory %s: %s", d, exc.strerror)
+                return
+
+    def request_stop(self, reason: str = "stop requested", *, hurry: bool = False) -> None:
+        """Stop after the current pulse; the take is finalized as usual. `hurry` (a signal): the
+        stop's waits end at `writer.stop_backlog_s` of wall-clock time, even on virtual time."""
+        self._control.request_stop(reason, hurry=hurry)
 
     def wait(self, timeout: float | None = None) -> CaptureResult | None:
         """The result once done (None on timeout); re-raises what ended the take."""
@@ -464,22 +519,28 @@ class CaptureSession:
         assert self._writer_thread is not None
         assert self._t_start is not None
         t_stop = time.monotonic()
+        self._control.enter_stop()
         emitted = self._stop_trigger(trigger)
         backlog_s = self.config.writer.stop_backlog_s
         self._enter("waiting for devices")
-        stopped = self._wait_for_window(backlog_s)
+        behind = self._wait_for_window(backlog_s)
         t_waited = time.monotonic()
         self._enter("draining")
         for ch in sorted(self._channels.values(), key=lambda c: c.kind != "event_sensor"):
-            if ch.name not in stopped:
-                ch.stop()
+            if ch.name not in self._stops:
+                self._stops.start(ch.name, ch.stop)
+        stuck = self._stops.join(t_waited + backlog_s)
         t_stopped = time.monotonic()
+        delivered = not behind and self._control.first_error is None
+        self.stop_wait = StopWait(delivered, tuple(behind), t_waited - t_stop, tuple(stuck))
         read_deadline = t_stopped + backlog_s
         for ch in self._channels.values():
             ch.read_deadline = read_deadline
         self._control.acquiring_done.set()
-        for th in self._threads:
-            th.join()
+        for th in self._threads:  # each ends at the read deadline (its reads time out)
+            th.join(max(0.0, read_deadline - time.monotonic()) + CLOSE_BOUND_S)
+            if th.is_alive():
+                log.error("take %s: %s still reading past the stop bound; left behind", self.path, th.name)
         log.info(
             "take %s stop: %.2f s waiting for the window end (stopping each device that reached it), "
             "%.2f s stopping the others, %.2f s reading what they still held",
@@ -557,31 +618,35 @@ class CaptureSession:
         )
         return kept
 
-    def _wait_for_window(self, backlog_s: float) -> set[str]:
+    def _wait_for_window(self, backlog_s: float) -> list[str]:
         """Until every device has delivered up to the end of the window (or is away), for at
-        most `backlog_s`. A device that has is stopped at once (it makes nothing more for the
-        take, and a loaded host gets its CPU back for the others); their names. On virtual
-        time the devices cannot fall behind, only the simulation be slow: the bound then counts
-        from the last progress any of them made."""
+        most `backlog_s`; the devices still behind then. A device that has is stopped at once
+        (it makes nothing more for the take, and a loaded host gets its CPU back for the
+        others), on its own thread (`BoundedCalls`). On virtual time the devices cannot fall
+        behind, only the simulation be slow: the bound then counts from the last progress one
+        of those still behind made, unless a signal asked for the stop (or a stop came while
+        the take was stopping): then the wait ends at the bound."""
+        control = self._control
         deadline = time.monotonic() + backlog_s
-        stopped: set[str] = set()
-        progress: list[int | None] = []
-        while self._control.first_error is None:
-            if self._virtual:
-                now_progress = [
-                    None if ch.gate is None else ch.gate.reached_us for ch in self._channels.values()
-                ]
-                if now_progress != progress:
-                    progress, deadline = now_progress, time.monotonic() + backlog_s
+        progress: dict[str, int | None] = {}
+        behind: list[str] = []
+        while control.first_error is None:
             behind = []
             for name, ch in self._channels.items():
                 if not ch.window_reached():
                     behind.append(name)
-                elif name not in stopped:
-                    ch.stop()
-                    stopped.add(name)
+                elif name not in self._stops:
+                    self._stops.start(name, ch.stop)
             if not behind:
                 break
+            if self._virtual and not control.hurry.is_set():
+                now_progress = {
+                    name: (gate.reached_us if (gate := self._channels[name].gate) is not None else None)
+                    for name in behind
+                }
+                if any(progress.get(name) != reached for name, reached in now_progress.items()):
+                    deadline = time.monotonic() + backlog_s
+                progress = now_progress
             if time.monotonic() >= deadline:
                 log.warning(
                     "take %s: %s not delivered up to the window end within writer.stop_backlog_s = %g s; "
@@ -592,7 +657,7 @@ class CaptureSession:
                 )
                 break
             time.sleep(0.02)
-        return stopped
+        return behind
 
     def _record_window(self) -> dict[str, dict[str, int]]:
         """Per device, what it delivered outside the window (into the ledger's journal); a
@@ -628,6 +693,21 @@ class CaptureSession:
                     "the rest of its window is not in the take",
                     (reached, end) if gate.mode != "host" else (None, None),
                 )
+        for name in () if self.stop_wait is None else self.stop_wait.stuck:
+            ch = self._channels[name]
+            line = (
+                f"{name}: its stop did not return within writer.stop_backlog_s = {backlog_s:g} s; what it "
+                "had not delivered by the read deadline is not in the take"
+            )
+            self._faults.note(line)
+            self._ledger.add(
+                name,
+                ch.what,
+                0,
+                "stop did not return within writer.stop_backlog_s; the device was left running and "
+                "what it had not delivered by then is not in the take (count unknown)",
+                (None if ch.gate is None else ch.gate.reached_us, None),
+            )
         return outside
 
     def _abort(self, exc: BaseException) -> None:
@@ -665,13 +745,22 @@ class CaptureSession:
                 self._ballast.release()
 
     def _close_devices(self) -> None:
-        for ch in self._channels.values():
-            ch.close()
-        if self._trigger is not None:
-            try:
-                self._trigger.device.close()
-            except RigdError as exc:
-                log.error("closing %s failed: %s", self._trigger.device.info.spec, exc)
+        """Close every device, together and within a bound (a device whose close does not return
+        is left behind, logged: the take is already sealed or marked failed)."""
+        closes = BoundedCalls("device close")
+        for name, ch in self._channels.items():
+            closes.start(name, ch.close)
+        trigger = self._trigger
+        if trigger is not None:
+
+            def close_trigger() -> None:
+                try:
+                    trigger.device.close()
+                except RigdError as exc:
+                    log.error("closing %s failed: %s", trigger.device.info.spec, exc)
+
+            closes.start("trigger", close_trigger)
+        closes.join(time.monotonic() + self.config.writer.stop_backlog_s + CLOSE_BOUND_S)
 
 
 class StopOnSignals:
@@ -704,7 +793,7 @@ class StopOnSignals:
         log.warning(
             "%s: stopping take %s; it is finalized as usual (again to abandon it)", name, self._session.path
         )
-        self._session.request_stop(f"{name} received")
+        self._session.request_stop(f"{name} received", hurry=True)
 
 
 def run_capture(

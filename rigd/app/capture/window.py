@@ -382,6 +382,19 @@ class WindowGate:
         if end is not None and self.reached_us is not None and self.reached_us >= end:
             self.closed = True
 
+    def reached_end(self) -> bool:
+        """Whether nothing of the window is still to come from the device: its data got to the
+        window end, or, for a camera triggered by the pulses, its frame of the take's last pulse
+        came (its last frame is at that pulse, never past the window end; the last pulse may be
+        fixed, by a stop, after that frame arrived)."""
+        if self.closed:
+            return True
+        last, ref = self.window.last_index, self._ref
+        if self.mode == "pulse_frames":
+            return last is not None and ref is not None and ref[1] >= last
+        end, reached = self.end_device_us, self.reached_us
+        return end is not None and reached is not None and reached >= end
+
     def still_to_come(self) -> tuple[int | None, int | None]:
         """(reached, window end) of a gate not closed: the span it has not delivered."""
         end = self.end_device_us
