@@ -50,7 +50,7 @@ from tests.rigd.test_take_roundtrip import make_take
 def _small_rig(world: str, **writer: Any) -> RigConfig:
     cfg = default_sim_rig(world=world, resolution=(160, 120), clock="virtual")
     data = cfg.model_dump(mode="json")
-    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 4, **writer})
+    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 24, **writer})
     return RigConfig.from_data(data)
 
 
@@ -309,7 +309,7 @@ def _jitter_rig(d: Path) -> list[str]:
     cfg = default_sim_rig(world=f"jit-{uuid.uuid4().hex[:8]}", resolution=(160, 120))
     data = cfg.model_dump(mode="json")
     data["trigger"]["spec"] = data["trigger"]["spec"].replace("jitter_us=2", "jitter_us=1e9")
-    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 4, "stop_backlog_s": 1.0})
+    data["writer"].update({"disk_reserve_mb": 0, "disk_ballast_mb": 24, "stop_backlog_s": 1.0})
     (d / "rig.json").write_text(json.dumps(data))
     return ["--config", str(d / "rig.json"), "--duration", "60"]
 

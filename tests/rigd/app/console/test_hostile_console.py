@@ -365,7 +365,7 @@ def outside_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cfg = default_sim_rig(world=f"ho-{uuid.uuid4().hex[:6]}", resolution=(64, 48), clock="virtual")
     data = cfg.model_dump(mode="json")
     data["writer"]["disk_reserve_mb"] = 0
-    data["writer"]["disk_ballast_mb"] = 1
+    data["writer"]["disk_ballast_mb"] = 24  # the minimum for this rig is about 20
     return run_capture(RigConfig.from_data(data), out, 0.5).path
 
 
