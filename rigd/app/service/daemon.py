@@ -292,7 +292,9 @@ class Daemon:
             return
         if not session.done:
             sdnotify.notify("STATUS=finalizing the running take", "EXTEND_TIMEOUT_USEC=120000000")
-            session.request_stop(reason)
+            # The daemon is going away (a signal, a shutdown, a dead control loop): the stop's waits
+            # end at writer.stop_backlog_s of wall-clock time, on virtual time too.
+            session.request_stop(reason, hurry=True)
         try:
             session.wait()
         except BaseException as exc:  # noqa: BLE001 - summarized into last_take
