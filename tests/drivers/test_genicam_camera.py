@@ -252,7 +252,8 @@ def test_errors_name_the_camera(fake_camera: None) -> None:
         _open("genicam://127.0.0.1?interface=127.0.0.1&roi=1,2,3")
     cam = _open()
     try:
-        with pytest.raises(ConfigError, match="exposure"):
-            cam.configure(CameraSettings(exposure_us=10**9))
+        # Within the settings' own bounds (1 us..10 s) but below the fake camera's 10 us minimum.
+        with pytest.raises(ConfigError, match="exposure 5 us outside"):
+            cam.configure(CameraSettings(exposure_us=5))
     finally:
         cam.close()
