@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import hmac
 import html
-import ipaddress
 import logging
 import os
 import secrets
@@ -36,6 +35,7 @@ from starlette.requests import HTTPConnection
 from starlette.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from rigd.app.service.hosts import is_loopback
 from rigd.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -48,17 +48,6 @@ MIN_TOKEN_CHARS = 16
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 _LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1", "[::1]"})
 _NO_STORE = {"Cache-Control": "no-store"}
-
-
-def is_loopback(host: str) -> bool:
-    """True for loopback addresses and `localhost`."""
-    host = host.strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def parse_bind(text: str, default_port: int = 8750) -> tuple[str, int]:

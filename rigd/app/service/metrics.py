@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import hmac
-import ipaddress
 import logging
 import socket
 import stat
@@ -47,6 +46,7 @@ from prometheus_client.registry import Collector
 
 from rigd import __version__
 from rigd.app.service import sdnotify
+from rigd.app.service.hosts import is_loopback
 from rigd.app.service.protocol import DaemonState, DeviceTelemetry, Fault, TakeSummary, Telemetry
 from rigd.core.errors import ConfigError
 
@@ -98,16 +98,6 @@ class _Deltas:
 
 #: Bearer tokens shorter than this are refused (guessable).
 MIN_TOKEN_CHARS = 16
-
-
-def _is_loopback(host: str) -> bool:
-    host = host.strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def read_token_file(path: Path) -> str:
@@ -165,7 +155,7 @@ class MetricsExporter:
     ) -> None:
         """ConfigError, before anything binds, for a non-loopback host without a token file (or a
         token file that is unreadable, open to others or too short)."""
-        if token_file is None and not _is_loopback(host):
+        if token_file is None and not is_loopback(host):
             raise ConfigError(
                 f"service.metrics_host: {host} would serve metrics beyond loopback without "
                 "authentication; set service.metrics_token_file (a bearer token) or a loopback address"
