@@ -138,7 +138,7 @@ def capture(
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
     from rigd.app.capture import new_take_path, run_capture
-    from rigd.app.capture.session import check_duration, check_out_dir
+    from rigd.app.capture.request import check_duration, check_out_dir
     from rigd.app.inspect import summarize
 
     if sim_clock not in ("real", "virtual"):

@@ -8,13 +8,15 @@ Modules, in the order data flows through them:
 - `faults`: the fault board and the trigger / disk / flush watchdogs;
 - `preflight`: the rig's devices can do what the config asks;
 - `finalize`: fit every device clock, say why the take ended, seal it;
-- `session`: `CaptureSession` and `run_capture`, which wire the rest together;
+- `request`: what a take is asked for (length, directory, file name), checked up front;
+- `session`: `CaptureSession`, which wires the rest together; `run`: `run_capture`, blocking;
 - `results`, `live`, `control`, `ballast`: what is reported, live counters, stopping, disk ballast.
 """
 
 from rigd.app.capture.ballast import Ballast, remove_stale_ballast
 from rigd.app.capture.channel import pulse_log
 from rigd.app.capture.faults import FLUSH_STALL_SLACK_S
+from rigd.app.capture.request import new_take_path
 from rigd.app.capture.results import (
     ActiveFault,
     CaptureResult,
@@ -24,7 +26,8 @@ from rigd.app.capture.results import (
     SessionSnapshot,
     SessionState,
 )
-from rigd.app.capture.session import CaptureSession, new_take_path, run_capture
+from rigd.app.capture.run import run_capture
+from rigd.app.capture.session import CaptureSession
 
 __all__ = [
     "FLUSH_STALL_SLACK_S",

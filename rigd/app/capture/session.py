@@ -1,5 +1,5 @@
-"""One take from start to sealed file: `CaptureSession` (background, stoppable, watched) and
-`run_capture` (blocking).
+"""One take from start to sealed file: `CaptureSession` (background, stoppable, watched); the
+blocking `run_capture` is in `run`.
 
 The session opens every device through its channel, refuses a rig that cannot do what its
 config asks (`preflight`), starts the writer thread and one acquisition thread per device,
@@ -14,18 +14,11 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import shutil
-import signal
 import threading
 import time
-import uuid
-from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
-from types import FrameType
-from typing import Any
 
 from drivers.base import Capability, RgbCamera
 from rigd import __version__
@@ -38,11 +31,12 @@ from rigd.app.capture.items import WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.app.capture.preflight import check_rig, warm_up
+from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
-from rigd.core.errors import ConfigError, RigdError, TakeError
+from rigd.core.errors import RigdError, TakeError
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.settings import EventSensorSettings
@@ -54,8 +48,6 @@ log = logging.getLogger(__name__)
 #: window's end is known before the devices deliver data past it (the box is stopped at once;
 #: the window ends at the earlier of its last pulse and this one).
 STOP_LEAD_S = 0.1
-#: The longest take a capture is asked for (the control socket's bound too): 7 days.
-MAX_DURATION_S = 7 * 86400.0
 #: What closing the devices may take at the very end, beyond the stop's own bound.
 CLOSE_BOUND_S = 5.0
 
@@ -70,31 +62,6 @@ class StopWait:
     behind: tuple[str, ...]
     waited_s: float
     stuck: tuple[str, ...] = ()
-
-
-def check_duration(duration_s: float, what: str = "duration") -> None:
-    """A take's length: more than 0 s and at most `MAX_DURATION_S` (NaN and inf refused)."""
-    if not 0 < duration_s <= MAX_DURATION_S:
-        raise ConfigError(
-            f"{what} {duration_s:g} s: a take lasts more than 0 s and at most {MAX_DURATION_S:g} s (7 days)"
-        )
-
-
-def check_out_dir(out_dir: Path, what: str = "take directory") -> None:
-    """The take directory is one, or can be made, and is writable, before a device is opened."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ConfigError(f"{what} {out_dir}: not a directory")
-    base = next((d for d in (out_dir, *out_dir.parents) if d.exists()), Path("."))
-    if not base.is_dir():
-        raise ConfigError(f"{what} {out_dir}: {base} is not a directory")
-    if not os.access(base, os.W_OK | os.X_OK):
-        raise ConfigError(f"{what} {out_dir}: {base} is not writable")
-
-
-def new_take_path(out_dir: Path, rig_name: str, label: str | None = None) -> Path:
-    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    middle = f"-{label}" if label else ""
-    return out_dir / f"{rig_name}{middle}-{stamp}-{uuid.uuid4().hex[:6]}.h5"
 
 
 class CaptureSession:
@@ -761,77 +728,3 @@ class CaptureSession:
 
             closes.start("trigger", close_trigger)
         closes.join(time.monotonic() + self.config.writer.stop_backlog_s + CLOSE_BOUND_S)
-
-
-class StopOnSignals:
-    """While active (main thread only), the given signals stop the session as a user's stop
-    does: the take is drained and finalized. A second signal raises KeyboardInterrupt, which
-    abandons the take unfinished (`rigd recover` seals it)."""
-
-    def __init__(self, session: CaptureSession, signals: Iterable[int]) -> None:
-        self._session = session
-        self._signals = list(signals)
-        self._previous: dict[int, Any] = {}
-        self.received: int | None = None
-
-    def __enter__(self) -> StopOnSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in self._signals:
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-    def _handle(self, signum: int, frame: FrameType | None) -> None:
-        name = signal.Signals(signum).name
-        if self.received is not None:
-            log.error("%s again while the take was being finalized: abandoning %s", name, self._session.path)
-            raise KeyboardInterrupt
-        self.received = signum
-        log.warning(
-            "%s: stopping take %s; it is finalized as usual (again to abandon it)", name, self._session.path
-        )
-        self._session.request_stop(f"{name} received", hurry=True)
-
-
-def run_capture(
-    config: RigConfig,
-    out_dir: Path,
-    duration_s: float,
-    *,
-    on_progress: Callable[[Progress], None] | None = None,
-    path: Path | None = None,
-    label: str | None = None,
-    reconnect_interval_s: float | None = None,
-    stop_signals: Iterable[int] = (),
-) -> CaptureResult:
-    """Capture one take of `duration_s` seconds of trigger pulses and return its summary.
-
-    `stop_signals` (e.g. SIGINT, SIGTERM, SIGHUP for a command line) end the take early and
-    cleanly; the result then says which one (`stop_signal`). Without them a KeyboardInterrupt
-    still stops and finalizes the take before it propagates."""
-    session = CaptureSession(
-        config,
-        out_dir,
-        duration_s=duration_s,
-        path=path,
-        label=label,
-        reconnect_interval_s=reconnect_interval_s,
-    )
-    session.start()
-    with StopOnSignals(session, stop_signals) as signals:
-        try:
-            while (result := session.wait(0.05)) is None:
-                if on_progress:
-                    on_progress(session.progress())
-        except KeyboardInterrupt:
-            if signals.received is None:
-                session.request_stop("interrupted")
-                session.wait()
-            raise
-    if on_progress:
-        on_progress(session.progress())
-    result.stop_signal = signals.received
-    return result
