@@ -42,13 +42,15 @@ _registered: dict[tuple[str, str], Factory | str] = {}
 
 @dataclass(frozen=True, slots=True)
 class DeviceSpec:
-    """A parsed device spec. `params` holds the query string, values as strings."""
+    """A parsed device spec. `params` holds the query string, values as strings; `repeated`
+    the names the query gave more than once (`params` keeps the last; `check_params` refuses)."""
 
     raw: str
     scheme: str
     location: str
     path: str
     params: dict[str, str] = field(default_factory=dict)
+    repeated: tuple[str, ...] = ()
 
     @classmethod
     def parse(cls, spec: str) -> DeviceSpec:
@@ -62,10 +64,12 @@ class DeviceSpec:
         if not parts.scheme:
             raise ConfigError(f"device spec {spec!r} has no scheme")
         try:
-            params = dict(parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query)))
+            pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
         except ValueError as exc:
             raise ConfigError(f"device spec {spec!r}: bad query string: {exc}") from exc
-        return cls(spec, parts.scheme.lower(), parts.netloc, parts.path, params)
+        names = [name for name, _ in pairs]
+        repeated = tuple(sorted({n for n in names if names.count(n) > 1}))
+        return cls(spec, parts.scheme.lower(), parts.netloc, parts.path, dict(pairs), repeated)
 
     def param(self, name: str, default: str) -> str:
         return self.params.get(name, default)
@@ -98,7 +102,12 @@ class DeviceSpec:
             ) from None
 
     def check_params(self, allowed: set[str]) -> None:
-        """Reject unknown parameters: a typo must not be ignored silently."""
+        """Reject unknown and repeated parameters: a typo must not be ignored silently, nor one
+        of two values for the same name."""
+        if self.repeated:
+            raise ConfigError(
+                f"device spec {self.raw!r}: parameter(s) given more than once: {', '.join(self.repeated)}"
+            )
         unknown = sorted(set(self.params) - allowed)
         if unknown:
             raise ConfigError(

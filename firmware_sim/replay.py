@@ -43,7 +43,7 @@ from drivers.serial_trigger import SerialTrigger
 from firmware_sim.clock import Hold
 from firmware_sim.event_sensor import SLICE_US, _Packet
 from firmware_sim.spec_params import ReplayCameraParams, ReplaySensorParams, ReplayTriggerParams, check_params
-from firmware_sim.trigger_box import BOX_PARAMS, START_LEAD_US, SimTriggerBox, open_box_trigger
+from firmware_sim.trigger_box import START_LEAD_US, SimTriggerBox, open_box_trigger
 from firmware_sim.world import (
     DeviceClock,
     SimWorld,
@@ -65,9 +65,6 @@ from rigd.take import Take
 log = logging.getLogger(__name__)
 
 SCHEME = "replay"
-_FAULT_PARAMS = {"unplug_at_s", "unplug_for_s", "clock_reset"}
-_CAMERA_PARAMS = {"device", "clock", "buffer_frames", "drop_frames", *_FAULT_PARAMS}
-_SENSOR_PARAMS = {"device", "clock", "buffer_packets", *_FAULT_PARAMS}
 #: A device runs at most this many buffers ahead of its reader on virtual time.
 _VIRTUAL_LEAD = 4
 #: Events read from the take at a time by a replayed sensor (whole LZ4 chunks, once each).
@@ -342,7 +339,6 @@ class ReplayTriggerBox(SimTriggerBox):
 
 def open_replay_trigger(spec: DeviceSpec) -> SerialTrigger:
     """Factory for `replay:///abs/take.h5?device=trigger` (+ the box's fault switches)."""
-    spec.check_params({*BOX_PARAMS, "device"} - {"offset_us", "drift_ppm", "jitter_us"})
     check_params(spec, ReplayTriggerParams, "replayed trigger box")
     world, _, _ = replay_world(spec)
     return open_box_trigger(spec, world, ReplayTriggerBox)
@@ -497,7 +493,6 @@ class ReplayCamera(Unpluggable, RgbCamera):
 
 def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
     """Factory for `replay:///abs/take.h5?device=cam0[&buffer_frames=&drop_frames=&unplug_at_s=]`."""
-    spec.check_params(_CAMERA_PARAMS)
     check_params(spec, ReplayCameraParams, f"replayed camera {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
     buffer_frames = spec.int_param("buffer_frames", 32)
@@ -706,7 +701,6 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
 
 def open_replay_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
     """Factory for `replay:///abs/take.h5?device=ev0[&buffer_packets=&unplug_at_s=]`."""
-    spec.check_params(_SENSOR_PARAMS)
     check_params(spec, ReplaySensorParams, f"replayed event sensor {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
     buffer_packets = spec.int_param("buffer_packets", 1024)

@@ -11,7 +11,6 @@ device, the parameter and the allowed range, never a traceback, a hang or a huge
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal, TypeVar
-from urllib.parse import parse_qsl, urlsplit
 
 from annotated_types import Ge, Gt, Le, Lt
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -185,21 +184,13 @@ def _metadata(annotation: Any, own: list[Any]) -> list[Any]:
     return found
 
 
-def repeated_params(spec: DeviceSpec) -> list[str]:
-    """Parameter names the spec's query gives more than once (the parsed spec keeps one)."""
-    query = urlsplit(spec.raw.strip()).query
-    names = [k for k, _ in parse_qsl(query, keep_blank_values=True)]
-    return sorted({n for n in names if names.count(n) > 1})
-
-
 def check_params(spec: DeviceSpec, model: type[P], device: str) -> P:
     """The spec's parameters as `model`, or a ConfigError naming the device, the parameter and
     what it allows. Unknown and repeated parameters are refused too."""
     where = f"device spec {spec.raw!r} ({device})"
+    if spec.repeated:
+        raise ConfigError(f"{where}: parameter(s) given more than once: {', '.join(spec.repeated)}")
     spec.check_params(set(model.model_fields))
-    repeated = repeated_params(spec)
-    if repeated:
-        raise ConfigError(f"{where}: parameter(s) given more than once: {', '.join(repeated)}")
     try:
         return model.model_validate(spec.params)
     except ValidationError as exc:
@@ -230,5 +221,4 @@ __all__ = [
     "SimTriggerParams",
     "allowed_range",
     "check_params",
-    "repeated_params",
 ]

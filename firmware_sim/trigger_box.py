@@ -660,7 +660,6 @@ def find_trigger_box(world: SimWorld) -> SimTriggerBox | None:
 
 def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
     """Factory for `sim://<world>/trigger?...` (see `open_box_trigger`)."""
-    spec.check_params(BOX_PARAMS)
     check_params(spec, SimTriggerParams, "trigger box")
     return open_box_trigger(spec, spec_world(spec), SimTriggerBox)
 
