@@ -25,7 +25,8 @@ import math
 
 import numpy as np
 
-from rigd.app.export.common import ExportPlan, h5_output
+from rigd.app.export.common import ExportPlan
+from rigd.app.export.outputs import h5_output
 from rigd.app.export.sensors import rectify_map, sensor_calibration
 from rigd.app.workflows.progress import ProgressUpdate
 

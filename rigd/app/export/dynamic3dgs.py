@@ -19,7 +19,8 @@ import logging
 
 import numpy as np
 
-from rigd.app.export.common import ExportPlan, write_image
+from rigd.app.export.common import ExportPlan
+from rigd.app.export.outputs import write_image
 from rigd.app.export.points import triangulate
 from rigd.core.errors import ConfigError
 

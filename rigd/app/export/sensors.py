@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from reconstruction.representations import voxel_grid
-from rigd.app.export.common import ExportPlan, h5_output, pinhole_for
+from rigd.app.export.common import ExportPlan, pinhole_for
+from rigd.app.export.outputs import h5_output
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError
 
