@@ -27,7 +27,7 @@ N_CODES = 10
 MAX_SKIP_OFFSETS = 8
 SKIP_COUNT = N_CODES
 SKIP_POS = N_CODES + 1
-# Then the time jumps a kernel accepted in this call (see `kernels.record_jump`): slot JUMP_COUNT
+# Then the time jumps a kernel accepted in this call (see `kernels.accept_jump`): slot JUMP_COUNT
 # counts them, JUMP_REC.. holds JUMP_FIELDS values each (word position, old and new TIME_HIGH base
 # on the stream's clock, the shift applied from there on, events decoded while confirming). A
 # kernel whose slots are full stops before the next jump; the decoder empties them after each call.

@@ -50,12 +50,12 @@ from drivers.evt.kernels import (
     DecodeOut,
     T,
     X,
+    accept_jump,
     ctpop,
     keep_last_times,
     last_time,
     put_checked,
     put_trigger,
-    record_jump,
     skipped,
     violation,
 )
@@ -189,10 +189,7 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                     else:
                         if stats[JUMP_COUNT] >= MAX_JUMP_RECORDS:
                             break  # the decoder takes the records and comes back here
-                        # the new base goes on one period after the old one: later times shifted
-                        shift += (th - v + 1) << 6
-                        old, new = (loop << 34) | (th << 6), (loop << 34) | (v << 6)
-                        record_jump(stats, pos, old, new, shift, held)
+                        shift = accept_jump(stats, pos, loop << 34, th, v, 6, shift, held)
                         th = v
                         tbase = ((loop << 34) | (th << 6)) + shift
                 elif (

@@ -51,13 +51,13 @@ from drivers.evt.kernels import (
     DecodeOut,
     T,
     X,
+    accept_jump,
     ctpop,
     keep_last_times,
     last_time,
     put_checked,
     put_run,
     put_trigger,
-    record_jump,
     skipped,
     violation,
 )
@@ -324,10 +324,7 @@ def decode_kernel(
                 else:
                     if stats[JUMP_COUNT] >= MAX_JUMP_RECORDS:
                         break  # the decoder takes the records and comes back here
-                    # the new base goes on one period after the old one: later times are shifted
-                    shift += (th - v12 + 1) << 12
-                    old, new = (loop << 24) | (th << 12), (loop << 24) | (v12 << 12)
-                    record_jump(stats, pos, old, new, shift, held)
+                    shift = accept_jump(stats, pos, loop << 24, th, v12, 12, shift, held)
                     th = v12
                     tcur = ((loop << 24) | (th << 12)) + shift
             elif (

@@ -192,15 +192,20 @@ def put_trigger(out: DecodeOut, nt: int, t: int, p: int, channel: int) -> int:  
 
 
 @njit(inline="always")
-def record_jump(  # pragma: no cover - numba
-    stats: I64, pos: int, old_base: int, new_base: int, shift: int, held: int
-) -> None:
-    """Keep an accepted time jump for the decoder (a free slot is the caller's to check)."""
+def accept_jump(  # pragma: no cover - numba
+    stats: I64, pos: int, loop_base: int, th: int, v: int, th_shift: int, shift: int, held: int
+) -> int:
+    """Accept a jump back of TIME_HIGH from `th` to `v` (a value counts 1 << `th_shift` us;
+    `loop_base` is the loop's time): the new base goes on one period after the old one, so
+    every later time is shifted further; the jump is kept for the decoder (a free slot is the
+    caller's to check). The shift from here on."""
+    shift += (th - v + 1) << th_shift
     k = stats[JUMP_COUNT]
     r = JUMP_REC + k * JUMP_FIELDS
     stats[r] = pos
-    stats[r + 1] = old_base
-    stats[r + 2] = new_base
+    stats[r + 1] = loop_base | (th << th_shift)
+    stats[r + 2] = loop_base | (v << th_shift)
     stats[r + 3] = shift
     stats[r + 4] = held
     stats[JUMP_COUNT] = k + 1
+    return shift
