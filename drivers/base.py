@@ -26,7 +26,7 @@ from pydantic import BaseModel
 from drivers.lifecycle import Acquisition, DeliveryQueue, Drop, Signal
 from rigd.core.devices import DeviceInfo, DeviceKind, PulseBatch
 from rigd.core.errors import ConfigError, DeviceError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
 
@@ -104,15 +104,6 @@ class AcquisitionStats:
     device_dropped: int = 0
     """Lost inside the device or its transport (buffer overrun, incomplete buffers)."""
     extra: dict[str, int] = field(default_factory=dict)
-
-
-@dataclass(frozen=True, slots=True)
-class EventPacket:
-    """Events and trigger edges read in one call, both in the sensor's clock."""
-
-    events: EventArray
-    triggers: TriggerEvents
-    host_time_ns: int
 
 
 _NOUNS: dict[DeviceKind, str] = {"rgb_camera": "camera", "event_sensor": "event sensor", "trigger": "trigger"}

@@ -14,10 +14,11 @@ import logging
 import time
 from typing import Generic, Protocol, TypeVar
 
-from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
+from drivers.base import AcquisitionStats, Capability, EventSensor
 from drivers.evt import StreamDecoder, warm_up_decoder
 from drivers.lifecycle import Acquisition, DeliveryQueue, Signal
 from rigd.core.devices import DeviceInfo
+from rigd.core.events import EventPacket
 from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)

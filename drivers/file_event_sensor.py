@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import Capability, EventPacket, EventSensor
+from drivers.base import Capability, EventSensor
 from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, read_dat, warm_up_decoder
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, EventDataError
-from rigd.core.events import TriggerEvents
+from rigd.core.events import EventPacket, TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from pydantic import BaseModel
 
-from drivers.base import AcquisitionStats, Capability, EventPacket, EventSensor
+from drivers.base import AcquisitionStats, Capability, EventSensor
 from drivers.testing.lifecycle import Acquiring, AcquiringDeviceContract
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
 Pulse = Callable[[int], object]

@@ -134,3 +134,40 @@ class TriggerEvents:
             np.concatenate([e.p for e in parts]),
             np.concatenate([e.channel for e in parts]),
         )
+
+
+@dataclass(frozen=True, slots=True)
+class EvtChunk:
+    """The wire bytes an event packet was decoded from, so a take can store them as sent.
+
+    `data` holds whole words of the `fmt` stream; decoding them with a decoder whose state is
+    `state` (the format's decoder state array just before the first byte, nothing held back)
+    gives exactly the packet's events and trigger edges. `stream` names the byte stream (a new
+    one after a reconnect), `offset` is where `data` starts in it: two chunks follow each other
+    without a gap when the second starts where the first ends in the same stream.
+    """
+
+    fmt: str
+    data: bytes
+    state: NDArray[np.int64]
+    stream: int
+    offset: int
+
+    @property
+    def end(self) -> int:
+        return self.offset + len(self.data)
+
+    def continues(self, prev: EvtChunk | None) -> bool:
+        """Whether this chunk starts where `prev` ended, in the same stream."""
+        return prev is not None and prev.stream == self.stream and prev.end == self.offset
+
+
+@dataclass(frozen=True, slots=True)
+class EventPacket:
+    """Events and trigger edges read in one call, both in the sensor's clock; `raw`: the
+    bytes they were decoded from, for sensors that send an EVT stream (None otherwise)."""
+
+    events: EventArray
+    triggers: TriggerEvents
+    host_time_ns: int
+    raw: EvtChunk | None = None

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import Capability, EventPacket, EventSensor
+from drivers.base import Capability, EventSensor
 from drivers.evt import RawHeader, read_raw, write_dat, write_raw
 from drivers.registry import open_device
 from drivers.testing.event_sensor import EventSensorLifecycleContract
 from rigd.core.errors import ConfigError, DeviceError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.settings import EventSensorSettings
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"

@@ -10,11 +10,12 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from drivers.base import Capability, EventPacket, EventSensor, RgbCamera, Trigger, missing_capabilities
+from drivers.base import Capability, EventSensor, RgbCamera, Trigger, missing_capabilities
 from drivers.lifecycle import END, Acquisition, DeliveryQueue, Signal
 from drivers.testing.camera import FreeRunCameraContract, drain
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
 

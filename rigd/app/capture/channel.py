@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from drivers.base import Capability, EventPacket, EventSensor, RgbCamera, Trigger
+from drivers.base import Capability, EventSensor, RgbCamera, Trigger
 from drivers.registry import open_device
 from rigd.app.capture.clock_reset import MAX_HOLD_S, MAX_OBSERVATIONS, ClockReset, estimate_offset
 from rigd.app.capture.control import RunControl
@@ -28,7 +28,7 @@ from rigd.app.capture.live import Gap, LiveStats, Observations
 from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError, DeviceError, RigdError
-from rigd.core.events import EventArray
+from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings

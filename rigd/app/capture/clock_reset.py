@@ -21,7 +21,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from drivers.base import EventPacket
+from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.sync import DeviceObservations, PulseLog, host_to_rig_map, match_device
 

@@ -12,11 +12,11 @@ import queue
 from dataclasses import dataclass
 from typing import ClassVar
 
-from drivers.base import EventPacket
 from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.core.devices import PulseBatch
+from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
 

@@ -42,8 +42,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import EventPacket
 from rigd.core.errors import RigdError
+from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 
 log = logging.getLogger(__name__)

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.base import EventPacket
 from rigd.app.capture.clock_reset import MAX_HOLD_S, MIN_OBSERVATIONS, ClockReset, Offset, estimate_offset
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.sync import PulseLog
 

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import EventPacket
 from rigd.app.capture.channel import DeviceChannel, pulse_log
 from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import DiskWatch, FaultBoard, FlushWatch
@@ -18,7 +17,7 @@ from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats, Observations
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 
 Usage = namedtuple("Usage", "total used free")

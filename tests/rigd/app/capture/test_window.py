@@ -18,14 +18,13 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from drivers.base import EventPacket
 from rigd.app.capture import CaptureSession, run_capture
 from rigd.app.capture.channel import DeviceChannel, TriggerChannel
 from rigd.app.capture.session import STOP_LEAD_S
 from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.app.config import default_sim_rig
 from rigd.core.devices import PulseBatch
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.settings import WriterConfig
 from rigd.take.reader import Take
