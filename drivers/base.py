@@ -52,7 +52,8 @@ class Capability(enum.StrEnum):
     EXPOSURE_CONTROL = "exposure_control"
     """Camera applies `exposure_us` (within its bounds); without it the exposure is its own."""
     COLOR = "color"
-    """Camera can deliver RGB frames (`pixel_format = "rgb8"`)."""
+    """Camera can deliver colour frames (`pixel_format = "rgb8"`; `"bayer_rg8"` needs the
+    backend to offer the raw mosaic too, which its configure() checks)."""
     TRIGGER_IN = "trigger_in"
     """Event sensor delivers the rig's trigger edges as trigger events in its own clock."""
     CLOCK_SYNC = "clock_sync"
@@ -69,7 +70,7 @@ _WHY: dict[Capability, str] = {
     "(use 'free_run': frames are then matched to pulses by host time)",
     Capability.FREE_RUN: "trigger_mode 'free_run' needs a camera that runs on its own clock",
     Capability.EXPOSURE_CONTROL: "an exposure_us other than the default needs a settable exposure",
-    Capability.COLOR: "pixel_format 'rgb8' needs a color camera",
+    Capability.COLOR: "pixel_format 'rgb8' or 'bayer_rg8' needs a color camera",
     Capability.TRIGGER_IN: "enable_trigger_in needs trigger edges from the sensor "
     "(set enable_trigger_in = false)",
     Capability.CLOCK_SYNC: "sync_mode master/slave needs a sensor with a sync cable input",
@@ -370,13 +371,20 @@ class RgbCamera(AcquiringDevice[Frame, CameraSettings]):
     @abc.abstractmethod
     def frame_dtype(self) -> np.dtype[np.generic]: ...
 
+    @property
+    def pixel_format(self) -> str:
+        """What the frames hold under the current settings (rigd.core.pixels.PIXEL_FORMATS): the
+        configured format, else mono8 or rgb8 by the frame shape. Backends whose default can be
+        a Bayer mosaic override it, since an (H, W) mosaic looks like mono8."""
+        return self._settings.pixel_format or ("rgb8" if len(self.frame_shape) == 3 else "mono8")
+
     def required_capabilities(self, settings: CameraSettings) -> frozenset[Capability]:
         """Hardware mode needs HARDWARE_TRIGGER, free-run FREE_RUN; a non-default exposure
-        needs EXPOSURE_CONTROL and RGB frames COLOR."""
+        needs EXPOSURE_CONTROL and colour frames (rgb8, bayer_rg8) COLOR."""
         needs = {Capability.HARDWARE_TRIGGER if settings.trigger_mode == "hardware" else Capability.FREE_RUN}
         if settings.exposure_us != _DEFAULT_EXPOSURE_US:
             needs.add(Capability.EXPOSURE_CONTROL)
-        if settings.pixel_format == "rgb8":
+        if settings.pixel_format in ("rgb8", "bayer_rg8"):
             needs.add(Capability.COLOR)
         return frozenset(needs)
 

@@ -14,7 +14,9 @@ class Frame:
 
     `t_exposure_start_us` is in the camera's own clock until the sync engine maps it;
     `host_time_ns` is the host's monotonic clock when the driver received the frame,
-    used only for coarse pulse matching, never as a timestamp.
+    used only for coarse pulse matching, never as a timestamp. `pixel_format` says what the
+    image holds where its shape cannot (`bayer_rg8`: a raw (H, W) mosaic, see rigd.core.pixels);
+    None means mono8 for (H, W) and rgb8 for (H, W, 3).
     """
 
     image: NDArray[np.generic]
@@ -23,6 +25,7 @@ class Frame:
     frame_counter: int
     host_time_ns: int
     pulse_index: int = -1
+    pixel_format: str | None = None
 
     @property
     def shape(self) -> tuple[int, ...]:

@@ -23,8 +23,10 @@ class CameraSettings(BaseModel):
     trigger_mode: Literal["hardware", "free_run"] = "hardware"
     exposure_us: int = Field(10_000, gt=0, le=10_000_000, description="Exposure time in microseconds.")
     gain_db: float = Field(0.0, ge=0.0, le=60.0)
-    pixel_format: Literal["mono8", "rgb8"] | None = Field(
-        None, description="None keeps the camera's default format."
+    pixel_format: Literal["mono8", "rgb8", "bayer_rg8"] | None = Field(
+        None,
+        description="None keeps the camera's default format. bayer_rg8: the raw RGGB mosaic, "
+        "1 byte/pixel, stored as sent and demosaiced on read (rigd.core.pixels).",
     )
     free_run_fps: float = Field(30.0, gt=0.0, le=10_000.0)
 
