@@ -57,6 +57,7 @@ from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError, RigdError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
+from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import DeviceSync, SyncReport
 from rigd.core.settings import CameraSettings, EventSensorSettings
 from rigd.core.timebase import ClockMap
@@ -83,6 +84,8 @@ class CameraTrack:
     shape: tuple[int, ...]
     cmap: ClockMap | None
     """The camera's clock map (None for a camera the sync report has no fit for)."""
+    pixel_format: str = "rgb8"
+    """As recorded; a Bayer mosaic is replayed as it is."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -200,6 +203,7 @@ class Recording:
     def _camera(f: h5py.File, name: str, report: SyncReport) -> CameraTrack:
         g = f[f"frames/{name}"]
         n = int(g["images"].shape[0])
+        shape = tuple(int(v) for v in g["images"].shape[1:])
         sync = report.devices.get(name)
         cmap = (
             None if sync is None else ClockMap(sync.device_ref_us, sync.rig_ref_us, sync.rate, sync.frac_us)
@@ -210,8 +214,9 @@ class Recording:
             np.asarray(g["t_exposure_start_device_us"][:n], np.int64),
             np.asarray(g["frame_counter"][:n], np.int64),
             np.asarray(g["exposure_us"][:n], np.int64),
-            tuple(int(v) for v in g["images"].shape[1:]),
+            shape,
             cmap,
+            stored_pixel_format(g.attrs, shape, f"replay {f.filename}: /frames/{name}"),
         )
 
     def pulse_time(self, k: int) -> int | None:
@@ -396,7 +401,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
 
     @property
     def pixel_format(self) -> str:
-        return "mono8" if len(self._track.shape) == 2 else "rgb8"
+        return self._track.pixel_format
 
     @property
     def frame_shape(self) -> tuple[int, ...]:
@@ -488,6 +493,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
             exposure_us=int(track.exposure_us[j]),
             frame_counter=counter,
             host_time_ns=time.monotonic_ns(),
+            pixel_format=self._track.pixel_format,
         )
 
 

@@ -36,6 +36,7 @@ from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wa
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.frames import Frame
+from rigd.core.pixels import PIXEL_FORMATS, frame_shape, mosaic_rggb
 from rigd.core.settings import CameraSettings
 
 log = logging.getLogger(__name__)
@@ -94,8 +95,10 @@ class SimRgbCamera(Unpluggable, RgbCamera):
     def __init__(self, where: Placement, params: CameraParams | None = None) -> None:
         p = params or CameraParams()
         world, name = where.world, where.name
-        if p.pixel_format not in ("mono8", "rgb8"):
-            raise ConfigError(f"camera {name}: pixel format {p.pixel_format!r} (use mono8 or rgb8)")
+        if p.pixel_format not in PIXEL_FORMATS:
+            raise ConfigError(
+                f"camera {name}: pixel format {p.pixel_format!r} (use {', '.join(PIXEL_FORMATS)})"
+            )
         if p.buffer_frames < 1:
             raise ConfigError(f"camera {name}: buffer_frames must be >= 1, got {p.buffer_frames}")
         if p.busy_us < 0:
@@ -148,7 +151,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
 
     @property
     def frame_shape(self) -> tuple[int, ...]:
-        return self._image_hw if self.pixel_format == "mono8" else (*self._image_hw, 3)
+        return frame_shape(*self._image_hw, self.pixel_format)
 
     @property
     def frame_dtype(self) -> np.dtype[np.generic]:
@@ -303,8 +306,10 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             return not self._started or self._dead(self._world.now_us())
 
     def _render(self, job: _Exposure) -> NDArray[np.uint8]:
-        gray = self.pixel_format == "mono8"
-        img = self._scene.render(self._view, job.true_us + job.exposure_us / 2.0, gray=gray)
+        fmt = self.pixel_format
+        img = self._scene.render(self._view, job.true_us + job.exposure_us / 2.0, gray=fmt == "mono8")
+        if fmt == "bayer_rg8":
+            img = mosaic_rggb(img)  # what a colour sensor's filter array lets through
         gain = (job.exposure_us / _NOMINAL_EXPOSURE_US) * 10.0 ** (self._settings.gain_db / 20.0)
         if abs(gain - 1.0) > 1e-3:
             img = np.asarray(cv2.convertScaleAbs(img, alpha=gain), dtype=np.uint8)
@@ -349,6 +354,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             exposure_us=job.exposure_us,
             frame_counter=job.counter,
             host_time_ns=time.monotonic_ns(),
+            pixel_format=self.pixel_format,
         )
         with self._lock:
             # Under the lock, so an unplug noted meanwhile sees this frame in the buffer or not at all.
@@ -371,9 +377,9 @@ class SimRgbCamera(Unpluggable, RgbCamera):
 
 
 def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
-    """Factory for `sim://<world>/<name>?format=&buffer_frames=&drop_frames=` besides the
-    placement parameters (`firmware_sim.placement`: offset_us, drift_ppm, seed, width, height,
-    scene=sprites|board).
+    """Factory for `sim://<world>/<name>?format=mono8|rgb8|bayer_rg8&buffer_frames=&drop_frames=`
+    besides the placement parameters (`firmware_sim.placement`: offset_us, drift_ppm, seed,
+    width, height, scene=sprites|board). `bayer_rg8` delivers the RGGB mosaic of the RGB render.
 
     Fault switches: `busy_us=`, `unplug_at_s=`, `unplug_for_s=`, `counter_reset=1`,
     `clock_reset=1`, `open_delay_s=` (docs/sim-faults.md).
@@ -383,8 +389,8 @@ def open_sim_camera(spec: DeviceSpec) -> SimRgbCamera:
         spec, {"format", "buffer_frames", "drop_frames", "busy_us", "counter_reset", "open_delay_s"}
     )
     fmt = spec.param("format", "rgb8")
-    if fmt not in ("mono8", "rgb8"):
-        raise ConfigError(f"device spec {spec.raw!r}: format={fmt!r} (use mono8 or rgb8)")
+    if fmt not in PIXEL_FORMATS:
+        raise ConfigError(f"device spec {spec.raw!r}: format={fmt!r} (use {', '.join(PIXEL_FORMATS)})")
     params = CameraParams(
         pixel_format=fmt,
         buffer_frames=spec.int_param("buffer_frames", 32),

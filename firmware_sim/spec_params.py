@@ -78,7 +78,7 @@ class _Placement(SpecParams):
 class SimCameraParams(_Placement):
     width: Annotated[int, Field(ge=1, le=MAX_CAMERA_SIDE)] | None = None
     height: Annotated[int, Field(ge=1, le=MAX_CAMERA_SIDE)] | None = None
-    format: Literal["mono8", "rgb8"] | None = None
+    format: Literal["mono8", "rgb8", "bayer_rg8"] | None = None
     buffer_frames: Annotated[int, Field(ge=1, le=1024)] | None = None
     drop_frames: IndexList | None = None
     busy_us: Annotated[int, Field(ge=0, le=1_000_000)] | None = None
