@@ -1,11 +1,11 @@
 """Take files: writing (capture pipeline), reading (training jobs), validation and recovery."""
 
 from rigd.core.errors import TakeInUseError, TakeTruncatedError
+from rigd.take.frame_series import FrameSeries
 from rigd.take.h5file import compression_options
 from rigd.take.reader import (
     CameraSummary,
     EventSensorSummary,
-    FrameSeries,
     Take,
     TakeSummary,
     open_take,

@@ -12,11 +12,11 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self, overload
+from typing import Any, Self
 
 import h5py
 import hdf5plugin  # noqa: F401  (registers the LZ4 / Zstd filters with h5py)
@@ -27,7 +27,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents
-from rigd.core.frames import Frame
 from rigd.core.schema import (
     CONFIG_DATASET,
     END_REASON_ATTR,
@@ -52,6 +51,7 @@ from rigd.core.schema import (
     has_item,
 )
 from rigd.take.calibration import read_calibration
+from rigd.take.frame_series import FrameSeries
 from rigd.take.h5file import attr_text, describe_open_error
 from rigd.take.tails import tail_rows
 from rigd.take.verdict import TakeVerdict, Verdict, take_verdict
@@ -101,8 +101,9 @@ class CameraSummary(BaseModel):
 
     frames: int
     fps: float | None = Field(description="Mean frame rate over the take (rig clock when finalized).")
-    shape: list[int]
+    shape: list[int] = Field(description="Shape of a frame as stored (a Bayer frame: its mosaic).")
     dtype: str
+    pixel_format: str = Field("rgb8", description="mono8, rgb8 or bayer_rg8 (stored as is).")
     t_first_us: int | None
     t_last_us: int | None
     dropped_frames: int | None = Field(description="Frame counter gaps from the sync report.")
@@ -171,70 +172,6 @@ def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
 
 def _finite(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
-
-
-class FrameSeries(Sequence[Frame]):
-    """The frames of one camera; images are read one at a time on indexing."""
-
-    def __init__(self, take: Take, name: str, group: h5py.Group) -> None:
-        self._take = take
-        self.name = name
-        self._g = group
-        self._images: h5py.Dataset = group["images"]
-        self._n = int(self._images.shape[0])
-        self._ts: NDArray[np.int64] | None = None
-
-    def __len__(self) -> int:
-        return self._n
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return tuple(self._images.shape[1:])
-
-    @property
-    def timestamps_us(self) -> NDArray[np.int64]:
-        """Exposure start of every frame, in the take's time domain (rig once finalized)."""
-        if self._ts is None:
-            self._ts = np.asarray(self._g["t_exposure_start_us"][: self._n], dtype=np.int64)
-        return self._ts
-
-    @overload
-    def __getitem__(self, i: int) -> Frame: ...
-    @overload
-    def __getitem__(self, i: slice) -> Sequence[Frame]: ...
-    def __getitem__(self, i: int | slice) -> Frame | Sequence[Frame]:
-        if isinstance(i, slice):
-            return [self[k] for k in range(*i.indices(self._n))]
-        k = int(i) + self._n if int(i) < 0 else int(i)
-        if not 0 <= k < self._n:
-            raise IndexError(f"frame {i} out of range for {self._n} frames of camera {self.name!r}")
-        g = self._g
-        return Frame(
-            image=self._images[k],
-            t_exposure_start_us=int(self.timestamps_us[k]),
-            exposure_us=int(g["exposure_us"][k]),
-            frame_counter=int(g["frame_counter"][k]),
-            host_time_ns=int(g["host_time_ns"][k]),
-            pulse_index=int(g["pulse_index"][k]),
-        )
-
-    def index_at(self, t_us: int) -> int:
-        """Index of the last frame whose exposure started at or before t_us; -1 if none."""
-        self._take._require_rig(f"/{FRAMES_GROUP}/{self.name}")
-        return int(np.searchsorted(self.timestamps_us, int(t_us), side="right")) - 1
-
-    def nearest(self, t_us: int) -> int:
-        """Index of the frame whose exposure start is closest to t_us (earlier one on ties)."""
-        self._take._require_rig(f"/{FRAMES_GROUP}/{self.name}")
-        ts = self.timestamps_us
-        if ts.size == 0:
-            raise TakeError(f"{self._take.path}: camera {self.name!r} has no frames")
-        j = int(np.searchsorted(ts, int(t_us), side="left"))
-        if j == 0:
-            return 0
-        if j == ts.size:
-            return j - 1
-        return j - 1 if int(t_us) - int(ts[j - 1]) <= int(ts[j]) - int(t_us) else j
 
 
 class Take:
@@ -637,11 +574,12 @@ class Take:
             np.asarray(g["host_time_ns"][...], dtype=np.int64),
         )
 
-    def frames(self, camera: str) -> FrameSeries:
+    def frames(self, camera: str, demosaic: bool = True) -> FrameSeries:
+        """One camera's frames; a Bayer camera's demosaiced to RGB unless `demosaic=False`."""
         g = self._f.get(f"{FRAMES_GROUP}/{camera}")
         if not isinstance(g, h5py.Group):
             raise TakeError(f"{self.path}: no camera {camera!r} (has {self.cameras})")
-        return FrameSeries(self, camera, g)
+        return FrameSeries(self, camera, g, demosaic)
 
     def event_span(self, sensor: str) -> tuple[int, int] | None:
         """(first, last) event time in the take's time domain, or None without events."""
@@ -660,7 +598,7 @@ class Take:
         devs = report.devices if report else {}
         cams: dict[str, CameraSummary] = {}
         for name in self.cameras:
-            fs = self.frames(name)
+            fs = self.frames(name, demosaic=False)
             ts = fs.timestamps_us
             fps = (
                 (ts.size - 1) / ((int(ts[-1]) - int(ts[0])) / 1e6) if ts.size > 1 and ts[-1] > ts[0] else None
@@ -669,8 +607,9 @@ class Take:
             cams[name] = CameraSummary(
                 frames=len(fs),
                 fps=fps,
-                shape=list(fs.shape),
+                shape=list(fs.stored_shape),
                 dtype=str(self._f[f"{FRAMES_GROUP}/{name}/images"].dtype),
+                pixel_format=fs.pixel_format,
                 t_first_us=int(ts[0]) if ts.size else None,
                 t_last_us=int(ts[-1]) if ts.size else None,
                 dropped_frames=len(d.dropped_frames) if d else None,

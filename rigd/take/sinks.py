@@ -22,6 +22,7 @@ from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
+from rigd.core.pixels import BAYER_PATTERNS, PIXEL_FORMATS, is_bayer, stored_pixel_format
 from rigd.core.schema import (
     EVENT_DTYPES,
     EVENTS_GROUP,
@@ -271,25 +272,51 @@ class CameraSink:
     dtype: np.dtype[Any]
     images: h5py.Dataset
     series: dict[str, h5py.Dataset]
+    pixel_format: str
     n_frames: int = 0
     n_series_written: int = 0
     buf: dict[str, list[int]] = field(default_factory=lambda: {k: [] for k in FRAME_SERIES})
     stats: DeviceWriteStats = field(default_factory=lambda: DeviceWriteStats("rgb_camera"))
 
+    @staticmethod
+    def check_format(
+        pixel_format: str | None, shape: tuple[int, ...], dtype: np.dtype[Any], where: str
+    ) -> str:
+        """The pixel format frames of this shape and dtype are stored in; TakeError naming
+        `where` when the declared format cannot hold them."""
+        by_shape = "rgb8" if len(shape) == 3 else "mono8"
+        fmt = pixel_format or by_shape
+        if fmt not in PIXEL_FORMATS:
+            raise TakeError(f"{where}: pixel format {fmt!r} is not one of {', '.join(PIXEL_FORMATS)}")
+        if is_bayer(fmt) and (len(shape) != 2 or dtype != np.uint8):
+            raise TakeError(f"{where}: {fmt} frames are (H, W) uint8 mosaics, declared {shape} {dtype}")
+        if fmt == "rgb8" and len(shape) != 3:
+            raise TakeError(f"{where}: rgb8 frames are (H, W, 3), declared {shape}")
+        return fmt
+
     @classmethod
     def create(
-        cls, name: str, g: h5py.Group, shape: tuple[int, ...], dtype: np.dtype[Any], opts: Mapping[str, Any]
+        cls,
+        name: str,
+        g: h5py.Group,
+        shape: tuple[int, ...],
+        dtype: np.dtype[Any],
+        opts: Mapping[str, Any],
+        pixel_format: str,
     ) -> Self:
         """Lay out a new camera's datasets in its (already created) group."""
         g.attrs["height"], g.attrs["width"] = shape[0], shape[1]
         g.attrs["channels"] = shape[2] if len(shape) == 3 else 1
         g.attrs["dtype"] = dtype.str
+        g.attrs["pixel_format"] = pixel_format
+        if is_bayer(pixel_format):
+            g.attrs["bayer_pattern"] = BAYER_PATTERNS[pixel_format]
         images = g.create_dataset(
             "images", shape=(0, *shape), maxshape=(None, *shape), dtype=dtype, chunks=(1, *shape), **opts
         )
         series = {k: new_series(g, k, np.int64, {}) for k in FRAME_SERIES}
         series["t_exposure_start_us"].attrs["units"] = "us"
-        return cls(name, g, shape, dtype, images, series)
+        return cls(name, g, shape, dtype, images, series, pixel_format)
 
     @classmethod
     def reopen(cls, name: str, g: h5py.Group, where: str) -> Self:
@@ -298,7 +325,8 @@ class CameraSink:
         series = {k: require_dataset(g, k, where) for k in FRAME_SERIES}
         n = int(series["t_exposure_start_us"].shape[0])
         shape = tuple(int(s) for s in images.shape[1:])
-        cam = cls(name, g, shape, np.dtype(images.dtype), images, series, n_frames=n, n_series_written=n)
+        fmt = stored_pixel_format(g.attrs, shape, where)
+        cam = cls(name, g, shape, np.dtype(images.dtype), images, series, fmt, n_frames=n, n_series_written=n)
         cam.stats.items = n
         return cam
 
@@ -312,6 +340,11 @@ class CameraSink:
             raise TakeError(
                 f"{path}: /{FRAMES_GROUP}/{self.name}/images: frame {self.n_frames} has shape {img.shape} "
                 f"{img.dtype}, declared {self.shape} {self.dtype}"
+            )
+        if frame.pixel_format is not None and frame.pixel_format != self.pixel_format:
+            raise TakeError(
+                f"{path}: /{FRAMES_GROUP}/{self.name}/images: frame {self.n_frames} is "
+                f"{frame.pixel_format}, the camera was declared {self.pixel_format}"
             )
         n = self.n_frames
         if self.images.shape[0] <= n:

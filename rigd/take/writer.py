@@ -287,16 +287,25 @@ class TakeWriter:
         self._f.flush()  # the layout is on disk before any data: a crash keeps the devices
 
     def add_camera(
-        self, name: str, info: DeviceInfo, shape: tuple[int, ...], dtype: DTypeLike, settings_json: str
+        self,
+        name: str,
+        info: DeviceInfo,
+        shape: tuple[int, ...],
+        dtype: DTypeLike,
+        settings_json: str,
+        pixel_format: str | None = None,
     ) -> None:
-        """Create `/frames/<name>`; frames must then match `shape` and `dtype` exactly."""
+        """Create `/frames/<name>`; frames must then match `shape` and `dtype` exactly.
+        `pixel_format` (None: mono8 or rgb8 by the shape) is what the camera sends, stored as is:
+        a `bayer_rg8` camera's (H, W) mosaics are not converted while recording."""
         self._check_new_device(name)
         shape = tuple(int(s) for s in shape)
         if len(shape) not in (2, 3) or min(shape) <= 0:
             raise TakeError(f"{self.path}: camera {name!r}: frame shape {shape} is not (H, W) or (H, W, C)")
+        fmt = CameraSink.check_format(pixel_format, shape, np.dtype(dtype), f"{self.path}: camera {name!r}")
         g = self._f[FRAMES_GROUP].create_group(name)
         _write_info_attrs(g, info, settings_json)
-        self._cameras[name] = CameraSink.create(name, g, shape, np.dtype(dtype), self._frame_opts)
+        self._cameras[name] = CameraSink.create(name, g, shape, np.dtype(dtype), self._frame_opts, fmt)
         self._f.flush()
 
     def add_event_sensor(

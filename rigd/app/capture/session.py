@@ -410,6 +410,7 @@ class CaptureSession:
                     cam.frame_shape,  # type: ignore[union-attr]
                     cam.frame_dtype,  # type: ignore[union-attr]
                     cam_cfg.settings.model_dump_json(),
+                    pixel_format=cam.pixel_format,  # type: ignore[union-attr]
                 )
             for sen_cfg in config.event_sensors:
                 sen = self._channels[sen_cfg.name].device
