@@ -423,6 +423,11 @@ class FileCamera(RgbCamera):
 
     # -- lifecycle ------------------------------------------------------------------------
     def _do_configure(self, settings: CameraSettings) -> None:
+        if settings.pixel_format == "bayer_rg8":
+            raise ConfigError(
+                f"{self.label}: pixel_format 'bayer_rg8' cannot be delivered: image files and videos "
+                "hold decoded images, not a sensor's raw mosaic (use rgb8 or mono8)"
+            )
         if settings.gain_db:
             log.info("%s: gain_db=%g ignored (a recording's gain is its own)", self.label, settings.gain_db)
 

@@ -35,8 +35,13 @@ from rigd.core.settings import CameraSettings
 
 log = logging.getLogger(__name__)
 
-#: GenICam pixel format names of the settings' formats.
-PIXEL_FORMATS = {"mono8": "Mono8", "rgb8": "RGB8"}
+#: GenICam pixel format names of the settings' formats (SFNC names a Bayer format by its
+#: top-left 2x2 block, as sensor data sheets do: BayerRG8 is an RGGB mosaic).
+PIXEL_FORMATS = {"mono8": "Mono8", "rgb8": "RGB8", "bayer_rg8": "BayerRG8"}
+#: The settings' format of each GenICam name, to tell what a camera sends by default.
+_FORMAT_OF = {v: k for k, v in PIXEL_FORMATS.items()}
+#: GenICam formats that make a camera a colour camera.
+_COLOR_FORMATS = frozenset({PIXEL_FORMATS["rgb8"], PIXEL_FORMATS["bayer_rg8"]})
 _STAT_NAMES = (
     "n_completed_buffers",
     "n_failures",
@@ -191,7 +196,8 @@ class GenicamCamera(RgbCamera):
 
     # ------------------------------------------------------------------ properties
     def _probe_capabilities(self) -> frozenset[Capability]:
-        """Asked once at open: RGB frames only where the camera offers RGB8 (what rgb8 maps to)."""
+        """Asked once at open: colour only where the camera offers RGB8 or BayerRG8 (what rgb8
+        and bayer_rg8 map to; configure() refuses the one it does not offer)."""
         caps = {
             Capability.HARDWARE_TRIGGER,
             Capability.FREE_RUN,
@@ -199,7 +205,7 @@ class GenicamCamera(RgbCamera):
             Capability.DEVICE_TIMESTAMPS,
             Capability.EXPOSURE_CONTROL,
         }
-        if PIXEL_FORMATS["rgb8"] in self._pixel_formats():
+        if _COLOR_FORMATS & set(self._pixel_formats()):
             caps.add(Capability.COLOR)
         return frozenset(caps)
 
@@ -214,6 +220,12 @@ class GenicamCamera(RgbCamera):
         region = self._cam.get_region()
         h, w = int(region.height), int(region.width)
         return (h, w, 3) if self._cam.get_pixel_format_as_string() == "RGB8" else (h, w)
+
+    @property
+    def pixel_format(self) -> str:
+        """The camera's current format (a BayerRG8 default is bayer_rg8, not mono8)."""
+        fmt = _FORMAT_OF.get(self._cam.get_pixel_format_as_string() or "Mono8")
+        return fmt if fmt is not None else super().pixel_format
 
     @property
     def frame_dtype(self) -> np.dtype[np.generic]:
@@ -274,6 +286,7 @@ class GenicamCamera(RgbCamera):
             raise DeviceError(f"genicam camera {self.name!r}: cannot start acquisition: {exc}") from exc
         self._shape = self.frame_shape
         self._dtype = self.frame_dtype
+        self._format = self.pixel_format
         self._stream = stream
 
     def _do_stop(self) -> None:
@@ -322,6 +335,7 @@ class GenicamCamera(RgbCamera):
                 exposure_us=self._settings.exposure_us,
                 frame_counter=counter,
                 host_time_ns=host_ns,
+                pixel_format=self._format,
             )
         finally:
             if self._stream is not None:

@@ -129,6 +129,11 @@ class V4l2Camera(RgbCamera):
         return np.dtype(np.uint8)
 
     def _do_configure(self, settings: CameraSettings) -> None:
+        if settings.pixel_format == "bayer_rg8":
+            raise ConfigError(
+                f"V4L2 camera {self.node}: pixel_format 'bayer_rg8' cannot be delivered: OpenCV's "
+                "V4L2 capture hands over decoded images, not the sensor's raw mosaic (use rgb8 or mono8)"
+            )
         cv2, cap = self._cv2, self._cap
         cap.set(cv2.CAP_PROP_FPS, settings.free_run_fps)
         # UVC exposure is in 100 us units with auto-exposure off (V4L2 manual mode = 1).

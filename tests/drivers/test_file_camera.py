@@ -157,6 +157,8 @@ def test_png_folder_round_trips_pixels_exactly(tmp_path: Path) -> None:
     assert cam.frame_shape == (H, W)
     for f, bgr in zip(mono, expected, strict=True):
         np.testing.assert_array_equal(f.image, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
+    with pytest.raises(ConfigError, match="'bayer_rg8' cannot be delivered"):
+        cam.configure(CameraSettings(trigger_mode="free_run", pixel_format="bayer_rg8"))
     cam.close()
 
 

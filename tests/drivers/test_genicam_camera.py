@@ -99,6 +99,35 @@ def test_stand_in_capabilities_follow_the_camera() -> None:
         color.close()
 
 
+def test_stand_in_bayer_rg8_maps_to_bayerrg8_or_is_refused() -> None:
+    rgb_only = GenicamCamera(
+        DeviceSpec.parse("genicam://RIGD01"), aravis=fake_aravis(FakeCamera(formats=("Mono8", "RGB8")))
+    )
+    fake = FakeCamera(formats=("BayerRG8", "Mono8"))
+    bayer = GenicamCamera(DeviceSpec.parse("genicam://RIGD01"), aravis=fake_aravis(fake))
+    try:
+        with pytest.raises(ConfigError, match="BayerRG8 not offered"):
+            rgb_only.configure(CameraSettings(pixel_format="bayer_rg8"))
+        assert Capability.COLOR in bayer.capabilities  # a Bayer sensor is a colour camera
+        assert bayer.pixel_format == "bayer_rg8"  # its default, though (H, W) like mono8
+        bayer.configure(CameraSettings(pixel_format="mono8", exposure_us=1000))
+        assert bayer.pixel_format == "mono8"
+        bayer.configure(CameraSettings(pixel_format="bayer_rg8", exposure_us=1000))
+        assert fake.pixel_format == "BayerRG8"
+        assert bayer.frame_shape == (48, 64)
+        bayer.start()
+        fake.line_pulse()
+        (frame,) = read_n(bayer, 1)
+        bayer.stop()
+        assert frame.image.shape == (48, 64)
+        assert frame.pixel_format == "bayer_rg8"
+        with pytest.raises(ConfigError, match="RGB8 not offered"):
+            bayer.configure(CameraSettings(pixel_format="rgb8"))
+    finally:
+        rgb_only.close()
+        bayer.close()
+
+
 def test_stand_in_block_id_gaps_count_as_lost_frames() -> None:
     fake = FakeCamera()
     cam = GenicamCamera(DeviceSpec.parse("genicam://RIGD01?buffers=2"), aravis=fake_aravis(fake))

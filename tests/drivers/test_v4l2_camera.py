@@ -138,6 +138,15 @@ def test_mono_and_unplug_is_reported() -> None:
     cam.close()
 
 
+def test_bayer_rg8_is_refused_clearly() -> None:
+    cam = V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9"), capture=FakeCapture())
+    try:
+        with pytest.raises(ConfigError, match=r"/dev/video9: pixel_format 'bayer_rg8' cannot be delivered"):
+            cam.configure(CameraSettings(trigger_mode="free_run", pixel_format="bayer_rg8"))
+    finally:
+        cam.close()
+
+
 def test_unopenable_node_names_it() -> None:
     with pytest.raises(DeviceError, match="/dev/video-nope-rigd"):
         open_v4l2_camera(DeviceSpec.parse("v4l2:///dev/video-nope-rigd"))
