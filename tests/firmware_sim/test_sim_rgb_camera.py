@@ -15,6 +15,7 @@ from firmware_sim.rgb_camera import SimRgbCamera, open_sim_camera
 from firmware_sim.world import Edge, SimWorld, get_world, reset_world
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.frames import Frame
+from rigd.core.pixels import mosaic_rggb
 from rigd.core.settings import CameraSettings
 
 
@@ -155,6 +156,28 @@ def test_pixel_formats(world_name: str, fmt: str, shape: tuple[int, ...]) -> Non
         cam.stop()
         cam.configure(CameraSettings(pixel_format=other))
         assert len(cam.frame_shape) == (3 if other == "rgb8" else 2)
+
+
+@pytest.mark.parametrize("how", ["spec", "settings"])
+def test_bayer_rg8_is_the_rggb_mosaic_of_the_rgb_render(world_name: str, how: str) -> None:
+    extra = "&format=bayer_rg8" if how == "spec" else ""
+    with open_cam(world_name, extra=extra) as cam:
+        fmt = None if how == "spec" else "bayer_rg8"
+        cam.configure(CameraSettings(exposure_us=8000, pixel_format=fmt))  # nominal: no gain applied
+        assert cam.pixel_format == "bayer_rg8"
+        assert cam.frame_shape == (180, 320)
+        cam.start()
+        fire_pulses(get_world(world_name), 1)
+        f = cam.read_frame(2.0)
+        cam.stop()
+        assert f is not None
+        assert f.image.shape == (180, 320)
+        assert f.image.dtype == np.uint8
+        assert f.pixel_format == "bayer_rg8"
+        ((_, true_us, delivered),) = get_world(world_name).truth.frames["cam0"]
+        assert delivered
+        rgb = cam._scene.render(cam._view, true_us + 4000)
+        np.testing.assert_array_equal(f.image, mosaic_rggb(rgb))
 
 
 def test_free_run_uses_the_camera_clock(world_name: str) -> None:
