@@ -116,7 +116,7 @@ def take_counts(path: Path) -> tuple[dict[str, int], dict[str, int], int]:
         return (
             {c: len(take.frames(c)) for c in take.cameras},
             {s: take.event_count(s) for s in take.event_sensors},
-            sum(int(np.prod(take.frames(c).shape)) for c in take.cameras),
+            sum(int(np.prod(take.frames(c, demosaic=False).stored_shape)) for c in take.cameras),
         )
 
 
@@ -565,7 +565,7 @@ def micro_benchmarks(
         n = min(n_events, take.event_count(sensor))
         read_times = timed(lambda: take.events_by_index(sensor, 0, n), repeat)
         events = take.events_by_index(sensor, 0, n)
-        cam = take.frames(take.cameras[0])
+        cam = take.frames(take.cameras[0], demosaic=False)  # frames as stored: the writer's input
         k = min(30, len(cam))
         frame_read = timed(lambda: [cam[i] for i in range(k)], repeat)
         frames = [cam[i] for i in range(k)]

@@ -47,13 +47,15 @@ def board_rig(
     threshold: float | None = None,
     rate_hz: float = 30.0,
     clock: Literal["real", "virtual"] = "real",
+    pixel_format: Literal["mono8", "rgb8", "bayer_rg8"] = "mono8",
 ) -> RigConfig:
-    """The built-in sim rig with every device watching the moving board (mono8 frames).
+    """The built-in sim rig with every device watching the moving board (mono8 frames unless
+    `pixel_format` says otherwise).
 
     `clock="virtual"` runs the sim world on virtual time: the same board poses every run."""
     reset_world(world)
     cfg = default_sim_rig(
-        world=world, resolution=resolution, pixel_format="mono8", rate_hz=rate_hz, clock=clock
+        world=world, resolution=resolution, pixel_format=pixel_format, rate_hz=rate_hz, clock=clock
     )
     data = cfg.model_dump()
     for dev in data["cameras"]:
@@ -70,10 +72,12 @@ def capture_board_take(
     threshold: float | None = None,
     world: str = "e2calib",
     clock: Literal["real", "virtual"] = "real",
+    pixel_format: Literal["mono8", "rgb8", "bayer_rg8"] = "mono8",
 ) -> CaptureResult:
     """Capture a take of the sim rig watching the moving board (`clock="virtual"`: a
     deterministic take, the same for every run whatever the machine's load; the world is reset)."""
-    return run_capture(board_rig(world, resolution, threshold, clock=clock), out_dir, seconds)
+    rig = board_rig(world, resolution, threshold, clock=clock, pixel_format=pixel_format)
+    return run_capture(rig, out_dir, seconds)
 
 
 def true_k(width: int) -> np.ndarray:

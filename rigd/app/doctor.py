@@ -5,8 +5,8 @@ Every reading (usbfs limit, free disk, write speed, clock source, groups, ...) c
 disk without touching the machine; `Readings.system()` reads the real one. Checks never
 raise: a reading that fails becomes a WARN saying it could not be read.
 
-Sizes are estimates from the rig config: a frame is width x height x (1 for mono8, 3
-otherwise) bytes (width/height from the spec's query, else `DEFAULT_FRAME`), an event is
+Sizes are estimates from the rig config: a frame is width x height x (1 for mono8 and
+bayer_rg8, 3 otherwise) bytes (width/height from the spec's query, else `DEFAULT_FRAME`), an event is
 `EVENT_BYTES` in the take at `DEFAULT_EVENT_RATE` unless the sensor's ERC caps it lower.
 """
 
@@ -29,6 +29,7 @@ from drivers.discovery import Discovery, SourceReport, discover
 from drivers.registry import DeviceSpec
 from rigd.app.config import RigConfig
 from rigd.core.errors import ConfigError
+from rigd.core.pixels import BYTES_PER_PIXEL
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +216,8 @@ def plan_rig(rig: RigConfig) -> Plan:
         params = spec.params if spec else {}
         width = int(params.get("width", DEFAULT_FRAME[0]))
         height = int(params.get("height", DEFAULT_FRAME[1]))
-        frame_bytes = width * height * (1 if cam.settings.pixel_format == "mono8" else 3)
+        fmt = cam.settings.pixel_format or params.get("format", "rgb8")
+        frame_bytes = width * height * BYTES_PER_PIXEL.get(fmt, 3)
         fps = rate_hz if cam.settings.trigger_mode == "hardware" else cam.settings.free_run_fps
         total += frame_bytes * fps
         if spec is None:

@@ -117,7 +117,9 @@ def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
     if summary.failure_reason:
         parts.append(f"failed: {summary.failure_reason}")
     if summary.cameras:
-        cams = Table("camera", "frames", "fps", "shape", "dropped", "missing pulses", "sync rms µs", "max µs")
+        cams = Table(
+            "camera", "frames", "fps", "shape", "format", "dropped", "missing pulses", "sync rms µs", "max µs"
+        )
         cams.columns[3].no_wrap = True
         for name, c in summary.cameras.items():
             cams.add_row(
@@ -125,6 +127,7 @@ def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
                 f"{c.frames:,}",
                 _cell(c.fps, "{:.2f}"),
                 "x".join(str(v) for v in c.shape) or MISSING,
+                c.pixel_format,
                 _cell(c.dropped_frames),
                 _cell(c.missing_pulses),
                 _cell(c.sync_rms_us, "{:.2f}"),

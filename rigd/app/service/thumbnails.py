@@ -8,6 +8,7 @@ from numpy.typing import NDArray
 
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
+from rigd.core.pixels import to_rgb
 
 
 def _resize(img: NDArray[np.uint8], width: int) -> NDArray[np.uint8]:
@@ -19,7 +20,8 @@ def _resize(img: NDArray[np.uint8], width: int) -> NDArray[np.uint8]:
 
 
 def frame_thumbnail(frame: Frame, width: int, quality: int = 70) -> tuple[bytes, int, int]:
-    img = np.asarray(frame.image)
+    """JPEG of a frame as it is viewed (a Bayer mosaic demosaiced), at most `width` wide."""
+    img = np.asarray(to_rgb(np.asarray(frame.image), frame.pixel_format))
     if img.dtype != np.uint8:  # 16-bit and float formats: scale to 8 bit for the preview
         lo, hi = float(img.min()), float(img.max())
         img = ((img - lo) * (255.0 / max(hi - lo, 1e-9))).astype(np.uint8)

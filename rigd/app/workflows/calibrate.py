@@ -43,6 +43,7 @@ from calibration.report import write_report
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
 from rigd.core.errors import RigdError
 from rigd.core.events import EventArray
+from rigd.core.pixels import is_bayer, to_gray
 from rigd.take.calibration import store_calibration
 from rigd.take.reader import Take, open_take
 
@@ -290,7 +291,8 @@ def _camera_views(
     take: Take, cam: str, board: BoardSpec, model: str, progress: ProgressCallback = no_progress
 ) -> tuple[dict[str, Detection], IntrinsicsResult | None]:
     """The board in every frame of one camera, keyed by pulse; None when it is in none of them."""
-    series = take.frames(cam)
+    series = take.frames(cam, demosaic=False)
+    bayer = is_bayer(series.pixel_format)
     dets: list[Detection] = []
     found: dict[str, Detection] = {}
     rejected: list[RejectedView] = []
@@ -298,7 +300,9 @@ def _camera_views(
         progress(ProgressUpdate("detect", cam, i, len(series), "frames searched for the board"))
         frame = series[i]
         key = _pulse_key(frame.pulse_index, i)
-        d = detect(np.asarray(frame.image), board, name=f"{cam}#{key}")
+        # A Bayer camera's board is found in the demosaiced gray image.
+        image = to_gray(frame.image, series.pixel_format) if bayer else frame.image
+        d = detect(np.asarray(image), board, name=f"{cam}#{key}")
         if d is None:
             rejected.append(RejectedView(name=f"{cam}#{key}", reason=f"board {board} not found"))
             continue

@@ -24,6 +24,7 @@ from drivers.base import EventSensor, RgbCamera, Trigger
 from drivers.registry import open_device
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig
 from rigd.core.events import EventArray
+from rigd.core.pixels import to_rgb
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +72,8 @@ class CameraFeed:
         while (newer := self.cam.read_frame(0.0)) is not None:
             frame, self.skipped = newer, self.skipped + 1
         self.trigger.read_pulses(0.0)  # nobody needs the pulse records; keep the queue short
-        return np.asarray(frame.image), int(frame.t_exposure_start_us)
+        # A Bayer camera's mosaic is demosaiced: the board is found in (and shown from) RGB.
+        return np.asarray(to_rgb(np.asarray(frame.image), frame.pixel_format)), int(frame.t_exposure_start_us)
 
     def close(self) -> None:
         shutdown(self.trigger, self.cam)
