@@ -19,6 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import ValidationError
 
+from rigd.core.errors import TakeFormatError
+from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import (
     CONFIG_DATASET,
     EVENT_DTYPES,
@@ -289,6 +291,11 @@ class _Validator:
         if images is not None and images.ndim not in (3, 4):
             self.add(f"/{base}/images", f"has {images.ndim} dimensions, expected 3 (N,H,W) or 4 (N,H,W,C)")
             images = None
+        if images is not None:
+            try:
+                stored_pixel_format(g.attrs, tuple(images.shape[1:]), f"/{base}")
+            except TakeFormatError as exc:
+                self.add(f"/{base}", str(exc).removeprefix(f"/{base}: "))
         series: dict[str, h5py.Dataset | None] = {
             k: self.dataset(f"{base}/{k}", np.int64) for k in FRAME_SERIES
         }
