@@ -1,6 +1,6 @@
 """Capture throughput on the simulated rig, side by side with a raw sequential write.
 
-    python -m bench.capture_throughput [--duration 5] [--format rgb8|mono8] [--out DIR]
+    python -m bench.capture_throughput [--duration 5] [--format rgb8|mono8|bayer_rg8] [--out DIR]
                                        [--fsync/--no-fsync] [--flush-interval S]
 
 Prints sustained frames/s, events/s and MB/s written by `rigd capture`, and the MB/s of
@@ -40,7 +40,7 @@ def raw_write(path: Path, n_bytes: int) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=5.0)
-    ap.add_argument("--format", choices=["rgb8", "mono8"], default="rgb8")
+    ap.add_argument("--format", choices=["rgb8", "mono8", "bayer_rg8"], default="rgb8")
     ap.add_argument("--rate", type=float, default=30.0, help="trigger rate, Hz (stress: raise it)")
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)

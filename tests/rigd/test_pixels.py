@@ -62,7 +62,7 @@ def test_opencv_names_rggb_bayerbg() -> None:
     red = _interiors(np.asarray(cv2.cvtColor(m, cv2.COLOR_BayerRG2RGB)))[0]
     assert red[..., 2].mean() > 200
     assert red[..., 0].mean() < 20
-    assert np.array_equal(demosaic(m), cv2.cvtColor(m, cv2.COLOR_BayerBG2RGB))
+    assert np.array_equal(demosaic(m), cv2.cvtColor(m, cv2.COLOR_BayerBG2RGB_EA))
 
 
 def test_gray_matches_the_rgb_luminance_on_flat_regions() -> None:

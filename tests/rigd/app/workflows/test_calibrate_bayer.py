@@ -52,8 +52,9 @@ def test_bayer_board_take_calibrates_like_rgb8(results: dict[str, dict[str, Intr
             f"bayer_rg8 {len(b.views)} views rms {b.rms_px:.3f} px focal {fb:.2f}% pp {pb:.2f} px"
         )
         # Measured (480x270, 1.5 s, k1k2): rgb8 33-45 views, rms 0.044-0.051 px, focal <= 0.26 %,
-        # principal point <= 0.70 px; bayer_rg8 44-45 views, rms 0.074-0.113 px (the bilinear
-        # demosaic's zipper on the board's edges), focal <= 0.23 %, principal point <= 1.05 px.
+        # principal point <= 0.70 px; bayer_rg8 43-45 views, rms 0.075-0.122 px, focal <= 0.31 %,
+        # principal point <= 1.44 px. The demosaiced board is softer: more (and more oblique)
+        # views are found, and the rms is over those too.
         assert len(b.views) >= 0.9 * len(a.views)
         assert b.rms_px <= max(3.0 * a.rms_px, 0.2)
         assert fb <= fa + 0.5
