@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from drivers.discovery import Discovery, FoundDevice, SourceReport
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
-from rigd.app.config import RigConfig
+from rigd.app.config import RigConfig, default_sim_rig
 from rigd.app.doctor import Check, NodeAccess, Readings, plan_rig, run_checks, summary_status
 
 RIG = {
@@ -236,3 +236,15 @@ def test_doctor_cli_bad_config(tmp_path: Path) -> None:
     bad.write_text("nonsense = [")
     res = CliRunner().invoke(_app(), ["doctor", "--config", str(bad)])
     assert res.exit_code == 2
+
+
+def test_bayer_cameras_are_planned_at_one_byte_per_pixel() -> None:
+    plans = {f: plan_rig(default_sim_rig(pixel_format=f)) for f in ("rgb8", "bayer_rg8", "mono8")}
+    cams = {
+        f: p.bytes_per_s
+        - plan_rig(default_sim_rig(pixel_format=f).model_copy(update={"cameras": []})).bytes_per_s
+        for f, p in plans.items()
+    }
+    assert cams["rgb8"] == pytest.approx(3 * 1280 * 720 * 3 * 30.0)
+    assert cams["bayer_rg8"] == pytest.approx(cams["rgb8"] / 3)
+    assert cams["mono8"] == pytest.approx(cams["bayer_rg8"])
