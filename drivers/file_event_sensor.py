@@ -14,7 +14,7 @@ LEN_S seconds of host time from START_S on (a load peak inside a steady take).
 period start, each pass's TIME_HIGH words moved on by the periods before it (see
 `drivers.evt_file_stream`): the stream stays valid and keeps the recording's density; what it
 keeps of the recording is in `stats().extra` (`loop_us`, `recorded_us`; the Gen4.1 sample
-keeps 8192 of its 8816 us, its last, partial period dropped).
+keeps 8192 of the 8811 us its time words span, its last, partial period dropped).
 
 EVT 2.1 recordings, EVT 2.0 with `loop=1` and DAT files (decoded events, no wire bytes at all)
 keep the older replay: the file is decoded in chunks of `chunk_bytes` and handed out decoded
