@@ -161,6 +161,16 @@ class EvtFileStream:
         k = int(np.searchsorted(self._off, r, side="right"))
         return p * self.period_us + int(self._t[k]) - 1
 
+    def due_at_us(self, pos: int) -> int:
+        """The stream time from which the bytes before `pos` are all due (when a device would
+        have had them in memory)."""
+        if not self.loop:
+            k = int(np.searchsorted(self._off, pos, side="left"))
+            return int(self._t[min(k, len(self._t) - 1)]) - 1
+        p, r = divmod(pos, self.span_bytes)
+        k = int(np.searchsorted(self._off, r, side="left"))
+        return max(0, p * self.period_us + int(self._t[k]) - 1)
+
     def passes_at(self, pos: int) -> int:
         """Passes begun once `pos` bytes were handed out (1 for a stream that does not loop)."""
         if not self.loop or pos <= 0:

@@ -360,7 +360,21 @@ class FileEventSensor(EventSensor):
         raw = EvtChunk(self._fmt, data, self._chunk_state, self._stream_id, self._chunk_at)
         self._chunk_at, self._chunk_state = consumed, _state_copy(self._decoder)
         self._bytes_delivered += len(data)
-        return EventPacket(decoded.events, decoded.triggers, time.monotonic_ns(), raw)
+        return EventPacket(decoded.events, decoded.triggers, self._arrival_ns(consumed), raw)
+
+    def _arrival_ns(self, pos: int) -> int:
+        """Host time (monotonic ns) the bytes before `pos` were in memory: when they became
+        due (at a `packet_us` boundary), not when the reader got to them, as a device's buffer
+        is stamped on arrival; now when unpaced."""
+        now = time.monotonic_ns()
+        if not self._pace.paced or self._stream is None:
+            return now
+        due = self._stream.due_at_us(pos)
+        due = -(-due // self.packet_us) * self.packet_us
+        host_s = self._t0_host + self._pace.host_s(due)
+        if self._clock is not time.monotonic:  # an injected clock: its own time, unclamped
+            return int(host_s * 1e9)
+        return min(now, int(host_s * 1e9))
 
     def _wire_counters(self) -> dict[str, int]:
         extra = {"bytes_delivered": self._bytes_delivered, "passes": 0, "loop_us": 0, "recorded_us": 0}
@@ -368,6 +382,13 @@ class FileEventSensor(EventSensor):
             extra["passes"] = self._stream.passes_at(self._pos) if self._stream_id >= 0 else 0
             extra["loop_us"] = self._stream.period_us
             extra["recorded_us"] = self._stream.recorded_us
+            due = self._due_us()
+            if due is not None and self._pace.paced and self._stream_id >= 0:
+                # bytes a device would have sent by now (or by its stop) that were not read yet
+                due_bytes = self._stream.cut(due)
+                if self._stream.end is not None:
+                    due_bytes = min(due_bytes, self._stream.end)
+                extra["bytes_unread"] = max(0, due_bytes - self._pos)
         if self._decoder is not None:
             extra.update({f"decoder_skipped_{k}": v for k, v in self._decoder.stats.items()})
             if self._decoder.skipped_offsets:

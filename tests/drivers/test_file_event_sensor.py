@@ -283,6 +283,10 @@ def test_paced_wire_replay_never_hands_out_bytes_ahead_of_time(pace: float) -> N
     while (p := sensor.read_events(0.01)) is not None:
         due_us = (clock.now - t_start) * 1e6 * pace
         assert int(p.events.t[-1]) - first_t <= due_us
+        # stamped when its bytes were due (in memory), not when it was read
+        arrived_s = p.host_time_ns / 1e9
+        assert arrived_s <= clock.now + 1e-9
+        assert int(p.events.t[-1]) - first_t <= (arrived_s - t_start) * 1e6 * pace + 1
         packets.append(p)
         clock.now += 0.0003  # the reader's own time between reads
     ev = _rechunked(packets, "evt3", sensor.geometry)
