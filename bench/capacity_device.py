@@ -362,7 +362,7 @@ def _offered(spec: LevelSpec, density: float) -> float:
 def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
     head = (
         f"{'level':<14}{'cams':>9}{'Mev/s':>7}{'ev prod':>10}{'outside':>9}{'in take':>10}"
-        f"{'fr prod':>8}{'in take':>8}{'loss':>6}{'CPU s/Mev':>10}{'net':>6}{'B/ev':>6}"
+        f"{'fr prod':>8}{'out':>5}{'in take':>8}{'loss':>6}{'CPU s/Mev':>10}{'net':>6}{'B/ev':>6}"
         f"{'take/dur s':>11}{'wall s':>7}{'unread MB':>10}{'RSS MB':>8}{'status ms':>11}  verdict"
     )
     out = [head, "-" * len(head)]
@@ -376,7 +376,7 @@ def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
         out.append(
             f"{lv.spec.label:<14}{str(lv.spec.cameras) + ' ' + lv.spec.fmt:>9}{lv.mevs_offered:>7.2f}"
             f"{lv.produced_events:>10}{lv.outside_events:>9}{lv.take_events:>10}"
-            f"{lv.produced_frames:>8}{lv.take_frames:>8}{sum(lv.losses.values()):>6}"
+            f"{lv.produced_frames:>8}{lv.outside_frames:>5}{lv.take_frames:>8}{sum(lv.losses.values()):>6}"
             f"{_f(cpm, 10, 3)}{_f(net, 6, 3)}{_f(bpe, 6, 2)}"
             f"{f'{lv.capture_s:.1f}/{lv.spec.seconds:g}':>11}{lv.wall_s:>7.1f}{lv.unread_bytes / 1e6:>10.1f}"
             f"{lv.peak_rss_mb:>8.0f}"
