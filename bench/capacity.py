@@ -53,7 +53,7 @@ from typing import Any, Literal, cast
 import h5py
 import numpy as np
 
-from bench.capacity_device import DEFAULT_PACES, DEFAULT_RAW, device_part
+from bench.capacity_device import add_device_arguments, device_part_from_args
 from drivers.evt import Evt3Encoder, StreamDecoder
 from firmware_sim.event_sensor import SLICE_US
 from firmware_sim.world import reset_world
@@ -673,10 +673,6 @@ def speed_table(levels: Sequence[Level]) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- main
-def _ints(text: str) -> list[int]:
-    return [int(v) for v in text.split(",") if v.strip()]
-
-
 def _floats(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v.strip()]
 
@@ -705,17 +701,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--repeat", type=int, default=3, help="runs per microbenchmark (median reported)")
     ap.add_argument("--out", type=Path, default=None, help="directory on the disk to measure (default: tmp)")
     ap.add_argument("--keep", action="store_true", help="keep the takes (printed)")
-    dev = ap.add_argument_group("device part")
-    dev.add_argument("--paces", type=_floats, default=list(DEFAULT_PACES), help="file:// sensor paces")
-    dev.add_argument("--cameras", type=_ints, default=[0, 3], help="camera counts per pace")
-    dev.add_argument("--formats", default="rgb8,bayer_rg8", help="camera pixel formats")
-    dev.add_argument("--device-seconds", type=float, default=10.0, help="length of each pace level")
-    dev.add_argument("--burst", type=_floats, default=[14.0, 2.0, 30.0], help="START_S,LEN_S,TAKE_S")
-    dev.add_argument("--no-burst", action="store_true", help="skip the burst level")
-    dev.add_argument("--overload", type=float, default=10.0, help="overload level seconds (0: skip)")
-    dev.add_argument("--raw", type=Path, default=DEFAULT_RAW, help="EVT 3.0 recording the sensors loop")
-    dev.add_argument("--preload", type=int, default=8, help="frames each camera holds in memory")
-    dev.add_argument("--disk-mb", type=int, default=1024, help="MiB written to measure the disk")
+    add_device_arguments(ap)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log.setLevel(logging.INFO)
@@ -808,20 +794,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             out += speed_table(speed)
             out.append("")
         if "device" in parts:
-            if len(args.burst) != 3:
-                ap.error("--burst takes START_S,LEN_S,TAKE_S")
-            out += device_part(
-                cap_dir,
-                raw=args.raw,
-                paces=args.paces,
-                cameras=args.cameras,
-                formats=[f.strip() for f in args.formats.split(",") if f.strip()],
-                seconds=args.device_seconds,
-                burst=None if args.no_burst else (args.burst[0], args.burst[1], args.burst[2]),
-                overload_s=args.overload or None,
-                preload=args.preload,
-                disk_mb=args.disk_mb,
-            )
+            out += device_part_from_args(ap, args, cap_dir)
             out.append("")
     finally:
         if args.keep:

@@ -38,6 +38,7 @@ capture does (drops, lag, loss records): the bench judges, it never assumes.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import statistics
@@ -456,3 +457,44 @@ def device_part(
     for src in sources.values():
         src.unlink(missing_ok=True)
     return out
+
+
+def add_device_arguments(ap: argparse.ArgumentParser) -> None:
+    dev = ap.add_argument_group("device part")
+    dev.add_argument("--paces", type=_floats, default=list(DEFAULT_PACES), help="file:// sensor paces")
+    dev.add_argument("--cameras", type=_ints, default=[0, 3], help="camera counts per pace")
+    dev.add_argument("--formats", default="rgb8,bayer_rg8", help="camera pixel formats")
+    dev.add_argument("--device-seconds", type=float, default=10.0, help="length of each pace level")
+    dev.add_argument("--burst", type=_floats, default=[14.0, 2.0, 30.0], help="START_S,LEN_S,TAKE_S")
+    dev.add_argument("--no-burst", action="store_true", help="skip the burst level")
+    dev.add_argument("--overload", type=float, default=10.0, help="overload level seconds (0: skip)")
+    dev.add_argument("--raw", type=Path, default=DEFAULT_RAW, help="EVT 3.0 recording the sensors loop")
+    dev.add_argument("--preload", type=int, default=8, help="frames each camera holds in memory")
+    dev.add_argument("--disk-mb", type=int, default=1024, help="MiB written to measure the disk")
+
+
+def device_part_from_args(ap: argparse.ArgumentParser, args: argparse.Namespace, work: Path) -> list[str]:
+    if len(args.burst) != 3:
+        ap.error("--burst takes START_S,LEN_S,TAKE_S")
+    if not args.raw.is_file():
+        ap.error(f"--raw {args.raw}: no such file")
+    return device_part(
+        work,
+        raw=args.raw,
+        paces=args.paces,
+        cameras=args.cameras,
+        formats=[f.strip() for f in args.formats.split(",") if f.strip()],
+        seconds=args.device_seconds,
+        burst=None if args.no_burst else (args.burst[0], args.burst[1], args.burst[2]),
+        overload_s=args.overload or None,
+        preload=args.preload,
+        disk_mb=args.disk_mb,
+    )
+
+
+def _ints(text: str) -> list[int]:
+    return [int(v) for v in text.split(",") if v.strip()]
+
+
+def _floats(text: str) -> list[float]:
+    return [float(v) for v in text.split(",") if v.strip()]
