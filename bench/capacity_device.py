@@ -117,7 +117,8 @@ def disk_write_mbs(directory: Path, mb: int) -> float:
 
 
 class Sampler(threading.Thread):
-    """Every `SAMPLE_S`: this process's VmRSS, and each thread's CPU seconds (by name)."""
+    """Every `SAMPLE_S`: this process's VmRSS, and each thread's CPU seconds since the sampler
+    was made (by name; threads that end between two samples lose their last < 0.5 s)."""
 
     def __init__(self) -> None:
         super().__init__(name="bench-sampler", daemon=True)
@@ -125,6 +126,9 @@ class Sampler(threading.Thread):
         self.thread_cpu: dict[int, tuple[str, float]] = {}
         self._stop_evt = threading.Event()
         self._t0 = time.perf_counter()
+        self.sample()
+        self._base = {tid: cpu for tid, (_, cpu) in self.thread_cpu.items()}
+        self.thread_cpu = {}
 
     def run(self) -> None:
         while not self._stop_evt.is_set():
@@ -141,7 +145,8 @@ class Sampler(threading.Thread):
                 fields = Path(f"/proc/self/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()
             except OSError:
                 continue  # the thread ended between the listing and the read
-            self.thread_cpu[tid] = (t.name, (int(fields[11]) + int(fields[12])) / _TICK)
+            cpu = (int(fields[11]) + int(fields[12])) / _TICK
+            self.thread_cpu[tid] = (t.name, cpu - getattr(self, "_base", {}).get(tid, 0.0))
 
     def finish(self) -> None:
         self._stop_evt.set()
@@ -218,11 +223,13 @@ class DeviceLevel:
         return cpu / mev if mev else None
 
 
-def source_take(out_dir: Path, seconds: float, fmt: str, seed: int = 0) -> Path:
+def source_take(
+    out_dir: Path, seconds: float, fmt: str, seed: int = 0, resolution: tuple[int, int] = (1280, 720)
+) -> Path:
     """The trigger and cameras to replay: the default sim rig without its event sensors,
     recorded on the virtual clock (frames LZ4-compressed: a long take stays small on disk)."""
     world = f"capdev-{uuid.uuid4().hex[:8]}"
-    cfg = default_sim_rig(world=world, seed=seed, clock="virtual", pixel_format=fmt)  # type: ignore[arg-type]
+    cfg = default_sim_rig(world=world, seed=seed, clock="virtual", pixel_format=fmt, resolution=resolution)  # type: ignore[arg-type]
     cfg.event_sensors = []
     cfg.writer.frame_compression = "lz4"
     t0 = time.perf_counter()
@@ -364,7 +371,7 @@ def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
     head = (
         f"{'level':<14}{'cams':>9}{'Mev/s':>7}{'ev prod':>10}{'outside':>9}{'in take':>10}"
         f"{'fr prod':>8}{'out':>5}{'in take':>8}{'loss':>6}{'CPU s/Mev':>10}{'net':>6}{'B/ev':>6}"
-        f"{'take/dur s':>11}{'wall s':>7}{'unread MB':>10}{'RSS MB':>8}{'status ms':>11}  verdict"
+        f"{'take/dur s':>11}{'wall s':>7}{'unread MB':>10}{'RSS MB':>10}{'status ms':>11}  verdict"
     )
     out = [head, "-" * len(head)]
     for lv in levels:
@@ -380,7 +387,7 @@ def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
             f"{lv.produced_frames:>8}{lv.outside_frames:>5}{lv.take_frames:>8}{sum(lv.losses.values()):>6}"
             f"{_f(cpm, 10, 3)}{_f(net, 6, 3)}{_f(bpe, 6, 2)}"
             f"{f'{lv.capture_s:.1f}/{lv.spec.seconds:g}':>11}{lv.wall_s:>7.1f}{lv.unread_bytes / 1e6:>10.1f}"
-            f"{lv.peak_rss_mb:>8.0f}"
+            f"{f'{lv.rss_mb[0][1]:.0f}/{lv.peak_rss_mb:.0f}':>10}"
             f"{f'{statistics.median(st) * 1e3:.2f}/{max(st) * 1e3:.1f}':>11}  {verdict}"
         )
         for what, n in {**lv.losses, **lv.drops}.items():
