@@ -39,6 +39,7 @@ capture does (drops, lag, loss records): the bench judges, it never assumes.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
 import os
 import statistics
@@ -157,6 +158,15 @@ class Sampler(threading.Thread):
         return sum(cpu for name, cpu in self.thread_cpu.values() if name.startswith(prefix))
 
 
+def trim_heap() -> None:
+    """Give the C heap's free memory back to the OS (glibc `malloc_trim`), so that a level's
+    starting VmRSS is what is live, not what the previous level's buffers left in the heap."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError) as exc:
+        log.info("malloc_trim unavailable (%s): VmRSS at a level's start includes freed heap", exc)
+
+
 def vm_kb(key: str) -> int:
     """A `/proc/self/status` memory line (kB)."""
     for line in Path("/proc/self/status").read_text().splitlines():
@@ -189,6 +199,8 @@ class DeviceLevel:
     outside_frames: int
     take_frames: int
     losses: dict[str, int]
+    unknown_losses: list[str]
+    """Loss records without a count: data the take lacks, how much unknown."""
     drops: dict[str, int]
     cpu_s: float
     trigbox_cpu_s: float
@@ -214,7 +226,12 @@ class DeviceLevel:
     @property
     def held(self) -> bool:
         return not (
-            self.losses or self.drops or self.missing_events or self.missing_frames or self.unread_bytes
+            self.losses
+            or self.unknown_losses
+            or self.drops
+            or self.missing_events
+            or self.missing_frames
+            or self.unread_bytes
         )
 
     def cpu_per_mev(self, net: bool = False) -> float | None:
@@ -267,6 +284,7 @@ def run_level(
         )
         for i in range(2)
     ]
+    trim_heap()
     sampler = Sampler()
     status: list[float] = []
     log.info(
@@ -313,10 +331,13 @@ def judge(
         return sum(res.outside_window.get(d, {}).get(k, 0) for d in devs for k in keys)
 
     losses: dict[str, int] = {}
+    unknown: list[str] = []
     for r in res.report.losses:
+        key = f"{r.device} {r.what}: {r.reason}"
         if r.count:
-            key = f"{r.device} {r.what}: {r.reason}"
             losses[key] = losses.get(key, 0) + r.count
+        else:  # a span the take lacks, its count unknown (e.g. not delivered by the stop bound)
+            unknown.append(key)
     drops = {
         f"{d}.{k}": int(v)
         for d, cnt in counters.items()
@@ -345,6 +366,7 @@ def judge(
         outside_frames=outside(cams, ("before", "after")),
         take_frames=sum(res.frames.values()),
         losses=losses,
+        unknown_losses=unknown,
         drops=drops,
         cpu_s=cpu,
         trigbox_cpu_s=sampler.cpu_of("trigbox-"),
@@ -370,7 +392,7 @@ def _offered(spec: LevelSpec, density: float) -> float:
 def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
     head = (
         f"{'level':<14}{'cams':>9}{'Mev/s':>7}{'ev prod':>10}{'outside':>9}{'in take':>10}"
-        f"{'fr prod':>8}{'out':>5}{'in take':>8}{'loss':>6}{'CPU s/Mev':>10}{'net':>6}{'B/ev':>6}"
+        f"{'fr prod':>8}{'out':>5}{'in take':>8}{'loss':>8}{'CPU s/Mev':>10}{'net':>6}{'B/ev':>6}"
         f"{'take/dur s':>11}{'wall s':>7}{'unread MB':>10}{'RSS MB':>10}{'status ms':>11}  verdict"
     )
     out = [head, "-" * len(head)]
@@ -384,7 +406,8 @@ def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
         out.append(
             f"{lv.spec.label:<14}{str(lv.spec.cameras) + ' ' + lv.spec.fmt:>9}{lv.mevs_offered:>7.2f}"
             f"{lv.produced_events:>10}{lv.outside_events:>9}{lv.take_events:>10}"
-            f"{lv.produced_frames:>8}{lv.outside_frames:>5}{lv.take_frames:>8}{sum(lv.losses.values()):>6}"
+            f"{lv.produced_frames:>8}{lv.outside_frames:>5}{lv.take_frames:>8}"
+            f"{f'{sum(lv.losses.values())}+{len(lv.unknown_losses)}?':>8}"
             f"{_f(cpm, 10, 3)}{_f(net, 6, 3)}{_f(bpe, 6, 2)}"
             f"{f'{lv.capture_s:.1f}/{lv.spec.seconds:g}':>11}{lv.wall_s:>7.1f}{lv.unread_bytes / 1e6:>10.1f}"
             f"{f'{lv.rss_mb[0][1]:.0f}/{lv.peak_rss_mb:.0f}':>10}"
@@ -392,6 +415,8 @@ def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
         )
         for what, n in {**lv.losses, **lv.drops}.items():
             out.append(f"{'':<14}  loss: {what} = {n}")
+        for what in lv.unknown_losses:
+            out.append(f"{'':<14}  loss (count unknown): {what}")
     return out
 
 
