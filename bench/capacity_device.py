@@ -1,7 +1,7 @@
 """Capture capacity on device-like sources (`python -m bench.capacity --parts device`).
 
     python -m bench.capacity --parts device [--paces 0.05,0.2,0.4,0.8,1.6] [--cameras 0,3]
-        [--formats rgb8,bayer_rg8] [--device-seconds 10] [--burst 14:2:30] [--overload 10]
+        [--formats rgb8,bayer_rg8] [--device-seconds 10] [--burst 14,2,30] [--overload 10]
         [--raw evt3_gen41_sample.raw] [--preload 8] [--disk-mb 1024] [--out DIR]
 
 The sources cost the host what real devices cost it, not what replaying a take costs:
@@ -21,16 +21,19 @@ out), as long as the longest level, in each camera format (rgb8; bayer_rg8 when 
 has it, else mono8, the same (H, W) uint8 shape). Each level then runs `CaptureSession` for
 its seconds and prints: Mev/s per sensor offered; events produced (the sensors' own delivered
 counters) vs outside the trigger window (not written by design) vs in the take; frames
-produced vs in the take; loss records (count and reasons); process CPU seconds per Mev
+produced vs in the take; loss records (counted + without a count, "N+M?", and their reasons);
+MB the sensors had due but the capture never read (`bytes_unread`); process CPU seconds per Mev
 (`time.process_time` over the take) and the same without the simulated trigger box's threads
 (its firmware runs on a microcontroller in a real rig; per-thread CPU from /proc); bytes per
-event on disk (storage of the take's `events/` datasets); take wall time vs duration; peak RSS
-(VmRSS sampled every 0.5 s by a thread); how long a status query (`CaptureSession.progress`,
+event on disk (storage of the take's `events/` datasets); take time vs duration and wall time;
+VmRSS at the level's start (after `malloc_trim`) and its peak (sampled every 0.5 s by a thread);
+how long a status query (`CaptureSession.progress`,
 what `rigd status` shows) takes, median and max; and the disk's own write rate measured in the
-same run (`--disk-mb` of zeros in 4 MiB writes, then fsync). "held" = no loss record with a
-count, no device drop, and every produced event and frame in the take (or outside its window).
+same run (`--disk-mb` of zeros in 4 MiB writes, then fsync). "held" = no loss record, no
+device drop, nothing unread, and every produced event and frame in the take (or
+outside its window).
 
-`--burst START_S:LEN_S:TAKE_S`: a TAKE_S take at 2 x 10 Mev/s with LEN_S seconds at 2 x 50
+`--burst START_S,LEN_S,TAKE_S`: a TAKE_S take at 2 x 10 Mev/s with LEN_S seconds at 2 x 50
 Mev/s from START_S on (`burst=` on the sensors' spec). `--overload SECONDS`: 2 x 40 Mev/s
 sustained; it prints RSS over time and the status query times, and reports whatever the
 capture does (drops, lag, loss records): the bench judges, it never assumes.
