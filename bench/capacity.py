@@ -1,7 +1,7 @@
 """Capture capacity: the highest load the capture pipeline holds with zero loss, fed by replay.
 
     python -m bench.capacity [--seconds 5] [--levels 0.3,0.2,0.12,0.08,0.05,0.03]
-                             [--rates 30,60,90,120] [--parts events,frames,micro,speed]
+                             [--rates 30,60,90,120] [--parts events,frames,micro,speed,device]
                              [--runs 2] [--max-lag 1] [--micro-events 8000000] [--repeat 3]
                              [--out DIR] [--keep]
 
@@ -20,6 +20,9 @@ drop, every frame and event of the source in the new take) and kept up (see belo
    HDF5 with the take's LZ4+shuffle and without, in memory and on disk; frame writes) and the
    per-sensor ceiling they imply, against the 20 Mev/s a Prophesee Gen4 sensor can burst to.
 4. `speed`: the default rig take replayed on `clock=virtual` (x real time) and in real time.
+5. `device` (only when named): device-like sources instead of a replayed take: two `file://`
+   sensors handing out the real Gen4.1 EVT 3.0 bytes at `--paces`, cameras whose frames are in
+   memory, a burst and an overload level; see `bench.capacity_device` for what it prints.
 
 The replay source runs on the same cores as the capture it feeds (reading and LZ4-decoding the
 take, encoding EVT 3.0, pacing the pty trigger box), so a level's verdict is a lower bound on
@@ -50,6 +53,7 @@ from typing import Any, Literal, cast
 import h5py
 import numpy as np
 
+from bench.capacity_device import add_device_arguments, device_part_from_args
 from drivers.evt import Evt3Encoder, StreamDecoder
 from firmware_sim.event_sensor import SLICE_US
 from firmware_sim.world import reset_world
@@ -74,7 +78,9 @@ DEFAULT_THRESHOLD = 0.3
 TARGET_MEVS = 20.0
 #: Device counter names that count something lost (drops, overflows, decoder skips).
 _LOSS_WORDS = ("drop", "overflow", "lost", "skipped")
-PARTS = ("events", "frames", "micro", "speed")
+PARTS = ("events", "frames", "micro", "speed", "device")
+#: What runs without --parts: the device part is asked for by name (bench.capacity_device).
+DEFAULT_PARTS = ("events", "frames", "micro", "speed")
 
 
 # ----------------------------------------------------------------------------- source takes
@@ -681,7 +687,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="event thresholds, comma-separated (lower: more events)",
     )
     ap.add_argument("--rates", type=_floats, default=list(DEFAULT_RATES), help="trigger rates, Hz")
-    ap.add_argument("--parts", default=",".join(PARTS), help=f"which of {','.join(PARTS)} to run")
+    ap.add_argument("--parts", default=",".join(DEFAULT_PARTS), help=f"which of {','.join(PARTS)} to run")
     ap.add_argument("--runs", type=int, default=2, help="real-time replays per level (all must pass)")
     ap.add_argument(
         "--max-lag",
@@ -695,6 +701,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--repeat", type=int, default=3, help="runs per microbenchmark (median reported)")
     ap.add_argument("--out", type=Path, default=None, help="directory on the disk to measure (default: tmp)")
     ap.add_argument("--keep", action="store_true", help="keep the takes (printed)")
+    add_device_arguments(ap)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log.setLevel(logging.INFO)
@@ -714,11 +721,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     densest: Source | None = None
     best_event_level: Level | None = None
     try:
-        # Warm-up, not reported: numba compiles its kernels and the page cache fills on the
-        # first replay, which would otherwise count against the first level.
-        warm = record_source(src_dir, threshold=DEFAULT_THRESHOLD, rate_hz=30.0, seconds=1.0)
-        replay_capture(warm, cap_dir)
-        warm.path.unlink(missing_ok=True)
+        if parts - {"device"}:
+            # Warm-up, not reported: numba compiles its kernels and the page cache fills on the
+            # first replay, which would otherwise count against the first level.
+            warm = record_source(src_dir, threshold=DEFAULT_THRESHOLD, rate_hz=30.0, seconds=1.0)
+            replay_capture(warm, cap_dir)
+            warm.path.unlink(missing_ok=True)
         if "events" in parts:
             levels: list[list[Level]] = []
             for thr in args.levels:
@@ -784,6 +792,9 @@ def main(argv: Sequence[str] | None = None) -> None:
                 f"{default.mevs_per_sensor:.2f} Mev/s/sensor)"
             )
             out += speed_table(speed)
+            out.append("")
+        if "device" in parts:
+            out += device_part_from_args(ap, args, cap_dir)
             out.append("")
     finally:
         if args.keep:

@@ -145,6 +145,7 @@ class _ReplayDevice(SpecParams):
 class ReplayCameraParams(_ReplayDevice):
     buffer_frames: Annotated[int, Field(ge=1, le=1024)] | None = None
     drop_frames: IndexList | None = None
+    preload: Annotated[int, Field(ge=0, le=4096)] | None = None
 
 
 class ReplaySensorParams(_ReplayDevice):

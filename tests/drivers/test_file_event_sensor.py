@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from drivers.base import Capability, EventSensor
-from drivers.evt import RawHeader, read_raw, write_dat, write_raw
+from drivers.evt import RawHeader, StreamDecoder, parse_raw_header, read_raw, write_dat, write_raw
+from drivers.evt_file_stream import Pace
+from drivers.file_event_sensor import FileEventSensor
 from drivers.registry import open_device
 from drivers.testing.event_sensor import EventSensorLifecycleContract
 from rigd.core.errors import ConfigError, DeviceError
@@ -232,3 +234,129 @@ def open_started(path: Path) -> EventSensor:
     sensor = open_device("event_sensor", f"file://{path}?chunk_bytes=501")
     sensor.start()
     return sensor
+
+
+# ---------------------------------------------------------------- wire-byte replay (EVT 3.0 / 2.0)
+class FakeClock:
+    """Host time that moves only when the sensor sleeps (or the test says so)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        self.now += max(s, 1e-6)
+
+
+def _rechunked(packets: list[EventPacket], fmt: str, geometry: tuple[int, int]) -> EventArray:
+    """Each packet's EvtChunk decoded alone from its state: must give the packet's events, and
+    the chunks must follow each other without a gap."""
+    prev = None
+    for p in packets:
+        assert p.raw is not None
+        assert p.raw.fmt == fmt
+        assert prev is None or p.raw.continues(prev)
+        dec = StreamDecoder(fmt, width=geometry[0], height=geometry[1])
+        dec._state[:] = p.raw.state  # TODO: StreamDecoder's own state setter once it lands
+        got = dec.feed(p.raw.data)
+        assert dec.bytes_consumed == len(p.raw.data)
+        for col in ("x", "y", "p", "t"):
+            np.testing.assert_array_equal(getattr(got.events, col), getattr(p.events, col))
+        np.testing.assert_array_equal(got.triggers.t, p.triggers.t)
+        prev = p.raw
+    return EventArray.concatenate([p.events for p in packets])
+
+
+@needs_data
+@pytest.mark.parametrize("pace", [0.5, 2.0])
+def test_paced_wire_replay_never_hands_out_bytes_ahead_of_time(pace: float) -> None:
+    path = DATA / "evt3_gen41_sample.raw"
+    clock = FakeClock()
+    sensor = FileEventSensor(path, pace=pace, clock=clock, sleep=clock.sleep, packet_us=250)
+    assert sensor.wire
+    sensor.start()
+    t_start = clock.now
+    first_t = 11_718_656  # the recording's first TIME_HIGH (its first period starts there)
+    packets = []
+    while (p := sensor.read_events(0.01)) is not None:
+        due_us = (clock.now - t_start) * 1e6 * pace
+        assert int(p.events.t[-1]) - first_t <= due_us
+        # stamped when its bytes were due (in memory), not when it was read
+        arrived_s = p.host_time_ns / 1e9
+        assert arrived_s <= clock.now + 1e-9
+        assert int(p.events.t[-1]) - first_t <= (arrived_s - t_start) * 1e6 * pace + 1
+        packets.append(p)
+        clock.now += 0.0003  # the reader's own time between reads
+    ev = _rechunked(packets, "evt3", sensor.geometry)
+    _, whole = read_raw(path)
+    assert len(ev) == len(whole.events) == sensor.stats().delivered
+    np.testing.assert_array_equal(ev.t, whole.events.t)
+    assert len(packets) > 10  # paced: many buffers, not one
+    with path.open("rb") as f:
+        header = parse_raw_header(f).size
+    assert sensor.stats().extra["bytes_delivered"] == path.stat().st_size - header
+
+
+@needs_data
+def test_looped_gen41_stream_repeats_whole_periods_gap_free() -> None:
+    path = DATA / "evt3_gen41_sample.raw"
+    _, whole = read_raw(path)
+    t0 = int(whole.events.t[0])
+    per_pass = int(np.count_nonzero(whole.events.t < t0 + 8192))
+    sensor = FileEventSensor(path, loop=True, chunk_bytes=100_003)
+    sensor.start()
+    packets = [sensor.read_events(0.0) for _ in range(40)]
+    assert all(p is not None for p in packets)
+    ev = _rechunked([p for p in packets if p is not None], "evt3", sensor.geometry)
+    extra = sensor.stats().extra
+    assert (extra["loop_us"], extra["recorded_us"]) == (8192, 8811)
+    assert not any(v for k, v in extra.items() if k.startswith("decoder_skipped"))
+    assert ev.is_time_sorted()
+    passes = (ev.t - t0) // 8192
+    n_full = int(passes[-1])  # the last pass may be cut short
+    assert n_full >= 5
+    counts = np.bincount(passes)[:n_full]
+    assert (counts == per_pass).all()
+    ref = whole.events[:per_pass]
+    for k in range(n_full):
+        got = ev[k * per_pass : (k + 1) * per_pass]
+        np.testing.assert_array_equal(got.t, ref.t + k * 8192)
+        np.testing.assert_array_equal(got.x, ref.x)
+        np.testing.assert_array_equal(got.y, ref.y)
+    assert extra["passes"] >= n_full
+
+
+@needs_data
+def test_evt2_replays_its_wire_bytes() -> None:
+    path = DATA / "evt2_gen3_sample.raw"
+    sensor = FileEventSensor(path, chunk_bytes=65_536)
+    assert sensor.wire
+    sensor.start()
+    packets = _drain(sensor, 0.0)
+    ev = _rechunked(packets, "evt2", sensor.geometry)
+    assert len(ev) == 539_481
+
+
+def test_loop_refuses_what_cannot_loop(tmp_path: Path) -> None:
+    t = np.arange(100, 3_000, 100, dtype=np.int64)  # less than one whole TIME_HIGH period
+    ev = EventArray.from_arrays(np.zeros_like(t), np.zeros_like(t), np.ones_like(t), t)
+    path = tmp_path / "short.raw"
+    write_raw(path, RawHeader(fmt="evt3", width=64, height=64), ev)
+    sensor = open_device("event_sensor", f"file://{path}?loop=1")
+    with pytest.raises(ConfigError, match="whole TIME_HIGH period"):
+        sensor.start()
+
+
+def test_burst_pace_is_piecewise_and_invertible() -> None:
+    pace = Pace(0.5, burst_at_s=2.0, burst_s=1.0, burst_pace=4.0)
+    assert pace.stream_us(1.0) == 500_000
+    assert pace.stream_us(2.5) == 1_000_000 + 2_000_000
+    assert pace.stream_us(4.0) == 1_000_000 + 4_000_000 + 500_000
+    for s in (0.3, 2.0, 2.7, 3.9):
+        assert pace.host_s(pace.stream_us(s)) == pytest.approx(s, abs=1e-6)
+    with pytest.raises(ConfigError, match="burst"):
+        Pace(0.0, burst_at_s=1.0, burst_s=1.0, burst_pace=2.0)
+    with pytest.raises(ConfigError, match="START_S:LEN_S:PACE"):
+        open_device("event_sensor", f"file://{DATA / 'evt3_pedestrians.raw'}?pace=1&burst=1:2")

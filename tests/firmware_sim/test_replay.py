@@ -129,3 +129,23 @@ def test_replay_unplug_and_clock_reset(recorded: Path, tmp_path: Path) -> None:
         report = b.sync_report
         assert report is not None
         assert any(loss.device == "cam2" for loss in report.losses)
+
+
+def test_preloaded_cameras_cycle_frames_held_in_memory(recorded: Path, tmp_path: Path) -> None:
+    """preload=N: the recorded times and counters, the first N images in turn."""
+    config, duration = replay_config(recorded, clock="virtual")
+    for cam_config in config.cameras:
+        cam_config.spec += "&preload=2"
+    result = run_capture(config, tmp_path, duration)
+    reset_world(f"replay:{recorded.resolve()}")
+    with Take(recorded) as a, Take(result.path) as b:
+        for cam in a.cameras:
+            fa, fb = a.frames(cam), b.frames(cam)
+            assert len(fa) == len(fb) > 2
+            assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
+            assert not np.array_equal(fa[2].image, fa[0].image)  # the scene moves: a replay differs
+            for i in range(len(fb)):
+                assert np.array_equal(fb[i].image, fa[i % 2].image)
+                assert fb[i].frame_counter == fa[i].frame_counter
+    with pytest.raises(ConfigError, match="preload"):
+        open_device("rgb_camera", f"replay://{recorded}?device=cam0&preload=-1")
