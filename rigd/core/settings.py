@@ -83,7 +83,26 @@ class WriterConfig(BaseModel):
         description="Events per HDF5 chunk of x, y, p, t: a random 50 ms window decodes about "
         "its own events plus one chunk per column (bench.random_windows, decision 0012).",
     )
-    queue_items: int = Field(256, ge=4, le=65536, description="Bound of the acquisition -> writer queue.")
+    queue_items: int = Field(
+        4096,
+        ge=4,
+        le=1 << 20,
+        description="Bound of the acquisition -> writer queue in items (queue_mb bounds its memory).",
+    )
+    queue_mb: int = Field(
+        1024,
+        ge=16,
+        le=1 << 20,
+        description="Bound of the writer queue's memory: what a burst above the writer's speed can fill "
+        "before event slices are shed (bench.capacity --parts device: the burst level).",
+    )
+    overload_max_lag_s: float = Field(
+        5.0,
+        gt=0,
+        le=600.0,
+        description="An event packet that waited longer than this since it reached the host is shed "
+        "(overload, like a sensor's event-rate controller), so the take never lags further behind.",
+    )
     queue_put_timeout_s: float = Field(
         2.0,
         gt=0,

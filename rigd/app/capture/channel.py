@@ -25,6 +25,7 @@ from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, WriterQueue, first_time
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import Gap, LiveStats, Observations
+from rigd.app.capture.overload import SliceShedder
 from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError, DeviceError, RigdError
@@ -185,6 +186,8 @@ class DeviceChannel:
         self.clock_reset: ClockReset | None = None
         self.gate: WindowGate | None = None
         """Keeps what lies outside the take's trigger window out of the file (counted)."""
+        self.shedder: SliceShedder | None = None
+        """Sheds event slices while the writer cannot keep up (event sensors)."""
         self.read_deadline: float | None = None
         """Monotonic time after which, once acquisition is done, the channel stops reading
         what the stopped device still holds (`writer.stop_backlog_s`)."""
@@ -322,6 +325,8 @@ class DeviceChannel:
             if self.gate is not None:
                 for part in self.gate.finish():
                     self._enqueue(part)
+            if self.shedder is not None:
+                self.shedder.close()
 
     def _read_until_done(self, done: threading.Event) -> None:
         while True:
@@ -519,10 +524,16 @@ class DeviceChannel:
             self._enqueue(part)
 
     def _enqueue(self, item: Frame | EventPacket) -> None:
+        queue = self.ctx.queue
         if isinstance(item, Frame):
-            self.ctx.queue.put(FrameItem(self.name, item), self.live)
-        else:
-            self.ctx.queue.put(EventsItem(self.name, item), self.live)
+            queue.put(FrameItem(self.name, item), self.live)
+            return
+        if self.shedder is not None:
+            kept = self.shedder.admit(item, queue.fill(), time.monotonic_ns())
+            if kept is None:
+                return
+            item = kept
+        queue.put(EventsItem(self.name, item), self.live)
 
     def _arrived(self, t_device: int | None, t_last: int | None, host_ns: int) -> None:
         """Bookkeeping for one delivery; closes a reconnect gap with its loss record."""

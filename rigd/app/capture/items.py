@@ -9,18 +9,24 @@ from __future__ import annotations
 
 import logging
 import queue
+import threading
+import time
 from dataclasses import dataclass
 from typing import ClassVar
 
 from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
+from rigd.app.capture.overload import Fill
 from rigd.core.devices import PulseBatch
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
 
 log = logging.getLogger(__name__)
+
+#: Bytes of one decoded event in memory (x, y: u2; p: i1; t: i8).
+EVENT_BYTES = 13
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,6 +38,10 @@ class FrameItem:
     @property
     def count(self) -> int:
         return 1
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.frame.image.nbytes)
 
     @property
     def t_range(self) -> tuple[int | None, int | None]:
@@ -50,6 +60,13 @@ class EventsItem:
         return len(self.packet.events)
 
     @property
+    def nbytes(self) -> int:
+        """Memory the item holds: decoded events and edges, and the wire bytes when kept."""
+        p = self.packet
+        raw = 0 if p.raw is None else len(p.raw.data)
+        return EVENT_BYTES * len(p.events) + 10 * len(p.triggers) + raw
+
+    @property
     def t_range(self) -> tuple[int | None, int | None]:
         t = self.packet.events.t
         return (int(t[0]), int(t[-1])) if len(t) else (None, None)
@@ -64,6 +81,10 @@ class PulsesItem:
     @property
     def count(self) -> int:
         return len(self.batch)
+
+    @property
+    def nbytes(self) -> int:
+        return 24 * len(self.batch)
 
     @property
     def t_range(self) -> tuple[int | None, int | None]:
@@ -87,19 +108,56 @@ def first_time(item: Frame | EventPacket) -> int | None:
 
 
 class WriterQueue:
-    """The bounded hand-off to the writer; a put that times out is a counted loss."""
+    """The bounded hand-off to the writer; a put that times out is a counted loss.
 
-    def __init__(self, maxsize: int, put_timeout_s: float, ledger: LossLedger, faults: FaultBoard) -> None:
+    Bounded in items and, loosely, in bytes: a put waits while the bytes queued exceed
+    `max_bytes` too (one item may overshoot), so a backlog of big frames cannot take the
+    host's memory. `fill()` is what the event sensors' overload gates watch."""
+
+    def __init__(
+        self,
+        maxsize: int,
+        put_timeout_s: float,
+        ledger: LossLedger,
+        faults: FaultBoard,
+        max_bytes: int = 1 << 62,
+    ) -> None:
         self._queue: queue.Queue[QueueItem | StopItem] = queue.Queue(maxsize=maxsize)
         self.maxsize = maxsize
+        self.max_bytes = max_bytes
         self._put_timeout_s = put_timeout_s
         self._ledger = ledger
         self._faults = faults
+        self._bytes = 0
+        self.peak_bytes = 0
+        self._room = threading.Condition()
+
+    @property
+    def bytes_queued(self) -> int:
+        return self._bytes
+
+    def fill(self) -> Fill:
+        return Fill(self._queue.qsize() / self.maxsize, self._bytes / self.max_bytes)
+
+    def _wait_for_bytes(self, timeout_s: float) -> bool:
+        with self._room:
+            return self._room.wait_for(lambda: self._bytes < self.max_bytes, timeout_s)
 
     def put(self, item: QueueItem, live: LiveStats) -> bool:
         live.enqueued()
+        t0 = time.monotonic()
         try:
-            self._queue.put(item, timeout=self._put_timeout_s)
+            if not self._wait_for_bytes(self._put_timeout_s):
+                raise queue.Full
+            left = max(0.0, self._put_timeout_s - (time.monotonic() - t0))
+            with self._room:
+                self._bytes += item.nbytes
+                self.peak_bytes = max(self.peak_bytes, self._bytes)
+            try:
+                self._queue.put(item, timeout=left)
+            except queue.Full:
+                self._release(item)
+                raise
         except queue.Full:
             log.warning("writer queue full: %d %s of %s lost", item.count, item.what, item.device)
             self._faults.set("queue_full", None, "the writer cannot keep up; data is being dropped (counted)")
@@ -117,9 +175,17 @@ class WriterQueue:
 
     def get(self, timeout_s: float) -> QueueItem | StopItem | None:
         try:
-            return self._queue.get(timeout=timeout_s)
+            item = self._queue.get(timeout=timeout_s)
         except queue.Empty:
             return None
+        if not isinstance(item, StopItem):
+            self._release(item)
+        return item
+
+    def _release(self, item: QueueItem) -> None:
+        with self._room:
+            self._bytes -= item.nbytes
+            self._room.notify_all()
 
     def qsize(self) -> int:
         return self._queue.qsize()

@@ -95,7 +95,7 @@ class LiveStats:
         if now - t0 >= 0.3:
             self.rate_hz = (self.total - n0) / (now - t0)
 
-    def snapshot(self, name: str, lost: int, jitter_us: float | None) -> DeviceSnapshot:
+    def snapshot(self, name: str, lost: int, jitter_us: float | None, shed: int = 0) -> DeviceSnapshot:
         age = None if self.last_data_mono is None else time.monotonic() - self.last_data_mono
         return DeviceSnapshot(
             name,
@@ -108,4 +108,5 @@ class LiveStats:
             self.queued,
             age,
             jitter_us,
+            shed,
         )

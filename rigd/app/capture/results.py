@@ -92,6 +92,8 @@ class DeviceSnapshot:
     queued: int
     last_data_age_s: float | None
     interval_jitter_us: float | None
+    shed: int = 0
+    """Events shed at the source while the host could not keep up (see `overload`)."""
 
 
 @dataclass(slots=True)
@@ -127,3 +129,7 @@ class SessionSnapshot:
     the first flush."""
     flush_max_s: float = 0.0
     """The longest flush so far (the writer's stall; fsync waits for the disk)."""
+    writer_busy: float = 0.0
+    """Share of the last seconds the writer thread was busy: 1 - the headroom."""
+    queue_bytes: int = 0
+    queue_max_bytes: int = 0

@@ -30,6 +30,7 @@ from rigd.app.capture.finalize import finalize_take, software_synced
 from rigd.app.capture.items import WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
+from rigd.app.capture.overload import SliceShedder
 from rigd.app.capture.preflight import check_rig, warm_up
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
@@ -107,7 +108,11 @@ class CaptureSession:
         self._faults = FaultBoard()
         self._ledger = LossLedger(self._faults, self._trigger_link)
         self._queue = WriterQueue(
-            config.writer.queue_items, config.writer.queue_put_timeout_s, self._ledger, self._faults
+            config.writer.queue_items,
+            config.writer.queue_put_timeout_s,
+            self._ledger,
+            self._faults,
+            max_bytes=config.writer.queue_mb << 20,
         )
         self._disk = DiskWatch(
             out_dir, config.writer.disk_reserve_mb, self._faults, self._control, disk_usage
@@ -251,7 +256,9 @@ class CaptureSession:
         devices = [self._trigger_live.snapshot("trigger", lost.get("trigger", 0), None)]
         for name, ch in list(self._channels.items()):
             ch.live.update_rate(now)
-            devices.append(ch.live.snapshot(name, lost.get(name, 0), ch.obs.interval_jitter_us(period_us)))
+            shed = 0 if ch.shedder is None else ch.shedder.shed_events
+            jitter = ch.obs.interval_jitter_us(period_us)
+            devices.append(ch.live.snapshot(name, lost.get(name, 0), jitter, shed))
         try:
             size = self.path.stat().st_size
         except OSError:
@@ -271,6 +278,9 @@ class CaptureSession:
             self._faults.active(),
             None if last_flush is None else now - last_flush,
             0.0 if self._take is None else self._take.flush_seconds_max,
+            0.0 if writer is None else writer.load.fraction(),
+            self._queue.bytes_queued,
+            self._queue.max_bytes,
         )
 
     def latest_frames(self) -> dict[str, Frame]:
@@ -312,7 +322,12 @@ class CaptureSession:
         for cam in config.cameras:
             self._channels[cam.name] = DeviceChannel(cam.name, "rgb_camera", cam.spec, cam.settings, ctx)
         for sen in config.event_sensors:
-            self._channels[sen.name] = DeviceChannel(sen.name, "event_sensor", sen.spec, sen.settings, ctx)
+            ch = self._channels[sen.name] = DeviceChannel(
+                sen.name, "event_sensor", sen.spec, sen.settings, ctx
+            )
+            ch.shedder = SliceShedder(
+                sen.name, self._ledger, self._faults, max_lag_s=config.writer.overload_max_lag_s
+            )
         self._preflight(trigger)
         for ch in self._channels.values():
             ch.gate = WindowGate(

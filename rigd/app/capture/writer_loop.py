@@ -18,6 +18,7 @@ from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, QueueItem, StopItem, WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
+from rigd.app.capture.overload import WriterLoad
 from rigd.core.errors import TakeError
 from rigd.take.writer import TakeWriter
 
@@ -50,6 +51,8 @@ class WriterLoop:
         """What the file system refused; the take stopped there."""
         self.last_flush_utc: str | None = None
         self.last_flush_mono: float | None = None
+        self.load = WriterLoad()
+        """How busy this thread is (the headroom telemetry shows)."""
 
     def run(self) -> None:
         """The thread body: until the stop item, then a last flush."""
@@ -61,13 +64,16 @@ class WriterLoop:
                     self._flush()
                 return
             if item is not None:
+                t0 = time.monotonic()
                 self._take(item)
+                self.load.add(t0, time.monotonic())
             now = time.monotonic()
             if self.error is None and now - last_flush >= self._interval:
                 try:
                     self._flush()
                 except OSError as exc:
                     self._failed(exc)
+                self.load.add(now, time.monotonic())
                 last_flush = now
 
     def _take(self, item: QueueItem) -> None:

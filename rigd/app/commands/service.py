@@ -192,6 +192,22 @@ def _flush_text(t: dict[str, Any]) -> str:
     return f"  flushed {age:.1f} s ago (longest {t.get('flush_max_s', 0.0) * 1e3:.0f} ms)"
 
 
+def _headroom_text(t: dict[str, Any]) -> str:
+    """The writer's load, and what the event sensors send against what it would hold."""
+    busy = float(t.get("writer_busy", 0.0))
+    events = sum(d["rate_hz"] for d in t["devices"] if d["kind"] == "event_sensor")
+    line = (
+        f"writer {busy * 100:.0f} % busy (headroom {100 - busy * 100:.0f} %)  events {events / 1e6:.2f} Mev/s"
+    )
+    cap = t.get("event_capacity_hz")
+    if cap:
+        line += f" of ~{cap / 1e6:.0f} Mev/s this host's writer holds"
+    shed = sum(d.get("shed", 0) for d in t["devices"])
+    if shed:
+        line += f"  [bold red]shed {shed:,} events (overload)[/]"
+    return line
+
+
 def print_status(t: dict[str, Any], out: Console) -> None:
     disk = f"{t['disk_free_bytes'] / 1e9:.1f} of {t['disk_total_bytes'] / 1e9:.1f} GB free"
     out.print(f"state: [bold]{t['state']}[/]   takes: {t['takes_completed']}   disk: {disk}")
@@ -201,6 +217,7 @@ def print_status(t: dict[str, Any], out: Console) -> None:
             f"queue {t['queue_depth']}/{t['queue_capacity']}  {t['bytes_written'] / 1e6:.0f} MB"
             + _flush_text(t)
         )
+        out.print(_headroom_text(t))
     table = Table("device", "kind", "state", "total", "rate/s", "lost", "queued", "reconnects", "jitter us")
     for d in t["devices"]:
         jitter = d.get("interval_jitter_us")

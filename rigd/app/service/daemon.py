@@ -71,6 +71,9 @@ from rigd.take.verdict import take_verdict
 
 log = logging.getLogger(__name__)
 
+#: Below this writer load the capacity estimate (rate / load) is too noisy to show.
+MIN_BUSY_FOR_CAPACITY = 0.05
+
 #: Messages up to this size are read and refused with `too_large`; ZeroMQ drops bigger
 #: ones at the transport (the peer is disconnected) so they never reach memory.
 _HARD_LIMIT_BYTES = 1 << 20
@@ -622,6 +625,13 @@ class Daemon:
         t.pulses = snap.pulses
         t.queue_depth = snap.queue_depth
         t.queue_capacity = snap.queue_capacity
+        t.queue_bytes = snap.queue_bytes
+        t.queue_max_bytes = snap.queue_max_bytes
+        t.writer_busy = snap.writer_busy
+        events_hz = sum(d.rate_hz for d in snap.devices if d.kind == "event_sensor")
+        t.event_capacity_hz = (
+            events_hz / snap.writer_busy if snap.writer_busy >= MIN_BUSY_FOR_CAPACITY else None
+        )
         t.bytes_written = snap.bytes_written
         t.last_flush_age_s = snap.last_flush_age_s
         t.flush_max_s = snap.flush_max_s

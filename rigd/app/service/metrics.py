@@ -230,6 +230,12 @@ class MetricsExporter:
             registry=r,
         )
         self.queue_depth = Gauge("rigd_queue_depth", "Items in the acquisition->writer queue.", registry=r)
+        self.queue_bytes = Gauge(
+            "rigd_queue_bytes", "Bytes held by the acquisition->writer queue.", registry=r
+        )
+        self.writer_busy = Gauge(
+            "rigd_writer_busy_ratio", "Share of the last seconds the writer thread was busy.", registry=r
+        )
         self.queue_capacity = Gauge(
             "rigd_queue_capacity", "Bound of the acquisition->writer queue.", registry=r
         )
@@ -365,6 +371,8 @@ class MetricsExporter:
         self._inc(self.takes_completed, life.increase(("takes",), t.takes_completed))
 
         self.queue_depth.set(t.queue_depth)
+        self.queue_bytes.set(t.queue_bytes)
+        self.writer_busy.set(t.writer_busy)
         self.queue_capacity.set(t.queue_capacity)
         self.write_rate.set(t.write_rate_bytes_s)
         self.flush_age.set(t.last_flush_age_s if t.last_flush_age_s is not None else 0.0)

@@ -142,6 +142,9 @@ class DeviceTelemetry(_Strict):
     lost: int = Field(description="Items recorded as lost this take (all reasons).")
     reconnects: int = 0
     queued: int = Field(0, description="Items of this device waiting in the writer queue.")
+    shed: int = Field(
+        0, description="Events shed at the source this take while the host could not keep up (overload)."
+    )
     last_data_age_s: float | None = Field(None, description="Seconds since the device last delivered.")
     interval_jitter_us: float | None = Field(
         None,
@@ -178,6 +181,16 @@ class Telemetry(_Strict):
     pulses: int = 0
     queue_depth: int = 0
     queue_capacity: int = 0
+    queue_bytes: int = 0
+    queue_max_bytes: int = 0
+    writer_busy: float = Field(
+        0.0, description="Share of the last seconds the writer thread was busy (1 - headroom)."
+    )
+    event_capacity_hz: float | None = Field(
+        None,
+        description="Events per second this host's writer would hold at full load beside the current "
+        "frames: the event sensors' rate over writer_busy (None while the writer is nearly idle).",
+    )
     bytes_written: int = 0
     write_rate_bytes_s: float = 0.0
     last_flush_age_s: float | None = None

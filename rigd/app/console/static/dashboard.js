@@ -9,6 +9,7 @@ const FAULT_WORDS = {
   disk_low: "Disk space is below the reserve: no new take starts, a running one was stopped.",
   disk_full: "The disk is full: the take was stopped; free space, then run rigd recover.",
   queue_full: "The writer cannot keep up: data is being dropped (and counted).",
+  overload: "More events than this host can write: whole time slices are shed at the source (counted, with their time range).",
   writer_failed: "The writer failed: the take is stopped.",
   writer_stalled: "The writer has not flushed for a while (slow or hung disk).",
 };
@@ -47,12 +48,24 @@ function deviceStats(dev, doc) {
     `${dev.total.toLocaleString()} ${unit}`,
     `lost <b>${dev.lost}</b>`,
   ];
+  if (dev.shed) parts.push(`shed (overload) <b>${dev.shed.toLocaleString()}</b>`);
   if (dev.interval_jitter_us !== null && dev.interval_jitter_us !== undefined)
     parts.push(`trigger jitter <b>${dev.interval_jitter_us.toFixed(1)} µs</b>`);
   if (residual !== null && residual !== undefined) parts.push(`sync residual (last take) <b>${residual.toFixed(1)} µs</b>`);
   if (dev.last_data_age_s !== null && dev.last_data_age_s !== undefined) parts.push(`data age <b>${dev.last_data_age_s.toFixed(2)} s</b>`);
   if (dev.reconnects) parts.push(`reconnects <b>${dev.reconnects}</b>`);
   return parts.join(" · ");
+}
+
+function headroomText(doc) {
+  // The writer's load, and the event rate against what this host's writer would hold.
+  const busy = doc.writer_busy || 0;
+  const events = doc.devices.filter((d) => d.kind === "event_sensor").reduce((a, d) => a + d.rate_hz, 0);
+  let text = `writer ${(busy * 100).toFixed(0)} % busy (headroom ${(100 - busy * 100).toFixed(0)} %) · events ${(events / 1e6).toFixed(2)} Mev/s`;
+  if (doc.event_capacity_hz) text += ` of ~${(doc.event_capacity_hz / 1e6).toFixed(0)} Mev/s this host holds`;
+  const shed = doc.devices.reduce((a, d) => a + (d.shed || 0), 0);
+  if (shed) text += ` · shed ${shed.toLocaleString()} events (overload)`;
+  return text;
 }
 
 function render(doc) {
@@ -62,6 +75,7 @@ function render(doc) {
   document.getElementById("take-line").textContent = doc.take
     ? `take ${doc.take.split("/").pop()} · ${doc.take_elapsed_s.toFixed(1)} s · ${doc.pulses} pulses · queue ${doc.queue_depth}/${doc.queue_capacity} · ${fmtBytes(doc.bytes_written)} (${fmtBytes(doc.write_rate_bytes_s)}/s)`
     : `${doc.takes_completed} take(s) this run`;
+  document.getElementById("headroom").textContent = doc.take ? headroomText(doc) : "";
   const trig = doc.devices.find((d) => d.kind === "trigger");
   document.getElementById("trigger").textContent = trig
     ? `trigger: ${trig.state === "idle" ? "idle" : trig.rate_hz.toFixed(1) + " Hz, " + trig.state}` : "";
