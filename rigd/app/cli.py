@@ -11,10 +11,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
-from rich.console import Console
 
 from rigd import __version__
 from rigd.app.commands.calibrate import calibrate_app
+from rigd.app.commands.consoles import stderr_console, stdout_console
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
 from rigd.app.commands.export import export
@@ -32,12 +32,13 @@ from rigd.app.commands.service import (
     status,
     stop,
 )
+from rigd.app.commands.takes import takes
 from rigd.app.config import RigConfig, default_sim_rig
-from rigd.app.service.client import DaemonClient, DaemonUnavailableError
 from rigd.core.errors import ConfigError, RigdError
 
 if TYPE_CHECKING:
     from rigd.app.capture import Progress as CaptureProgress
+    from rigd.app.service.client import DaemonClient
     from rigd.take.reader import TakeSummary
 
 app = RigdTyper(
@@ -46,8 +47,8 @@ app = RigdTyper(
     pretty_exceptions_enable=False,
 )
 log = logging.getLogger(__name__)
-console = Console(stderr=True)
-out = Console(width=120) if not sys.stdout.isatty() else Console()
+console = stderr_console()
+out = stdout_console()
 
 
 @app.callback()
@@ -311,6 +312,7 @@ def _print_daemon_take(client: DaemonClient, path: str) -> None:
     (the daemon answers on a local socket, so its take is on this host), with the daemon's count of
     bytes written."""
     from rigd.app.inspect import summarize
+    from rigd.app.service.client import DaemonUnavailableError
 
     try:
         last = client.call("status").get("last_take") or {}
@@ -447,6 +449,7 @@ app.command("devices")(devices)
 app.command("doctor")(doctor)
 app.command("serve")(serve)
 app.command("recover")(recover_command)
+app.command("takes")(takes)
 app.command("status")(status)
 app.command("console-url")(console_url)
 app.command("stop")(stop)

@@ -12,27 +12,22 @@ Register with `calibrate_app.command("guided")(guided)`.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console, Group
+from rich.console import Group
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from calibration.guided import TILT_BINS, Feedback, GuidedSession
-from calibration.io import dumps_summary
-from rigd.app.workflows.guided import (
-    GuidedFrame,
-    GuidedOptions,
-    GuidedOutcome,
-    GuidedProgress,
-    run_guided,
-    verdict,
-)
+from rigd.app.commands.consoles import stderr_console
 from rigd.core.errors import RigdError
 
-_err = Console(stderr=True)
+if TYPE_CHECKING:  # the session (OpenCV, scipy) and the rig load when the command runs
+    from calibration.guided import Feedback, GuidedSession
+    from rigd.app.workflows.guided import GuidedOptions, GuidedOutcome, GuidedProgress
+
+_err = stderr_console()
 
 
 def _parse_resolution(text: str) -> tuple[int, int]:
@@ -53,6 +48,8 @@ def _status_line(fb: Feedback, camera: str) -> str:
 
 def _panel(fb: Feedback, camera: str, session: GuidedSession, target: float, left_s: float) -> Group:
     """The live view: status, sigmas vs target, coverage grid (views per cell; tilt bins seen)."""
+    from calibration.guided import TILT_BINS
+
     head = Text.assemble(
         (f"{camera}  ", "bold"),
         ("CAPTURED  " if fb.captured else "", "bold green"),
@@ -131,6 +128,8 @@ def guided(
     json_out: Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout.")] = False,
 ) -> None:
     """Guided intrinsic calibration: show the board where told until the uncertainty target is met."""
+    from rigd.app.workflows.guided import GuidedFrame, GuidedOptions, run_guided
+
     sim_resolution = _parse_resolution(resolution) if config is None else None
     live = Live(console=_err, refresh_per_second=8, transient=False) if _err.is_terminal else None
 
@@ -173,6 +172,9 @@ def guided(
 
 def _report(outcome: GuidedOutcome, options: GuidedOptions, json_out: bool) -> None:
     """The verdict on stderr (JSON on stdout); exit 1 unless the target was reached."""
+    from calibration.io import dumps_summary
+    from rigd.app.workflows.guided import verdict
+
     reached, text = verdict(outcome, options.target_sigma_px, options.min_views)
     result = outcome.result
     if result is None:

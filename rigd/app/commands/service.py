@@ -15,19 +15,21 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
+from rigd.app.commands.consoles import stderr_console, stdout_console
 from rigd.app.config import RigConfig, default_control_endpoint, default_sim_rig
-from rigd.app.service.client import DaemonClient, DaemonRequestError, DaemonUnavailableError, find_daemon
 from rigd.core.errors import ConfigError, RigdError
-from rigd.take.verdict import TakeVerdict
+
+if TYPE_CHECKING:  # ZeroMQ loads when a command talks to the daemon, not for `--help`
+    from rigd.app.service.client import DaemonClient, DaemonUnavailableError
 
 log = logging.getLogger(__name__)
-_err = Console(stderr=True)
+_err = stderr_console()
 
 #: Exit code of `rigd capture` when the daemon stops answering before the take is over.
 DAEMON_LOST_EXIT = 3
@@ -53,6 +55,8 @@ def control_endpoint(connect: str | None) -> str:
 
 def _require_daemon(connect: str | None, hint: str) -> DaemonClient:
     """The daemon at the endpoint, or exit 3 saying there is none."""
+    from rigd.app.service.client import find_daemon
+
     endpoint = control_endpoint(connect)
     client = find_daemon(endpoint)
     if client is None:
@@ -182,7 +186,7 @@ def status(
     if json_out:
         typer.echo(json.dumps(t, indent=2))
         return
-    print_status(t, Console())
+    print_status(t, stdout_console())
 
 
 def _flush_text(t: dict[str, Any]) -> str:
@@ -237,6 +241,8 @@ def verdict_text(last: dict[str, Any]) -> str:
     verdict = last.get("verdict")
     if verdict is None:
         return f"unknown (the daemon does not say; `rigd inspect {last['path']}` does)"
+    from rigd.take.verdict import TakeVerdict
+
     return TakeVerdict(verdict=verdict, reasons=last.get("verdict_reasons") or []).line()
 
 
@@ -300,6 +306,8 @@ def capture_via_daemon(
     client: DaemonClient, duration: float | None, label: str | None, json_out: bool, progress: Any
 ) -> dict[str, Any]:
     """Ask the daemon for a take and follow it to the end; the daemon's summary of it."""
+    from rigd.app.service.client import DaemonRequestError, DaemonUnavailableError
+
     try:
         res = client.call("capture", timeout_s=CAPTURE_START_TIMEOUT_S, duration_s=duration, label=label)
     except DaemonRequestError as exc:
@@ -351,6 +359,8 @@ def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
     """The daemon to use, or None to work in-process; explicit --connect must answer."""
     if local:
         return None
+    from rigd.app.service.client import find_daemon
+
     endpoint = control_endpoint(connect)
     client = find_daemon(endpoint, timeout_s=2.0)
     if client is None and connect:
