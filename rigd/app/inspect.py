@@ -8,10 +8,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import Field
 from rich.console import RenderableType
 from rich.markup import escape
 from rich.table import Table
 
+from rigd.app.loss_times import loss_lines
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.take.reader import Take, TakeSummary
 from rigd.take.recover import needs_recovery
@@ -27,13 +29,24 @@ _EVENT_WINDOW_US = 10_000
 _LABEL_BAR = 18
 
 
-def summarize(path: str | Path) -> TakeSummary:
+class InspectedSummary(TakeSummary):
+    """The take's summary with each loss said in seconds of the take (rigd.app.loss_times); the
+    records in `losses` keep their device times."""
+
+    loss_lines: list[str] = Field(
+        default_factory=list,
+        description="Each loss record's reason with its times in seconds of the take, capped to its window.",
+    )
+
+
+def summarize(path: str | Path) -> InspectedSummary:
     """Summary of a take with its validation problems; one that cannot be opened, or whose data
     HDF5 refuses to read (a failed write left it damaged), raises TakeError in one line."""
     problems = validate_take(path)
     try:
         with Take(path) as take:
-            summary = take.summary()
+            plain = take.summary()
+            summary = InspectedSummary(**dict(plain), loss_lines=loss_lines(take.sync_report, plain.losses))
     except (OSError, RuntimeError, KeyError) as exc:  # h5py's errors for a damaged file
         hdf5 = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise TakeFormatError(
@@ -153,8 +166,10 @@ def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
     if summary.losses:
         losses = Table("lost from", "what", "count", "why", title="losses", title_justify="left")
         losses.columns[3].overflow = "fold"
-        for rec in summary.losses:
-            losses.add_row(rec.device, rec.what, f"{rec.count:,}", rec.reason)
+        lines = summary.loss_lines if isinstance(summary, InspectedSummary) else []
+        for i, rec in enumerate(summary.losses):
+            why = lines[i] if i < len(lines) else rec.reason
+            losses.add_row(rec.device, rec.what, f"{rec.count:,}", escape(why))
         parts.append(losses)
     parts.extend(f"warning: {w}" for w in summary.warnings)
     parts.extend(f"problem: {p}" for p in summary.problems)
