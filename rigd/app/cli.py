@@ -33,7 +33,7 @@ from rigd.app.commands.service import (
     stop,
 )
 from rigd.app.commands.takes import takes
-from rigd.app.config import RigConfig, default_sim_rig
+from rigd.app.config import RigConfig, default_sim_rig, with_sim_scene
 from rigd.core.errors import ConfigError, RigdError
 
 if TYPE_CHECKING:
@@ -135,6 +135,14 @@ def capture(
         ),
     ] = "real",
     strict: StrictOpt = False,
+    scene: Annotated[
+        str | None,
+        typer.Option(
+            "--scene",
+            help="Sim rigs: what every sim camera and event sensor films, sprites or board (the "
+            "moving calibration chessboard: a take to calibrate the rig from). In-process.",
+        ),
+    ] = None,
 ) -> None:
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
@@ -153,6 +161,8 @@ def capture(
         raise _fail(exc) from exc
     if replay is not None and config is not None:
         raise _fail(ConfigError("--replay plays a take's own rig: drop --config"))
+    if replay is not None and scene is not None:
+        raise _fail(ConfigError("--replay plays what the take recorded: drop --scene"))
     if sim_clock == "virtual" and config is not None:
         raise _fail(
             ConfigError(
@@ -161,7 +171,8 @@ def capture(
             )
         )
     try:
-        client = None if replay is not None or sim_clock == "virtual" else find_for_command(connect, local)
+        in_process = replay is not None or sim_clock == "virtual" or scene is not None
+        client = None if in_process else find_for_command(connect, local)
     except RigdError as exc:
         raise _fail(exc) from exc
     if client is not None:
@@ -187,6 +198,8 @@ def capture(
             duration = recorded_s if duration is None else duration
         else:
             rig = RigConfig.load(config) if config else default_sim_rig(clock=clock)
+            if scene is not None:
+                rig = with_sim_scene(rig, scene)
         rig.check_devices()
     except RigdError as exc:
         raise _fail(exc) from exc
