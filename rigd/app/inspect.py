@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
+from pydantic import BaseModel, Field
 from rich.console import RenderableType
 from rich.markup import escape
 from rich.table import Table
@@ -29,14 +30,44 @@ _EVENT_WINDOW_US = 10_000
 _LABEL_BAR = 18
 
 
+class StoredCalibration(BaseModel):
+    """A device's calibration stored in the take (`rigd calibrate ... --into-take`), in brief."""
+
+    model: str | None = None
+    rms_px: float | None = None
+    K: list[list[float]] | None = None
+    image_size: list[int] | None = None
+    in_rig_frame: bool = Field(False, description="A pose in the rig frame is stored too.")
+    source: str = ""
+
+
 class InspectedSummary(TakeSummary):
-    """The take's summary with each loss said in seconds of the take (rigd.app.loss_times); the
-    records in `losses` keep their device times."""
+    """The take's summary with each loss said in seconds of the take (rigd.app.loss_times), the
+    records in `losses` keeping their device times, and the calibrations stored in the take."""
 
     loss_lines: list[str] = Field(
         default_factory=list,
         description="Each loss record's reason with its times in seconds of the take, capped to its window.",
     )
+    calibration: dict[str, StoredCalibration] = Field(
+        default_factory=dict, description="Calibrations stored in the take, by device (/calibration)."
+    )
+
+
+def _stored_calibration(stored: dict[str, dict[str, Any]] | None) -> dict[str, StoredCalibration]:
+    out: dict[str, StoredCalibration] = {}
+    for device, entry in (stored or {}).items():
+        result = entry.get("result") or {}
+        intr = result.get("intrinsics") or {}
+        out[device] = StoredCalibration(
+            model=intr.get("model"),
+            rms_px=intr.get("rms_px"),
+            K=None if "K" not in entry else np.asarray(entry["K"], np.float64).tolist(),
+            image_size=None if "image_size" not in entry else [int(v) for v in entry["image_size"]],
+            in_rig_frame="R" in entry,
+            source=str(result.get("source") or ""),
+        )
+    return out
 
 
 def summarize(path: str | Path) -> InspectedSummary:
@@ -46,7 +77,11 @@ def summarize(path: str | Path) -> InspectedSummary:
     try:
         with Take(path) as take:
             plain = take.summary()
-            summary = InspectedSummary(**dict(plain), loss_lines=loss_lines(take.sync_report, plain.losses))
+            summary = InspectedSummary(
+                **dict(plain),
+                loss_lines=loss_lines(take.sync_report, plain.losses),
+                calibration=_stored_calibration(take.calibration),
+            )
     except (OSError, RuntimeError, KeyError) as exc:  # h5py's errors for a damaged file
         hdf5 = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise TakeFormatError(
@@ -171,9 +206,33 @@ def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
             why = lines[i] if i < len(lines) else rec.reason
             losses.add_row(rec.device, rec.what, f"{rec.count:,}", escape(why))
         parts.append(losses)
+    if isinstance(summary, InspectedSummary):
+        parts.extend(_calibration_lines(summary.calibration))
     parts.extend(f"warning: {w}" for w in summary.warnings)
     parts.extend(f"problem: {p}" for p in summary.problems)
     return parts
+
+
+def _calibration_lines(calibration: dict[str, StoredCalibration]) -> list[str]:
+    """`calibration: cam0 k1k2, fx 501.2 fy 500.9 cx 319.4 cy 180.2, RMS 0.046 px, posed in the rig
+    frame (calibrate rig ...)`, one per device; or that none is stored (what `rigd export` needs)."""
+    if not calibration:
+        return [
+            "calibration: none stored (`rigd calibrate ... --into-take` stores one; `rigd export` needs it)"
+        ]
+    lines = []
+    for device, c in calibration.items():
+        parts = [c.model or "pose only"]
+        if c.K is not None:
+            (fx, _, cx), (_, fy, cy) = c.K[0], c.K[1]
+            parts.append(f"fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f}")
+        if c.rms_px is not None:
+            parts.append(f"RMS {c.rms_px:.3f} px")
+        if c.in_rig_frame:
+            parts.append("posed in the rig frame")
+        source = f" ({escape(c.source)})" if c.source else ""
+        lines.append(f"calibration: {device} " + ", ".join(parts) + source)
+    return lines
 
 
 def _pulse_line(summary: TakeSummary) -> str:
