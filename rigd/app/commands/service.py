@@ -198,7 +198,10 @@ def _flush_text(t: dict[str, Any]) -> str:
 
 def print_status(t: dict[str, Any], out: Console) -> None:
     disk = f"{t['disk_free_bytes'] / 1e9:.1f} of {t['disk_total_bytes'] / 1e9:.1f} GB free"
-    out.print(f"state: [bold]{t['state']}[/]   takes: {t['takes_completed']}   disk: {disk}")
+    # takes_completed counts this daemon's takes since it started, not the files in take_dir
+    # (`rigd takes` lists those).
+    done = f"takes finalized since start: {t['takes_completed']}"
+    out.print(f"state: [bold]{t['state']}[/]   {done}   disk: {disk}")
     if t.get("take"):
         out.print(
             f"take: {t['take']}  {t['take_elapsed_s']:.1f} s  pulses {t['pulses']}  "
