@@ -262,23 +262,42 @@ def _to_bgr8(img: NDArray[np.generic]) -> NDArray[np.uint8]:
 def event_image(
     x: NDArray[np.uint16], y: NDArray[np.uint16], p: NDArray[np.int8], width: int, height: int
 ) -> NDArray[np.uint8]:
-    """BGR image of event counts: ON red, OFF blue, scaled to the 99th percentile count."""
+    """BGR image of event counts: ON red, OFF blue, the square root of the count over its 99th
+    percentile, so a pixel with one event is half bright, not a dim speck (a 10 ms window of a
+    sparse scene is mostly single events)."""
     n_px = width * height
     idx = y.astype(np.int64) * width + x.astype(np.int64)
     on = np.bincount(idx[p > 0], minlength=n_px)[:n_px]
     off = np.bincount(idx[p <= 0], minlength=n_px)[:n_px]
     nz = np.concatenate([on[on > 0], off[off > 0]])
-    scale = 255.0 / max(float(np.percentile(nz, 99)) if nz.size else 1.0, 1.0)
+    top = max(float(np.percentile(nz, 99)) if nz.size else 1.0, 1.0)
     img = np.zeros((height, width, 3), np.uint8)
-    img[..., 2] = np.clip(on.reshape(height, width) * scale, 0, 255).astype(np.uint8)
-    img[..., 0] = np.clip(off.reshape(height, width) * scale, 0, 255).astype(np.uint8)
+    img[..., 2] = (255 * np.sqrt(np.minimum(on / top, 1.0))).astype(np.uint8).reshape(height, width)
+    img[..., 0] = (255 * np.sqrt(np.minimum(off / top, 1.0))).astype(np.uint8).reshape(height, width)
     return img
 
 
-def _tile(img: NDArray[np.uint8], width: int, height: int, label: str) -> NDArray[np.uint8]:
-    """Fit img into width x height (letterboxed) under a label bar."""
+def _max_pool(img: NDArray[np.uint8], k: int) -> NDArray[np.uint8]:
+    """Each k x k block's brightest pixel: shrinking an event image this way keeps every event
+    visible, where averaging (INTER_AREA) would dim sparse events to black."""
+    h, w = img.shape[:2]
+    hp, wp = -(-h // k) * k, -(-w // k) * k
+    padded = np.zeros((hp, wp, *img.shape[2:]), img.dtype)
+    padded[:h, :w] = img
+    return np.asarray(padded.reshape(hp // k, k, wp // k, k, *img.shape[2:]).max(axis=(1, 3)), np.uint8)
+
+
+def _tile(
+    img: NDArray[np.uint8], width: int, height: int, label: str, events: bool = False
+) -> NDArray[np.uint8]:
+    """Fit img into width x height (letterboxed) under a label bar; an event image is shrunk by
+    its blocks' maxima first (`_max_pool`)."""
     h, w = img.shape[:2]
     s = min(width / w, height / h)
+    if events and s < 0.5:
+        img = _max_pool(img, int(1 / s))
+        h, w = img.shape[:2]
+        s = min(width / w, height / h)
     nw, nh = max(1, round(w * s)), max(1, round(h * s))
     small = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_NEAREST)
     out = np.zeros((height + _LABEL_BAR, width, 3), np.uint8)
@@ -358,7 +377,7 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
                 img = event_image(ev.x, ev.y, ev.p, width, height)
                 t_ev = int(t) if rig or not len(ev) else int(ev.t[0])
                 label = f"{sen} t={t_ev / 1e6:.3f}s {len(ev)} ev ({domain})"
-                tiles.append(_tile(img, tile_w, tile_h, label))
+                tiles.append(_tile(img, tile_w, tile_h, label, events=True))
             rows.append(np.hstack(tiles))
     sheet = np.vstack(rows)
     out.parent.mkdir(parents=True, exist_ok=True)
