@@ -72,7 +72,8 @@ def rate_plot(
         cv2.line(img, (x, top + ph), (x, top + ph + 4), (0, 0, 0), 1)
         cv2.putText(img, f"{t:g} s", (x - 10, top + ph + 18), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
         t += step
-    note = f"{len(segments)} segments (grey), keyframes (orange)"
+    n = len(segments)
+    note = f"{n} segment{'s' if n != 1 else ''} (bounds grey), keyframe{'s' if n != 1 else ''} (orange)"
     cv2.putText(img, note, (left + 4, top + 14), _FONT, 0.4, (80, 80, 80), 1, cv2.LINE_AA)
     return img
 
