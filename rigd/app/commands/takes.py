@@ -62,6 +62,10 @@ def takes(
         _err.print(f"no takes in {escape(str(directory))}", soft_wrap=True, highlight=False)
         return
     table = Table("take", "verdict", "length", "devices", "size", title=str(directory), title_justify="left")
+    # The name is what a person copies into the next command: never cut, on a narrow terminal too
+    # (the devices and the verdict's reason wrap instead).
+    table.columns[0].min_width = max(len(r.name) for r in rows)
+    table.columns[0].no_wrap = True
     for r in rows:
         if r.error is not None:
             table.add_row(
