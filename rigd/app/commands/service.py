@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
+from rich import box
 from rich.console import Console
 from rich.table import Table
 
@@ -196,6 +197,19 @@ def _flush_text(t: dict[str, Any]) -> str:
     return f"  flushed {age:.1f} s ago (longest {t.get('flush_max_s', 0.0) * 1e3:.0f} ms)"
 
 
+#: Device kinds as the status table says them (short: the table fits 80 columns).
+_KIND_WORDS = {"rgb_camera": "camera", "event_sensor": "events", "trigger": "trigger"}
+
+
+def _count(n: float, small: str = "{:,.0f}") -> str:
+    """A count or rate in at most 7 characters: 123,456, 1.23 M, 24.95 M (`--json` has the number)."""
+    if abs(n) >= 1e6:
+        return f"{n / 1e6:.2f} M"
+    if abs(n) >= 1e5:
+        return f"{n / 1e3:.1f} k"
+    return small.format(n)
+
+
 def print_status(t: dict[str, Any], out: Console) -> None:
     disk = f"{t['disk_free_bytes'] / 1e9:.1f} of {t['disk_total_bytes'] / 1e9:.1f} GB free"
     # takes_completed counts this daemon's takes since it started, not the files in take_dir
@@ -206,22 +220,34 @@ def print_status(t: dict[str, Any], out: Console) -> None:
         out.print(
             f"take: {t['take']}  {t['take_elapsed_s']:.1f} s  pulses {t['pulses']}  "
             f"queue {t['queue_depth']}/{t['queue_capacity']}  {t['bytes_written'] / 1e6:.0f} MB"
-            + _flush_text(t)
+            + _flush_text(t),
+            soft_wrap=True,
         )
-    table = Table("device", "kind", "state", "total", "rate/s", "lost", "queued", "reconnects", "jitter us")
+    headers = ("device", "kind", "state", "total", "rate/s", "lost", "queued", "reconn", "jitter µs")
+    rows = []
     for d in t["devices"]:
         jitter = d.get("interval_jitter_us")
-        table.add_row(
-            d["name"],
-            d["kind"],
-            d["state"],
-            f"{d['total']:,}",
-            f"{d['rate_hz']:,.1f}",
-            str(d["lost"]),
-            str(d.get("queued", 0)),
-            str(d.get("reconnects", 0)),
-            "-" if jitter is None else f"{jitter:.2f}",
+        rows.append(
+            (
+                d["name"],
+                _KIND_WORDS.get(d["kind"], d["kind"]),
+                d["state"],
+                _count(d["total"]),
+                _count(d["rate_hz"], "{:.1f}"),
+                str(d["lost"]),
+                str(d.get("queued", 0)),
+                str(d.get("reconnects", 0)),
+                "-" if jitter is None else f"{jitter:.2f}",
+            )
         )
+    # Every cell whole, on an 80-column terminal too (it once printed `trigg...`, `rgb_c...`): light
+    # borders, short words, and no column narrower than its longest cell.
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    for i, head in enumerate(headers):
+        widest = max([len(head), *(len(r[i]) for r in rows)])
+        table.add_column(head, no_wrap=True, min_width=widest, justify="left" if i < 3 else "right")
+    for row in rows:
+        table.add_row(*row)
     out.print(table)
     for f in t.get("faults", []):
         out.print(

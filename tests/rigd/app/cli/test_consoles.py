@@ -62,3 +62,26 @@ def test_status_table_keeps_every_cell_whole() -> None:
     assert "…" not in text
     assert "takes finalized since start: 2" in text
     assert max(len(line) for line in text.splitlines()) < 400  # a table as wide as its cells
+
+
+def test_status_table_fits_an_80_column_terminal_whole() -> None:
+    """On a terminal the table is as wide as the terminal lets it be: short words, light borders,
+    large counts in M and k, so the default rig's table fits 80 columns without a cut cell."""
+    doc = _status("cam0")
+    doc["devices"][1]["name"] = "trigger"
+    ev = {
+        **doc["devices"][0],
+        "name": "ev0",
+        "kind": "event_sensor",
+        "total": 123_456_789,
+        "rate_hz": 24.95e6,
+    }
+    doc["devices"].append(ev)
+    buf = io.StringIO()
+    print_status(doc, Console(file=buf, width=80, force_terminal=False))
+    text = buf.getvalue()
+    assert "…" not in text
+    lines = text.splitlines()
+    assert any(line.split()[:3] == ["ev0", "events", "capturing"] and "24.95 M" in line for line in lines)
+    assert any(line.split()[:2] == ["trigger", "trigger"] for line in lines)
+    assert "jitter µs" in text
