@@ -25,8 +25,15 @@ Per frame (`GuidedSession.offer`):
    Coverage is counted in bins = (image grid cell of the board centre) x (tilt bin: facing the
    camera, or turned about the vertical / horizontal axis with one edge away from the camera).
 4. A still, sharp, novel view is captured. Once `min_views` are kept, every capture re-runs the
-   calibration (fast model, k1k2 by default, `cv2.calibrateCameraExtended`) to update the standard
-   deviations of fx, fy, cx, cy; the session is done when all four are <= `target_sigma_px`.
+   calibration (fast model, k1k2 by default, `cv2.calibrateCameraExtended`) for the poses the hint
+   needs. Once `done_views` are kept, every capture also runs the calibration that `result()`
+   returns and a caller writes (`calibrate_intrinsics`: outlier views rejected); the session is
+   done when that fit uses at least `done_views` views (the report's recommendation,
+   intrinsics.RECOMMENDED_VIEWS, so a finished session never gets the report's "too few views"
+   warning) and its std devs of fx, fy, cx, cy are all <= `target_sigma_px`. Why that fit and
+   not the fast one: the two differ by the rejected views, and a stop rule on the fast fit kept a
+   session running until time ran out while the file it wrote had met the target long before.
+   The sigmas shown are those of the written fit once there is one.
 
 Next hint (what to show next): the *information-matrix* method, not a heuristic. For every bin
 (all cells x tilt bins) a board pose is synthesised there (at the median depth of the kept views,
@@ -37,6 +44,10 @@ at their estimated poses, plus a weak prior so the matrix is invertible before a
 is the bin whose addition minimises trace(Cov[fx, fy, cx, cy]). About 45 candidates of ~50
 corners cost a few ms, and it runs only after a capture, so no heuristic fallback is needed;
 `hint_method="emptiest"` (fewest views, corners of the image first) is kept for comparison.
+A pose hinted for `hint_patience_s` in all (frame time with the board in view, summed over every
+time it was the hint) without a capture there is a pose this board
+does not reach (a mount, a robot arm, the sim's scripted motion): its bin is no longer hinted and
+the next best one is, so the technician is never told the same unreachable pose for ever.
 """
 
 from __future__ import annotations
@@ -57,6 +68,7 @@ from calibration.errors import CalibrationError
 from calibration.intrinsics import (
     DIST_NAMES,
     MODELS_BY_NAME,
+    RECOMMENDED_VIEWS,
     IntrinsicsResult,
     calibrate_intrinsics,
     fit_model,
@@ -104,10 +116,17 @@ class Feedback(BaseModel):
     )
     cells_covered: float = Field(description="fraction of grid cells holding a view")
     tilts_covered: float = Field(description="fraction of tilt bins holding a view")
+    n_used: int | None = Field(
+        None, description="views the written fit uses (n_views less the outliers it rejected); None before it"
+    )
     next_hint: str
     hint_cell: str = ""
     hint_tilt: str = ""
-    sigmas: dict[str, float] = Field(default_factory=dict, description="std devs (px) of fx fy cx cy")
+    sigmas: dict[str, float] = Field(
+        default_factory=dict,
+        description="std devs (px) of fx fy cx cy: of the written fit once there is one, else of the "
+        "running fit",
+    )
     rms_px: float | None = None
     done: bool = False
 
@@ -187,6 +206,8 @@ class GuidedSession:
     dup_deg: float = 10.0
     max_per_bin: int = 3
     model: str = "k1k2"
+    done_views: int = RECOMMENDED_VIEWS  # fewest views the written fit uses before the session is done
+    hint_patience_s: float = 10.0  # a hint no capture answered for this long is not hinted again
     hint_method: Literal["information", "emptiest"] = "information"
     fast_detect: bool = True
     exposure_us: float | None = None  # with it, `still_px` bounds the smear in one exposure
@@ -199,6 +220,9 @@ class GuidedSession:
     _sigmas: dict[str, float] = field(default_factory=dict, init=False)
     _rms: float | None = field(default=None, init=False)
     _hint: _Candidate | None = field(default=None, init=False, repr=False)
+    _waited_us: dict[tuple[int, int], int] = field(default_factory=dict, init=False, repr=False)
+    _unreachable: set[tuple[int, int]] = field(default_factory=set, init=False, repr=False)
+    _final: IntrinsicsResult | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.model not in MODELS_BY_NAME:
@@ -236,15 +260,31 @@ class GuidedSession:
 
     @property
     def sigmas(self) -> dict[str, float]:
+        """Std devs of fx fy cx cy: of the fit `result()` returns once there is one, else of the
+        running fit (empty before `min_views`)."""
+        if self._final is not None:
+            return {n: float(self._final.std_devs[n]) for n in SIGMA_NAMES}
         return dict(self._sigmas)
 
     @property
+    def n_used(self) -> int | None:
+        """Views the written fit uses (outliers rejected); None before it is run."""
+        return None if self._final is None else len(self._final.views)
+
+    @property
     def done(self) -> bool:
+        """The written fit uses at least `done_views` views and meets the target (module docstring)."""
+        final = self._final
         return (
-            len(self.views) >= self.min_views
-            and bool(self._sigmas)
-            and all(self._sigmas[n] <= self.target_sigma_px for n in SIGMA_NAMES)
+            final is not None
+            and len(final.views) >= self.done_views
+            and all(final.std_devs[n] <= self.target_sigma_px for n in SIGMA_NAMES)
         )
+
+    @property
+    def unreachable(self) -> list[str]:
+        """The poses hinted for `hint_patience_s` without a capture, in words (no longer hinted)."""
+        return [f"{self._cell_name(c)}, {TILT_BINS[t]}" for c, t in sorted(self._unreachable)]
 
     def coverage(self) -> NDArray[np.int64]:
         """(cells, tilt bins) count of kept views."""
@@ -277,6 +317,8 @@ class GuidedSession:
         ew = det.edge_width_px
         sharp = not math.isfinite(ew) or ew <= self.max_edge_width_px
         kw = _FrameState(motion, still, sharp, blur)
+        if prev is not None and prev_t is not None:  # the board in view since the previous frame
+            self._check_hint_patience(min(int(t_us) - prev_t, 1_000_000))
         if self.done:
             return self._feedback(t_us, det, reason="target uncertainty reached", state=kw)
         if det.n < 6:
@@ -306,7 +348,8 @@ class GuidedSession:
         self.view_errors.append(math.nan)
         if len(self.views) >= self.min_views:
             self._recalibrate()
-        self._hint = self._choose_hint()
+        self._judge()
+        self._set_hint()
         return self._feedback(t_us, det, reason=f"captured view {len(self.views)}", captured=True, state=kw)
 
     def drop_view(self, index: int) -> None:
@@ -321,7 +364,8 @@ class GuidedSession:
         else:
             self._sigmas, self._rms = {}, None
             self.view_errors = [math.nan] * len(self.views)
-        self._hint = self._choose_hint()
+        self._judge()
+        self._set_hint()
 
     def view_list(self) -> list[dict[str, Any]]:
         """The kept views for a display: where, which tilt, RMS error (None before a calibration)."""
@@ -355,11 +399,14 @@ class GuidedSession:
         return [[round(float(x), 1), round(float(y), 1)] for x, y in p]
 
     def result(self, camera: str = "cam0", model: str | None = None) -> IntrinsicsResult:
-        """The full calibration of the kept views (outlier rejection, warnings, per-view data)."""
+        """The full calibration of the kept views (outlier rejection, warnings, per-view data):
+        the fit `done` judged, when the session ran it for these views and this model."""
         if len(self.views) < 3:
             raise CalibrationError(
                 f"camera {camera}: only {len(self.views)} view(s) captured; need at least 3 to calibrate"
             )
+        if self._final is not None and (model is None or model == self.model):
+            return self._final.model_copy(update={"camera": camera})
         return calibrate_intrinsics(
             [v.det for v in self.views], self.board, camera=camera, model=model or self.model
         )
@@ -448,6 +495,25 @@ class GuidedSession:
         return ""
 
     # --- calibration and uncertainty ------------------------------------------------------------
+
+    def _judge(self) -> None:
+        """Run the fit `result()` returns (and a caller writes) once `done_views` are kept."""
+        self._final = None
+        if len(self.views) < max(self.done_views, 3):
+            return
+        try:
+            self._final = calibrate_intrinsics(
+                [v.det for v in self.views], self.board, camera="guided", model=self.model
+            )
+        except CalibrationError as exc:
+            log.warning("guided session: full calibration of %d views failed: %s", len(self.views), exc)
+            return
+        log.debug(
+            "guided session: written fit uses %d of %d views, sigmas %s",
+            len(self._final.views),
+            len(self.views),
+            {k: round(self._final.std_devs[k], 3) for k in SIGMA_NAMES},
+        )
 
     def _recalibrate(self) -> None:
         """Re-fit the fast model on the kept views; update K, sigmas and the views' poses/bins."""
@@ -539,6 +605,32 @@ class GuidedSession:
                 target = target + shift
         return None
 
+    def _set_hint(self) -> None:
+        """Choose the next hint; a pose just captured starts its patience again."""
+        if self.views:
+            self._waited_us.pop((self.views[-1].cell, self.views[-1].tilt), None)
+        self._hint = self._choose_hint()
+
+    def _check_hint_patience(self, dt_us: int) -> None:
+        """Give up on a pose hinted for `hint_patience_s` in all without a capture there (module
+        docstring); `dt_us`: the frame time since the previous frame with the board in view."""
+        if self._hint is None or self.done:
+            return
+        pose = (self._hint.cell, self._hint.tilt)
+        self._waited_us[pose] = self._waited_us.get(pose, 0) + max(0, dt_us)
+        if self._waited_us[pose] < self.hint_patience_s * 1e6:
+            return
+        self._unreachable.add(pose)
+        log.info(
+            "guided session: no capture at %s, %s for %.0f s; not hinted again",
+            self._cell_name(pose[0]),
+            TILT_BINS[pose[1]],
+            self.hint_patience_s,
+        )
+        if len(self._unreachable) >= self.n_cells * len(TILT_BINS):
+            self._unreachable.clear()  # every pose given up on: start over rather than hint nothing
+        self._set_hint()
+
     def _choose_hint(self) -> _Candidate | None:
         """The bin to show next (module docstring); None before anything can be said."""
         cov = self.coverage()
@@ -562,6 +654,8 @@ class GuidedSession:
         best: _Candidate | None = None
         for cell in range(self.n_cells):
             for tilt in range(len(TILT_BINS)):
+                if (cell, tilt) in self._unreachable:
+                    continue
                 pose = self._synthetic_pose(cell, tilt, depth)
                 if pose is None:
                     continue
@@ -587,8 +681,9 @@ class GuidedSession:
         constrain distortion and focal length most), then the rest in grid order."""
         cols, rows = self.grid
         corners = {0, cols - 1, (rows - 1) * cols, rows * cols - 1}
+        bins = [(c, t) for c in range(self.n_cells) for t in range(len(TILT_BINS))]
         order = sorted(
-            ((c, t) for c in range(self.n_cells) for t in range(len(TILT_BINS))),
+            [b for b in bins if b not in self._unreachable] or bins,
             key=lambda ct: (cov[ct], ct[0] not in corners, ct[1] == 0, ct),
         )
         c, t = order[0]
@@ -621,6 +716,7 @@ class GuidedSession:
             captured=captured,
             reason=reason,
             n_views=len(self.views),
+            n_used=self.n_used,
             coverage=cov.tolist(),
             cells_covered=float((cov.sum(axis=1) > 0).mean()),
             tilts_covered=float((cov.sum(axis=0) > 0).mean()),

@@ -76,7 +76,10 @@ def bar_graph(
 ) -> U8:
     """Per-view RMS bars on round ticks, with a dashed line at `overall_rms` (the RMS over every
     corner of every view, the headline number) when given, else at the mean of the bars. The two
-    differ: views with more corners weigh more in the overall RMS, and an RMS is not a mean."""
+    differ: views with more corners weigh more in the overall RMS, and an RMS is not a mean.
+
+    Labels never overlap: with more views than their names fit under, every k-th bar is labelled
+    with its view number (1-based) instead; the line's label sits in the top margin, off the bars."""
     img = np.full((h, w, 3), 255, np.uint8)
     left, bottom, top = 60, 60, 30
     step = nice_step(max(max(values, default=1e-3) * 1.1, 1e-3))
@@ -91,19 +94,33 @@ def bar_graph(
         y = int(h - bottom - (h - bottom - top) * v / vmax)
         cv2.line(img, (left - 4, y), (left, y), (0, 0, 0), 1)
         cv2.putText(img, _tick_text(v, step), (5, y + 4), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for i, (name, v) in enumerate(zip(names, values, strict=True)):
-        x0 = int(left + i * bw + 2)
+    labels = [name[-10:] for name in names]
+    widest = max((cv2.getTextSize(t, _FONT, 0.3, 1)[0][0] for t in labels), default=0)
+    if widest + 4 > bw:  # names would run into each other: numbers, every k-th bar
+        labels = [str(i + 1) for i in range(len(names))]
+        widest = cv2.getTextSize(str(len(names)), _FONT, 0.3, 1)[0][0]
+    every = max(1, math.ceil((widest + 6) / bw))
+    gap = min(4.0, bw * 0.25)
+    for i, v in enumerate(values):
+        x0 = int(left + i * bw + gap / 2)
         y = int(h - bottom - (h - bottom - top) * v / vmax)
-        cv2.rectangle(img, (x0, y), (int(x0 + bw - 4), h - bottom), _color(0), -1)
-        org = (x0, h - bottom + 12)
-        cv2.putText(img, name[-10:], org, _FONT, 0.3, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.rectangle(
+            img, (x0, y), (max(x0, int(left + (i + 1) * bw - gap / 2) - 1), h - bottom), _color(0), -1
+        )
+        if i % every == 0:
+            cv2.putText(img, labels[i], (x0, h - bottom + 12), _FONT, 0.3, (0, 0, 0), 1, cv2.LINE_AA)
+    if every > 1 or labels[:1] == ["1"]:
+        cv2.putText(img, "view", (left, h - bottom + 28), _FONT, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     if values:
         level = float(np.mean(values)) if overall_rms is None else overall_rms
         text = f"mean of views {level:.4f} px" if overall_rms is None else f"RMS, all corners {level:.4f} px"
         y = int(h - bottom - (h - bottom - top) * level / vmax)
         for x in range(left, w - 10, 12):
             cv2.line(img, (x, y), (x + 6, y), (0, 0, 200), 1)
-        cv2.putText(img, text, (w - 230, y - 5), _FONT, 0.4, (0, 0, 200), 1, cv2.LINE_AA)
+        # The legend in the top margin, right-aligned: a dash and the text, never over a bar.
+        tw = cv2.getTextSize(text, _FONT, 0.4, 1)[0][0]
+        cv2.line(img, (w - 10 - tw - 24, 16), (w - 10 - tw - 8, 16), (0, 0, 200), 1)
+        cv2.putText(img, text, (w - 10 - tw, 20), _FONT, 0.4, (0, 0, 200), 1, cv2.LINE_AA)
     return img
 
 

@@ -16,10 +16,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from firmware_sim.event_model import PixelModelConfig
-from firmware_sim.frames_to_events import FramesToEvents, open_source, simulate_to_raw, simulate_to_take
 from rigd.core.errors import RigdError
-from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +89,15 @@ def simulate_events(
     with_frames: Annotated[bool, typer.Option("--with-frames", help="Also store the frames.")] = False,
 ) -> None:
     """Simulate an event camera watching INPUT and write the events to a take."""
+    # Here, not at the top: `rigd --help` loads this module and must not pay for numba and OpenCV.
+    from firmware_sim.event_model import PixelModelConfig
+    from firmware_sim.frames_to_events import (
+        FramesToEvents,
+        open_source,
+        simulate_to_raw,
+        simulate_to_take,
+    )
+
     console = Console(stderr=True)
     if substeps is not None and max_px_per_step is not None:
         raise typer.BadParameter("give --substeps or --max-px-per-step, not both")
@@ -170,6 +176,8 @@ def _describe(description: str, input_path: Path, camera: str | None) -> str:
     """What is read; for a take without --camera, which camera that is and how to pick another."""
     if camera is not None or input_path.suffix.lower() not in (".h5", ".hdf5"):
         return description
+    from rigd.take.reader import Take
+
     with Take(input_path) as take:
         cams = take.cameras
     if len(cams) < 2:

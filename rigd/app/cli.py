@@ -11,10 +11,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
-from rich.console import Console
 
 from rigd import __version__
 from rigd.app.commands.calibrate import calibrate_app
+from rigd.app.commands.consoles import stderr_console, stdout_console
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
 from rigd.app.commands.export import export
@@ -32,12 +32,13 @@ from rigd.app.commands.service import (
     status,
     stop,
 )
-from rigd.app.config import RigConfig, default_sim_rig
-from rigd.app.service.client import DaemonClient, DaemonUnavailableError
+from rigd.app.commands.takes import takes
+from rigd.app.config import RigConfig, default_sim_rig, with_sim_scene
 from rigd.core.errors import ConfigError, RigdError
 
 if TYPE_CHECKING:
     from rigd.app.capture import Progress as CaptureProgress
+    from rigd.app.service.client import DaemonClient
     from rigd.take.reader import TakeSummary
 
 app = RigdTyper(
@@ -46,8 +47,8 @@ app = RigdTyper(
     pretty_exceptions_enable=False,
 )
 log = logging.getLogger(__name__)
-console = Console(stderr=True)
-out = Console(width=120) if not sys.stdout.isatty() else Console()
+console = stderr_console()
+out = stdout_console()
 
 
 @app.callback()
@@ -134,6 +135,14 @@ def capture(
         ),
     ] = "real",
     strict: StrictOpt = False,
+    scene: Annotated[
+        str | None,
+        typer.Option(
+            "--scene",
+            help="Sim rigs: what every sim camera and event sensor films, sprites or board (the "
+            "moving calibration chessboard: a take to calibrate the rig from). In-process.",
+        ),
+    ] = None,
 ) -> None:
     """Capture one take: through the running daemon if there is one, else in-process
     (with no --config, from the built-in simulated rig)."""
@@ -152,6 +161,8 @@ def capture(
         raise _fail(exc) from exc
     if replay is not None and config is not None:
         raise _fail(ConfigError("--replay plays a take's own rig: drop --config"))
+    if replay is not None and scene is not None:
+        raise _fail(ConfigError("--replay plays what the take recorded: drop --scene"))
     if sim_clock == "virtual" and config is not None:
         raise _fail(
             ConfigError(
@@ -160,7 +171,8 @@ def capture(
             )
         )
     try:
-        client = None if replay is not None or sim_clock == "virtual" else find_for_command(connect, local)
+        in_process = replay is not None or sim_clock == "virtual" or scene is not None
+        client = None if in_process else find_for_command(connect, local)
     except RigdError as exc:
         raise _fail(exc) from exc
     if client is not None:
@@ -186,6 +198,8 @@ def capture(
             duration = recorded_s if duration is None else duration
         else:
             rig = RigConfig.load(config) if config else default_sim_rig(clock=clock)
+            if scene is not None:
+                rig = with_sim_scene(rig, scene)
         rig.check_devices()
     except RigdError as exc:
         raise _fail(exc) from exc
@@ -311,6 +325,7 @@ def _print_daemon_take(client: DaemonClient, path: str) -> None:
     (the daemon answers on a local socket, so its take is on this host), with the daemon's count of
     bytes written."""
     from rigd.app.inspect import summarize
+    from rigd.app.service.client import DaemonUnavailableError
 
     try:
         last = client.call("status").get("last_take") or {}
@@ -447,6 +462,7 @@ app.command("devices")(devices)
 app.command("doctor")(doctor)
 app.command("serve")(serve)
 app.command("recover")(recover_command)
+app.command("takes")(takes)
 app.command("status")(status)
 app.command("console-url")(console_url)
 app.command("stop")(stop)

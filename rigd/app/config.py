@@ -300,3 +300,30 @@ def default_sim_rig(
         ],
         event_sensors=[EventSensorConfig(name=n, spec=spec(n)) for n in ("ev0", "ev1")],
     )
+
+
+#: Scenes the simulator draws (firmware_sim: the `scene` parameter of sim camera and sensor specs).
+SIM_SCENES = ("sprites", "board")
+
+
+def with_sim_scene(rig: RigConfig, scene: str) -> RigConfig:
+    """The rig with every sim:// camera and event sensor watching `scene` (`board`: the moving
+    calibration chessboard). The trigger takes no scene: a world has one scene, which its devices
+    share. A rig without sim cameras or sensors is refused: a real device films what is there."""
+    if scene not in SIM_SCENES:
+        raise ConfigError(f"--scene {scene!r}: use {' or '.join(SIM_SCENES)}")
+
+    def with_scene(spec: str) -> str:
+        if not spec.startswith("sim://"):
+            return spec
+        base, _, query = spec.partition("?")
+        params = [p for p in query.split("&") if p and not p.startswith("scene=")]
+        return f"{base}?{'&'.join([*params, f'scene={scene}'])}"
+
+    data = rig.model_dump(mode="json")
+    devices = [*data["cameras"], *data["event_sensors"]]
+    if not any(d["spec"].startswith("sim://") for d in devices):
+        raise ConfigError(f"--scene applies to sim:// cameras and event sensors; rig {rig.name!r} has none")
+    for dev in devices:
+        dev["spec"] = with_scene(dev["spec"])
+    return RigConfig.from_data(data, source=f"{rig.name} with scene={scene}")

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, Field
 from rich.console import RenderableType
 from rich.markup import escape
 from rich.table import Table
 
+from rigd.app.loss_times import loss_lines
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.take.reader import Take, TakeSummary
 from rigd.take.recover import needs_recovery
@@ -27,13 +30,58 @@ _EVENT_WINDOW_US = 10_000
 _LABEL_BAR = 18
 
 
-def summarize(path: str | Path) -> TakeSummary:
+class StoredCalibration(BaseModel):
+    """A device's calibration stored in the take (`rigd calibrate ... --into-take`), in brief."""
+
+    model: str | None = None
+    rms_px: float | None = None
+    K: list[list[float]] | None = None
+    image_size: list[int] | None = None
+    in_rig_frame: bool = Field(False, description="A pose in the rig frame is stored too.")
+    source: str = ""
+
+
+class InspectedSummary(TakeSummary):
+    """The take's summary with each loss said in seconds of the take (rigd.app.loss_times), the
+    records in `losses` keeping their device times, and the calibrations stored in the take."""
+
+    loss_lines: list[str] = Field(
+        default_factory=list,
+        description="Each loss record's reason with its times in seconds of the take, capped to its window.",
+    )
+    calibration: dict[str, StoredCalibration] = Field(
+        default_factory=dict, description="Calibrations stored in the take, by device (/calibration)."
+    )
+
+
+def _stored_calibration(stored: dict[str, dict[str, Any]] | None) -> dict[str, StoredCalibration]:
+    out: dict[str, StoredCalibration] = {}
+    for device, entry in (stored or {}).items():
+        result = entry.get("result") or {}
+        intr = result.get("intrinsics") or {}
+        out[device] = StoredCalibration(
+            model=intr.get("model"),
+            rms_px=intr.get("rms_px"),
+            K=None if "K" not in entry else np.asarray(entry["K"], np.float64).tolist(),
+            image_size=None if "image_size" not in entry else [int(v) for v in entry["image_size"]],
+            in_rig_frame="R" in entry,
+            source=str(result.get("source") or ""),
+        )
+    return out
+
+
+def summarize(path: str | Path) -> InspectedSummary:
     """Summary of a take with its validation problems; one that cannot be opened, or whose data
     HDF5 refuses to read (a failed write left it damaged), raises TakeError in one line."""
     problems = validate_take(path)
     try:
         with Take(path) as take:
-            summary = take.summary()
+            plain = take.summary()
+            summary = InspectedSummary(
+                **dict(plain),
+                loss_lines=loss_lines(take.sync_report, plain.losses),
+                calibration=_stored_calibration(take.calibration),
+            )
     except (OSError, RuntimeError, KeyError) as exc:  # h5py's errors for a damaged file
         hdf5 = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise TakeFormatError(
@@ -156,12 +204,38 @@ def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
     if summary.losses:
         losses = Table("lost from", "what", "count", "why", title="losses", title_justify="left")
         losses.columns[3].overflow = "fold"
-        for rec in summary.losses:
-            losses.add_row(rec.device, rec.what, f"{rec.count:,}", rec.reason)
+        lines = summary.loss_lines if isinstance(summary, InspectedSummary) else []
+        for i, rec in enumerate(summary.losses):
+            why = lines[i] if i < len(lines) else rec.reason
+            losses.add_row(rec.device, rec.what, f"{rec.count:,}", escape(why))
         parts.append(losses)
+    if isinstance(summary, InspectedSummary):
+        parts.extend(_calibration_lines(summary.calibration))
     parts.extend(f"warning: {w}" for w in summary.warnings)
     parts.extend(f"problem: {p}" for p in summary.problems)
     return parts
+
+
+def _calibration_lines(calibration: dict[str, StoredCalibration]) -> list[str]:
+    """`calibration: cam0 k1k2, fx 501.2 fy 500.9 cx 319.4 cy 180.2, RMS 0.046 px, posed in the rig
+    frame (calibrate rig ...)`, one per device; or that none is stored (what `rigd export` needs)."""
+    if not calibration:
+        return [
+            "calibration: none stored (`rigd calibrate ... --into-take` stores one; `rigd export` needs it)"
+        ]
+    lines = []
+    for device, c in calibration.items():
+        parts = [c.model or "pose only"]
+        if c.K is not None:
+            (fx, _, cx), (_, fy, cy) = c.K[0], c.K[1]
+            parts.append(f"fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f}")
+        if c.rms_px is not None:
+            parts.append(f"RMS {c.rms_px:.3f} px")
+        if c.in_rig_frame:
+            parts.append("posed in the rig frame")
+        source = f" ({escape(c.source)})" if c.source else ""
+        lines.append(f"calibration: {device} " + ", ".join(parts) + source)
+    return lines
 
 
 def _pulse_line(summary: TakeSummary) -> str:
@@ -191,23 +265,42 @@ def _to_bgr8(img: NDArray[np.generic]) -> NDArray[np.uint8]:
 def event_image(
     x: NDArray[np.uint16], y: NDArray[np.uint16], p: NDArray[np.int8], width: int, height: int
 ) -> NDArray[np.uint8]:
-    """BGR image of event counts: ON red, OFF blue, scaled to the 99th percentile count."""
+    """BGR image of event counts: ON red, OFF blue, the square root of the count over its 99th
+    percentile, so a pixel with one event is half bright, not a dim speck (a 10 ms window of a
+    sparse scene is mostly single events)."""
     n_px = width * height
     idx = y.astype(np.int64) * width + x.astype(np.int64)
     on = np.bincount(idx[p > 0], minlength=n_px)[:n_px]
     off = np.bincount(idx[p <= 0], minlength=n_px)[:n_px]
     nz = np.concatenate([on[on > 0], off[off > 0]])
-    scale = 255.0 / max(float(np.percentile(nz, 99)) if nz.size else 1.0, 1.0)
+    top = max(float(np.percentile(nz, 99)) if nz.size else 1.0, 1.0)
     img = np.zeros((height, width, 3), np.uint8)
-    img[..., 2] = np.clip(on.reshape(height, width) * scale, 0, 255).astype(np.uint8)
-    img[..., 0] = np.clip(off.reshape(height, width) * scale, 0, 255).astype(np.uint8)
+    img[..., 2] = (255 * np.sqrt(np.minimum(on / top, 1.0))).astype(np.uint8).reshape(height, width)
+    img[..., 0] = (255 * np.sqrt(np.minimum(off / top, 1.0))).astype(np.uint8).reshape(height, width)
     return img
 
 
-def _tile(img: NDArray[np.uint8], width: int, height: int, label: str) -> NDArray[np.uint8]:
-    """Fit img into width x height (letterboxed) under a label bar."""
+def _max_pool(img: NDArray[np.uint8], k: int) -> NDArray[np.uint8]:
+    """Each k x k block's brightest pixel: shrinking an event image this way keeps every event
+    visible, where averaging (INTER_AREA) would dim sparse events to black."""
+    h, w = img.shape[:2]
+    hp, wp = -(-h // k) * k, -(-w // k) * k
+    padded = np.zeros((hp, wp, *img.shape[2:]), img.dtype)
+    padded[:h, :w] = img
+    return np.asarray(padded.reshape(hp // k, k, wp // k, k, *img.shape[2:]).max(axis=(1, 3)), np.uint8)
+
+
+def _tile(
+    img: NDArray[np.uint8], width: int, height: int, label: str, events: bool = False
+) -> NDArray[np.uint8]:
+    """Fit img into width x height (letterboxed) under a label bar; an event image is shrunk by
+    its blocks' maxima first (`_max_pool`)."""
     h, w = img.shape[:2]
     s = min(width / w, height / h)
+    if events and s < 0.5:
+        img = _max_pool(img, int(1 / s))
+        h, w = img.shape[:2]
+        s = min(width / w, height / h)
     nw, nh = max(1, round(w * s)), max(1, round(h * s))
     small = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_NEAREST)
     out = np.zeros((height + _LABEL_BAR, width, 3), np.uint8)
@@ -287,7 +380,7 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
                 img = event_image(ev.x, ev.y, ev.p, width, height)
                 t_ev = int(t) if rig or not len(ev) else int(ev.t[0])
                 label = f"{sen} t={t_ev / 1e6:.3f}s {len(ev)} ev ({domain})"
-                tiles.append(_tile(img, tile_w, tile_h, label))
+                tiles.append(_tile(img, tile_w, tile_h, label, events=True))
             rows.append(np.hstack(tiles))
     sheet = np.vstack(rows)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -39,6 +39,14 @@ def test_calibrate_into_take_then_a_training_job_reads_it(take_path: Path, tmp_p
         ],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
+    assert f"stored in {take_path}: /calibration/cam0" in r.output  # --into-take says where
+    shown = CliRunner().invoke(app, ["inspect", str(take_path)])
+    line = next(x for x in shown.stdout.splitlines() if x.startswith("calibration: cam0 "))
+    assert "fx 5" in line  # ~519 px
+    assert "RMS 0." in line
+    assert "calibrate intrinsics" in line
+    as_json = CliRunner().invoke(app, ["inspect", str(take_path), "--json"])
+    assert '"calibration": {' in as_json.stdout
     with Take(take_path) as take:
         cal = take.calibration
         assert cal is not None
@@ -64,3 +72,5 @@ def test_store_rejects_unknown_devices_and_keeps_the_take(take_path: Path) -> No
         np.testing.assert_allclose(take.calibration["ev1"]["t"], [0.2, 0.0, 0.0])
         assert take.calibration["ev1"]["result"]["source"] == "again"
         assert len(take.events("ev0")) > 0
+    shown = CliRunner().invoke(app, ["inspect", str(take_path)]).stdout
+    assert "calibration: ev1 pose only, posed in the rig frame (again)" in shown

@@ -10,40 +10,30 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
-import numpy as np
 import typer
-from rich.console import Console
 from rich.markup import escape
 
-from calibration.boards import parse_board
-from calibration.e2calib import METHODS
-from calibration.extrinsics import RigResult
-from calibration.intrinsics import IntrinsicsResult
-from calibration.io import dumps_summary
+from rigd.app.commands.consoles import stderr_console
 from rigd.app.commands.help import RigdTyper
 from rigd.app.commands.progress import StageProgress
-from rigd.app.workflows.calibrate import (
-    EventsCalibration,
-    EventsOptions,
-    ImageSets,
-    IntrinsicsOptions,
-    RigCalibration,
-    RigOptions,
-    TakeSource,
-    glob_images,
-    run_events,
-    run_intrinsics,
-    run_rig,
-)
 from rigd.core.errors import RigdError
+
+if TYPE_CHECKING:  # the calibration libraries (OpenCV, scipy, numba) load when a command runs
+    from calibration.extrinsics import RigResult
+    from calibration.intrinsics import IntrinsicsResult
+    from rigd.app.workflows.calibrate import EventsCalibration, ImageSets, RigCalibration
+
+#: calibration.e2calib.METHODS, spelled out so that `--help` need not import the library
+#: (tests/app/commands/test_calibrate_cmd.py holds the two equal).
+E2CALIB_METHODS = ("window", "hpf", "integrate")
 
 calibrate_app = RigdTyper(
     help="Calibrate cameras: intrinsics, event-sensor intrinsics (e2calib), rig extrinsics.",
     no_args_is_help=True,
 )
-_err = Console(stderr=True)
+_err = stderr_console()
 
 BoardOpt = Annotated[str, typer.Option("--board", "-b", help="Board spec, e.g. chessboard:9x6:0.025.")]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output file: .yaml/.yml/.xml (OpenCV) or .json.")]
@@ -61,11 +51,19 @@ def _fail(exc: Exception) -> typer.Exit:
 
 def _warn(result: IntrinsicsResult | RigResult) -> None:
     """Say the result's warnings, once: the library returns them instead of logging them."""
+    from calibration.intrinsics import IntrinsicsResult
+
     who = f"{result.camera}: " if isinstance(result, IntrinsicsResult) else "rig: "
     for w in result.warnings:
         _err.print(f"[yellow]warning:[/] {who}{escape(w)}", soft_wrap=True, highlight=False)
     for r in getattr(result, "rejected", []):
         _err.print(f"[yellow]rejected:[/] {r.name}: {r.reason}")
+
+
+def _stored(take: Path, devices: list[str]) -> None:
+    """Confirm `--into-take`: where in the take each device's calibration now sits."""
+    where = ", ".join(f"/calibration/{d}" for d in devices)
+    _err.print(f"stored in {take}: {where}", soft_wrap=True, highlight=False, markup=False)
 
 
 IntoTakeOpt = Annotated[
@@ -90,6 +88,9 @@ def intrinsics_cmd(
     ] = False,
 ) -> None:
     """Intrinsics of one camera from image files, with lens-model selection."""
+    from calibration.io import dumps_summary
+    from rigd.app.workflows.calibrate import IntrinsicsOptions, run_intrinsics
+
     try:
         shared: dict[str, Any] = {
             "out": out,
@@ -110,10 +111,14 @@ def intrinsics_cmd(
         _err.print(
             f"{camera}: model {result.model}, RMS {result.rms_px:.4f} px, {len(result.views)} views -> {out}"
         )
+    if into_take is not None:
+        _stored(into_take, [camera])
 
 
 def _image_sets(cameras: list[str]) -> ImageSets:
     """`NAME=GLOB` options as image files per camera; a usage error names the option at fault."""
+    from rigd.app.workflows.calibrate import ImageSets, glob_images
+
     files: dict[str, list[Path]] = {}
     for item in cameras:
         name, sep, pattern = item.partition("=")
@@ -157,6 +162,10 @@ def rig_cmd(
     With --events, the take's event sensors are calibrated e2calib-style and posed in the same
     rig frame, jointly refined with the cameras.
     """
+    from calibration.boards import parse_board
+    from calibration.io import dumps_summary
+    from rigd.app.workflows.calibrate import RigOptions, TakeSource, run_rig
+
     if (take is None) == (not camera):
         raise _fail(ValueError("give either a TAKE or --camera NAME=GLOB sets (at least two)"))
     try:
@@ -177,11 +186,15 @@ def rig_cmd(
         typer.echo(dumps_summary(calib.rig))
     else:
         _print_rig(calib, out)
+    if into_take is not None:
+        _stored(into_take, [pose.camera for pose in calib.rig.cameras])
 
 
 def _print_rig(calib: RigCalibration, out: Path) -> None:
     """Each device's place in the rig and its two reprojection RMS values, each named for the fit
     it comes from (they differ: see the report's rig section)."""
+    import numpy as np
+
     rig = calib.rig
     _err.print(
         f"rig frame: {rig.reference} (x right, y down, z forward, m); {rig.n_views} shared views, "
@@ -216,7 +229,7 @@ def events_cmd(
     method: Annotated[
         list[str] | None,
         typer.Option(
-            "--method", "-m", help=f"Reconstruction method(s): {', '.join(METHODS)} (default: all)."
+            "--method", "-m", help=f"Reconstruction method(s): {', '.join(E2CALIB_METHODS)} (default: all)."
         ),
     ] = None,
     rate: Annotated[
@@ -232,13 +245,15 @@ def events_cmd(
     """Intrinsics of an event sensor from frames reconstructed from its events (e2calib-style).
 
     Every method is run and reported; the one with the lowest RMS is written to --out."""
+    from rigd.app.workflows.calibrate import EventsOptions, run_events
+
     try:
         options = EventsOptions(
             take=take,
             sensor=sensor,
             board=board,
             out=out,
-            methods=method or list(METHODS),
+            methods=method or list(E2CALIB_METHODS),
             rate_hz=rate,
             cutoff_hz=cutoff_hz,
             model=model,
@@ -263,6 +278,8 @@ def events_cmd(
                 f"RMS {rms}, {row['time_s']} s"
             )
         _err.print(f"{sensor}: best {calib.best.method} -> {out}")
+    if into_take:
+        _stored(take, [sensor])
 
 
 def _method_table(calib: EventsCalibration) -> list[dict[str, object]]:

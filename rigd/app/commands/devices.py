@@ -8,20 +8,25 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from drivers.discovery import Discovery, discover, udev_rules, usb_speed_label, write_config_skeleton
+from rigd.app.commands.consoles import stderr_console, stdout_console
+
+if TYPE_CHECKING:  # the driver layer (numpy) loads when the command runs
+    from drivers.discovery import Discovery
 
 log = logging.getLogger(__name__)
-_err = Console(stderr=True)
+_err = stderr_console()
 
 
 def _print_table(found: Discovery, out: Console) -> None:
+    from drivers.discovery import usb_speed_label
+
     table = Table("source", "role", "name", "spec", "usb id", "serial", "link")
     for d in found.devices:
         table.add_row(
@@ -58,6 +63,7 @@ def devices(
     """List serial ports, USB and HID devices, V4L2 nodes and GenICam cameras rigd can use.
 
     With a daemon running, the daemon looks (it is the process with the device permissions)."""
+    from drivers.discovery import Discovery, discover, udev_rules, write_config_skeleton
     from rigd.app.commands.service import find_for_command
 
     client = find_for_command(connect, local)
@@ -67,7 +73,7 @@ def devices(
         with client:
             found = Discovery.from_dict(client.call("devices"))
         _err.print(f"devices as seen by the daemon at {client.endpoint}")
-    out = Console(width=160)
+    out = stdout_console()
     if json_out:
         typer.echo(found.to_json())
     else:

@@ -11,14 +11,12 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 
-from rigd.app.config import RigConfig
-from rigd.app.doctor import checks_to_dict, run_checks, summary_status
+from rigd.app.commands.consoles import stderr_console, stdout_console
 from rigd.core.errors import RigdError
 
-_err = Console(stderr=True)
+_err = stderr_console()
 _COLOURS = {"OK": "green", "WARN": "yellow", "FAIL": "bold red"}
 
 
@@ -36,6 +34,9 @@ def doctor(
     json_out: Annotated[bool, typer.Option("--json", help="Print the checks as JSON.")] = False,
 ) -> None:
     """Check permissions, USB links, usbfs, disk, clocks, buffers and backends; suggest fixes."""
+    from rigd.app.config import RigConfig
+    from rigd.app.doctor import checks_to_dict, run_checks, summary_status
+
     try:
         rig = RigConfig.load(config) if config is not None else None
     except RigdError as exc:
@@ -45,7 +46,7 @@ def doctor(
     if json_out:
         typer.echo(json.dumps(checks_to_dict(checks), indent=2))
     else:
-        out = Console(width=160, highlight=False)
+        out = stdout_console(highlight=False)
         for c in checks:
             out.print(f"[{_COLOURS[c.status]}]{c.status:<4}[/] {escape(c.name)}: {escape(c.message)}")
             if c.fix and c.status != "OK":

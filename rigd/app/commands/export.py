@@ -15,15 +15,18 @@ from typing import Annotated
 
 import typer
 from pydantic import ValidationError
-from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 
-from rigd.app.export import FORMATS, ExportOptions, ExportWriteError, parse_count, parse_size, run_export
+from rigd.app.commands.consoles import stderr_console
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError, RigdError
 
-_err = Console(stderr=True)
+#: rigd.app.export.FORMATS, spelled out so that `--help` need not import the exporters (h5py,
+#: OpenCV); tests/app/commands/test_lazy_imports.py holds the two equal.
+EXPORT_FORMATS = ("dynamic3dgs", "nerfstudio", "colmap", "dsec")
+
+_err = stderr_console()
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:
@@ -33,7 +36,7 @@ def _fail(message: str, code: int = 2) -> typer.Exit:
 
 def export(
     take: Annotated[Path, typer.Argument(help="Take file (.h5) with a stored calibration.")],
-    fmt: Annotated[str, typer.Option("--format", "-f", help=f"One of: {', '.join(FORMATS)}.")],
+    fmt: Annotated[str, typer.Option("--format", "-f", help=f"One of: {', '.join(EXPORT_FORMATS)}.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory (created; parent must exist).")],
     resize: Annotated[
         str | None, typer.Option("--resize", help="Output image size WxH (e.g. 1280x720); K is scaled.")
@@ -56,6 +59,8 @@ def export(
 ) -> None:
     """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap)
     or for event loaders (dsec); see docs/export.md."""
+    from rigd.app.export import FORMATS, ExportOptions, ExportWriteError, parse_count, parse_size, run_export
+
     try:
         if fmt not in FORMATS:
             raise ConfigError(f"--format {fmt!r}: unknown format (one of {', '.join(FORMATS)})")

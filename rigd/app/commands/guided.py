@@ -1,8 +1,9 @@
 """`rigd calibrate guided --camera CAM`: live guided intrinsic calibration in the terminal.
 
 Parses the arguments, runs `rigd.app.workflows.guided` (the built-in sim rig watching a moving
-board unless `--config` is given) and shows its feedback: a live panel on a terminal, one line per
-frame otherwise, so logs and tests see every decision.
+board unless `--config` is given) and shows its feedback: a live panel on a terminal; otherwise a
+line per captured view and a status line at most every STATUS_EVERY_S seconds (a line per frame
+made thousands of lines a session), never wrapped.
 
 Exit codes: 0 target reached, 1 time ran out first (the file is still written when at least 3
 views were kept), 2 on an error (message on stderr), as the other calibrate commands.
@@ -11,28 +12,25 @@ Register with `calibrate_app.command("guided")(guided)`.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console, Group
 from rich.live import Live
+from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from calibration.guided import TILT_BINS, Feedback, GuidedSession
-from calibration.io import dumps_summary
-from rigd.app.workflows.guided import (
-    GuidedFrame,
-    GuidedOptions,
-    GuidedOutcome,
-    GuidedProgress,
-    run_guided,
-    verdict,
-)
+from rigd.app.commands.consoles import stderr_console
 from rigd.core.errors import RigdError
 
-_err = Console(stderr=True)
+if TYPE_CHECKING:  # the session (OpenCV, scipy) and the rig load when the command runs
+    from calibration.guided import Feedback, GuidedSession
+    from rigd.app.workflows.guided import GuidedOptions, GuidedOutcome, GuidedProgress
+
+_err = stderr_console()
 
 
 def _parse_resolution(text: str) -> tuple[int, int]:
@@ -45,26 +43,61 @@ def _parse_resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _status_line(fb: Feedback, camera: str) -> str:
+#: Off a terminal, a status line (besides a line per captured view) at most this often.
+STATUS_EVERY_S = 5.0
+
+
+def _views(fb: Feedback) -> str:
+    """Views kept, and how many the written fit uses once it runs (the count the result reports)."""
+    if fb.n_used is None or fb.n_used == fb.n_views:
+        return f"views={fb.n_views}"
+    return f"views={fb.n_used} ({fb.n_views} kept, {fb.n_views - fb.n_used} rejected as outliers)"
+
+
+def _status_line(fb: Feedback, camera: str, left_s: float) -> str:
     sig = " ".join(f"{k}={v:.2f}" for k, v in fb.sigmas.items()) or "sigmas: need more views"
     mark = "CAPTURED" if fb.captured else ("DONE" if fb.done else "-")
-    return f"{camera} {mark} views={fb.n_views} {sig} | {fb.reason} | next: {fb.next_hint}"
+    return (
+        f"{camera} {mark} {_views(fb)} {sig} | {fb.reason} | next: {fb.next_hint} | "
+        f"{max(0.0, left_s):.0f} s left"
+    )
+
+
+class _Lines:
+    """Off a terminal: a line per captured view, the final state, else one every STATUS_EVERY_S."""
+
+    def __init__(self, console: Console, camera: str) -> None:
+        self.console = console
+        self.camera = camera
+        self.last = -float("inf")
+
+    def __call__(self, fb: Feedback, left_s: float) -> None:
+        now = time.monotonic()
+        if not (fb.captured or fb.done or now - self.last >= STATUS_EVERY_S):
+            return
+        self.last = now
+        self.console.print(
+            _status_line(fb, self.camera, left_s), markup=False, highlight=False, soft_wrap=True
+        )
 
 
 def _panel(fb: Feedback, camera: str, session: GuidedSession, target: float, left_s: float) -> Group:
     """The live view: status, sigmas vs target, coverage grid (views per cell; tilt bins seen)."""
+    from calibration.guided import TILT_BINS
+
     head = Text.assemble(
         (f"{camera}  ", "bold"),
         ("CAPTURED  " if fb.captured else "", "bold green"),
-        (f"views {fb.n_views}  ", ""),
-        (f"{left_s:.0f} s left", "dim"),
+        (f"{_views(fb).replace('=', ' ')}  ", ""),
+        (f"{max(0.0, left_s):.0f} s left", "dim"),
     )
     state = Text(
         f"board {'found' if fb.detected else 'not found'}; still {'yes' if fb.still else 'no'}"
         + (f" ({fb.motion_px:.1f} px)" if fb.motion_px is not None else "")
         + f"; sharp {'yes' if fb.sharp else 'no'} - {fb.reason}"
     )
-    sig = Table(title=f"std dev (target {target:g} px)", show_header=True)
+    fit = "written fit" if fb.n_used is not None else "running fit"
+    sig = Table(title=f"std dev, {fit} (target {target:g} px)", show_header=True)
     for n in ("fx", "fy", "cx", "cy"):
         sig.add_column(n, justify="right")
     if fb.sigmas:
@@ -123,7 +156,14 @@ def guided(
         float,
         typer.Option("--still-px", help="Still: the board smears less than this in one exposure (px)."),
     ] = 1.0,
-    min_views: Annotated[int, typer.Option("--min-views", help="Views before the first calibration.")] = 6,
+    min_views: Annotated[
+        int,
+        typer.Option(
+            "--min-views",
+            help="Views before the first calibration; the session is done once the written fit uses "
+            "max(this, 10) views (the report's recommendation) and meets the target.",
+        ),
+    ] = 6,
     model: Annotated[str, typer.Option("--model", help="Lens model of the session and the result.")] = "k1k2",
     resolution: Annotated[
         str, typer.Option("--resolution", help="Frame size of the built-in sim rig (ignored with --config).")
@@ -131,21 +171,27 @@ def guided(
     json_out: Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout.")] = False,
 ) -> None:
     """Guided intrinsic calibration: show the board where told until the uncertainty target is met."""
+    from rigd.app.workflows.guided import GuidedFrame, GuidedOptions, run_guided
+
     sim_resolution = _parse_resolution(resolution) if config is None else None
     live = Live(console=_err, refresh_per_second=8, transient=False) if _err.is_terminal else None
+    lines = _Lines(_err, camera)
 
     def show(update: GuidedProgress) -> None:
         if not isinstance(update, GuidedFrame):
             _err.print(
                 f"{camera}: {update.spec}; {update.frame_size[0]}x{update.frame_size[1]}; "
-                f"first: {update.first_hint}"
+                f"first: {update.first_hint}",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
             )
             if live is not None:
                 live.start()
         elif live is not None:
             live.update(_panel(update.feedback, camera, update.session, target_sigma, update.seconds_left))
         else:
-            _err.print(_status_line(update.feedback, camera), markup=False, highlight=False, soft_wrap=True)
+            lines(update.feedback, update.seconds_left)
 
     try:
         options = GuidedOptions(
@@ -173,17 +219,20 @@ def guided(
 
 def _report(outcome: GuidedOutcome, options: GuidedOptions, json_out: bool) -> None:
     """The verdict on stderr (JSON on stdout); exit 1 unless the target was reached."""
-    reached, text = verdict(outcome, options.target_sigma_px, options.min_views)
+    from calibration.io import dumps_summary
+    from rigd.app.workflows.guided import verdict, views_text
+
+    reached, text = verdict(outcome, options.target_sigma_px, options.done_views)
     result = outcome.result
     if result is None:
         _err.print(f"[bold red]{outcome.camera}: {text} in {options.max_seconds:g} s[/]")
         raise typer.Exit(code=1)
     for w in result.warnings:
-        _err.print(f"[yellow]warning:[/] {w}")
+        _err.print(f"[yellow]warning:[/] {escape(w)}", soft_wrap=True, highlight=False)
     sig = ", ".join(f"{k} {result.std_devs[k]:.3f}" for k in ("fx", "fy", "cx", "cy"))
     written = str(options.out_path) + (f" (report {options.report})" if options.report else "")
     _err.print(
-        f"{outcome.camera}: {text}; {len(result.views)} views, model {result.model}, "
+        f"{outcome.camera}: {text}; {views_text(outcome)}, model {result.model}, "
         f"RMS {result.rms_px:.3f} px, std dev (px) {sig} -> {written}",
         markup=False,
         highlight=False,

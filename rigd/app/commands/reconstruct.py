@@ -10,24 +10,24 @@ Register with `app.command("reconstruct")(reconstruct)`.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from pydantic import ValidationError
-from rich.console import Console
 from rich.markup import escape
 
+from rigd.app.commands.consoles import stderr_console
 from rigd.app.commands.progress import StageProgress
-from rigd.app.workflows.reconstruct import (
-    LOCAL_SCHEDULERS,
-    ReconstructOptions,
-    TakeReconstruction,
-    run_reconstruct,
-)
-from rigd.app.workflows.reconstruct_tasks import FilterKnobs
 from rigd.core.errors import RigdError
 
-_err = Console(stderr=True)
+if TYPE_CHECKING:  # the pipeline (dask, numba, h5py) loads when the command runs
+    from rigd.app.workflows.reconstruct import ReconstructOptions, TakeReconstruction
+
+#: rigd.app.workflows.reconstruct.LOCAL_SCHEDULERS, spelled out so that `--help` need not import
+#: the pipeline; tests/app/commands/test_lazy_imports.py holds the two equal.
+LOCAL_SCHEDULER_NAMES = ("threads", "processes", "sync")
+
+_err = stderr_console()
 
 
 def _line(r: TakeReconstruction) -> str:
@@ -47,7 +47,7 @@ def reconstruct(
         str,
         typer.Option(
             "--scheduler",
-            help=f"Dask scheduler: {', '.join(LOCAL_SCHEDULERS)} (local), or a dask.distributed address "
+            help=f"Dask scheduler: {', '.join(LOCAL_SCHEDULER_NAMES)} (local), or a dask.distributed address "
             "(tcp://HOST:PORT).",
         ),
     ] = "threads",
@@ -105,6 +105,9 @@ def reconstruct(
     ] = 5.0,
 ) -> None:
     """Denoise, segment the rig's sequence by motion, choose keyframes and reconstruct snapshots per take."""
+    from rigd.app.workflows.reconstruct import ReconstructOptions
+    from rigd.app.workflows.reconstruct_tasks import FilterKnobs
+
     try:
         filt = FilterKnobs(
             enabled=not no_filter,
@@ -148,6 +151,8 @@ _FILTER_FLAGS = {
 
 
 def _run(options: ReconstructOptions) -> None:
+    from rigd.app.workflows.reconstruct import run_reconstruct
+
     try:
         with StageProgress(_err, "reconstruct") as progress:
             results = run_reconstruct(options, progress)

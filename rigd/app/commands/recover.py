@@ -13,19 +13,21 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 
-from rigd.app.capture.ballast import remove_stale_ballast
+from rigd.app.commands.consoles import stderr_console, stdout_console
 from rigd.core.errors import TakeError
-from rigd.take.recover import RecoveryReport
-from rigd.take.recover_dir import RecoveryProblem, recover_dir, recover_one
+
+if TYPE_CHECKING:  # the take file (h5py) loads when the command runs
+    from rigd.take.recover import RecoveryReport
+    from rigd.take.recover_dir import RecoveryProblem
 
 log = logging.getLogger(__name__)
-_err = Console(stderr=True)
+_err = stderr_console()
 _COLOURS = {
     "sealed": "green",
     "would_seal": "green",
@@ -52,6 +54,9 @@ def _take_dir(config: Path | None) -> Path:
 def _recover_all(paths: list[Path], *, dry_run: bool) -> list[RecoveryReport | RecoveryProblem]:
     """Files as given, directories expanded to their unfinished takes; a file that cannot be
     read or sealed is a `RecoveryProblem` in the list, never the end of the run."""
+    from rigd.app.capture.ballast import remove_stale_ballast
+    from rigd.take.recover_dir import recover_dir, recover_one
+
     out: list[RecoveryReport | RecoveryProblem] = []
     for p in paths:
         if p.is_dir():
@@ -96,8 +101,10 @@ def recover_command(
     if not results:
         _err.print("no unfinished takes found")
         raise typer.Exit(code=0 if paths and all(p.is_dir() for p in paths) else 2)
+    from rigd.take.recover_dir import RecoveryProblem
+
     ok = True
-    out = Console(width=200, highlight=False, soft_wrap=True)
+    out = stdout_console(highlight=False)
     for r in results:
         if isinstance(r, RecoveryProblem):
             ok = False

@@ -15,19 +15,22 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
+from rich import box
 from rich.console import Console
 from rich.table import Table
 
+from rigd.app.commands.consoles import stderr_console, stdout_console
 from rigd.app.config import RigConfig, default_control_endpoint, default_sim_rig
-from rigd.app.service.client import DaemonClient, DaemonRequestError, DaemonUnavailableError, find_daemon
 from rigd.core.errors import ConfigError, RigdError
-from rigd.take.verdict import TakeVerdict
+
+if TYPE_CHECKING:  # ZeroMQ loads when a command talks to the daemon, not for `--help`
+    from rigd.app.service.client import DaemonClient, DaemonUnavailableError
 
 log = logging.getLogger(__name__)
-_err = Console(stderr=True)
+_err = stderr_console()
 
 #: Exit code of `rigd capture` when the daemon stops answering before the take is over.
 DAEMON_LOST_EXIT = 3
@@ -53,6 +56,8 @@ def control_endpoint(connect: str | None) -> str:
 
 def _require_daemon(connect: str | None, hint: str) -> DaemonClient:
     """The daemon at the endpoint, or exit 3 saying there is none."""
+    from rigd.app.service.client import find_daemon
+
     endpoint = control_endpoint(connect)
     client = find_daemon(endpoint)
     if client is None:
@@ -182,7 +187,7 @@ def status(
     if json_out:
         typer.echo(json.dumps(t, indent=2))
         return
-    print_status(t, Console())
+    print_status(t, stdout_console())
 
 
 def _flush_text(t: dict[str, Any]) -> str:
@@ -208,30 +213,58 @@ def _headroom_text(t: dict[str, Any]) -> str:
     return line
 
 
+#: Device kinds as the status table says them (short: the table fits 80 columns).
+_KIND_WORDS = {"rgb_camera": "camera", "event_sensor": "events", "trigger": "trigger"}
+
+
+def _count(n: float, small: str = "{:,.0f}") -> str:
+    """A count or rate in at most 7 characters: 123,456, 1.23 M, 24.95 M (`--json` has the number)."""
+    if abs(n) >= 1e6:
+        return f"{n / 1e6:.2f} M"
+    if abs(n) >= 1e5:
+        return f"{n / 1e3:.1f} k"
+    return small.format(n)
+
+
 def print_status(t: dict[str, Any], out: Console) -> None:
     disk = f"{t['disk_free_bytes'] / 1e9:.1f} of {t['disk_total_bytes'] / 1e9:.1f} GB free"
-    out.print(f"state: [bold]{t['state']}[/]   takes: {t['takes_completed']}   disk: {disk}")
+    # takes_completed counts this daemon's takes since it started, not the files in take_dir
+    # (`rigd takes` lists those).
+    done = f"takes finalized since start: {t['takes_completed']}"
+    out.print(f"state: [bold]{t['state']}[/]   {done}   disk: {disk}")
     if t.get("take"):
         out.print(
             f"take: {t['take']}  {t['take_elapsed_s']:.1f} s  pulses {t['pulses']}  "
             f"queue {t['queue_depth']}/{t['queue_capacity']}  {t['bytes_written'] / 1e6:.0f} MB"
-            + _flush_text(t)
+            + _flush_text(t),
+            soft_wrap=True,
         )
-        out.print(_headroom_text(t))
-    table = Table("device", "kind", "state", "total", "rate/s", "lost", "queued", "reconnects", "jitter us")
+        out.print(_headroom_text(t), soft_wrap=True)
+    headers = ("device", "kind", "state", "total", "rate/s", "lost", "queued", "reconn", "jitter µs")
+    rows = []
     for d in t["devices"]:
         jitter = d.get("interval_jitter_us")
-        table.add_row(
-            d["name"],
-            d["kind"],
-            d["state"],
-            f"{d['total']:,}",
-            f"{d['rate_hz']:,.1f}",
-            str(d["lost"]),
-            str(d.get("queued", 0)),
-            str(d.get("reconnects", 0)),
-            "-" if jitter is None else f"{jitter:.2f}",
+        rows.append(
+            (
+                d["name"],
+                _KIND_WORDS.get(d["kind"], d["kind"]),
+                d["state"],
+                _count(d["total"]),
+                _count(d["rate_hz"], "{:.1f}"),
+                str(d["lost"]),
+                str(d.get("queued", 0)),
+                str(d.get("reconnects", 0)),
+                "-" if jitter is None else f"{jitter:.2f}",
+            )
         )
+    # Every cell whole, on an 80-column terminal too (it once printed `trigg...`, `rgb_c...`): light
+    # borders, short words, and no column narrower than its longest cell.
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    for i, head in enumerate(headers):
+        widest = max([len(head), *(len(r[i]) for r in rows)])
+        table.add_column(head, no_wrap=True, min_width=widest, justify="left" if i < 3 else "right")
+    for row in rows:
+        table.add_row(*row)
     out.print(table)
     for f in t.get("faults", []):
         out.print(
@@ -254,6 +287,8 @@ def verdict_text(last: dict[str, Any]) -> str:
     verdict = last.get("verdict")
     if verdict is None:
         return f"unknown (the daemon does not say; `rigd inspect {last['path']}` does)"
+    from rigd.take.verdict import TakeVerdict
+
     return TakeVerdict(verdict=verdict, reasons=last.get("verdict_reasons") or []).line()
 
 
@@ -317,6 +352,8 @@ def capture_via_daemon(
     client: DaemonClient, duration: float | None, label: str | None, json_out: bool, progress: Any
 ) -> dict[str, Any]:
     """Ask the daemon for a take and follow it to the end; the daemon's summary of it."""
+    from rigd.app.service.client import DaemonRequestError, DaemonUnavailableError
+
     try:
         res = client.call("capture", timeout_s=CAPTURE_START_TIMEOUT_S, duration_s=duration, label=label)
     except DaemonRequestError as exc:
@@ -368,6 +405,8 @@ def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
     """The daemon to use, or None to work in-process; explicit --connect must answer."""
     if local:
         return None
+    from rigd.app.service.client import find_daemon
+
     endpoint = control_endpoint(connect)
     client = find_daemon(endpoint, timeout_s=2.0)
     if client is None and connect:

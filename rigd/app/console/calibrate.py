@@ -43,7 +43,14 @@ from rigd.app.console.app import read_body
 from rigd.app.console.live import LatestSlot, LivePublisher
 from rigd.app.console.takes import TakeList, check_name, file_in, plain_dir
 from rigd.app.service.requests import RequestError
-from rigd.app.workflows.guided import DEFAULT_BOARD, GuidedOptions, GuidedRun, own_sim_world, verdict
+from rigd.app.workflows.guided import (
+    DEFAULT_BOARD,
+    GuidedOptions,
+    GuidedRun,
+    own_sim_world,
+    verdict,
+    views_text,
+)
 from rigd.core.errors import RigdError
 from rigd.take.calibration import store_calibration
 
@@ -252,6 +259,7 @@ class GuidedController:
             ghost=ghost,
             target_sigma_px=o.target_sigma_px,
             min_views=o.min_views,
+            done_views=o.done_views,
             sigma_names=list(SIGMA_NAMES),
             seconds_left=max(0.0, t_end - time.monotonic()),
         )
@@ -260,7 +268,7 @@ class GuidedController:
         o = run.options
         _refuse_links(o.out_path, o.out_path.with_suffix(".json"), o.report)
         outcome = run.finish()
-        reached, text = verdict(outcome, o.target_sigma_px, o.min_views)
+        reached, text = verdict(outcome, o.target_sigma_px, o.done_views)
         files: dict[str, str] = {}
         if outcome.result is not None:
             json_path = o.out_path.with_suffix(".json")
@@ -283,8 +291,10 @@ class GuidedController:
             reached=reached,
             verdict=text,
             n_views=outcome.n_views,
+            views_text=views_text(outcome),
             sigmas=sig,
             rms_px=None if outcome.result is None else outcome.result.rms_px,
+            warnings=[] if outcome.result is None else list(outcome.result.warnings),
             files=files,
         )
 

@@ -109,7 +109,10 @@ class ConsoleServer:
         if not server.started:
             self.close()
             why = f": {self._error}" if self._error else ""
-            raise ConfigError(f"--http {self.host}:{self.port}: the console could not listen{why}")
+            raise ConfigError(
+                f"--http {self.host}:{self.port}: the console could not listen{why}; give this daemon "
+                "another address: `rigd serve --http HOST:PORT` (port 0: any free port) or --no-http"
+            )
         sockets = [s for srv in server.servers for s in srv.sockets]
         if sockets:
             self.port = int(sockets[0].getsockname()[1])
@@ -124,6 +127,8 @@ class ConsoleServer:
     def _run(self, server: uvicorn.Server) -> None:
         try:
             asyncio.run(server.serve())
+        except SystemExit as exc:  # uvicorn exits (code 3) when it cannot bind: said below
+            log.debug("console server exited with %s", exc.code)
         except BaseException as exc:  # noqa: BLE001 - reported by start() or close(), with the cause
             self._error = exc
             log.error("console server stopped: %s", exc)

@@ -28,6 +28,7 @@ non-private bind without CurveZMQ keys.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hmac
 import logging
 import socket
@@ -54,6 +55,9 @@ if TYPE_CHECKING:
     from wsgiref.types import StartResponse, WSGIApplication, WSGIEnvironment
 
 log = logging.getLogger(__name__)
+
+#: What `--metrics-port` takes besides a port, as the errors say it.
+PORT_CHOICES = "0: any free port, -1: off"
 
 DAEMON_STATES: tuple[str, ...] = get_args(DaemonState)
 DEVICE_STATES: tuple[str, ...] = get_args(DeviceTelemetry.model_fields["state"].annotation)
@@ -313,7 +317,10 @@ class MetricsExporter:
             )
         except OSError as exc:
             raise ConfigError(
-                f"service.metrics_port: cannot serve metrics on {self._host}:{self._port}: {exc}"
+                f"cannot serve metrics on {self._host}:{self._port}: {exc.strerror or exc}"
+                + (" (another rigd daemon on this host?)" if exc.errno == errno.EADDRINUSE else "")
+                + f"; give this daemon another port: `rigd serve --metrics-port PORT` ({PORT_CHOICES}) "
+                "or service.metrics_port in the rig config"
             ) from exc
         self._server = server
         self._thread = threading.Thread(target=server.serve_forever, name="metrics-http", daemon=True)

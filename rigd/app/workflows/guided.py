@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.boards import parse_board
 from calibration.guided import SIGMA_NAMES, Feedback, GuidedSession
-from calibration.intrinsics import IntrinsicsResult
+from calibration.intrinsics import RECOMMENDED_VIEWS, IntrinsicsResult
 from calibration.io import write_result
 from calibration.report import write_report
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, default_sim_rig
@@ -71,6 +71,12 @@ class GuidedOptions(BaseModel):
     def out_path(self) -> Path:
         return self.out if self.out is not None else Path(f"{self.camera}.yaml")
 
+    @property
+    def done_views(self) -> int:
+        """Fewest views the written calibration must use to be done: the report's recommendation
+        (calibration.intrinsics.RECOMMENDED_VIEWS), or `min_views` when that asks for more."""
+        return max(self.min_views, RECOMMENDED_VIEWS)
+
 
 @dataclass(frozen=True, slots=True)
 class GuidedStarted:
@@ -84,7 +90,7 @@ class GuidedStarted:
 
 @dataclass(frozen=True, slots=True)
 class GuidedFrame:
-    """One frame looked at: the session's verdict, the session itself, and the time left (s)."""
+    """One frame looked at: the session's verdict, the session itself, and the time left (s, >= 0)."""
 
     feedback: Feedback
     session: GuidedSession
@@ -123,7 +129,7 @@ def run_guided(
         while time.monotonic() < t_end and not run.session.done:
             looked = run.step()
             if looked is not None:
-                progress(GuidedFrame(looked[0], run.session, t_end - time.monotonic()))
+                progress(GuidedFrame(looked[0], run.session, max(0.0, t_end - time.monotonic())))
     finally:
         run.close()
     return run.finish()
@@ -222,31 +228,36 @@ class GuidedRun:
         )
 
 
-def verdict(outcome: GuidedOutcome, target_sigma_px: float, min_views: int) -> tuple[bool, str]:
-    """(target reached, the verdict in words), judged on the calibration that was written.
-
-    Why not `outcome.done` alone: the session judges the target on its running fast fit, and only
-    from `min_views` views on, while the written result is the full calibration of the views
-    kept; so "time ran out before the target" could sit next to four std devs below it."""
+def verdict(outcome: GuidedOutcome, target_sigma_px: float, done_views: int) -> tuple[bool, str]:
+    """(target reached, the verdict in words), judged on the calibration that was written, by the
+    session's own stop rule: all four std devs at or below the target, from at least `done_views`
+    views the fit used (GuidedOptions.done_views; outliers it rejected do not count)."""
     result = outcome.result
     if result is None:
         return False, f"only {outcome.n_views} view(s) captured; nothing written"
     sig = {k: result.std_devs[k] for k in SIGMA_NAMES}
     above = [f"{k} {v:.3f}" for k, v in sig.items() if not v <= target_sigma_px]
-    if not above and outcome.n_views >= min_views:
+    used = len(result.views)
+    if not above and used >= done_views:
         return True, "target reached"
     if not above:
         return False, (
-            f"time ran out at {outcome.n_views} of {min_views} views: the std devs are below the "
-            f"{target_sigma_px:g} px target, but from fewer views than asked for"
+            f"stopped at {used} usable views of the {done_views} needed: the std devs are below the "
+            f"{target_sigma_px:g} px target, but from fewer views than the report recommends"
         )
-    if outcome.done:
-        # The running fit met the target; the full calibration (outlier rejection) did not.
-        return False, (
-            f"the session's running fit met the {target_sigma_px:g} px target, but the written "
-            f"calibration did not ({', '.join(above)} px above it)"
-        )
-    return False, f"time ran out before the {target_sigma_px:g} px target ({', '.join(above)} px above it)"
+    return False, f"stopped before the {target_sigma_px:g} px target ({', '.join(above)} px above it)"
+
+
+def views_text(outcome: GuidedOutcome) -> str:
+    """How many views were kept and how many of them the written fit used, one way everywhere."""
+    result = outcome.result
+    if result is None:
+        return f"{outcome.n_views} views kept"
+    used = len(result.views)
+    rejected = outcome.n_views - used
+    return f"{used} views" + (
+        f" ({outcome.n_views} kept, {rejected} rejected as outliers)" if rejected else ""
+    )
 
 
 def guided_sim_rig(resolution: tuple[int, int]) -> RigConfig:
@@ -305,6 +316,7 @@ def _session(
         target_sigma_px=o.target_sigma_px,
         still_px=o.still_px if still_px is None else still_px,
         min_views=o.min_views,
+        done_views=o.done_views,
         model=o.model,
         exposure_us=exposure_us,
     )

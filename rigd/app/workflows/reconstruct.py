@@ -15,7 +15,9 @@ block of events, so memory does not grow with the take and the work spreads over
    over the time constants before it, or direct integration from the segment start).
 
 Output per take: `<out>/<take_id>/segments.json` (the segments, keyframes, candidate source,
-what the filter kept per sensor, the options) and `<out>/<take_id>/<sensor>/snapshots.npz`.
+what the filter kept per sensor, the options), `<out>/<take_id>/<sensor>/snapshots.npz`, and
+`<out>/<take_id>/overview.png` (the event rate with the segments and keyframes on it, and keyframe
+snapshots per sensor: `reconstruct_picture`).
 
 Scheduling: the same Dask graph runs on local threads (default), local processes, the
 synchronous scheduler, or a `dask.distributed` cluster (`scheduler="tcp://host:8786"`). A take
@@ -49,6 +51,7 @@ from reconstruction.partition import (
     segment_starts,
 )
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
+from rigd.app.workflows.reconstruct_picture import picks, write_overview
 from rigd.app.workflows.reconstruct_tasks import (
     BlockMaps,
     BlockScan,
@@ -422,6 +425,8 @@ def _phases(
 
     progress(ProgressUpdate(STAGE_SNAPSHOTS, name, 0, n_snaps, "snapshots"))
     batch = max(8, 4 * (o.workers or os.cpu_count() or 1))
+    shown = set(picks(len(keys)))
+    shots: dict[str, list[tuple[int, NDArray[np.float32]]]] = {s: [] for s in sensors}
     for s in sensors:
         w, h = plan.geometry[s]
         with _SnapshotFile(o.out / plan.take_id / s / "snapshots.npz", len(keys), h, w) as dest:
@@ -440,8 +445,10 @@ def _phases(
                     )
                     for g, k in enumerate(keys[i : i + batch], start=i)
                 ]
-                for snap in run.compute(tasks, on_snapshot):
+                for j, snap in enumerate(run.compute(tasks, on_snapshot), start=i):
                     dest.append(snap.t_us, snap.image)
+                    if j in shown:  # the few the overview shows; the rest only go to disk
+                        shots[s].append((snap.t_us, snap.image))
 
     segments = []
     for g, k in enumerate(keys):
@@ -453,6 +460,15 @@ def _phases(
         for s in sensors
     }
     _write(plan, o, segments, per_sensor, n_candidates=sum(len(c) for c in chosen))
+    write_overview(
+        o.out / plan.take_id / "overview.png",
+        counts,
+        cfg.window_us,
+        plan.t0_us,
+        segments,
+        shots,
+        plan.geometry,
+    )
     log.info(
         "%s: %d segments; %s",
         plan.take_id,

@@ -143,3 +143,22 @@ def test_missing_dataset_is_named_in_one_line(take_path: Path, tmp_path: Path, h
         assert "KeyError" not in text
     with pytest.raises(TakeFormatError, match=f"/{hpath}: required dataset is missing"):
         Take(p)
+
+
+def test_event_tiles_keep_sparse_events_visible() -> None:
+    """A 10 ms window of a sparse scene is mostly single events: each is drawn half bright or
+    more, and shrinking the image into a tile keeps it (block maxima, not averages)."""
+    from rigd.app.inspect import _max_pool, _tile, event_image
+
+    x = np.array([5, 100, 101, 101, 101], np.uint16)
+    y = np.array([7, 50, 50, 50, 50], np.uint16)
+    p = np.array([1, 0, 1, 1, 1], np.int8)
+    img = event_image(x, y, p, 640, 360)
+    assert img[7, 5, 2] >= 127  # one ON event
+    assert img[50, 100, 0] >= 127  # one OFF event
+    assert img[50, 101, 2] == 255  # the most active pixel
+    pooled = _max_pool(img, 4)
+    assert pooled.shape == (90, 160, 3)
+    assert pooled[1, 1, 2] == img[7, 5, 2]
+    tile = _tile(img, 160, 90, "ev0", events=True)
+    assert (tile[18:, :, 2] >= 127).sum() >= 2  # both ON pixels survive the shrink

@@ -52,20 +52,26 @@ function render(doc) {
   document.getElementById("gstart").disabled = running || doc.state === "finishing";
   document.getElementById("gfinish").disabled = !running;
   document.getElementById("gcancel").disabled = !running;
-  if (doc.state === "failed") document.getElementById("gmsg").textContent = doc.error;
+  const msg = document.getElementById("gmsg");
+  if (doc.state === "failed") msg.textContent = doc.error;
+  else if (!running && doc.state !== "finishing") msg.textContent = "";  // "calibrating cam0" ends with the session
+  if (!running) document.getElementById("gleft").textContent = "";
   if (doc.image && doc.image !== imgShown && !imgLoading) {
     imgLoading = true; imgShown = doc.image;
     const img = document.getElementById("gimg");
-    img.onload = () => { imgLoading = false; img.dataset.version = String(imgShown); };
+    img.onload = () => {
+      imgLoading = false; img.dataset.version = String(imgShown);
+      img.hidden = false; document.getElementById("gnoimg").hidden = true;
+    };
     img.onerror = () => { imgLoading = false; };
     img.src = `/api/guided/image.jpg?v=${doc.image}`;
   }
-  if (doc.seconds_left !== undefined) document.getElementById("gleft").textContent = `${doc.seconds_left.toFixed(0)} s left`;
+  if (running && doc.seconds_left !== undefined) document.getElementById("gleft").textContent = `${doc.seconds_left.toFixed(0)} s left`;
   if (doc.feedback) {
     const fb = doc.feedback;
     const still = fb.blur_px === null || fb.blur_px === undefined ? "" : `; smear ${fb.blur_px.toFixed(2)} px`;
     document.getElementById("greason").textContent =
-      `board ${fb.detected ? "found (" + fb.n_corners + " corners)" : "not found"}${still}; ${fb.reason}`;
+      fb.detected ? `board found (${fb.n_corners} corners)${still}; ${fb.reason}` : fb.reason;
     document.getElementById("ghint").textContent = (fb.done ? "DONE: " : "next: ") + fb.next_hint;
     const row = document.getElementById("gsig");
     row.replaceChildren(el("td", { text: `std dev (target ${doc.target_sigma_px} px)` }), ...doc.sigma_names.map((n) => {
@@ -87,7 +93,13 @@ function render(doc) {
       ? el("span", { "data-testid": "guided-file-take", style: "margin-right:1em", text: `stored in take ${name}` })
       : el("a", { href: `/api/guided/files/${encodeURIComponent(name)}`, target: "_blank", "data-testid": `guided-file-${kind}`, style: "margin-right:1em", text: `${kind}: ${name}` }));
     const sig = Object.entries(doc.sigmas).map(([k, v]) => `${k} ${v.toFixed(3)}`).join(", ");
-    res.replaceChildren(el("p", { class: doc.reached ? "hint" : "action", text: `${doc.camera}: ${doc.verdict}; ${doc.n_views} views${sig ? "; std dev (px) " + sig : ""}` }), el("p", {}, ...links));
+    const views = doc.views_text || `${doc.n_views} views`;
+    // The report's warnings, as the report shows them: a result is judged by the same words here.
+    const warnings = (doc.warnings || []).map((w) => el("li", { class: "action", "data-testid": "guided-warning", text: w }));
+    res.replaceChildren(
+      el("p", { class: doc.reached ? "hint" : "action", "data-testid": "guided-verdict", text: `${doc.camera}: ${doc.verdict}; ${views}${sig ? "; std dev (px) " + sig : ""}` }),
+      ...(warnings.length ? [el("ul", { class: "warnings" }, ...warnings)] : []),
+      el("p", { class: "files" }, ...links));
   }
 }
 

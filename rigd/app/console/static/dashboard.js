@@ -15,6 +15,9 @@ const FAULT_WORDS = {
 };
 const KIND_WORDS = { rgb_camera: "camera", event_sensor: "event sensor", trigger: "trigger" };
 const tiles = {};
+// A finished take's event rates do not change: fetched once, drawn again from here whenever the
+// take list is rebuilt (during a take the rebuilt rows lost their curves while the fetch waited).
+const rateCache = {};
 let lastTakeSeen = null;
 let lastState = null;
 
@@ -39,12 +42,25 @@ function showPreview(t, name, version) {
   t._img.src = `/api/preview/${encodeURIComponent(name)}.jpg?v=${version}`;
 }
 
+// A camera delivering less than this share of the trigger rate during a take is losing frames.
+const LOW_RATE_SHARE = 0.9;
+
+function faultText(f) {
+  // The fault's words, and its message only where it says more than them (no sentence twice).
+  const words = FAULT_WORDS[f.code];
+  if (!words) return f.message;
+  const norm = (s) => s.toLowerCase().replace(/[^a-z0-9 ]/g, " ").split(/\s+/).filter((w) => w.length > 2);
+  const known = new Set(norm(words));
+  const extra = norm(f.message).filter((w) => !known.has(w) && !["being", "counted", "and"].includes(w));
+  return extra.length ? `${words} (${f.message})` : words;
+}
+
 function deviceStats(dev, doc) {
   const residual = doc.last_take && doc.last_take.residual_rms_us ? doc.last_take.residual_rms_us[dev.name] : null;
   const unit = dev.kind === "event_sensor" ? "events" : dev.kind === "trigger" ? "pulses" : "frames";
   const parts = [
     `<b>${dev.state}</b>`,
-    `rate <b>${fmtRate(dev.rate_hz)}</b>`,
+    rateText(dev, doc),
     `${dev.total.toLocaleString()} ${unit}`,
     `lost <b>${dev.lost}</b>`,
   ];
@@ -68,6 +84,15 @@ function headroomText(doc) {
   return text;
 }
 
+function rateText(dev, doc) {
+  const trig = doc.devices.find((d) => d.kind === "trigger");
+  const low = dev.kind === "rgb_camera" && doc.state === "capturing" && trig && trig.rate_hz > 0
+    && dev.rate_hz < LOW_RATE_SHARE * trig.rate_hz;
+  return low
+    ? `rate <b class="low" data-testid="rate-low" title="below ${Math.round(LOW_RATE_SHARE * 100)} % of the trigger's ${trig.rate_hz.toFixed(1)} Hz: frames are being lost">${fmtRate(dev.rate_hz)}</b>`
+    : `rate <b>${fmtRate(dev.rate_hz)}</b>`;
+}
+
 function render(doc) {
   const state = document.getElementById("state");
   state.textContent = doc.state;
@@ -85,7 +110,7 @@ function render(doc) {
     ? "flush: -" : `flushed ${doc.last_flush_age_s.toFixed(1)} s ago: a crash now would lose the last ${doc.last_flush_age_s.toFixed(1)} s (longest flush ${(doc.flush_max_s * 1000).toFixed(0)} ms)`;
   const faults = document.getElementById("faults");
   faults.replaceChildren(...(doc.faults.length ? doc.faults.map((f) =>
-    el("li", { text: `${f.device ? f.device + ": " : ""}${FAULT_WORDS[f.code] || f.code} (${f.message}; since ${f.since_utc})` }))
+    el("li", { text: `${f.device ? f.device + ": " : ""}${faultText(f)} (since ${f.since_utc})` }))
     : [el("li", { style: "color:var(--dim)", text: "none" })]));
   for (const dev of doc.devices) {
     if (dev.kind === "trigger") continue;
@@ -107,8 +132,9 @@ function drawRates(canvas, series) {
   const ys = series.rate_hz;
   if (!ys.length) return;
   const max = Math.max(...ys, 1);
+  const top = 13;  // the label's band: the curve is drawn below it, never under the text
   ctx.strokeStyle = "#58a6ff"; ctx.beginPath();
-  ys.forEach((y, i) => { const x = i * w / Math.max(ys.length - 1, 1); const yy = h - 2 - (h - 4) * y / max; i ? ctx.lineTo(x, yy) : ctx.moveTo(x, yy); });
+  ys.forEach((y, i) => { const x = i * w / Math.max(ys.length - 1, 1); const yy = h - 2 - (h - top - 2) * y / max; i ? ctx.lineTo(x, yy) : ctx.moveTo(x, yy); });
   ctx.stroke();
   ctx.fillStyle = "#9aa3ad"; ctx.font = "10px sans-serif"; ctx.fillText(fmtRate(max) + " max", 2, 10);
 }
@@ -137,12 +163,17 @@ async function loadTakes() {
     const rates = el("td", {});
     if (t.status === "complete") {
       for (const cam of t.cameras) thumbs.append(el("img", { src: `/api/takes/${encodeURIComponent(t.name)}/preview/${cam}.jpg`, alt: cam, title: cam }));
-      fetch(`/api/takes/${encodeURIComponent(t.name)}/rates`, { credentials: "same-origin" }).then((r) => r.ok ? r.json() : {}).then((series) => {
+      const draw = (series) => {
         for (const [sensor, s] of Object.entries(series)) {
-          const c = el("canvas", { class: "rate", width: "180", height: "40", title: sensor });
+          const c = el("canvas", { class: "rate", width: "180", height: "44", title: sensor });
           rates.append(el("div", { text: sensor }), c); drawRates(c, s);
         }
-      });
+      };
+      if (rateCache[t.name]) draw(rateCache[t.name]);
+      else fetch(`/api/takes/${encodeURIComponent(t.name)}/rates`, { credentials: "same-origin" })
+        .then((r) => r.ok ? r.json() : null).then((series) => {
+          if (series) { rateCache[t.name] = series; draw(series); }
+        });
     }
     return el("tr", { "data-testid": "take-row", "data-name": t.name, "data-status": t.status },
       el("td", { text: t.name }), info, thumbs, rates);

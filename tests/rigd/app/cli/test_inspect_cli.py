@@ -81,9 +81,9 @@ def _labels(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     seen: list[str] = []
     tile = inspect_mod._tile
 
-    def record(img: np.ndarray, width: int, height: int, label: str) -> np.ndarray:
+    def record(img: np.ndarray, width: int, height: int, label: str, events: bool = False) -> np.ndarray:
         seen.append(label)
-        return tile(img, width, height, label)
+        return tile(img, width, height, label, events)
 
     monkeypatch.setattr(inspect_mod, "_tile", record)
     return seen

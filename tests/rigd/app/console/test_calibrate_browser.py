@@ -40,6 +40,9 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         # Logged in as an operator is: the login URL, with the page's address after it.
         page.goto(cd.login_url.replace("/?", "/calibrate?"))
         assert page.url == cd.url + "calibrate"
+        # The idle page shows no broken-image icon: the live image is hidden until one arrives.
+        expect(page.get_by_test_id("guided-image")).to_be_hidden()
+        expect(page.get_by_test_id("guided-no-image")).to_be_visible()
         expect(page.get_by_test_id("guided-device")).to_contain_text("cam0 (camera)")
         expect(page.get_by_test_id("guided-device")).to_contain_text("ev0 (event sensor")
         page.get_by_test_id("guided-device").select_option("cam0")
@@ -80,6 +83,16 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         page.get_by_test_id("guided-finish").click()
         expect(page.get_by_test_id("guided-state")).to_have_text("finished")
         expect(page.get_by_test_id("guided-result")).to_contain_text("target reached")
+        # One rule for the page and the report: DONE only with the views the report recommends,
+        # so the report's "only N usable views" warning cannot sit next to a finished session.
+        verdict = page.get_by_test_id("guided-verdict").inner_text()
+        used = int(verdict.split("target reached; ")[1].split(" views")[0])
+        assert used >= 10, verdict
+        warnings = page.get_by_test_id("guided-warning").all_inner_texts()
+        assert not any("usable views" in w for w in warnings), warnings
+        # The session's banner ("calibrating cam0 ...") and time left go with the session.
+        expect(page.get_by_test_id("guided-msg")).to_have_text("")
+        page.screenshot(path=str(tmp_path / "console-calibrate-finished.png"), full_page=True)
         yaml_link = page.get_by_test_id("guided-file-yaml")
         expect(yaml_link).to_be_visible()
         expect(page.get_by_test_id("guided-file-report")).to_be_visible()
@@ -87,6 +100,9 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         expect(page.get_by_test_id("guided-file-take")).to_contain_text(take.name)
         href = yaml_link.get_attribute("href")
         assert href is not None
+        # Links readable on the dark panel: the accent colour, not the browser's dark blue.
+        colour = yaml_link.evaluate("a => getComputedStyle(a).color")
+        assert colour in ("rgb(88, 166, 255)", "rgb(188, 140, 255)"), colour
     assert httpx.get(base + href, timeout=10).status_code == 401  # the file needs the login too
     body = httpx.get(base + href, headers=tok, timeout=10)
     assert body.status_code == 200

@@ -22,6 +22,8 @@ def test_dashboard_live_views_start_stop_and_take_list(
 
     cd = console_daemon()
     with chromium_page() as page:
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
         # Without the login, the browser gets the page that says how to log in, and nothing else.
         assert page.goto(cd.url).status == 401
         expect(page.locator("body")).to_contain_text("rigd console-url")
@@ -53,5 +55,16 @@ def test_dashboard_live_views_start_stop_and_take_list(
         expect(row.locator("img")).to_have_count(3)
         expect(row.locator("canvas")).to_have_count(2)
         page.screenshot(path=str(tmp_path / "console-takes.png"), full_page=True)
+        # During the next take the finished take keeps its event-rate curves (they once vanished
+        # whenever the list was rebuilt during a take).
+        page.get_by_test_id("take-name").fill("second")
+        page.get_by_test_id("start").click()
+        expect(page.get_by_test_id("state")).to_have_text("capturing")
+        page.wait_for_function("document.querySelectorAll('[data-testid=take-row]').length >= 2")
+        expect(row.locator("canvas")).to_have_count(2)
+        page.get_by_test_id("stop").click()
+        expect(page.get_by_test_id("state")).to_have_text("idle")
+        expect(row.locator("canvas")).to_have_count(2)
+        assert errors == [], errors
     takes = list(cd.config.service.take_dir.glob("*browser-take*.h5"))
     assert len(takes) == 1

@@ -102,6 +102,8 @@ def test_a_taken_console_port_stops_the_start_with_a_config_error(tmp_path: Path
         port = busy.getsockname()[1]
         cfg = console_rig(tmp_path / "takes", runtime_dir)
         daemon = Daemon(cfg, attachments=[ConsoleServer("127.0.0.1", port)])
-        with pytest.raises(ConfigError, match=f"127.0.0.1:{port}: the console could not listen"):
+        with pytest.raises(ConfigError, match=f"127.0.0.1:{port}: the console could not listen") as err:
             daemon.serve()
+    assert "cannot bind" in str(err.value)
+    assert "`rigd serve --http HOST:PORT` (port 0: any free port) or --no-http" in str(err.value)
     assert not Path(cfg.service.control_endpoint.removeprefix("ipc://")).exists()

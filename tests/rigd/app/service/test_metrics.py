@@ -281,14 +281,21 @@ def test_start_twice_is_an_error(exporter: MetricsExporter) -> None:
         exporter.start()
 
 
-def test_port_taken_raises() -> None:
+def test_port_taken_raises_naming_the_flag_and_the_key() -> None:
+    """A second daemon on the host meets the first one's port: the error says how to move it."""
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         sock.listen()
-        exp = MetricsExporter(port=sock.getsockname()[1])
-        with pytest.raises(ConfigError, match=r"metrics_port.*in use"):
+        port = sock.getsockname()[1]
+        exp = MetricsExporter(port=port)
+        with pytest.raises(ConfigError) as err:
             exp.start()
         exp.close()
+    text = str(err.value)
+    assert f"cannot serve metrics on 127.0.0.1:{port}: Address already in use" in text
+    assert "another rigd daemon" in text
+    assert "`rigd serve --metrics-port PORT` (0: any free port, -1: off)" in text
+    assert "service.metrics_port" in text
 
 
 # -- who may scrape (docs/security.md) ----------------------------------------------------------

@@ -8,7 +8,7 @@ from unittest.mock import MagicMock
 import pytest
 
 from calibration.errors import CalibrationError
-from calibration.intrinsics import IntrinsicsResult
+from calibration.intrinsics import RECOMMENDED_VIEWS, IntrinsicsResult
 from calibration.io import read_opencv_yaml
 from rigd.app.workflows.guided import (
     MIN_VIEWS_TO_WRITE,
@@ -19,6 +19,7 @@ from rigd.app.workflows.guided import (
     GuidedStarted,
     run_guided,
     verdict,
+    views_text,
 )
 from rigd.core.errors import RigdError
 
@@ -61,36 +62,47 @@ def test_bad_session_settings_close_the_devices_and_raise(tmp_path: Path) -> Non
             run_guided(options)
 
 
-def _outcome(n_views: int, sigmas: dict[str, float], done: bool) -> GuidedOutcome:
+def _outcome(n_views: int, sigmas: dict[str, float], used: int | None = None) -> GuidedOutcome:
     result = MagicMock(spec=IntrinsicsResult)
     result.std_devs = sigmas
+    result.views = [object()] * (n_views if used is None else used)
     return GuidedOutcome(
-        camera="cam0", done=done, n_views=n_views, frames=100, skipped=0, result=None
+        camera="cam0", done=False, n_views=n_views, frames=100, skipped=0, result=None
     ).model_copy(update={"result": result})
 
 
 def test_verdict_is_judged_on_the_written_result() -> None:
-    """The CLI's last line once said "time ran out before the 0.5 px target" next to four std devs
-    below 0.5: `done` is the session's running judgement (from min_views views, on its fast fit),
-    while the line printed the written result's std devs. The verdict now reads the result."""
+    """The verdict reads the written result, by the session's stop rule: its std devs against the
+    target, and the views it used (outliers it rejected do not count) against `done_views`."""
     low = {"fx": 0.3, "fy": 0.3, "cx": 0.2, "cy": 0.25}
-    reached, text = verdict(_outcome(6, low, done=False), 0.5, 6)
+    reached, text = verdict(_outcome(10, low), 0.5, 10)
     assert reached
     assert text == "target reached"
-    reached, text = verdict(_outcome(4, low, done=False), 0.5, 6)
+    reached, text = verdict(_outcome(6, low), 0.5, 10)
     assert not reached
-    assert "4 of 6 views" in text
+    assert "6 usable views of the 10 needed" in text
     assert "below the 0.5 px target" in text
-    reached, text = verdict(_outcome(8, {**low, "fx": 0.7}, done=False), 0.5, 6)
+    # 11 kept, 2 rejected by the fit: 9 used, not enough
+    reached, text = verdict(_outcome(11, low, used=9), 0.5, 10)
+    assert not reached
+    assert "9 usable views" in text
+    reached, text = verdict(_outcome(12, {**low, "fx": 0.7}), 0.5, 10)
     assert not reached
     assert "fx 0.700" in text
     assert "fy" not in text
-    reached, text = verdict(_outcome(8, {**low, "cy": 0.6}, done=True), 0.5, 6)
-    assert not reached
-    assert "time ran out" not in text
-    assert "cy 0.600" in text
     none = GuidedOutcome(camera="cam0", done=False, n_views=2, frames=10, skipped=0, result=None)
-    assert verdict(none, 0.5, 6) == (False, "only 2 view(s) captured; nothing written")
+    assert verdict(none, 0.5, 10) == (False, "only 2 view(s) captured; nothing written")
+
+
+def test_views_are_counted_one_way() -> None:
+    low = {"fx": 0.3, "fy": 0.3, "cx": 0.2, "cy": 0.25}
+    assert views_text(_outcome(24, low, used=23)) == "23 views (24 kept, 1 rejected as outliers)"
+    assert views_text(_outcome(12, low)) == "12 views"
+
+
+def test_done_views_is_the_reports_recommendation() -> None:
+    assert GuidedOptions(camera="cam0").done_views == RECOMMENDED_VIEWS
+    assert GuidedOptions(camera="cam0", min_views=15).done_views == 15
 
 
 @pytest.mark.slow
@@ -108,6 +120,9 @@ def test_cli_as_the_readme_writes_it_finishes_on_the_sim(
     assert r.exit_code == 0, r.output
     assert "target reached" in r.output
     assert "time ran out" not in r.output
+    # off a terminal: no line per frame, a line per capture and a status line every few seconds
+    assert len(r.output.splitlines()) < 80, r.output
+    assert "-0 s" not in r.output
     _, _, size = read_opencv_yaml(tmp_path / "cam0.yaml")
     assert size == (640, 360)
 

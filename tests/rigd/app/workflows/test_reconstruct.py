@@ -258,6 +258,17 @@ def test_cli_knobs_and_summary_line(moving_take: Path, tmp_path: Path) -> None:
     assert "Mev/s" in line
     doc = json.loads((tmp_path / "moving" / "segments.json").read_text())
     assert doc["options"]["filter"]["window_us"] == 1000
+    # a picture of it, as inspect --thumbnails gives of a take: the rate plot, a row per sensor
+    import cv2
+
+    from rigd.app.workflows.reconstruct_picture import PLOT_HEIGHT, WIDTH
+
+    pic = cv2.imread(str(tmp_path / "moving" / "overview.png"))
+    assert pic is not None
+    assert pic.shape[1] == WIDTH
+    assert pic.shape[0] > PLOT_HEIGHT + 20 * len(doc["sensors"])
+    row = pic[PLOT_HEIGHT + 20 :]
+    assert row.std() > 5  # snapshots drawn, not an empty band
     wide = doc["sensors"]["ev0"]["events_kept"]
     narrow = reconstruct_take(moving_take, options(tmp_path / "n")).sensors["ev0"].events_kept
     assert wide > narrow  # a longer window supports more of the noise

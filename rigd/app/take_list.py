@@ -1,0 +1,80 @@
+"""The takes in a directory, one row each: what `rigd takes [DIR]` prints.
+
+Each row comes from the take's metadata, the sync report and the frame times (`Take.summary`), not
+from its frames or events, so a directory of multi-gigabyte takes lists in a moment. A file that
+cannot be read is a row that says why, never the end of the listing.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from pydantic import BaseModel, Field
+
+from rigd.core.errors import RigdError, TakeError
+
+log = logging.getLogger(__name__)
+
+#: File names a take has (rigd.app.capture.new_take_path writes `.h5`).
+TAKE_SUFFIXES = (".h5", ".hdf5")
+
+
+class TakeRow(BaseModel):
+    """One take as listed. `error` is set (and the rest mostly empty) when it could not be read."""
+
+    path: str
+    name: str
+    status: str | None = None
+    verdict: str | None = None
+    reason: str | None = Field(None, description="The verdict's first reason, when it is not complete.")
+    duration_s: float | None = Field(None, description="First to last recorded time over all devices.")
+    cameras: list[str] = Field(default_factory=list)
+    event_sensors: list[str] = Field(default_factory=list)
+    size_bytes: int
+    modified_utc: float = Field(description="File modification time, Unix seconds (the sort key).")
+    error: str | None = None
+
+
+def take_files(directory: Path) -> list[Path]:
+    """The take files directly in `directory`, oldest first (by modification time, then name)."""
+    if not directory.is_dir():
+        raise TakeError(f"{directory}: not a directory")
+    try:
+        files = [p for p in directory.iterdir() if p.suffix.lower() in TAKE_SUFFIXES and p.is_file()]
+    except OSError as exc:
+        raise TakeError(f"{directory}: cannot list it ({exc.strerror or exc})") from exc
+    return sorted(files, key=lambda p: (p.stat().st_mtime, p.name))
+
+
+def take_row(path: Path) -> TakeRow:
+    """A take's row; a file that is not a readable take gets a row with `error`."""
+    from rigd.take.reader import Take
+
+    st = path.stat()
+    base = {"path": str(path), "name": path.stem, "size_bytes": st.st_size, "modified_utc": st.st_mtime}
+    try:
+        with Take(path) as take:
+            summary = take.summary()
+    except (OSError, RigdError) as exc:  # held by a live writer, damaged, not a take
+        log.debug("takes: %s unreadable: %s", path, exc)
+        return TakeRow(**base, error=str(exc))
+    spans = [(c.t_first_us, c.t_last_us) for c in summary.cameras.values()]
+    spans += [(e.t_first_us, e.t_last_us) for e in summary.event_sensors.values()]
+    times = [t for span in spans for t in span if t is not None]
+    duration = (max(times) - min(times)) / 1e6 if times else None
+    reason = summary.verdict_reasons[0] if summary.verdict_reasons else summary.failure_reason
+    return TakeRow(
+        **base,
+        status=summary.status,
+        verdict=summary.verdict,
+        reason=reason if summary.verdict != "complete" else None,
+        duration_s=duration,
+        cameras=list(summary.cameras),
+        event_sensors=list(summary.event_sensors),
+    )
+
+
+def list_takes(directory: Path) -> list[TakeRow]:
+    """Every take in `directory`, oldest first."""
+    return [take_row(p) for p in take_files(directory)]
