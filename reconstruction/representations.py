@@ -18,7 +18,10 @@ Representations (Gallego et al. survey, Gehrig et al. EST):
 * `est_grid`: (2, B, H, W) per-polarity counts convolved in time with a trilinear, alpha or
   exponential kernel (EST's hand-designed kernels), sampled at the B bin centres.
 
-All scatter-adds are `np.bincount` over flat indices (vectorized, no per-event Python loop).
+Scatter-adds are `np.bincount` over flat indices (vectorized, no per-event Python loop), except
+the voxel grid, one numba pass into float32 (`voxel_kernel`; `voxel_grid_bincount` is its numpy
+reference). `reconstruction.torch_representations` builds the voxel grid, event frame and time
+surface in torch, on the device a model runs on, with the same conventions.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from reconstruction.voxel_kernel import standardize_nonzero, voxel_accumulate
 from rigd.core.events import EventArray
 
 log = logging.getLogger(__name__)
@@ -38,10 +42,11 @@ F64 = NDArray[np.float64]
 Kernel = Literal["trilinear", "alpha", "exponential"]
 
 
-def _window(
+def window_bounds(
     ev: EventArray, width: int, height: int, t0_us: int | None, t1_us: int | None
-) -> tuple[EventArray, int, int]:
-    """Events inside the window and on the sensor, with the resolved (t0, t1)."""
+) -> tuple[int, int]:
+    """The window (t0, t1), both inclusive, that the representations use: the given bounds or
+    the events' first and last time; refuses a non-positive sensor size or t1 < t0."""
     if width <= 0 or height <= 0:
         raise ValueError(f"sensor size must be positive, got {width}x{height}")
     n = len(ev)
@@ -49,7 +54,15 @@ def _window(
     t1 = int(t1_us) if t1_us is not None else (int(ev.t.max()) if n else t0)
     if t1 < t0:
         raise ValueError(f"window end {t1} us is before its start {t0} us")
-    if n:
+    return t0, t1
+
+
+def _window(
+    ev: EventArray, width: int, height: int, t0_us: int | None, t1_us: int | None
+) -> tuple[EventArray, int, int]:
+    """Events inside the window and on the sensor, with the resolved (t0, t1)."""
+    t0, t1 = window_bounds(ev, width, height, t0_us, t1_us)
+    if len(ev):
         keep = (ev.t >= t0) & (ev.t <= t1) & (ev.x < width) & (ev.y < height)
         if not keep.all():
             ev = ev[keep]
@@ -152,7 +165,32 @@ def voxel_grid(
 
     Bin k sits at normalised time k / (B - 1) (one bin: everything goes to bin 0). With
     `normalize`, non-zero entries are standardised (zero mean, unit std) as in E2VID's input.
+    One numba pass over the events into a float32 grid (`voxel_kernel`); the same values as
+    `voxel_grid_bincount` to float32 rounding, without its copies and float64 grid.
     """
+    if bins < 1:
+        raise ValueError(f"bins must be >= 1, got {bins}")
+    t0, t1 = window_bounds(ev, width, height, t0_us, t1_us)
+    out = np.zeros((bins, height, width), np.float32)
+    voxel_accumulate(ev.x, ev.y, ev.p, ev.t, t0, t1, width, height, bins, out)
+    if normalize:
+        standardize_nonzero(out)
+    return out
+
+
+def voxel_grid_bincount(
+    ev: EventArray,
+    width: int,
+    height: int,
+    bins: int,
+    t0_us: int | None = None,
+    t1_us: int | None = None,
+    *,
+    normalize: bool = False,
+) -> F32:
+    """`voxel_grid` as vectorized numpy (float64 `np.bincount`, then float32): the reference the
+    kernel and the torch version are tested against, and the baseline of the training-reader
+    benchmark."""
     if bins < 1:
         raise ValueError(f"bins must be >= 1, got {bins}")
     ev, t0, t1 = _window(ev, width, height, t0_us, t1_us)
