@@ -168,6 +168,12 @@ def test_numba_voxel_grid_edge_cases() -> None:
     cancel = ev_of([2, 2, 4], [2, 2, 0], [1, -1, 1], [BIG + 10, BIG + 10, BIG + 50])
     _voxel_parity(cancel, 3, BIG, BIG + 100, True)
     assert voxel_grid(cancel, W, H, 3, BIG, BIG + 100, normalize=True)[:, 2, 2].tolist() == [0, 0, 0]
+    # A reused grid is zeroed first: the same values as a new one.
+    buf = np.full((5, H, W), 7.0, np.float32)
+    assert voxel_grid(last, W, H, 5, BIG, BIG + 999, out=buf) is buf
+    np.testing.assert_array_equal(buf, voxel_grid(last, W, H, 5, BIG, BIG + 999))
+    with pytest.raises(ValueError, match="out must be"):
+        voxel_grid(last, W, H, 4, BIG, BIG + 999, out=buf)
     with pytest.raises(ValueError, match="bins"):
         voxel_grid(same, W, H, 0)
     with pytest.raises(ValueError, match="sensor size"):
