@@ -32,7 +32,12 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from reconstruction.voxel_kernel import standardize_nonzero, voxel_accumulate
+from reconstruction.voxel_kernel import (
+    reset_entries,
+    standardize_nonzero,
+    voxel_accumulate,
+    voxel_accumulate_tracked,
+)
 from rigd.core.events import EventArray
 
 log = logging.getLogger(__name__)
@@ -187,6 +192,42 @@ def voxel_grid(
     if normalize:
         standardize_nonzero(out)
     return out
+
+
+class VoxelGridder:
+    """Voxel grids of one sensor and bin count into one buffer it keeps, for a CPU loop over
+    windows: each call zeroes only the entries the previous call wrote instead of a whole new
+    grid (18 MB at 1280x720x5, which costs more than the events). The same values as
+    `voxel_grid`, bit for bit. The grid returned is a read-only view of the buffer, valid until
+    the next call: copy it to keep it.
+    """
+
+    def __init__(self, width: int, height: int, bins: int) -> None:
+        if bins < 1:
+            raise ValueError(f"bins must be >= 1, got {bins}")
+        window_bounds(EventArray.empty(), width, height, 0, 0)  # checks the sensor size
+        self.width, self.height, self.bins = int(width), int(height), int(bins)
+        self._flat = np.zeros(bins * height * width, np.float32)
+        self._touched = np.zeros(0, np.int64)
+        self._n_touched = 0
+
+    def __call__(
+        self, ev: EventArray, t0_us: int | None = None, t1_us: int | None = None, *, normalize: bool = False
+    ) -> F32:
+        t0, t1 = window_bounds(ev, self.width, self.height, t0_us, t1_us)
+        reset_entries(self._flat, self._touched, self._n_touched)
+        self._n_touched = 0
+        if self._touched.shape[0] < 2 * len(ev):
+            self._touched = np.zeros(2 * len(ev), np.int64)
+        self._n_touched = voxel_accumulate_tracked(
+            ev.x, ev.y, ev.p, ev.t, t0, t1, self.width, self.height, self.bins, self._flat, self._touched
+        )
+        grid = self._flat.reshape(self.bins, self.height, self.width)
+        if normalize:
+            standardize_nonzero(grid)  # changes only non-zero entries, all of them recorded
+        view = grid.view()
+        view.flags.writeable = False
+        return view
 
 
 def voxel_grid_bincount(

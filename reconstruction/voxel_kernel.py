@@ -56,6 +56,59 @@ def voxel_accumulate(
 
 
 @njit(nogil=True, cache=True)
+def voxel_accumulate_tracked(
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    t: NDArray[np.int64],
+    t0: int,
+    t1: int,
+    width: int,
+    height: int,
+    bins: int,
+    out: NDArray[np.float32],
+    touched: NDArray[np.int64],
+) -> int:
+    """`voxel_accumulate` into the flat `out`, recording every flat index it adds to in
+    `touched` (room for 2 per event); returns how many it recorded. The same bins, weights and
+    order of additions as `voxel_accumulate`, so the grids are bit-identical."""
+    duration = float(max(t1 - t0, 1))
+    span = float(bins - 1)
+    npix = width * height
+    k = 0
+    for i in range(t.shape[0]):
+        ti = t[i]
+        xi = int(x[i])
+        yi = int(y[i])
+        if ti < t0 or ti > t1 or xi >= width or yi >= height:
+            continue
+        pol = np.float64(p[i])
+        pix = yi * width + xi
+        if bins == 1:
+            out[pix] += np.float32(pol)
+            touched[k] = pix
+            k += 1
+            continue
+        tn = (float(ti - t0) / duration) * span
+        lo = min(max(int(np.floor(tn)), 0), bins - 1)
+        frac = tn - lo
+        hi = min(lo + 1, bins - 1)
+        out[lo * npix + pix] += np.float32(pol * (1.0 - frac))
+        out[hi * npix + pix] += np.float32(pol * frac)
+        touched[k] = lo * npix + pix
+        touched[k + 1] = hi * npix + pix
+        k += 2
+    return k
+
+
+@njit(nogil=True, cache=True)
+def reset_entries(out: NDArray[np.float32], touched: NDArray[np.int64], k: int) -> None:
+    """Zero the first `k` recorded flat indices of `out`."""
+    for i in range(k):
+        out[touched[i]] = 0
+
+
+@njit(nogil=True, cache=True)
 def standardize_nonzero(out: NDArray[np.float32]) -> None:
     """Non-zero entries to zero mean and unit (population) std, in place; zeros stay zero.
 

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from reconstruction.representations import (
+    VoxelGridder,
     count_image,
     est_grid,
     event_frame,
@@ -178,3 +179,27 @@ def test_numba_voxel_grid_edge_cases() -> None:
         voxel_grid(same, W, H, 0)
     with pytest.raises(ValueError, match="sensor size"):
         voxel_grid(same, 0, H, 3)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    sizes=st.lists(st.integers(0, 200), min_size=1, max_size=6),
+    bins=st.sampled_from([1, 2, 5]),
+    normalize=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_voxel_gridder_equals_voxel_grid_window_after_window(
+    sizes: list[int], bins: int, normalize: bool, seed: int
+) -> None:
+    """A reused buffer reset entry by entry gives each window's grid exactly, whatever came before."""
+    rng = np.random.default_rng(seed)
+    gridder = VoxelGridder(W, H, bins)
+    for k, n in enumerate(sizes):
+        t0 = BIG + k * 1000
+        t = t0 + np.sort(rng.integers(-10, 1010, n))
+        ev = ev_of(rng.integers(0, W + 1, n), rng.integers(0, H, n), rng.choice([-1, 1], n), t)
+        got = gridder(ev, t0, t0 + 999, normalize=normalize)
+        np.testing.assert_array_equal(got, voxel_grid(ev, W, H, bins, t0, t0 + 999, normalize=normalize))
+        assert not got.flags.writeable
+    with pytest.raises(ValueError, match="bins"):
+        VoxelGridder(W, H, 0)
