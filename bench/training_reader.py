@@ -308,7 +308,7 @@ def print_report(
         print("\n3. beside a model step: left out (no CUDA device; --model always to force)")
         return
     alone, mcells = model
-    print(f"\n3. beside a SmallUNet training step (bf16), voxel_grid: model alone {alone:.1f} samples/s")
+    print(f"\n3. beside a SmallUNet training step (bf16 on CUDA), voxel_grid: model alone {alone:.1f}/s")
     for c in mcells:
         print(
             f"   {c.path:9s} workers={c.workers:<3d} {c.samples_per_s:7.1f} samples/s  "
