@@ -291,6 +291,8 @@ def print_report(
             f"   speed-up of {row}: {ref[NUMPY_ROW][0] / ref[row][0]:.1f}x median, "
             f"{ref[NUMPY_ROW][1] / ref[row][1]:.1f}x best"
         )
+    if not cells:
+        return
     print("\n2. loader samples/s (batch on the device, representation built)")
     print(
         f"   {'representation':14s} {'built in':9s} {'frames':6s} {'MB/sample':>9s}  "
@@ -329,6 +331,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--take-dir", type=Path, default=None, help="record into / reuse a take from this folder")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    ap.add_argument("--no-loaders", dest="loaders", action="store_false", help="part 1 only")
     ap.add_argument(
         "--model", choices=("auto", "always", "never"), default="auto", help="model rows: auto = on CUDA only"
     )
@@ -354,8 +357,10 @@ def main(argv: list[str] | None = None) -> None:
         path = find_or_record(args.take_dir or tmp, seconds)  # type: ignore[arg-type]
     try:
         micro = voxel_micro(path, 20 if args.quick else 100)
-        cells = run_cells(args, path, device)
-        with_model = args.model == "always" or (args.model == "auto" and device.type == "cuda")
+        cells = run_cells(args, path, device) if args.loaders else []
+        with_model = args.loaders and (
+            args.model == "always" or (args.model == "auto" and device.type == "cuda")
+        )
         model = run_model_cells(args, path, device) if with_model else None
     finally:
         if tmp is not None:
