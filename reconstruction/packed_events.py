@@ -5,7 +5,7 @@ that through worker IPC (18 MB for a 5-bin voxel grid at 1280x720, against ~0.6 
 in a 50 ms window) is what starved the GPU (issue 24). So a worker packs the window's events
 into a flat pixel index (int32, y * width + x), the polarity (int8, +1/-1) and the time since
 the window start (int32 us), and `reconstruction.torch_representations` builds the grids on
-the model's device. Numpy only: packing needs no torch.
+the model's device. One numba pass (nogil); packing needs no torch.
 
 Windows follow `reconstruction.representations`: both bounds inclusive, events outside them
 ignored (a slice of a longer stream can be passed as is). Events inside the window but off the
@@ -19,6 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from reconstruction.representations import window_bounds
@@ -52,10 +53,44 @@ class PackedEvents:
         return int(self.pix.nbytes + self.p.nbytes + self.dt.nbytes)
 
 
+@njit(nogil=True, cache=True)
+def _pack_kernel(
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    t: NDArray[np.int64],
+    t0: int,
+    t1: int,
+    width: int,
+    height: int,
+    pix: NDArray[np.int32],
+    pol: NDArray[np.int8],
+    dt: NDArray[np.int32],
+) -> tuple[int, int]:
+    """Pack the events of [t0, t1] on the sensor into the outputs; (packed, off the sensor)."""
+    k = 0
+    off = 0
+    for i in range(t.shape[0]):
+        ti = t[i]
+        if ti < t0 or ti > t1:
+            continue
+        xi = np.int32(x[i])
+        yi = np.int32(y[i])
+        if xi >= width or yi >= height:
+            off += 1
+            continue
+        pix[k] = yi * np.int32(width) + xi
+        pol[k] = p[i]
+        dt[k] = np.int32(ti - t0)
+        k += 1
+    return k, off
+
+
 def pack_events(
     ev: EventArray, width: int, height: int, t0_us: int | None = None, t1_us: int | None = None
 ) -> PackedEvents:
-    """The events of [t0_us, t1_us] (default: first to last event) on the sensor, packed."""
+    """The events of [t0_us, t1_us] (default: first to last event) on the sensor, packed in one
+    numba pass."""
     t0, t1 = window_bounds(ev, width, height, t0_us, t1_us)
     if t1 - t0 > MAX_WINDOW_US:
         raise ValueError(
@@ -63,25 +98,21 @@ def pack_events(
         )
     if width * height > 2**31 - 1:
         raise ValueError(f"sensor {width}x{height} has too many pixels for an int32 pixel index")
-    off = 0
-    if len(ev):
-        inside = (ev.t >= t0) & (ev.t <= t1)
-        on = inside & (ev.x < width) & (ev.y < height)
-        if not on.all():
-            off = int(np.count_nonzero(inside)) - int(np.count_nonzero(on))
-            ev = ev[on]
-        if off:
-            log.warning(
-                "%d events of window [%d, %d] us lie off the %dx%d sensor; not packed",
-                off,
-                t0,
-                t1,
-                width,
-                height,
-            )
-    pix = ev.y.astype(np.int32) * np.int32(width) + ev.x.astype(np.int32)
-    dt = (ev.t - np.int64(t0)).astype(np.int32)
-    return PackedEvents(pix, ev.p.copy(), dt, t0, t1, int(width), int(height), off)
+    n = len(ev)
+    pix, pol, dt = np.empty(n, np.int32), np.empty(n, np.int8), np.empty(n, np.int32)
+    k, off = _pack_kernel(ev.x, ev.y, ev.p, ev.t, t0, t1, width, height, pix, pol, dt)
+    if k < n:  # copies, so that shipping the arrays does not ship the unused rest
+        pix, pol, dt = pix[:k].copy(), pol[:k].copy(), dt[:k].copy()
+    if off:
+        log.warning(
+            "%d events of window [%d, %d] us lie off the %dx%d sensor; not packed",
+            off,
+            t0,
+            t1,
+            width,
+            height,
+        )
+    return PackedEvents(pix, pol, dt, t0, t1, int(width), int(height), off)
 
 
 @dataclass(frozen=True, slots=True)
