@@ -177,7 +177,11 @@ def time_surface(batch: EventBatch, *, tau_us: float = 10_000.0, t_ref_us: Any =
     if t_ref_us is None:
         ref = batch.span_us()
     else:
-        t_ref = torch.as_tensor(np.asarray(t_ref_us, np.int64), device=batch.device)
+        t_ref = (
+            t_ref_us.to(batch.device, torch.int64)
+            if isinstance(t_ref_us, torch.Tensor)
+            else torch.as_tensor(np.asarray(t_ref_us, np.int64), device=batch.device)
+        )
         ref = t_ref.expand(n) - batch.t0_us
     sae = sae.view(n, 2, batch.height, batch.width)
     age = (ref.to(torch.float64).view(n, 1, 1, 1) - sae).clamp(min=0.0)

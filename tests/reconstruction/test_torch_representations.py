@@ -121,6 +121,10 @@ def test_edge_cases() -> None:
         time_surface(last_us[0], W, H, BIG, BIG + 49_999, tau_us=1000.0, t_ref_us=BIG + 60_000),
         rtol=1e-6,
     )
+    per_window = torch.tensor([BIG + 60_000, BIG + 60_000], device=DEVICE)
+    np.testing.assert_array_equal(
+        tr.time_surface(batch, tau_us=1000.0, t_ref_us=per_window).cpu().numpy(), ts
+    )
 
 
 def test_packing_counts_what_it_leaves_out() -> None:
