@@ -17,7 +17,7 @@ events themselves.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
@@ -49,7 +49,7 @@ class Sample:
     calibration: dict[str, Any] | None = field(default=None)
 
 
-def _frame_array(item: Any) -> NDArray[Any]:
+def frame_array(item: Any) -> NDArray[Any]:
     return np.asarray(getattr(item, "image", item))
 
 
@@ -131,7 +131,7 @@ class WindowSampler:
             idx = np.nonzero((ts >= t0) & (ts < t1))[0]
             ftimes = ts[idx]
             if idx.size:
-                frames = np.stack([_frame_array(series[int(i)]) for i in idx])
+                frames = np.stack([frame_array(series[int(i)]) for i in idx])
         calib = getattr(self.take, "calibration", None)
         return Sample(t0, t1, vox, frames, ftimes, calib if isinstance(calib, dict) else None)
 
@@ -142,28 +142,17 @@ class WindowSampler:
             k += 1
 
 
-def torch_dataset(sampler: WindowSampler) -> Any:
-    """A torch `Dataset` whose item i is the window starting at a fixed random time (seeded)."""
-    try:
-        import torch
-        from torch.utils.data import Dataset
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError("torch_dataset needs PyTorch: pip install 'rigd[torch]'") from exc
-    n = sampler.n_samples or 1000
-    starts = sampler.draw_starts(n, np.random.default_rng(0))
+def torch_dataset(
+    sampler: WindowSampler, open_take: Callable[[], TakeLike] | None = None, **options: Any
+) -> Any:
+    """A torch dataset of the sampler's windows (`reconstruction.torch_dataset.WindowDataset`).
 
-    class _WindowDataset(Dataset):
-        def __len__(self) -> int:
-            return n
+    `options` are `ReaderOptions` fields: `representation` ("voxel_grid", "event_frame",
+    "time_surface"), `representation_on` ("worker": a dense grid from each worker, as before;
+    "device": packed events from the workers, the grid built by `ds.to_device(batch, device)`),
+    `bins`, `normalize`, `signed`, `tau_us`, `n_samples`, `seed`. `open_take`: how a worker
+    opens its own take (e.g. `functools.partial(rigd.take.Take, path)`).
+    """
+    from reconstruction.torch_dataset import ReaderOptions, WindowDataset  # says how to install torch
 
-        def __getitem__(self, i: int) -> dict[str, Any]:
-            s = sampler.sample_at(int(starts[i]))
-            return {
-                "voxels": torch.from_numpy(s.voxels),
-                "frames": torch.from_numpy(np.ascontiguousarray(s.frames)),
-                "frame_times_us": torch.from_numpy(s.frame_times_us),
-                "t0_us": s.t0_us,
-                "t1_us": s.t1_us,
-            }
-
-    return _WindowDataset()
+    return WindowDataset(sampler, ReaderOptions(**options), open_take)

@@ -18,7 +18,10 @@ Representations (Gallego et al. survey, Gehrig et al. EST):
 * `est_grid`: (2, B, H, W) per-polarity counts convolved in time with a trilinear, alpha or
   exponential kernel (EST's hand-designed kernels), sampled at the B bin centres.
 
-All scatter-adds are `np.bincount` over flat indices (vectorized, no per-event Python loop).
+Scatter-adds are `np.bincount` over flat indices (vectorized, no per-event Python loop), except
+the voxel grid, one numba pass into float32 (`voxel_kernel`; `voxel_grid_bincount` is its numpy
+reference). `reconstruction.torch_representations` builds the voxel grid, event frame and time
+surface in torch, on the device a model runs on, with the same conventions.
 """
 
 from __future__ import annotations
@@ -29,6 +32,12 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from reconstruction.voxel_kernel import (
+    reset_entries,
+    standardize_nonzero,
+    voxel_accumulate,
+    voxel_accumulate_tracked,
+)
 from rigd.core.events import EventArray
 
 log = logging.getLogger(__name__)
@@ -38,10 +47,11 @@ F64 = NDArray[np.float64]
 Kernel = Literal["trilinear", "alpha", "exponential"]
 
 
-def _window(
+def window_bounds(
     ev: EventArray, width: int, height: int, t0_us: int | None, t1_us: int | None
-) -> tuple[EventArray, int, int]:
-    """Events inside the window and on the sensor, with the resolved (t0, t1)."""
+) -> tuple[int, int]:
+    """The window (t0, t1), both inclusive, that the representations use: the given bounds or
+    the events' first and last time; refuses a non-positive sensor size or t1 < t0."""
     if width <= 0 or height <= 0:
         raise ValueError(f"sensor size must be positive, got {width}x{height}")
     n = len(ev)
@@ -49,7 +59,15 @@ def _window(
     t1 = int(t1_us) if t1_us is not None else (int(ev.t.max()) if n else t0)
     if t1 < t0:
         raise ValueError(f"window end {t1} us is before its start {t0} us")
-    if n:
+    return t0, t1
+
+
+def _window(
+    ev: EventArray, width: int, height: int, t0_us: int | None, t1_us: int | None
+) -> tuple[EventArray, int, int]:
+    """Events inside the window and on the sensor, with the resolved (t0, t1)."""
+    t0, t1 = window_bounds(ev, width, height, t0_us, t1_us)
+    if len(ev):
         keep = (ev.t >= t0) & (ev.t <= t1) & (ev.x < width) & (ev.y < height)
         if not keep.all():
             ev = ev[keep]
@@ -147,12 +165,84 @@ def voxel_grid(
     t1_us: int | None = None,
     *,
     normalize: bool = False,
+    out: F32 | None = None,
 ) -> F32:
     """(B, H, W) voxel grid: each event adds its polarity to the two nearest bins, bilinear in time.
 
     Bin k sits at normalised time k / (B - 1) (one bin: everything goes to bin 0). With
     `normalize`, non-zero entries are standardised (zero mean, unit std) as in E2VID's input.
+    One numba pass over the events into a float32 grid (`voxel_kernel`); the same values as
+    `voxel_grid_bincount` to float32 rounding, without its copies and float64 grid. A new grid's
+    pages cost more than the events do (18 MB at 1280x720x5): a loop over windows can pass the
+    previous grid as `out` (C-contiguous float32 (B, H, W)), which is zeroed and returned.
     """
+    if bins < 1:
+        raise ValueError(f"bins must be >= 1, got {bins}")
+    t0, t1 = window_bounds(ev, width, height, t0_us, t1_us)
+    if out is None:
+        out = np.zeros((bins, height, width), np.float32)
+    else:
+        if out.dtype != np.float32 or out.shape != (bins, height, width) or not out.flags.c_contiguous:
+            raise ValueError(
+                f"out must be C-contiguous float32 of shape {(bins, height, width)}, "
+                f"got {out.dtype} {out.shape}"
+            )
+        out.fill(0)
+    voxel_accumulate(ev.x, ev.y, ev.p, ev.t, t0, t1, width, height, bins, out)
+    if normalize:
+        standardize_nonzero(out)
+    return out
+
+
+class VoxelGridder:
+    """Voxel grids of one sensor and bin count into one buffer it keeps, for a CPU loop over
+    windows: each call zeroes only the entries the previous call wrote instead of a whole new
+    grid (18 MB at 1280x720x5, which costs more than the events). The same values as
+    `voxel_grid`, bit for bit. The grid returned is a read-only view of the buffer, valid until
+    the next call: copy it to keep it.
+    """
+
+    def __init__(self, width: int, height: int, bins: int) -> None:
+        if bins < 1:
+            raise ValueError(f"bins must be >= 1, got {bins}")
+        window_bounds(EventArray.empty(), width, height, 0, 0)  # checks the sensor size
+        self.width, self.height, self.bins = int(width), int(height), int(bins)
+        self._flat = np.zeros(bins * height * width, np.float32)
+        self._touched = np.zeros(0, np.int64)
+        self._n_touched = 0
+
+    def __call__(
+        self, ev: EventArray, t0_us: int | None = None, t1_us: int | None = None, *, normalize: bool = False
+    ) -> F32:
+        t0, t1 = window_bounds(ev, self.width, self.height, t0_us, t1_us)
+        reset_entries(self._flat, self._touched, self._n_touched)
+        self._n_touched = 0
+        if self._touched.shape[0] < 2 * len(ev):
+            self._touched = np.zeros(2 * len(ev), np.int64)
+        self._n_touched = voxel_accumulate_tracked(
+            ev.x, ev.y, ev.p, ev.t, t0, t1, self.width, self.height, self.bins, self._flat, self._touched
+        )
+        grid = self._flat.reshape(self.bins, self.height, self.width)
+        if normalize:
+            standardize_nonzero(grid)  # changes only non-zero entries, all of them recorded
+        view = grid.view()
+        view.flags.writeable = False
+        return view
+
+
+def voxel_grid_bincount(
+    ev: EventArray,
+    width: int,
+    height: int,
+    bins: int,
+    t0_us: int | None = None,
+    t1_us: int | None = None,
+    *,
+    normalize: bool = False,
+) -> F32:
+    """`voxel_grid` as vectorized numpy (float64 `np.bincount`, then float32): the reference the
+    kernel and the torch version are tested against, and the baseline of the training-reader
+    benchmark."""
     if bins < 1:
         raise ValueError(f"bins must be >= 1, got {bins}")
     ev, t0, t1 = _window(ev, width, height, t0_us, t1_us)

@@ -8,14 +8,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from reconstruction.representations import (
+    VoxelGridder,
     count_image,
     est_grid,
     event_frame,
     surface_of_active_events,
     time_surface,
     voxel_grid,
+    voxel_grid_bincount,
 )
 from rigd.core.events import EventArray
+from tests.reconstruction.parity import assert_voxel_parity
 
 W, H = 6, 5
 BIG = 10_000_000_000  # ~2.8 h of microseconds
@@ -109,3 +112,94 @@ def test_large_offset_resolution() -> None:
     vg = voxel_grid(ev, W, H, 2)
     assert vg[0, 0, 0] == 1
     assert vg[1, 0, 0] == 1
+
+
+def _voxel_parity(ev: EventArray, bins: int, t0: int | None, t1: int | None, normalize: bool) -> None:
+    raw, ref = voxel_grid(ev, W, H, bins, t0, t1), voxel_grid_bincount(ev, W, H, bins, t0, t1)
+    assert raw.shape == (bins, H, W)
+    if not normalize:
+        assert_voxel_parity(raw, ref)
+        return
+    norm = voxel_grid(ev, W, H, bins, t0, t1, normalize=True)
+    assert_voxel_parity(raw, ref, norm, voxel_grid_bincount(ev, W, H, bins, t0, t1, normalize=True))
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    bins=st.sampled_from([1, 2, 3, 5, 9]),
+    offset=st.sampled_from([0, BIG]),
+    span=st.sampled_from([0, 1, 7, 1000, 50_000]),
+    windowed=st.booleans(),
+    normalize=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_numba_voxel_grid_matches_the_bincount_reference(
+    n: int, bins: int, offset: int, span: int, windowed: bool, normalize: bool, seed: int
+) -> None:
+    """Same bins, weights and normalisation as the numpy reference, events off the window and
+    off the sensor included (both ignore them)."""
+    rng = np.random.default_rng(seed)
+    t = offset + np.sort(rng.integers(-5, span + 6, n))
+    ev = ev_of(rng.integers(0, W + 2, n), rng.integers(0, H + 2, n), rng.choice([-1, 1], n), t)
+    t0, t1 = (offset, offset + span) if windowed else (None, None)
+    _voxel_parity(ev, bins, t0, t1, normalize)
+
+
+def test_numba_voxel_grid_edge_cases() -> None:
+    # Empty window: all zeros, normalised or not.
+    for normalize in (False, True):
+        _voxel_parity(EventArray.empty(), 5, BIG, BIG + 100, normalize)
+        assert not voxel_grid(EventArray.empty(), W, H, 5, BIG, BIG + 100, normalize=normalize).any()
+    # All events at one time, inside one bin; and a zero-length window (duration counts as 1 us).
+    same = ev_of([0, 1, 1, 2], [0, 2, 2, 4], [1, -1, -1, 1], [BIG + 30] * 4)
+    _voxel_parity(same, 5, BIG, BIG + 100, False)
+    _voxel_parity(same, 5, None, None, True)
+    vg = voxel_grid(same, W, H, 4)
+    assert vg[0, 2, 1] == -2
+    assert vg[1:].sum() == 0
+    # Events on the window's last microsecond land whole in the last bin.
+    last = ev_of([3, 3], [1, 1], [1, 1], [BIG, BIG + 999])
+    vg = voxel_grid(last, W, H, 5, BIG, BIG + 999)
+    assert vg[0, 1, 3] == 1
+    assert vg[4, 1, 3] == 1
+    assert vg.sum() == 2
+    _voxel_parity(last, 5, BIG, BIG + 999, True)
+    # Cancelling polarities leave an exact zero (not standardised) in both.
+    cancel = ev_of([2, 2, 4], [2, 2, 0], [1, -1, 1], [BIG + 10, BIG + 10, BIG + 50])
+    _voxel_parity(cancel, 3, BIG, BIG + 100, True)
+    assert voxel_grid(cancel, W, H, 3, BIG, BIG + 100, normalize=True)[:, 2, 2].tolist() == [0, 0, 0]
+    # A reused grid is zeroed first: the same values as a new one.
+    buf = np.full((5, H, W), 7.0, np.float32)
+    assert voxel_grid(last, W, H, 5, BIG, BIG + 999, out=buf) is buf
+    np.testing.assert_array_equal(buf, voxel_grid(last, W, H, 5, BIG, BIG + 999))
+    with pytest.raises(ValueError, match="out must be"):
+        voxel_grid(last, W, H, 4, BIG, BIG + 999, out=buf)
+    with pytest.raises(ValueError, match="bins"):
+        voxel_grid(same, W, H, 0)
+    with pytest.raises(ValueError, match="sensor size"):
+        voxel_grid(same, 0, H, 3)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    sizes=st.lists(st.integers(0, 200), min_size=1, max_size=6),
+    bins=st.sampled_from([1, 2, 5]),
+    normalize=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_voxel_gridder_equals_voxel_grid_window_after_window(
+    sizes: list[int], bins: int, normalize: bool, seed: int
+) -> None:
+    """A reused buffer reset entry by entry gives each window's grid exactly, whatever came before."""
+    rng = np.random.default_rng(seed)
+    gridder = VoxelGridder(W, H, bins)
+    for k, n in enumerate(sizes):
+        t0 = BIG + k * 1000
+        t = t0 + np.sort(rng.integers(-10, 1010, n))
+        ev = ev_of(rng.integers(0, W + 1, n), rng.integers(0, H, n), rng.choice([-1, 1], n), t)
+        got = gridder(ev, t0, t0 + 999, normalize=normalize)
+        np.testing.assert_array_equal(got, voxel_grid(ev, W, H, bins, t0, t0 + 999, normalize=normalize))
+        assert not got.flags.writeable
+    with pytest.raises(ValueError, match="bins"):
+        VoxelGridder(W, H, 0)
