@@ -23,7 +23,7 @@ Importing this module needs torch: `pip install 'rigd[torch]'`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,7 +36,10 @@ except ImportError as exc:  # pragma: no cover - depends on the environment
         "reconstruction.torch_representations needs PyTorch: pip install 'rigd[torch]'"
     ) from exc
 
-Tensor = torch.Tensor
+if TYPE_CHECKING:  # a type mypy knows with or without torch installed
+    from torch import Tensor
+else:
+    Tensor = torch.Tensor
 
 
 @dataclass(frozen=True)
