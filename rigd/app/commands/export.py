@@ -19,7 +19,16 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 
-from rigd.app.export import FORMATS, ExportOptions, ExportWriteError, parse_count, parse_size, run_export
+from rigd.app.export import (
+    FORMATS,
+    SPLITS,
+    WORLDS,
+    ExportOptions,
+    ExportWriteError,
+    parse_count,
+    parse_size,
+    run_export,
+)
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError, RigdError
 
@@ -47,8 +56,28 @@ def export(
     ] = "5",
     seg: Annotated[
         bool,
-        typer.Option("--seg", help="dynamic3dgs: write all-foreground seg/ masks (its train.py reads them)."),
+        typer.Option("--seg", help="Kept for old command lines: dynamic3dgs always writes its seg/ masks."),
     ] = False,
+    world: Annotated[
+        str | None,
+        typer.Option(
+            "--world",
+            help=f"World frame: {', '.join(WORLDS)} (default floor for dynamic3dgs, cam0 otherwise).",
+        ),
+    ] = None,
+    split: Annotated[
+        str | None,
+        typer.Option(
+            "--split",
+            help=f"Held-out views: {', '.join(SPLITS)} (default camera for dynamic3dgs and 4dgaussians).",
+        ),
+    ] = None,
+    test_camera: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--test-camera", help="--split camera: a held-out camera (repeat; default the middle one)."
+        ),
+    ] = None,
     force: Annotated[
         bool,
         typer.Option("--force", help="Replace an earlier export at --out (or what an interrupted one left)."),
@@ -59,6 +88,10 @@ def export(
     try:
         if fmt not in FORMATS:
             raise ConfigError(f"--format {fmt!r}: unknown format (one of {', '.join(FORMATS)})")
+        if world is not None and world not in WORLDS:
+            raise ConfigError(f"--world {world!r}: unknown world frame (one of {', '.join(WORLDS)})")
+        if split is not None and split not in SPLITS:
+            raise ConfigError(f"--split {split!r}: unknown split (one of {', '.join(SPLITS)})")
         options = ExportOptions(
             take=take,
             format=fmt,
@@ -67,6 +100,9 @@ def export(
             segments=segments,
             voxel_bins=parse_count("--voxel-bins", voxel_bins),
             seg=seg,
+            world=world,
+            split=split,
+            test_cameras=tuple(test_camera or ()),
             force=force,
         )
     except ValidationError as exc:
@@ -97,7 +133,8 @@ def export(
             raise _fail(str(exc)) from exc
     _err.print(
         f"{result.take_id} -> {result.out} ({result.format}): {result.timesteps} timesteps x "
-        f"{len(result.cameras)} cameras ({result.train} train / {result.test} test), "
+        f"{len(result.cameras)} cameras ({result.train} train / {result.test} test views, split by "
+        f"{result.split}), "
         f"{len(result.event_sensors)} event sensors, {result.bytes / 1e6:.1f} MB in {result.wall_s:.1f} s",
         soft_wrap=True,
         highlight=False,

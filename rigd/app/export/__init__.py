@@ -18,6 +18,8 @@ from rigd.app.export import bounds, colmap, dsec, dynamic3dgs, nerfstudio
 from rigd.app.export.common import (
     FORMATS,
     IMAGE_THREADS,
+    SPLITS,
+    WORLDS,
     Camera,
     ExportOptions,
     ExportPlan,
@@ -29,12 +31,15 @@ from rigd.app.export.common import (
 )
 from rigd.app.export.sensors import voxel_windows, write_event_products
 from rigd.app.export.staging import ExportWriteError, Staging, check_target
+from rigd.app.export.world import apply_world
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
 from rigd.core.errors import TakeError
 from rigd.take.reader import Take, open_take
 
 __all__ = [
     "FORMATS",
+    "SPLITS",
+    "WORLDS",
     "ExportOptions",
     "ExportResult",
     "ExportWriteError",
@@ -58,7 +63,11 @@ class ExportResult(BaseModel):
     timesteps: int
     cameras: list[str]
     train: int
+    """Views (timestep, camera) that train."""
     test: int
+    split: str
+    test_cameras: list[str]
+    world: str
     event_sensors: list[str]
     t0_us: int
     t1_us: int
@@ -151,9 +160,12 @@ def _write(
 ) -> ExportResult:
     """Every file of the export under `out` (the staging directory), export.json last."""
     plan = ExportPlan(options=options, take=take, cameras=cameras, frames=frames, progress=progress, out=out)
+    apply_world(plan)
+    train = plan.train_mask
     progress(ProgressUpdate("images", f"0/{plan.images()} frames", 0, plan.images()))
     writer = {
         "dynamic3dgs": dynamic3dgs.write,
+        "4dgaussians": dynamic3dgs.write,
         "nerfstudio": nerfstudio.write,
         "colmap": colmap.write,
         "dsec": dsec.write,
@@ -167,8 +179,11 @@ def _write(
         out=str(options.out),
         timesteps=int(frames.pulses.size),
         cameras=[c.name for c in cameras],
-        train=int(frames.train.sum()),
-        test=int((~frames.train).sum()),
+        train=int(train.sum()),
+        test=int((~train).sum()),
+        split=options.split_kind,
+        test_cameras=[cameras[j].name for j in plan.test_cameras] if options.split_kind == "camera" else [],
+        world=plan.world_note,
         event_sensors=take.event_sensors,
         t0_us=frames.t0_us,
         t1_us=frames.t1_us,
