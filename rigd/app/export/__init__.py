@@ -28,6 +28,7 @@ from rigd.app.export.common import (
     frame_table,
     parse_count,
     parse_size,
+    test_camera_positions,
 )
 from rigd.app.export.sensors import voxel_windows, write_event_products
 from rigd.app.export.staging import ExportWriteError, Staging, check_target
@@ -136,6 +137,7 @@ def run_export(options: ExportOptions, progress: ProgressCallback = no_progress)
         cameras = cameras_of(take, options.resize)
         frames = frame_table(take, take.cameras)
         check_sizes(options, take, frames)
+        test_camera_positions(options, take.cameras)
         staging = Staging(options.out, leftovers, {"take": str(take.path), "format": options.format})
         try:
             result = _write(options, take, cameras, frames, staging.dir, progress, start)

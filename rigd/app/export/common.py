@@ -366,6 +366,24 @@ def frame_table(take: Take, cameras: Sequence[str]) -> FrameTable:
     return FrameTable(pulses=pulses, index=idx, t_us=t, exposure_us=e)
 
 
+def test_camera_positions(options: ExportOptions, names: Sequence[str]) -> list[int]:
+    """Positions of `--split camera`'s held-out cameras (default: the middle camera of the rig);
+    a ConfigError for a name that is no camera, every camera, or --test-camera without the split."""
+    asked = options.test_cameras
+    if asked and options.split_kind != "camera":
+        raise ConfigError(f"--test-camera {', '.join(asked)}: needs --split camera (the split is by time)")
+    if not asked:
+        return [len(names) // 2]
+    unknown = [n for n in asked if n not in names]
+    if unknown:
+        raise ConfigError(
+            f"--test-camera {', '.join(unknown)}: not a camera of the take ({', '.join(names)})"
+        )
+    if len(set(asked)) == len(names):
+        raise ConfigError("--test-camera: every camera held out leaves nothing to train on")
+    return [names.index(n) for n in asked]
+
+
 @dataclass
 class ExportPlan:
     """Everything the format writers need, read once from the take."""
@@ -393,18 +411,7 @@ class ExportPlan:
     @property
     def test_cameras(self) -> list[int]:
         """Positions of the held-out cameras of `--split camera`."""
-        names = [c.name for c in self.cameras]
-        asked = self.options.test_cameras
-        if not asked:
-            return [len(names) // 2]
-        unknown = [n for n in asked if n not in names]
-        if unknown:
-            raise ConfigError(
-                f"--test-camera {', '.join(unknown)}: not a camera of the take ({', '.join(names)})"
-            )
-        if len(set(asked)) == len(names):
-            raise ConfigError("--test-camera: every camera held out leaves nothing to train on")
-        return [names.index(n) for n in asked]
+        return test_camera_positions(self.options, [c.name for c in self.cameras])
 
     @property
     def train_mask(self) -> NDArray[np.bool_]:

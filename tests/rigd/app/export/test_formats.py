@@ -104,7 +104,9 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> Fixture:
         run_export(ExportOptions(take=cap.path, format=fmt, out=out[fmt], world="board"), callback)
     out["resized"] = root / "resized"
     run_export(
-        ExportOptions(take=cap.path, format="nerfstudio", out=out["resized"], resize=(384, 216), world="board")
+        ExportOptions(
+            take=cap.path, format="nerfstudio", out=out["resized"], resize=(384, 216), world="board"
+        )
     )
     return Fixture(cap.path, scene, _truth_times(cap.path), out, updates)
 
@@ -225,8 +227,8 @@ def projection_errors(fx: Fixture, views: list[View]) -> tuple[F64, F64, int]:
 def _check(fx: Fixture, views: list[View], label: str) -> None:
     errs, bias, n = projection_errors(fx, views)
     print(
-        f"{label}: {n}/{len(views)} views with the board, mean {errs.mean():.3f} px, max {errs.max():.3f} px, "
-        f"bias ({bias[0]:+.3f}, {bias[1]:+.3f}) px"
+        f"{label}: {n}/{len(views)} views with the board, mean {errs.mean():.3f} px, "
+        f"max {errs.max():.3f} px, bias ({bias[0]:+.3f}, {bias[1]:+.3f}) px"
     )
     assert n >= len(views) // 3, (label, n, len(views))
     assert float(errs.max()) < 0.5, (label, errs)
@@ -249,7 +251,7 @@ def test_sim_take_carries_its_ground_truth(exported: Fixture) -> None:
         calib = tk.calibration
         assert calib is not None
         assert set(calib) == set(tk.cameras + tk.event_sensors)
-        K0, R0, t0 = exported.scene.view_camera("cam0", *RES)
+        _, R0, t0 = exported.scene.view_camera("cam0", *RES)
         for dev, c in calib.items():
             assert c["result"]["source"] == GROUND_TRUTH_SOURCE
             K, R, t = exported.scene.view_camera(dev, *RES)
@@ -402,7 +404,7 @@ def check_dsec_events(root: Path, take: Path, res: tuple[int, int] = RES) -> Non
             assert off <= stamps[0]
             assert t_all[-1] + off <= stamps[-1] + 10_000
             assert n == len(tk.events(sensor, origin + off, origin + int(t_all[-1]) + off + 1))
-            for a, b in ((stamps[3], stamps[4]), (stamps[10] + 17, stamps[20] - 5)):
+            for a, b in ((stamps[3], stamps[4]), (stamps[5] + 17, stamps[-2] - 5)):
                 got = _slice_dsec(path, a, b)
                 ref = tk.events(sensor, origin + a, origin + b)
                 assert len(ref) > 100

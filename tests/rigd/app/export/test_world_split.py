@@ -86,17 +86,24 @@ def test_world_board_needs_a_board(takes: tuple[Path, Path], tmp_path: Path) -> 
 def test_split_camera_holds_out_a_camera_at_every_timestep(takes: tuple[Path, Path], tmp_path: Path) -> None:
     _, take = takes
     out = tmp_path / "s"
-    run_export(
-        ExportOptions(take=take, format="nerfstudio", out=out, split="camera", test_cameras=("cam2",))
-    )
+    run_export(ExportOptions(take=take, format="nerfstudio", out=out, split="camera", test_cameras=("cam2",)))
     meta = json.loads((out / "transforms.json").read_text())
     test = [f for f in meta["frames"] if f["split"] == "test"]
     assert {f["camera"] for f in test} == {"cam2"}
     assert meta["val_filenames"] == meta["test_filenames"] == [f["file_path"] for f in test]
     train_steps = {f["timestep"] for f in meta["frames"] if f["split"] == "train"}
     assert train_steps == {f["timestep"] for f in test}
-    with pytest.raises(ConfigError, match="--test-camera nope"):
-        run_export(ExportOptions(take=take, format="nerfstudio", out=tmp_path / "x", test_cameras=("nope",)))
+    for split, cams, why in (
+        ("camera", ("nope",), "--test-camera nope: not a camera"),
+        ("camera", ("cam0", "cam1", "cam2"), "nothing to train on"),
+        ("time", ("cam0",), "needs --split camera"),
+    ):
+        opts = ExportOptions(
+            take=take, format="nerfstudio", out=tmp_path / "x", split=split, test_cameras=cams
+        )
+        with pytest.raises(ConfigError, match=why):
+            run_export(opts)
+        assert not (tmp_path / "x").exists()
 
 
 def test_split_time_in_panoptic_layout(takes: tuple[Path, Path], tmp_path: Path) -> None:
