@@ -38,9 +38,13 @@ def write_calibration_group(
     pose: dict[str, Any] | None,
     source: str,
 ) -> None:
-    """`/calibration/<device>` in an open take (replacing an earlier one)."""
+    """`/calibration/<device>` in an open take (replacing an earlier one). A simulator's ground
+    truth that is replaced is kept in the new payload (`ground_truth`): a calibration stored
+    into a sim take can still be scored against it."""
     root = f.require_group(CALIBRATION_GROUP)
+    truth = None
     if device in root:
+        truth = _truth_of(_payload(root[device]))
         del root[device]
     g = root.create_group(device)
     if intrinsics is not None:
@@ -50,8 +54,46 @@ def write_calibration_group(
     if pose is not None:
         g.create_dataset("R", data=np.asarray(pose["R"], np.float64))
         g.create_dataset("t", data=np.asarray(pose["t"], np.float64))
-    payload = {"intrinsics": intrinsics, "pose": pose, "source": source}
-    g.create_dataset("result_json", data=json.dumps(payload), dtype=h5py.string_dtype("utf-8"))
+    payload: dict[str, Any] = {"intrinsics": intrinsics, "pose": pose, "source": source}
+    if truth is not None and source != GROUND_TRUTH_SOURCE:
+        payload["ground_truth"] = truth
+    g.create_dataset(
+        "result_json", data=json.dumps(payload, default=_jsonable), dtype=h5py.string_dtype("utf-8")
+    )
+
+
+def _jsonable(v: object) -> object:
+    if isinstance(v, np.ndarray | np.generic):
+        return v.tolist()
+    raise TypeError(f"{type(v).__name__} is not JSON serializable")
+
+
+def _payload(g: h5py.Group) -> dict[str, Any]:
+    raw = g["result_json"][()]
+    data = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+    return data if isinstance(data, dict) else {}
+
+
+def _truth_of(payload: dict[str, Any]) -> dict[str, Any] | None:
+    """{"intrinsics", "pose"} of the ground truth a stored payload is or carries, else None."""
+    if payload.get("source") == GROUND_TRUTH_SOURCE:
+        return {"intrinsics": payload.get("intrinsics"), "pose": payload.get("pose")}
+    truth = payload.get("ground_truth")
+    return truth if isinstance(truth, dict) else None
+
+
+def read_ground_truth(f: h5py.File) -> dict[str, dict[str, Any]]:
+    """{device: {"intrinsics": {K, dist, image_size}, "pose": {R, t} (rig frame of cam0)}} of a
+    simulated take, whether the truth is what is stored or what a calibration replaced."""
+    root = f.get(CALIBRATION_GROUP)
+    out: dict[str, dict[str, Any]] = {}
+    if root is None:
+        return out
+    for device, g in root.items():
+        truth = _truth_of(_payload(g))
+        if truth is not None:
+            out[device] = truth
+    return out
 
 
 def write_board_pose(f: h5py.File, R: Any, t: Any, source: str) -> None:  # noqa: N803

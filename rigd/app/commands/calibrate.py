@@ -37,6 +37,7 @@ from rigd.app.workflows.calibrate import (
     run_intrinsics,
     run_rig,
 )
+from rigd.app.workflows.calibration_truth import ground_truth_of, intrinsics_error, rig_errors
 from rigd.core.errors import RigdError
 
 calibrate_app = RigdTyper(
@@ -166,6 +167,7 @@ def rig_cmd(
         source = TakeSource(path=take, events=events) if take is not None else _image_sets(camera or [])
         shared: dict[str, Any] = {"out": out, "model": model, "report": report, "into_take": into_take}
         options = RigOptions(board=spec, source=source, reference=reference, kalibr=kalibr, **shared)
+        truth = ground_truth_of(take) if take is not None else {}
         with StageProgress(_err, "calibrate rig", quiet=json_out) as bar:
             calib = run_rig(options, bar)
     except RigdError as exc:
@@ -177,6 +179,10 @@ def rig_cmd(
         typer.echo(dumps_summary(calib.rig))
     else:
         _print_rig(calib, out)
+    poses = {c.camera: (c.R, c.t) for c in calib.rig.cameras}
+    cams = {name: r.K for name, r in calib.intrinsics.items()}
+    for e in rig_errors(truth, cams, poses, calib.rig.reference):
+        _err.print(e.line(), soft_wrap=True, highlight=False)
 
 
 def _print_rig(calib: RigCalibration, out: Path) -> None:
@@ -244,10 +250,13 @@ def events_cmd(
             model=model,
             into_take=into_take,
         )
+        truth = ground_truth_of(take)
         with StageProgress(_err, "calibrate events", quiet=json_out) as bar:
             calib = run_events(options, bar)
     except RigdError as exc:
         raise _fail(exc) from exc
+    if sensor in truth:
+        _err.print(intrinsics_error(sensor, truth[sensor], calib.intrinsics.K).line(), highlight=False)
     _warn(calib.intrinsics)
     table = _method_table(calib)
     if json_out:

@@ -69,6 +69,8 @@ class ExportResult(BaseModel):
     split: str
     test_cameras: list[str]
     world: str
+    rig_to_world: list[list[float]]
+    """4x4: x_world = rig_to_world @ x_rig (the rig frame of the take's calibration)."""
     event_sensors: list[str]
     t0_us: int
     t1_us: int
@@ -186,6 +188,7 @@ def _write(
         split=options.split_kind,
         test_cameras=[cameras[j].name for j in plan.test_cameras] if options.split_kind == "camera" else [],
         world=plan.world_note,
+        rig_to_world=plan.rig_to_world.tolist(),
         event_sensors=take.event_sensors,
         t0_us=frames.t0_us,
         t1_us=frames.t1_us,

@@ -146,3 +146,45 @@ def test_report_ticks_are_round_numbers() -> None:
     assert nice_step(0.1386) == pytest.approx(0.05)
     assert nice_step(0.9) == pytest.approx(0.2)
     assert nice_step(3.0) == pytest.approx(0.5)
+
+
+def test_calibrate_rig_on_a_sim_take_prints_its_error_against_the_truth(
+    board_take: Path, tmp_path: Path
+) -> None:
+    """A sim take carries its ground truth: the rig calibration is scored against it, and storing
+    the result into the take keeps the truth beside it."""
+    import json
+    import shutil
+
+    import h5py
+
+    from rigd.take.calibration import GROUND_TRUTH_SOURCE, read_ground_truth
+
+    take = tmp_path / "take.h5"
+    shutil.copy(board_take, take)
+    args = [
+        "calibrate",
+        "rig",
+        str(take),
+        "-b",
+        BOARD,
+        "-o",
+        str(tmp_path / "rig.json"),
+        "--into-take",
+        str(take),
+    ]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    lines = [ln for ln in r.stderr.splitlines() if "vs simulator ground truth" in ln]
+    assert [ln.split()[0] for ln in lines] == ["cam0", "cam1", "cam2"], r.stderr
+    for ln in lines:
+        focal = float(re.search(r"focal ([0-9.]+) px", ln)[1])  # type: ignore[index]
+        centre = re.search(r"centre ([0-9.]+) mm", ln)
+        assert centre is not None, ln
+        assert focal < 10.0, ln  # a calibration of 480x270 frames: a few px of 500
+    with h5py.File(take, "r") as f:
+        truth = read_ground_truth(f)
+        assert set(truth) >= {"cam0", "cam1", "cam2"}
+        stored = json.loads(f["calibration/cam1/result_json"][()])
+    assert stored["source"] != GROUND_TRUTH_SOURCE
+    assert "ground_truth" in stored
