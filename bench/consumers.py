@@ -123,6 +123,7 @@ def make_takes(work: Path, seconds: float) -> tuple[Path, Path]:
 
 
 def export(take: Path, fmt: str, out: Path) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
     run_export(ExportOptions(take=take, format=fmt, out=out, force=out.exists()))  # type: ignore[arg-type]
     return out
 
