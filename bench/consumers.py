@@ -66,7 +66,20 @@ VENVS: dict[str, list[list[str]]] = {
     "dsec": [["numpy>=2", "h5py", "numba"]],
     "tonic": [["numpy>=2", "h5py", "tonic"]],
     "dynamic3dgaussians": [[TORCH_WHEEL], ["open3d", "pillow", "tqdm", "numpy<2"]],
-    "4dgaussians": [[TORCH_WHEEL], ["torchvision", "open3d", "pillow", "tqdm", "plyfile", "numpy<2"]],
+    "4dgaussians": [
+        [TORCH_WHEEL],
+        [
+            "torchvision",
+            "open3d",
+            "pillow",
+            "tqdm",
+            "plyfile",
+            "scipy",
+            "matplotlib",
+            "opencv-python-headless",
+            "numpy<2",
+        ],
+    ],
     "nerfstudio": [[TORCH_WHEEL], ["nerfstudio==1.1.5"]],
 }
 
@@ -89,10 +102,26 @@ def venv(work: Path, name: str) -> Path:
     if not (root / ".rigd-complete").exists():
         if not py.exists():
             run([sys.executable, "-m", "venv", str(root)])
+        keep: list[str] = []
         for reqs in VENVS[name]:
-            run([str(py), "-m", "pip", "install", "-q", *reqs])
+            run([str(py), "-m", "pip", "install", "-q", *reqs, *keep])
+            if reqs == [TORCH_WHEEL]:  # later installs keep this torch (no CUDA build from the registry)
+                version = run([str(py), "-c", "import torch; print(torch.__version__)"]).strip()
+                keep = [f"torch=={version.split('+')[0]}"]
         (root / ".rigd-complete").write_text(time.strftime("%Y-%m-%d %H:%M:%S\n"))
     return py
+
+
+def source_of(repo: Repo) -> str:
+    """Where to fetch a repository: GitHub, or a local mirror of it (`RIGD_GIT_MIRROR`: a directory
+    holding `<owner>+<name>/repo` git directories) where GitHub cannot be reached."""
+    mirror = os.environ.get("RIGD_GIT_MIRROR")
+    if mirror:
+        owner, name = repo.url.rstrip("/").split("/")[-2:]
+        local = Path(mirror) / f"{owner}+{name}" / "repo"
+        if local.is_dir():
+            return str(local)
+    return repo.url
 
 
 def checkout(work: Path, name: str) -> Path:
@@ -102,7 +131,7 @@ def checkout(work: Path, name: str) -> Path:
     if not (dest / ".git").exists():
         dest.mkdir(parents=True, exist_ok=True)
         run(["git", "init", "-q"], cwd=dest)
-        run(["git", "fetch", "-q", "--depth", "1", repo.url, repo.commit], cwd=dest)
+        run(["git", "fetch", "-q", "--depth", "1", source_of(repo), repo.commit], cwd=dest)
         run(["git", "checkout", "-q", "FETCH_HEAD"], cwd=dest)
     head = run(["git", "rev-parse", "HEAD"], cwd=dest).strip()
     if head != repo.commit:
@@ -298,6 +327,20 @@ def consumer_nerfstudio(work: Path, ex: dict[str, Path]) -> str:
     raise RuntimeError(f"ns-train failed before needing a GPU or the internet:\n{text[-3000:]}")
 
 
+def prepare(work: Path, seconds: float) -> dict[str, Path]:
+    """The takes, their exports and the references the checks compare with."""
+    take, late = make_takes(work, seconds)
+    ex: dict[str, Path] = {"take": take, "late": late}
+    for fmt in ("nerfstudio", "4dgaussians", "dynamic3dgs", "dsec"):
+        ex[fmt] = export(take, fmt, work / "exports" / fmt)
+    ex["dsec-late"] = export(late, "dsec", work / "exports" / "dsec-late")
+    ex["dsec-ref"] = dsec_reference(take, ex["dsec"])
+    ex["dsec-late-ref"] = dsec_reference(late, ex["dsec-late"])
+    for fmt in ("4dgaussians", "dynamic3dgs"):
+        ex[f"{fmt}-views"] = board_views(take, ex[fmt])
+    return ex
+
+
 CONSUMERS = {
     "dsec": consumer_dsec,
     "tonic": consumer_tonic,
@@ -312,6 +355,9 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/rigd-consumers"), help="scratch directory")
     ap.add_argument("--only", default=",".join(CONSUMERS), help="comma-separated consumers to check")
     ap.add_argument("--seconds", type=float, default=2.0, help="length of the board take")
+    ap.add_argument(
+        "--reuse", action="store_true", help="reuse the take and exports of an earlier run in --work"
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     work: Path = args.work.resolve()
@@ -321,19 +367,17 @@ def main() -> None:
     if unknown:
         ap.error(f"--only: unknown {sorted(unknown)} (known: {', '.join(CONSUMERS)})")
     t0 = time.perf_counter()
-    take, late = make_takes(work, args.seconds)
-    ex: dict[str, Path] = {}
-    for fmt in ("nerfstudio", "4dgaussians", "dynamic3dgs", "dsec"):
-        ex[fmt] = export(take, fmt, work / "exports" / fmt)
-    ex["dsec-late"] = export(late, "dsec", work / "exports" / "dsec-late")
-    ex["dsec-ref"] = dsec_reference(take, ex["dsec"])
-    ex["dsec-late-ref"] = dsec_reference(late, ex["dsec-late"])
-    for fmt in ("4dgaussians", "dynamic3dgs"):
-        ex[f"{fmt}-views"] = board_views(take, ex[fmt])
-    print(
-        f"take {take.name} ({args.seconds:g} s, {RES[0]}x{RES[1]}), exports in {work / 'exports'} "
-        f"({time.perf_counter() - t0:.0f} s)"
-    )
+    prepared = work / "prepared.json"
+    if args.reuse and prepared.exists():
+        ex = {k: Path(v) for k, v in json.loads(prepared.read_text()).items()}
+        print(f"exports of {ex['take'].name} reused from {work / 'exports'}")
+    else:
+        ex = prepare(work, args.seconds)
+        prepared.write_text(json.dumps({k: str(v) for k, v in ex.items()}))
+        print(
+            f"take {ex['take'].name} ({args.seconds:g} s, {RES[0]}x{RES[1]}), exports in {work / 'exports'} "
+            f"({time.perf_counter() - t0:.0f} s)"
+        )
     failed = []
     for name in names:
         where = f" @ {REPOS[name].commit[:12]}" if name in REPOS else ""

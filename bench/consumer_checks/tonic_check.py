@@ -36,7 +36,7 @@ def main() -> None:
         np.testing.assert_array_equal(sel["x"], ref["x"][lo:hi])
         np.testing.assert_array_equal(sel["p"], ref["p"][lo:hi].astype(bool))
         w, h = int(f["events/x"][()].max()) + 1, int(f["events/y"][()].max()) + 1
-        frames = tonic.transforms.ToFrame(sensor_size=(w, h, 2), n_time_bins=3)(sel)
+        frames = tonic.transforms.ToFrame(sensor_size=(w, h, 2), n_event_bins=3)(sel)
         assert frames.sum() == len(sel), (frames.sum(), len(sel))
         print(
             f"  {sensor}: {len(ev)} events as tonic's DSEC dtype; window 0 identical ({len(sel)} events), "
