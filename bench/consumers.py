@@ -125,18 +125,50 @@ def source_of(repo: Repo) -> str:
 
 
 def checkout(work: Path, name: str) -> Path:
-    """The consumer's source at its pinned commit (cloned once)."""
+    """The consumer's source at its pinned commit (fetched once). From a local mirror whose
+    largest files are absent, the commit's tree is written file by file and what is missing is
+    listed in `.rigd-missing` (the checks fail if they need it)."""
     repo = REPOS[name]
     dest = work / "src" / name
-    if not (dest / ".git").exists():
+    stamp = dest / ".rigd-commit"
+    if not stamp.exists():
+        source = source_of(repo)
         dest.mkdir(parents=True, exist_ok=True)
-        run(["git", "init", "-q"], cwd=dest)
-        run(["git", "fetch", "-q", "--depth", "1", source_of(repo), repo.commit], cwd=dest)
-        run(["git", "checkout", "-q", "FETCH_HEAD"], cwd=dest)
-    head = run(["git", "rev-parse", "HEAD"], cwd=dest).strip()
-    if head != repo.commit:
-        raise RuntimeError(f"{dest}: at {head}, expected the pinned {repo.commit}")
+        if source == repo.url:
+            run(["git", "init", "-q"], cwd=dest)
+            run(["git", "fetch", "-q", "--depth", "1", source, repo.commit], cwd=dest)
+            run(["git", "checkout", "-q", "FETCH_HEAD"], cwd=dest)
+            head = run(["git", "rev-parse", "HEAD"], cwd=dest).strip()
+            if head != repo.commit:
+                raise RuntimeError(f"{dest}: at {head}, expected the pinned {repo.commit}")
+        else:
+            missing = _write_tree(Path(source), repo.commit, dest)
+            (dest / ".rigd-missing").write_text("".join(f"{m}\n" for m in missing))
+        stamp.write_text(repo.commit + "\n")
+    if stamp.read_text().strip() != repo.commit:
+        raise RuntimeError(f"{dest}: holds {stamp.read_text().strip()}, expected the pinned {repo.commit}")
     return dest
+
+
+def _write_tree(git_dir: Path, commit: str, dest: Path) -> list[str]:
+    """Every blob of the commit's tree under dest; the paths whose blob the mirror lacks."""
+    listing = run(["git", "--git-dir", str(git_dir), "ls-tree", "-r", "-z", commit])
+    missing = []
+    for entry in filter(None, listing.split("\0")):
+        meta, path = entry.split("\t", 1)
+        _, kind, sha = meta.split()
+        if kind != "blob":
+            continue
+        p = subprocess.run(
+            ["git", "--git-dir", str(git_dir), "cat-file", "blob", sha], capture_output=True, check=False
+        )
+        if p.returncode != 0:
+            missing.append(path)
+            continue
+        out = dest / path
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(p.stdout)
+    return missing
 
 
 # --- takes, exports and references ---------------------------------------------------------

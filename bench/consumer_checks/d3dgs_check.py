@@ -43,7 +43,7 @@ def main() -> None:
     md = json.loads(Path(f"./data/{seq}/train_meta.json").read_text())
     params, _ = train.initialize_params(seq, md)
     fg = params["means3D"][params["seg_colors"][:, 0] > 0.5]
-    floor = float(torch.clamp(fg[:, 1], min=0).mean())
+    floor = float(torch.clamp(fg[:, 1].detach(), min=0).mean())
     print(f"  initialize_params: {len(params['means3D'])} points; its floor loss on them {floor:.6f}")
     assert floor == 0.0, floor
     print("  " + cuda_stubs.check_views(cams, json.loads(views.read_text())))
