@@ -49,6 +49,26 @@ def install() -> None:
     print("  (stubbed here only: diff_gaussian_rasterization, simple_knn, Tensor.cuda -> CPU)")
 
 
+def torchvision_or_stub() -> None:
+    """Import torchvision; where only its CUDA build can be installed (its C ops fail to register
+    on a CPU torch) put a stub in its place whose transforms raise when used: 4DGaussians'
+    dataset_readers imports it at module level and its PanopticSports reader never calls it."""
+    try:
+        import torchvision  # noqa: F401
+    except RuntimeError as exc:
+        why = str(exc)
+        tv = types.ModuleType("torchvision")
+        tf = types.ModuleType("torchvision.transforms")
+
+        def unavailable(*_: object, **__: object) -> None:
+            raise RuntimeError(f"torchvision is stubbed in this check ({why})")
+
+        tf.ToTensor = unavailable  # type: ignore[attr-defined]
+        tv.transforms = tf  # type: ignore[attr-defined]
+        sys.modules["torchvision"], sys.modules["torchvision.transforms"] = tv, tf
+        print(f"  (stubbed here only: torchvision, whose CUDA build fails on this CPU torch: {why})")
+
+
 def project(cam: GaussianRasterizationSettings, X: np.ndarray) -> np.ndarray:  # noqa: N803
     full = np.asarray(cam.projmatrix, np.float64).reshape(4, 4)  # type: ignore[attr-defined]
     p = np.c_[X, np.ones(len(X))] @ full

@@ -18,6 +18,7 @@ import cuda_stubs
 def main() -> None:
     repo, export, views = Path(sys.argv[1]), Path(sys.argv[2]).resolve(), Path(sys.argv[3])
     cuda_stubs.install()
+    cuda_stubs.torchvision_or_stub()
     sys.path.insert(0, str(repo))
     from scene import Scene  # 4DGaussians' scene/__init__.py
 
