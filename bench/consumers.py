@@ -342,6 +342,7 @@ def consumer_nerfstudio(work: Path, ex: dict[str, Path]) -> str:
     env = check_env(work)
     out = run([str(py), str(CHECKS / "nerfstudio_check.py"), str(ex["nerfstudio"])], env=env)
     ns_train = py.parent / "ns-train"
+    env = {**env, "PYTHONPATH": str(CHECKS / "ns_site")}  # its sitecustomize stubs a CUDA-only torchvision
     cmd = [
         str(ns_train), "nerfacto", "--data", str(ex["nerfstudio"]), "--max-num-iterations", "3",
         "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(work / "ns-outputs"),
@@ -352,6 +353,12 @@ def consumer_nerfstudio(work: Path, ex: dict[str, Path]) -> str:
     tail = "\n".join("    " + ln for ln in text.strip().splitlines()[-6:])
     if p.returncode == 0:
         return out + f"  ns-train nerfacto --max-num-iterations 3 (CPU): finished\n{tail}\n"
+    data_ready = "overriding val_indices" in text and "Saving checkpoints" in text
+    if data_ready and "stubbed here only: torchvision" in text:
+        return (
+            out + f"  ns-train nerfacto: data set up (splits, images), then stopped in the model's setup, "
+            f"which needs torchvision (stubbed: only its CUDA build installs here):\n{tail}\n"
+        )
     if any(k in text for k in ("CUDA", "cuda", "urlopen", "ConnectionError", "Name or service not known")):
         return (
             out + f"  ns-train nerfacto: data set up, then stopped needing a GPU or the internet:\n{tail}\n"

@@ -7,11 +7,11 @@ usage: python nerfstudio_check.py EXPORT_DIR
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import sys
 from pathlib import Path
 
-import nerfstudio
 from nerfstudio.data.dataparsers.dnerf_dataparser import DNeRFDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
@@ -19,7 +19,7 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 def main() -> None:
     export = Path(sys.argv[1])
     meta = json.loads((export / "transforms.json").read_text())
-    version = getattr(nerfstudio, "__version__", "?")
+    version = importlib.metadata.version("nerfstudio")
     print(f"  nerfstudio {version}")
     parser = NerfstudioDataParserConfig(
         data=export,
