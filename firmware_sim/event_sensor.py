@@ -41,7 +41,7 @@ from drivers.registry import DeviceSpec
 from firmware_sim.clock import Hold
 from firmware_sim.event_kernels import MAX_STEP_PX, generate_events, warm_up_generator
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
-from firmware_sim.placement import Placement, check_ranges, place
+from firmware_sim.placement import Placement, check_ranges, ground_truth_facts, place
 from firmware_sim.scene import lin_log
 from firmware_sim.spec_params import SimEventSensorParams, check_params
 from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wait_for_room
@@ -147,7 +147,12 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             model="SimEventSensor",
             serial=f"{world.name}/{name}",
             firmware="sim-1",
-            facts={"evt_format": "evt3", "pixel_model": "ideal", "threshold": str(p.threshold)},
+            facts={
+                "evt_format": "evt3",
+                "pixel_model": "ideal",
+                "threshold": str(p.threshold),
+                **ground_truth_facts(where),
+            },
         )
         self._settings = EventSensorSettings()
         self._plug_in(world, name, self._info.spec)

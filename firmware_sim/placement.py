@@ -11,6 +11,7 @@ from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
 from firmware_sim.scene import Scene
 from firmware_sim.world import DeviceClock, SimWorld, UnplugParams, power_on_clock, spec_world, unplug_params
+from rigd.core.devices import GROUND_TRUTH_FACT, GroundTruth
 from rigd.core.errors import ConfigError
 
 #: Spec parameters every simulated camera and event sensor takes.
@@ -68,3 +69,18 @@ def place(spec: DeviceSpec, params: Iterable[str]) -> Placement:
     clock = DeviceClock(spec.float_param("offset_us", 0.0), spec.float_param("drift_ppm", 0.0))
     clock = power_on_clock(spec, world, name, clock)
     return Placement(world, name, scene, clock, width, height, seed, unplug, spec.raw)
+
+
+def ground_truth_facts(where: Placement) -> dict[str, str]:
+    """The `DeviceInfo.facts` entry with the device's exact calibration in its world (the scene
+    plane's frame): the capture stores it in the take, so a sim take exports without calibrating."""
+    K, R, t = where.scene.view_camera(where.name, where.width, where.height)  # noqa: N806
+    truth = GroundTruth(
+        world=where.world.name,
+        K=K.tolist(),
+        dist=[0.0] * 5,
+        image_size=(where.width, where.height),
+        R=R.tolist(),
+        t=t.tolist(),
+    )
+    return {GROUND_TRUTH_FACT: truth.model_dump_json()}

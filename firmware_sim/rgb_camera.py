@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
 from firmware_sim.clock import Hold
-from firmware_sim.placement import Placement, check_ranges, place
+from firmware_sim.placement import Placement, check_ranges, ground_truth_facts, place
 from firmware_sim.scene import View
 from firmware_sim.spec_params import SimCameraParams, check_params
 from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wait_for_room
@@ -115,6 +115,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             model="SimRgbCamera",
             serial=f"{world.name}/{name}",
             firmware="sim-1",
+            facts=ground_truth_facts(where),
         )
         self._plug_in(world, name, self._info.spec)
         #: First start after a replug goes on counting from where the unplug left the counter.

@@ -11,6 +11,31 @@ from pydantic import BaseModel, ConfigDict, Field
 
 DeviceKind = Literal["rgb_camera", "event_sensor", "trigger"]
 
+#: `DeviceInfo.facts` entry of a device that knows its own calibration exactly (a simulated
+#: camera or event sensor): JSON of `GroundTruth`. The capture stores it in the take.
+GROUND_TRUTH_FACT = "ground_truth_calibration"
+
+
+class GroundTruth(BaseModel):
+    """A device's exact calibration in its world's frame (OpenCV axes, metres, pixel centres at
+    integers): x_cam = R x_world + t, pixels = K x_cam, lens `dist` in OpenCV order.
+    The world's frame is the scene's board plane (z = 0, x right, y down)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    world: str = Field(description="The world the pose is in (devices of one world share it).")
+    K: list[list[float]]
+    dist: list[float]
+    image_size: tuple[int, int]
+    R: list[list[float]]
+    t: list[float]
+
+    @classmethod
+    def of(cls, info: DeviceInfo) -> GroundTruth | None:
+        """The truth a device's facts carry, or None; a malformed entry is a ValueError."""
+        raw = info.facts.get(GROUND_TRUTH_FACT)
+        return None if raw is None else cls.model_validate_json(raw)
+
 
 class DeviceInfo(BaseModel):
     """Identity of an opened device, written into every take."""

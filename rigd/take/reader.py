@@ -50,7 +50,7 @@ from rigd.core.schema import (
     decode_journal,
     has_item,
 )
-from rigd.take.calibration import read_calibration
+from rigd.take.calibration import read_board_pose, read_calibration
 from rigd.take.frame_series import FrameSeries
 from rigd.take.h5file import attr_text, describe_open_error
 from rigd.take.tails import tail_rows
@@ -307,6 +307,11 @@ class Take:
     def calibration(self) -> dict[str, dict[str, Any]] | None:
         """Calibrations stored in the take by `rigd calibrate ... --into-take`, by device."""
         return read_calibration(self._f)
+
+    @property
+    def board_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """(R, t) of the board plane in the rig frame (x_rig = R x_board + t), when stored."""
+        return read_board_pose(self._f)
 
     @property
     def sync_report(self) -> SyncReport | None:

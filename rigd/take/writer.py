@@ -59,6 +59,7 @@ from rigd.core.schema import (
 )
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
+from rigd.take.calibration import write_board_pose, write_calibration_group
 from rigd.take.finalize import FinalizePlan, Finalizer
 from rigd.take.h5file import (
     TRUNCATED_EOF_ATTR,
@@ -318,6 +319,24 @@ class TakeWriter:
         g = self._f[EVENTS_GROUP].create_group(name)
         _write_info_attrs(g, info, settings_json)
         self._events[name] = EventSink.create(name, g, width, height, self._cfg.event_chunk, self._ev_opts)
+        self._f.flush()
+
+    def add_calibration(
+        self,
+        device: str,
+        intrinsics: dict[str, Any],
+        pose: dict[str, Any] | None,
+        source: str,
+        board: tuple[Any, Any] | None = None,
+    ) -> None:
+        """Store a calibration known at capture (a simulator's ground truth) as
+        `rigd.take.calibration` stores one after it; `board`: the board plane's (R, t) in the rig."""
+        self._check_writable()
+        if device not in self._cameras and device not in self._events:
+            raise TakeError(f"{self.path}: calibration for {device!r}, which is not a device of the take")
+        write_calibration_group(self._f, device, intrinsics, pose, source)
+        if board is not None:
+            write_board_pose(self._f, board[0], board[1], source)
         self._f.flush()
 
     # -- appends -----------------------------------------------------------------------

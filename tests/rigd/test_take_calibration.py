@@ -14,7 +14,7 @@ from rigd.app.capture import run_capture
 from rigd.app.cli import app
 from rigd.app.config import default_sim_rig
 from rigd.core.errors import TakeError
-from rigd.take.calibration import store_calibration
+from rigd.take.calibration import GROUND_TRUTH_SOURCE, store_calibration
 from rigd.take.reader import Take
 from rigd.take.validate import validate_take
 
@@ -50,7 +50,10 @@ def test_calibrate_into_take_then_a_training_job_reads_it(take_path: Path, tmp_p
     with Take(take_path) as take:
         cal = take.calibration
         assert cal is not None
-        assert set(cal) == {"cam0"}
+        # ev0, ev1 keep the simulator's ground truth stored at capture; cam0's is kept beside the result
+        assert set(cal) == {"cam0", "ev0", "ev1"}
+        assert cal["ev0"]["result"]["source"] == GROUND_TRUTH_SOURCE
+        assert "K" in cal["cam0"]["result"]["ground_truth"]["intrinsics"]
         k_mat = cal["cam0"]["K"]
         assert k_mat.shape == (3, 3)
         assert 500 < k_mat[0, 0] < 540  # the real camera's focal length, ~519 px

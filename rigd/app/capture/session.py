@@ -34,6 +34,7 @@ from rigd.app.capture.overload import SliceShedder
 from rigd.app.capture.preflight import check_rig, warm_up
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
+from rigd.app.capture.truth import store_ground_truth
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
@@ -431,6 +432,8 @@ class CaptureSession:
                 sen = self._channels[sen_cfg.name].device
                 w, h = sen.geometry  # type: ignore[union-attr]
                 take.add_event_sensor(sen_cfg.name, sen.info, w, h, sen_cfg.settings.model_dump_json())
+            names = [c.name for c in config.cameras] + [s.name for s in config.event_sensors]
+            store_ground_truth(take, {n: self._channels[n].device.info for n in names})
         except BaseException:
             self._take = take  # marked failed and closed by the abort
             raise

@@ -165,6 +165,7 @@ def rig_cmd(
     from calibration.boards import parse_board
     from calibration.io import dumps_summary
     from rigd.app.workflows.calibrate import RigOptions, TakeSource, run_rig
+    from rigd.app.workflows.calibration_truth import ground_truth_of, rig_errors
 
     if (take is None) == (not camera):
         raise _fail(ValueError("give either a TAKE or --camera NAME=GLOB sets (at least two)"))
@@ -175,6 +176,7 @@ def rig_cmd(
         source = TakeSource(path=take, events=events) if take is not None else _image_sets(camera or [])
         shared: dict[str, Any] = {"out": out, "model": model, "report": report, "into_take": into_take}
         options = RigOptions(board=spec, source=source, reference=reference, kalibr=kalibr, **shared)
+        truth = ground_truth_of(take) if take is not None else {}
         with StageProgress(_err, "calibrate rig", quiet=json_out) as bar:
             calib = run_rig(options, bar)
     except RigdError as exc:
@@ -186,6 +188,10 @@ def rig_cmd(
         typer.echo(dumps_summary(calib.rig))
     else:
         _print_rig(calib, out)
+    poses = {c.camera: (c.R, c.t) for c in calib.rig.cameras}
+    cams = {name: r.K for name, r in calib.intrinsics.items()}
+    for e in rig_errors(truth, cams, poses, calib.rig.reference):
+        _err.print(e.line(), soft_wrap=True, highlight=False)
     if into_take is not None:
         _stored(into_take, [pose.camera for pose in calib.rig.cameras])
 
@@ -246,6 +252,7 @@ def events_cmd(
 
     Every method is run and reported; the one with the lowest RMS is written to --out."""
     from rigd.app.workflows.calibrate import EventsOptions, run_events
+    from rigd.app.workflows.calibration_truth import ground_truth_of, intrinsics_error
 
     try:
         options = EventsOptions(
@@ -259,10 +266,13 @@ def events_cmd(
             model=model,
             into_take=into_take,
         )
+        truth = ground_truth_of(take)
         with StageProgress(_err, "calibrate events", quiet=json_out) as bar:
             calib = run_events(options, bar)
     except RigdError as exc:
         raise _fail(exc) from exc
+    if sensor in truth:
+        _err.print(intrinsics_error(sensor, truth[sensor], calib.intrinsics.K).line(), highlight=False)
     _warn(calib.intrinsics)
     table = _method_table(calib)
     if json_out:

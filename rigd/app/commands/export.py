@@ -24,7 +24,10 @@ from rigd.core.errors import ConfigError, RigdError
 
 #: rigd.app.export.FORMATS, spelled out so that `--help` need not import the exporters (h5py,
 #: OpenCV); tests/app/commands/test_lazy_imports.py holds the two equal.
-EXPORT_FORMATS = ("dynamic3dgs", "nerfstudio", "colmap", "dsec")
+EXPORT_FORMATS = ("dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec")
+#: rigd.app.export.WORLDS and SPLITS, spelled out for the same reason.
+EXPORT_WORLDS = ("board", "cam0", "floor")
+EXPORT_SPLITS = ("time", "camera")
 
 _err = stderr_console()
 
@@ -50,8 +53,29 @@ def export(
     ] = "5",
     seg: Annotated[
         bool,
-        typer.Option("--seg", help="dynamic3dgs: write all-foreground seg/ masks (its train.py reads them)."),
+        typer.Option("--seg", help="Kept for old command lines: dynamic3dgs always writes its seg/ masks."),
     ] = False,
+    world: Annotated[
+        str | None,
+        typer.Option(
+            "--world",
+            help=f"World frame: {', '.join(EXPORT_WORLDS)} (default floor for dynamic3dgs, cam0 otherwise).",
+        ),
+    ] = None,
+    split: Annotated[
+        str | None,
+        typer.Option(
+            "--split",
+            help=f"Held-out views: {', '.join(EXPORT_SPLITS)} "
+            "(default camera for dynamic3dgs and 4dgaussians).",
+        ),
+    ] = None,
+    test_camera: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--test-camera", help="--split camera: a held-out camera (repeat; default the middle one)."
+        ),
+    ] = None,
     force: Annotated[
         bool,
         typer.Option("--force", help="Replace an earlier export at --out (or what an interrupted one left)."),
@@ -59,11 +83,24 @@ def export(
 ) -> None:
     """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap)
     or for event loaders (dsec); see docs/export.md."""
-    from rigd.app.export import FORMATS, ExportOptions, ExportWriteError, parse_count, parse_size, run_export
+    from rigd.app.export import (
+        FORMATS,
+        SPLITS,
+        WORLDS,
+        ExportOptions,
+        ExportWriteError,
+        parse_count,
+        parse_size,
+        run_export,
+    )
 
     try:
         if fmt not in FORMATS:
             raise ConfigError(f"--format {fmt!r}: unknown format (one of {', '.join(FORMATS)})")
+        if world is not None and world not in WORLDS:
+            raise ConfigError(f"--world {world!r}: unknown world frame (one of {', '.join(WORLDS)})")
+        if split is not None and split not in SPLITS:
+            raise ConfigError(f"--split {split!r}: unknown split (one of {', '.join(SPLITS)})")
         options = ExportOptions(
             take=take,
             format=fmt,
@@ -72,6 +109,9 @@ def export(
             segments=segments,
             voxel_bins=parse_count("--voxel-bins", voxel_bins),
             seg=seg,
+            world=world,
+            split=split,
+            test_cameras=tuple(test_camera or ()),
             force=force,
         )
     except ValidationError as exc:
@@ -102,7 +142,8 @@ def export(
             raise _fail(str(exc)) from exc
     _err.print(
         f"{result.take_id} -> {result.out} ({result.format}): {result.timesteps} timesteps x "
-        f"{len(result.cameras)} cameras ({result.train} train / {result.test} test), "
+        f"{len(result.cameras)} cameras ({result.train} train / {result.test} test views, split by "
+        f"{result.split}), "
         f"{len(result.event_sensors)} event sensors, {result.bytes / 1e6:.1f} MB in {result.wall_s:.1f} s",
         soft_wrap=True,
         highlight=False,

@@ -18,6 +18,8 @@ from rigd.app.export import bounds, colmap, dsec, dynamic3dgs, nerfstudio
 from rigd.app.export.common import (
     FORMATS,
     IMAGE_THREADS,
+    SPLITS,
+    WORLDS,
     Camera,
     ExportOptions,
     ExportPlan,
@@ -26,15 +28,19 @@ from rigd.app.export.common import (
     frame_table,
     parse_count,
     parse_size,
+    test_camera_positions,
 )
 from rigd.app.export.sensors import voxel_windows, write_event_products
 from rigd.app.export.staging import ExportWriteError, Staging, check_target
+from rigd.app.export.world import apply_world
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate, no_progress
 from rigd.core.errors import TakeError
 from rigd.take.reader import Take, open_take
 
 __all__ = [
     "FORMATS",
+    "SPLITS",
+    "WORLDS",
     "ExportOptions",
     "ExportResult",
     "ExportWriteError",
@@ -58,7 +64,13 @@ class ExportResult(BaseModel):
     timesteps: int
     cameras: list[str]
     train: int
+    """Views (timestep, camera) that train."""
     test: int
+    split: str
+    test_cameras: list[str]
+    world: str
+    rig_to_world: list[list[float]]
+    """4x4: x_world = rig_to_world @ x_rig (the rig frame of the take's calibration)."""
     event_sensors: list[str]
     t0_us: int
     t1_us: int
@@ -127,6 +139,7 @@ def run_export(options: ExportOptions, progress: ProgressCallback = no_progress)
         cameras = cameras_of(take, options.resize)
         frames = frame_table(take, take.cameras)
         check_sizes(options, take, frames)
+        test_camera_positions(options, take.cameras)
         staging = Staging(options.out, leftovers, {"take": str(take.path), "format": options.format})
         try:
             result = _write(options, take, cameras, frames, staging.dir, progress, start)
@@ -151,9 +164,12 @@ def _write(
 ) -> ExportResult:
     """Every file of the export under `out` (the staging directory), export.json last."""
     plan = ExportPlan(options=options, take=take, cameras=cameras, frames=frames, progress=progress, out=out)
+    apply_world(plan)
+    train = plan.train_mask
     progress(ProgressUpdate("images", f"0/{plan.images()} frames", 0, plan.images()))
     writer = {
         "dynamic3dgs": dynamic3dgs.write,
+        "4dgaussians": dynamic3dgs.write,
         "nerfstudio": nerfstudio.write,
         "colmap": colmap.write,
         "dsec": dsec.write,
@@ -167,8 +183,12 @@ def _write(
         out=str(options.out),
         timesteps=int(frames.pulses.size),
         cameras=[c.name for c in cameras],
-        train=int(frames.train.sum()),
-        test=int((~frames.train).sum()),
+        train=int(train.sum()),
+        test=int((~train).sum()),
+        split=options.split_kind,
+        test_cameras=[cameras[j].name for j in plan.test_cameras] if options.split_kind == "camera" else [],
+        world=plan.world_note,
+        rig_to_world=plan.rig_to_world.tolist(),
         event_sensors=take.event_sensors,
         t0_us=frames.t0_us,
         t1_us=frames.t1_us,

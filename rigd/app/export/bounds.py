@@ -41,8 +41,10 @@ MAX_IMAGE_PIXELS = 1 << 30
 MAX_SIDE = {"jpeg": 65_500, "png": 1 << 20}
 #: Largest HDF5 chunk (one voxel grid is one chunk).
 MAX_CHUNK_BYTES = (1 << 32) - 1
-#: Formats whose images are JPEG and that triangulate an initial point cloud with SIFT.
-JPEG_FORMATS = ("dynamic3dgs", "colmap")
+#: Formats whose images are JPEG (libjpeg bounds their side).
+JPEG_FORMATS = ("dynamic3dgs", "4dgaussians", "colmap")
+#: Formats that triangulate an initial point cloud with SIFT (dsec only with --world floor).
+SIFT_FORMATS = ("dynamic3dgs", "4dgaussians", "colmap", "nerfstudio")
 
 
 def _gb(n: float) -> str:
@@ -90,7 +92,7 @@ class Budget:
 def image_bytes_per_px(fmt: str, threads: int) -> int:
     """Peak bytes per output pixel of a format's image stage (the larger of encoding and SIFT)."""
     encode = threads * IMAGE_BYTES_PER_PX
-    return max(encode, SIFT_BYTES_PER_PX) if fmt in JPEG_FORMATS else encode
+    return max(encode, SIFT_BYTES_PER_PX) if fmt in SIFT_FORMATS else encode
 
 
 def _refuse(asked: str, value: int, limits: list[tuple[int, str]]) -> None:

@@ -1,15 +1,16 @@
 # ruff: noqa: N803, N806  (R follows the notation of the calibration literature)
 """COLMAP sparse model of the calibrated rig, one registered image per (timestep, camera).
 
-    sparse/0/cameras.bin   one PINHOLE camera per rig camera (fx, fy, cx, cy of the new K)
+    sparse/0/cameras.bin   one PINHOLE camera per rig camera (fx, fy, cx, cy of the new K, in
+                           COLMAP's pixels: pixel (0, 0) centred at (0.5, 0.5), cx = rigd's + 0.5)
     sparse/0/images.bin    image per frame: qvec/tvec world -> camera (OpenCV axes, the rig frame),
                            name <cam>/<t:06d>.jpg, its 2-D observations of the points
     sparse/0/points3D.bin  the triangulated initial point cloud with its two-view tracks
     images/<cam>/<t:06d>.jpg
     times.json             per image name: t_us (mid-exposure, rig us), time in [0, 1], split
-  and the tree of 4DGaussians' multi-view loader (write_multiview):
-    sparse_/cameras.bin, images.bin (one image per camera), points3D_multipleview.bin,
-    poses_bounds_multipleview.npy, cam<NN>/frame_<NNNNN>.jpg (hard links to images/)
+
+4DGaussians reads `--format 4dgaussians` (its PanopticSports reader, one K per camera): given
+this directory, its `Scene` sees `sparse/` and takes the plain COLMAP reader, which has no time.
 
 Binary layout as COLMAP's src/colmap/scene/reconstruction_io.cc writes it (little endian):
 cameras: u64 n, then u32 id, i32 model, u64 width, u64 height, f64 params[]; images: u64 n, then
@@ -22,16 +23,14 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
 import struct
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from rigd.app.export.common import ExportPlan
-from rigd.app.export.points import PointCloud, triangulate
+from rigd.app.export.common import PIXEL_CENTRE, ExportPlan, K_at
+from rigd.app.export.points import PointCloud, cloud_of
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +72,8 @@ def _write_cameras(plan: ExportPlan, dest: Path) -> None:
         f.write(struct.pack("<Q", len(plan.cameras)))
         for j, c in enumerate(plan.cameras):
             f.write(struct.pack("<IiQQ", j + 1, PINHOLE, c.size[0], c.size[1]))
-            f.write(struct.pack("<4d", c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]))
+            K = K_at(c.K, PIXEL_CENTRE["colmap"])
+            f.write(struct.pack("<4d", K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
 
 
 def _write_points(cloud: PointCloud, path: Path, tracks: NDArray[np.int64] | None) -> None:
@@ -98,7 +98,8 @@ def write_model(plan: ExportPlan, cloud: PointCloud, dest: Path) -> None:
     n = len(cloud)
     v = cloud.views
     obs_image = np.concatenate([v[:, 0] * C + v[:, 1], v[:, 0] * C + v[:, 2]])
-    obs_uv = np.concatenate([cloud.uv[:, 0], cloud.uv[:, 1]])
+    # COLMAP's pixel (0, 0) is centred at (0.5, 0.5); the matches are in rigd's pixels.
+    obs_uv = np.concatenate([cloud.uv[:, 0], cloud.uv[:, 1]]) + PIXEL_CENTRE["colmap"]
     obs_point = np.concatenate([np.arange(n), np.arange(n)])
     order = np.argsort(obs_image, kind="stable")
     starts = np.searchsorted(obs_image[order], np.arange(T * C + 1))
@@ -120,55 +121,19 @@ def write_model(plan: ExportPlan, cloud: PointCloud, dest: Path) -> None:
     _write_points(cloud, dest / "points3D.bin", tracks)
 
 
-def write_multiview(plan: ExportPlan, cloud: PointCloud) -> None:
-    """The tree of 4DGaussians' multi-view loader (scene/multipleview_dataset.py): sparse_/ with
-    one image per camera named image<NN>.jpg (the loader takes NN from name[5:-4] and reads
-    cam<NN>/frame_<i+1:05d>.jpg), points3D_multipleview.bin (tracks left empty: the loader
-    reads xyz and rgb), and poses_bounds_multipleview.npy (LLFF poses of its test-video path).
-    The frames are hard links to images/ (copies where links are not possible)."""
-    dest = plan.out / "sparse_"
-    dest.mkdir(parents=True, exist_ok=True)
-    _write_cameras(plan, dest)
-    with (dest / "images.bin").open("wb") as f:
-        f.write(struct.pack("<Q", len(plan.cameras)))
-        for j, c in enumerate(plan.cameras):
-            f.write(struct.pack("<I4d3dI", j + 1, *rotmat_to_qvec(c.R), *c.t, j + 1))
-            f.write(f"image{j + 1:02d}.jpg".encode() + b"\0" + struct.pack("<Q", 0))
-    _write_points(cloud, dest / "points3D.bin", None)  # a complete model for COLMAP tools
-    _write_points(cloud, plan.out / "points3D_multipleview.bin", None)
-    for j in range(len(plan.cameras)):
-        folder = plan.out / f"cam{j + 1:02d}"
-        folder.mkdir(exist_ok=True)
-        for k in range(plan.frames.pulses.size):
-            src, link = plan.out / "images" / image_name(plan, k, j), folder / f"frame_{k + 1:05d}.jpg"
-            try:
-                os.link(src, link)
-            except OSError:
-                shutil.copyfile(src, link)
-    depth = np.concatenate([(cloud.xyz @ c.R.T + c.t)[:, 2] for c in plan.cameras])
-    near, far = np.percentile(depth[depth > 0], [0.1, 99.9]) * np.array([0.9, 1.1])
-    rows = []
-    for c in plan.cameras:
-        c2w = c.R.T
-        # LLFF columns: down, right, backwards, centre, then (h, w, focal)
-        pose = np.stack([c2w[:, 1], c2w[:, 0], -c2w[:, 2], c.centre, [c.size[1], c.size[0], c.K[0, 0]]], 1)
-        rows.append(np.concatenate([pose.ravel(), [near, far]]))
-    np.save(plan.out / "poses_bounds_multipleview.npy", np.array(rows))
-
-
 def write(plan: ExportPlan) -> None:
     fr = plan.frames
     plan.write_images(lambda k, j: f"images/{image_name(plan, k, j)}")
-    cloud = triangulate(plan)
+    cloud = cloud_of(plan)
     write_model(plan, cloud, plan.out / "sparse" / "0")
-    write_multiview(plan, cloud)
     time01 = fr.time01()
+    train = plan.train_mask
     times = {
         image_name(plan, k, j): {
             "t_us": int(fr.t_us[k, j]),
             "time": float(time01[k, j]),
             "timestep": k,
-            "split": "train" if fr.train[k] else "test",
+            "split": "train" if train[k, j] else "test",
         }
         for k in range(fr.pulses.size)
         for j in range(len(plan.cameras))

@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Protocol
 
 import cv2
 import h5py
@@ -48,11 +48,35 @@ U8 = NDArray[np.uint8]
 #: Threads that undistort, resize and encode frames (cv2 releases the GIL).
 IMAGE_THREADS = min(4, os.cpu_count() or 1)
 
+
+class PointCloudLike(Protocol):
+    """What a plan keeps of its point cloud (rigd.app.export.points.PointCloud)."""
+
+    xyz: F64
+
+    def __len__(self) -> int: ...
+
+
 #: Relative output path of (timestep k, camera j).
 PathOf = Callable[[int, int], str]
 
-FORMATS = ("dynamic3dgs", "nerfstudio", "colmap", "dsec")
-Format = Literal["dynamic3dgs", "nerfstudio", "colmap", "dsec"]
+FORMATS = ("dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec")
+Format = Literal["dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec"]
+WORLDS = ("board", "cam0", "floor")
+World = Literal["board", "cam0", "floor"]
+SPLITS = ("time", "camera")
+Split = Literal["time", "camera"]
+
+#: The world and split a format gets unless asked otherwise: Dynamic3DGaussians' floor loss needs
+#: a gravity-aligned world with the floor at y = 0, and PanopticSports-style loaders (it and
+#: 4DGaussians' reader of that layout) train and test on the same timesteps, split by camera.
+DEFAULT_WORLD: dict[str, World] = {"dynamic3dgs": "floor", "4dgaussians": "cam0"}
+DEFAULT_SPLIT: dict[str, Split] = {"dynamic3dgs": "camera", "4dgaussians": "camera"}
+
+#: Where a consumer puts the centre of pixel (0, 0): rigd (OpenCV) at 0; COLMAP, nerfstudio
+#: (pixel_offset 0.5) and the diff-gaussian-rasterization projection of Dynamic3DGaussians and
+#: 4DGaussians at 0.5, so their principal point is rigd's plus 0.5.
+PIXEL_CENTRE = {"opencv": 0.0, "colmap": 0.5, "nerfstudio": 0.5, "gaussians": 0.5}
 
 #: OpenCV -> OpenGL camera axes (x right, y up, z backwards): flip y and z.
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -74,7 +98,17 @@ class ExportOptions(BaseModel):
     point_frames: int = Field(
         6, ge=1, le=1000, description="Timesteps used to triangulate the initial point cloud."
     )
-    seg: bool = Field(False, description="dynamic3dgs: also write all-foreground seg/ masks.")
+    seg: bool = Field(
+        False, description="Kept for old command lines: dynamic3dgs always writes its seg/ masks now."
+    )
+    world: World | None = Field(
+        None,
+        description="World frame: board plane, cam0 (the rig frame), floor (gravity-aligned, floor y=0).",
+    )
+    split: Split | None = Field(None, description="Hold out odd timesteps (time) or a camera (camera).")
+    test_cameras: tuple[str, ...] = Field(
+        (), description="--split camera: the held-out cameras (default: the middle camera of the rig)."
+    )
     jpeg_quality: int = Field(95, ge=50, le=100, description="JPEG quality where a format needs JPEG.")
     force: bool = Field(False, description="Replace an earlier export (or its leftovers) at `out`.")
 
@@ -84,6 +118,22 @@ class ExportOptions(BaseModel):
         if v not in FORMATS:
             raise ValueError(f"unknown format {v!r} (one of {', '.join(FORMATS)})")
         return v
+
+    @property
+    def world_frame(self) -> World:
+        return self.world or DEFAULT_WORLD.get(self.format, "cam0")
+
+    @property
+    def split_kind(self) -> Split:
+        return self.split or DEFAULT_SPLIT.get(self.format, "time")
+
+
+def K_at(K: F64, centre: float) -> F64:  # noqa: N802
+    """K in a convention whose pixel (0, 0) is centred at `centre` (rigd's K has it at 0)."""
+    out = np.asarray(K, np.float64).copy()
+    out[0, 2] += centre
+    out[1, 2] += centre
+    return out
 
 
 #: Digits a whole-number knob may have (int64; Python refuses to parse over 4300 digits).
@@ -316,6 +366,24 @@ def frame_table(take: Take, cameras: Sequence[str]) -> FrameTable:
     return FrameTable(pulses=pulses, index=idx, t_us=t, exposure_us=e)
 
 
+def test_camera_positions(options: ExportOptions, names: Sequence[str]) -> list[int]:
+    """Positions of `--split camera`'s held-out cameras (default: the middle camera of the rig);
+    a ConfigError for a name that is no camera, every camera, or --test-camera without the split."""
+    asked = options.test_cameras
+    if asked and options.split_kind != "camera":
+        raise ConfigError(f"--test-camera {', '.join(asked)}: needs --split camera (the split is by time)")
+    if not asked:
+        return [len(names) // 2]
+    unknown = [n for n in asked if n not in names]
+    if unknown:
+        raise ConfigError(
+            f"--test-camera {', '.join(unknown)}: not a camera of the take ({', '.join(names)})"
+        )
+    if len(set(asked)) == len(names):
+        raise ConfigError("--test-camera: every camera held out leaves nothing to train on")
+    return [names.index(n) for n in asked]
+
+
 @dataclass
 class ExportPlan:
     """Everything the format writers need, read once from the take."""
@@ -327,6 +395,34 @@ class ExportPlan:
     progress: ProgressCallback
     out: Path
     """Where the files go: the staging directory, renamed to options.out when complete."""
+    world_note: str = "the rig frame of the stored calibration (cam0)"
+    """What the world frame of the export is (export.json, logs)."""
+    cloud: PointCloudLike | None = None
+    """The initial point cloud in the export's world, once triangulated (`points.cloud_of`)."""
+    rig_to_world: F64 = field(default_factory=lambda: np.eye(4))
+    """x_world = rig_to_world @ x_rig (homogeneous): the transform applied to every pose."""
+
+    def world_pose(self, R: F64, t: F64) -> tuple[F64, F64]:
+        """A device's rig pose (x_cam = R x_rig + t) in the export's world."""
+        A, b = self.rig_to_world[:3, :3], self.rig_to_world[:3, 3]
+        R_w = np.asarray(R, np.float64) @ A.T
+        return R_w, np.asarray(t, np.float64).reshape(3) - R_w @ b
+
+    @property
+    def test_cameras(self) -> list[int]:
+        """Positions of the held-out cameras of `--split camera`."""
+        return test_camera_positions(self.options, [c.name for c in self.cameras])
+
+    @property
+    def train_mask(self) -> NDArray[np.bool_]:
+        """(T, C): does view (timestep k, camera j) train? `--split time`: the even timesteps;
+        `--split camera`: every camera but the held-out ones, at every timestep."""
+        T, C = self.frames.index.shape
+        if self.options.split_kind == "time":
+            return np.repeat(self.frames.train[:, None], C, axis=1)
+        mask = np.ones((T, C), bool)
+        mask[:, self.test_cameras] = False
+        return mask
 
     def images(self) -> int:
         return int(self.frames.index.size)

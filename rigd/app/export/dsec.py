@@ -2,15 +2,22 @@
 """DSEC layout: what DSEC's EventSlicer (and tonic.datasets.DSEC) read.
 
     events/<sensor>/events.h5       events/x (u16), events/y (u16), events/t (u32 us since t_offset;
-                                    i8 would wrap, so int64 when the span exceeds 2^32 us),
-                                    events/p (u8: 1 ON, 0 OFF), ms_to_idx (u64), t_offset (i64, rig us)
+                                    int64 when the span exceeds 2^32 us), events/p (u8: 1 ON, 0 OFF),
+                                    ms_to_idx (u64), t_offset (i64, us since the export's time
+                                    origin: under 1 ms), rig_time_origin_us (i64, rig us of time 0)
     events/<sensor>/rectify_map.h5  rectify_map (H, W, 2) f32: undistorted position of every raw
                                     pixel (only for a calibrated sensor)
     calibration/cameras.json        K_rect, resolution, T_cam_world (4x4, OpenCV) of every device
     images/<cam>/rectified/<t:06d>.png   undistorted frames
-    images/<cam>/timestamps.txt          mid-exposure time of each image, rig us, one per line
+    images/<cam>/timestamps.txt          mid-exposure time of each image, us since the time origin
     images/<cam>/exposure_timestamps.txt "start_us, end_us" per image
-    split.json                           train / test timesteps
+    split.json                           train / test views, time origin (rig us)
+
+Times are counted from the export's time origin, the take's start (the first exposure start,
+rounded down to the ms), not in rig us: EventSlicer adds `t_offset` to the uint32 `t` in uint32
+(numpy >= 2 keeps the array's dtype), so a rig clock past 2^32 us (71.6 min after the box's
+power-on) would wrap or raise OverflowError. The rig time of any export time is
+`rig_time_origin_us` + it.
 
 Events are cropped to the frames' span (first exposure start to last exposure end). `ms_to_idx[i]`
 is the first event with t >= i*1000 (relative to t_offset), for i = 0 .. ceil(span / 1000), so any
@@ -36,10 +43,16 @@ log = logging.getLogger(__name__)
 BLOCK = 1 << 22
 
 
+def time_origin_us(plan: ExportPlan) -> int:
+    """Rig us of the export's time 0: the first exposure start, rounded down to the ms."""
+    return plan.frames.span_us[0] // 1000 * 1000
+
+
 def write_events(plan: ExportPlan, sensor: str) -> int:
     """events.h5 of one sensor over the frames' span; returns the number of events."""
     take = plan.take
     t0, t1 = plan.frames.span_us
+    origin = time_origin_us(plan)
     lo, hi = take.event_index(sensor, t0), take.event_index(sensor, t1)
     n = hi - lo
     t_dtype = np.uint32 if t1 - t0 < 2**32 else np.int64
@@ -73,7 +86,8 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
             out.check()
             plan.progress(ProgressUpdate(f"events {sensor}", f"{done}/{n} events", done, n))
         f.create_dataset("ms_to_idx", data=ms_to_idx)
-        f.create_dataset("t_offset", data=np.int64(t0))
+        f.create_dataset("t_offset", data=np.int64(t0 - origin))
+        f.create_dataset("rig_time_origin_us", data=np.int64(origin))
         f.attrs["polarity"] = "p: 1 ON, 0 OFF (rigd.take.reader.Take gives +1/-1)"
     calib = sensor_calibration(plan, sensor)
     if calib is not None:
@@ -122,20 +136,25 @@ def write_calibration(plan: ExportPlan) -> None:
 
 def write(plan: ExportPlan) -> None:
     fr, cams = plan.frames, plan.cameras
+    origin = time_origin_us(plan)
     plan.write_images(lambda k, j: f"images/{cams[j].name}/rectified/{k:06d}.png")
     for j, c in enumerate(cams):
         d = plan.out / "images" / c.name
-        (d / "timestamps.txt").write_text("".join(f"{int(v)}\n" for v in fr.t_us[:, j]))
-        start = fr.t_us[:, j] - fr.exposure_us[:, j] // 2
+        mid = fr.t_us[:, j] - origin
+        (d / "timestamps.txt").write_text("".join(f"{int(v)}\n" for v in mid))
+        start = mid - fr.exposure_us[:, j] // 2
         end = start + fr.exposure_us[:, j]
         (d / "exposure_timestamps.txt").write_text(
             "# exposure_start_timestamp_us, exposure_end_timestamp_us\n"
             + "".join(f"{int(a)}, {int(b)}\n" for a, b in zip(start, end, strict=True))
         )
     write_calibration(plan)
+    train = plan.train_mask
     split = {
-        "train": [int(k) for k in np.flatnonzero(fr.train)],
-        "test": [int(k) for k in np.flatnonzero(~fr.train)],
+        "kind": plan.options.split_kind,
+        "train": [[int(k), cams[j].name] for k, j in np.argwhere(train)],
+        "test": [[int(k), cams[j].name] for k, j in np.argwhere(~train)],
+        "rig_time_origin_us": origin,
     }
     (plan.out / "split.json").write_text(json.dumps(split))
     for sensor in plan.take.event_sensors:

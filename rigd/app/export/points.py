@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -124,3 +125,28 @@ def triangulate(plan: ExportPlan) -> PointCloud:
         "triangulated %d points (median reprojection %.3f px)", len(cloud), float(np.median(cloud.error_px))
     )
     return cloud
+
+
+def cloud_of(plan: ExportPlan) -> PointCloud:
+    """The plan's point cloud in its world, triangulated once (formats and --world floor share it)."""
+    if plan.cloud is None:
+        plan.cloud = triangulate(plan)
+    assert isinstance(plan.cloud, PointCloud)
+    return plan.cloud
+
+
+def write_ply(cloud: PointCloud, path: Path) -> None:
+    """Binary little-endian PLY with x y z (float) and red green blue (uchar): what open3d and
+    plyfile read (nerfstudio's `ply_file_path`, 4DGaussians' `fetchPly`)."""
+    rows = np.zeros(
+        len(cloud), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")]
+    )
+    rows["x"], rows["y"], rows["z"] = cloud.xyz.T
+    rows["r"], rows["g"], rows["b"] = cloud.rgb.T
+    head = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(cloud)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
+    path.write_bytes(head.encode() + rows.tobytes())

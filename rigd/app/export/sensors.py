@@ -58,11 +58,12 @@ def sensor_calibration(plan: ExportPlan, sensor: str) -> dict[str, Any] | None:
         "dist": dist.tolist(),
         "image_size": list(size),
         "K_rect": K_rect.tolist(),
-        "convention": "x_cam = R x_world + t (OpenCV axes, metres); world = the rig frame of the export",
+        "convention": "x_cam = R x_world + t (OpenCV axes, metres, pixel centres at integers); world: "
+        + plan.world_note,
     }
     if "R" in c and "t" in c:
-        out["R"] = np.asarray(c["R"], np.float64).tolist()
-        out["t"] = np.asarray(c["t"], np.float64).ravel().tolist()
+        R, t = plan.world_pose(np.asarray(c["R"], np.float64), np.asarray(c["t"], np.float64).ravel())
+        out["R"], out["t"] = R.tolist(), t.tolist()
     return out
 
 

@@ -35,7 +35,7 @@ MARKER = ".rigd-export-partial.json"
 #: Top-level names an export writes (every format): a directory holding only these is an export.
 _EXPORT_NAMES = re.compile(
     r"(images|ims|seg|events|segments|sparse|sparse_|calibration|cam\d+|export\.json|train_meta\.json"
-    r"|test_meta\.json|init_pt_cld\.npz|transforms(_train|_test)?\.json|times\.json|split\.json"
+    r"|test_meta\.json|init_pt_cld\.npz|transforms(_train|_val|_test)?\.json|sparse_pc\.ply|times\.json|split\.json"
     r"|points3D_multipleview\.bin|poses_bounds_multipleview\.npy)"
 )
 

@@ -146,3 +146,41 @@ def test_report_ticks_are_round_numbers() -> None:
     assert nice_step(0.1386) == pytest.approx(0.05)
     assert nice_step(0.9) == pytest.approx(0.2)
     assert nice_step(3.0) == pytest.approx(0.5)
+
+
+def test_calibrate_rig_on_a_take_with_ground_truth_prints_its_error(tmp_path: Path) -> None:
+    """A take that carries its ground truth (as a sim take does from its capture): the rig
+    calibration is scored against it, and storing the result into the take keeps the truth."""
+    import json
+
+    import h5py
+    import numpy as np
+
+    from rigd.take.calibration import GROUND_TRUTH_SOURCE, read_ground_truth, store_calibration
+    from tests.rigd.app.workflows.takes import DIST, SIZE, T1
+    from tests.rigd.app.workflows.takes import K as K_TRUE
+
+    take = stereo_board_take(tmp_path / "stereo.h5", n_views=6)
+    intr = {"K": K_TRUE.tolist(), "dist": DIST.tolist(), "image_size": list(SIZE)}
+    for name, t in (("cam0", np.zeros(3)), ("cam1", T1)):
+        pose = {"R": np.eye(3).tolist(), "t": t.tolist()}
+        store_calibration(take, name, intr, pose, source=GROUND_TRUTH_SOURCE)
+    args = ["calibrate", "rig", str(take), "-b", STEREO_BOARD, "--model", "k1k2"]
+    r = runner.invoke(app, [*args, "-o", str(tmp_path / "rig.json"), "--into-take", str(take)])
+    assert r.exit_code == 0, r.output
+    lines = [ln for ln in r.stderr.splitlines() if "vs simulator ground truth" in ln]
+    print("\n".join(lines))
+    assert [ln.split()[0] for ln in lines] == ["cam0", "cam1"], r.stderr
+    for ln in lines:
+        focal = re.search(r"focal ([0-9.]+) px", ln)
+        centre = re.search(r"centre ([0-9.]+) mm", ln)
+        assert focal is not None, ln
+        assert centre is not None, ln
+        assert float(focal[1]) < 3.0, ln  # 6 noisy views of a 320x240 camera with f = 300 px
+        assert float(centre[1]) < 10.0, ln
+    with h5py.File(take, "r") as f:
+        truth = read_ground_truth(f)
+        stored = json.loads(f["calibration/cam1/result_json"][()])
+    assert set(truth) == {"cam0", "cam1"}
+    assert stored["source"] != GROUND_TRUTH_SOURCE
+    np.testing.assert_allclose(stored["ground_truth"]["pose"]["t"], T1)

@@ -41,13 +41,15 @@ def test_spelled_out_choices_match_the_libraries() -> None:
     """The choices the help lists without importing a library are the library's own."""
     from calibration.e2calib import METHODS
     from rigd.app.commands.calibrate import E2CALIB_METHODS
-    from rigd.app.commands.export import EXPORT_FORMATS
+    from rigd.app.commands.export import EXPORT_FORMATS, EXPORT_SPLITS, EXPORT_WORLDS
     from rigd.app.commands.reconstruct import LOCAL_SCHEDULER_NAMES
-    from rigd.app.export import FORMATS
+    from rigd.app.export import FORMATS, SPLITS, WORLDS
     from rigd.app.workflows.reconstruct import LOCAL_SCHEDULERS
 
     assert E2CALIB_METHODS == METHODS
     assert EXPORT_FORMATS == FORMATS
+    assert EXPORT_WORLDS == WORLDS
+    assert EXPORT_SPLITS == SPLITS
     assert LOCAL_SCHEDULER_NAMES == LOCAL_SCHEDULERS
 
 

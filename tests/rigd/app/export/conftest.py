@@ -1,18 +1,16 @@
 """The take every `rigd export` command-line test exports: half a second of the sim rig (3 RGB
-cameras, 2 event sensors at 320x180) watching the board, with the ground-truth calibration stored."""
+cameras, 2 event sensors at 320x180) watching the board, which stores its ground-truth
+calibration as it is captured; and the same take without it (as a real rig's take arrives)."""
 
 from __future__ import annotations
 
 import shutil
 from pathlib import Path
 
+import h5py
 import pytest
 
 from bench.e2calib import capture_board_take
-from firmware_sim.board_scene import BoardScene
-from firmware_sim.world import get_world
-from rigd.take.calibration import store_calibration
-from rigd.take.reader import open_take
 
 RES = (320, 180)
 WORLD = "t-export-cli"
@@ -20,17 +18,11 @@ WORLD = "t-export-cli"
 
 @pytest.fixture(scope="session")
 def takes(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """(uncalibrated take, the same take with the ground-truth calibration stored)."""
+    """(take without calibration, the take as captured: with the simulator's ground truth)."""
     root = tmp_path_factory.mktemp("export-cli")
     cap = capture_board_take(root / "raw", 0.5, RES, world=WORLD, clock="virtual")
-    scene = get_world(WORLD).resource("scene", BoardScene)
-    assert isinstance(scene, BoardScene)
-    calibrated = root / "calibrated.h5"
-    shutil.copy(cap.path, calibrated)
-    with open_take(calibrated) as tk:
-        devices = tk.cameras + tk.event_sensors
-    for d in devices:
-        K, R, t = scene.view_camera(d, *RES)  # noqa: N806
-        intr = {"K": K.tolist(), "dist": [0.0] * 5, "image_size": list(RES)}
-        store_calibration(calibrated, d, intr, {"R": R.tolist(), "t": t.tolist()})
-    return cap.path, calibrated
+    bare = root / "uncalibrated.h5"
+    shutil.copy(cap.path, bare)
+    with h5py.File(bare, "r+") as f:
+        del f["calibration"]
+    return bare, cap.path
