@@ -8,6 +8,8 @@ recording and on encoded streams with jumps back in time and chunks cut mid-word
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -27,7 +29,7 @@ def _chunked(fmt: str, data: bytes, cuts: list[int]) -> tuple[list[tuple[Decoded
     dec = StreamDecoder(fmt)
     out = []
     bounds = [0, *sorted({min(max(c, 0), len(data)) for c in cuts}), len(data)]
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+    for a, b in itertools.pairwise(bounds):
         out.append(dec.feed_chunk(memoryview(data)[a:b]))
     tail, chunk = dec.flush_chunk()
     if chunk is not None:
@@ -46,7 +48,7 @@ def _redecode(chunk: EvtChunk) -> Decoded:
 def _check(fmt: str, data: bytes, cuts: list[int]) -> None:
     parts, whole = _chunked(fmt, data, cuts)
     chunks = [c for _, c in parts]
-    for prev, cur in zip(chunks[:-1], chunks[1:], strict=True):
+    for prev, cur in itertools.pairwise(chunks):
         assert cur.continues(prev)
     assert sum(len(c.data) for c in chunks) == len(data) - len(data) % {"evt3": 2, "evt2": 4}.get(fmt, 8)
     for decoded, chunk in parts:
@@ -90,9 +92,11 @@ def test_held_words_leave_the_state_at_their_start(fmt: str) -> None:
     word = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}[fmt]
     dec = StreamDecoder(fmt)
     _, first = dec.feed_chunk(data[: len(a) + word + 1])
-    assert dec.holding and len(first.data) == len(a)
+    assert dec.holding
+    assert len(first.data) == len(a)
     _, second = dec.feed_chunk(data[len(a) + word + 1 :])
-    assert second.continues(first) and second.data[:word] == data[len(a) : len(a) + word]
+    assert second.continues(first)
+    assert second.data[:word] == data[len(a) : len(a) + word]
     _check(fmt, data, [len(a) + word + 1])
 
 
