@@ -151,7 +151,7 @@ def test_unfinalized_take_reads_in_device_time_with_its_tail(
 
 
 def test_bad_batch_is_refused_whole(tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]) -> None:
-    ev, packets = synthetic
+    _ev, packets = synthetic
     cfg = WriterConfig(event_storage="evt_words", fsync=False)
     path = tmp_path / "b.h5"
     w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
