@@ -111,7 +111,7 @@ class TriggerIn:
     """An event sensor's trigger-in edges (`<sensor>/trigger`), buffered and written in blocks;
     shared by both ways of storing the events (columns, `EventSink`; EVT words, `EvtWordsSink`)."""
 
-    __slots__ = ()
+    __slots__ = ("n_trig_buffered", "n_trig_written", "trig", "trig_host_parts", "trig_parts")
     trig: dict[str, h5py.Dataset]
     trig_parts: list[TriggerEvents]
     trig_host_parts: list[NDArray[np.int64]]
