@@ -156,7 +156,10 @@ class GrabbingSource(abc.ABC, Generic[T]):
 
 
 class EvtStreamSensor(EventSensor):
-    """Decodes a `ByteSource` into event packets; decoder skips are counted, never silent."""
+    """Decodes a `ByteSource` into event packets; decoder skips are counted, never silent.
+    Every packet carries the words it was decoded from (`EventPacket.raw`)."""
+
+    delivers_evt_words = True
 
     def __init__(self, source: ByteSource, *, strict: bool = False) -> None:
         super().__init__(EventSensorSettings())

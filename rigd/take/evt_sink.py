@@ -194,6 +194,8 @@ class EvtWordsSink(TriggerIn):
         leaves no byte behind, and the next one starts a new row from its own state)."""
         raw = packet.raw
         where = f"{path}: /{EVENTS_GROUP}/{self.name}"
+        if raw is None and not len(packet.events):
+            return  # trigger edges alone (a window gate kept them, not the packet's words)
         if raw is None:
             raise TakeError(f"{where}: stores EVT words, but a packet came without them")
         if raw.fmt != self.fmt:

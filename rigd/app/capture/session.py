@@ -414,7 +414,8 @@ class CaptureSession:
             for sen_cfg in config.event_sensors:
                 sen = self._channels[sen_cfg.name].device
                 w, h = sen.geometry  # type: ignore[union-attr]
-                take.add_event_sensor(sen_cfg.name, sen.info, w, h, sen_cfg.settings.model_dump_json())
+                fmt = sen.evt_format if sen.delivers_evt_words else None  # type: ignore[union-attr]
+                take.add_event_sensor(sen_cfg.name, sen.info, w, h, sen_cfg.settings.model_dump_json(), fmt)
         except BaseException:
             self._take = take  # marked failed and closed by the abort
             raise
