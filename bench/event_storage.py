@@ -202,7 +202,8 @@ def main() -> None:
     print(
         f"\n{reps} repeats = {rows['evt_words'].events / 1e6:.1f} M events, fsync on; disk {disk:.0f} MB/s\n"
     )
-    head = "| storage | B/ev events (one pass) | B/ev index | writer Mev/s | Mev/s CPU | file MB/s | finalize s |"
+    head = "| storage | B/ev events (one pass) | B/ev index | writer Mev/s | Mev/s CPU | file MB/s "
+    head += "| finalize s |"
     print(head)
     print("|---|---|---|---|---|---|---|")
     for s in ("evt_words", "columns"):
