@@ -162,7 +162,7 @@ def write_take(
     `codec` "evt_words": the sensor's EVT words stored as sent (`word_packets`)."""
     storage = "evt_words" if codec == "evt_words" else "columns"
     cfg = WriterConfig(
-        event_chunk=chunk,
+        event_chunk=chunk or WriterConfig().event_chunk,
         event_compression="lz4" if codec == "evt_words" else codec,  # type: ignore[arg-type]
         event_storage=storage,  # type: ignore[arg-type]
         fsync=False,

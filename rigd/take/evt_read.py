@@ -31,6 +31,9 @@ FIRST_IN_WINDOW_ATTR = "first_in_window"
 EVENTS_IN_WINDOW_ATTR = "events_in_window"
 WINDOW_ATTR = "window_us"
 _NHEAD = len(EVT_INDEX_COLUMNS)
+#: Device us searched beyond a window's edges mapped back to the device clock (to_device
+#: rounds, and the rate is within a few hundred ppm of 1), before the exact search in rig time.
+_MAP_SLACK_US = 4
 
 
 def clock_map_json(cmap: ClockMap) -> str:
@@ -103,6 +106,11 @@ class EvtWordsEvents:
     # -- decoding ----------------------------------------------------------------------
     def decode_rows(self, r0: int, r1: int) -> EventArray:
         """All stored events of rows [r0, r1), in the reader's time domain (one byte read)."""
+        ev = self._decode_device(r0, r1)
+        return ev if self.cmap is None else ev.with_time(self.cmap.to_rig(ev.t))
+
+    def _decode_device(self, r0: int, r1: int) -> EventArray:
+        """Rows [r0, r1) decoded, times in the device clock (their shifts added)."""
         if r1 <= r0:
             return EventArray.empty()
         base = int(self.start[r0])
@@ -123,8 +131,7 @@ class EvtWordsEvents:
             if self.shift[r]:
                 ev = ev.with_time(ev.t + self.shift[r])
             parts.append(ev)
-        ev = EventArray.concatenate(parts)
-        return ev if self.cmap is None else ev.with_time(self.cmap.to_rig(ev.t))
+        return parts[0] if len(parts) == 1 else EventArray.concatenate(parts)
 
     def _stored_index(self, t: int) -> int:
         """Stored index of the first event at or after t (reader's time domain)."""
@@ -168,10 +175,19 @@ class EvtWordsEvents:
             return EventArray.empty()
         r0 = int(np.searchsorted(self.last, t0, side="left"))
         r1 = int(np.searchsorted(self.first, t1, side="left"))
-        ev = self.decode_rows(r0, max(r0, r1))
-        i = int(np.searchsorted(ev.t, t0, side="left"))
-        j = int(np.searchsorted(ev.t, t1, side="left"))
-        return ev[i : max(i, j)]
+        ev = self._decode_device(r0, max(r0, r1))
+        if self.cmap is None:
+            i = int(np.searchsorted(ev.t, t0, side="left"))
+            return ev[i : max(i, int(np.searchsorted(ev.t, t1, side="left")))]
+        # map only the events near the window: the map is monotonic, its inverse exact to 1 us
+        d0, d1 = (int(v) for v in self.cmap.to_device(np.array([t0, t1])))
+        a = int(np.searchsorted(ev.t, d0 - _MAP_SLACK_US, side="left"))
+        b = int(np.searchsorted(ev.t, d1 + _MAP_SLACK_US, side="left"))
+        rig = self.cmap.to_rig(ev.t[a:b])
+        i = int(np.searchsorted(rig, t0, side="left"))
+        j = max(i, int(np.searchsorted(rig, t1, side="left")))
+        part = ev[a + i : a + j]
+        return part.with_time(rig[i:j])
 
     def span(self) -> tuple[int, int] | None:
         n = len(self)

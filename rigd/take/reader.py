@@ -370,7 +370,7 @@ class Take:
                 words = EvtWordsEvents(g, self.path, cmap, (lo, hi), with_tail=self.status == "recording")
             self._evt[sensor] = words
         words = self._evt[sensor]
-        if words is not None and rig:
+        if words is not None and rig and words.cmap is None:
             self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
         return words
 

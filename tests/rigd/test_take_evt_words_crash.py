@@ -95,13 +95,21 @@ def _script(path: Path) -> str:
     )
 
 
-def _run_and_kill(path: Path, after_s: float) -> int:
+def _run_and_kill(path: Path, flushes: int, after_s: float) -> int:
+    """Run the writer script and SIGKILL it `after_s` after its `flushes`-th flush (so the
+    kill lands at a random moment of its work however slow the machine is); returns the steps
+    its last completed flush covered."""
     proc = subprocess.Popen(
         [sys.executable, "-c", _script(path)], cwd=ROOT, stdout=subprocess.PIPE, text=True, bufsize=1
     )
     assert proc.stdout is not None
     assert proc.stdout.readline().strip() == "START"
-    time.sleep(after_s)  # a kill at a random moment of the writer's work; checks adapt to n
+    seen = []
+    while len(seen) < flushes:
+        line = proc.stdout.readline()
+        assert line.startswith("F "), line
+        seen.append(int(line.split()[1]))
+    time.sleep(after_s)
     proc.send_signal(signal.SIGKILL)
     out = proc.stdout.read()
     proc.wait()
@@ -109,15 +117,15 @@ def _run_and_kill(path: Path, after_s: float) -> int:
     flushed = [
         int(x.split()[1]) for x in out.splitlines(keepends=True) if x.startswith("F ") and x.endswith("\n")
     ]
-    return flushed[-1] if flushed else 0
+    return (flushed or seen)[-1]
 
 
 def test_sigkill_at_random_moments_then_recover_words(tmp_path: Path) -> None:
     rng = np.random.default_rng(20261126)
     sealed = 0
-    for i, after_s in enumerate(rng.uniform(0.8, 2.5, size=5)):
+    for i, (flushes, after_s) in enumerate(zip(rng.integers(1, 5, 5), rng.uniform(0, 0.4, 5), strict=True)):
         path = tmp_path / f"kill{i}.h5"
-        n = _run_and_kill(path, float(after_s))
+        n = _run_and_kill(path, int(flushes), float(after_s))
         with h5py.File(path, "r") as f:
             assert f["events/ev0"].attrs["storage"] == "evt_words"
         exp = expected_events(n + 200)
