@@ -52,6 +52,9 @@ _GROW_CHUNKS = 256
 #: A row of evt_index stops growing at this many bytes (about 1 ms at 20 Mev/s): what a reader
 #: decodes beyond a window's edge.
 ROW_BYTES = 128 << 10
+#: ... or once it spans this many us (a slow sensor's rows stay short in time too: a window's
+#: edges then decode a packet or so beyond it, not 128 KiB of a 1 Mev/s stream, ~40 ms).
+ROW_US = 2000
 #: Rows per chunk of evt_index.
 _INDEX_CHUNK = 1024
 TAIL_WORDS = "tail_evt_words"
@@ -225,7 +228,13 @@ class EvtWordsSink(TriggerIn):
         row = self.row
         t0 = int(t[0]) if n else (self.last_t if self.last_t is not None else 0)
         t1 = int(t[-1]) if n else t0
-        if row is not None and raw.continues(row.last) and row.shift == shift and row.length < ROW_BYTES:
+        if (
+            row is not None
+            and raw.continues(row.last)
+            and row.shift == shift
+            and row.length < ROW_BYTES
+            and row.t_last - row.t_first < ROW_US
+        ):
             row.length += len(raw.data)
             row.events += n
             if n:
