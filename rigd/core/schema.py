@@ -47,7 +47,9 @@ EVENT_STORAGE_ATTR = "storage"
 EVT_WORDS = "evt_words"
 EVT_INDEX = "evt_index"
 #: The first columns of `evt_index`; the decoder state of the sensor's format follows.
-EVT_INDEX_COLUMNS = ("byte_start", "byte_len", "events", "t_first", "t_last", "shift_us")
+#: `follows`: 1 when the row's bytes continue the previous row's in the sensor's stream (nothing
+#: refused or lost between, the same shift), so the two decode as one piece.
+EVT_INDEX_COLUMNS = ("byte_start", "byte_len", "events", "t_first", "t_last", "shift_us", "follows")
 #: Root attrs of a take sealed by `rigd recover` (ISO time; JSON RecoveryReport).
 RECOVERED_ATTR = "recovered_utc"
 END_REASON_ATTR = "end_reason"

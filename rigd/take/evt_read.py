@@ -11,6 +11,7 @@ finalize counted (`window_range`). Event indices count the events inside the win
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -63,6 +64,7 @@ class EvtWordsEvents:
         idx = np.asarray(g[EVT_INDEX][...], dtype=np.int64).reshape(-1, g[EVT_INDEX].shape[1])
         self.start, self.length, self.count = idx[:, 0], idx[:, 1], idx[:, 2]
         self.shift = idx[:, 5]
+        self.follows = idx[:, 6]
         self.states = idx[:, _NHEAD:]
         self.cum = np.concatenate([[0], np.cumsum(self.count)]).astype(np.int64)
         self.cmap = cmap
@@ -110,26 +112,29 @@ class EvtWordsEvents:
         return ev if self.cmap is None else ev.with_time(self.cmap.to_rig(ev.t))
 
     def _decode_device(self, r0: int, r1: int) -> EventArray:
-        """Rows [r0, r1) decoded, times in the device clock (their shifts added)."""
+        """Rows [r0, r1) decoded, times in the device clock (their shifts added): each run of
+        rows that follow on in the stream with one decoder from its first row's state."""
         if r1 <= r0:
             return EventArray.empty()
         base = int(self.start[r0])
         data = self._bytes(base, int(self.start[r1 - 1] + self.length[r1 - 1]))
+        breaks = [r0, *(r0 + 1 + np.flatnonzero(self.follows[r0 + 1 : r1] == 0)).tolist(), r1]
         parts = []
-        for r in range(r0, r1):
-            a = int(self.start[r]) - base
-            dec = StreamDecoder(self.fmt, width=self.width, height=self.height, state=self.states[r])
-            ev = dec.feed(data[a : a + int(self.length[r])]).events
+        for a, b in itertools.pairwise(breaks):
+            lo, hi = int(self.start[a]) - base, int(self.start[b - 1] + self.length[b - 1]) - base
+            dec = StreamDecoder(self.fmt, width=self.width, height=self.height, state=self.states[a])
+            ev = dec.feed(data[lo:hi]).events
             held = dec.flush().events
             if len(held):
                 ev = EventArray.concatenate([ev, held])
-            if len(ev) != int(self.count[r]):
+            want = int(self.cum[b] - self.cum[a])
+            if len(ev) != want:
                 raise TakeFormatError(
-                    f"{self.where}/{EVT_INDEX}: row {r} decodes to {len(ev)} events, the index says "
-                    f"{int(self.count[r])} (damaged words or index)"
+                    f"{self.where}/{EVT_INDEX}: rows [{a}, {b}) decode to {len(ev)} events, the index "
+                    f"says {want} (damaged words or index)"
                 )
-            if self.shift[r]:
-                ev = ev.with_time(ev.t + self.shift[r])
+            if self.shift[a]:
+                ev = ev.with_time(ev.t + self.shift[a])
             parts.append(ev)
         return parts[0] if len(parts) == 1 else EventArray.concatenate(parts)
 

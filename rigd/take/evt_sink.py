@@ -86,9 +86,18 @@ class _Row:
     shift: int
     state: NDArray[np.int64]
     last: EvtChunk
+    follows: bool
 
     def as_array(self) -> NDArray[np.int64]:
-        head = [self.start, self.length, self.events, self.t_first, self.t_last, self.shift]
+        head = [
+            self.start,
+            self.length,
+            self.events,
+            self.t_first,
+            self.t_last,
+            self.shift,
+            int(self.follows),
+        ]
         return np.concatenate([np.asarray(head, np.int64), self.state.astype(np.int64)])
 
 
@@ -130,6 +139,8 @@ class EvtWordsSink(TriggerIn):
     appendable: bool = True
     refused: int = 0
     """Batches refused whole (their bytes not stored)."""
+    prev: EvtChunk | None = None
+    """The last chunk stored (None after a refused one): whether the next row `follows`."""
     stats: DeviceWriteStats = field(default_factory=lambda: DeviceWriteStats("event_sensor"))
     _zstd: Any = field(default_factory=lambda: zstandard.ZstdCompressor(level=_ZSTD_LEVEL))
 
@@ -151,7 +162,9 @@ class EvtWordsSink(TriggerIn):
         index = g.create_dataset(
             EVT_INDEX, shape=(0, ncol), maxshape=(None, ncol), dtype=np.int64, chunks=(_INDEX_CHUNK, ncol)
         )
-        index.attrs["columns"] = ",".join([*EVT_INDEX_COLUMNS, *(f"state{i}" for i in range(ncol - 6))])
+        index.attrs["columns"] = ",".join(
+            [*EVT_INDEX_COLUMNS, *(f"state{i}" for i in range(ncol - len(EVT_INDEX_COLUMNS)))]
+        )
         g.create_dataset("t_offset", data=np.int64(0))  # finalize sets it, as for columns
         tg = g.create_group("trigger")
         trig = {k: new_series(tg, k, dt, {}) for k, dt in TRIGGER_DTYPES.items()}
@@ -213,8 +226,10 @@ class EvtWordsSink(TriggerIn):
             except TakeError:
                 self.refused += 1
                 self._close_row()
+                self.prev = None
                 raise
         self._add_row(raw, n, ev.t, int(raw.shift_us))
+        self.prev = raw
         self._append_words(raw.data)
         if n:
             if self.first_t is None:
@@ -244,7 +259,10 @@ class EvtWordsSink(TriggerIn):
             row.last = raw
             return
         self._close_row()
-        self.row = _Row(self.n_bytes, len(raw.data), n, t0, t1, shift, np.asarray(raw.state, np.int64), raw)
+        prev = self.prev
+        follows = prev is not None and raw.continues(prev) and prev.shift_us == shift
+        state = np.asarray(raw.state, np.int64)
+        self.row = _Row(self.n_bytes, len(raw.data), n, t0, t1, shift, state, raw, follows)
 
     def _close_row(self) -> None:
         if self.row is not None and self.row.length:

@@ -161,3 +161,28 @@ def test_bad_batch_is_refused_whole(tmp_path: Path, synthetic: tuple[EventArray,
     w.close()
     with open_take(path) as take:
         assert take.event_count("ev0") == 0
+
+
+def test_refused_batch_mid_stream_leaves_no_bytes(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """A batch refused mid-stream (time going back): its words are not stored and the next
+    row decodes from its own state; every other packet reads back exactly."""
+    _, packets = synthetic
+    cfg = WriterConfig(event_storage="evt_words", fsync=False)
+    path = tmp_path / "m.h5"
+    w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 480, "{}", "evt3")
+    for p in packets[:6]:
+        w.append_packet("ev0", p)
+    with pytest.raises(TakeError, match="before the previous event"):
+        w.append_packet("ev0", packets[2])
+    for p in packets[6:]:
+        w.append_packet("ev0", p)
+    w.finalize({"ev0": CMAP}, {}, REPORT)
+    w.close()
+    with open_take(path) as take, h5py.File(path) as f:
+        index = f["events/ev0/evt_index"][...]
+        assert index[1:, 6].min() == 0  # besides the first row, a row that does not follow on: after the refused batch
+        assert f["events/ev0/evt_words"].shape[0] == sum(len(p.raw.data) for p in packets if p.raw)
+        assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in packets])))
