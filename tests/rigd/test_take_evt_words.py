@@ -183,6 +183,6 @@ def test_refused_batch_mid_stream_leaves_no_bytes(
     w.close()
     with open_take(path) as take, h5py.File(path) as f:
         index = f["events/ev0/evt_index"][...]
-        assert index[1:, 6].min() == 0  # besides the first row, a row that does not follow on: after the refused batch
+        assert index[1:, 6].min() == 0  # the row after the refused batch does not follow on
         assert f["events/ev0/evt_words"].shape[0] == sum(len(p.raw.data) for p in packets if p.raw)
         assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in packets])))
