@@ -33,6 +33,7 @@ import h5py
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
+from drivers.evt import FORMATS as EVT_FORMATS
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError, TakeTruncatedError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
@@ -321,12 +322,13 @@ class TakeWriter:
             raise TakeError(f"{self.path}: event sensor {name!r}: geometry {width}x{height} out of range")
         g = self._f[EVENTS_GROUP].create_group(name)
         _write_info_attrs(g, info, settings_json)
-        if evt_format is not None and self._cfg.event_storage == "evt_words":
+        if evt_format in EVT_FORMATS and self._cfg.event_storage == "evt_words":
             self._events[name] = EvtWordsSink.create(name, g, width, height, evt_format)
         else:
             g.attrs["storage"] = "columns"
             if self._cfg.event_storage == "evt_words":
-                g.attrs["storage_note"] = "columns: the sensor's packets carry no EVT words"
+                why = "carry no EVT words" if evt_format is None else f"are {evt_format}, not EVT words"
+                g.attrs["storage_note"] = f"columns: the sensor's packets {why}"
             sink = EventSink.create(name, g, width, height, self._cfg.event_chunk, self._ev_opts)
             self._events[name] = sink
         self._f.flush()

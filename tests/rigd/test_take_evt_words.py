@@ -14,7 +14,7 @@ import pytest
 
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import TakeError
-from rigd.core.events import EventArray, EventPacket
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
@@ -186,3 +186,22 @@ def test_refused_batch_mid_stream_leaves_no_bytes(
         assert index[1:, 6].min() == 0  # the row after the refused batch does not follow on
         assert f["events/ev0/evt_words"].shape[0] == sum(len(p.raw.data) for p in packets if p.raw)
         assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in packets])))
+
+
+@pytest.mark.parametrize("fmt", [None, "dat"])
+def test_sensor_without_words_falls_back_to_columns(
+    tmp_path: Path, fmt: str | None, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    ev, _ = synthetic
+    path = tmp_path / "c.h5"
+    w = TakeWriter(
+        path, rig_config_json="{}", take_id="t", config=WriterConfig(fsync=False), rigd_version="t"
+    )
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 480, "{}", fmt)
+    w.append_packet("ev0", EventPacket(ev[:1000], TriggerEvents.empty(), 0))
+    w.close()
+    with h5py.File(path) as f:
+        g = f["events/ev0"]
+        assert g.attrs["storage"] == "columns"
+        assert "EVT words" in g.attrs["storage_note"]
+        assert g["t"].shape == (1000,)
