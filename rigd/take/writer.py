@@ -643,6 +643,15 @@ class TakeWriter:
         attrs[WINDOW_MARGIN_ATTR] = np.int64(margin_us)
         attrs[WINDOW_OUTSIDE_ATTR] = json.dumps({k: dict(v) for k, v in outside.items()}, sort_keys=True)
 
+    def events_in_take(self) -> dict[str, int]:
+        """Events each sensor's readers see: for EVT-word sensors, once finalized, those inside
+        the take window (a packet across its edge is stored whole and clipped on read)."""
+        out = {}
+        for name, sink in self._events.items():
+            inside = sink.group.attrs.get("events_in_window") if isinstance(sink, EvtWordsSink) else None
+            out[name] = sink.n_written if inside is None else int(inside)
+        return out
+
     @property
     def flush_count(self) -> int:
         return self._flush_count

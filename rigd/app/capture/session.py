@@ -537,6 +537,7 @@ class CaptureSession:
             self.config, take, trigger, self._channels, self._ledger, self._faults, self._control, emitted
         )
         counts = {name: ch.written for name, ch in self._channels.items()}
+        counts.update(take.events_in_take())  # EVT words: a packet across a window edge is clipped on read
         return CaptureResult(
             self.path,
             report,
