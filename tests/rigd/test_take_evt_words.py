@@ -6,6 +6,7 @@ call must agree, on the real Gen4.1 recording and on synthetic streams with a wi
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import h5py
@@ -205,3 +206,22 @@ def test_sensor_without_words_falls_back_to_columns(
         assert g.attrs["storage"] == "columns"
         assert "EVT words" in g.attrs["storage_note"]
         assert g["t"].shape == (1000,)
+
+
+def test_re_tied_clock_shift_is_applied_on_read(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """A restarted clock re-tied by the capture path: the packets' times carry the shift, their
+    words do not; the chunk's shift_us says so and the reader adds it back."""
+    _, packets = synthetic
+    shift = 7_000_000
+    later = []
+    for p in packets[5:]:
+        assert p.raw is not None
+        raw = dataclasses.replace(p.raw, shift_us=shift)
+        later.append(EventPacket(p.events.with_time(p.events.t + shift), p.triggers, 0, raw))
+    moved = packets[:5] + later
+    write(tmp_path / "s.h5", moved, "evt_words", width=640, height=480)
+    with open_take(tmp_path / "s.h5") as take, h5py.File(tmp_path / "s.h5") as f:
+        assert set(f["events/ev0/evt_index"][:, 5].tolist()) == {0, shift}
+        assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in moved])))
