@@ -330,7 +330,7 @@ class EvtWordsSink(TriggerIn):
         self.tail[slot, have:n] = np.frombuffer(self.pend, np.uint8)[have:n]
         meta[slot, 1] = n
         self.tail_slot = slot
-        self.group.attrs[TAIL_WORDS_META] = meta
+        self.group.attrs.modify(TAIL_WORDS_META, meta)  # in place: no attribute heap churn
 
     def drop_tails(self) -> None:
         """After everything is in evt_words (close, fail, finalize) the tail slots go."""
