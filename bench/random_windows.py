@@ -20,9 +20,11 @@ disk. The write rate is the writer's own time (append + a flush per second of da
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,8 +32,9 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.evt import StreamDecoder, encode
 from rigd.core.devices import DeviceInfo
-from rigd.core.events import EventArray
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
@@ -48,6 +51,8 @@ BLOCK_S = 5.0
 #: The reader before this bench (commit 1dc254c) opened files with this chunk cache.
 _LEGACY_CACHE = 64 << 20
 BASELINE = (1 << 18, "lz4")
+#: Bytes per driver buffer of the EVT words take (about 10 ms of this stream).
+WORD_BUFFER = 32 << 10
 
 
 def synth_block(seconds: float, rate: float, seed: int = 0) -> EventArray:
@@ -112,24 +117,68 @@ class Row:
     legacy: Timing | None
 
 
+def word_packets(block: EventArray) -> list[EventPacket]:
+    """The block as an EVT 3.0 sensor would send it, decoded in driver-sized buffers with the
+    production decoder: packets carrying their words (`codec` "evt_words")."""
+    data = encode("evt3", block)
+    dec = StreamDecoder("evt3", width=WIDTH, height=HEIGHT)
+    out = []
+    for pos in range(0, len(data), WORD_BUFFER):
+        got, chunk = dec.feed_chunk(data[pos : pos + WORD_BUFFER])
+        if len(got.events):
+            out.append(EventPacket(got.events, got.triggers, 0, chunk))
+    return out
+
+
+def _appends(
+    block: EventArray, seconds: float, codec: str, words: list[EventPacket] | None
+) -> Iterator[EventPacket]:
+    if words is None or codec != "evt_words":
+        for shift, a, b in packets(block, seconds):
+            yield EventPacket(block[a:b].with_time(block.t[a:b] + shift), TriggerEvents.empty(), 0)
+        return
+    span = int(BLOCK_S * 1e6)
+    for k in range(int(np.ceil(seconds / BLOCK_S))):
+        shift = k * span
+        for p in words:
+            if int(p.events.t[0]) + shift >= seconds * 1e6:
+                return
+            raw = p.raw
+            assert raw is not None
+            ev = p.events.with_time(p.events.t + shift)
+            yield EventPacket(ev, p.triggers, 0, dataclasses.replace(raw, shift_us=shift))
+
+
 def write_take(
-    path: Path, block: EventArray, seconds: float, chunk: int, codec: str
+    path: Path,
+    block: EventArray,
+    seconds: float,
+    chunk: int,
+    codec: str,
+    words: list[EventPacket] | None = None,
 ) -> tuple[int, float, float, float]:
     """Write and finalize one take; (events, write Mev/s wall, Mev/s of writer CPU, stored
-    bytes/event). Only the writer's calls are timed: append, and a flush per second of data."""
-    cfg = WriterConfig(event_chunk=chunk, event_compression=codec, fsync=False)
+    bytes/event). Only the writer's calls are timed: append, and a flush per second of data.
+    `codec` "evt_words": the sensor's EVT words stored as sent (`word_packets`)."""
+    storage = "evt_words" if codec == "evt_words" else "columns"
+    cfg = WriterConfig(
+        event_chunk=chunk or WriterConfig().event_chunk,
+        event_compression="lz4" if codec == "evt_words" else codec,  # type: ignore[arg-type]
+        event_storage=storage,  # type: ignore[arg-type]
+        fsync=False,
+    )
     w = TakeWriter(path, rig_config_json="{}", take_id=path.stem, config=cfg, rigd_version="bench")
-    w.add_event_sensor(SENSOR, DeviceInfo(kind="event_sensor", spec="bench"), WIDTH, HEIGHT, "{}")
+    w.add_event_sensor(SENSOR, DeviceInfo(kind="event_sensor", spec="bench"), WIDTH, HEIGHT, "{}", "evt3")
     wall, cpu, n, next_flush = 0.0, 0.0, 0, 1_000_000
-    for shift, a, b in packets(block, seconds):
-        ev = block[a:b].with_time(block.t[a:b] + shift)
+    for packet in _appends(block, seconds, codec, words):
+        ev = packet.events
         w0, c0 = time.perf_counter(), time.thread_time()
-        w.append_events(SENSOR, ev)
+        w.append_packet(SENSOR, packet)
         if int(ev.t[-1]) >= next_flush:
             w.flush()
             next_flush += 1_000_000
         wall, cpu = wall + time.perf_counter() - w0, cpu + time.thread_time() - c0
-        n += b - a
+        n += len(ev)
     w0, c0 = time.perf_counter(), time.thread_time()
     w.flush()
     wall, cpu = wall + time.perf_counter() - w0, cpu + time.thread_time() - c0
@@ -183,10 +232,16 @@ def time_windows(path: Path, starts: NDArray[np.int64], window_us: int, legacy: 
 
 
 def run_one(
-    tmp: Path, block: EventArray, minutes: float, chunk: int, codec: str, args: argparse.Namespace
+    tmp: Path,
+    block: EventArray,
+    minutes: float,
+    chunk: int,
+    codec: str,
+    args: argparse.Namespace,
+    words: list[EventPacket] | None = None,
 ) -> Row:
     path = tmp / f"rw-{chunk}-{codec}-{minutes:g}.h5"
-    n, rate, rate_cpu, bpe = write_take(path, block, minutes * 60, chunk, codec)
+    n, rate, rate_cpu, bpe = write_take(path, block, minutes * 60, chunk, codec, words)
     window_us = int(args.window_ms * 1000)
     with open_take(path) as take:
         span = take.event_span(SENSOR)
@@ -241,11 +296,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--windows", type=int, default=400)
     ap.add_argument("--window-ms", type=float, default=50.0)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--evt-words",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="Also a take of EVT words as sent (the default storage of EVT sensors; chunk column 0).",
+    )
     ap.add_argument("--dir", type=Path, default=None, help="Where to write (default: a temp dir).")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     cfg = WriterConfig()
-    default = (cfg.event_chunk, cfg.event_compression)
+    default = (cfg.event_chunk, cfg.event_compression)  # of the columns layout (DAT replays, old takes)
     chunks = [int(c) for c in args.chunks.split(",")]
     codecs = args.codecs.split(",")
     print(
@@ -259,6 +320,9 @@ def main(argv: list[str] | None = None) -> None:
         extra = [(int(c), k) for c, k in (item.split(":") for item in args.full.split(",") if item)]
         for chunk, codec in dict.fromkeys([BASELINE, default, *extra]):
             rows.append(run_one(Path(tmp), block, args.minutes, chunk, codec, args))
+        if args.evt_words:
+            words = word_packets(block)
+            rows.append(run_one(Path(tmp), block, args.minutes, 0, "evt_words", args, words))
         for codec in codecs:
             for chunk in chunks:
                 rows.append(run_one(Path(tmp), block, args.sweep_minutes, chunk, codec, args))

@@ -32,6 +32,7 @@ import psutil
 
 from rigd.app.config import default_sim_rig
 from rigd.app.service.client import DaemonClient, find_daemon
+from rigd.take import open_take
 
 
 def _check_take(path: Path) -> dict[str, Any]:
@@ -39,8 +40,9 @@ def _check_take(path: Path) -> dict[str, Any]:
         report = json.loads(f["sync/report_json"][()])
         pulses = int(f["trigger/pulses/index"].shape[0])
         frames = {c: int(f[f"frames/{c}/images"].shape[0]) for c in f["frames"]}
-        events = sum(int(f[f"events/{s}/t"].shape[0]) for s in f["events"])
         status = str(f.attrs["status"])
+    with open_take(path) as take:  # either event layout (columns, EVT words)
+        events = sum(take.event_count(s) for s in take.event_sensors)
     emitted = int(report.get("pulses_emitted") or pulses)
     unreported = 0
     for cam, n in frames.items():

@@ -400,6 +400,9 @@ class EventSensor(AcquiringDevice[EventPacket, EventSensorSettings]):
     """An event camera delivering change events and trigger-in edges."""
 
     kind = "event_sensor"
+    #: Its packets carry the EVT words they were decoded from (`EventPacket.raw`, in the format
+    #: `evt_format` names), so a take can store them as sent; False: decoded events only.
+    delivers_evt_words: bool = False
 
     @property
     @abc.abstractmethod

@@ -18,12 +18,15 @@ from drivers.base import AcquisitionStats, Capability, EventSensor
 from drivers.evt import StreamDecoder, warm_up_decoder
 from drivers.lifecycle import Acquisition, DeliveryQueue, Signal
 from rigd.core.devices import DeviceInfo
-from rigd.core.events import EventPacket
+from rigd.core.events import EventPacket, EvtChunk
 from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+#: Bytes of time words (no event, no edge) carried into the next packet's chunk at most; past
+#: that they are let go (they decode to nothing) and the next chunk starts from its own state.
+_MAX_QUIET_BYTES = 1 << 20
 
 
 class ByteSource(Protocol):
@@ -153,7 +156,10 @@ class GrabbingSource(abc.ABC, Generic[T]):
 
 
 class EvtStreamSensor(EventSensor):
-    """Decodes a `ByteSource` into event packets; decoder skips are counted, never silent."""
+    """Decodes a `ByteSource` into event packets; decoder skips are counted, never silent.
+    Every packet carries the words it was decoded from (`EventPacket.raw`)."""
+
+    delivers_evt_words = True
 
     def __init__(self, source: ByteSource, *, strict: bool = False) -> None:
         super().__init__(EventSensorSettings())
@@ -161,6 +167,8 @@ class EvtStreamSensor(EventSensor):
         width, height = source.geometry
         self._decoder = StreamDecoder(source.evt_format, width=width, height=height, strict=strict)
         self._bytes = 0
+        self._quiet: EvtChunk | None = None
+        """Decoded bytes that gave nothing yet, so the next packet's chunk carries them."""
 
     @property
     def info(self) -> DeviceInfo:
@@ -212,21 +220,35 @@ class EvtStreamSensor(EventSensor):
             if got is None:
                 return self._flushed()
             data, host_ns = got
-            decoded = self._decoder.feed(data)
+            decoded, chunk = self._decoder.feed_chunk(data)
             self._bytes += len(data)
+            chunk = self._joined(chunk)
             if len(decoded.events) or len(decoded.triggers):
-                return EventPacket(decoded.events, decoded.triggers, host_ns)
+                return EventPacket(decoded.events, decoded.triggers, host_ns, chunk)
+            self._keep_quiet(chunk)
             if time.monotonic() >= deadline:
                 return None
+
+    def _joined(self, chunk: EvtChunk) -> EvtChunk:
+        """The chunk with the quiet bytes decoded before it in front (one copy, rare)."""
+        quiet, self._quiet = self._quiet, None
+        if quiet is None or not chunk.continues(quiet):
+            return chunk
+        return EvtChunk(chunk.fmt, quiet.data + chunk.data, quiet.state, quiet.stream, quiet.offset)
+
+    def _keep_quiet(self, chunk: EvtChunk) -> None:
+        if chunk.data and len(chunk.data) <= _MAX_QUIET_BYTES:
+            self._quiet = chunk
 
     def _flushed(self) -> EventPacket | None:
         """Once stopped and drained: what the decoder held back at a time jump it could not yet
         confirm, decided now (no more bytes will tell), so nothing stays behind unreported."""
         if self.acquiring or not self._decoder.holding:
             return None
-        decoded = self._decoder.flush()
+        decoded, chunk = self._decoder.flush_chunk()
         if len(decoded.events) or len(decoded.triggers):
-            return EventPacket(decoded.events, decoded.triggers, time.monotonic_ns())
+            raw = None if chunk is None else self._joined(chunk)
+            return EventPacket(decoded.events, decoded.triggers, time.monotonic_ns(), raw)
         return None
 
     def _counters(self) -> tuple[int, dict[str, int]]:

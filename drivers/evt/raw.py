@@ -8,6 +8,7 @@ output batch per call, so files of any size decode in constant memory through `R
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 from collections.abc import Callable, Iterator
@@ -34,7 +35,7 @@ from drivers.evt.errors import (
 from drivers.evt.jumps import MAX_KEPT_JUMPS, TimeJump, jump_counters, take_jumps
 from drivers.evt.kernels import JUMP_CONFIRM, DecodeConfig, DecodeKernel, decode_config, decode_out
 from rigd.core.errors import EventDataError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EvtChunk, TriggerEvents
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,8 @@ FORMATS: tuple[str, ...] = ("evt2", "evt21", "evt21_le", "evt3")
 # EVT 3.0 kernel: branchy clean-stretch loop with the reference state machine as fallback
 # (evt3_fast); False selects the reference `evt3.decode_kernel` alone (tests, benchmarks)
 USE_EVT3_FAST = True
+# ids of decoded byte streams (EvtChunk.stream): unique per decoder within the process
+_STREAM_IDS = itertools.count(1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,6 +118,12 @@ class StreamDecoder:
     `time_jumps` (the first few in full in `jumps`). Until the bytes tell, the words from that
     TIME_HIGH on are held back (kept for the next `feed`; `finish` or `flush` decides with what
     there is), so the result never depends on where the chunks were cut.
+
+    `feed_chunk` / `flush_chunk` also return the bytes a call decoded as an `EvtChunk` with the
+    kernel state before them (`state_copy`), so a take can store the words as sent and a reader
+    decode any stored piece on its own with `StreamDecoder(fmt, state=...)`: a kernel that holds
+    words back leaves its state at the start of what it holds, so each chunk starts where the
+    previous one ended.
     """
 
     def __init__(
@@ -126,6 +135,7 @@ class StreamDecoder:
         strict: bool = False,
         offset: int = 0,
         jump_confirm: int = JUMP_CONFIRM,
+        state: NDArray[np.int64] | None = None,
     ) -> None:
         if fmt not in FORMATS:
             raise EventDataError(f"unknown EVT format {fmt!r}; expected one of {FORMATS}")
@@ -144,7 +154,16 @@ class StreamDecoder:
         self._word = int(mod.WORD_BYTES)
         self._max_per_word = int(mod.MAX_EVENTS_PER_WORD)
         self._state = mod.new_decoder_state()
+        if state is not None:
+            given = np.asarray(state)
+            if given.shape != self._state.shape or given.dtype.kind not in "iu":
+                raise EventDataError(
+                    f"{fmt} decoder state must be {self._state.shape[0]} integers, "
+                    f"got shape {given.shape} {given.dtype}"
+                )
+            self._state[:] = given
         self._mod = mod
+        self.stream = next(_STREAM_IDS)
         # kernels read native words; EVT 2.1 words are read as two u32 halves (layout-dependent)
         self._dtype = np.dtype({2: "<u2", 4: "<u4", 8: "<u4"}[self._word])
         self._step = 2 if self._word == 8 else 1
@@ -187,6 +206,15 @@ class StreamDecoder:
     def jump_stats(self) -> dict[str, int]:
         """Counters of the accepted time jumps (`jumps.jump_counters`); empty when none."""
         return jump_counters(self.jumps, self.time_jumps, self._jump_held)
+
+    def state_copy(self) -> NDArray[np.int64]:
+        """The kernel state now: where the next byte not yet decoded (`pending` included) starts."""
+        return self._state.copy()
+
+    @property
+    def pending(self) -> bytes:
+        """Bytes kept for the next call: a partial word, or the words held at a time jump."""
+        return self._pending
 
     @property
     def holding(self) -> bool:
@@ -248,6 +276,39 @@ class StreamDecoder:
             arr = np.concatenate([np.frombuffer(self._pending, np.uint8), arr])
             self._pending = b""
         return self._decode(arr, self._cfg)
+
+    def feed_chunk(self, data: bytes | bytearray | memoryview) -> tuple[Decoded, EvtChunk]:
+        """`feed`, and the bytes it decoded (pending ones before `data` included, those it
+        keeps pending now excluded) with the state before them: decoding the chunk's data from
+        its state gives exactly what this call returned."""
+        state, before, offset = self._state.copy(), self._pending, self.bytes_consumed
+        decoded = self.feed(data)
+        return decoded, self._chunk(state, before, data, offset)
+
+    def flush_chunk(self) -> tuple[Decoded, EvtChunk | None]:
+        """`flush`, and its words as a chunk (None when nothing was held)."""
+        if not self.holding:
+            return Decoded.empty(), None
+        state, before, offset = self._state.copy(), self._pending, self.bytes_consumed
+        decoded = self.flush()
+        return decoded, self._chunk(state, before, b"", offset)
+
+    def _chunk(
+        self, state: NDArray[np.int64], before: bytes, data: bytes | bytearray | memoryview, offset: int
+    ) -> EvtChunk:
+        used = self.bytes_consumed - offset
+        if used <= len(before):
+            body = before[:used]
+        elif not before:
+            body = bytes(data[:used])
+        else:
+            body = before + bytes(data[: used - len(before)])
+        if len(before) + len(data) - len(self._pending) != used:  # the contract, checked: cheap
+            raise EventDataError(
+                f"{self.fmt}: decoder accounting: {used} bytes consumed, {len(before)} + {len(data)} "
+                f"given and {len(self._pending)} pending"
+            )
+        return EvtChunk(self.fmt, body, state, self.stream, offset)
 
     def _decode(self, arr: NDArray[np.uint8], cfg: DecodeConfig) -> Decoded:
         """Decode what is pending (at most a partial word) and then arr."""

@@ -145,6 +145,8 @@ class EvtChunk:
     gives exactly the packet's events and trigger edges. `stream` names the byte stream (a new
     one after a reconnect), `offset` is where `data` starts in it: two chunks follow each other
     without a gap when the second starts where the first ends in the same stream.
+    `shift_us`: what the capture path added to the packet's times (a restarted clock re-tied);
+    the decoded times plus it are the packet's.
     """
 
     fmt: str
@@ -152,6 +154,7 @@ class EvtChunk:
     state: NDArray[np.int64]
     stream: int
     offset: int
+    shift_us: int = 0
 
     @property
     def end(self) -> int:

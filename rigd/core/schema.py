@@ -17,7 +17,7 @@ SCHEMA_NAME = "rigd.take"
 #: Major changes break readers; minor ones only add datasets or attributes.
 #: 1.1 added `events/<sensor>/trigger/host_time_ns`, the flush journal and the crash-recovery
 #: attributes; 1.0 takes stay readable (see `added_in`).
-SCHEMA_VERSION = "1.1"
+SCHEMA_VERSION = "1.2"
 
 EVENTS_GROUP = "events"
 FRAMES_GROUP = "frames"
@@ -40,6 +40,16 @@ FINALIZE_SCRATCH = "finalize_scratch"
 #: the last whole chunk while recording, and attr `tail_meta` ([[first row, rows]] per slot).
 TAIL_PREFIX = "tail_"
 TAIL_META_ATTR = "tail_meta"
+#: An event sensor group's attr saying how its events are stored (absent: "columns", x/y/p/t).
+EVENT_STORAGE_ATTR = "storage"
+#: Datasets of an "evt_words" sensor (schema 1.2): the EVT words as sent, and one row per
+#: stored block of them (where, how many events, times, and the decoder state to start from).
+EVT_WORDS = "evt_words"
+EVT_INDEX = "evt_index"
+#: The first columns of `evt_index`; the decoder state of the sensor's format follows.
+#: `follows`: 1 when the row's bytes continue the previous row's in the sensor's stream (nothing
+#: refused or lost between, the same shift), so the two decode as one piece.
+EVT_INDEX_COLUMNS = ("byte_start", "byte_len", "events", "t_first", "t_last", "shift_us", "follows")
 #: Root attrs of a take sealed by `rigd recover` (ISO time; JSON RecoveryReport).
 RECOVERED_ATTR = "recovered_utc"
 END_REASON_ATTR = "end_reason"

@@ -76,6 +76,12 @@ class WriterConfig(BaseModel):
 
     event_compression: Literal["none", "lz4", "zstd", "gzip"] = "lz4"
     frame_compression: Literal["none", "lz4", "zstd", "gzip"] = "none"
+    event_storage: Literal["evt_words", "columns"] = Field(
+        "evt_words",
+        description="How event sensors that send an EVT stream are stored: their words as sent "
+        "(Zstd, decoded on read; decision 0021) or decoded x/y/p/t columns. Sensors whose "
+        "packets carry no words (DAT replays) are stored as columns either way.",
+    )
     event_chunk: int = Field(
         1 << 15,
         ge=1024,

@@ -21,8 +21,25 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rigd.core.errors import TakeError, TakeFormatError
-from rigd.core.schema import FINALIZE_PLAN_ATTR, FINALIZE_SCRATCH, FINALIZE_UPTO_ATTR, SYNC_GROUP, SyncReport
+from rigd.core.schema import (
+    FINALIZE_PLAN_ATTR,
+    FINALIZE_SCRATCH,
+    FINALIZE_UPTO_ATTR,
+    SYNC_GROUP,
+    WINDOW_END_ATTR,
+    WINDOW_START_ATTR,
+    SyncReport,
+)
 from rigd.core.timebase import ClockMap
+from rigd.take.evt_read import (
+    CLOCK_MAP_ATTR,
+    EVENTS_IN_WINDOW_ATTR,
+    FIRST_IN_WINDOW_ATTR,
+    WINDOW_ATTR,
+    EvtWordsEvents,
+    clock_map_json,
+)
+from rigd.take.evt_sink import EvtWordsSink
 from rigd.take.h5file import utc_now
 from rigd.take.sinks import CameraSink, EventSink
 
@@ -82,7 +99,7 @@ class Finalizer:
         self,
         f: h5py.File,
         path: Path,
-        events: Mapping[str, EventSink],
+        events: Mapping[str, EventSink | EvtWordsSink],
         cameras: Mapping[str, CameraSink],
         *,
         event_opts: Mapping[str, Any],
@@ -122,7 +139,7 @@ class Finalizer:
         if report.t_first_pulse_us is not None:
             return int(report.t_first_pulse_us), "first_pulse"
         firsts = [
-            int(maps[name].to_rig(sink.ds["t"][0:1])[0])
+            int(maps[name].to_rig(_first_time(sink))[0])
             for name, sink in self._events.items()
             if sink.n_written
         ]
@@ -167,7 +184,10 @@ class Finalizer:
         """Map every time with `plan` and mark the take complete (also after a crash)."""
         f = self._f
         for name, sink in self._events.items():
-            self._finalize_events(sink, plan.maps[name], plan.t_offset)
+            if isinstance(sink, EvtWordsSink):
+                self._finalize_evt_words(sink, plan.maps[name], plan.t_offset)
+            else:
+                self._finalize_events(sink, plan.maps[name], plan.t_offset)
             sink.group.attrs["t_offset_source"] = plan.source
         for name, cam in self._cameras.items():
             dev = cam.series["t_exposure_start_device_us"][...]
@@ -218,6 +238,24 @@ class Finalizer:
                 g.create_dataset("dropped_frames", data=np.asarray(dev.dropped_frames, dtype=np.int64))
 
     # -- event times -------------------------------------------------------------------
+    def _finalize_evt_words(self, sink: EvtWordsSink, cmap: ClockMap, t_offset: int) -> None:
+        """Store the clock map and the take window beside the words (their times are not
+        rewritten: readers apply them) and the exact count of events inside the window, for
+        which only the blocks across the window's edges are decoded. Idempotent."""
+        g = sink.group
+        for key in (FIRST_IN_WINDOW_ATTR, EVENTS_IN_WINDOW_ATTR):
+            if key in g.attrs:
+                del g.attrs[key]
+        attrs = self._f.attrs
+        lo, hi = (int(attrs[k]) if k in attrs else None for k in (WINDOW_START_ATTR, WINDOW_END_ATTR))
+        g.attrs[CLOCK_MAP_ATTR] = clock_map_json(cmap)
+        g.attrs[WINDOW_ATTR] = json.dumps([lo, hi])
+        i0, i1 = EvtWordsEvents(g, self._path, cmap, (lo, hi)).window_range()
+        g["t_offset"][()] = np.int64(t_offset)
+        g.attrs[FIRST_IN_WINDOW_ATTR] = np.int64(i0)
+        g.attrs[EVENTS_IN_WINDOW_ATTR] = np.int64(i1 - i0)
+        sink.trig["t"][...] = cmap.to_rig(sink.trig["t_device"][...])
+
     def _finalize_events(self, sink: EventSink, cmap: ClockMap, t_offset: int) -> None:
         """Rewrite t as rig time - t_offset block by block and build ms_to_idx on the way.
 
@@ -338,6 +376,13 @@ class Finalizer:
         g.attrs.modify(FINALIZE_UPTO_ATTR, np.int64(hi))
         self._f.flush()
         return hi
+
+
+def _first_time(sink: EventSink | EvtWordsSink) -> NDArray[np.int64]:
+    """The first stored event's device time, as a one-element array."""
+    if isinstance(sink, EvtWordsSink):
+        return np.asarray([sink.first_t if sink.first_t is not None else 0], np.int64)
+    return np.asarray(sink.ds["t"][0:1], np.int64)
 
 
 def _ms_count(sink: EventSink, cmap: ClockMap, t_offset: int, upto: int) -> int:

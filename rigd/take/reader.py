@@ -22,7 +22,7 @@ import h5py
 import hdf5plugin  # noqa: F401  (registers the LZ4 / Zstd filters with h5py)
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
@@ -45,16 +45,19 @@ from rigd.core.schema import (
     TAIL_PREFIX,
     TRIGGER_DTYPES,
     TRIGGER_GROUP,
-    LossRecord,
     SyncReport,
     decode_journal,
     has_item,
 )
+from rigd.core.timebase import ClockMap
 from rigd.take.calibration import read_board_pose, read_calibration
+from rigd.take.evt_read import CLOCK_MAP_ATTR, WINDOW_ATTR, EvtWordsEvents
+from rigd.take.evt_sink import is_evt_words
 from rigd.take.frame_series import FrameSeries
 from rigd.take.h5file import attr_text, describe_open_error
+from rigd.take.summary import CameraSummary, EventSensorSummary, TakeSummary
 from rigd.take.tails import tail_rows
-from rigd.take.verdict import TakeVerdict, Verdict, take_verdict
+from rigd.take.verdict import take_verdict
 
 log = logging.getLogger(__name__)
 
@@ -96,76 +99,6 @@ def _ms_bracket(ms_to_idx: h5py.Dataset, rel: int, n: int) -> tuple[int, int]:
     return lo, max(lo, hi)
 
 
-class CameraSummary(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    frames: int
-    fps: float | None = Field(description="Mean frame rate over the take (rig clock when finalized).")
-    shape: list[int] = Field(description="Shape of a frame as stored (a Bayer frame: its mosaic).")
-    dtype: str
-    pixel_format: str = Field("rgb8", description="mono8, rgb8 or bayer_rg8 (stored as is).")
-    t_first_us: int | None
-    t_last_us: int | None
-    dropped_frames: int | None = Field(description="Frame counter gaps from the sync report.")
-    missing_pulses: int | None
-    sync_rms_us: float | None
-    sync_max_us: float | None
-
-
-class EventSensorSummary(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    events: int
-    event_rate_hz: float | None = Field(description="Mean events per second over the span.")
-    t_first_us: int | None
-    t_last_us: int | None
-    span_us: int
-    width: int
-    height: int
-    triggers: int
-    missing_pulses: int | None
-    sync_rms_us: float | None
-    sync_max_us: float | None
-
-
-class TakeSummary(BaseModel):
-    """Everything a person checks first about a take, JSON-serialisable."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    path: str
-    take_id: str
-    status: str
-    verdict: Verdict = Field(
-        "complete",
-        description="complete (nothing lost), degraded (sealed but lost data), failed or unfinished; "
-        "computed from the stored records (rigd.take.verdict).",
-    )
-    verdict_reasons: list[str] = Field(
-        default_factory=list, description="Why the verdict is not complete: one reason per loss."
-    )
-    schema_version: str
-    time_domain: str
-    failure_reason: str | None = None
-    recovered_utc: str | None = Field(
-        None, description="Set when `rigd recover` sealed the take after its writer crashed."
-    )
-    end_reason: str | None = Field(
-        None, description="Why the recording ended: pulses done, a stop and its reason, a fault."
-    )
-    cameras: dict[str, CameraSummary]
-    event_sensors: dict[str, EventSensorSummary]
-    pulses: int
-    pulses_seen_by_no_device: list[int] = Field(default_factory=list)
-    losses: list[LossRecord] = Field(default_factory=list)
-    warnings: list[str] = Field(default_factory=list)
-    problems: list[str] = Field(default_factory=list, description="Validation problems (rigd.app.inspect).")
-
-    def verdict_line(self) -> str:
-        """`complete: nothing lost`, or the verdict and its first reasons (`TakeVerdict.line`)."""
-        return TakeVerdict(verdict=self.verdict, reasons=self.verdict_reasons).line()
-
-
 def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
     return attr_text(obj.attrs.get(key, default))
 
@@ -191,6 +124,7 @@ class Take:
             raise
         self._t_offset: dict[str, int] = {}
         self._columns: dict[str, _EventColumns] = {}
+        self._evt: dict[str, EvtWordsEvents | None] = {}
 
     def _check_header(self) -> None:
         f = self._f
@@ -211,9 +145,13 @@ class Take:
         rig = _attr_str(f, "time_domain") == "rig"
         for name in self.event_sensors:
             base = f"{EVENTS_GROUP}/{name}"
-            yield from (f"{base}/{k}" for k in EVENT_DTYPES)
+            g = f.get(base)
+            if isinstance(g, h5py.Group) and is_evt_words(g):
+                yield from (f"{base}/evt_words", f"{base}/evt_index")
+            else:
+                yield from (f"{base}/{k}" for k in EVENT_DTYPES)
             yield f"{base}/t_offset"
-            if rig:
+            if rig and not (isinstance(g, h5py.Group) and is_evt_words(g)):
                 yield f"{base}/ms_to_idx"
             trig = (k for k in TRIGGER_DTYPES if has_item(version, f"trigger/{k}"))
             yield from (f"{base}/trigger/{k}" for k in trig)
@@ -360,6 +298,23 @@ class Take:
         return self._t_offset[sensor]
 
     # -- events ------------------------------------------------------------------------
+    def _words(self, sensor: str, *, rig: bool = False) -> EvtWordsEvents | None:
+        """The sensor's stored EVT words (None: it stores x/y/p/t columns); `rig`: refuse a
+        take never finalized (its times are still in the device clock)."""
+        if sensor not in self._evt:
+            g = self._sensor_group(sensor)
+            words = None
+            if is_evt_words(g):
+                cmap_text = g.attrs.get(CLOCK_MAP_ATTR) if self.time_domain == "rig" else None
+                cmap = None if cmap_text is None else ClockMap(*json.loads(attr_text(cmap_text)))
+                lo, hi = json.loads(attr_text(g.attrs.get(WINDOW_ATTR, "[null, null]")))
+                words = EvtWordsEvents(g, self.path, cmap, (lo, hi), with_tail=self.status == "recording")
+            self._evt[sensor] = words
+        words = self._evt[sensor]
+        if words is not None and rig and words.cmap is None:
+            self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
+        return words
+
     def _tail(self, g: h5py.Group) -> tuple[int, int, int]:
         """(main rows, tail slot, tail rows) of a sensor. A take whose writer died before
         `rigd recover` keeps the flushed events past its last whole chunk in `tail_*`
@@ -371,6 +326,8 @@ class Take:
         return n, slot, m
 
     def _n_events(self, g: h5py.Group) -> int:
+        if is_evt_words(g):
+            return len(self._words(g.name.rsplit("/", 1)[-1]) or ())
         n, _, m = self._tail(g)
         return n + m
 
@@ -418,6 +375,9 @@ class Take:
     def _window(self, sensor: str, t_start_us: int, t_end_us: int) -> EventArray:
         """Events with t_start_us <= t < t_end_us: `t` of the window's ms bracket is read once
         and searched for both edges, `x, y, p` only for the window itself."""
+        words = self._words(sensor, rig=True)
+        if words is not None:
+            return words.window(int(t_start_us), int(t_end_us))
         g = self._sensor_group(sensor)
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
         c = self._cols(g)
@@ -445,6 +405,9 @@ class Take:
 
     def events_by_index(self, sensor: str, start: int, stop: int) -> EventArray:
         """Events [start, stop) by position; works in either time domain."""
+        words = self._words(sensor)
+        if words is not None:
+            return words.by_index(start, stop)
         g = self._sensor_group(sensor)
         n = self._n_events(g)
         lo, hi = max(0, min(start, n)), max(0, min(stop, n))
@@ -456,6 +419,12 @@ class Take:
         Without bounds this also works on a never-finalized take (times then in device clock).
         """
         g = self._sensor_group(sensor)
+        words = self._words(sensor)
+        if words is not None and (t_start_us is None or t_end_us is None):
+            if t_start_us is None and t_end_us is None:
+                return words.by_index(0, len(words))
+            lo, hi = self._index_range(sensor, t_start_us, t_end_us)
+            return words.by_index(lo, hi)
         if t_start_us is None and t_end_us is None:
             return self._read_events(g, 0, self._n_events(g), self._offset(sensor))
         if t_start_us is not None and t_end_us is not None:
@@ -469,6 +438,10 @@ class Take:
         return self._index_range(sensor, int(t_us), None)[0]
 
     def _index_range(self, sensor: str, t_start_us: int | None, t_end_us: int | None) -> tuple[int, int]:
+        words = self._words(sensor, rig=True)
+        if words is not None:
+            lo = 0 if t_start_us is None else words.index_at(int(t_start_us))
+            return lo, max(lo, len(words) if t_end_us is None else words.index_at(int(t_end_us)))
         g = self._sensor_group(sensor)
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
         c = self._cols(g)
@@ -488,6 +461,9 @@ class Take:
         """
         if bin_us <= 0 or bin_us % 1000:
             raise TakeError(f"{self.path}: bin_us must be a positive multiple of 1000, got {bin_us}")
+        words = self._words(sensor, rig=True)
+        if words is not None:
+            return words.histogram(self._offset(sensor), bin_us)
         g = self._sensor_group(sensor)
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
         c = self._cols(g)
@@ -523,12 +499,12 @@ class Take:
             raise TakeError(f"{self.path}: window_us must be positive, got {window_us}")
         g = self._sensor_group(sensor)
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
-        n = int(g["t"].shape[0])
+        span = self.event_span(sensor)
         off = self._offset(sensor)
-        if n == 0:
+        if span is None:
             return
-        start = int(g["t"][0]) + off if t_start_us is None else int(t_start_us)
-        end = int(g["t"][n - 1]) + off + 1 if t_end_us is None else int(t_end_us)
+        start = span[0] if t_start_us is None else int(t_start_us)
+        end = span[1] + 1 if t_end_us is None else int(t_end_us)
         pos, stop = self._index_range(sensor, start, end)
         buf = EventArray.empty()
         w0 = start
@@ -536,12 +512,16 @@ class Take:
             w1 = min(w0 + int(window_us), end)
             while pos < stop and (len(buf) == 0 or int(buf.t[-1]) < w1):
                 nxt = min(pos + _READ_BLOCK, stop)
-                buf = EventArray.concatenate([buf, self._read_events(g, pos, nxt, off)])
+                buf = EventArray.concatenate([buf, self._block(sensor, g, pos, nxt, off)])
                 pos = nxt
             k = int(np.searchsorted(buf.t, w1, side="left"))
             yield buf[:k]
             buf = buf[k:]
             w0 = w1
+
+    def _block(self, sensor: str, g: h5py.Group, lo: int, hi: int, off: int) -> EventArray:
+        words = self._words(sensor)
+        return self._read_events(g, lo, hi, off) if words is None else words.by_index(lo, hi)
 
     def triggers(self, sensor: str) -> TriggerEvents:
         """Trigger-in edges of a sensor (rig time once finalized; device time in `t_device`)."""
@@ -588,6 +568,9 @@ class Take:
 
     def event_span(self, sensor: str) -> tuple[int, int] | None:
         """(first, last) event time in the take's time domain, or None without events."""
+        words = self._words(sensor)
+        if words is not None:
+            return words.span()
         g = self._sensor_group(sensor)
         n = self._n_events(g)
         if n == 0:

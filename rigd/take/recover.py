@@ -53,6 +53,8 @@ from rigd.core.schema import (
 )
 from rigd.core.settings import EventSensorSettings, WriterConfig
 from rigd.sync import DeviceObservations, PulseLog, SyncResult, synchronize
+from rigd.take.evt_repair import kept_rows
+from rigd.take.evt_sink import is_evt_words
 from rigd.take.h5file import (
     ZeroPadded,
     attr_text,
@@ -495,6 +497,11 @@ def _read_event_counts(
 ) -> None:
     """Events the sealed take will hold (the flushed tail the repair appends included) and the
     device time of the last one."""
+    if is_evt_words(g):
+        rows = kept_rows(g, kept)
+        dev.events[name] = int(rows[:, 2].sum())
+        dev.last_t[name] = int(rows[-1, 4]) if rows.shape[0] and not plan else None
+        return
     t_ds = require_dataset(g, "t", where)
     n_ev = kept.get(g.name, int(t_ds.shape[0]))
     slot, m = (0, 0) if plan else tail_rows(g, n_ev)

@@ -34,6 +34,8 @@ from rigd.core.schema import (
     LossKind,
     has_item,
 )
+from rigd.take.evt_repair import apply_evt_cut, plan_evt_cut
+from rigd.take.evt_sink import is_evt_words
 from rigd.take.h5file import TRUNCATED_EOF_ATTR, append_rows, attr_text, require_dataset, require_group
 from rigd.take.tails import tail_end, tail_rows
 
@@ -149,8 +151,11 @@ def _repair_take(f: h5py.File, scan: _Scan) -> None:
     for name, g in require_group(f, EVENTS_GROUP, scan.where).items():
         scan.at = f"/{EVENTS_GROUP}/{name}"
         _require_readable_group(scan, g)
-        cols, longest, keep = _repair_event_columns(scan, name, g)
-        _merge_event_tail(scan, name, g, cols, longest, keep)
+        if is_evt_words(g):
+            _repair_evt_words(scan, name, g)
+        else:
+            cols, longest, keep = _repair_event_columns(scan, name, g)
+            _merge_event_tail(scan, name, g, cols, longest, keep)
         _repair_trigger_in(scan, name, require_group(g, "trigger", scan.where))
     for name, g in require_group(f, FRAMES_GROUP, scan.where).items():
         scan.at = f"/{FRAMES_GROUP}/{name}"
@@ -187,6 +192,30 @@ def _repair_event_columns(scan: _Scan, name: str, g: h5py.Group) -> tuple[dict[s
         keep = bad
     scan.trim(g, cols, keep, reasons, name, "events", longest - keep)
     return cols, longest, keep
+
+
+def _repair_evt_words(scan: _Scan, name: str, g: h5py.Group) -> None:
+    """EVT words and their index cut to what both really hold (see `rigd.take.evt_repair`)."""
+    words = require_dataset(g, "evt_words", scan.where)
+    index = require_dataset(g, "evt_index", scan.where)
+    finalizing = not scan.check_order
+    cut = plan_evt_cut(
+        g, stored_prefix(words, scan.data_end), stored_prefix(index, scan.data_end), finalizing=finalizing
+    )
+    if cut.reasons:
+        scan.trims.append(
+            Trim(
+                hpath=g.name,
+                lengths_before={"evt_index": cut.rows_before, "evt_words": cut.bytes_stored},
+                after=cut.rows_kept,
+                reason="; ".join(cut.reasons),
+                device=name,
+                what="events",
+                lost=cut.events_lost,
+            )
+        )
+    if scan.apply and not finalizing:
+        apply_evt_cut(g, cut)
 
 
 def _merge_event_tail(

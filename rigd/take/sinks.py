@@ -80,8 +80,77 @@ def _event_columns(ev: EventArray, lo: int, hi: int) -> dict[str, NDArray[Any]]:
     }
 
 
+def check_event_batch(
+    events: EventArray, where: str, last_t: int | None, seen: int, width: int, height: int
+) -> None:
+    """Refuse a batch (TakeError) that would break a sensor's time order or geometry; `seen`:
+    events the sensor stored before it, `last_t`: the time of the last one."""
+    n = len(events)
+    t = events.t
+    if last_t is not None and int(t[0]) < last_t:
+        raise TakeError(
+            f"{where}: event 0 of the batch (#{seen} of the sensor) has "
+            f"t={int(t[0])} us before the previous event at {last_t} us; batch of {n} refused"
+        )
+    bad = np.flatnonzero(t[1:] < t[:-1])
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise TakeError(
+            f"{where}: event {i} of the batch (#{seen + i} of the sensor) "
+            f"has t={int(t[i])} us before event {i - 1} at {int(t[i - 1])} us; batch of {n} refused"
+        )
+    for axis, arr, limit in (("x", events.x, width), ("y", events.y, height)):
+        if int(arr.max()) >= limit:
+            i = int(np.argmax(arr >= limit))
+            raise TakeError(
+                f"{where}: event {i} of the batch has {axis}={int(arr[i])} outside the sensor's "
+                f"{width}x{height} geometry; batch of {n} refused"
+            )
+
+
+class TriggerIn:
+    """An event sensor's trigger-in edges (`<sensor>/trigger`), buffered and written in blocks;
+    shared by both ways of storing the events (columns, `EventSink`; EVT words, `EvtWordsSink`)."""
+
+    __slots__ = ("n_trig_buffered", "n_trig_written", "trig", "trig_host_parts", "trig_parts")
+    trig: dict[str, h5py.Dataset]
+    trig_parts: list[TriggerEvents]
+    trig_host_parts: list[NDArray[np.int64]]
+    n_trig_buffered: int
+    n_trig_written: int
+
+    def add_triggers(self, triggers: TriggerEvents, host_time_ns: int | None) -> None:
+        n = len(triggers)
+        if n == 0:
+            return
+        self.trig_parts.append(triggers)
+        self.trig_host_parts.append(np.full(n, -1 if host_time_ns is None else int(host_time_ns), np.int64))
+        self.n_trig_buffered += n
+        if self.n_trig_buffered >= _SMALL_BLOCK:
+            self.write_triggers()
+
+    def write_triggers(self) -> None:
+        if not self.n_trig_buffered:
+            return
+        tr = TriggerEvents.concatenate(self.trig_parts)
+        host = np.concatenate(self.trig_host_parts)
+        start = self.n_trig_written
+        cols: list[tuple[str, NDArray[Any]]] = [
+            ("t", tr.t),
+            ("t_device", tr.t),
+            ("p", tr.p),
+            ("channel", tr.channel),
+            ("host_time_ns", host),
+        ]
+        for key, data in cols:
+            if key in self.trig:  # a resumed 1.0 take has no host_time_ns
+                append_rows(self.trig[key], start, data)
+        self.n_trig_written += len(tr)
+        self.trig_parts, self.trig_host_parts, self.n_trig_buffered = [], [], 0
+
+
 @dataclass(slots=True)
-class EventSink:
+class EventSink(TriggerIn):
     """One event sensor: `/events/<name>` and its trigger-in group."""
 
     name: str
@@ -153,28 +222,9 @@ class EventSink:
 
     def _check_batch(self, events: EventArray, where: str) -> None:
         """Refuse a batch that would break the sensor's time order or geometry."""
-        n = len(events)
-        t = events.t
-        seen = self.n_written + self.n_buffered
-        if self.last_t is not None and int(t[0]) < self.last_t:
-            raise TakeError(
-                f"{where}: event 0 of the batch (#{seen} of the sensor) has "
-                f"t={int(t[0])} us before the previous event at {self.last_t} us; batch of {n} refused"
-            )
-        bad = np.flatnonzero(t[1:] < t[:-1])
-        if bad.size:
-            i = int(bad[0]) + 1
-            raise TakeError(
-                f"{where}: event {i} of the batch (#{seen + i} of the sensor) "
-                f"has t={int(t[i])} us before event {i - 1} at {int(t[i - 1])} us; batch of {n} refused"
-            )
-        for axis, arr, limit in (("x", events.x, self.width), ("y", events.y, self.height)):
-            if int(arr.max()) >= limit:
-                i = int(np.argmax(arr >= limit))
-                raise TakeError(
-                    f"{where}: event {i} of the batch has {axis}={int(arr[i])} outside the sensor's "
-                    f"{self.width}x{self.height} geometry; batch of {n} refused"
-                )
+        check_event_batch(
+            events, where, self.last_t, self.n_written + self.n_buffered, self.width, self.height
+        )
 
     def add_events(self, events: EventArray, path: Path) -> None:
         """Buffer a batch (device clock), checked whole before any of it is kept."""
@@ -189,16 +239,6 @@ class EventSink:
         self.stats.raw_bytes += 13 * n
         if self.n_buffered >= max(self.chunk, EVENT_WRITE_BLOCK):
             self.write_events(whole_chunks_only=True)
-
-    def add_triggers(self, triggers: TriggerEvents, host_time_ns: int | None) -> None:
-        n = len(triggers)
-        if n == 0:
-            return
-        self.trig_parts.append(triggers)
-        self.trig_host_parts.append(np.full(n, -1 if host_time_ns is None else int(host_time_ns), np.int64))
-        self.n_trig_buffered += n
-        if self.n_trig_buffered >= _SMALL_BLOCK:
-            self.write_triggers()
 
     def write_events(self, *, whole_chunks_only: bool) -> None:
         """Append the buffered events; `whole_chunks_only` keeps the rest past the last whole
@@ -241,25 +281,6 @@ class EventSink:
         drop_tail_slots(self.group)
         self.tail_ds = {}
         self.tail_meta[:] = 0
-
-    def write_triggers(self) -> None:
-        if not self.n_trig_buffered:
-            return
-        tr = TriggerEvents.concatenate(self.trig_parts)
-        host = np.concatenate(self.trig_host_parts)
-        start = self.n_trig_written
-        cols: list[tuple[str, NDArray[Any]]] = [
-            ("t", tr.t),
-            ("t_device", tr.t),
-            ("p", tr.p),
-            ("channel", tr.channel),
-            ("host_time_ns", host),
-        ]
-        for key, data in cols:
-            if key in self.trig:  # a resumed 1.0 take has no host_time_ns
-                append_rows(self.trig[key], start, data)
-        self.n_trig_written += len(tr)
-        self.trig_parts, self.trig_host_parts, self.n_trig_buffered = [], [], 0
 
 
 @dataclass(slots=True)

@@ -41,6 +41,8 @@ from rigd.core.schema import (
     decode_journal,
     has_item,
 )
+from rigd.take.evt_sink import is_evt_words
+from rigd.take.evt_validate import check_evt_words
 from rigd.take.h5file import attr_text
 
 log = logging.getLogger(__name__)
@@ -190,10 +192,15 @@ class _Validator:
                     self.add(f"/{base}", f"attribute {key} is {value}, expected > 0")
                 else:
                     dims[key] = value
-        cols = {k: self.dataset(f"{base}/{k}", dt) for k, dt in EVENT_DTYPES.items()}
-        self.equal_lengths(base, cols)
+        if is_evt_words(g):
+            for hpath, msg in check_evt_words(g, rig):
+                self.add(hpath, msg)
+            cols = {}
+        else:
+            cols = {k: self.dataset(f"{base}/{k}", dt) for k, dt in EVENT_DTYPES.items()}
+            self.equal_lengths(base, cols)
         off = self.dataset(f"{base}/t_offset", np.int64, ndim=0)
-        ms = self.dataset(f"{base}/ms_to_idx", np.uint64) if rig or "ms_to_idx" in g else None
+        ms = self.dataset(f"{base}/ms_to_idx", np.uint64) if cols and (rig or "ms_to_idx" in g) else None
         tg = self.group(f"{base}/trigger")
         if tg is not None:
             # Items a newer minor version added are optional in older takes (1.0: host_time_ns).
@@ -203,7 +210,11 @@ class _Validator:
                 if k in tg or has_item(self.version, f"trigger/{k}")
             }
             self.equal_lengths(f"{base}/trigger", trig)
-        if any(d is None for d in cols.values()) or len({int(d.shape[0]) for d in cols.values() if d}) != 1:
+        if (
+            not cols
+            or any(d is None for d in cols.values())
+            or len({int(d.shape[0]) for d in cols.values() if d}) != 1
+        ):
             return
         self.scan_events(base, cols, dims, ms if off is not None else None)
 

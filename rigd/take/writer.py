@@ -33,9 +33,10 @@ import h5py
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
+from drivers.evt import FORMATS as EVT_FORMATS
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError, TakeTruncatedError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.schema import (
     CONFIG_DATASET,
@@ -60,6 +61,7 @@ from rigd.core.schema import (
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take.calibration import write_board_pose, write_calibration_group
+from rigd.take.evt_sink import EvtWordsSink, is_evt_words
 from rigd.take.finalize import FinalizePlan, Finalizer
 from rigd.take.h5file import (
     TRUNCATED_EOF_ATTR,
@@ -179,7 +181,7 @@ class TakeWriter:
         self._state = state
         self._version = SCHEMA_VERSION
         self._has_trigger = False
-        self._events: dict[str, EventSink] = {}
+        self._events: dict[str, EventSink | EvtWordsSink] = {}
         self._cameras: dict[str, CameraSink] = {}
         self._flush_count = 0
         self.flush_seconds_total = 0.0
@@ -256,7 +258,10 @@ class TakeWriter:
         self._pulses = PulseSink.reopen(require_group(f, f"{TRIGGER_GROUP}/pulses", where), where)
         self._has_trigger = "info_json" in f[TRIGGER_GROUP].attrs
         for name, g in require_group(f, EVENTS_GROUP, where).items():
-            self._events[name] = EventSink.reopen(name, g, where, self._cfg.event_chunk)
+            if is_evt_words(g):
+                self._events[name] = EvtWordsSink.reopen(name, g, where)
+            else:
+                self._events[name] = EventSink.reopen(name, g, where, self._cfg.event_chunk)
         for name, g in require_group(f, FRAMES_GROUP, where).items():
             self._cameras[name] = CameraSink.reopen(name, g, where)
 
@@ -310,15 +315,32 @@ class TakeWriter:
         self._f.flush()
 
     def add_event_sensor(
-        self, name: str, info: DeviceInfo, width: int, height: int, settings_json: str
+        self,
+        name: str,
+        info: DeviceInfo,
+        width: int,
+        height: int,
+        settings_json: str,
+        evt_format: str | None = None,
     ) -> None:
-        """Create `/events/<name>` with DSEC-compatible datasets and its trigger-in group."""
+        """Create `/events/<name>` and its trigger-in group. `evt_format`: the sensor's packets
+        carry the EVT words they were decoded from (`EventPacket.raw`); with the writer's
+        `event_storage` "evt_words" they are stored as sent (`append_packet`), else as
+        DSEC-compatible x/y/p/t columns (attr `storage` says which)."""
         self._check_new_device(name)
         if not (0 < width <= 65536 and 0 < height <= 65536):
             raise TakeError(f"{self.path}: event sensor {name!r}: geometry {width}x{height} out of range")
         g = self._f[EVENTS_GROUP].create_group(name)
         _write_info_attrs(g, info, settings_json)
-        self._events[name] = EventSink.create(name, g, width, height, self._cfg.event_chunk, self._ev_opts)
+        if evt_format in EVT_FORMATS and self._cfg.event_storage == "evt_words":
+            self._events[name] = EvtWordsSink.create(name, g, width, height, evt_format)
+        else:
+            g.attrs["storage"] = "columns"
+            if self._cfg.event_storage == "evt_words":
+                why = "carry no EVT words" if evt_format is None else f"are {evt_format}, not EVT words"
+                g.attrs["storage_note"] = f"columns: the sensor's packets {why}"
+            sink = EventSink.create(name, g, width, height, self._cfg.event_chunk, self._ev_opts)
+            self._events[name] = sink
         self._f.flush()
 
     def add_calibration(
@@ -349,7 +371,7 @@ class TakeWriter:
         if self._state != "recording":
             raise TakeError(f"{self.path}: take is {self._state}; no more data can be written")
 
-    def _sensor(self, name: str) -> EventSink:
+    def _sensor(self, name: str) -> EventSink | EvtWordsSink:
         self._check_writable()
         try:
             sink = self._events[name]
@@ -375,7 +397,20 @@ class TakeWriter:
 
     def append_events(self, name: str, events: EventArray) -> None:
         """Buffer events (device clock); checked whole before any of the batch is kept."""
-        self._sensor(name).add_events(events, self.path)
+        sink = self._sensor(name)
+        if isinstance(sink, EvtWordsSink):
+            raise TakeError(f"{self.path}: event sensor {name!r} stores EVT words: use append_packet")
+        sink.add_events(events, self.path)
+
+    def append_packet(self, name: str, packet: EventPacket) -> None:
+        """Store a packet: its words as sent where the sensor stores them, else its events
+        as columns; its trigger edges either way (events checked whole first)."""
+        sink = self._sensor(name)
+        if isinstance(sink, EvtWordsSink):
+            sink.add_packet(packet, self.path)
+        elif len(packet.events):
+            sink.add_events(packet.events, self.path)
+        sink.add_triggers(packet.triggers, packet.host_time_ns)
 
     def append_triggers(self, name: str, triggers: TriggerEvents, host_time_ns: int | None = None) -> None:
         """Buffer trigger-in edges of an event sensor (device clock).
@@ -390,9 +425,12 @@ class TakeWriter:
         """Write every buffer: events up to the last whole chunk and the rest to their tail
         (a flush), or all of it to the main datasets (`final`: close, fail, finalize)."""
         for sink in self._events.values():
-            sink.write_events(whole_chunks_only=not final)
-            if not final:
-                sink.write_tail()
+            if isinstance(sink, EvtWordsSink):
+                sink.write(final=final)
+            else:
+                sink.write_events(whole_chunks_only=not final)
+                if not final:
+                    sink.write_tail()
             sink.write_triggers()
         for cam in self._cameras.values():
             cam.write_series()
@@ -633,6 +671,15 @@ class TakeWriter:
         attrs[WINDOW_MARGIN_ATTR] = np.int64(margin_us)
         attrs[WINDOW_OUTSIDE_ATTR] = json.dumps({k: dict(v) for k, v in outside.items()}, sort_keys=True)
 
+    def events_in_take(self) -> dict[str, int]:
+        """Events each sensor's readers see: for EVT-word sensors, once finalized, those inside
+        the take window (a packet across its edge is stored whole and clipped on read)."""
+        out = {}
+        for name, sink in self._events.items():
+            inside = sink.group.attrs.get("events_in_window") if isinstance(sink, EvtWordsSink) else None
+            out[name] = sink.n_written if inside is None else int(inside)
+        return out
+
     @property
     def flush_count(self) -> int:
         return self._flush_count
@@ -650,7 +697,7 @@ class TakeWriter:
     def stats(self) -> dict[str, DeviceWriteStats]:
         """Per device (and "trigger"): items and bytes taken in, bytes stored in the file."""
         out: dict[str, DeviceWriteStats] = {}
-        sinks: list[tuple[str, EventSink | CameraSink | PulseSink]] = [
+        sinks: list[tuple[str, EventSink | EvtWordsSink | CameraSink | PulseSink]] = [
             *self._events.items(),
             *self._cameras.items(),
             ("trigger", self._pulses),

@@ -89,10 +89,12 @@ class ClockReset:
             return dataclasses.replace(frame, t_exposure_start_us=frame.t_exposure_start_us + k)
         packet: EventPacket = item
         trig = packet.triggers
+        raw = packet.raw  # its words are not rewritten: the chunk says what was added
         return EventPacket(
             packet.events.with_time(packet.events.t + k),
             type(trig)(trig.t + k, trig.p, trig.channel),
             packet.host_time_ns,
+            None if raw is None else dataclasses.replace(raw, shift_us=raw.shift_us + k),
         )
 
     def release(self) -> list[tuple[str, Any]]:

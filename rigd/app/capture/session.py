@@ -431,7 +431,8 @@ class CaptureSession:
             for sen_cfg in config.event_sensors:
                 sen = self._channels[sen_cfg.name].device
                 w, h = sen.geometry  # type: ignore[union-attr]
-                take.add_event_sensor(sen_cfg.name, sen.info, w, h, sen_cfg.settings.model_dump_json())
+                fmt = sen.evt_format if sen.delivers_evt_words else None  # type: ignore[union-attr]
+                take.add_event_sensor(sen_cfg.name, sen.info, w, h, sen_cfg.settings.model_dump_json(), fmt)
             names = [c.name for c in config.cameras] + [s.name for s in config.event_sensors]
             store_ground_truth(take, {n: self._channels[n].device.info for n in names})
         except BaseException:
@@ -555,6 +556,7 @@ class CaptureSession:
             self.config, take, trigger, self._channels, self._ledger, self._faults, self._control, emitted
         )
         counts = {name: ch.written for name, ch in self._channels.items()}
+        counts.update(take.events_in_take())  # EVT words: a packet across a window edge is clipped on read
         return CaptureResult(
             self.path,
             report,

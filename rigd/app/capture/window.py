@@ -347,6 +347,10 @@ class WindowGate:
             return [packet]
         if hi == lo and not keep.any():
             return []
+        if packet.raw is not None and hi > lo:
+            # EVT words cannot be split: the packet is kept whole, its events outside the
+            # window counted as outside all the same (the take's reader clips them)
+            return [EventPacket(packet.events, triggers[keep], packet.host_time_ns, packet.raw)]
         return [EventPacket(packet.events[lo:hi], triggers[keep], packet.host_time_ns)]
 
     def _admit_frame(self, frame: Frame) -> list[Item]:

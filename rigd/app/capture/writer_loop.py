@@ -101,11 +101,7 @@ class WriterLoop:
         if isinstance(item, FrameItem):
             writer.append_frame(item.device, item.frame)
         elif isinstance(item, EventsItem):
-            packet = item.packet
-            if len(packet.events):
-                writer.append_events(item.device, packet.events)
-            if len(packet.triggers):
-                writer.append_triggers(item.device, packet.triggers, packet.host_time_ns)
+            writer.append_packet(item.device, item.packet)
         else:
             writer.append_pulses(item.batch)
 

@@ -19,6 +19,7 @@ import h5py
 import numpy as np
 
 from rigd.app.service.client import DaemonClient
+from rigd.take.reader import Take
 from rigd.take.validate import validate_take
 from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
 
@@ -37,7 +38,11 @@ def _journal(path: Path) -> list[dict[str, Any]]:
 
 def _plain_event_times(g: h5py.Group) -> np.ndarray:
     """Event times of an unrecovered take with plain h5py (docs/take-format.md): the whole
-    chunks in `t`, continued by the tail slot that starts where they end."""
+    chunks in `t`, continued by the tail slot that starts where they end. A sensor stored as
+    EVT words has no times to read plainly: the reader decodes its flushed words (tail too)."""
+    if g.attrs.get("storage") == "evt_words":
+        with Take(g.file.filename) as take:
+            return take.events(g.name.rsplit("/", 1)[-1]).t
     t = g["t"][...]
     for slot, (start, rows) in enumerate(g.attrs.get("tail_meta", np.zeros((2, 2), np.int64))):
         if start == t.shape[0] and rows:

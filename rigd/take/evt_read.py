@@ -1,0 +1,225 @@
+"""Reading an "evt_words" event sensor: its stored EVT words decoded on demand.
+
+`evt_index` says, per stored block, where its bytes are, how many events it decodes to, its
+first and last time and the decoder state to start from. A read finds the blocks a request
+overlaps (their times mapped through the sensor's clock map), reads their bytes in one h5py
+slice and decodes each block from its own state with the production decoder. Times are not
+rewritten at finalize: the reader adds each block's shift and applies the clock map, and clips
+to the take window, whose stored events [first_in_window, first_in_window + events_in_window)
+finalize counted (`window_range`). Event indices count the events inside the window.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.evt import StreamDecoder
+from rigd.core.errors import TakeFormatError
+from rigd.core.events import EventArray
+from rigd.core.schema import EVT_INDEX, EVT_INDEX_COLUMNS, EVT_WORDS
+from rigd.core.timebase import ClockMap
+from rigd.take.evt_sink import TAIL_WORDS, TAIL_WORDS_META
+
+#: Group attrs finalize writes on an evt_words sensor.
+CLOCK_MAP_ATTR = "clock_map_json"
+FIRST_IN_WINDOW_ATTR = "first_in_window"
+EVENTS_IN_WINDOW_ATTR = "events_in_window"
+WINDOW_ATTR = "window_us"
+_NHEAD = len(EVT_INDEX_COLUMNS)
+#: Device us searched beyond a window's edges mapped back to the device clock (to_device
+#: rounds, and the rate is within a few hundred ppm of 1), before the exact search in rig time.
+_MAP_SLACK_US = 4
+
+
+def clock_map_json(cmap: ClockMap) -> str:
+    """The map as finalize stores it (floats written with repr: read back bit-exact)."""
+    return json.dumps([cmap.device_ref_us, cmap.rig_ref_us, cmap.rate, cmap.frac_us])
+
+
+class EvtWordsEvents:
+    """One evt_words sensor of an open take. `cmap` None: times stay in the device clock (a
+    take never finalized); `window` (rig us, either bound None) clips what is shown."""
+
+    def __init__(
+        self,
+        g: h5py.Group,
+        where: str | Path,
+        cmap: ClockMap | None,
+        window: tuple[int | None, int | None] = (None, None),
+        *,
+        with_tail: bool = False,
+    ) -> None:
+        self.where = f"{where}: {g.name}"
+        self.g = g
+        fmt = g.attrs["evt_format"]
+        self.fmt = fmt.decode() if isinstance(fmt, bytes) else str(fmt)
+        self.width, self.height = int(g.attrs["width"]), int(g.attrs["height"])
+        self.words: h5py.Dataset = g[EVT_WORDS]
+        idx = np.asarray(g[EVT_INDEX][...], dtype=np.int64).reshape(-1, g[EVT_INDEX].shape[1])
+        self.start, self.length, self.count = idx[:, 0], idx[:, 1], idx[:, 2]
+        self.shift = idx[:, 5]
+        self.follows = idx[:, 6]
+        self.states = idx[:, _NHEAD:]
+        self.cum = np.concatenate([[0], np.cumsum(self.count)]).astype(np.int64)
+        self.cmap = cmap
+        self.first = self._map(idx[:, 3])
+        self.last = self._map(idx[:, 4])
+        self.lo, self.hi = window
+        self._tail = self._tail_bytes() if with_tail else None
+        if FIRST_IN_WINDOW_ATTR in g.attrs and cmap is not None:
+            self.i0 = int(g.attrs[FIRST_IN_WINDOW_ATTR])
+            self.i1 = self.i0 + int(g.attrs[EVENTS_IN_WINDOW_ATTR])
+        else:
+            self.i0, self.i1 = self.window_range()
+
+    @property
+    def stored(self) -> int:
+        return int(self.cum[-1])
+
+    def __len__(self) -> int:
+        return self.i1 - self.i0
+
+    def _map(self, t: NDArray[np.int64]) -> NDArray[np.int64]:
+        return t if self.cmap is None else self.cmap.to_rig(t)
+
+    def _tail_bytes(self) -> tuple[int, NDArray[np.uint8]] | None:
+        """(first byte, bytes) of the flushed tail slot that ends furthest (unfinished take)."""
+        ds = self.g.get(TAIL_WORDS)
+        if not isinstance(ds, h5py.Dataset) or TAIL_WORDS_META not in self.g.attrs:
+            return None
+        meta = np.asarray(self.g.attrs[TAIL_WORDS_META], dtype=np.int64).reshape(-1, 2)
+        slot = int(np.argmax(meta[:, 0] + meta[:, 1]))
+        start, n = int(meta[slot, 0]), int(meta[slot, 1])
+        return (start, np.asarray(ds[slot, :n], dtype=np.uint8)) if n else None
+
+    def _bytes(self, a: int, b: int) -> NDArray[np.uint8]:
+        tail = self._tail
+        if tail is None or b <= tail[0]:
+            return np.asarray(self.words[a:b], dtype=np.uint8)
+        head = np.asarray(self.words[a : tail[0]], dtype=np.uint8) if a < tail[0] else np.empty(0, np.uint8)
+        return np.concatenate([head, tail[1][max(a - tail[0], 0) : b - tail[0]]])
+
+    # -- decoding ----------------------------------------------------------------------
+    def decode_rows(self, r0: int, r1: int) -> EventArray:
+        """All stored events of rows [r0, r1), in the reader's time domain (one byte read)."""
+        ev = self._decode_device(r0, r1)
+        return ev if self.cmap is None else ev.with_time(self.cmap.to_rig(ev.t))
+
+    def _decode_device(self, r0: int, r1: int) -> EventArray:
+        """Rows [r0, r1) decoded, times in the device clock (their shifts added): each run of
+        rows that follow on in the stream with one decoder from its first row's state."""
+        if r1 <= r0:
+            return EventArray.empty()
+        base = int(self.start[r0])
+        data = self._bytes(base, int(self.start[r1 - 1] + self.length[r1 - 1]))
+        breaks = [r0, *(r0 + 1 + np.flatnonzero(self.follows[r0 + 1 : r1] == 0)).tolist(), r1]
+        parts = []
+        for a, b in itertools.pairwise(breaks):
+            lo, hi = int(self.start[a]) - base, int(self.start[b - 1] + self.length[b - 1]) - base
+            dec = StreamDecoder(self.fmt, width=self.width, height=self.height, state=self.states[a])
+            ev = dec.feed(data[lo:hi]).events
+            held = dec.flush().events
+            if len(held):
+                ev = EventArray.concatenate([ev, held])
+            want = int(self.cum[b] - self.cum[a])
+            if len(ev) != want:
+                raise TakeFormatError(
+                    f"{self.where}/{EVT_INDEX}: rows [{a}, {b}) decode to {len(ev)} events, the index "
+                    f"says {want} (damaged words or index)"
+                )
+            if self.shift[a]:
+                ev = ev.with_time(ev.t + self.shift[a])
+            parts.append(ev)
+        return parts[0] if len(parts) == 1 else EventArray.concatenate(parts)
+
+    def _stored_index(self, t: int) -> int:
+        """Stored index of the first event at or after t (reader's time domain)."""
+        r = int(np.searchsorted(self.last, t, side="left"))
+        if r >= self.last.shape[0]:
+            return self.stored
+        ev = self.decode_rows(r, r + 1)
+        return int(self.cum[r]) + int(np.searchsorted(ev.t, t, side="left"))
+
+    def window_range(self) -> tuple[int, int]:
+        """Stored events [i0, i1) inside the take window; decodes at most the two edge rows."""
+        i0 = 0 if self.lo is None else self._stored_index(self.lo)
+        i1 = self.stored if self.hi is None else self._stored_index(self.hi)
+        return i0, max(i0, i1)
+
+    # -- what the reader asks ----------------------------------------------------------
+    def by_index(self, a: int, b: int) -> EventArray:
+        """Events [a, b) counted inside the window."""
+        n = len(self)
+        a, b = max(0, min(a, n)), max(0, min(b, n))
+        if b <= a:
+            return EventArray.empty()
+        sa, sb = a + self.i0, b + self.i0
+        r0 = int(np.searchsorted(self.cum, sa, side="right")) - 1
+        r1 = int(np.searchsorted(self.cum, sb, side="left"))
+        ev = self.decode_rows(r0, r1)
+        off = int(self.cum[r0])
+        return ev[sa - off : sb - off]
+
+    def index_at(self, t: int) -> int:
+        """Index (inside the window) of the first event at or after t."""
+        return min(max(self._stored_index(t), self.i0), self.i1) - self.i0
+
+    def window(self, t0: int, t1: int) -> EventArray:
+        """Events with t0 <= t < t1 inside the take window: the overlapping rows decoded once."""
+        if self.lo is not None:
+            t0 = max(t0, self.lo)
+        if self.hi is not None:
+            t1 = min(t1, self.hi)
+        if t1 <= t0:
+            return EventArray.empty()
+        r0 = int(np.searchsorted(self.last, t0, side="left"))
+        r1 = int(np.searchsorted(self.first, t1, side="left"))
+        ev = self._decode_device(r0, max(r0, r1))
+        if self.cmap is None:
+            i = int(np.searchsorted(ev.t, t0, side="left"))
+            return ev[i : max(i, int(np.searchsorted(ev.t, t1, side="left")))]
+        # map only the events near the window: the map is monotonic, its inverse exact to 1 us
+        d0, d1 = (int(v) for v in self.cmap.to_device(np.array([t0, t1])))
+        a = int(np.searchsorted(ev.t, d0 - _MAP_SLACK_US, side="left"))
+        b = int(np.searchsorted(ev.t, d1 + _MAP_SLACK_US, side="left"))
+        rig = self.cmap.to_rig(ev.t[a:b])
+        i = int(np.searchsorted(rig, t0, side="left"))
+        j = max(i, int(np.searchsorted(rig, t1, side="left")))
+        part = ev[a + i : a + j]
+        return part.with_time(rig[i:j])
+
+    def span(self) -> tuple[int, int] | None:
+        n = len(self)
+        if n == 0:
+            return None
+        return int(self.by_index(0, 1).t[0]), int(self.by_index(n - 1, n).t[0])
+
+    def histogram(self, origin: int, bin_us: int) -> tuple[int, NDArray[np.int64]]:
+        """Events per bin aligned to `origin`, first to last event: rows inside one bin are
+        counted from the index, rows across a bin edge or the window's edge are decoded."""
+        span = self.span()
+        if span is None:
+            return origin, np.zeros(0, np.int64)
+        k0, k1 = (span[0] - origin) // bin_us, (span[1] - origin) // bin_us + 1
+        counts = np.zeros(k1 - k0, np.int64)
+        r0 = int(np.searchsorted(self.cum, self.i0, side="right")) - 1
+        r1 = int(np.searchsorted(self.cum, self.i1, side="left"))
+        rows = np.arange(r0, r1)
+        bf = (self.first[rows] - origin) // bin_us - k0
+        bl = (self.last[rows] - origin) // bin_us - k0
+        edge = (rows == r0) | (rows == r1 - 1)
+        whole = (bf == bl) & ~edge & (bf >= 0) & (bf < counts.size)
+        np.add.at(counts, bf[whole], self.count[rows[whole]])
+        for r in rows[~whole & (self.count[rows] > 0)]:
+            ev = self.decode_rows(int(r), int(r) + 1)
+            lo = max(self.i0 - int(self.cum[r]), 0)
+            hi = min(self.i1 - int(self.cum[r]), len(ev))
+            k = (ev.t[lo:hi] - origin) // bin_us - k0
+            np.add.at(counts, k[(k >= 0) & (k < counts.size)], 1)
+        return origin + k0 * bin_us, counts

@@ -1,0 +1,227 @@
+"""Event sensors stored as EVT words: write, finalize and read back exactly what was decoded.
+
+The same packets go through a take stored as words and one stored as columns: every reader
+call must agree, on the real Gen4.1 recording and on synthetic streams with a window clip.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from rigd.core.devices import DeviceInfo
+from rigd.core.errors import TakeError
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
+from rigd.core.schema import SyncReport
+from rigd.core.settings import WriterConfig
+from rigd.core.timebase import ClockMap
+from rigd.take import TakeWriter, open_take
+from tests.drivers.evt.streams import assert_same, needs_data, real_body
+from tests.rigd.evt_packets import packets_from_bytes, packets_of
+
+CMAP = ClockMap(device_ref_us=400_000, rig_ref_us=5_000_000, rate=0.999905, frac_us=-0.4)
+REPORT = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
+
+
+def write(
+    path: Path,
+    packets: list[EventPacket],
+    storage: str,
+    *,
+    width: int = 1280,
+    height: int = 720,
+    window: tuple[int | None, int | None] = (None, None),
+    finalize: bool = True,
+    flush_every: int = 7,
+) -> None:
+    cfg = WriterConfig(event_storage=storage, fsync=False)  # type: ignore[arg-type]
+    w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor(
+        "ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), width, height, "{}", "evt3"
+    )
+    for i, p in enumerate(packets):
+        w.append_packet("ev0", p)
+        if i % flush_every == flush_every - 1:
+            w.flush()
+    if window != (None, None):
+        w.set_window(window[0], window[1], 0, {})
+    if finalize:
+        w.finalize({"ev0": CMAP}, {}, REPORT)
+    w.close()
+
+
+def rig(ev: EventArray) -> EventArray:
+    return ev.with_time(CMAP.to_rig(ev.t))
+
+
+@pytest.fixture(scope="module")
+def synthetic() -> tuple[EventArray, list[EventPacket]]:
+    rng = np.random.default_rng(3)
+    n = 120_000
+    t = 400_000 + np.cumsum(rng.integers(0, 25, n))
+    ev = EventArray.from_arrays(rng.integers(0, 640, n), rng.integers(0, 480, n), rng.integers(0, 2, n), t)
+    ev = ev[np.lexsort((ev.x, ev.p, ev.y, ev.t))]
+    return ev, packets_of(ev, 9_000, width=640, height=480)
+
+
+def test_words_and_columns_read_the_same(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    ev, packets = synthetic
+    lo, hi = CMAP.to_rig(np.array([500_000, 2_800_000]))
+    paths = {s: tmp_path / f"{s}.h5" for s in ("evt_words", "columns")}
+    for storage, path in paths.items():
+        write(path, packets, storage, width=640, height=480)
+    with open_take(paths["evt_words"]) as words, open_take(paths["columns"]) as cols:
+        with h5py.File(paths["evt_words"]) as f:
+            assert f["events/ev0"].attrs["storage"] == "evt_words"
+            assert "x" not in f["events/ev0"]
+        assert words.event_count("ev0") == cols.event_count("ev0") == len(ev)
+        assert_same(words.events("ev0"), rig(ev))
+        assert_same(words.events("ev0", int(lo), int(hi)), cols.events("ev0", int(lo), int(hi)))
+        assert_same(words.events("ev0", int(lo)), cols.events("ev0", int(lo)))
+        assert_same(words.events("ev0", None, int(hi)), cols.events("ev0", None, int(hi)))
+        for t in (0, int(lo), int(lo) + 1, int(hi), 10**12):
+            assert words.event_index("ev0", t) == cols.event_index("ev0", t)
+        assert_same(words.events_by_index("ev0", 1234, 56789), cols.events_by_index("ev0", 1234, 56789))
+        assert words.event_span("ev0") == cols.event_span("ev0")
+        o1, c1 = words.event_histogram("ev0", 10_000)
+        o2, c2 = cols.event_histogram("ev0", 10_000)
+        assert o1 == o2
+        np.testing.assert_array_equal(c1, c2)
+        a = list(words.iter_events("ev0", 50_000))
+        b = list(cols.iter_events("ev0", 50_000))
+        assert len(a) == len(b)
+        for x, y in zip(a, b, strict=True):
+            assert_same(x, y)
+
+
+def test_window_clips_what_a_straddling_packet_brought(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """Packets across the window's edges are stored whole; the reader shows the window only,
+    and finalize counted exactly the events inside it."""
+    ev, packets = synthetic
+    lo, hi = (int(v) for v in CMAP.to_rig(np.array([700_003, 1_900_007])))
+    write(tmp_path / "w.h5", packets, "evt_words", width=640, height=480, window=(lo, hi))
+    inside = rig(ev)
+    inside = inside[(inside.t >= lo) & (inside.t < hi)]
+    with open_take(tmp_path / "w.h5") as take:
+        assert take.event_count("ev0") == len(inside)
+        assert_same(take.events("ev0"), inside)
+        assert_same(take.events("ev0", lo - 10_000, lo + 20_000), inside[inside.t < lo + 20_000])
+        assert take.event_span("ev0") == (int(inside.t[0]), int(inside.t[-1]))
+        assert int(take.event_histogram("ev0", 1000)[1].sum()) == len(inside)
+
+
+@needs_data
+def test_real_gen41_stream_round_trips(tmp_path: Path) -> None:
+    data = real_body("evt3_gen41_sample.raw")
+    packets = list(packets_from_bytes("evt3", data, 48_000))
+    whole = EventArray.concatenate([p.events for p in packets])
+    write(tmp_path / "r.h5", packets, "evt_words", flush_every=3)
+    with open_take(tmp_path / "r.h5") as take:
+        assert_same(take.events("ev0"), rig(whole))
+        with h5py.File(tmp_path / "r.h5") as f:
+            stored = f["events/ev0/evt_words"]
+            assert stored.shape[0] == sum(len(p.raw.data) for p in packets if p.raw is not None)
+            assert stored.id.get_storage_size() / len(whole) <= 2.5
+
+
+def test_unfinalized_take_reads_in_device_time_with_its_tail(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """A take whose writer died after a flush: the flushed words (tail slot included) read back."""
+    ev, packets = synthetic
+    path = tmp_path / "u.h5"
+    cfg = WriterConfig(event_storage="evt_words", fsync=False)
+    w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 480, "{}", "evt3")
+    for p in packets[:5]:
+        w.append_packet("ev0", p)
+    w.flush()
+    with open_take(path) as take:
+        n = sum(len(p.events) for p in packets[:5])
+        assert take.event_count("ev0") == n
+        assert_same(take.events("ev0"), ev[:n])
+    w.close()
+
+
+def test_bad_batch_is_refused_whole(tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]) -> None:
+    _ev, packets = synthetic
+    cfg = WriterConfig(event_storage="evt_words", fsync=False)
+    path = tmp_path / "b.h5"
+    w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 100, 480, "{}", "evt3")
+    with pytest.raises(TakeError, match="outside the sensor's 100x480 geometry"):
+        w.append_packet("ev0", packets[0])
+    w.close()
+    with open_take(path) as take:
+        assert take.event_count("ev0") == 0
+
+
+def test_refused_batch_mid_stream_leaves_no_bytes(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """A batch refused mid-stream (time going back): its words are not stored and the next
+    row decodes from its own state; every other packet reads back exactly."""
+    _, packets = synthetic
+    cfg = WriterConfig(event_storage="evt_words", fsync=False)
+    path = tmp_path / "m.h5"
+    w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 480, "{}", "evt3")
+    for p in packets[:6]:
+        w.append_packet("ev0", p)
+    with pytest.raises(TakeError, match="before the previous event"):
+        w.append_packet("ev0", packets[2])
+    for p in packets[6:]:
+        w.append_packet("ev0", p)
+    w.finalize({"ev0": CMAP}, {}, REPORT)
+    w.close()
+    with open_take(path) as take, h5py.File(path) as f:
+        index = f["events/ev0/evt_index"][...]
+        assert index[1:, 6].min() == 0  # the row after the refused batch does not follow on
+        assert f["events/ev0/evt_words"].shape[0] == sum(len(p.raw.data) for p in packets if p.raw)
+        assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in packets])))
+
+
+@pytest.mark.parametrize("fmt", [None, "dat"])
+def test_sensor_without_words_falls_back_to_columns(
+    tmp_path: Path, fmt: str | None, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    ev, _ = synthetic
+    path = tmp_path / "c.h5"
+    w = TakeWriter(
+        path, rig_config_json="{}", take_id="t", config=WriterConfig(fsync=False), rigd_version="t"
+    )
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 480, "{}", fmt)
+    w.append_packet("ev0", EventPacket(ev[:1000], TriggerEvents.empty(), 0))
+    w.close()
+    with h5py.File(path) as f:
+        g = f["events/ev0"]
+        assert g.attrs["storage"] == "columns"
+        assert "EVT words" in g.attrs["storage_note"]
+        assert g["t"].shape == (1000,)
+
+
+def test_re_tied_clock_shift_is_applied_on_read(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """A restarted clock re-tied by the capture path: the packets' times carry the shift, their
+    words do not; the chunk's shift_us says so and the reader adds it back."""
+    _, packets = synthetic
+    shift = 7_000_000
+    later = []
+    for p in packets[5:]:
+        assert p.raw is not None
+        raw = dataclasses.replace(p.raw, shift_us=shift)
+        later.append(EventPacket(p.events.with_time(p.events.t + shift), p.triggers, 0, raw))
+    moved = packets[:5] + later
+    write(tmp_path / "s.h5", moved, "evt_words", width=640, height=480)
+    with open_take(tmp_path / "s.h5") as take, h5py.File(tmp_path / "s.h5") as f:
+        assert set(f["events/ev0/evt_index"][:, 5].tolist()) == {0, shift}
+        assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in moved])))

@@ -1,0 +1,153 @@
+"""Crash safety of event sensors stored as EVT words: SIGKILLed writers, repair and recovery.
+
+The rig of `test_take_recover` (exact clocks: device time = rig time + a constant), its event
+sensor sending EVT 3.0 words: every flushed packet must read back from the killed take (tail
+slot included) and from the recovered one, in exact rig time.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from drivers.evt import StreamDecoder, encode
+from rigd.core.devices import DeviceInfo
+from rigd.core.events import EventArray, EventPacket
+from rigd.core.settings import WriterConfig
+from rigd.take import Take, TakeWriter, recover_take, validate_take
+from tests.rigd.test_take_recover import (
+    CAM_SHAPE,
+    EV_PER_STEP,
+    OFF_EV,
+    PERIOD,
+    RIG0,
+    ROOT,
+    H,
+    W,
+    rig_config_json,
+    step,
+)
+
+WORDS_CFG = WriterConfig(event_storage="evt_words", fsync=False)
+
+
+def open_words_writer(path: Path) -> TakeWriter:
+    w = TakeWriter(
+        path,
+        rig_config_json=rig_config_json(),
+        take_id=path.stem,
+        config=WORDS_CFG,
+        rigd_version="t",
+        flush_interval_s=0.2,
+    )
+    w.add_trigger(DeviceInfo(kind="trigger", spec="sim://t/trigger"))
+    w.add_camera("cam0", DeviceInfo(kind="rgb_camera", spec="sim://t/cam0"), CAM_SHAPE, np.uint8, "{}")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), W, H, "{}", "evt3")
+    return w
+
+
+def step_bytes(k: int) -> bytes:
+    s = step(k)
+    return encode("evt3", s.events, s.triggers)
+
+
+def append_words_step(w: TakeWriter, dec: StreamDecoder, k: int) -> None:
+    s = step(k)
+    w.append_pulses(s.pulse)
+    w.append_frame("cam0", s.frame)
+    got, chunk = dec.feed_chunk(step_bytes(k))
+    w.append_packet("ev0", EventPacket(got.events, got.triggers, s.packet_host_ns, chunk))
+
+
+def expected_events(n: int) -> EventArray:
+    dec = StreamDecoder("evt3", width=W, height=H)
+    return EventArray.concatenate([dec.feed(step_bytes(k)).events for k in range(n)])
+
+
+def _script(path: Path) -> str:
+    return textwrap.dedent(
+        f"""
+        import time
+        from pathlib import Path
+        from drivers.evt import StreamDecoder
+        from tests.rigd.test_take_evt_words_crash import append_words_step, open_words_writer
+        from tests.rigd.test_take_recover import journal, W, H
+        w = open_words_writer(Path({str(path)!r}))
+        dec = StreamDecoder("evt3", width=W, height=H)
+        print("START", flush=True)
+        k, last = 0, time.monotonic()
+        while True:
+            append_words_step(w, dec, k)
+            k += 1
+            if time.monotonic() - last >= 0.2:
+                w.flush(journal=journal(k))
+                print(f"F {{k}}", flush=True)
+                last = time.monotonic()
+            time.sleep(0.0005)
+        """
+    )
+
+
+def _run_and_kill(path: Path, flushes: int, after_s: float) -> int:
+    """Run the writer script and SIGKILL it `after_s` after its `flushes`-th flush (so the
+    kill lands at a random moment of its work however slow the machine is); returns the steps
+    its last completed flush covered."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _script(path)], cwd=ROOT, stdout=subprocess.PIPE, text=True, bufsize=1
+    )
+    assert proc.stdout is not None
+    assert proc.stdout.readline().strip() == "START"
+    seen = []
+    while len(seen) < flushes:
+        line = proc.stdout.readline()
+        assert line.startswith("F "), line
+        seen.append(int(line.split()[1]))
+    time.sleep(after_s)
+    proc.send_signal(signal.SIGKILL)
+    out = proc.stdout.read()
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    flushed = [
+        int(x.split()[1]) for x in out.splitlines(keepends=True) if x.startswith("F ") and x.endswith("\n")
+    ]
+    return (flushed or seen)[-1]
+
+
+def test_sigkill_at_random_moments_then_recover_words(tmp_path: Path) -> None:
+    rng = np.random.default_rng(20261126)
+    sealed = 0
+    for i, (flushes, after_s) in enumerate(zip(rng.integers(1, 5, 5), rng.uniform(0, 0.4, 5), strict=True)):
+        path = tmp_path / f"kill{i}.h5"
+        n = _run_and_kill(path, int(flushes), float(after_s))
+        with h5py.File(path, "r") as f:
+            assert f["events/ev0"].attrs["storage"] == "evt_words"
+        exp = expected_events(n + 200)
+        ne = n * EV_PER_STEP
+        with Take(path) as take:  # unrecovered: device time, the flushed tail included
+            got = take.events("ev0")
+            assert len(got) >= ne
+            np.testing.assert_array_equal(got.t, exp.t[: len(got)])
+        rr = recover_take(path)
+        if n < 3:
+            continue
+        assert rr.outcome == "sealed", rr
+        sealed += 1
+        assert validate_take(path) == []
+        with Take(path) as take:
+            ev = take.events("ev0")
+            assert len(ev) >= ne
+            assert take.event_count("ev0") == len(ev)
+            np.testing.assert_array_equal(ev.t, exp.t[: len(ev)] - OFF_EV)
+            np.testing.assert_array_equal(ev.x, exp.x[: len(ev)])
+            a = RIG0 + 2 * PERIOD
+            win = take.events("ev0", a, a + PERIOD)
+            want = exp.t[: len(ev)] - OFF_EV
+            np.testing.assert_array_equal(win.t, want[(want >= a) & (want < a + PERIOD)])
+    assert sealed, "no writer got three flushes in before its kill"
