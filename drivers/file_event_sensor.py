@@ -29,7 +29,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from drivers.base import Capability, EventSensor
 from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, StreamDecoder, read_dat, warm_up_decoder
@@ -109,6 +108,7 @@ class FileEventSensor(EventSensor):
         self._passes = 0
         # wire-byte replay (EVT 3.0, EVT 2.0 without loop): see `_read_wire`
         self.wire = not self._is_dat and (self._fmt == "evt3" or (self._fmt == "evt2" and not loop))
+        self.delivers_evt_words = self.wire
         self._stream: EvtFileStream | None = None
         self._decoder: StreamDecoder | None = None
         self._stream_id = -1
@@ -201,7 +201,7 @@ class FileEventSensor(EventSensor):
         )
         self._stream_id += 1
         self._pos = self._chunk_at = 0
-        self._chunk_state = _state_copy(self._decoder)
+        self._chunk_state = self._decoder.state_copy()
         self._stopped_s, self._ended = None, False
         self._t0_host = self._clock()
 
@@ -358,7 +358,7 @@ class FileEventSensor(EventSensor):
         else:  # held words: the chunk starts before (or ends short of) what was fed
             data = self._stream.read(self._chunk_at, consumed)
         raw = EvtChunk(self._fmt, data, self._chunk_state, self._stream_id, self._chunk_at)
-        self._chunk_at, self._chunk_state = consumed, _state_copy(self._decoder)
+        self._chunk_at, self._chunk_state = consumed, self._decoder.state_copy()
         self._bytes_delivered += len(data)
         return EventPacket(decoded.events, decoded.triggers, self._arrival_ns(consumed), raw)
 
@@ -395,13 +395,6 @@ class FileEventSensor(EventSensor):
                 extra["decoder_first_skipped_offset"] = self._decoder.skipped_offsets[0]
             extra.update({f"decoder_{k}": v for k, v in self._decoder.jump_stats.items()})
         return extra
-
-
-def _state_copy(decoder: StreamDecoder) -> NDArray[np.int64]:
-    """The decoder's format state now (nothing held back).
-
-    TODO: StreamDecoder.state_copy() replaces this once it is on main."""
-    return np.array(decoder._state, np.int64, copy=True)
 
 
 def _reason(exc: EventDataError | OSError, path: Path) -> str:

@@ -68,6 +68,9 @@ class DeviceObservations:
     t_device_us: NDArray[np.int64]
     host_time_ns: NDArray[np.int64]
     frame_counter: NDArray[np.int64] | None = None
+    anchors: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
+    """(device us, host ns) of data as it arrived: an event sensor without trigger-in has no
+    trigger observations, and its clock can only be placed by when its data reached the host."""
 
 
 @dataclass(slots=True)
@@ -461,7 +464,15 @@ def _report_entry(
 
 
 def _fallback_map(obs: DeviceObservations, host_map: ClockMap) -> ClockMap:
-    if obs.t_device_us.size == 0:
+    if obs.t_device_us.size:
+        rig = host_map.to_rig(obs.host_time_ns // 1000)
+        return fit_clock_map(obs.t_device_us, rig, fit_drift=False).map
+    if obs.anchors is None or obs.anchors[0].size == 0:
         return ClockMap.identity()
-    rig = host_map.to_rig(obs.host_time_ns // 1000)
-    return fit_clock_map(obs.t_device_us, rig, fit_drift=False).map
+    # Data reaches the host after it was made (latency >= 0): shift the line onto the fastest
+    # arrivals, as host_to_rig_map does, so device time maps to when it happened.
+    t, host = obs.anchors
+    fit = fit_clock_map(t, host_map.to_rig(host // 1000), fit_drift=False)
+    fastest = float(np.percentile(fit.residuals_us, 5)) if fit.n else 0.0
+    m = fit.map
+    return ClockMap(m.device_ref_us, m.rig_ref_us, m.rate, m.frac_us + fastest)

@@ -126,3 +126,23 @@ def test_device_that_missed_the_first_pulses_is_placed_by_host_time() -> None:
     res = synchronize(pulses, [obs], RATE)
     np.testing.assert_array_equal(res.observation_pulse_index["cam0"], true_idx)
     assert res.report.devices["cam0"].missing_pulses == [0, 1, 2]
+
+
+def test_a_sensor_without_trigger_in_is_placed_by_its_fastest_arrivals() -> None:
+    """No trigger observations: the sensor's device clock (here rig + 5 s) is placed by when
+    its data reached the host, on the least-latency arrivals, not left as device time."""
+    rng = np.random.default_rng(3)
+    n = 60
+    t_rig = np.arange(n, dtype=np.int64) * 33_333 + 1_000_000
+    host_ns = (t_rig + 200) * 1000  # the box's records reach the host 200 us late
+    pulses = PulseLog.from_records(np.arange(n, dtype=np.int64), t_rig, host_ns, n)
+    t_event_rig = np.sort(rng.integers(1_000_000, 2_900_000, 400)).astype(np.int64)
+    latency = rng.integers(0, 3_000, 400)
+    latency[::40] = 0  # some packets arrive at once
+    anchors = (t_event_rig + 5_000_000, (t_event_rig + 200 + latency) * 1000)
+    empty = np.empty(0, np.int64)
+    obs = DeviceObservations("ev0", "event_sensor", empty, empty, None, anchors)
+    result = synchronize(pulses, [obs], 30.0)
+    mapped = result.maps["ev0"].to_rig(t_event_rig + 5_000_000)
+    assert np.abs(mapped - t_event_rig).max() < 100  # within 0.1 ms, not 5 s or the mean latency
+    assert any("coarse host clock" in w for w in result.report.warnings)

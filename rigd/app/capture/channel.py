@@ -24,7 +24,7 @@ from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, WriterQueue, first_time
 from rigd.app.capture.ledger import LossLedger
-from rigd.app.capture.live import Gap, LiveStats, Observations
+from rigd.app.capture.live import Gap, HostAnchors, LiveStats, Observations
 from rigd.app.capture.overload import SliceShedder
 from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.core.devices import PulseBatch
@@ -179,6 +179,12 @@ class DeviceChannel:
         self.trigger_in = settings.trigger_in_channel if isinstance(settings, EventSensorSettings) else 0
         self.live = LiveStats(kind)
         self.obs = Observations()
+        self.anchors: HostAnchors | None = (
+            HostAnchors()
+            if isinstance(settings, EventSensorSettings) and not settings.enable_trigger_in
+            else None
+        )
+        """Where the sensor's clock can only be placed by when its data arrived (no trigger-in)."""
         self.written = 0
         """Frames or events that reached the file."""
         self.latest_frame: Frame | None = None
@@ -519,6 +525,8 @@ class DeviceChannel:
         else:
             ev = item.events
             self._arrived(first_time(item), int(ev.t[-1]) if len(ev) else None, item.host_time_ns)
+            if self.anchors is not None and len(ev):
+                self.anchors.note(int(ev.t[-1]), item.host_time_ns)
         gate = self.gate
         for part in [item] if gate is None else gate.admit(item):
             self._enqueue(part)

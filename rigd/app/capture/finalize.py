@@ -53,8 +53,9 @@ def finalize_take(
     observations = []
     for name, ch in channels.items():
         t, host, counter = ch.obs.arrays()
+        anchors = None if ch.anchors is None else ch.anchors.arrays()
         observations.append(
-            DeviceObservations(name, ch.kind, t, host, counter if ch.kind == "rgb_camera" else None)
+            DeviceObservations(name, ch.kind, t, host, counter if ch.kind == "rgb_camera" else None, anchors)
         )
     slaves = {
         s.name: s.settings.sync_master

@@ -47,6 +47,29 @@ class Observations:
 
 
 @dataclass(slots=True)
+class HostAnchors:
+    """(device us, host ns) of data as it arrived, for a device with no trigger observations
+    (an event sensor without trigger-in): per `BUCKET_NS` of host time only the fastest
+    arrival is kept (least latency), so memory grows with the take's length, not its rate."""
+
+    BUCKET_NS = 100_000_000
+    best: dict[int, tuple[int, int]] = field(default_factory=dict)
+
+    def note(self, t_device_us: int, host_ns: int) -> None:
+        key = host_ns // self.BUCKET_NS
+        old = self.best.get(key)
+        if old is None or host_ns // 1000 - t_device_us < old[1] // 1000 - old[0]:
+            self.best[key] = (t_device_us, host_ns)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        pairs = [self.best[k] for k in sorted(self.best)]
+        return (
+            np.asarray([p[0] for p in pairs], np.int64),
+            np.asarray([p[1] for p in pairs], np.int64),
+        )
+
+
+@dataclass(slots=True)
 class Gap:
     """A device away (unplugged, reconnecting) since `since_mono`."""
 
