@@ -222,7 +222,9 @@ class EvtWordsSink(TriggerIn):
         n = len(ev)
         if n:
             try:
-                check_event_batch(ev, where, self.last_t, self.n_written, self.width, self.height)
+                check_event_batch(
+                    ev, where, self.last_t, self.n_written, self.width, self.height, within=False
+                )
             except TakeError:
                 self.refused += 1
                 self._close_row()

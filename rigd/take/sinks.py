@@ -81,10 +81,21 @@ def _event_columns(ev: EventArray, lo: int, hi: int) -> dict[str, NDArray[Any]]:
 
 
 def check_event_batch(
-    events: EventArray, where: str, last_t: int | None, seen: int, width: int, height: int
+    events: EventArray,
+    where: str,
+    last_t: int | None,
+    seen: int,
+    width: int,
+    height: int,
+    *,
+    within: bool = True,
 ) -> None:
     """Refuse a batch (TakeError) that would break a sensor's time order or geometry; `seen`:
-    events the sensor stored before it, `last_t`: the time of the last one."""
+    events the sensor stored before it, `last_t`: the time of the last one. `within=False`
+    skips the order of the events inside the batch: for events the production EVT decoder made,
+    which never emits one earlier than the last (it counts such words as skipped), so checking
+    them again would only cost the writer thread; where the batch meets the previous one and
+    the geometry (the take's may differ from the decoder's) are still checked."""
     n = len(events)
     t = events.t
     if last_t is not None and int(t[0]) < last_t:
@@ -92,8 +103,8 @@ def check_event_batch(
             f"{where}: event 0 of the batch (#{seen} of the sensor) has "
             f"t={int(t[0])} us before the previous event at {last_t} us; batch of {n} refused"
         )
-    bad = np.flatnonzero(t[1:] < t[:-1])
-    if bad.size:
+    bad = np.flatnonzero(t[1:] < t[:-1]) if within else np.empty(0, np.intp)
+    if len(bad):
         i = int(bad[0]) + 1
         raise TakeError(
             f"{where}: event {i} of the batch (#{seen + i} of the sensor) "
