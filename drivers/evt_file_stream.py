@@ -185,16 +185,19 @@ class EvtFileStream:
         while start < end:
             p, r = divmod(start, self.span_bytes)
             n = min(end - start, self.span_bytes - r)
-            parts.append(self._pass(p)[r : r + n])
+            parts.append(self._pass(p)[r : r + n].tobytes())  # copied before the next pass
             start += n
-        return b"".join(p.tobytes() for p in parts) if len(parts) > 1 else parts[0].tobytes()
+        return b"".join(parts) if len(parts) > 1 else parts[0]
 
     def _pass(self, p: int) -> NDArray[np.uint8]:
-        """Pass p's bytes: the region with p x periods added to its TIME_HIGH words."""
+        """Pass p's bytes: the region with p x periods added to its TIME_HIGH words. One
+        buffer serves every pass (only its TIME_HIGH words change), so a pass costs a few word
+        writes, not a copy of the recording: what a device's own buffer costs the host."""
         cached, buf = self._pass_cache
         if cached == p:
             return buf
-        buf = self._body.copy()
+        if buf is self._body:  # the recording itself stays as read
+            buf = self._body.copy()
         words = buf.view(WORDS[self.fmt][1])
         words[self._th_pos] = (_TH << 12) | ((self._th_val + p * self._periods) & 0xFFF)
         self._pass_cache = (p, buf)
