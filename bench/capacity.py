@@ -471,7 +471,8 @@ def frame_writes(frames: Sequence[Frame], n: int, opts: dict[str, Any], path: Pa
     with h5py.File(path, "w") as f:
         g = f.create_group("frames").create_group("cam0")
         img = frames[0].image
-        sink = CameraSink.create("cam0", g, tuple(img.shape), np.dtype(img.dtype), opts)
+        fmt = frames[0].pixel_format or ("rgb8" if img.ndim == 3 else "mono8")
+        sink = CameraSink.create("cam0", g, tuple(img.shape), np.dtype(img.dtype), opts, fmt)
         for i in range(n):
             fr = frames[i % len(frames)]
             sink.add_frame(

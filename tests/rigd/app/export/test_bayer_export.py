@@ -52,7 +52,12 @@ def exports(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Pat
 
 
 def _images(root: Path) -> list[Path]:
-    return sorted(p for p in root.rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    """The exported camera images (not dynamic3dgs' all-foreground `seg/` masks)."""
+    return sorted(
+        p
+        for p in root.rglob("*")
+        if p.suffix.lower() in (".png", ".jpg", ".jpeg") and "seg" not in p.relative_to(root).parts
+    )
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
