@@ -205,9 +205,13 @@ def test_disk_full_stops_closes_reports_and_recovers(small_tmpfs: Path, start_da
     subprocess.run(["mount", "-o", "remount,size=200m", str(small_tmpfs)], check=True)
     rep = recover_take(path)
     assert rep.sealed, rep
+    # Recovery keeps every frame whose image reached the disk whole; one the full disk cut
+    # (frames are written as their own chunks, so it can be the last one) is trimmed and
+    # recorded as such, never silently.
+    cut = sum(t.lost for t in rep.trims if t.device == "cam0")
     with h5py.File(path, "r") as f:
         assert f.attrs["status"] in ("failed", "complete")
-        assert f["frames/cam0/t_exposure_start_device_us"].shape[0] >= n
+        assert f["frames/cam0/t_exposure_start_device_us"].shape[0] >= n - cut
     wait_idle(rd.client)
 
 
