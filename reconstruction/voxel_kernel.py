@@ -17,6 +17,17 @@ from numba import njit
 from numpy.typing import NDArray
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _split(  # pragma: no cover - numba
+    ti: int, t0: int, duration: float, span: float, bins: int
+) -> tuple[int, int, float]:
+    """The two bins an event's polarity is split between, and the later one's share: one
+    place for both kernels, so their grids stay bit-identical."""
+    tn = (float(ti - t0) / duration) * span
+    lo = min(max(int(np.floor(tn)), 0), bins - 1)
+    return lo, min(lo + 1, bins - 1), tn - lo
+
+
 @njit(nogil=True, cache=True)
 def voxel_accumulate(
     x: NDArray[np.uint16],
@@ -46,10 +57,7 @@ def voxel_accumulate(
         if bins == 1:
             out[0, yi, xi] += np.float32(pol)
             continue
-        tn = (float(ti - t0) / duration) * span
-        lo = min(max(int(np.floor(tn)), 0), bins - 1)
-        frac = tn - lo
-        hi = min(lo + 1, bins - 1)
+        lo, hi, frac = _split(ti, t0, duration, span, bins)
         out[lo, yi, xi] += np.float32(pol * (1.0 - frac))
         out[hi, yi, xi] += np.float32(pol * frac)
     return added
@@ -89,10 +97,7 @@ def voxel_accumulate_tracked(
             touched[k] = pix
             k += 1
             continue
-        tn = (float(ti - t0) / duration) * span
-        lo = min(max(int(np.floor(tn)), 0), bins - 1)
-        frac = tn - lo
-        hi = min(lo + 1, bins - 1)
+        lo, hi, frac = _split(ti, t0, duration, span, bins)
         out[lo * npix + pix] += np.float32(pol * (1.0 - frac))
         out[hi * npix + pix] += np.float32(pol * frac)
         touched[k] = lo * npix + pix
