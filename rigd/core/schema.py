@@ -7,11 +7,13 @@ so the writer, the reader and the validator cannot drift apart.
 from __future__ import annotations
 
 import json
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
-import numpy as np
-from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
+
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
 
 SCHEMA_NAME = "rigd.take"
 #: Major changes break readers; minor ones only add datasets or attributes.
@@ -65,15 +67,17 @@ WINDOW_OUTSIDE_ATTR = "window_outside_json"
 
 ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")
 #: `events/<sensor>/<name>`: p is stored as uint8 1/0 (DSEC), not the in-memory int8 +1/-1.
-EVENT_DTYPES: dict[str, type[np.generic]] = {"x": np.uint16, "y": np.uint16, "p": np.uint8, "t": np.int64}
+#: Dtypes by name (numpy accepts the names; this module imports no numpy, so `rigd status` and the
+#: other clients of the daemon's protocol start without it).
+EVENT_DTYPES: dict[str, str] = {"x": "uint16", "y": "uint16", "p": "uint8", "t": "int64"}
 #: `events/<sensor>/trigger/<name>`
-TRIGGER_DTYPES: dict[str, type[np.generic]] = {
-    "t": np.int64,
-    "p": np.uint8,
-    "channel": np.uint8,
-    "t_device": np.int64,
+TRIGGER_DTYPES: dict[str, str] = {
+    "t": "int64",
+    "p": "uint8",
+    "channel": "uint8",
+    "t_device": "int64",
     # Host monotonic ns when the packet carrying the edge arrived; -1 unknown (schema 1.1).
-    "host_time_ns": np.int64,
+    "host_time_ns": "int64",
 }
 #: Items newer than 1.0, with the schema version that added them: takes of an older minor
 #: version may lack them, and readers treat a missing one as "unknown".
@@ -100,6 +104,8 @@ def encode_journal(flush: int, journal: Any) -> bytes:
 
 def decode_journal(slots: NDArray[np.uint8]) -> tuple[int, dict[str, Any]] | None:
     """(flush number, journal) of the newest slot that parses; None if none does."""
+    import numpy as np
+
     best: tuple[int, dict[str, Any]] | None = None
     for row in np.atleast_2d(np.asarray(slots, dtype=np.uint8)):
         text = row.tobytes().split(b"\0", 1)[0]

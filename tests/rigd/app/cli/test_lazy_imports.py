@@ -62,3 +62,12 @@ def test_core_exports_load_on_first_use() -> None:
     assert json.dumps(sorted(rigd.core.__all__))  # every name in __all__ resolves
     for name in rigd.core.__all__:
         getattr(rigd.core, name)
+
+
+def test_status_path_loads_no_numpy() -> None:
+    """`rigd status` needs the protocol client and its models, not numpy (0.2 s of a 1 s start)."""
+    code = (
+        "import rigd.app.service.client, rigd.app.service.protocol, rigd.app.commands.service\n"
+        "import sys\nassert 'numpy' not in sys.modules, 'numpy loaded'"
+    )
+    assert "h5py" not in _loaded_after(code)
