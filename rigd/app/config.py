@@ -255,7 +255,7 @@ class RigConfig(BaseModel):
 def default_sim_rig(
     world: str = "default",
     seed: int = 0,
-    pixel_format: Literal["mono8", "rgb8", "bayer_rg8"] = "rgb8",
+    pixel_format: Literal["mono8", "rgb8", "bayer_rg8"] = "bayer_rg8",
     resolution: tuple[int, int] = (1280, 720),
     rate_hz: float = 30.0,
     clock: Literal["real", "virtual"] = "real",
