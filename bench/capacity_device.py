@@ -271,7 +271,7 @@ def source_take(
 
 
 def run_level(
-    src: Path, out_dir: Path, raw: Path, spec: LevelSpec, density: float, preload: int
+    src: Path, out_dir: Path, raw: Path, spec: LevelSpec, density: float, preload: int, keep: bool = False
 ) -> DeviceLevel:
     """Capture one level: two looped `file://` sensors beside the replayed trigger and cameras."""
     cfg, _ = replay_config(src)
@@ -314,7 +314,12 @@ def run_level(
         cpu, wall = time.process_time() - cpu0, time.perf_counter() - t0
         sampler.finish()
         reset_world(f"replay:{src.resolve()}")
-    return judge(spec, result, [c.name for c in cfg.cameras], density, cpu, wall, sampler, status)
+    level = judge(spec, result, [c.name for c in cfg.cameras], density, cpu, wall, sampler, status)
+    if keep:
+        log.warning("level %s: take kept at %s", spec.label, result.path)
+    else:
+        result.path.unlink(missing_ok=True)
+    return level
 
 
 def judge(
@@ -383,7 +388,6 @@ def judge(
         unread_bytes=sum(counters.get(s, {}).get("bytes_unread", 0) for s in sensors),
         threads=threads,
     )
-    res.path.unlink(missing_ok=True)
     return level
 
 
@@ -450,6 +454,7 @@ def device_part(
     overload_s: float | None,
     preload: int,
     disk_mb: int,
+    keep: bool = False,
 ) -> list[str]:
     """Run the device-like levels and return the printed lines."""
     density, loop_us = recording_density(raw)
@@ -463,16 +468,16 @@ def device_part(
         for fmt in fmts if n_cams else fmts[:1]:
             for pace in paces:
                 spec = LevelSpec(f"pace {pace:g}", pace, n_cams, fmt if n_cams else "-", seconds)
-                levels.append(run_level(sources[fmt], work, raw, spec, density, preload))
+                levels.append(run_level(sources[fmt], work, raw, spec, density, preload, keep))
     extra: list[DeviceLevel] = []
     n_top, fmt0 = max(cameras), fmts[0]
     if burst:
         base, peak = BURST_BASE_MEVS / density, BURST_PEAK_MEVS / density
         spec = LevelSpec("burst", base, n_top, fmt0, burst[2], (burst[0], burst[1], peak))
-        extra.append(run_level(sources[fmt0], work, raw, spec, density, preload))
+        extra.append(run_level(sources[fmt0], work, raw, spec, density, preload, keep))
     if overload_s:
         spec = LevelSpec("overload", OVERLOAD_MEVS / density, n_top, fmt0, overload_s)
-        extra.append(run_level(sources[fmt0], work, raw, spec, density, preload))
+        extra.append(run_level(sources[fmt0], work, raw, spec, density, preload, keep))
     disk = disk_write_mbs(work, disk_mb)
     out = [
         f"5. device-like sources: 2 x file:// {raw.name} (looped {loop_us} us, "
@@ -524,6 +529,7 @@ def device_part_from_args(ap: argparse.ArgumentParser, args: argparse.Namespace,
         overload_s=args.overload or None,
         preload=args.preload,
         disk_mb=args.disk_mb,
+        keep=args.keep,
     )
 
 

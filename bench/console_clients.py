@@ -1,16 +1,23 @@
-"""What open web consoles cost the capture: throughput and telemetry latency with 0, 1 and 10 clients.
+"""What open web consoles and a busy host cost the capture: the default rig through the daemon.
 
-    python -m bench.console_clients [--duration 8] [--resolution 640x360] [--clients 0,1,10]
+    python -m bench.console_clients [--duration 8] [--resolution 1280x720] [--clients 0,1,10]
+        [--load 0,1,2] [--stop-after S]
 
-Runs the daemon with its web console in this process on the sim rig (real time) and, for each
-client count, one take of `--duration` seconds while that many clients behave like a dashboard
-tab (sending the console's secret, as a logged-in browser does): each follows the live stream
-(server-sent events, /api/live) and fetches the preview JPEG of every device whose version
-changed, one fetch at a time, as the page does. Prints per client count: frames/s and events/s
-written, loss records, the writer queue's peak, and the telemetry latency a client sees (receipt
-time minus the document's sampling time: median and p95), the documents and JPEGs each client
-got, and the daemon process's CPU seconds per take second (the clients run in a child process,
-so their own CPU is not counted).
+Runs the daemon with its web console in this process on the sim rig (real time, the default
+rig's bayer_rg8 cameras unless `--pixel-format`) and, for each background load and client count,
+one take of `--duration` seconds while that many clients behave like a dashboard tab (sending the
+console's secret, as a logged-in browser does): each follows the live stream (server-sent events,
+/api/live) and fetches the preview JPEG of every device whose version changed, one fetch at a
+time, as the page does. `--load N` runs N busy processes at normal priority beside the daemon
+(other work on the host), so the table shows where this machine stops holding the rig.
+`--stop-after S` stops each take with the daemon's `stop` command after S seconds (what `rigd stop`
+sends) and reports how long the stop took until the take was finalized.
+
+Prints per level: the host's load average, frames/s and events/s written, frames and events lost
+(loss records' counts), the take's verdict, the writer queue's peak, the telemetry latency a
+client sees (receipt time minus the document's sampling time: median and p95), the documents and
+JPEGs each client got, the daemon process's CPU seconds per take second (the clients and the load
+run in child processes, so their CPU is not counted) and the stop time.
 """
 
 from __future__ import annotations
@@ -78,8 +85,12 @@ def client(url: str, token: str, stop: threading.Event, stats: ClientStats) -> N
             stats.errors.append(str(exc))
 
 
-def rig(take_dir: Path, runtime: Path, resolution: tuple[int, int]) -> RigConfig:
-    cfg = default_sim_rig(world=f"bench-{uuid.uuid4().hex[:6]}", resolution=resolution)
+def rig(take_dir: Path, runtime: Path, resolution: tuple[int, int], pixel_format: str) -> RigConfig:
+    cfg = default_sim_rig(
+        world=f"bench-{uuid.uuid4().hex[:6]}",
+        resolution=resolution,
+        pixel_format=pixel_format,  # type: ignore[arg-type]
+    )
     data = cfg.model_dump(mode="json")
     data["writer"]["disk_reserve_mb"] = 0
     data["service"].update(
@@ -107,40 +118,83 @@ def clients_process(url: str, token: str, n: int, stop: Any, out: Any) -> None:
     out.put([(s.docs, s.jpegs, s.latencies_s, s.errors) for s in stats])
 
 
-def run_level(daemon: Daemon, console: ConsoleServer, n_clients: int, duration_s: float) -> dict[str, float]:
-    """One take with `n_clients` clients in a child process (their CPU is not the daemon's)."""
+def busy(stop: Any) -> None:
+    """Other work on the host: a pure-Python loop at normal priority until `stop`."""
+    x = 0
+    while not stop.is_set():
+        for i in range(100_000):
+            x ^= i
+
+
+def command(daemon: Daemon, cmd: str, args: dict[str, Any]) -> dict[str, Any]:
+    reply: dict[str, Any] = json.loads(
+        daemon.handle([json.dumps({"v": 1, "cmd": cmd, "args": args}).encode()]) or b"{}"
+    )
+    if not reply["ok"]:
+        raise SystemExit(f"{cmd} refused: {reply['error']}")
+    return reply
+
+
+def run_level(
+    daemon: Daemon,
+    console: ConsoleServer,
+    n_clients: int,
+    n_load: int,
+    duration_s: float,
+    stop_after_s: float | None,
+) -> dict[str, Any]:
+    """One take with `n_clients` clients and `n_load` busy processes in child processes (their CPU
+    is not the daemon's)."""
     mp = multiprocessing.get_context("spawn")
     stop, out = mp.Event(), mp.Queue()
     proc = mp.Process(
         target=clients_process, args=(console.url, console.security.token, n_clients, stop, out), daemon=True
     )
     proc.start()
-    time.sleep(3.0)  # let the child start and the clients connect before the take
+    hogs = [mp.Process(target=busy, args=(stop,), daemon=True) for _ in range(n_load)]
+    for h in hogs:
+        h.start()
+    time.sleep(3.0)  # let the children start and the clients connect before the take
     cpu0, t0 = os.times(), time.monotonic()
-    request = {"v": 1, "cmd": "capture", "args": {"duration_s": duration_s}}
-    reply = json.loads(daemon.handle([json.dumps(request).encode()]) or b"{}")
-    if not reply["ok"]:
-        raise SystemExit(f"capture refused: {reply['error']}")
+    command(daemon, "capture", {"duration_s": duration_s})
     peak_queue = 0
+    t_stop: float | None = None
     while True:
         t = daemon.telemetry()
         peak_queue = max(peak_queue, t.queue_depth)
         if t.state == "idle":
             break
-        time.sleep(0.2)
+        if stop_after_s is not None and t_stop is None and time.monotonic() - t0 >= stop_after_s:
+            t_stop = time.monotonic()
+            command(daemon, "stop", {})
+        time.sleep(0.05)
     wall = time.monotonic() - t0
+    stop_s = time.monotonic() - t_stop if t_stop is not None else float("nan")
     cpu1 = os.times()
+    load1 = os.getloadavg()[0]
     stop.set()
     stats = [ClientStats(d, j, lat, err) for d, j, lat, err in out.get(timeout=60)]
     proc.join(timeout=15)
+    for h in hogs:
+        h.join(timeout=15)
     last = t.last_take
     assert last is not None
     lat = sorted(x for s in stats for x in s.latencies_s)
+    taken_s = min(duration_s, stop_after_s) if stop_after_s is not None else duration_s
+    lost = {"frames": 0, "events": 0}
+    for loss in last.losses:
+        if loss.what in lost:
+            lost[loss.what] += loss.count
     return {
+        "load": n_load,
+        "loadavg": load1,
         "clients": n_clients,
-        "fps": sum(last.frames.values()) / duration_s,
-        "eps": sum(last.events.values()) / duration_s,
-        "losses": len(last.losses),
+        "fps": sum(last.frames.values()) / taken_s,
+        "eps": sum(last.events.values()) / taken_s,
+        "lost_frames": lost["frames"],
+        "lost_events": lost["events"],
+        "verdict": last.verdict,
+        "stop_s": stop_s,
         "peak_queue": peak_queue,
         "lat_med_ms": 1e3 * statistics.median(lat) if lat else float("nan"),
         "lat_p95_ms": 1e3 * lat[int(0.95 * (len(lat) - 1))] if lat else float("nan"),
@@ -154,37 +208,50 @@ def run_level(daemon: Daemon, console: ConsoleServer, n_clients: int, duration_s
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=8.0, help="seconds of each take")
-    ap.add_argument("--resolution", default="640x360", help="sim frame size WIDTHxHEIGHT")
+    ap.add_argument(
+        "--resolution", default="1280x720", help="sim frame size WIDTHxHEIGHT (default: the default rig's)"
+    )
+    ap.add_argument("--pixel-format", default="bayer_rg8", choices=["bayer_rg8", "rgb8", "mono8"])
     ap.add_argument("--clients", default="0,1,10", help="client counts to run, comma-separated")
+    ap.add_argument("--load", default="0", help="busy background processes per level, comma-separated")
+    ap.add_argument("--stop-after", type=float, default=None, help="stop each take after this many seconds")
     args = ap.parse_args()
     w, h = (int(v) for v in args.resolution.split("x"))
-    levels = [int(c) for c in args.clients.split(",")]
+    levels = [(int(n), int(c)) for n in args.load.split(",") for c in args.clients.split(",")]
     work = Path(tempfile.mkdtemp(prefix="rigd-bench-console-"))
     os.chmod(work, 0o700)
     try:
-        cfg = rig(work / "takes", work, (w, h))
+        cfg = rig(work / "takes", work, (w, h), args.pixel_format)
         console = ConsoleServer("127.0.0.1", 0)
         daemon = Daemon(cfg, attachments=[console])
         th = threading.Thread(target=daemon.serve, name="bench-daemon", daemon=True)
         th.start()
         if not daemon.wait_ready(60):
             raise SystemExit("daemon did not start")
-        rows = [run_level(daemon, console, n, args.duration) for n in levels]
+        rows = []
+        for n_load, n_clients in levels:
+            rows.append(run_level(daemon, console, n_clients, n_load, args.duration, args.stop_after))
+            for f in (work / "takes").glob("*.h5"):  # each take is GBs; keep the disk free
+                f.unlink()
         daemon.shutdown()
         th.join(timeout=60)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    print(f"sim rig {w}x{h}, 3 cameras + 2 event sensors at 30 Hz, {args.duration:g} s per take, real time")
     print(
-        f"{'clients':>7} {'frames/s':>9} {'events/s':>10} {'losses':>6} {'queue':>6} "
-        f"{'lat med ms':>10} {'lat p95 ms':>10} {'docs/s/cl':>9} {'jpeg/s/cl':>9} "
-        f"{'CPU s/s':>7} {'errors':>6}"
+        f"sim rig {w}x{h} {args.pixel_format}, 3 cameras + 2 event sensors at 30 Hz, "
+        f"{args.duration:g} s per take, real time, {os.cpu_count()} cores"
+    )
+    print(
+        f"{'load':>4} {'loadavg':>7} {'clients':>7} {'frames/s':>9} {'events/s':>10} {'lost fr':>7} "
+        f"{'lost ev':>9} {'verdict':>9} {'queue':>6} {'lat med ms':>10} {'lat p95 ms':>10} "
+        f"{'docs/s/cl':>9} {'jpeg/s/cl':>9} {'CPU s/s':>7} {'stop s':>6} {'errors':>6}"
     )
     for r in rows:
         print(
-            f"{r['clients']:>7} {r['fps']:>9.1f} {r['eps']:>10,.0f} {r['losses']:>6} {r['peak_queue']:>6} "
+            f"{r['load']:>4} {r['loadavg']:>7.2f} {r['clients']:>7} {r['fps']:>9.1f} {r['eps']:>10,.0f} "
+            f"{r['lost_frames']:>7} {r['lost_events']:>9,} {r['verdict']:>9} {r['peak_queue']:>6} "
             f"{r['lat_med_ms']:>10.1f} {r['lat_p95_ms']:>10.1f} {r['docs_per_client_s']:>9.2f} "
-            f"{r['jpegs_per_client_s']:>9.1f} {r['cpu_per_s']:>7.2f} {r['errors']:>6}"
+            f"{r['jpegs_per_client_s']:>9.1f} {r['cpu_per_s']:>7.2f} {r['stop_s']:>6.2f} {r['errors']:>6}"
         )
 
 
