@@ -34,23 +34,22 @@ from rigd.core.errors import (
     TakeInUseError,
     TakeTruncatedError,
 )
-from rigd.core.schema import (
-    CONFIG_DATASET,
+from rigd.core.layout import (
     EVENTS_GROUP,
-    FINALIZE_PLAN_ATTR,
     FRAMES_GROUP,
-    JOURNAL_DATASET,
-    RECOVERED_ATTR,
-    RECOVERY_REPORT_ATTR,
-    SCHEMA_NAME,
-    SYNC_GROUP,
-    TAIL_PREFIX,
-    TRIGGER_GROUP,
-    LossKind,
-    LossRecord,
-    SyncReport,
-    decode_journal,
+    PULSE_SERIES,
+    PULSES_PATH,
+    SYNC_REPORT_PATH,
+    Device,
+    Events,
+    Frames,
+    Pulses,
+    Root,
+    Status,
+    TimeDomain,
+    TriggerEdges,
 )
+from rigd.core.schema import SCHEMA_NAME, LossKind, LossRecord, SyncReport, decode_journal
 from rigd.core.settings import EventSensorSettings, WriterConfig
 from rigd.sync import DeviceObservations, PulseLog, SyncResult, synchronize
 from rigd.take.evt_repair import kept_rows
@@ -169,25 +168,25 @@ def _failed_unsealed(f: h5py.File) -> bool:
     """Marked failed by its own writer (disk full, a fault) and never finalized nor recovered:
     its times are still in device clock, and recovery can seal what was flushed."""
     return (
-        attr_text(f.attrs.get("status", "")) == "failed"
-        and attr_text(f.attrs.get("time_domain", "device")) == "device"
-        and RECOVERED_ATTR not in f.attrs
-        and "finalize_started_utc" not in f.attrs
-        and FINALIZE_PLAN_ATTR not in f.attrs
+        attr_text(f.attrs.get(Root.STATUS, "")) == Status.FAILED
+        and attr_text(f.attrs.get(Root.TIME_DOMAIN, TimeDomain.DEVICE)) == TimeDomain.DEVICE
+        and Root.RECOVERED_UTC not in f.attrs
+        and Root.FINALIZE_STARTED_UTC not in f.attrs
+        and Root.FINALIZE_PLAN not in f.attrs
     )
 
 
 def _needs_recovery(f: h5py.File, truncated: bool) -> bool:
     """Still recording, failed by its writer before finalize, a finalize that started and did
     not finish (and was not sealed), or a file a failed write left too short for HDF5 to open."""
-    status = attr_text(f.attrs.get("status", ""))
-    if truncated and status != "complete":
+    status = attr_text(f.attrs.get(Root.STATUS, ""))
+    if truncated and status != Status.COMPLETE:
         return True
-    if status == "complete":
+    if status == Status.COMPLETE:
         return False
-    if status == "recording" or FINALIZE_PLAN_ATTR in f.attrs or _failed_unsealed(f):
+    if status == Status.RECORDING or Root.FINALIZE_PLAN in f.attrs or _failed_unsealed(f):
         return True
-    return "finalize_started_utc" in f.attrs and RECOVERED_ATTR not in f.attrs
+    return Root.FINALIZE_STARTED_UTC in f.attrs and Root.RECOVERED_UTC not in f.attrs
 
 
 def needs_recovery(path: str | Path) -> bool:
@@ -201,7 +200,7 @@ def needs_recovery(path: str | Path) -> bool:
     except TakeInUseError:
         return True
     with f:
-        schema = attr_text(f.attrs.get("schema", ""))
+        schema = attr_text(f.attrs.get(Root.SCHEMA, ""))
         if schema != SCHEMA_NAME:
             raise NotATakeError(f"{p}: /: attr schema is {schema!r}, not a rigd take")
         return _needs_recovery(f, truncated is not None)
@@ -259,14 +258,14 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
     with f:
         with _reading(path, "reading the header"):
             check_header(f, path)
-        status = attr_text(f.attrs.get("status", ""))
+        status = attr_text(f.attrs.get(Root.STATUS, ""))
         rr = RecoveryReport(
             path=str(path), outcome="not_needed", sealed=True, dry_run=dry_run, status_before=status
         )
         if not _needs_recovery(f, truncated is not None):
             log.info("take %s is %s; nothing to recover", path, status)
             return rr
-        plan = FINALIZE_PLAN_ATTR in f.attrs
+        plan = Root.FINALIZE_PLAN in f.attrs
         if truncated is not None:
             rr.truncated_bytes = truncated.stored_eof - truncated.eof
             rr.warnings.append(
@@ -278,7 +277,7 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
             with _reading(path, "checking the datasets"):
                 trims = check_repair(f, path, apply=False, data_end=truncated.eof if truncated else None)
             return _repair_only(path, rr, trims, dry_run=dry_run)
-        if not plan and "finalize_started_utc" in f.attrs:
+        if not plan and Root.FINALIZE_STARTED_UTC in f.attrs:
             reason = (
                 "finalize was interrupted in a take without a finalize plan (written by rigd before "
                 "schema 1.1): event times are part rig, part device time and cannot be told apart"
@@ -353,8 +352,8 @@ def _sensor_settings(
     for s in sensors if isinstance(sensors, list) else []:
         if isinstance(s, dict) and s.get("name") == name:
             raw = s.get("settings", {})
-    if raw is None and "settings_json" in g.attrs:
-        raw = _json_dict(attr_text(g.attrs["settings_json"]), f"{g.name} attr settings_json", warnings)
+    if raw is None and Device.SETTINGS_JSON in g.attrs:
+        raw = _json_dict(attr_text(g.attrs[Device.SETTINGS_JSON]), f"{g.name} attr settings_json", warnings)
     if raw is None:
         warnings.append(f"{name}: no settings in the take; trigger-in channel 0 assumed")
     try:
@@ -417,10 +416,10 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
     """Read what the sync engine and the report need, as if `kept` trims were applied."""
     where = str(path)
     warnings: list[str] = []
-    cfg = _json_dict(attr_text(require_dataset(f, CONFIG_DATASET, where)[()]), f"/{CONFIG_DATASET}", warnings)
-    pg = require_group(f, f"{TRIGGER_GROUP}/pulses", where)
-    cols = {k: require_dataset(pg, k, where) for k in ("index", "t_us", "host_time_ns")}
-    n_p = kept.get(pg.name, int(cols["index"].shape[0]))
+    cfg = _json_dict(attr_text(require_dataset(f, Root.CONFIG, where)[()]), f"/{Root.CONFIG}", warnings)
+    pg = require_group(f, PULSES_PATH, where)
+    cols = {k: require_dataset(pg, k, where) for k in PULSE_SERIES}
+    n_p = kept.get(pg.name, int(cols[Pulses.INDEX].shape[0]))
     index, t_us, host = (np.asarray(_read_ds(cols[k], n_p, where), np.int64) for k in cols)
     pulses = PulseLog.from_records(index, t_us, host)
     rate = _rate_hz(cfg, pulses, warnings)
@@ -433,8 +432,10 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
         settings = _sensor_settings(cfg, name, g, warnings)
         if settings.sync_mode == "slave" and settings.sync_master is not None:
             dev.slaves[name] = settings.sync_master
-        tg = require_group(g, "trigger", where)
-        dev.triggers[name] = kept.get(tg.name, int(require_dataset(tg, "t_device", where).shape[0]))
+        tg = require_group(g, Events.TRIGGER, where)
+        dev.triggers[name] = kept.get(
+            tg.name, int(require_dataset(tg, TriggerEdges.T_DEVICE, where).shape[0])
+        )
         t_r, h_r = _rising_edges(tg, where, dev.triggers[name], settings.trigger_in_channel)
         unknown = int((h_r < 0).sum())
         if unknown and pulses.index.size and period is not None:
@@ -446,14 +447,14 @@ def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _Tak
         dev.observations.append(DeviceObservations(name, "event_sensor", t_r, h_r))
     journal = _read_journal(f, warnings)
     stored_report = _stored_report(f, warnings) if plan else None
-    interval = f.attrs.get("flush_interval_s")
-    count = f.attrs.get("flush_count")
-    reason = f.attrs.get("failure_reason")
+    interval = f.attrs.get(Root.FLUSH_INTERVAL_S)
+    count = f.attrs.get(Root.FLUSH_COUNT)
+    reason = f.attrs.get(Root.FAILURE_REASON)
     return _TakeData(
-        status=attr_text(f.attrs.get("status", "")),
+        status=attr_text(f.attrs.get(Root.STATUS, "")),
         plan=plan,
         failure_reason=None if reason is None else attr_text(reason),
-        last_flush_utc=attr_text(f.attrs["last_flush_utc"]) if "last_flush_utc" in f.attrs else None,
+        last_flush_utc=attr_text(f.attrs[Root.LAST_FLUSH_UTC]) if Root.LAST_FLUSH_UTC in f.attrs else None,
         flush_count=None if count is None else int(count),
         flush_interval_s=None if interval is None else float(interval),
         writer_config=_writer_config(cfg, warnings),
@@ -479,14 +480,14 @@ def _read_camera(
     dev: _Devices, name: str, g: h5py.Group, where: str, kept: dict[str, int], warnings: list[str]
 ) -> None:
     """A camera's frame times as the sync engine sees them, and whether it syncs in software."""
-    t_ds = require_dataset(g, "t_exposure_start_device_us", where)
+    t_ds = require_dataset(g, Frames.T_EXPOSURE_START_DEVICE, where)
     n = kept.get(g.name, int(t_ds.shape[0]))
     t = np.asarray(_read_ds(t_ds, n, where), np.int64)
-    host = np.asarray(_read_ds(require_dataset(g, "host_time_ns", where), n, where), np.int64)
-    counter = np.asarray(_read_ds(require_dataset(g, "frame_counter", where), n, where), np.int64)
+    host = np.asarray(_read_ds(require_dataset(g, Frames.HOST_TIME_NS, where), n, where), np.int64)
+    counter = np.asarray(_read_ds(require_dataset(g, Frames.FRAME_COUNTER, where), n, where), np.int64)
     dev.observations.append(DeviceObservations(name, "rgb_camera", t, host, counter))
     dev.frames[name], dev.last_t[name] = n, int(t[-1]) if n else None
-    info = _json_dict(attr_text(g.attrs.get("info_json", "{}")), f"{g.name} attr info_json", warnings)
+    info = _json_dict(attr_text(g.attrs.get(Device.INFO_JSON, "{}")), f"{g.name} attr info_json", warnings)
     facts = info.get("facts")
     if isinstance(facts, dict) and facts.get("sync") == "software":
         dev.software.add(name)
@@ -502,13 +503,13 @@ def _read_event_counts(
         dev.events[name] = int(rows[:, 2].sum())
         dev.last_t[name] = int(rows[-1, 4]) if rows.shape[0] and not plan else None
         return
-    t_ds = require_dataset(g, "t", where)
+    t_ds = require_dataset(g, Events.T, where)
     n_ev = kept.get(g.name, int(t_ds.shape[0]))
     slot, m = (0, 0) if plan else tail_rows(g, n_ev)
     dev.events[name] = n_ev + m
     # During a finalize t is part rig time: the device time of the last event is unknown.
     if m:
-        dev.last_t[name] = int(g[f"{TAIL_PREFIX}t"][slot, m - 1])
+        dev.last_t[name] = int(g[f"{Events.TAIL_PREFIX}{Events.T}"][slot, m - 1])
     else:
         dev.last_t[name] = int(t_ds[n_ev - 1]) if n_ev and not plan else None
 
@@ -517,11 +518,13 @@ def _rising_edges(
     tg: h5py.Group, where: str, n_tr: int, channel: int
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Device and host times of the rising trigger-in edges on `channel` (host -1: unknown)."""
-    td = np.asarray(_read_ds(require_dataset(tg, "t_device", where), n_tr, where), np.int64)
-    pol = _read_ds(require_dataset(tg, "p", where), n_tr, where)
-    chan = _read_ds(require_dataset(tg, "channel", where), n_tr, where)
-    if "host_time_ns" in tg:
-        host = np.asarray(_read_ds(require_dataset(tg, "host_time_ns", where), n_tr, where), np.int64)
+    td = np.asarray(_read_ds(require_dataset(tg, TriggerEdges.T_DEVICE, where), n_tr, where), np.int64)
+    pol = _read_ds(require_dataset(tg, TriggerEdges.P, where), n_tr, where)
+    chan = _read_ds(require_dataset(tg, TriggerEdges.CHANNEL, where), n_tr, where)
+    if TriggerEdges.HOST_TIME_NS in tg:
+        host = np.asarray(
+            _read_ds(require_dataset(tg, TriggerEdges.HOST_TIME_NS, where), n_tr, where), np.int64
+        )
     else:
         host = np.full(n_tr, -1, np.int64)
     rising = (pol == 1) & (chan == channel)
@@ -530,30 +533,28 @@ def _rising_edges(
 
 def _stored_report(f: h5py.File, warnings: list[str]) -> SyncReport | None:
     """The sync report a cut-short finalize stored; unparseable, it is kept and not used."""
-    node = f.get(f"{SYNC_GROUP}/report_json")
+    node = f.get(SYNC_REPORT_PATH)
     if not isinstance(node, h5py.Dataset):
         return None
     try:
         return SyncReport.model_validate_json(attr_text(node[()]))
     except ValidationError as exc:
-        warnings.append(
-            f"/{SYNC_GROUP}/report_json does not parse ({exc.error_count()} error(s)); kept as is"
-        )
+        warnings.append(f"/{SYNC_REPORT_PATH} does not parse ({exc.error_count()} error(s)); kept as is")
         return None
 
 
 def _read_journal(f: h5py.File, warnings: list[str]) -> dict[str, Any] | None:
     """The newest readable journal slot; damage is a warning, never an error (bookkeeping)."""
-    node = f.get(JOURNAL_DATASET)
+    node = f.get(Root.JOURNAL)
     if node is None:
         return None
     try:
         found = decode_journal(np.asarray(node[...]))
     except (OSError, ValueError, TypeError) as exc:
-        warnings.append(f"/{JOURNAL_DATASET} unreadable ({exc}); losses recorded before the crash unknown")
+        warnings.append(f"/{Root.JOURNAL} unreadable ({exc}); losses recorded before the crash unknown")
         return None
     if found is None:
-        warnings.append(f"/{JOURNAL_DATASET} has no readable slot; losses recorded before the crash unknown")
+        warnings.append(f"/{Root.JOURNAL} has no readable slot; losses recorded before the crash unknown")
         return None
     return found[1]
 
@@ -785,12 +786,12 @@ def _seal_unresumable(path: Path, rr: RecoveryReport, reason: str, *, dry_run: b
     if dry_run:
         return rr
     with open_h5(path, "r+") as f:
-        old = f.attrs.get("failure_reason")
+        old = f.attrs.get(Root.FAILURE_REASON)
         rr.failure_reason_before = None if old is None else attr_text(old)
-        f.attrs["status"] = "failed"
-        f.attrs["failure_reason"] = reason if old is None else f"{attr_text(old)}; {reason}"
-        f.attrs[RECOVERED_ATTR] = utc_now()
+        f.attrs[Root.STATUS] = Status.FAILED
+        f.attrs[Root.FAILURE_REASON] = reason if old is None else f"{attr_text(old)}; {reason}"
+        f.attrs[Root.RECOVERED_UTC] = utc_now()
         rr.status_after = "failed"
-        f.attrs[RECOVERY_REPORT_ATTR] = rr.model_dump_json()
+        f.attrs[Root.RECOVERY_REPORT] = rr.model_dump_json()
     log.warning("%s", rr.line())
     return rr
