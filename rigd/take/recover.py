@@ -4,11 +4,11 @@ A take is unfinished when its status is still "recording" (the process died whil
 or between the last flush and finalize) or when a finalize started and never completed.
 `recover_take` rebuilds what the capture pipeline had in memory from the file itself -- the
 pulse log, every camera's frame times, every event sensor's rising trigger-in edges, and the
-loss bookkeeping of the last flush (`/journal_json`; `recover_read`) -- runs
-`rigd.sync.synchronize` exactly as `rigd.app.capture` does, and finalizes through
-`TakeWriter.resume`. What the kill left half-written is trimmed (`check_repair`) and reported,
-never dropped silently; recorded data is never deleted otherwise. A take a live process holds
-(HDF5 file lock) is left untouched.
+loss bookkeeping of the last flush (`/journal_json`; `recover_read`) -- and seals it through
+`rigd.take.seal`, the same fit, report and finalize the capture pipeline ends a take with.
+What the kill left half-written is trimmed (`check_repair`) and reported, never dropped
+silently; recorded data is never deleted otherwise. A take a live process holds (HDF5 file
+lock) is left untouched.
 """
 
 from __future__ import annotations
@@ -16,12 +16,13 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import h5py
 import hdf5plugin  # noqa: F401  (registers the LZ4 / Zstd filters with h5py)
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from rigd.core.errors import (
     NotATakeError,
@@ -31,14 +32,10 @@ from rigd.core.errors import (
     TakeInUseError,
     TakeTruncatedError,
 )
-from rigd.core.layout import (
-    Root,
-    Status,
-    TimeDomain,
-)
-from rigd.core.schema import SCHEMA_NAME, LossKind, LossRecord, SyncReport
+from rigd.core.layout import Root, Status, TimeDomain
+from rigd.core.schema import SCHEMA_NAME, LossKind, LossRecord
 from rigd.core.settings import WriterConfig
-from rigd.sync import SyncResult, synchronize
+from rigd.sync import SyncResult
 from rigd.take.h5file import (
     ZeroPadded,
     attr_text,
@@ -48,6 +45,7 @@ from rigd.take.h5file import (
 )
 from rigd.take.recover_read import TakeData, read_take
 from rigd.take.repair import Trim, check_repair
+from rigd.take.seal import Bookkeeping, Seal, TakeEnd, fit_take, journal_losses, seal_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -63,8 +61,6 @@ Outcome = Literal[
 _SEALED: frozenset[str] = frozenset(
     {"sealed", "sealed_failed", "not_needed", "would_seal", "would_seal_failed"}
 )
-_COUNTERS = TypeAdapter(dict[str, dict[str, int]])
-_LINK = TypeAdapter(dict[str, int])
 
 
 class RecoveryReport(BaseModel):
@@ -294,55 +290,32 @@ def _crash_losses(data: TakeData) -> list[LossRecord]:
     return out
 
 
-def _journal_losses(journal: dict[str, Any], warnings: list[str]) -> list[LossRecord]:
-    raw = journal.get("losses", [])
-    if not isinstance(raw, list):
-        warnings.append("journal 'losses' is not a list; ignored")
-        return []
-    out = []
-    for i, item in enumerate(raw):
-        try:
-            out.append(LossRecord.model_validate(item))
-        except ValidationError as exc:
-            warnings.append(f"journal loss record {i} unreadable ({exc.error_count()} error(s)); ignored")
-    return out
-
-
-def _journal_warnings(journal: dict[str, Any], warnings: list[str]) -> list[str]:
-    """The journal's warnings, fault history and failed devices, worded as rigd.app.capture does."""
-    out: list[str] = []
-    failed = journal.get("failed_devices", {})
-    if isinstance(failed, dict):
-        out += [f"{name} failed mid-take and was written off: {why}" for name, why in failed.items()]
-    for key, suffix in (("warnings", ""), ("fault_history", ""), ("faults", " (still active at the crash)")):
-        items = journal.get(key, [])
-        if isinstance(items, list):
-            out += [f"{item}{suffix}" for item in items]
-        else:
-            warnings.append(f"journal {key!r} is not a list; ignored")
-    return out
-
-
-def _fit(data: TakeData, losses: list[LossRecord]) -> tuple[SyncResult | None, str | None]:
-    """synchronize() as rigd.app.capture._finalize calls it; a reason instead when it cannot tie
-    any device clock to rig time."""
+def _fit(data: TakeData, losses: list[LossRecord]) -> tuple[TakeEnd | None, SyncResult | None, str | None]:
+    """The fit `seal_take` finalizes with, from what the file holds; a reason instead when it
+    cannot tie any device clock to rig time."""
     if data.flush_count == 0:
-        return None, "the writer died before its first flush: the take holds no recorded data"
+        return None, None, "the writer died before its first flush: the take holds no recorded data"
     if data.pulses.index.size == 0:
-        return None, "no trigger pulse was flushed before the crash: no device clock can be tied to rig time"
-    if data.rate_hz is None:
-        return None, "the trigger rate is unknown (no rig config in the take and too few pulses)"
-    try:
-        result = synchronize(
-            data.pulses,
-            data.observations,
-            data.rate_hz,
-            losses,
-            shares_clock_with=data.slaves,
-            software_synced=data.software,
+        return (
+            None,
+            None,
+            "no trigger pulse was flushed before the crash: no device clock can be tied to rig time",
         )
+    if data.rate_hz is None:
+        return None, None, "the trigger rate is unknown (no rig config in the take and too few pulses)"
+    end = TakeEnd(
+        data.pulses,
+        data.observations,
+        data.rate_hz,
+        losses,
+        data.cameras,
+        shares_clock_with=data.slaves,
+        software_synced=data.software,
+    )
+    try:
+        result = fit_take(end)
     except SyncError as exc:
-        return None, f"sync failed: {exc}"
+        return end, None, f"sync failed: {exc}"
     # A device that recorded nothing has no times to map: it neither needs a fit nor may it
     # fail the take (its datasets stay empty, the report says so).
     holding = {n for n, k in data.frames.items() if k} | {n for n, k in data.events.items() if k}
@@ -353,59 +326,49 @@ def _fit(data: TakeData, losses: list[LossRecord]) -> tuple[SyncResult | None, s
     ]
     if holding and not tied:
         why = "; ".join(result.report.warnings[:3])
-        return None, f"no device clock could be fitted to the trigger pulses ({why})"
-    return result, None
-
-
-def _merge_journal(report: SyncReport, journal: dict[str, Any], warnings: list[str]) -> None:
-    for key, adapter in (("device_counters", _COUNTERS), ("trigger_link", _LINK)):
-        if key not in journal:
-            continue
-        try:
-            setattr(report, key, adapter.validate_python(journal[key]))
-        except ValidationError as exc:
-            warnings.append(f"journal {key!r} unreadable ({exc.error_count()} error(s)); ignored")
-    report.warnings.extend(_journal_warnings(journal, warnings))
+        return end, None, f"no device clock could be fitted to the trigger pulses ({why})"
+    return end, result, None
 
 
 # -- sealing -------------------------------------------------------------------------------
 def _finalize_crashed(
     path: Path, rr: RecoveryReport, data: TakeData, trims: list[Trim], *, dry_run: bool
 ) -> RecoveryReport:
-    """A take that died while recording (or before finalize): sync from the file, finalize."""
-    trim_losses = _trim_losses(trims)
+    """A take that died while recording (or before finalize): sync from the file, seal."""
     journal = data.journal or {}
-    jl = _journal_losses(journal, rr.warnings)
+    jl = journal_losses(journal, rr.warnings)
     rr.journal_losses = len(jl)
-    rr.losses_added = [*trim_losses, *_crash_losses(data)]
-    result, reason = _fit(data, [*jl, *rr.losses_added])
+    rr.losses_added = [*_trim_losses(trims), *_crash_losses(data)]
+    end, result, reason = _fit(data, [*jl, *rr.losses_added])
     rr.warnings.append(_crash_note(data))
-    failed = data.status == "failed"
+    failed = data.status == Status.FAILED
     if failed:
         rr.reason = f"marked failed by its writer: {data.failure_reason}"
-    if result is not None:
-        report = result.report
-        _merge_journal(report, journal, rr.warnings)
-        report.warnings.extend([*data.warnings, f"{_crash_note(data)}; sealed by `rigd recover`"])
+    if end is not None and result is not None:
+        book = Bookkeeping.from_journal(journal, rr.warnings)
+        notes = [*data.warnings, f"{_crash_note(data)}; sealed by `rigd recover`"]
+        seal = Seal.fitted(end, result, book, active_until="the crash", notes=notes)
         rr.outcome = "would_seal" if dry_run else "sealed"
     else:
         rr.reason = f"{rr.reason}; {reason}" if failed else reason
         rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
+        seal = Seal.failed(
+            f"{data.failure_reason}; recovered but not finalized: {reason}"
+            if failed
+            else f"recovered after a crash of its writer but not finalized: {reason}"
+        )
     if dry_run:
         return rr
     with _resumed(path, data.writer_config, trims) as w:
-        w.mark_recovered(None)  # first: a crash during the finalize below still shows it
-        if result is not None:
-            frame_index = {name: result.observation_pulse_index[name] for name in data.cameras}
-            w.finalize(result.maps, frame_index, result.report)
-        elif failed:
-            w.fail(f"{data.failure_reason}; recovered but not finalized: {reason}")
-        else:
-            w.fail(f"recovered after a crash of its writer but not finalized: {reason}")
-        rr.status_after = w.status
-        w.mark_recovered(rr.model_dump_json(), keep_failure_reason=failed)
+        seal_take(w, seal, recovery=partial(_stamped, rr), keep_failure_reason=failed)
     log.warning("%s", rr.line())
     return rr
+
+
+def _stamped(rr: RecoveryReport, status: str) -> str:
+    """The recovery report the sealed take stores, with the status it reached."""
+    rr.status_after = status
+    return rr.model_dump_json()
 
 
 @contextmanager
@@ -451,10 +414,7 @@ def _continue_finalize(path: Path, rr: RecoveryReport, data: TakeData, *, dry_ru
     if dry_run:
         return rr
     with _resumed(path, data.writer_config) as w:
-        w.mark_recovered(None)
-        w.continue_finalize(report)
-        rr.status_after = w.status
-        w.mark_recovered(rr.model_dump_json())
+        seal_take(w, Seal.resumed(report), recovery=partial(_stamped, rr))
     log.warning("%s", rr.line())
     return rr
 

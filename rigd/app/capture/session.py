@@ -551,9 +551,17 @@ class CaptureSession:
                 f"take {self.path} stopped, {self._control.stop_reason}; everything up to the last flush "
                 f"({writer.last_flush_utc}) is in the file; free space and run `rigd recover` to seal it"
             )
-        take.set_window(self._window.start_us, self._window.end_us, self._window.margin_us, outside)
+        window = (self._window.start_us, self._window.end_us, self._window.margin_us, outside)
         report, reason = finalize_take(
-            self.config, take, trigger, self._channels, self._ledger, self._faults, self._control, emitted
+            self.config,
+            take,
+            trigger,
+            self._channels,
+            self._ledger,
+            self._faults,
+            self._control,
+            emitted,
+            window,
         )
         counts = {name: ch.written for name, ch in self._channels.items()}
         counts.update(take.events_in_take())  # EVT words: a packet across a window edge is clipped on read
