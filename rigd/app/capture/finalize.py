@@ -14,7 +14,6 @@ from rigd.app.capture.ledger import LossLedger
 from rigd.app.config import RigConfig
 from rigd.core.schema import SyncReport
 from rigd.core.settings import CameraSettings
-from rigd.sync import DeviceObservations
 from rigd.take.seal import Bookkeeping, Seal, TakeEnd, fit_take, seal_take
 from rigd.take.writer import TakeWriter
 
@@ -54,13 +53,10 @@ def finalize_take(
     """Fit, report and seal with what the capture holds in memory (`rigd.take.seal`, the same
     steps `rigd recover` seals a crashed take with); returns the sync report and why the take
     ended. `window`: the trigger window and what arrived outside it."""
-    observations = []
-    for name, ch in channels.items():
-        t, host, counter = ch.obs.arrays()
-        anchors = None if ch.anchors is None else ch.anchors.arrays()
-        observations.append(
-            DeviceObservations(name, ch.kind, t, host, counter if ch.kind == "rgb_camera" else None, anchors)
-        )
+    observations = [
+        ch.stream.sync_observations(None if ch.anchors is None else ch.anchors.arrays())
+        for ch in channels.values()
+    ]
     end = TakeEnd(
         trigger.pulses(emitted),
         observations,
@@ -89,6 +85,6 @@ def finalize_take(
     log.info(
         "take %s finalized: %s",
         writer.path,
-        json.dumps({name: ch.written for name, ch in channels.items() if ch.kind == "rgb_camera"}),
+        json.dumps({name: ch.stream.written for name, ch in channels.items() if ch.kind == "rgb_camera"}),
     )
     return result.report, reason
