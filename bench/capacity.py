@@ -62,7 +62,7 @@ from rigd.app.config import RigConfig, default_sim_rig
 from rigd.app.replay import replay_config
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
-from rigd.core.schema import EVENT_DTYPES
+from rigd.core.layout import EVENT_DTYPES
 from rigd.core.settings import WriterConfig
 from rigd.take import Take
 from rigd.take.h5file import compression_options

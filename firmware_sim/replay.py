@@ -57,6 +57,7 @@ from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, DeviceError, RigdError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
+from rigd.core.layout import Frames, TriggerEdges, frame_group, trigger_in_group
 from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import DeviceSync, SyncReport
 from rigd.core.settings import CameraSettings, EventSensorSettings
@@ -193,7 +194,7 @@ class Recording:
                         h,
                         _clock_map(sync),
                         trig.t,
-                        np.asarray(f[f"events/{name}/trigger/t_device"][...], np.int64),
+                        np.asarray(f[f"{trigger_in_group(name)}/{TriggerEdges.T_DEVICE}"][...], np.int64),
                         trig.p,
                         trig.channel,
                         take.event_count(name),
@@ -201,19 +202,19 @@ class Recording:
 
     @staticmethod
     def _camera(f: h5py.File, name: str, report: SyncReport) -> CameraTrack:
-        g = f[f"frames/{name}"]
-        n = int(g["images"].shape[0])
-        shape = tuple(int(v) for v in g["images"].shape[1:])
+        g = f[frame_group(name)]
+        n = int(g[Frames.IMAGES].shape[0])
+        shape = tuple(int(v) for v in g[Frames.IMAGES].shape[1:])
         sync = report.devices.get(name)
         cmap = (
             None if sync is None else ClockMap(sync.device_ref_us, sync.rig_ref_us, sync.rate, sync.frac_us)
         )
         return CameraTrack(
             name,
-            np.asarray(g["t_exposure_start_us"][:n], np.int64),
-            np.asarray(g["t_exposure_start_device_us"][:n], np.int64),
-            np.asarray(g["frame_counter"][:n], np.int64),
-            np.asarray(g["exposure_us"][:n], np.int64),
+            np.asarray(g[Frames.T_EXPOSURE_START][:n], np.int64),
+            np.asarray(g[Frames.T_EXPOSURE_START_DEVICE][:n], np.int64),
+            np.asarray(g[Frames.FRAME_COUNTER][:n], np.int64),
+            np.asarray(g[Frames.EXPOSURE][:n], np.int64),
             shape,
             cmap,
             stored_pixel_format(g.attrs, shape, f"replay {f.filename}: /frames/{name}"),
@@ -425,7 +426,9 @@ class ReplayCamera(Unpluggable, RgbCamera):
         if self._file is None:
             self._file = h5py.File(self._rec.path, "r")
         if self._preload and self._images is None:  # once: the frames a real driver hands over
-            self._images = np.asarray(self._file[f"frames/{self._name}/images"][: self._preload])
+            self._images = np.asarray(
+                self._file[f"{frame_group(self._name)}/{Frames.IMAGES}"][: self._preload]
+            )
         shift = self._timeline.wait(0.0)
         now = self._world.now_us()
         # A camera (re)started mid-replay goes on from the frames not yet due.
@@ -492,7 +495,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
         if self._images is not None:
             image = self._images[j % len(self._images)]
         else:
-            image = np.asarray(self._file[f"frames/{self._name}/images"][j])
+            image = np.asarray(self._file[f"{frame_group(self._name)}/{Frames.IMAGES}"][j])
         if self._hold is not None:
             wait_for_room(self._queue, _VIRTUAL_LEAD, lambda: self._stopping)
         return Frame(

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rigd.core.errors import TakeFormatError
+from rigd.core.layout import Frames
 
 PixelFormat = Literal["mono8", "rgb8", "bayer_rg8"]
 #: Every pixel format a camera may be set to.
@@ -98,7 +99,7 @@ def stored_pixel_format(attrs: Mapping[str, Any], shape: tuple[int, ...], where:
     """The pixel format of a take's `/frames/<camera>` group: its `pixel_format` attr, or for
     takes written before it existed rgb8 / mono8 by the frame shape. TakeFormatError naming `where`
     for an attr that contradicts the shape or names an unknown format."""
-    raw = attrs.get("pixel_format")
+    raw = attrs.get(Frames.PIXEL_FORMAT)
     by_shape = "rgb8" if len(shape) == 3 else "mono8"
     if raw is None:
         return by_shape
@@ -108,7 +109,7 @@ def stored_pixel_format(attrs: Mapping[str, Any], shape: tuple[int, ...], where:
     if len(frame_shape(1, 1, fmt)) != len(shape):
         raise TakeFormatError(f"{where}: pixel_format {fmt!r} does not fit frames of shape {shape}")
     if is_bayer(fmt):
-        pattern = attrs.get("bayer_pattern")
+        pattern = attrs.get(Frames.BAYER_PATTERN)
         pattern = pattern.decode() if isinstance(pattern, bytes) else pattern
         if pattern != BAYER_PATTERNS[fmt]:
             raise TakeFormatError(

@@ -1,7 +1,7 @@
-"""The take file schema: version, HDF5 layout names, and the sync report model.
+"""The take file schema: its version, what each minor version added, the journal slots' coding,
+and the sync report model.
 
-The layout is documented in docs/take-format.md; this module is its single source in code,
-so the writer, the reader and the validator cannot drift apart.
+The layout's names are in `rigd.core.layout`; docs/take-format.md is the contract for both.
 """
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ import json
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from rigd.core.layout import Events, TriggerEdges
 
 if TYPE_CHECKING:
     import numpy as np
@@ -21,78 +23,9 @@ SCHEMA_NAME = "rigd.take"
 #: attributes; 1.0 takes stay readable (see `added_in`).
 SCHEMA_VERSION = "1.2"
 
-EVENTS_GROUP = "events"
-FRAMES_GROUP = "frames"
-TRIGGER_GROUP = "trigger"
-SYNC_GROUP = "sync"
-CONFIG_DATASET = "config_json"
-#: uint8 (2, capacity): two slots, overwritten in place alternately on every flush given a
-#: journal (the capture's loss bookkeeping), each `{"flush": n, "journal": {...}}` as UTF-8 JSON
-#: padded with NUL bytes. The newest slot that parses is current; the other survives a kill
-#: in the middle of a write.
-JOURNAL_DATASET = "journal_json"
-#: Root attr (JSON) written when finalize starts: clock maps and t_offset, so a finalize cut
-#: short by a crash is continued with exactly the same mapping. Removed once complete.
-FINALIZE_PLAN_ATTR = "finalize_plan_json"
-#: Sensor group attr: events [0, t_rig_upto) of `t` already hold rig time - t_offset.
-FINALIZE_UPTO_ATTR = "t_rig_upto"
-#: Sensor dataset: redo log of the block being rewritten (attr `range` = [start, stop)).
-FINALIZE_SCRATCH = "finalize_scratch"
-#: Sensor datasets `tail_<x|y|p|t>` (2 slots, one chunk long) holding the flushed events past
-#: the last whole chunk while recording, and attr `tail_meta` ([[first row, rows]] per slot).
-TAIL_PREFIX = "tail_"
-TAIL_META_ATTR = "tail_meta"
-#: An event sensor group's attr saying how its events are stored (absent: "columns", x/y/p/t).
-EVENT_STORAGE_ATTR = "storage"
-#: Datasets of an "evt_words" sensor (schema 1.2): the EVT words as sent, and one row per
-#: stored block of them (where, how many events, times, and the decoder state to start from).
-EVT_WORDS = "evt_words"
-EVT_INDEX = "evt_index"
-#: The first columns of `evt_index`; the decoder state of the sensor's format follows.
-#: `follows`: 1 when the row's bytes continue the previous row's in the sensor's stream (nothing
-#: refused or lost between, the same shift), so the two decode as one piece.
-EVT_INDEX_COLUMNS = ("byte_start", "byte_len", "events", "t_first", "t_last", "shift_us", "follows")
-#: Root attrs of a take sealed by `rigd recover` (ISO time; JSON RecoveryReport).
-RECOVERED_ATTR = "recovered_utc"
-END_REASON_ATTR = "end_reason"
-RECOVERY_REPORT_ATTR = "recovery_report_json"
-#: Root attrs of a captured take (int64 rig us): its trigger window, [start, end), and the
-#: margin before the first pulse it starts with; `window_outside_json` (JSON): per device,
-#: what arrived outside the window and was not written ({"before", "after", "triggers_before",
-#: "triggers_after"}; events or frames).
-WINDOW_START_ATTR = "window_start_us"
-WINDOW_END_ATTR = "window_end_us"
-WINDOW_MARGIN_ATTR = "window_margin_us"
-WINDOW_OUTSIDE_ATTR = "window_outside_json"
-
-ROOT_ATTRS = ("schema", "schema_version", "status", "take_id", "created_utc", "rigd_version", "time_domain")
-#: `events/<sensor>/<name>`: p is stored as uint8 1/0 (DSEC), not the in-memory int8 +1/-1.
-#: Dtypes by name (numpy accepts the names; this module imports no numpy, so `rigd status` and the
-#: other clients of the daemon's protocol start without it).
-EVENT_DTYPES: dict[str, str] = {"x": "uint16", "y": "uint16", "p": "uint8", "t": "int64"}
-#: `events/<sensor>/trigger/<name>`
-TRIGGER_DTYPES: dict[str, str] = {
-    "t": "int64",
-    "p": "uint8",
-    "channel": "uint8",
-    "t_device": "int64",
-    # Host monotonic ns when the packet carrying the edge arrived; -1 unknown (schema 1.1).
-    "host_time_ns": "int64",
-}
 #: Items newer than 1.0, with the schema version that added them: takes of an older minor
 #: version may lack them, and readers treat a missing one as "unknown".
-ADDED_IN: dict[str, tuple[int, int]] = {"trigger/host_time_ns": (1, 1)}
-#: `frames/<camera>/<name>`, all int64, one entry per frame.
-FRAME_SERIES = (
-    "t_exposure_start_us",
-    "t_exposure_start_device_us",
-    "exposure_us",
-    "frame_counter",
-    "pulse_index",
-    "host_time_ns",
-)
-#: `trigger/pulses/<name>`, all int64.
-PULSE_SERIES = ("index", "t_us", "host_time_ns")
+ADDED_IN: dict[str, tuple[int, int]] = {f"{Events.TRIGGER}/{TriggerEdges.HOST_TIME_NS}": (1, 1)}
 
 LossKind = Literal["frames", "events", "triggers", "pulses"]
 
@@ -104,7 +37,7 @@ def encode_journal(flush: int, journal: Any) -> bytes:
 
 def decode_journal(slots: NDArray[np.uint8]) -> tuple[int, dict[str, Any]] | None:
     """(flush number, journal) of the newest slot that parses; None if none does."""
-    import numpy as np
+    import numpy as np  # here, so the protocol's clients (`rigd status`) start without numpy
 
     best: tuple[int, dict[str, Any]] | None = None
     for row in np.atleast_2d(np.asarray(slots, dtype=np.uint8)):

@@ -22,10 +22,10 @@ import h5py
 import numpy as np
 
 from rigd.core.errors import TakeError
+from rigd.core.layout import CALIBRATION_GROUP
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_GROUP = "calibration"
 
 #: `source` of a calibration the simulator knew exactly (stored at capture).
 GROUND_TRUTH_SOURCE = "simulator ground truth"

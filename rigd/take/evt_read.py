@@ -22,15 +22,10 @@ from numpy.typing import NDArray
 from drivers.evt import StreamDecoder
 from rigd.core.errors import TakeFormatError
 from rigd.core.events import EventArray
-from rigd.core.schema import EVT_INDEX, EVT_INDEX_COLUMNS, EVT_WORDS
+from rigd.core.layout import EVT_INDEX_COLUMNS, Device, Events
 from rigd.core.timebase import ClockMap
-from rigd.take.evt_sink import TAIL_WORDS, TAIL_WORDS_META
 
 #: Group attrs finalize writes on an evt_words sensor.
-CLOCK_MAP_ATTR = "clock_map_json"
-FIRST_IN_WINDOW_ATTR = "first_in_window"
-EVENTS_IN_WINDOW_ATTR = "events_in_window"
-WINDOW_ATTR = "window_us"
 _NHEAD = len(EVT_INDEX_COLUMNS)
 #: Device us searched beyond a window's edges mapped back to the device clock (to_device
 #: rounds, and the rate is within a few hundred ppm of 1), before the exact search in rig time.
@@ -57,11 +52,11 @@ class EvtWordsEvents:
     ) -> None:
         self.where = f"{where}: {g.name}"
         self.g = g
-        fmt = g.attrs["evt_format"]
+        fmt = g.attrs[Events.EVT_FORMAT]
         self.fmt = fmt.decode() if isinstance(fmt, bytes) else str(fmt)
-        self.width, self.height = int(g.attrs["width"]), int(g.attrs["height"])
-        self.words: h5py.Dataset = g[EVT_WORDS]
-        idx = np.asarray(g[EVT_INDEX][...], dtype=np.int64).reshape(-1, g[EVT_INDEX].shape[1])
+        self.width, self.height = int(g.attrs[Device.WIDTH]), int(g.attrs[Device.HEIGHT])
+        self.words: h5py.Dataset = g[Events.EVT_WORDS]
+        idx = np.asarray(g[Events.EVT_INDEX][...], dtype=np.int64).reshape(-1, g[Events.EVT_INDEX].shape[1])
         self.start, self.length, self.count = idx[:, 0], idx[:, 1], idx[:, 2]
         self.shift = idx[:, 5]
         self.follows = idx[:, 6]
@@ -72,9 +67,9 @@ class EvtWordsEvents:
         self.last = self._map(idx[:, 4])
         self.lo, self.hi = window
         self._tail = self._tail_bytes() if with_tail else None
-        if FIRST_IN_WINDOW_ATTR in g.attrs and cmap is not None:
-            self.i0 = int(g.attrs[FIRST_IN_WINDOW_ATTR])
-            self.i1 = self.i0 + int(g.attrs[EVENTS_IN_WINDOW_ATTR])
+        if Events.FIRST_IN_WINDOW in g.attrs and cmap is not None:
+            self.i0 = int(g.attrs[Events.FIRST_IN_WINDOW])
+            self.i1 = self.i0 + int(g.attrs[Events.EVENTS_IN_WINDOW])
         else:
             self.i0, self.i1 = self.window_range()
 
@@ -90,10 +85,10 @@ class EvtWordsEvents:
 
     def _tail_bytes(self) -> tuple[int, NDArray[np.uint8]] | None:
         """(first byte, bytes) of the flushed tail slot that ends furthest (unfinished take)."""
-        ds = self.g.get(TAIL_WORDS)
-        if not isinstance(ds, h5py.Dataset) or TAIL_WORDS_META not in self.g.attrs:
+        ds = self.g.get(Events.TAIL_WORDS)
+        if not isinstance(ds, h5py.Dataset) or Events.TAIL_WORDS_META not in self.g.attrs:
             return None
-        meta = np.asarray(self.g.attrs[TAIL_WORDS_META], dtype=np.int64).reshape(-1, 2)
+        meta = np.asarray(self.g.attrs[Events.TAIL_WORDS_META], dtype=np.int64).reshape(-1, 2)
         slot = int(np.argmax(meta[:, 0] + meta[:, 1]))
         start, n = int(meta[slot, 0]), int(meta[slot, 1])
         return (start, np.asarray(ds[slot, :n], dtype=np.uint8)) if n else None
@@ -130,7 +125,7 @@ class EvtWordsEvents:
             want = int(self.cum[b] - self.cum[a])
             if len(ev) != want:
                 raise TakeFormatError(
-                    f"{self.where}/{EVT_INDEX}: rows [{a}, {b}) decode to {len(ev)} events, the index "
+                    f"{self.where}/{Events.EVT_INDEX}: rows [{a}, {b}) decode to {len(ev)} events, the index "
                     f"says {want} (damaged words or index)"
                 )
             if self.shift[a]:

@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from rigd.core.schema import EVT_INDEX, EVT_WORDS
+from rigd.core.layout import Events
 from rigd.take.evt_sink import drop_words_tail, words_tail
 
 
@@ -52,7 +52,7 @@ def consistent_rows(rows: NDArray[np.int64], available: int) -> int:
 def plan_evt_cut(g: h5py.Group, main: int, index_stored: int, *, finalizing: bool) -> EvtCut:
     """`main`: bytes of evt_words in chunks present from the start; `index_stored`: index rows
     likewise. `finalizing`: a finalize had started (all data flushed, tails merged): no tail."""
-    index = g[EVT_INDEX]
+    index = g[Events.EVT_INDEX]
     tail = np.empty(0, np.uint8) if finalizing else words_tail(g, main)
     available = main + tail.shape[0]
     ncol = int(index.shape[1])
@@ -76,7 +76,7 @@ def plan_evt_cut(g: h5py.Group, main: int, index_stored: int, *, finalizing: boo
 
 def apply_evt_cut(g: h5py.Group, cut: EvtCut) -> None:
     """Merge the tail that the kept rows need into evt_words, trim both datasets, drop the tail."""
-    words, index = g[EVT_WORDS], g[EVT_INDEX]
+    words, index = g[Events.EVT_WORDS], g[Events.EVT_INDEX]
     if int(words.shape[0]) != cut.bytes_kept:
         words.resize((cut.bytes_kept,))
     if cut.bytes_kept > cut.main:
@@ -88,6 +88,6 @@ def apply_evt_cut(g: h5py.Group, cut: EvtCut) -> None:
 
 def kept_rows(g: h5py.Group, kept: dict[str, int]) -> NDArray[np.int64]:
     """The index rows a (dry-run) repair keeps."""
-    index = g[EVT_INDEX]
+    index = g[Events.EVT_INDEX]
     n = kept.get(g.name, int(index.shape[0]))
     return np.asarray(index[:n], dtype=np.int64).reshape(-1, index.shape[1])

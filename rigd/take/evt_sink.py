@@ -30,13 +30,14 @@ from numpy.typing import NDArray
 from drivers.evt import StreamDecoder
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventPacket, EvtChunk, TriggerEvents
-from rigd.core.schema import (
-    EVENT_STORAGE_ATTR,
+from rigd.core.layout import (
     EVENTS_GROUP,
-    EVT_INDEX,
     EVT_INDEX_COLUMNS,
-    EVT_WORDS,
     TRIGGER_DTYPES,
+    Device,
+    Events,
+    Storage,
+    TriggerEdges,
 )
 from rigd.take.h5file import append_rows, require_dataset, require_group
 from rigd.take.sinks import DeviceWriteStats, TriggerIn, check_event_batch, new_series
@@ -57,8 +58,6 @@ ROW_BYTES = 128 << 10
 ROW_US = 2000
 #: Rows per chunk of evt_index.
 _INDEX_CHUNK = 1024
-TAIL_WORDS = "tail_evt_words"
-TAIL_WORDS_META = "tail_words_meta"
 _ZSTD_LEVEL = 1
 _COL = {name: i for i, name in enumerate(EVT_INDEX_COLUMNS)}
 
@@ -70,8 +69,8 @@ def state_size(fmt: str) -> int:
 
 def is_evt_words(g: h5py.Group) -> bool:
     """Whether an event sensor group stores EVT words (schema 1.2) rather than x/y/p/t."""
-    value = g.attrs.get(EVENT_STORAGE_ATTR, "columns")
-    return (value.decode() if isinstance(value, bytes) else str(value)) == "evt_words"
+    value = g.attrs.get(Events.STORAGE, Storage.COLUMNS)
+    return (value.decode() if isinstance(value, bytes) else str(value)) == Storage.EVT_WORDS
 
 
 @dataclass(slots=True)
@@ -147,11 +146,11 @@ class EvtWordsSink(TriggerIn):
     @classmethod
     def create(cls, name: str, g: h5py.Group, width: int, height: int, fmt: str) -> Self:
         """Lay out a new sensor's datasets in its (already created) group."""
-        g.attrs["width"], g.attrs["height"] = int(width), int(height)
-        g.attrs[EVENT_STORAGE_ATTR] = "evt_words"
-        g.attrs["evt_format"] = fmt
+        g.attrs[Device.WIDTH], g.attrs[Device.HEIGHT] = int(width), int(height)
+        g.attrs[Events.STORAGE] = Storage.EVT_WORDS
+        g.attrs[Events.EVT_FORMAT] = fmt
         words = g.create_dataset(
-            EVT_WORDS,
+            Events.EVT_WORDS,
             shape=(0,),
             maxshape=(None,),
             dtype=np.uint8,
@@ -160,39 +159,43 @@ class EvtWordsSink(TriggerIn):
         )
         ncol = len(EVT_INDEX_COLUMNS) + state_size(fmt)
         index = g.create_dataset(
-            EVT_INDEX, shape=(0, ncol), maxshape=(None, ncol), dtype=np.int64, chunks=(_INDEX_CHUNK, ncol)
+            Events.EVT_INDEX,
+            shape=(0, ncol),
+            maxshape=(None, ncol),
+            dtype=np.int64,
+            chunks=(_INDEX_CHUNK, ncol),
         )
-        index.attrs["columns"] = ",".join(
+        index.attrs[Events.EVT_INDEX_COLUMNS_ATTR] = ",".join(
             [*EVT_INDEX_COLUMNS, *(f"state{i}" for i in range(ncol - len(EVT_INDEX_COLUMNS)))]
         )
-        g.create_dataset("t_offset", data=np.int64(0))  # finalize sets it, as for columns
-        tg = g.create_group("trigger")
+        g.create_dataset(Events.T_OFFSET, data=np.int64(0))  # finalize sets it, as for columns
+        tg = g.create_group(Events.TRIGGER)
         trig = {k: new_series(tg, k, dt, {}) for k, dt in TRIGGER_DTYPES.items()}
         return cls(name, g, int(width), int(height), fmt, words, index, trig)
 
     @classmethod
     def reopen(cls, name: str, g: h5py.Group, where: str) -> Self:
         """The sink of a resumed take, from what `check_repair` left consistent."""
-        words = require_dataset(g, EVT_WORDS, where)
-        index = require_dataset(g, EVT_INDEX, where)
-        tg = require_group(g, "trigger", where)
+        words = require_dataset(g, Events.EVT_WORDS, where)
+        index = require_dataset(g, Events.EVT_INDEX, where)
+        tg = require_group(g, Events.TRIGGER, where)
         trig = {k: require_dataset(tg, k, where) for k in TRIGGER_DTYPES}
-        missing = [k for k in ("width", "height", "evt_format") if k not in g.attrs]
+        missing = [k for k in (Device.WIDTH, Device.HEIGHT, Events.EVT_FORMAT) if k not in g.attrs]
         if missing:
             raise TakeFormatError(f"{where}: {g.name}: missing attribute(s) {missing}")
         rows = np.asarray(index[...], dtype=np.int64)
-        fmt = g.attrs["evt_format"]
+        fmt = g.attrs[Events.EVT_FORMAT]
         sink = cls(
             name,
             g,
-            int(g.attrs["width"]),
-            int(g.attrs["height"]),
+            int(g.attrs[Device.WIDTH]),
+            int(g.attrs[Device.HEIGHT]),
             fmt.decode() if isinstance(fmt, bytes) else str(fmt),
             words,
             index,
             trig,
             appendable=False,
-            n_trig_written=int(trig["t"].shape[0]),
+            n_trig_written=int(trig[TriggerEdges.T].shape[0]),
         )
         sink.n_rows_written = int(rows.shape[0])
         if rows.shape[0]:
@@ -326,13 +329,13 @@ class EvtWordsSink(TriggerIn):
         slot = choose_tail_slot(meta, self.tail_slot, self.n_words_written)
         if self.tail is None:
             self.tail = self.group.create_dataset(
-                TAIL_WORDS, shape=(2, WORDS_CHUNK), dtype=np.uint8, fillvalue=0
+                Events.TAIL_WORDS, shape=(2, WORDS_CHUNK), dtype=np.uint8, fillvalue=0
             )
         have = int(meta[slot, 1])
         self.tail[slot, have:n] = np.frombuffer(self.pend, np.uint8)[have:n]
         meta[slot, 1] = n
         self.tail_slot = slot
-        self.group.attrs.modify(TAIL_WORDS_META, meta)  # in place: no attribute heap churn
+        self.group.attrs.modify(Events.TAIL_WORDS_META, meta)  # in place: no attribute heap churn
 
     def drop_tails(self) -> None:
         """After everything is in evt_words (close, fail, finalize) the tail slots go."""
@@ -342,18 +345,18 @@ class EvtWordsSink(TriggerIn):
 
 
 def drop_words_tail(g: h5py.Group) -> None:
-    if TAIL_WORDS in g:
-        del g[TAIL_WORDS]
-    if TAIL_WORDS_META in g.attrs:
-        del g.attrs[TAIL_WORDS_META]
+    if Events.TAIL_WORDS in g:
+        del g[Events.TAIL_WORDS]
+    if Events.TAIL_WORDS_META in g.attrs:
+        del g.attrs[Events.TAIL_WORDS_META]
 
 
 def words_tail(g: h5py.Group, main_len: int) -> NDArray[np.uint8]:
     """The flushed tail bytes that continue evt_words at `main_len` (empty when none)."""
-    ds = g.get(TAIL_WORDS)
-    if not isinstance(ds, h5py.Dataset) or TAIL_WORDS_META not in g.attrs:
+    ds = g.get(Events.TAIL_WORDS)
+    if not isinstance(ds, h5py.Dataset) or Events.TAIL_WORDS_META not in g.attrs:
         return np.empty(0, np.uint8)
-    meta = np.asarray(g.attrs[TAIL_WORDS_META], dtype=np.int64).reshape(-1, 2)
+    meta = np.asarray(g.attrs[Events.TAIL_WORDS_META], dtype=np.int64).reshape(-1, 2)
     best = np.empty(0, np.uint8)
     for slot, (start, n) in enumerate(meta):
         n = min(int(n), int(ds.shape[1]))

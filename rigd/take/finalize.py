@@ -21,24 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rigd.core.errors import TakeError, TakeFormatError
-from rigd.core.schema import (
-    FINALIZE_PLAN_ATTR,
-    FINALIZE_SCRATCH,
-    FINALIZE_UPTO_ATTR,
-    SYNC_GROUP,
-    WINDOW_END_ATTR,
-    WINDOW_START_ATTR,
-    SyncReport,
-)
+from rigd.core.layout import SYNC_GROUP, Events, Frames, Root, Status, Sync, TimeDomain, TriggerEdges
+from rigd.core.schema import SyncReport
 from rigd.core.timebase import ClockMap
-from rigd.take.evt_read import (
-    CLOCK_MAP_ATTR,
-    EVENTS_IN_WINDOW_ATTR,
-    FIRST_IN_WINDOW_ATTR,
-    WINDOW_ATTR,
-    EvtWordsEvents,
-    clock_map_json,
-)
+from rigd.take.evt_read import EvtWordsEvents, clock_map_json
 from rigd.take.evt_sink import EvtWordsSink
 from rigd.take.h5file import utc_now
 from rigd.take.sinks import CameraSink, EventSink
@@ -82,7 +68,7 @@ class FinalizePlan:
             }
             return cls(int(data["t_offset"]), str(data["t_offset_source"]), maps)
         except (json.JSONDecodeError, KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
-            raise TakeFormatError(f"{where}: /: attr {FINALIZE_PLAN_ATTR} does not parse: {exc}") from exc
+            raise TakeFormatError(f"{where}: /: attr {Root.FINALIZE_PLAN} does not parse: {exc}") from exc
 
 
 def _store_segments(ds: h5py.Dataset, segments: list[tuple[int, int]], rows: NDArray[Any]) -> None:
@@ -152,16 +138,16 @@ class Finalizer:
         leaves a take `TakeWriter.resume` continues with `run`."""
         f = self._f
         for name, idx in frame_pulse_index.items():
-            self._cameras[name].series["pulse_index"][...] = np.asarray(idx, dtype=np.int64)
+            self._cameras[name].series[Frames.PULSE_INDEX][...] = np.asarray(idx, dtype=np.int64)
         # The reader of the report must not mistake an empty device for a lost file; the
         # caller's report gains the notes too, so what it shows is what the take holds.
         report.warnings.extend(n for n in self.empty_device_notes() if n not in report.warnings)
         self.write_sync(plan.maps, report)
         for sink in self._events.values():
-            sink.group.attrs[FINALIZE_UPTO_ATTR] = np.int64(0)
-        f.attrs[FINALIZE_PLAN_ATTR] = plan.to_json()
+            sink.group.attrs[Events.FINALIZE_UPTO] = np.int64(0)
+        f.attrs[Root.FINALIZE_PLAN] = plan.to_json()
         # If the process dies while times are being rewritten, this says so (see the docs).
-        f.attrs["finalize_started_utc"] = utc_now()
+        f.attrs[Root.FINALIZE_STARTED_UTC] = utc_now()
         f.flush()
 
     def empty_device_notes(self) -> list[str]:
@@ -171,7 +157,7 @@ class Finalizer:
             f"{name}: recorded nothing (0 frames)" for name, cam in self._cameras.items() if not cam.n_frames
         ]
         for name, sink in self._events.items():
-            n_trig = int(sink.trig["t_device"].shape[0])
+            n_trig = int(sink.trig[TriggerEdges.T_DEVICE].shape[0])
             if not sink.n_written and not n_trig:
                 out.append(f"{name}: recorded nothing (0 events, 0 trigger edges)")
             elif not sink.n_written:
@@ -188,15 +174,15 @@ class Finalizer:
                 self._finalize_evt_words(sink, plan.maps[name], plan.t_offset)
             else:
                 self._finalize_events(sink, plan.maps[name], plan.t_offset)
-            sink.group.attrs["t_offset_source"] = plan.source
+            sink.group.attrs[Events.T_OFFSET_SOURCE] = plan.source
         for name, cam in self._cameras.items():
-            dev = cam.series["t_exposure_start_device_us"][...]
-            cam.series["t_exposure_start_us"][...] = plan.maps[name].to_rig(dev)
-        f.attrs["time_domain"] = "rig"
-        f.attrs["status"] = "complete"
-        if "finalize_started_utc" in f.attrs:
-            del f.attrs["finalize_started_utc"]
-        f.attrs["finalized_utc"] = utc_now()
+            dev = cam.series[Frames.T_EXPOSURE_START_DEVICE][...]
+            cam.series[Frames.T_EXPOSURE_START][...] = plan.maps[name].to_rig(dev)
+        f.attrs[Root.TIME_DOMAIN] = TimeDomain.RIG
+        f.attrs[Root.STATUS] = Status.COMPLETE
+        if Root.FINALIZE_STARTED_UTC in f.attrs:
+            del f.attrs[Root.FINALIZE_STARTED_UTC]
+        f.attrs[Root.FINALIZED_UTC] = utc_now()
         f.flush()
 
     def drop_bookkeeping(self) -> None:
@@ -205,37 +191,37 @@ class Finalizer:
         f = self._f
         for sink in self._events.values():
             g = sink.group
-            if FINALIZE_UPTO_ATTR in g.attrs:
-                del g.attrs[FINALIZE_UPTO_ATTR]
-            if FINALIZE_SCRATCH in g:
-                del g[FINALIZE_SCRATCH]
+            if Events.FINALIZE_UPTO in g.attrs:
+                del g.attrs[Events.FINALIZE_UPTO]
+            if Events.FINALIZE_SCRATCH in g:
+                del g[Events.FINALIZE_SCRATCH]
         for sink in self._events.values():
             sink.drop_tails()
-        if FINALIZE_PLAN_ATTR in f.attrs:
-            del f.attrs[FINALIZE_PLAN_ATTR]
+        if Root.FINALIZE_PLAN in f.attrs:
+            del f.attrs[Root.FINALIZE_PLAN]
         f.flush()
 
     def write_sync(self, maps: Mapping[str, ClockMap], report: SyncReport) -> None:
         """(Re)write /sync; replacing it is safe, it holds no recorded data."""
         sync = self._f[SYNC_GROUP]
-        for key in ("report_json", "devices"):
+        for key in (Sync.REPORT, Sync.DEVICES):
             if key in sync:
                 del sync[key]
-        sync.create_dataset("report_json", data=report.model_dump_json(), dtype=h5py.string_dtype("utf-8"))
-        devs = sync.create_group("devices")
+        sync.create_dataset(Sync.REPORT, data=report.model_dump_json(), dtype=h5py.string_dtype("utf-8"))
+        devs = sync.create_group(Sync.DEVICES)
         for name, cmap in maps.items():
             g = devs.create_group(name)
-            g.attrs["device_ref_us"] = np.int64(cmap.device_ref_us)
-            g.attrs["rig_ref_us"] = np.int64(cmap.rig_ref_us)
-            g.attrs["rate"] = float(cmap.rate)
-            g.attrs["frac_us"] = float(cmap.frac_us)
-            g.attrs["drift_ppm"] = float(cmap.drift_ppm)
+            g.attrs[Sync.DEVICE_REF] = np.int64(cmap.device_ref_us)
+            g.attrs[Sync.RIG_REF] = np.int64(cmap.rig_ref_us)
+            g.attrs[Sync.RATE] = float(cmap.rate)
+            g.attrs[Sync.FRAC] = float(cmap.frac_us)
+            g.attrs[Sync.DRIFT_PPM] = float(cmap.drift_ppm)
             dev = report.devices.get(name)
             if dev is not None:
-                g.attrs["residual_rms_us"] = dev.residual_rms_us
-                g.attrs["residual_max_us"] = dev.residual_max_us
-                g.create_dataset("missing_pulses", data=np.asarray(dev.missing_pulses, dtype=np.int64))
-                g.create_dataset("dropped_frames", data=np.asarray(dev.dropped_frames, dtype=np.int64))
+                g.attrs[Sync.RESIDUAL_RMS] = dev.residual_rms_us
+                g.attrs[Sync.RESIDUAL_MAX] = dev.residual_max_us
+                g.create_dataset(Sync.MISSING_PULSES, data=np.asarray(dev.missing_pulses, dtype=np.int64))
+                g.create_dataset(Sync.DROPPED_FRAMES, data=np.asarray(dev.dropped_frames, dtype=np.int64))
 
     # -- event times -------------------------------------------------------------------
     def _finalize_evt_words(self, sink: EvtWordsSink, cmap: ClockMap, t_offset: int) -> None:
@@ -243,18 +229,18 @@ class Finalizer:
         rewritten: readers apply them) and the exact count of events inside the window, for
         which only the blocks across the window's edges are decoded. Idempotent."""
         g = sink.group
-        for key in (FIRST_IN_WINDOW_ATTR, EVENTS_IN_WINDOW_ATTR):
+        for key in (Events.FIRST_IN_WINDOW, Events.EVENTS_IN_WINDOW):
             if key in g.attrs:
                 del g.attrs[key]
         attrs = self._f.attrs
-        lo, hi = (int(attrs[k]) if k in attrs else None for k in (WINDOW_START_ATTR, WINDOW_END_ATTR))
-        g.attrs[CLOCK_MAP_ATTR] = clock_map_json(cmap)
-        g.attrs[WINDOW_ATTR] = json.dumps([lo, hi])
+        lo, hi = (int(attrs[k]) if k in attrs else None for k in (Root.WINDOW_START, Root.WINDOW_END))
+        g.attrs[Events.CLOCK_MAP] = clock_map_json(cmap)
+        g.attrs[Events.WINDOW] = json.dumps([lo, hi])
         i0, i1 = EvtWordsEvents(g, self._path, cmap, (lo, hi)).window_range()
-        g["t_offset"][()] = np.int64(t_offset)
-        g.attrs[FIRST_IN_WINDOW_ATTR] = np.int64(i0)
-        g.attrs[EVENTS_IN_WINDOW_ATTR] = np.int64(i1 - i0)
-        sink.trig["t"][...] = cmap.to_rig(sink.trig["t_device"][...])
+        g[Events.T_OFFSET][()] = np.int64(t_offset)
+        g.attrs[Events.FIRST_IN_WINDOW] = np.int64(i0)
+        g.attrs[Events.EVENTS_IN_WINDOW] = np.int64(i1 - i0)
+        sink.trig[TriggerEdges.T][...] = cmap.to_rig(sink.trig[TriggerEdges.T_DEVICE][...])
 
     def _finalize_events(self, sink: EventSink, cmap: ClockMap, t_offset: int) -> None:
         """Rewrite t as rig time - t_offset block by block and build ms_to_idx on the way.
@@ -265,23 +251,23 @@ class Finalizer:
         """
         g = sink.group
         n = sink.n_written
-        upto = min(int(g.attrs.get(FINALIZE_UPTO_ATTR, 0)), n)
+        upto = min(int(g.attrs.get(Events.FINALIZE_UPTO, 0)), n)
         upto = self._redo_logged_block(sink, upto)
         n_ms = _ms_count(sink, cmap, t_offset, upto)
         ms_ds = self._new_ms_to_idx(g, n_ms)
         ms_next = 0
         for pos, rel in self._rig_time_blocks(sink, cmap, t_offset, upto):
             ms_next = _fill_ms_to_idx(ms_ds, rel, pos, ms_next, n_ms)
-        g["t_offset"][()] = np.int64(t_offset)
-        trig_dev = sink.trig["t_device"][...]
-        sink.trig["t"][...] = cmap.to_rig(trig_dev)
+        g[Events.T_OFFSET][()] = np.int64(t_offset)
+        trig_dev = sink.trig[TriggerEdges.T_DEVICE][...]
+        sink.trig[TriggerEdges.T][...] = cmap.to_rig(trig_dev)
 
     def _new_ms_to_idx(self, g: h5py.Group, n_ms: int) -> h5py.Dataset:
-        if "ms_to_idx" in g:
+        if Events.MS_TO_IDX in g:
             # Derived: rebuilt whole, so no chunk a crashed finalize left behind is ever read.
-            del g["ms_to_idx"]
+            del g[Events.MS_TO_IDX]
         return g.create_dataset(
-            "ms_to_idx",
+            Events.MS_TO_IDX,
             shape=(n_ms,),
             # Resizable so a sensor that recorded nothing (n_ms = 0) still gets a chunked,
             # empty index: HDF5 refuses a fixed shape smaller than one chunk.
@@ -296,7 +282,7 @@ class Finalizer:
     ) -> Iterator[tuple[int, NDArray[np.int64]]]:
         """(start, t - t_offset in rig time) per block: read where already rewritten, else
         mapped and rewritten through the redo log before it is yielded."""
-        tds = sink.ds["t"]
+        tds = sink.ds[Events.T]
         n = sink.n_written
         block = max(sink.chunk, _FINALIZE_BLOCK // sink.chunk * sink.chunk)
         pos = 0
@@ -307,7 +293,7 @@ class Finalizer:
             else:
                 stop = min(pos + block, n)
                 rel = cmap.to_rig(tds[pos:stop]) - t_offset
-                self._rewrite_block(sink, pos, stop, {"t": ([(pos, stop)], rel)})
+                self._rewrite_block(sink, pos, stop, {Events.T: ([(pos, stop)], rel)})
             yield pos, rel
             pos = stop
 
@@ -321,9 +307,9 @@ class Finalizer:
         copy from, or the confirmed new block: nothing is ever mapped twice.
         """
         g = sink.group
-        log_g = g.get(FINALIZE_SCRATCH)
+        log_g = g.get(Events.FINALIZE_SCRATCH)
         if log_g is None:
-            log_g = g.create_group(FINALIZE_SCRATCH)
+            log_g = g.create_group(Events.FINALIZE_SCRATCH)
         for key in list(log_g):
             if key not in writes:
                 del log_g[key]
@@ -331,13 +317,13 @@ class Finalizer:
             self._log_rows(log_g, key, segments, rows)
         _crash_point("scratch_written", sink.name, start)
         self._f.flush()
-        log_g.attrs.modify("range", np.array([start, stop], dtype=np.int64))
+        log_g.attrs.modify(Events.SCRATCH_RANGE, np.array([start, stop], dtype=np.int64))
         self._f.flush()
         _crash_point("scratch_logged", sink.name, start)
         for key, (segments, rows) in writes.items():
             _store_segments(sink.ds[key], segments, rows)
         _crash_point("t_written", sink.name, start)
-        g.attrs.modify(FINALIZE_UPTO_ATTR, np.int64(stop))
+        g.attrs.modify(Events.FINALIZE_UPTO, np.int64(stop))
         self._f.flush()
 
     def _log_rows(
@@ -358,22 +344,24 @@ class Finalizer:
         else:
             ds.resize((rows.shape[0],))
         ds[...] = rows
-        ds.attrs["segments"] = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
+        ds.attrs[Events.SCRATCH_SEGMENTS] = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
 
     def _redo_logged_block(self, sink: EventSink, upto: int) -> int:
         """Copy a logged, unconfirmed block from the redo log; returns the new t_rig_upto."""
         g = sink.group
-        log_g = g.get(FINALIZE_SCRATCH)
-        if not isinstance(log_g, h5py.Group) or "range" not in log_g.attrs:
+        log_g = g.get(Events.FINALIZE_SCRATCH)
+        if not isinstance(log_g, h5py.Group) or Events.SCRATCH_RANGE not in log_g.attrs:
             return upto
-        lo, hi = (int(v) for v in log_g.attrs["range"])
+        lo, hi = (int(v) for v in log_g.attrs[Events.SCRATCH_RANGE])
         if not (lo == upto and upto < hi <= sink.n_written):
             return upto  # stale: that block was confirmed
         log.info("take %s: %s: redoing finalize block [%d, %d) from its log", self._path, sink.name, lo, hi)
         for key, ds in log_g.items():
-            segments = [(int(a), int(b)) for a, b in np.asarray(ds.attrs["segments"]).reshape(-1, 2)]
+            segments = [
+                (int(a), int(b)) for a, b in np.asarray(ds.attrs[Events.SCRATCH_SEGMENTS]).reshape(-1, 2)
+            ]
             _store_segments(sink.ds[key], segments, np.asarray(ds[...]))
-        g.attrs.modify(FINALIZE_UPTO_ATTR, np.int64(hi))
+        g.attrs.modify(Events.FINALIZE_UPTO, np.int64(hi))
         self._f.flush()
         return hi
 
@@ -382,13 +370,13 @@ def _first_time(sink: EventSink | EvtWordsSink) -> NDArray[np.int64]:
     """The first stored event's device time, as a one-element array."""
     if isinstance(sink, EvtWordsSink):
         return np.asarray([sink.first_t if sink.first_t is not None else 0], np.int64)
-    return np.asarray(sink.ds["t"][0:1], np.int64)
+    return np.asarray(sink.ds[Events.T][0:1], np.int64)
 
 
 def _ms_count(sink: EventSink, cmap: ClockMap, t_offset: int, upto: int) -> int:
     """Length of ms_to_idx: one entry per ms up to the last event's rig time."""
     n = sink.n_written
-    tds = sink.ds["t"]
+    tds = sink.ds[Events.T]
     if n == 0:
         last_rel = -1
     elif upto >= n:

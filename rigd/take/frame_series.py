@@ -13,8 +13,8 @@ from numpy.typing import NDArray
 
 from rigd.core.errors import TakeError
 from rigd.core.frames import Frame
+from rigd.core.layout import FRAMES_GROUP, Frames
 from rigd.core.pixels import BAYER_PATTERNS, is_bayer, stored_pixel_format, to_gray, to_rgb
-from rigd.core.schema import FRAMES_GROUP
 
 if TYPE_CHECKING:
     from rigd.take.reader import Take
@@ -32,7 +32,7 @@ class FrameSeries(Sequence[Frame]):
         self._take = take
         self.name = name
         self._g = group
-        self._images: h5py.Dataset = group["images"]
+        self._images: h5py.Dataset = group[Frames.IMAGES]
         self._n = int(self._images.shape[0])
         self._ts: NDArray[np.int64] | None = None
         self.pixel_format = stored_pixel_format(group.attrs, self.stored_shape, f"{take.path}: {group.name}")
@@ -82,7 +82,7 @@ class FrameSeries(Sequence[Frame]):
     def timestamps_us(self) -> NDArray[np.int64]:
         """Exposure start of every frame, in the take's time domain (rig once finalized)."""
         if self._ts is None:
-            self._ts = np.asarray(self._g["t_exposure_start_us"][: self._n], dtype=np.int64)
+            self._ts = np.asarray(self._g[Frames.T_EXPOSURE_START][: self._n], dtype=np.int64)
         return self._ts
 
     @overload
@@ -98,10 +98,10 @@ class FrameSeries(Sequence[Frame]):
         return Frame(
             image=to_rgb(image, self.pixel_format) if self.demosaic else image,
             t_exposure_start_us=int(self.timestamps_us[k]),
-            exposure_us=int(g["exposure_us"][k]),
-            frame_counter=int(g["frame_counter"][k]),
-            host_time_ns=int(g["host_time_ns"][k]),
-            pulse_index=int(g["pulse_index"][k]),
+            exposure_us=int(g[Frames.EXPOSURE][k]),
+            frame_counter=int(g[Frames.FRAME_COUNTER][k]),
+            host_time_ns=int(g[Frames.HOST_TIME_NS][k]),
+            pulse_index=int(g[Frames.PULSE_INDEX][k]),
             pixel_format="rgb8" if self.demosaic else self.pixel_format,
         )
 

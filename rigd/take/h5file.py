@@ -23,13 +23,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rigd.core.errors import TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
+from rigd.core.layout import Root
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION
 
 log = logging.getLogger(__name__)
 
 #: Root attr: the real end of a truncated take that resume extended with a hole; chunks past it
 #: were never written. Removed once check_repair has trimmed them away.
-TRUNCATED_EOF_ATTR = "truncated_eof"
+TRUNCATED_EOF_ATTR = Root.TRUNCATED_EOF
 _TRUNCATED_RE = re.compile(r"truncated file: eof = (\d+),.*stored_eof = (\d+)")
 _ADDR_OVERFLOW_RE = re.compile(r"addr overflow, addr = (\d+), size = (\d+), eoa = (\d+)")
 
@@ -203,10 +204,10 @@ class ZeroPadded(io.RawIOBase):
 
 def check_header(f: h5py.File, path: Path) -> str:
     """Schema name and major version of an open take; returns its schema_version."""
-    schema = attr_text(f.attrs.get("schema", ""))
+    schema = attr_text(f.attrs.get(Root.SCHEMA, ""))
     if schema != SCHEMA_NAME:
         raise TakeFormatError(f"{path}: /: attr schema is {schema!r}, expected {SCHEMA_NAME!r}")
-    version = attr_text(f.attrs.get("schema_version", ""))
+    version = attr_text(f.attrs.get(Root.SCHEMA_VERSION, ""))
     if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
         raise TakeFormatError(
             f"{path}: /: schema_version {version!r} is not readable by this rigd "

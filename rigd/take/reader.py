@@ -27,31 +27,29 @@ from pydantic import ValidationError
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents
-from rigd.core.schema import (
-    CONFIG_DATASET,
-    END_REASON_ATTR,
+from rigd.core.layout import (
     EVENT_DTYPES,
     EVENTS_GROUP,
     FRAME_SERIES,
     FRAMES_GROUP,
-    JOURNAL_DATASET,
     PULSE_SERIES,
-    RECOVERED_ATTR,
-    RECOVERY_REPORT_ATTR,
-    SCHEMA_NAME,
-    SCHEMA_VERSION,
+    PULSES_PATH,
     SYNC_GROUP,
-    TAIL_META_ATTR,
-    TAIL_PREFIX,
+    SYNC_REPORT_PATH,
     TRIGGER_DTYPES,
     TRIGGER_GROUP,
-    SyncReport,
-    decode_journal,
-    has_item,
+    Device,
+    Events,
+    Pulses,
+    Root,
+    Status,
+    TimeDomain,
+    TriggerEdges,
 )
+from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, decode_journal, has_item
 from rigd.core.timebase import ClockMap
 from rigd.take.calibration import read_board_pose, read_calibration
-from rigd.take.evt_read import CLOCK_MAP_ATTR, WINDOW_ATTR, EvtWordsEvents
+from rigd.take.evt_read import EvtWordsEvents
 from rigd.take.evt_sink import is_evt_words
 from rigd.take.frame_series import FrameSeries
 from rigd.take.h5file import attr_text, describe_open_error
@@ -128,10 +126,10 @@ class Take:
 
     def _check_header(self) -> None:
         f = self._f
-        schema = _attr_str(f, "schema")
+        schema = _attr_str(f, Root.SCHEMA)
         if schema != SCHEMA_NAME:
             raise TakeFormatError(f"{self.path}: /: attr schema is {schema!r}, expected {SCHEMA_NAME!r}")
-        major = _attr_str(f, "schema_version").split(".")[0]
+        major = _attr_str(f, Root.SCHEMA_VERSION).split(".")[0]
         if major != SCHEMA_VERSION.split(".")[0]:
             raise TakeFormatError(
                 f"{self.path}: /: schema_version {self.schema_version!r} is not readable by this rigd "
@@ -141,8 +139,8 @@ class Take:
     def _required(self) -> Iterator[str]:
         """HDF5 paths every reader method relies on, for the take's version and time domain."""
         f = self._f
-        version = _attr_str(f, "schema_version", SCHEMA_VERSION)
-        rig = _attr_str(f, "time_domain") == "rig"
+        version = _attr_str(f, Root.SCHEMA_VERSION, SCHEMA_VERSION)
+        rig = _attr_str(f, Root.TIME_DOMAIN) == TimeDomain.RIG
         for name in self.event_sensors:
             base = f"{EVENTS_GROUP}/{name}"
             g = f.get(base)
@@ -150,10 +148,10 @@ class Take:
                 yield from (f"{base}/evt_words", f"{base}/evt_index")
             else:
                 yield from (f"{base}/{k}" for k in EVENT_DTYPES)
-            yield f"{base}/t_offset"
+            yield f"{base}/{Events.T_OFFSET}"
             if rig and not (isinstance(g, h5py.Group) and is_evt_words(g)):
-                yield f"{base}/ms_to_idx"
-            trig = (k for k in TRIGGER_DTYPES if has_item(version, f"trigger/{k}"))
+                yield f"{base}/{Events.MS_TO_IDX}"
+            trig = (k for k in TRIGGER_DTYPES if has_item(version, f"{Events.TRIGGER}/{k}"))
             yield from (f"{base}/trigger/{k}" for k in trig)
         for name in self.cameras:
             yield f"{FRAMES_GROUP}/{name}/images"
@@ -186,30 +184,30 @@ class Take:
     # -- metadata ----------------------------------------------------------------------
     @property
     def status(self) -> str:
-        return _attr_str(self._f, "status")
+        return _attr_str(self._f, Root.STATUS)
 
     @property
     def schema_version(self) -> str:
-        return _attr_str(self._f, "schema_version")
+        return _attr_str(self._f, Root.SCHEMA_VERSION)
 
     @property
     def take_id(self) -> str:
-        return _attr_str(self._f, "take_id")
+        return _attr_str(self._f, Root.TAKE_ID)
 
     @property
     def time_domain(self) -> str:
-        return _attr_str(self._f, "time_domain")
+        return _attr_str(self._f, Root.TIME_DOMAIN)
 
     @property
     def config(self) -> dict[str, Any]:
-        raw = self._dataset(CONFIG_DATASET)[()]
+        raw = self._dataset(Root.CONFIG)[()]
         text = attr_text(raw)
-        return self._json_object(text, f"/{CONFIG_DATASET}")
+        return self._json_object(text, f"/{Root.CONFIG}")
 
     @property
     def journal(self) -> dict[str, Any] | None:
         """The loss bookkeeping of the last flush (`/journal_json`, newest readable slot), or None."""
-        node = self._f.get(JOURNAL_DATASET)
+        node = self._f.get(Root.JOURNAL)
         if not isinstance(node, h5py.Dataset):
             return None
         found = decode_journal(np.asarray(node[...]))
@@ -218,19 +216,19 @@ class Take:
     @property
     def end_reason(self) -> str | None:
         """Why the recording ended (set by the capture; None for older or converted takes)."""
-        return _attr_str(self._f, END_REASON_ATTR) if END_REASON_ATTR in self._f.attrs else None
+        return _attr_str(self._f, Root.END_REASON) if Root.END_REASON in self._f.attrs else None
 
     @property
     def recovered_utc(self) -> str | None:
         """When `rigd recover` sealed this take after a crash; None for a take closed normally."""
-        return _attr_str(self._f, RECOVERED_ATTR) if RECOVERED_ATTR in self._f.attrs else None
+        return _attr_str(self._f, Root.RECOVERED_UTC) if Root.RECOVERED_UTC in self._f.attrs else None
 
     @property
     def recovery_report(self) -> dict[str, Any] | None:
         """The RecoveryReport (as a dict) of a recovered take: what was trimmed and why."""
-        if RECOVERY_REPORT_ATTR not in self._f.attrs:
+        if Root.RECOVERY_REPORT not in self._f.attrs:
             return None
-        return self._json_object(_attr_str(self._f, RECOVERY_REPORT_ATTR), f"/ attr {RECOVERY_REPORT_ATTR}")
+        return self._json_object(_attr_str(self._f, Root.RECOVERY_REPORT), f"/ attr {Root.RECOVERY_REPORT}")
 
     def _json_object(self, text: str, where: str) -> dict[str, Any]:
         try:
@@ -254,7 +252,7 @@ class Take:
     @property
     def sync_report(self) -> SyncReport | None:
         """The sync report, or None for a take that was never finalized."""
-        node = self._f.get(f"{SYNC_GROUP}/report_json")
+        node = self._f.get(SYNC_REPORT_PATH)
         if node is None:
             return None
         raw = node[()]
@@ -285,7 +283,7 @@ class Take:
         return g
 
     def _require_rig(self, hpath: str) -> None:
-        if self.time_domain != "rig":
+        if self.time_domain != TimeDomain.RIG:
             raise TakeError(
                 f"{self.path}: {hpath}: time queries need rig time, but this take was never finalized "
                 f"(status {self.status!r}, times are still in each device's own clock)"
@@ -294,7 +292,7 @@ class Take:
     def _offset(self, sensor: str) -> int:
         if sensor not in self._t_offset:
             g = self._sensor_group(sensor)
-            self._t_offset[sensor] = int(g["t_offset"][()]) if "t_offset" in g else 0
+            self._t_offset[sensor] = int(g[Events.T_OFFSET][()]) if Events.T_OFFSET in g else 0
         return self._t_offset[sensor]
 
     # -- events ------------------------------------------------------------------------
@@ -305,10 +303,12 @@ class Take:
             g = self._sensor_group(sensor)
             words = None
             if is_evt_words(g):
-                cmap_text = g.attrs.get(CLOCK_MAP_ATTR) if self.time_domain == "rig" else None
+                cmap_text = g.attrs.get(Events.CLOCK_MAP) if self.time_domain == TimeDomain.RIG else None
                 cmap = None if cmap_text is None else ClockMap(*json.loads(attr_text(cmap_text)))
-                lo, hi = json.loads(attr_text(g.attrs.get(WINDOW_ATTR, "[null, null]")))
-                words = EvtWordsEvents(g, self.path, cmap, (lo, hi), with_tail=self.status == "recording")
+                lo, hi = json.loads(attr_text(g.attrs.get(Events.WINDOW, "[null, null]")))
+                words = EvtWordsEvents(
+                    g, self.path, cmap, (lo, hi), with_tail=self.status == Status.RECORDING
+                )
             self._evt[sensor] = words
         words = self._evt[sensor]
         if words is not None and rig and words.cmap is None:
@@ -319,8 +319,8 @@ class Take:
         """(main rows, tail slot, tail rows) of a sensor. A take whose writer died before
         `rigd recover` keeps the flushed events past its last whole chunk in `tail_*`
         (see docs/take-format.md); index reads include them."""
-        n = int(g["t"].shape[0])
-        if self.status != "recording" or TAIL_META_ATTR not in g.attrs:
+        n = int(g[Events.T].shape[0])
+        if self.status != Status.RECORDING or Events.TAIL_META not in g.attrs:
             return n, 0, 0
         slot, m = tail_rows(g, n)
         return n, slot, m
@@ -334,8 +334,14 @@ class Take:
     def _cols(self, g: h5py.Group) -> _EventColumns:
         cols = self._columns.get(g.name)
         if cols is None:
-            ms = g.get("ms_to_idx")
-            cols = _EventColumns(g["x"], g["y"], g["p"], g["t"], ms if isinstance(ms, h5py.Dataset) else None)
+            ms = g.get(Events.MS_TO_IDX)
+            cols = _EventColumns(
+                g[Events.X],
+                g[Events.Y],
+                g[Events.P],
+                g[Events.T],
+                ms if isinstance(ms, h5py.Dataset) else None,
+            )
             self._columns[g.name] = cols
         return cols
 
@@ -345,12 +351,12 @@ class Take:
         if hi <= n or m == 0:
             return main
         a, b = max(lo, n) - n, min(hi, n + m) - n
-        cols = {k: np.asarray(g[f"{TAIL_PREFIX}{k}"][slot, a:b]) for k in "xypt"}
+        cols = {k: np.asarray(g[f"{Events.TAIL_PREFIX}{k}"][slot, a:b]) for k in EVENT_DTYPES}
         tail = EventArray(
-            cols["x"].astype(np.uint16),
-            cols["y"].astype(np.uint16),
-            cols["p"].astype(np.int8) * np.int8(2) - np.int8(1),
-            cols["t"].astype(np.int64) + np.int64(t_offset),
+            cols[Events.X].astype(np.uint16),
+            cols[Events.Y].astype(np.uint16),
+            cols[Events.P].astype(np.int8) * np.int8(2) - np.int8(1),
+            cols[Events.T].astype(np.int64) + np.int64(t_offset),
         )
         return EventArray.concatenate([main, tail])
 
@@ -382,7 +388,7 @@ class Take:
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
         c = self._cols(g)
         if c.ms_to_idx is None:
-            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/ms_to_idx is missing")
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/{Events.MS_TO_IDX} is missing")
         off, n = self._offset(sensor), c.n
         rel0, rel1 = int(t_start_us) - off, max(int(t_end_us), int(t_start_us)) - off
         lo, _ = _ms_bracket(c.ms_to_idx, rel0, n)
@@ -401,7 +407,7 @@ class Take:
     def geometry(self, sensor: str) -> tuple[int, int]:
         """(width, height) of an event sensor."""
         g = self._sensor_group(sensor)
-        return int(g.attrs["width"]), int(g.attrs["height"])
+        return int(g.attrs[Device.WIDTH]), int(g.attrs[Device.HEIGHT])
 
     def events_by_index(self, sensor: str, start: int, stop: int) -> EventArray:
         """Events [start, stop) by position; works in either time domain."""
@@ -447,7 +453,7 @@ class Take:
         c = self._cols(g)
         ms = c.ms_to_idx
         if ms is None:
-            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/ms_to_idx is missing")
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/{Events.MS_TO_IDX} is missing")
         n = c.n
         off = self._offset(sensor)
         lo = 0 if t_start_us is None else self._first_index(g, ms, int(t_start_us) - off, n)
@@ -468,7 +474,7 @@ class Take:
         self._require_rig(f"/{EVENTS_GROUP}/{sensor}")
         c = self._cols(g)
         if c.ms_to_idx is None:
-            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/ms_to_idx is missing")
+            raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/{Events.MS_TO_IDX} is missing")
         n, off = c.n, self._offset(sensor)
         if n == 0:
             return off, np.zeros(0, np.int64)
@@ -526,13 +532,13 @@ class Take:
     def triggers(self, sensor: str) -> TriggerEvents:
         """Trigger-in edges of a sensor (rig time once finalized; device time in `t_device`)."""
         g = self._sensor_group(sensor)
-        tg = g.get("trigger")
+        tg = g.get(Events.TRIGGER)
         if not isinstance(tg, h5py.Group):
             raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/trigger is missing")
         return TriggerEvents(
-            np.asarray(tg["t"][...], dtype=np.int64),
-            np.asarray(tg["p"][...], dtype=np.uint8),
-            np.asarray(tg["channel"][...], dtype=np.uint8),
+            np.asarray(tg[TriggerEdges.T][...], dtype=np.int64),
+            np.asarray(tg[TriggerEdges.P][...], dtype=np.uint8),
+            np.asarray(tg[TriggerEdges.CHANNEL][...], dtype=np.uint8),
         )
 
     def trigger_host_times(self, sensor: str) -> NDArray[np.int64]:
@@ -541,22 +547,22 @@ class Take:
         Schema 1.0 takes did not record it: all -1 (the same "unknown" a 1.1 writer stores).
         """
         g = self._sensor_group(sensor)
-        tg = g.get("trigger")
+        tg = g.get(Events.TRIGGER)
         if not isinstance(tg, h5py.Group):
             raise TakeFormatError(f"{self.path}: /{EVENTS_GROUP}/{sensor}/trigger is missing")
-        n = int(tg["t"].shape[0])
-        if "host_time_ns" not in tg:
+        n = int(tg[TriggerEdges.T].shape[0])
+        if TriggerEdges.HOST_TIME_NS not in tg:
             return np.full(n, -1, np.int64)
-        return np.asarray(tg["host_time_ns"][:n], dtype=np.int64)
+        return np.asarray(tg[TriggerEdges.HOST_TIME_NS][:n], dtype=np.int64)
 
     def pulses(self) -> PulseBatch:
-        g = self._f.get(f"{TRIGGER_GROUP}/pulses")
+        g = self._f.get(PULSES_PATH)
         if not isinstance(g, h5py.Group):
             raise TakeFormatError(f"{self.path}: /{TRIGGER_GROUP}/pulses is missing")
         return PulseBatch(
-            np.asarray(g["index"][...], dtype=np.int64),
-            np.asarray(g["t_us"][...], dtype=np.int64),
-            np.asarray(g["host_time_ns"][...], dtype=np.int64),
+            np.asarray(g[Pulses.INDEX][...], dtype=np.int64),
+            np.asarray(g[Pulses.T_US][...], dtype=np.int64),
+            np.asarray(g[Pulses.HOST_TIME_NS][...], dtype=np.int64),
         )
 
     def frames(self, camera: str, demosaic: bool = True) -> FrameSeries:
@@ -612,22 +618,24 @@ class Take:
             span = self.event_span(name)
             span_us = span[1] - span[0] if span else 0
             d = devs.get(name)
-            tg = g.get("trigger")
+            tg = g.get(Events.TRIGGER)
             sens[name] = EventSensorSummary(
                 events=n,
                 event_rate_hz=n / (span_us / 1e6) if span_us > 0 else None,
                 t_first_us=span[0] if span else None,
                 t_last_us=span[1] if span else None,
                 span_us=span_us,
-                width=int(g.attrs.get("width", 0)),
-                height=int(g.attrs.get("height", 0)),
-                triggers=int(tg["t"].shape[0]) if isinstance(tg, h5py.Group) and "t" in tg else 0,
+                width=int(g.attrs.get(Device.WIDTH, 0)),
+                height=int(g.attrs.get(Device.HEIGHT, 0)),
+                triggers=int(tg[TriggerEdges.T].shape[0])
+                if isinstance(tg, h5py.Group) and TriggerEdges.T in tg
+                else 0,
                 missing_pulses=len(d.missing_pulses) if d else None,
                 sync_rms_us=_finite(d.residual_rms_us) if d else None,
                 sync_max_us=_finite(d.residual_max_us) if d else None,
             )
         pulses_node = self._f.get(f"{TRIGGER_GROUP}/pulses/index")
-        raw_reason = self._f.attrs.get("failure_reason")
+        raw_reason = self._f.attrs.get(Root.FAILURE_REASON)
         reason = None if raw_reason is None else attr_text(raw_reason)
         status, recovered = self.status, self.recovered_utc
         verdict = take_verdict(

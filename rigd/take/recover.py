@@ -4,27 +4,25 @@ A take is unfinished when its status is still "recording" (the process died whil
 or between the last flush and finalize) or when a finalize started and never completed.
 `recover_take` rebuilds what the capture pipeline had in memory from the file itself -- the
 pulse log, every camera's frame times, every event sensor's rising trigger-in edges, and the
-loss bookkeeping of the last flush (`/journal_json`) -- runs `rigd.sync.synchronize` exactly
-as `rigd.app.capture` does, and finalizes through `TakeWriter.resume`. What the kill left
-half-written is trimmed (`check_repair`) and reported, never dropped silently; recorded data
-is never deleted otherwise. A take a live process holds (HDF5 file lock) is left untouched.
+loss bookkeeping of the last flush (`/journal_json`; `recover_read`) -- and seals it through
+`rigd.take.seal`, the same fit, report and finalize the capture pipeline ends a take with.
+What the kill left half-written is trimmed (`check_repair`) and reported, never dropped
+silently; recorded data is never deleted otherwise. A take a live process holds (HDF5 file
+lock) is left untouched.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import h5py
 import hdf5plugin  # noqa: F401  (registers the LZ4 / Zstd filters with h5py)
-import numpy as np
-from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from rigd.core.errors import (
     NotATakeError,
@@ -34,38 +32,20 @@ from rigd.core.errors import (
     TakeInUseError,
     TakeTruncatedError,
 )
-from rigd.core.schema import (
-    CONFIG_DATASET,
-    EVENTS_GROUP,
-    FINALIZE_PLAN_ATTR,
-    FRAMES_GROUP,
-    JOURNAL_DATASET,
-    RECOVERED_ATTR,
-    RECOVERY_REPORT_ATTR,
-    SCHEMA_NAME,
-    SYNC_GROUP,
-    TAIL_PREFIX,
-    TRIGGER_GROUP,
-    LossKind,
-    LossRecord,
-    SyncReport,
-    decode_journal,
-)
-from rigd.core.settings import EventSensorSettings, WriterConfig
-from rigd.sync import DeviceObservations, PulseLog, SyncResult, synchronize
-from rigd.take.evt_repair import kept_rows
-from rigd.take.evt_sink import is_evt_words
+from rigd.core.layout import Root, Status, TimeDomain
+from rigd.core.schema import SCHEMA_NAME, LossKind, LossRecord
+from rigd.core.settings import WriterConfig
+from rigd.sync import SyncResult
 from rigd.take.h5file import (
     ZeroPadded,
     attr_text,
     check_header,
     open_h5,
-    require_dataset,
-    require_group,
     utc_now,
 )
+from rigd.take.recover_read import TakeData, read_take
 from rigd.take.repair import Trim, check_repair
-from rigd.take.tails import tail_rows
+from rigd.take.seal import Bookkeeping, Seal, TakeEnd, fit_take, journal_losses, seal_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -81,8 +61,6 @@ Outcome = Literal[
 _SEALED: frozenset[str] = frozenset(
     {"sealed", "sealed_failed", "not_needed", "would_seal", "would_seal_failed"}
 )
-_COUNTERS = TypeAdapter(dict[str, dict[str, int]])
-_LINK = TypeAdapter(dict[str, int])
 
 
 class RecoveryReport(BaseModel):
@@ -137,57 +115,29 @@ class RecoveryReport(BaseModel):
         return f"{self.path}: {head}{why} ({kept}{cut}; {lost} item(s){more} recorded as lost)"
 
 
-@dataclass(slots=True)
-class _TakeData:
-    """Everything recovery reads from the take, as the capture pipeline had it in memory."""
-
-    status: str
-    plan: bool
-    failure_reason: str | None
-    last_flush_utc: str | None
-    flush_count: int | None
-    flush_interval_s: float | None
-    writer_config: WriterConfig
-    rate_hz: float | None
-    pulses: PulseLog
-    observations: list[DeviceObservations]
-    cameras: list[str]
-    sensors: list[str]
-    frames: dict[str, int]
-    events: dict[str, int]
-    triggers: dict[str, int]
-    n_pulses: int
-    last_t: dict[str, int | None]
-    slaves: dict[str, str]
-    software: set[str]
-    journal: dict[str, Any] | None
-    stored_report: SyncReport | None
-    warnings: list[str] = field(default_factory=list)
-
-
 def _failed_unsealed(f: h5py.File) -> bool:
     """Marked failed by its own writer (disk full, a fault) and never finalized nor recovered:
     its times are still in device clock, and recovery can seal what was flushed."""
     return (
-        attr_text(f.attrs.get("status", "")) == "failed"
-        and attr_text(f.attrs.get("time_domain", "device")) == "device"
-        and RECOVERED_ATTR not in f.attrs
-        and "finalize_started_utc" not in f.attrs
-        and FINALIZE_PLAN_ATTR not in f.attrs
+        attr_text(f.attrs.get(Root.STATUS, "")) == Status.FAILED
+        and attr_text(f.attrs.get(Root.TIME_DOMAIN, TimeDomain.DEVICE)) == TimeDomain.DEVICE
+        and Root.RECOVERED_UTC not in f.attrs
+        and Root.FINALIZE_STARTED_UTC not in f.attrs
+        and Root.FINALIZE_PLAN not in f.attrs
     )
 
 
 def _needs_recovery(f: h5py.File, truncated: bool) -> bool:
     """Still recording, failed by its writer before finalize, a finalize that started and did
     not finish (and was not sealed), or a file a failed write left too short for HDF5 to open."""
-    status = attr_text(f.attrs.get("status", ""))
-    if truncated and status != "complete":
+    status = attr_text(f.attrs.get(Root.STATUS, ""))
+    if truncated and status != Status.COMPLETE:
         return True
-    if status == "complete":
+    if status == Status.COMPLETE:
         return False
-    if status == "recording" or FINALIZE_PLAN_ATTR in f.attrs or _failed_unsealed(f):
+    if status == Status.RECORDING or Root.FINALIZE_PLAN in f.attrs or _failed_unsealed(f):
         return True
-    return "finalize_started_utc" in f.attrs and RECOVERED_ATTR not in f.attrs
+    return Root.FINALIZE_STARTED_UTC in f.attrs and Root.RECOVERED_UTC not in f.attrs
 
 
 def needs_recovery(path: str | Path) -> bool:
@@ -201,7 +151,7 @@ def needs_recovery(path: str | Path) -> bool:
     except TakeInUseError:
         return True
     with f:
-        schema = attr_text(f.attrs.get("schema", ""))
+        schema = attr_text(f.attrs.get(Root.SCHEMA, ""))
         if schema != SCHEMA_NAME:
             raise NotATakeError(f"{p}: /: attr schema is {schema!r}, not a rigd take")
         return _needs_recovery(f, truncated is not None)
@@ -259,14 +209,14 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
     with f:
         with _reading(path, "reading the header"):
             check_header(f, path)
-        status = attr_text(f.attrs.get("status", ""))
+        status = attr_text(f.attrs.get(Root.STATUS, ""))
         rr = RecoveryReport(
             path=str(path), outcome="not_needed", sealed=True, dry_run=dry_run, status_before=status
         )
         if not _needs_recovery(f, truncated is not None):
             log.info("take %s is %s; nothing to recover", path, status)
             return rr
-        plan = FINALIZE_PLAN_ATTR in f.attrs
+        plan = Root.FINALIZE_PLAN in f.attrs
         if truncated is not None:
             rr.truncated_bytes = truncated.stored_eof - truncated.eof
             rr.warnings.append(
@@ -278,7 +228,7 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
             with _reading(path, "checking the datasets"):
                 trims = check_repair(f, path, apply=False, data_end=truncated.eof if truncated else None)
             return _repair_only(path, rr, trims, dry_run=dry_run)
-        if not plan and "finalize_started_utc" in f.attrs:
+        if not plan and Root.FINALIZE_STARTED_UTC in f.attrs:
             reason = (
                 "finalize was interrupted in a take without a finalize plan (written by rigd before "
                 "schema 1.1): event times are part rig, part device time and cannot be told apart"
@@ -293,7 +243,7 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
             what = "; ".join(f"{t.hpath}: {t.reason}" for t in trims)
             raise TakeFormatError(f"{path}: finalize had started, yet the data is inconsistent ({what})")
         with _reading(path, "reading the recorded data"):
-            data = _read(f, path, {t.hpath: t.after for t in trims}, plan=plan)
+            data = read_take(f, path, {t.hpath: t.after for t in trims}, plan=plan)
     rr.trims = trims
     rr.failure_reason_before = data.failure_reason
     rr.frames, rr.events, rr.triggers, rr.pulses = data.frames, data.events, data.triggers, data.n_pulses
@@ -308,258 +258,8 @@ def _recover(path: Path, *, dry_run: bool) -> RecoveryReport:
     return _finalize_crashed(path, rr, data, trims, dry_run=dry_run)
 
 
-# -- reading the take ----------------------------------------------------------------------
-def _read_ds(ds: h5py.Dataset, n: int, where: str) -> NDArray[Any]:
-    """ds[:n], or a TakeFormatError naming the file and dataset (corrupt chunk, bad filter)."""
-    try:
-        return np.asarray(ds[:n])
-    except (OSError, ValueError) as exc:
-        raise TakeFormatError(f"{where}: {ds.name}: cannot be read: {exc}") from exc
-
-
-def _json_dict(text: str, what: str, warnings: list[str]) -> dict[str, Any]:
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        warnings.append(f"{what} is not valid JSON ({exc}); ignored")
-        return {}
-    if not isinstance(data, dict):
-        warnings.append(f"{what} is not a JSON object; ignored")
-        return {}
-    return data
-
-
-def _known_fields(model: type[BaseModel], raw: Any) -> dict[str, Any]:
-    """Only the fields this rigd knows: takes from other versions still parse."""
-    return {k: v for k, v in raw.items() if k in model.model_fields} if isinstance(raw, dict) else {}
-
-
-def _writer_config(cfg: dict[str, Any], warnings: list[str]) -> WriterConfig:
-    try:
-        return WriterConfig.model_validate(_known_fields(WriterConfig, cfg.get("writer")))
-    except ValidationError as exc:
-        warnings.append(
-            f"rig config writer settings unreadable ({exc.error_count()} error(s)); defaults used"
-        )
-        return WriterConfig()
-
-
-def _sensor_settings(
-    cfg: dict[str, Any], name: str, g: h5py.Group, warnings: list[str]
-) -> EventSensorSettings:
-    """From the rig config in the take, else the group's own `settings_json`, else defaults."""
-    raw: Any = None
-    sensors = cfg.get("event_sensors")
-    for s in sensors if isinstance(sensors, list) else []:
-        if isinstance(s, dict) and s.get("name") == name:
-            raw = s.get("settings", {})
-    if raw is None and "settings_json" in g.attrs:
-        raw = _json_dict(attr_text(g.attrs["settings_json"]), f"{g.name} attr settings_json", warnings)
-    if raw is None:
-        warnings.append(f"{name}: no settings in the take; trigger-in channel 0 assumed")
-    try:
-        return EventSensorSettings.model_validate(_known_fields(EventSensorSettings, raw))
-    except ValidationError as exc:
-        warnings.append(f"{name}: settings unreadable ({exc.error_count()} error(s)); defaults used")
-        return EventSensorSettings()
-
-
-def _rate_hz(cfg: dict[str, Any], pulses: PulseLog, warnings: list[str]) -> float | None:
-    trig = cfg.get("trigger")
-    settings = trig.get("settings") if isinstance(trig, dict) else None
-    rate = settings.get("rate_hz") if isinstance(settings, dict) else None
-    if isinstance(rate, int | float) and rate > 0:
-        return float(rate)
-    if pulses.t_us.size >= 2:
-        period = float(np.median(np.diff(pulses.t_us) / np.maximum(np.diff(pulses.index), 1)))
-        if period > 0:
-            warnings.append(
-                f"trigger rate not in the rig config; {1e6 / period:.6g} Hz estimated from the pulses"
-            )
-            return 1e6 / period
-    return None
-
-
-def _synth_host_times(
-    t: NDArray[np.int64], host: NDArray[np.int64], pulses: PulseLog, period_us: float
-) -> NDArray[np.int64]:
-    """Host times for edges recorded without one (schema 1.0), so the sync engine's coarse
-    matching has something to work with: the edge's pulse is counted in whole periods from
-    the first edge, taken to be pulse 0 (devices start before the box), and given that
-    pulse's host arrival time from a line fitted to the pulse log."""
-    steps = np.maximum(np.rint(np.diff(t).astype(np.float64) / period_us), 1.0)
-    k = np.concatenate([[0.0], np.cumsum(steps)])
-    idx = pulses.index.astype(np.float64)
-    h0 = int(pulses.host_time_ns[0])
-    rel = (pulses.host_time_ns - h0).astype(np.float64)
-    if idx.size >= 2 and np.ptp(idx) > 0:
-        slope, icpt = np.polyfit(idx, rel, 1)
-    else:
-        slope, icpt = period_us * 1e3, float(rel[0]) - float(idx[0]) * period_us * 1e3
-    est = np.rint(icpt + slope * k).astype(np.int64) + h0
-    return np.where(host < 0, est, host)
-
-
-@dataclass(slots=True)
-class _Devices:
-    """What `_read` gathers device by device."""
-
-    observations: list[DeviceObservations] = field(default_factory=list)
-    frames: dict[str, int] = field(default_factory=dict)
-    events: dict[str, int] = field(default_factory=dict)
-    triggers: dict[str, int] = field(default_factory=dict)
-    last_t: dict[str, int | None] = field(default_factory=dict)
-    slaves: dict[str, str] = field(default_factory=dict)
-    software: set[str] = field(default_factory=set)
-
-
-def _read(f: h5py.File, path: Path, kept: dict[str, int], *, plan: bool) -> _TakeData:
-    """Read what the sync engine and the report need, as if `kept` trims were applied."""
-    where = str(path)
-    warnings: list[str] = []
-    cfg = _json_dict(attr_text(require_dataset(f, CONFIG_DATASET, where)[()]), f"/{CONFIG_DATASET}", warnings)
-    pg = require_group(f, f"{TRIGGER_GROUP}/pulses", where)
-    cols = {k: require_dataset(pg, k, where) for k in ("index", "t_us", "host_time_ns")}
-    n_p = kept.get(pg.name, int(cols["index"].shape[0]))
-    index, t_us, host = (np.asarray(_read_ds(cols[k], n_p, where), np.int64) for k in cols)
-    pulses = PulseLog.from_records(index, t_us, host)
-    rate = _rate_hz(cfg, pulses, warnings)
-    dev = _Devices()
-    for name, g in require_group(f, FRAMES_GROUP, where).items():
-        _read_camera(dev, name, g, where, kept, warnings)
-    period = 1e6 / rate if rate else None
-    for name, g in require_group(f, EVENTS_GROUP, where).items():
-        _read_event_counts(dev, name, g, where, kept, plan=plan)
-        settings = _sensor_settings(cfg, name, g, warnings)
-        if settings.sync_mode == "slave" and settings.sync_master is not None:
-            dev.slaves[name] = settings.sync_master
-        tg = require_group(g, "trigger", where)
-        dev.triggers[name] = kept.get(tg.name, int(require_dataset(tg, "t_device", where).shape[0]))
-        t_r, h_r = _rising_edges(tg, where, dev.triggers[name], settings.trigger_in_channel)
-        unknown = int((h_r < 0).sum())
-        if unknown and pulses.index.size and period is not None:
-            h_r = _synth_host_times(t_r, h_r, pulses, period)
-            warnings.append(
-                f"{name}: {unknown} trigger edge(s) without a recorded host time (schema 1.0 writer); "
-                "matched to pulses assuming its first edge is pulse 0"
-            )
-        dev.observations.append(DeviceObservations(name, "event_sensor", t_r, h_r))
-    journal = _read_journal(f, warnings)
-    stored_report = _stored_report(f, warnings) if plan else None
-    interval = f.attrs.get("flush_interval_s")
-    count = f.attrs.get("flush_count")
-    reason = f.attrs.get("failure_reason")
-    return _TakeData(
-        status=attr_text(f.attrs.get("status", "")),
-        plan=plan,
-        failure_reason=None if reason is None else attr_text(reason),
-        last_flush_utc=attr_text(f.attrs["last_flush_utc"]) if "last_flush_utc" in f.attrs else None,
-        flush_count=None if count is None else int(count),
-        flush_interval_s=None if interval is None else float(interval),
-        writer_config=_writer_config(cfg, warnings),
-        rate_hz=rate,
-        pulses=pulses,
-        observations=dev.observations,
-        cameras=list(dev.frames),
-        sensors=list(dev.events),
-        frames=dev.frames,
-        events=dev.events,
-        triggers=dev.triggers,
-        n_pulses=n_p,
-        last_t=dev.last_t,
-        slaves=dev.slaves,
-        software=dev.software,
-        journal=journal,
-        stored_report=stored_report,
-        warnings=warnings,
-    )
-
-
-def _read_camera(
-    dev: _Devices, name: str, g: h5py.Group, where: str, kept: dict[str, int], warnings: list[str]
-) -> None:
-    """A camera's frame times as the sync engine sees them, and whether it syncs in software."""
-    t_ds = require_dataset(g, "t_exposure_start_device_us", where)
-    n = kept.get(g.name, int(t_ds.shape[0]))
-    t = np.asarray(_read_ds(t_ds, n, where), np.int64)
-    host = np.asarray(_read_ds(require_dataset(g, "host_time_ns", where), n, where), np.int64)
-    counter = np.asarray(_read_ds(require_dataset(g, "frame_counter", where), n, where), np.int64)
-    dev.observations.append(DeviceObservations(name, "rgb_camera", t, host, counter))
-    dev.frames[name], dev.last_t[name] = n, int(t[-1]) if n else None
-    info = _json_dict(attr_text(g.attrs.get("info_json", "{}")), f"{g.name} attr info_json", warnings)
-    facts = info.get("facts")
-    if isinstance(facts, dict) and facts.get("sync") == "software":
-        dev.software.add(name)
-
-
-def _read_event_counts(
-    dev: _Devices, name: str, g: h5py.Group, where: str, kept: dict[str, int], *, plan: bool
-) -> None:
-    """Events the sealed take will hold (the flushed tail the repair appends included) and the
-    device time of the last one."""
-    if is_evt_words(g):
-        rows = kept_rows(g, kept)
-        dev.events[name] = int(rows[:, 2].sum())
-        dev.last_t[name] = int(rows[-1, 4]) if rows.shape[0] and not plan else None
-        return
-    t_ds = require_dataset(g, "t", where)
-    n_ev = kept.get(g.name, int(t_ds.shape[0]))
-    slot, m = (0, 0) if plan else tail_rows(g, n_ev)
-    dev.events[name] = n_ev + m
-    # During a finalize t is part rig time: the device time of the last event is unknown.
-    if m:
-        dev.last_t[name] = int(g[f"{TAIL_PREFIX}t"][slot, m - 1])
-    else:
-        dev.last_t[name] = int(t_ds[n_ev - 1]) if n_ev and not plan else None
-
-
-def _rising_edges(
-    tg: h5py.Group, where: str, n_tr: int, channel: int
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Device and host times of the rising trigger-in edges on `channel` (host -1: unknown)."""
-    td = np.asarray(_read_ds(require_dataset(tg, "t_device", where), n_tr, where), np.int64)
-    pol = _read_ds(require_dataset(tg, "p", where), n_tr, where)
-    chan = _read_ds(require_dataset(tg, "channel", where), n_tr, where)
-    if "host_time_ns" in tg:
-        host = np.asarray(_read_ds(require_dataset(tg, "host_time_ns", where), n_tr, where), np.int64)
-    else:
-        host = np.full(n_tr, -1, np.int64)
-    rising = (pol == 1) & (chan == channel)
-    return td[rising], host[rising]
-
-
-def _stored_report(f: h5py.File, warnings: list[str]) -> SyncReport | None:
-    """The sync report a cut-short finalize stored; unparseable, it is kept and not used."""
-    node = f.get(f"{SYNC_GROUP}/report_json")
-    if not isinstance(node, h5py.Dataset):
-        return None
-    try:
-        return SyncReport.model_validate_json(attr_text(node[()]))
-    except ValidationError as exc:
-        warnings.append(
-            f"/{SYNC_GROUP}/report_json does not parse ({exc.error_count()} error(s)); kept as is"
-        )
-        return None
-
-
-def _read_journal(f: h5py.File, warnings: list[str]) -> dict[str, Any] | None:
-    """The newest readable journal slot; damage is a warning, never an error (bookkeeping)."""
-    node = f.get(JOURNAL_DATASET)
-    if node is None:
-        return None
-    try:
-        found = decode_journal(np.asarray(node[...]))
-    except (OSError, ValueError, TypeError) as exc:
-        warnings.append(f"/{JOURNAL_DATASET} unreadable ({exc}); losses recorded before the crash unknown")
-        return None
-    if found is None:
-        warnings.append(f"/{JOURNAL_DATASET} has no readable slot; losses recorded before the crash unknown")
-        return None
-    return found[1]
-
-
 # -- sync and bookkeeping ------------------------------------------------------------------
-def _crash_note(data: _TakeData) -> str:
+def _crash_note(data: TakeData) -> str:
     when = (
         f"the last flush (#{data.flush_count}, {data.last_flush_utc})"
         if data.last_flush_utc
@@ -574,7 +274,7 @@ def _crash_note(data: _TakeData) -> str:
     return f"the take ended by a crash of its writer: data after {when} was never written ({span})"
 
 
-def _crash_losses(data: _TakeData) -> list[LossRecord]:
+def _crash_losses(data: TakeData) -> list[LossRecord]:
     """One record per device: something after the last flush was lost, how much is unknown."""
     note = _crash_note(data)
     kinds: list[tuple[str, LossKind]] = [
@@ -590,55 +290,32 @@ def _crash_losses(data: _TakeData) -> list[LossRecord]:
     return out
 
 
-def _journal_losses(journal: dict[str, Any], warnings: list[str]) -> list[LossRecord]:
-    raw = journal.get("losses", [])
-    if not isinstance(raw, list):
-        warnings.append("journal 'losses' is not a list; ignored")
-        return []
-    out = []
-    for i, item in enumerate(raw):
-        try:
-            out.append(LossRecord.model_validate(item))
-        except ValidationError as exc:
-            warnings.append(f"journal loss record {i} unreadable ({exc.error_count()} error(s)); ignored")
-    return out
-
-
-def _journal_warnings(journal: dict[str, Any], warnings: list[str]) -> list[str]:
-    """The journal's warnings, fault history and failed devices, worded as rigd.app.capture does."""
-    out: list[str] = []
-    failed = journal.get("failed_devices", {})
-    if isinstance(failed, dict):
-        out += [f"{name} failed mid-take and was written off: {why}" for name, why in failed.items()]
-    for key, suffix in (("warnings", ""), ("fault_history", ""), ("faults", " (still active at the crash)")):
-        items = journal.get(key, [])
-        if isinstance(items, list):
-            out += [f"{item}{suffix}" for item in items]
-        else:
-            warnings.append(f"journal {key!r} is not a list; ignored")
-    return out
-
-
-def _fit(data: _TakeData, losses: list[LossRecord]) -> tuple[SyncResult | None, str | None]:
-    """synchronize() as rigd.app.capture._finalize calls it; a reason instead when it cannot tie
-    any device clock to rig time."""
+def _fit(data: TakeData, losses: list[LossRecord]) -> tuple[TakeEnd | None, SyncResult | None, str | None]:
+    """The fit `seal_take` finalizes with, from what the file holds; a reason instead when it
+    cannot tie any device clock to rig time."""
     if data.flush_count == 0:
-        return None, "the writer died before its first flush: the take holds no recorded data"
+        return None, None, "the writer died before its first flush: the take holds no recorded data"
     if data.pulses.index.size == 0:
-        return None, "no trigger pulse was flushed before the crash: no device clock can be tied to rig time"
-    if data.rate_hz is None:
-        return None, "the trigger rate is unknown (no rig config in the take and too few pulses)"
-    try:
-        result = synchronize(
-            data.pulses,
-            data.observations,
-            data.rate_hz,
-            losses,
-            shares_clock_with=data.slaves,
-            software_synced=data.software,
+        return (
+            None,
+            None,
+            "no trigger pulse was flushed before the crash: no device clock can be tied to rig time",
         )
+    if data.rate_hz is None:
+        return None, None, "the trigger rate is unknown (no rig config in the take and too few pulses)"
+    end = TakeEnd(
+        data.pulses,
+        data.observations,
+        data.rate_hz,
+        losses,
+        data.cameras,
+        shares_clock_with=data.slaves,
+        software_synced=data.software,
+    )
+    try:
+        result = fit_take(end)
     except SyncError as exc:
-        return None, f"sync failed: {exc}"
+        return end, None, f"sync failed: {exc}"
     # A device that recorded nothing has no times to map: it neither needs a fit nor may it
     # fail the take (its datasets stay empty, the report says so).
     holding = {n for n, k in data.frames.items() if k} | {n for n, k in data.events.items() if k}
@@ -649,59 +326,49 @@ def _fit(data: _TakeData, losses: list[LossRecord]) -> tuple[SyncResult | None, 
     ]
     if holding and not tied:
         why = "; ".join(result.report.warnings[:3])
-        return None, f"no device clock could be fitted to the trigger pulses ({why})"
-    return result, None
-
-
-def _merge_journal(report: SyncReport, journal: dict[str, Any], warnings: list[str]) -> None:
-    for key, adapter in (("device_counters", _COUNTERS), ("trigger_link", _LINK)):
-        if key not in journal:
-            continue
-        try:
-            setattr(report, key, adapter.validate_python(journal[key]))
-        except ValidationError as exc:
-            warnings.append(f"journal {key!r} unreadable ({exc.error_count()} error(s)); ignored")
-    report.warnings.extend(_journal_warnings(journal, warnings))
+        return end, None, f"no device clock could be fitted to the trigger pulses ({why})"
+    return end, result, None
 
 
 # -- sealing -------------------------------------------------------------------------------
 def _finalize_crashed(
-    path: Path, rr: RecoveryReport, data: _TakeData, trims: list[Trim], *, dry_run: bool
+    path: Path, rr: RecoveryReport, data: TakeData, trims: list[Trim], *, dry_run: bool
 ) -> RecoveryReport:
-    """A take that died while recording (or before finalize): sync from the file, finalize."""
-    trim_losses = _trim_losses(trims)
+    """A take that died while recording (or before finalize): sync from the file, seal."""
     journal = data.journal or {}
-    jl = _journal_losses(journal, rr.warnings)
+    jl = journal_losses(journal, rr.warnings)
     rr.journal_losses = len(jl)
-    rr.losses_added = [*trim_losses, *_crash_losses(data)]
-    result, reason = _fit(data, [*jl, *rr.losses_added])
+    rr.losses_added = [*_trim_losses(trims), *_crash_losses(data)]
+    end, result, reason = _fit(data, [*jl, *rr.losses_added])
     rr.warnings.append(_crash_note(data))
-    failed = data.status == "failed"
+    failed = data.status == Status.FAILED
     if failed:
         rr.reason = f"marked failed by its writer: {data.failure_reason}"
-    if result is not None:
-        report = result.report
-        _merge_journal(report, journal, rr.warnings)
-        report.warnings.extend([*data.warnings, f"{_crash_note(data)}; sealed by `rigd recover`"])
+    if end is not None and result is not None:
+        book = Bookkeeping.from_journal(journal, rr.warnings)
+        notes = [*data.warnings, f"{_crash_note(data)}; sealed by `rigd recover`"]
+        seal = Seal.fitted(end, result, book, active_until="the crash", notes=notes)
         rr.outcome = "would_seal" if dry_run else "sealed"
     else:
         rr.reason = f"{rr.reason}; {reason}" if failed else reason
         rr.outcome = "would_seal_failed" if dry_run else "sealed_failed"
+        seal = Seal.failed(
+            f"{data.failure_reason}; recovered but not finalized: {reason}"
+            if failed
+            else f"recovered after a crash of its writer but not finalized: {reason}"
+        )
     if dry_run:
         return rr
     with _resumed(path, data.writer_config, trims) as w:
-        w.mark_recovered(None)  # first: a crash during the finalize below still shows it
-        if result is not None:
-            frame_index = {name: result.observation_pulse_index[name] for name in data.cameras}
-            w.finalize(result.maps, frame_index, result.report)
-        elif failed:
-            w.fail(f"{data.failure_reason}; recovered but not finalized: {reason}")
-        else:
-            w.fail(f"recovered after a crash of its writer but not finalized: {reason}")
-        rr.status_after = w.status
-        w.mark_recovered(rr.model_dump_json(), keep_failure_reason=failed)
+        seal_take(w, seal, recovery=partial(_stamped, rr), keep_failure_reason=failed)
     log.warning("%s", rr.line())
     return rr
+
+
+def _stamped(rr: RecoveryReport, status: str) -> str:
+    """The recovery report the sealed take stores, with the status it reached."""
+    rr.status_after = status
+    return rr.model_dump_json()
 
 
 @contextmanager
@@ -731,7 +398,7 @@ def _trim_losses(trims: list[Trim]) -> list[LossRecord]:
     ]
 
 
-def _continue_finalize(path: Path, rr: RecoveryReport, data: _TakeData, *, dry_run: bool) -> RecoveryReport:
+def _continue_finalize(path: Path, rr: RecoveryReport, data: TakeData, *, dry_run: bool) -> RecoveryReport:
     """A take whose finalize a crash cut short: finish it with the plan it started with."""
     rr.finalize_resumed = True
     note = (
@@ -747,10 +414,7 @@ def _continue_finalize(path: Path, rr: RecoveryReport, data: _TakeData, *, dry_r
     if dry_run:
         return rr
     with _resumed(path, data.writer_config) as w:
-        w.mark_recovered(None)
-        w.continue_finalize(report)
-        rr.status_after = w.status
-        w.mark_recovered(rr.model_dump_json())
+        seal_take(w, Seal.resumed(report), recovery=partial(_stamped, rr))
     log.warning("%s", rr.line())
     return rr
 
@@ -785,12 +449,12 @@ def _seal_unresumable(path: Path, rr: RecoveryReport, reason: str, *, dry_run: b
     if dry_run:
         return rr
     with open_h5(path, "r+") as f:
-        old = f.attrs.get("failure_reason")
+        old = f.attrs.get(Root.FAILURE_REASON)
         rr.failure_reason_before = None if old is None else attr_text(old)
-        f.attrs["status"] = "failed"
-        f.attrs["failure_reason"] = reason if old is None else f"{attr_text(old)}; {reason}"
-        f.attrs[RECOVERED_ATTR] = utc_now()
+        f.attrs[Root.STATUS] = Status.FAILED
+        f.attrs[Root.FAILURE_REASON] = reason if old is None else f"{attr_text(old)}; {reason}"
+        f.attrs[Root.RECOVERED_UTC] = utc_now()
         rr.status_after = "failed"
-        f.attrs[RECOVERY_REPORT_ATTR] = rr.model_dump_json()
+        f.attrs[Root.RECOVERY_REPORT] = rr.model_dump_json()
     log.warning("%s", rr.line())
     return rr

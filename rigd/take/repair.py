@@ -21,19 +21,20 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
 from rigd.core.errors import TakeFormatError
-from rigd.core.schema import (
+from rigd.core.layout import (
     EVENT_DTYPES,
     EVENTS_GROUP,
     FRAME_SERIES,
     FRAMES_GROUP,
     PULSE_SERIES,
-    SCHEMA_VERSION,
-    TAIL_PREFIX,
+    PULSES_PATH,
     TRIGGER_DTYPES,
-    TRIGGER_GROUP,
-    LossKind,
-    has_item,
+    Events,
+    Frames,
+    Root,
+    TriggerEdges,
 )
+from rigd.core.schema import SCHEMA_VERSION, LossKind, has_item
 from rigd.take.evt_repair import apply_evt_cut, plan_evt_cut
 from rigd.take.evt_sink import is_evt_words
 from rigd.take.h5file import TRUNCATED_EOF_ATTR, append_rows, attr_text, require_dataset, require_group
@@ -147,7 +148,7 @@ class _Scan:
 def _repair_take(f: h5py.File, scan: _Scan) -> None:
     if scan.data_end is None and TRUNCATED_EOF_ATTR in f.attrs:
         scan.data_end = int(f.attrs[TRUNCATED_EOF_ATTR])
-    scan.version = attr_text(f.attrs.get("schema_version", SCHEMA_VERSION))
+    scan.version = attr_text(f.attrs.get(Root.SCHEMA_VERSION, SCHEMA_VERSION))
     for name, g in require_group(f, EVENTS_GROUP, scan.where).items():
         scan.at = f"/{EVENTS_GROUP}/{name}"
         _require_readable_group(scan, g)
@@ -156,12 +157,12 @@ def _repair_take(f: h5py.File, scan: _Scan) -> None:
         else:
             cols, longest, keep = _repair_event_columns(scan, name, g)
             _merge_event_tail(scan, name, g, cols, longest, keep)
-        _repair_trigger_in(scan, name, require_group(g, "trigger", scan.where))
+        _repair_trigger_in(scan, name, require_group(g, Events.TRIGGER, scan.where))
     for name, g in require_group(f, FRAMES_GROUP, scan.where).items():
         scan.at = f"/{FRAMES_GROUP}/{name}"
         _require_readable_group(scan, g)
         _repair_camera(scan, name, g)
-    _repair_pulses(scan, require_group(f, f"{TRIGGER_GROUP}/pulses", scan.where))
+    _repair_pulses(scan, require_group(f, PULSES_PATH, scan.where))
 
 
 def _require_readable_group(scan: _Scan, g: h5py.Group | None) -> None:
@@ -186,7 +187,7 @@ def _repair_event_columns(scan: _Scan, name: str, g: h5py.Group) -> tuple[dict[s
         reasons.append("x/y/p/t of unequal length (killed between column appends)")
     if any(stored[k] < int(cols[k].shape[0]) for k in cols):
         reasons.append("chunks past the end never reached the file")
-    bad = _first_decrease(cols["t"], keep) if scan.check_order else None
+    bad = _first_decrease(cols[Events.T], keep) if scan.check_order else None
     if bad is not None:
         reasons.append(f"t decreases at index {bad} (damaged tail)")
         keep = bad
@@ -196,8 +197,8 @@ def _repair_event_columns(scan: _Scan, name: str, g: h5py.Group) -> tuple[dict[s
 
 def _repair_evt_words(scan: _Scan, name: str, g: h5py.Group) -> None:
     """EVT words and their index cut to what both really hold (see `rigd.take.evt_repair`)."""
-    words = require_dataset(g, "evt_words", scan.where)
-    index = require_dataset(g, "evt_index", scan.where)
+    words = require_dataset(g, Events.EVT_WORDS, scan.where)
+    index = require_dataset(g, Events.EVT_INDEX, scan.where)
     finalizing = not scan.check_order
     cut = plan_evt_cut(
         g, stored_prefix(words, scan.data_end), stored_prefix(index, scan.data_end), finalizing=finalizing
@@ -206,7 +207,7 @@ def _repair_evt_words(scan: _Scan, name: str, g: h5py.Group) -> None:
         scan.trims.append(
             Trim(
                 hpath=g.name,
-                lengths_before={"evt_index": cut.rows_before, "evt_words": cut.bytes_stored},
+                lengths_before={Events.EVT_INDEX: cut.rows_before, Events.EVT_WORDS: cut.bytes_stored},
                 after=cut.rows_kept,
                 reason="; ".join(cut.reasons),
                 device=name,
@@ -229,7 +230,7 @@ def _merge_event_tail(
     if beyond > 0:
         scan.trims.append(
             Trim(
-                hpath=f"{g.name}/{TAIL_PREFIX}t",
+                hpath=f"{g.name}/{Events.TAIL_PREFIX}t",
                 lengths_before={"rows_claimed": claimed},
                 after=keep + m,
                 reason="flushed tail events that do not continue the main datasets (gap or damage)",
@@ -240,7 +241,7 @@ def _merge_event_tail(
         )
     if scan.apply and m:
         for key, d in cols.items():  # a new chunk: appended, nothing rewritten
-            append_rows(d, keep, np.asarray(g[f"{TAIL_PREFIX}{key}"][slot, :m]))
+            append_rows(d, keep, np.asarray(g[f"{Events.TAIL_PREFIX}{key}"][slot, :m]))
 
 
 def _repair_trigger_in(scan: _Scan, name: str, tg: h5py.Group) -> None:
@@ -250,11 +251,15 @@ def _repair_trigger_in(scan: _Scan, name: str, tg: h5py.Group) -> None:
     keys = [
         k
         for k in TRIGGER_DTYPES
-        if k != "host_time_ns" or k in tg or has_item(scan.version, "trigger/host_time_ns")
+        if k != TriggerEdges.HOST_TIME_NS or k in tg or has_item(scan.version, f"{Events.TRIGGER}/{k}")
     ]
     trig = {k: require_dataset(tg, k, scan.where) for k in keys}
-    nonzero = ("t_device", "host_time_ns") if "host_time_ns" in trig else ("t_device",)
-    order = ("t", "t_device") if scan.check_order else None
+    nonzero = (
+        (TriggerEdges.T_DEVICE, TriggerEdges.HOST_TIME_NS)
+        if TriggerEdges.HOST_TIME_NS in trig
+        else (TriggerEdges.T_DEVICE,)
+    )
+    order = (TriggerEdges.T, TriggerEdges.T_DEVICE) if scan.check_order else None
     longest, keep, reasons = _columns_keep(trig, scan.data_end, nonzero, order, "trigger")
     scan.trim(tg, trig, keep, reasons, name, "triggers", longest - keep)
 
@@ -262,7 +267,7 @@ def _repair_trigger_in(scan: _Scan, name: str, tg: h5py.Group) -> None:
 def _repair_camera(scan: _Scan, name: str, g: h5py.Group) -> None:
     """Timestamp series cut to their common stored length, images to the frames they time."""
     series = {k: require_dataset(g, k, scan.where) for k in FRAME_SERIES}
-    images = require_dataset(g, "images", scan.where)
+    images = require_dataset(g, Frames.IMAGES, scan.where)
     n_series = max(int(d.shape[0]) for d in series.values())
     stored = min(stored_prefix(d, scan.data_end) for d in series.values())
     reasons = []
@@ -271,8 +276,8 @@ def _repair_camera(scan: _Scan, name: str, g: h5py.Group) -> None:
     keep = _stale_tail(
         series,
         stored,
-        ("t_exposure_start_device_us", "host_time_ns"),
-        ("t_exposure_start_us", "t_exposure_start_device_us") if scan.check_order else None,
+        (Frames.T_EXPOSURE_START_DEVICE, Frames.HOST_TIME_NS),
+        (Frames.T_EXPOSURE_START, Frames.T_EXPOSURE_START_DEVICE) if scan.check_order else None,
     )
     if keep < stored:
         reasons.append("zero-filled tail of the timestamp series (a chunk the flush did not update)")
@@ -285,16 +290,14 @@ def _repair_camera(scan: _Scan, name: str, g: h5py.Group) -> None:
     # Frames beyond `keep` whose image was stored are real frames that lost their timestamps.
     stored_imgs = _allocated_chunks(images, scan.data_end)
     lost = max(n_series - keep, int((stored_imgs >= keep).sum()))
-    scan.trim(g, {"images": images, **series}, keep, reasons, name, "frames", lost)
+    scan.trim(g, {Frames.IMAGES: images, **series}, keep, reasons, name, "frames", lost)
 
 
 def _repair_pulses(scan: _Scan, pulses: h5py.Group) -> None:
     """The trigger box pulse columns cut to the rows all of them hold."""
     scan.at = pulses.name
     cols = {k: require_dataset(pulses, k, scan.where) for k in PULSE_SERIES}
-    longest, keep, reasons = _columns_keep(
-        cols, scan.data_end, ("index", "t_us", "host_time_ns"), None, "pulse"
-    )
+    longest, keep, reasons = _columns_keep(cols, scan.data_end, PULSE_SERIES, None, "pulse")
     scan.trim(pulses, cols, keep, reasons, "trigger", "pulses", longest - keep)
 
 

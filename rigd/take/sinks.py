@@ -22,16 +22,20 @@ from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
-from rigd.core.pixels import BAYER_PATTERNS, PIXEL_FORMATS, is_bayer, stored_pixel_format
-from rigd.core.schema import (
+from rigd.core.layout import (
     EVENT_DTYPES,
     EVENTS_GROUP,
     FRAME_SERIES,
     FRAMES_GROUP,
     PULSE_SERIES,
-    TAIL_META_ATTR,
     TRIGGER_DTYPES,
+    Device,
+    Events,
+    Frames,
+    Pulses,
+    TriggerEdges,
 )
+from rigd.core.pixels import BAYER_PATTERNS, PIXEL_FORMATS, is_bayer, stored_pixel_format
 from rigd.take.h5file import append_rows, require_dataset, require_group
 from rigd.take.tails import choose_tail_slot, create_tail_slots, drop_tail_slots
 
@@ -73,10 +77,10 @@ def _write_slot(ds: h5py.Dataset, slot: int, start: int, data: NDArray[Any]) -> 
 def _event_columns(ev: EventArray, lo: int, hi: int) -> dict[str, NDArray[Any]]:
     """Events [lo, hi) as stored: polarity as 0/1, `t` last (see the module docstring)."""
     return {
-        "x": ev.x[lo:hi],
-        "y": ev.y[lo:hi],
-        "p": (ev.p[lo:hi] > 0).astype(np.uint8),
-        "t": ev.t[lo:hi],
+        Events.X: ev.x[lo:hi],
+        Events.Y: ev.y[lo:hi],
+        Events.P: (ev.p[lo:hi] > 0).astype(np.uint8),
+        Events.T: ev.t[lo:hi],
     }
 
 
@@ -147,11 +151,11 @@ class TriggerIn:
         host = np.concatenate(self.trig_host_parts)
         start = self.n_trig_written
         cols: list[tuple[str, NDArray[Any]]] = [
-            ("t", tr.t),
-            ("t_device", tr.t),
-            ("p", tr.p),
-            ("channel", tr.channel),
-            ("host_time_ns", host),
+            (TriggerEdges.T, tr.t),
+            (TriggerEdges.T_DEVICE, tr.t),
+            (TriggerEdges.P, tr.p),
+            (TriggerEdges.CHANNEL, tr.channel),
+            (TriggerEdges.HOST_TIME_NS, host),
         ]
         for key, data in cols:
             if key in self.trig:  # a resumed 1.0 take has no host_time_ns
@@ -193,11 +197,11 @@ class EventSink(TriggerIn):
         cls, name: str, g: h5py.Group, width: int, height: int, chunk: int, opts: Mapping[str, Any]
     ) -> Self:
         """Lay out a new sensor's datasets in its (already created) group."""
-        g.attrs["width"], g.attrs["height"] = int(width), int(height)
+        g.attrs[Device.WIDTH], g.attrs[Device.HEIGHT] = int(width), int(height)
         ds = {k: new_series(g, k, dt, opts, chunk) for k, dt in EVENT_DTYPES.items()}
         # 0 while recording: t holds device time as is. Finalize sets the real offset.
-        g.create_dataset("t_offset", data=np.int64(0))
-        tg = g.create_group("trigger")
+        g.create_dataset(Events.T_OFFSET, data=np.int64(0))
+        tg = g.create_group(Events.TRIGGER)
         trig = {k: new_series(tg, k, dt, {}) for k, dt in TRIGGER_DTYPES.items()}
         return cls(name, g, int(width), int(height), ds, trig, chunk)
 
@@ -205,25 +209,29 @@ class EventSink(TriggerIn):
     def reopen(cls, name: str, g: h5py.Group, where: str, default_chunk: int) -> Self:
         """The sink of a resumed take, from what `check_repair` left consistent."""
         ds = {k: require_dataset(g, k, where) for k in EVENT_DTYPES}
-        tg = require_group(g, "trigger", where)
+        tg = require_group(g, Events.TRIGGER, where)
         # A 1.0 take has no host_time_ns.
-        trig = {k: require_dataset(tg, k, where) for k in TRIGGER_DTYPES if k in tg or k != "host_time_ns"}
-        n = int(ds["t"].shape[0])
-        missing = [k for k in ("width", "height") if k not in g.attrs]
+        trig = {
+            k: require_dataset(tg, k, where)
+            for k in TRIGGER_DTYPES
+            if k in tg or k != TriggerEdges.HOST_TIME_NS
+        }
+        n = int(ds[Events.T].shape[0])
+        missing = [k for k in (Device.WIDTH, Device.HEIGHT) if k not in g.attrs]
         if missing:
             raise TakeFormatError(f"{where}: {g.name}: missing attribute(s) {missing}")
         sink = cls(
             name,
             g,
-            int(g.attrs["width"]),
-            int(g.attrs["height"]),
+            int(g.attrs[Device.WIDTH]),
+            int(g.attrs[Device.HEIGHT]),
             ds,
             trig,
-            int(ds["t"].chunks[0]) if ds["t"].chunks else default_chunk,
+            int(ds[Events.T].chunks[0]) if ds[Events.T].chunks else default_chunk,
             appendable=False,
             n_written=n,
-            last_t=int(ds["t"][n - 1]) if n else None,
-            n_trig_written=int(trig["t"].shape[0]),
+            last_t=int(ds[Events.T][n - 1]) if n else None,
+            n_trig_written=int(trig[TriggerEdges.T].shape[0]),
         )
         sink.stats.items = n
         return sink
@@ -285,7 +293,7 @@ class EventSink(TriggerIn):
             _write_slot(self.tail_ds[key], slot, have, data)
         meta[slot, 1] = n
         self.tail_slot = slot
-        self.group.attrs.modify(TAIL_META_ATTR, meta)
+        self.group.attrs.modify(Events.TAIL_META, meta)
 
     def drop_tails(self) -> None:
         """After everything is in the main datasets (close, fail, finalize) the tails go."""
@@ -342,17 +350,17 @@ class CameraSink:
         pixel_format: str,
     ) -> Self:
         """Lay out a new camera's datasets in its (already created) group."""
-        g.attrs["height"], g.attrs["width"] = shape[0], shape[1]
-        g.attrs["channels"] = shape[2] if len(shape) == 3 else 1
-        g.attrs["dtype"] = dtype.str
-        g.attrs["pixel_format"] = pixel_format
+        g.attrs[Device.HEIGHT], g.attrs[Device.WIDTH] = shape[0], shape[1]
+        g.attrs[Frames.CHANNELS] = shape[2] if len(shape) == 3 else 1
+        g.attrs[Frames.DTYPE] = dtype.str
+        g.attrs[Frames.PIXEL_FORMAT] = pixel_format
         if is_bayer(pixel_format):
-            g.attrs["bayer_pattern"] = BAYER_PATTERNS[pixel_format]
+            g.attrs[Frames.BAYER_PATTERN] = BAYER_PATTERNS[pixel_format]
         images = g.create_dataset(
-            "images", shape=(0, *shape), maxshape=(None, *shape), dtype=dtype, chunks=(1, *shape), **opts
+            Frames.IMAGES, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype, chunks=(1, *shape), **opts
         )
         series = {k: new_series(g, k, np.int64, {}) for k in FRAME_SERIES}
-        series["t_exposure_start_us"].attrs["units"] = "us"
+        series[Frames.T_EXPOSURE_START].attrs[Frames.UNITS] = "us"
         cam = cls(name, g, shape, dtype, images, series, pixel_format)
         cam.direct = images.id.get_create_plist().get_nfilters() == 0
         return cam
@@ -360,9 +368,9 @@ class CameraSink:
     @classmethod
     def reopen(cls, name: str, g: h5py.Group, where: str) -> Self:
         """The sink of a resumed take, from what `check_repair` left consistent."""
-        images = require_dataset(g, "images", where)
+        images = require_dataset(g, Frames.IMAGES, where)
         series = {k: require_dataset(g, k, where) for k in FRAME_SERIES}
-        n = int(series["t_exposure_start_us"].shape[0])
+        n = int(series[Frames.T_EXPOSURE_START].shape[0])
         shape = tuple(int(s) for s in images.shape[1:])
         fmt = stored_pixel_format(g.attrs, shape, where)
         cam = cls(name, g, shape, np.dtype(images.dtype), images, series, fmt, n_frames=n, n_series_written=n)
@@ -398,12 +406,12 @@ class CameraSink:
         self.n_frames = n + 1
         t = int(frame.t_exposure_start_us)
         for key, value in (
-            ("t_exposure_start_us", t),
-            ("t_exposure_start_device_us", t),
-            ("exposure_us", frame.exposure_us),
-            ("frame_counter", frame.frame_counter),
-            ("pulse_index", frame.pulse_index),
-            ("host_time_ns", frame.host_time_ns),
+            (Frames.T_EXPOSURE_START, t),
+            (Frames.T_EXPOSURE_START_DEVICE, t),
+            (Frames.EXPOSURE, frame.exposure_us),
+            (Frames.FRAME_COUNTER, frame.frame_counter),
+            (Frames.PULSE_INDEX, frame.pulse_index),
+            (Frames.HOST_TIME_NS, frame.host_time_ns),
         ):
             self.buf[key].append(int(value))
         self.stats.items += 1
@@ -442,7 +450,7 @@ class PulseSink:
     @classmethod
     def reopen(cls, g: h5py.Group, where: str) -> Self:
         sink = cls({k: require_dataset(g, k, where) for k in PULSE_SERIES})
-        sink.n_written = int(sink.ds["index"].shape[0])
+        sink.n_written = int(sink.ds[Pulses.INDEX].shape[0])
         sink.stats.items = sink.n_written
         return sink
 

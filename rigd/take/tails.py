@@ -19,13 +19,13 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from rigd.core.schema import EVENT_DTYPES, TAIL_META_ATTR, TAIL_PREFIX
+from rigd.core.layout import EVENT_DTYPES, Events
 
 
 def create_tail_slots(group: h5py.Group, chunk: int) -> dict[str, h5py.Dataset]:
     """The two slots per event column, one chunk long; contiguous, so rewrites stay in place."""
     return {
-        k: group.create_dataset(f"{TAIL_PREFIX}{k}", shape=(2, chunk), dtype=dt, fillvalue=0)
+        k: group.create_dataset(f"{Events.TAIL_PREFIX}{k}", shape=(2, chunk), dtype=dt, fillvalue=0)
         for k, dt in EVENT_DTYPES.items()
     }
 
@@ -43,7 +43,7 @@ def choose_tail_slot(meta: NDArray[np.int64], slot: int, start: int) -> int:
 
 
 def _tail_meta(g: h5py.Group) -> NDArray[np.int64]:
-    return np.asarray(g.attrs.get(TAIL_META_ATTR, np.zeros((2, 2))), dtype=np.int64).reshape(-1, 2)
+    return np.asarray(g.attrs.get(Events.TAIL_META, np.zeros((2, 2))), dtype=np.int64).reshape(-1, 2)
 
 
 def tail_rows(g: h5py.Group, main_len: int) -> tuple[int, int]:
@@ -53,7 +53,7 @@ def tail_rows(g: h5py.Group, main_len: int) -> tuple[int, int]:
     A slot is only used if its `t` continues the main `t` without decreasing.
     """
     meta = _tail_meta(g)
-    t_ds = g.get(f"{TAIL_PREFIX}t")
+    t_ds = g.get(f"{Events.TAIL_PREFIX}t")
     if not isinstance(t_ds, h5py.Dataset) or meta.shape[0] != t_ds.shape[0]:
         return 0, 0
     best = (0, 0)
@@ -62,7 +62,7 @@ def tail_rows(g: h5py.Group, main_len: int) -> tuple[int, int]:
         if int(start) != main_len or n <= best[1]:
             continue
         t = np.asarray(t_ds[slot, :n], dtype=np.int64)
-        prev = int(g["t"][main_len - 1]) if main_len else None
+        prev = int(g[Events.T][main_len - 1]) if main_len else None
         if (prev is not None and int(t[0]) < prev) or bool((t[1:] < t[:-1]).any()):
             continue
         best = (slot, n)
@@ -78,7 +78,7 @@ def tail_end(g: h5py.Group) -> int:
 def drop_tail_slots(g: h5py.Group) -> None:
     """Remove the slots and their attr; only once the rows they held are in the main datasets."""
     for key in EVENT_DTYPES:
-        if f"{TAIL_PREFIX}{key}" in g:
-            del g[f"{TAIL_PREFIX}{key}"]
-    if TAIL_META_ATTR in g.attrs:
-        del g.attrs[TAIL_META_ATTR]
+        if f"{Events.TAIL_PREFIX}{key}" in g:
+            del g[f"{Events.TAIL_PREFIX}{key}"]
+    if Events.TAIL_META in g.attrs:
+        del g.attrs[Events.TAIL_META]

@@ -20,27 +20,25 @@ from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from rigd.core.errors import TakeFormatError
-from rigd.core.pixels import stored_pixel_format
-from rigd.core.schema import (
-    CONFIG_DATASET,
+from rigd.core.layout import (
     EVENT_DTYPES,
     EVENTS_GROUP,
-    FINALIZE_PLAN_ATTR,
     FRAME_SERIES,
     FRAMES_GROUP,
-    JOURNAL_DATASET,
     PULSE_SERIES,
-    RECOVERY_REPORT_ATTR,
+    PULSES_PATH,
     ROOT_ATTRS,
-    SCHEMA_NAME,
-    SCHEMA_VERSION,
-    SYNC_GROUP,
+    SYNC_REPORT_PATH,
     TRIGGER_DTYPES,
-    TRIGGER_GROUP,
-    SyncReport,
-    decode_journal,
-    has_item,
+    Device,
+    Events,
+    Frames,
+    Root,
+    Status,
+    TimeDomain,
 )
+from rigd.core.pixels import stored_pixel_format
+from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, decode_journal, has_item
 from rigd.take.evt_sink import is_evt_words
 from rigd.take.evt_validate import check_evt_words
 from rigd.take.h5file import attr_text
@@ -55,7 +53,7 @@ class _Validator:
         self.path = path
         self.f = f
         self.problems: list[str] = []
-        self.version = attr_text(f.attrs.get("schema_version", SCHEMA_VERSION))
+        self.version = attr_text(f.attrs.get(Root.SCHEMA_VERSION, SCHEMA_VERSION))
 
     def add(self, hpath: str, msg: str) -> None:
         self.problems.append(f"{self.path}: {hpath}: {msg}")
@@ -104,38 +102,40 @@ class _Validator:
         for k in ROOT_ATTRS:
             if k not in attrs:
                 self.add("/", f"missing attribute {k!r}")
-        if "schema" in attrs and attrs["schema"] != SCHEMA_NAME:
+        if Root.SCHEMA in attrs and attrs[Root.SCHEMA] != SCHEMA_NAME:
             self.add("/", f"attribute schema is {attrs['schema']!r}, expected {SCHEMA_NAME!r}")
-        if "schema_version" in attrs:
-            major = attrs["schema_version"].split(".")[0]
+        if Root.SCHEMA_VERSION in attrs:
+            major = attrs[Root.SCHEMA_VERSION].split(".")[0]
             if major != SCHEMA_VERSION.split(".")[0]:
                 self.add(
                     "/", f"schema_version {attrs['schema_version']!r} is not {SCHEMA_VERSION.split('.')[0]}.x"
                 )
-        status = attrs.get("status")
-        domain = attrs.get("time_domain")
-        if status is not None and status not in ("recording", "complete", "failed"):
+        status = attrs.get(Root.STATUS)
+        domain = attrs.get(Root.TIME_DOMAIN)
+        if status is not None and status not in (Status.RECORDING, Status.COMPLETE, Status.FAILED):
             self.add("/", f"status {status!r} is not recording, complete or failed")
-        if domain is not None and domain not in ("device", "rig"):
+        if domain is not None and domain not in (TimeDomain.DEVICE, TimeDomain.RIG):
             self.add("/", f"time_domain {domain!r} is not device or rig")
-        if status == "complete" and domain != "rig":
+        if status == Status.COMPLETE and domain != TimeDomain.RIG:
             self.add("/", f"status is complete but time_domain is {domain!r}, expected 'rig'")
-        if status != "complete" and ("finalize_started_utc" in f.attrs or FINALIZE_PLAN_ATTR in f.attrs):
+        if status != Status.COMPLETE and (
+            Root.FINALIZE_STARTED_UTC in f.attrs or Root.FINALIZE_PLAN in f.attrs
+        ):
             self.add(
                 "/",
                 "finalize was interrupted: stored times may be partly mapped to rig time "
                 "(`rigd recover` finishes it exactly)",
             )
-        if "truncated_eof" in f.attrs:
+        if Root.TRUNCATED_EOF in f.attrs:
             self.add("/", "a repair of this truncated take was interrupted (run `rigd recover` again)")
-        rig = domain == "rig"
+        rig = domain == TimeDomain.RIG
         self.check_config()
-        with self.reading(f"/{JOURNAL_DATASET}"):
+        with self.reading(f"/{Root.JOURNAL}"):
             self.check_journal()
-        if RECOVERY_REPORT_ATTR in f.attrs:
+        if Root.RECOVERY_REPORT in f.attrs:
             with self.reading("/"):
-                if not isinstance(json.loads(attr_text(f.attrs[RECOVERY_REPORT_ATTR])), dict):
-                    self.add("/", f"attribute {RECOVERY_REPORT_ATTR} is not a JSON object")
+                if not isinstance(json.loads(attr_text(f.attrs[Root.RECOVERY_REPORT])), dict):
+                    self.add("/", f"attribute {Root.RECOVERY_REPORT} is not a JSON object")
         ev = f.get(EVENTS_GROUP)
         if self.group(EVENTS_GROUP) is not None and isinstance(ev, h5py.Group):
             for name in ev:
@@ -146,36 +146,36 @@ class _Validator:
             for name in fr:
                 with self.reading(f"/{FRAMES_GROUP}/{name}"):
                     self.check_camera(name)
-        with self.reading(f"/{TRIGGER_GROUP}/pulses"):
+        with self.reading(f"/{PULSES_PATH}"):
             self.check_pulses()
         if status == "complete":
-            with self.reading(f"/{SYNC_GROUP}/report_json"):
+            with self.reading(f"/{SYNC_REPORT_PATH}"):
                 self.check_report()
 
     def check_config(self) -> None:
-        ds = self.dataset(CONFIG_DATASET, ndim=0)
+        ds = self.dataset(Root.CONFIG, ndim=0)
         if ds is None:
             return
-        with self.reading(f"/{CONFIG_DATASET}"):
+        with self.reading(f"/{Root.CONFIG}"):
             data = json.loads(attr_text(ds[()]))
             if not isinstance(data, dict):
-                self.add(f"/{CONFIG_DATASET}", "is not a JSON object")
+                self.add(f"/{Root.CONFIG}", "is not a JSON object")
 
     def check_journal(self) -> None:
-        if JOURNAL_DATASET not in self.f:
+        if Root.JOURNAL not in self.f:
             return  # optional: only takes whose writer was given a journal have one
-        ds = self.dataset(JOURNAL_DATASET, np.uint8, ndim=2)
+        ds = self.dataset(Root.JOURNAL, np.uint8, ndim=2)
         if ds is not None and (ds.shape[0] != 2 or decode_journal(ds[...]) is None):
-            self.add(f"/{JOURNAL_DATASET}", "has no readable slot (expected 2 rows of NUL-padded JSON)")
+            self.add(f"/{Root.JOURNAL}", "has no readable slot (expected 2 rows of NUL-padded JSON)")
 
     def check_report(self) -> None:
-        ds = self.dataset(f"{SYNC_GROUP}/report_json", ndim=0)
+        ds = self.dataset(SYNC_REPORT_PATH, ndim=0)
         if ds is None:
             return
         try:
             SyncReport.model_validate_json(attr_text(ds[()]))
         except ValidationError as exc:
-            self.add(f"/{SYNC_GROUP}/report_json", f"does not parse as a SyncReport: {exc}")
+            self.add(f"/{SYNC_REPORT_PATH}", f"does not parse as a SyncReport: {exc}")
 
     def check_sensor(self, name: str, rig: bool) -> None:
         base = f"{EVENTS_GROUP}/{name}"
@@ -183,7 +183,7 @@ class _Validator:
         if g is None:
             return
         dims: dict[str, int] = {}
-        for key in ("width", "height"):
+        for key in (Device.WIDTH, Device.HEIGHT):
             if key not in g.attrs:
                 self.add(f"/{base}", f"missing attribute {key!r}")
             else:
@@ -199,17 +199,21 @@ class _Validator:
         else:
             cols = {k: self.dataset(f"{base}/{k}", dt) for k, dt in EVENT_DTYPES.items()}
             self.equal_lengths(base, cols)
-        off = self.dataset(f"{base}/t_offset", np.int64, ndim=0)
-        ms = self.dataset(f"{base}/ms_to_idx", np.uint64) if cols and (rig or "ms_to_idx" in g) else None
-        tg = self.group(f"{base}/trigger")
+        off = self.dataset(f"{base}/{Events.T_OFFSET}", np.int64, ndim=0)
+        ms = (
+            self.dataset(f"{base}/{Events.MS_TO_IDX}", np.uint64)
+            if cols and (rig or Events.MS_TO_IDX in g)
+            else None
+        )
+        tg = self.group(f"{base}/{Events.TRIGGER}")
         if tg is not None:
             # Items a newer minor version added are optional in older takes (1.0: host_time_ns).
             trig = {
                 k: self.dataset(f"{base}/trigger/{k}", dt)
                 for k, dt in TRIGGER_DTYPES.items()
-                if k in tg or has_item(self.version, f"trigger/{k}")
+                if k in tg or has_item(self.version, f"{Events.TRIGGER}/{k}")
             }
-            self.equal_lengths(f"{base}/trigger", trig)
+            self.equal_lengths(f"{base}/{Events.TRIGGER}", trig)
         if (
             not cols
             or any(d is None for d in cols.values())
@@ -226,7 +230,7 @@ class _Validator:
         ms: h5py.Dataset | None,
     ) -> None:
         """One blockwise pass: t order, geometry, polarity values, and the ms_to_idx index."""
-        t_ds, x_ds, y_ds, p_ds = (cols[k] for k in ("t", "x", "y", "p"))
+        t_ds, x_ds, y_ds, p_ds = (cols[k] for k in (Events.T, Events.X, Events.Y, Events.P))
         assert t_ds is not None
         assert x_ds is not None
         assert y_ds is not None
@@ -239,7 +243,9 @@ class _Validator:
             last = int(t_ds[n - 1]) if n else -1
             expect = last // 1000 + 1 if last >= 0 else 0
             if n_ms != expect:
-                self.add(f"/{base}/ms_to_idx", f"has {n_ms} entries, expected {expect} (last t {last} us)")
+                self.add(
+                    f"/{base}/{Events.MS_TO_IDX}", f"has {n_ms} entries, expected {expect} (last t {last} us)"
+                )
                 ms = None
         ms_next = 0
         for start in range(0, n, _BLOCK):
@@ -255,7 +261,7 @@ class _Validator:
                     found.add("t")
                     self.add(f"/{base}/t", f"decreases at index {start + i} ({int(t[i])} < {int(t[i - 1])})")
             prev = int(t[-1])
-            for axis, ds, key in (("x", x_ds, "width"), ("y", y_ds, "height")):
+            for axis, ds, key in (("x", x_ds, Device.WIDTH), ("y", y_ds, Device.HEIGHT)):
                 if axis in found or key not in dims:
                     continue
                 arr = ds[start:stop]
@@ -283,7 +289,7 @@ class _Validator:
                         i = int(wrong[0])
                         found.add("ms")
                         self.add(
-                            f"/{base}/ms_to_idx",
+                            f"/{base}/{Events.MS_TO_IDX}",
                             f"entry {ms_next + i} is {int(have[i])}, expected {int(want[i])} "
                             f"(first index with t >= {(ms_next + i) * 1000} us)",
                         )
@@ -295,7 +301,7 @@ class _Validator:
         g = self.group(base)
         if g is None:
             return
-        for key in ("height", "width"):
+        for key in (Device.HEIGHT, Device.WIDTH):
             if key not in g.attrs:
                 self.add(f"/{base}", f"missing attribute {key!r}")
         images = self.dataset(f"{base}/images", ndim=None)
@@ -310,8 +316,8 @@ class _Validator:
         series: dict[str, h5py.Dataset | None] = {
             k: self.dataset(f"{base}/{k}", np.int64) for k in FRAME_SERIES
         }
-        self.equal_lengths(base, {"images": images, **series})
-        for key in ("t_exposure_start_us", "t_exposure_start_device_us"):
+        self.equal_lengths(base, {Frames.IMAGES: images, **series})
+        for key in (Frames.T_EXPOSURE_START, Frames.T_EXPOSURE_START_DEVICE):
             ds = series[key]
             if ds is None:
                 continue
@@ -322,7 +328,7 @@ class _Validator:
                 self.add(f"/{base}/{key}", f"decreases at frame {i} ({int(ts[i])} < {int(ts[i - 1])})")
 
     def check_pulses(self) -> None:
-        base = f"{TRIGGER_GROUP}/pulses"
+        base = PULSES_PATH
         if self.group(base) is None:
             return
         dsets: dict[str, h5py.Dataset | None] = {

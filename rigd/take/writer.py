@@ -38,26 +38,21 @@ from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError, TakeTruncatedError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
-from rigd.core.schema import (
-    CONFIG_DATASET,
-    END_REASON_ATTR,
+from rigd.core.layout import (
     EVENTS_GROUP,
-    FINALIZE_PLAN_ATTR,
     FRAMES_GROUP,
-    JOURNAL_DATASET,
-    RECOVERED_ATTR,
-    RECOVERY_REPORT_ATTR,
-    SCHEMA_NAME,
-    SCHEMA_VERSION,
+    PULSES_PATH,
     SYNC_GROUP,
     TRIGGER_GROUP,
-    WINDOW_END_ATTR,
-    WINDOW_MARGIN_ATTR,
-    WINDOW_OUTSIDE_ATTR,
-    WINDOW_START_ATTR,
-    SyncReport,
-    encode_journal,
+    Device,
+    Events,
+    Pulses,
+    Root,
+    Status,
+    Storage,
+    TimeDomain,
 )
+from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, encode_journal
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take.calibration import write_board_pose, write_calibration_group
@@ -147,22 +142,22 @@ class TakeWriter:
         except (OSError, FileExistsError) as exc:
             raise TakeError(f"cannot create take file {path}: {exc}") from exc
         self._attach(path, f, config, state="recording")
-        f.attrs["schema"] = SCHEMA_NAME
-        f.attrs["schema_version"] = SCHEMA_VERSION
-        f.attrs["status"] = "recording"
-        f.attrs["take_id"] = take_id
-        f.attrs["created_utc"] = utc_now()
-        f.attrs["rigd_version"] = rigd_version
-        f.attrs["time_domain"] = "device"
-        f.attrs["flush_count"] = np.int64(0)
+        f.attrs[Root.SCHEMA] = SCHEMA_NAME
+        f.attrs[Root.SCHEMA_VERSION] = SCHEMA_VERSION
+        f.attrs[Root.STATUS] = Status.RECORDING
+        f.attrs[Root.TAKE_ID] = take_id
+        f.attrs[Root.CREATED_UTC] = utc_now()
+        f.attrs[Root.RIGD_VERSION] = rigd_version
+        f.attrs[Root.TIME_DOMAIN] = TimeDomain.DEVICE
+        f.attrs[Root.FLUSH_COUNT] = np.int64(0)
         if flush_interval_s is not None:
-            f.attrs["flush_interval_s"] = float(flush_interval_s)
-        f.create_dataset(CONFIG_DATASET, data=rig_config_json, dtype=h5py.string_dtype("utf-8"))
+            f.attrs[Root.FLUSH_INTERVAL_S] = float(flush_interval_s)
+        f.create_dataset(Root.CONFIG, data=rig_config_json, dtype=h5py.string_dtype("utf-8"))
         f.create_group(EVENTS_GROUP)
         f.create_group(FRAMES_GROUP)
         f.create_group(SYNC_GROUP)
         trig = f.create_group(TRIGGER_GROUP)
-        self._pulses = PulseSink.create(trig.create_group("pulses"))
+        self._pulses = PulseSink.create(trig.create_group(Pulses.GROUP))
         f.flush()
         log.info("take %s created (%s)", self.path, take_id)
 
@@ -221,10 +216,10 @@ class TakeWriter:
     @classmethod
     def _resume_open(cls, path: Path, f: h5py.File, config: WriterConfig) -> TakeWriter:
         version = check_header(f, path)
-        status = attr_text(f.attrs.get("status", ""))
+        status = attr_text(f.attrs.get(Root.STATUS, ""))
         if status == "complete":
             raise TakeError(f"{path}: take is already complete; nothing to resume")
-        plan_text = f.attrs.get(FINALIZE_PLAN_ATTR)
+        plan_text = f.attrs.get(Root.FINALIZE_PLAN)
         plan = None if plan_text is None else FinalizePlan.from_json(attr_text(plan_text), str(path))
         repairs = _resume_repairs(f, path, plan)
         w = cls.__new__(cls)
@@ -232,7 +227,7 @@ class TakeWriter:
         w._version = version
         w._repairs = repairs
         w._plan = plan
-        w._flush_count = int(f.attrs.get("flush_count", 0))
+        w._flush_count = int(f.attrs.get(Root.FLUSH_COUNT, 0))
         w._rebuild_sinks()
         if plan is None:
             f.flush()  # the tails check_repair merged are redundant once this is on disk
@@ -240,7 +235,7 @@ class TakeWriter:
         if plan is not None:
             missing = [n for n in (*w._cameras, *w._events) if n not in plan.maps]
             if missing:
-                raise TakeFormatError(f"{path}: /: attr {FINALIZE_PLAN_ATTR} has no clock map for {missing}")
+                raise TakeFormatError(f"{path}: /: attr {Root.FINALIZE_PLAN} has no clock map for {missing}")
         f.flush()
         log.info(
             "take %s resumed (%s; %d trim(s)%s)",
@@ -255,8 +250,8 @@ class TakeWriter:
         """Writer state from what is in the file (after check_repair every group is consistent)."""
         f = self._f
         where = str(self.path)
-        self._pulses = PulseSink.reopen(require_group(f, f"{TRIGGER_GROUP}/pulses", where), where)
-        self._has_trigger = "info_json" in f[TRIGGER_GROUP].attrs
+        self._pulses = PulseSink.reopen(require_group(f, PULSES_PATH, where), where)
+        self._has_trigger = Device.INFO_JSON in f[TRIGGER_GROUP].attrs
         for name, g in require_group(f, EVENTS_GROUP, where).items():
             if is_evt_words(g):
                 self._events[name] = EvtWordsSink.reopen(name, g, where)
@@ -332,13 +327,13 @@ class TakeWriter:
             raise TakeError(f"{self.path}: event sensor {name!r}: geometry {width}x{height} out of range")
         g = self._f[EVENTS_GROUP].create_group(name)
         _write_info_attrs(g, info, settings_json)
-        if evt_format in EVT_FORMATS and self._cfg.event_storage == "evt_words":
+        if evt_format in EVT_FORMATS and self._cfg.event_storage == Storage.EVT_WORDS:
             self._events[name] = EvtWordsSink.create(name, g, width, height, evt_format)
         else:
-            g.attrs["storage"] = "columns"
-            if self._cfg.event_storage == "evt_words":
+            g.attrs[Events.STORAGE] = Storage.COLUMNS
+            if self._cfg.event_storage == Storage.EVT_WORDS:
                 why = "carry no EVT words" if evt_format is None else f"are {evt_format}, not EVT words"
-                g.attrs["storage_note"] = f"columns: the sensor's packets {why}"
+                g.attrs[Events.STORAGE_NOTE] = f"columns: the sensor's packets {why}"
             sink = EventSink.create(name, g, width, height, self._cfg.event_chunk, self._ev_opts)
             self._events[name] = sink
         self._f.flush()
@@ -489,8 +484,8 @@ class TakeWriter:
             if blob is not None:
                 _write_journal(f, blob, n)
             # Fixed-size values rewritten in place in the root object header (no heap churn).
-            f.attrs.modify("flush_count", np.int64(n))
-            f.attrs.modify("last_flush_utc", np.bytes_(utc_now("milliseconds")))
+            f.attrs.modify(Root.FLUSH_COUNT, np.int64(n))
+            f.attrs.modify(Root.LAST_FLUSH_UTC, np.bytes_(utc_now("milliseconds")))
             f.flush()
             if self._cfg.fsync:
                 os.fsync(f.id.get_vfd_handle())
@@ -568,12 +563,12 @@ class TakeWriter:
         """
         self._check_open()
         f = self._f
-        if RECOVERED_ATTR not in f.attrs:
-            f.attrs[RECOVERED_ATTR] = utc_now()
+        if Root.RECOVERED_UTC not in f.attrs:
+            f.attrs[Root.RECOVERED_UTC] = utc_now()
         if recovery_report_json is not None:
-            f.attrs[RECOVERY_REPORT_ATTR] = recovery_report_json
-        if self._state == "complete" and "failure_reason" in f.attrs and not keep_failure_reason:
-            del f.attrs["failure_reason"]
+            f.attrs[Root.RECOVERY_REPORT] = recovery_report_json
+        if self._state == "complete" and Root.FAILURE_REASON in f.attrs and not keep_failure_reason:
+            del f.attrs[Root.FAILURE_REASON]
         f.flush()
 
     def fail(self, reason: str) -> None:
@@ -595,8 +590,8 @@ class TakeWriter:
             error = exc
         self._state = "failed"
         try:
-            self._f.attrs["status"] = "failed"
-            self._f.attrs["failure_reason"] = reason
+            self._f.attrs[Root.STATUS] = Status.FAILED
+            self._f.attrs[Root.FAILURE_REASON] = reason
             self._f.flush()
         except (OSError, RuntimeError) as exc:
             error = error or exc
@@ -652,7 +647,7 @@ class TakeWriter:
         """Why the recording ended (pulses done, an operator's stop, a fault), for whoever
         reads the take later."""
         self._check_writable()
-        self._f.attrs[END_REASON_ATTR] = reason
+        self._f.attrs[Root.END_REASON] = reason
 
     def set_window(
         self,
@@ -665,18 +660,18 @@ class TakeWriter:
         arrived outside it and was not written."""
         self._check_writable()
         attrs = self._f.attrs
-        for key, value in ((WINDOW_START_ATTR, start_us), (WINDOW_END_ATTR, end_us)):
+        for key, value in ((Root.WINDOW_START, start_us), (Root.WINDOW_END, end_us)):
             if value is not None:
                 attrs[key] = np.int64(value)
-        attrs[WINDOW_MARGIN_ATTR] = np.int64(margin_us)
-        attrs[WINDOW_OUTSIDE_ATTR] = json.dumps({k: dict(v) for k, v in outside.items()}, sort_keys=True)
+        attrs[Root.WINDOW_MARGIN] = np.int64(margin_us)
+        attrs[Root.WINDOW_OUTSIDE] = json.dumps({k: dict(v) for k, v in outside.items()}, sort_keys=True)
 
     def events_in_take(self) -> dict[str, int]:
         """Events each sensor's readers see: for EVT-word sensors, once finalized, those inside
         the take window (a packet across its edge is stored whole and clipped on read)."""
         out = {}
         for name, sink in self._events.items():
-            inside = sink.group.attrs.get("events_in_window") if isinstance(sink, EvtWordsSink) else None
+            inside = sink.group.attrs.get(Events.EVENTS_IN_WINDOW) if isinstance(sink, EvtWordsSink) else None
             out[name] = sink.n_written if inside is None else int(inside)
         return out
 
@@ -731,21 +726,21 @@ def _write_info_attrs(obj: h5py.HLObject, info: DeviceInfo, settings_json: str |
     for key, value in info.model_dump().items():
         if isinstance(value, str):  # scalar identity fields as plain attributes
             obj.attrs[key] = value
-    obj.attrs["info_json"] = info.model_dump_json()
+    obj.attrs[Device.INFO_JSON] = info.model_dump_json()
     if settings_json is not None:
-        obj.attrs["settings_json"] = settings_json
+        obj.attrs[Device.SETTINGS_JSON] = settings_json
 
 
 def _write_journal(f: h5py.File, blob: bytes, n: int) -> None:
     """Overwrite the older of the two slots in place; the newer survives a torn write."""
-    node = f.get(JOURNAL_DATASET)
+    node = f.get(Root.JOURNAL)
     if node is None or node.shape[1] < len(blob):
         cap = max(_JOURNAL_MIN_BYTES, 1 << (2 * len(blob) - 1).bit_length())
         old = np.zeros((2, 0), np.uint8) if node is None else node[...]
         if node is not None:
-            del f[JOURNAL_DATASET]
+            del f[Root.JOURNAL]
         # Contiguous and unfiltered: every later write lands on the same bytes.
-        node = f.create_dataset(JOURNAL_DATASET, shape=(2, cap), dtype=np.uint8, fillvalue=0)
+        node = f.create_dataset(Root.JOURNAL, shape=(2, cap), dtype=np.uint8, fillvalue=0)
         node[:, : old.shape[1]] = old
     row = np.zeros(node.shape[1], np.uint8)
     row[: len(blob)] = np.frombuffer(blob, np.uint8)

@@ -32,7 +32,8 @@ from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
-from rigd.core.schema import FINALIZE_PLAN_ATTR, LossRecord, SyncReport
+from rigd.core.layout import Root
+from rigd.core.schema import LossRecord, SyncReport
 from rigd.core.settings import TriggerSettings, WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
@@ -354,7 +355,7 @@ def _finalized_arrays(path: Path) -> dict[str, np.ndarray]:
             )
         }
         assert f.attrs["status"] == "complete"
-        for attr in (FINALIZE_PLAN_ATTR, "finalize_started_utc"):
+        for attr in (Root.FINALIZE_PLAN, "finalize_started_utc"):
             assert attr not in f.attrs
         assert "t_rig_upto" not in f["events/ev0"].attrs
         assert "finalize_scratch" not in f["events/ev0"]
@@ -446,7 +447,7 @@ def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, check=False)
     assert proc.returncode == -signal.SIGKILL
     with h5py.File(crash, "r") as f:
-        assert FINALIZE_PLAN_ATTR in f.attrs
+        assert Root.FINALIZE_PLAN in f.attrs
         assert 0 < int(f["events/ev0"].attrs["t_rig_upto"]) < N_STEPS * EV_PER_STEP
     assert recover_take(crash, dry_run=True).outcome == "would_seal"
     rr = recover_take(crash)

@@ -3,8 +3,9 @@
 A camera or event sensor channel reads its device on its own thread, reconnects a device
 that drops out (every `reconnect_interval_s` until the take ends), re-ties the clock of a
 device that comes back counting from zero (`clock_reset`), and puts what it read on the
-writer queue. The trigger channel reads the box's pulse records. The writer thread tells a
-channel what reached the file (`written`), which is what the sync engine fits.
+writer queue. The trigger channel reads the box's pulse records. What reached the file
+(`written`, the trigger observations the sync engine fits) the writer thread records in the
+channel's `stream` (`streams`), never by calling the channel.
 """
 
 from __future__ import annotations
@@ -24,12 +25,13 @@ from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, WriterQueue, first_time
 from rigd.app.capture.ledger import LossLedger
-from rigd.app.capture.live import Gap, HostAnchors, LiveStats, Observations
+from rigd.app.capture.live import Gap, HostAnchors, LiveStats
 from rigd.app.capture.overload import SliceShedder
+from rigd.app.capture.streams import device_stream
 from rigd.app.capture.window import TakeWindow, WindowGate
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError, DeviceError, RigdError
-from rigd.core.events import EventArray, EventPacket
+from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
@@ -38,8 +40,6 @@ from rigd.sync import PulseLog
 log = logging.getLogger(__name__)
 
 READ_TIMEOUT_S = 0.05
-#: Recent event packets kept for the live event thumbnails.
-RECENT_PACKETS = 8
 
 
 def pace(done: threading.Event, asked: float) -> None:
@@ -175,20 +175,18 @@ class DeviceChannel:
         self.spec = spec
         self.settings = settings
         self.ctx = ctx
-        self.what: LossKind = "frames" if kind == "rgb_camera" else "events"
         self.trigger_in = settings.trigger_in_channel if isinstance(settings, EventSensorSettings) else 0
         self.live = LiveStats(kind)
-        self.obs = Observations()
+        self.stream = device_stream(kind, name, self.live, self.trigger_in)
+        """How the device is opened and its items written and observed; the writer thread
+        records there what reached the file."""
+        self.what: LossKind = self.stream.what
         self.anchors: HostAnchors | None = (
             HostAnchors()
             if isinstance(settings, EventSensorSettings) and not settings.enable_trigger_in
             else None
         )
         """Where the sensor's clock can only be placed by when its data arrived (no trigger-in)."""
-        self.written = 0
-        """Frames or events that reached the file."""
-        self.latest_frame: Frame | None = None
-        self.recent_events: list[EventArray] = []
         self.clock_reset: ClockReset | None = None
         self.gate: WindowGate | None = None
         """Keeps what lies outside the take's trigger window out of the file (counted)."""
@@ -203,9 +201,7 @@ class DeviceChannel:
 
     # -- lifecycle ------------------------------------------------------------------------
     def _open(self) -> RgbCamera | EventSensor:
-        if self.kind == "rgb_camera":
-            return open_device("rgb_camera", self.spec)
-        return open_device("event_sensor", self.spec)
+        return self.stream.open(self.spec)
 
     def required_capabilities(self) -> frozenset[Capability]:
         """What the device must be able to do for its settings (checked by the preflight)."""
@@ -252,7 +248,7 @@ class DeviceChannel:
         if self.live.state != "ok" or last_pulse_host_ns is None:
             return True
         newest = self.live.last_host_ns
-        wait_ns = 0 if self.kind == "rgb_camera" else 2 * period_ns
+        wait_ns = self.stream.drain_periods * period_ns
         return newest is not None and newest >= last_pulse_host_ns + wait_ns
 
     def window_reached(self) -> bool:
@@ -480,7 +476,7 @@ class DeviceChannel:
     def _tie(self, reset: ClockReset) -> bool:
         """Try to place the restarted clock on the old one; True once done. A device that does
         not tie within MAX_OBSERVATIONS is written off (what was held is counted lost)."""
-        pre_t, pre_host, _ = self.obs.arrays()
+        pre_t, pre_host, _ = self.stream.obs.arrays()
         n = min(pre_t.size, pre_host.size)
         offset = estimate_offset(
             reset, pre_t[:n], pre_host[:n], self.ctx.trigger.pulses(), self.ctx.period_us
@@ -569,26 +565,3 @@ class DeviceChannel:
                 (gap.t_before, t_device),
             )
         live.last_t = t_device if t_last is None else t_last
-
-    # -- the writer thread's side ---------------------------------------------------------
-    def record_written(self, item: FrameItem | EventsItem) -> None:
-        """An item reached the file: keep its trigger observations and count it."""
-        if isinstance(item, FrameItem):
-            frame = item.frame
-            self.obs.t.append(frame.t_exposure_start_us)
-            self.obs.host.append(frame.host_time_ns)
-            self.obs.counter.append(frame.frame_counter)
-            self.written += 1
-            self.live.total += 1
-            self.latest_frame = frame
-            return
-        packet = item.packet
-        if len(packet.events):
-            self.recent_events.append(packet.events)
-            del self.recent_events[:-RECENT_PACKETS]
-        if len(packet.triggers):
-            rising = packet.triggers.rising(self.trigger_in)
-            self.obs.t.extend(rising.t.tolist())
-            self.obs.host.extend([packet.host_time_ns] * len(rising))
-        self.written += len(packet.events)
-        self.live.total += len(packet.events)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping
 
 from drivers.base import Capability, RgbCamera
 from rigd.app.capture.channel import DeviceChannel, TriggerChannel
@@ -13,7 +14,7 @@ from rigd.app.capture.ledger import LossLedger
 from rigd.app.config import RigConfig
 from rigd.core.schema import SyncReport
 from rigd.core.settings import CameraSettings
-from rigd.sync import DeviceObservations, synchronize
+from rigd.take.seal import Bookkeeping, Seal, TakeEnd, fit_take, seal_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -47,48 +48,43 @@ def finalize_take(
     faults: FaultBoard,
     control: RunControl,
     emitted: int,
+    window: tuple[int | None, int | None, int, Mapping[str, Mapping[str, int]]],
 ) -> tuple[SyncReport, str]:
-    """Fit, report and seal; returns the sync report and why the take ended."""
-    pulses = trigger.pulses(emitted)
-    observations = []
-    for name, ch in channels.items():
-        t, host, counter = ch.obs.arrays()
-        anchors = None if ch.anchors is None else ch.anchors.arrays()
-        observations.append(
-            DeviceObservations(name, ch.kind, t, host, counter if ch.kind == "rgb_camera" else None, anchors)
-        )
-    slaves = {
-        s.name: s.settings.sync_master
-        for s in config.event_sensors
-        if s.settings.sync_mode == "slave" and s.settings.sync_master is not None
-    }
-    software = {name for name, ch in channels.items() if software_synced(ch)}
-    result = synchronize(
-        pulses,
+    """Fit, report and seal with what the capture holds in memory (`rigd.take.seal`, the same
+    steps `rigd recover` seals a crashed take with); returns the sync report and why the take
+    ended. `window`: the trigger window and what arrived outside it."""
+    observations = [
+        ch.stream.sync_observations(None if ch.anchors is None else ch.anchors.arrays())
+        for ch in channels.values()
+    ]
+    end = TakeEnd(
+        trigger.pulses(emitted),
         observations,
         config.trigger.settings.rate_hz,
         ledger.records(),
-        shares_clock_with=slaves,
-        software_synced=software,
+        [name for name, ch in channels.items() if ch.kind == "rgb_camera"],
+        shares_clock_with={
+            s.name: s.settings.sync_master
+            for s in config.event_sensors
+            if s.settings.sync_mode == "slave" and s.settings.sync_master is not None
+        },
+        software_synced={name for name, ch in channels.items() if software_synced(ch)},
     )
-    report = result.report
-    report.device_counters = ledger.counters()
-    for name, why in ledger.written_off().items():
-        report.warnings.append(f"{name} failed mid-take and was written off: {why}")
-    report.warnings.extend(
-        [*faults.history(), *(f"{line} (still active at the end)" for line in faults.active_lines())]
+    result = fit_take(end)
+    book = Bookkeeping(
+        device_counters=ledger.counters(),
+        trigger_link=trigger.device.link_stats(),
+        written_off=ledger.written_off(),
+        fault_history=faults.history(),
+        faults_active=faults.active_lines(),
     )
-    if control.stop_by_fault:
-        report.warnings.append(f"the rig stopped the take itself: {control.stop_reason}")
+    notes = [f"the rig stopped the take itself: {control.stop_reason}"] if control.stop_by_fault else []
+    seal = Seal.fitted(end, result, book, active_until="the end", notes=notes)
     reason = end_reason(control, emitted)
-    writer.set_end_reason(reason)
-    report.trigger_link = trigger.device.link_stats()
-    cameras = [name for name, ch in channels.items() if ch.kind == "rgb_camera"]
-    frame_index = {name: result.observation_pulse_index[name] for name in cameras}
-    writer.finalize(result.maps, frame_index, report)
+    seal_take(writer, seal, window=window, end_reason=reason)
     log.info(
         "take %s finalized: %s",
         writer.path,
-        json.dumps({name: ch.written for name, ch in channels.items() if ch.kind == "rgb_camera"}),
+        json.dumps({name: ch.stream.written for name, ch in channels.items() if ch.kind == "rgb_camera"}),
     )
-    return report, reason
+    return result.report, reason

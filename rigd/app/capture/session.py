@@ -34,6 +34,7 @@ from rigd.app.capture.overload import SliceShedder
 from rigd.app.capture.preflight import check_rig, warm_up
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
+from rigd.app.capture.streams import writer_streams
 from rigd.app.capture.truth import store_ground_truth
 from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
 from rigd.app.capture.writer_loop import WriterLoop
@@ -215,7 +216,7 @@ class CaptureSession:
         return self._result
 
     def progress(self) -> Progress:
-        counts = {name: ch.written for name, ch in self._channels.items()}
+        counts = {name: ch.stream.written for name, ch in self._channels.items()}
         pulses = 0 if self._trigger is None else self._trigger.n_pulses
         depth = self._queue.qsize()
         phases = tuple(self._phases)
@@ -258,7 +259,7 @@ class CaptureSession:
         for name, ch in list(self._channels.items()):
             ch.live.update_rate(now)
             shed = 0 if ch.shedder is None else ch.shedder.shed_events
-            jitter = ch.obs.interval_jitter_us(period_us)
+            jitter = ch.stream.obs.interval_jitter_us(period_us)
             devices.append(ch.live.snapshot(name, lost.get(name, 0), jitter, shed))
         try:
             size = self.path.stat().st_size
@@ -285,14 +286,13 @@ class CaptureSession:
         )
 
     def latest_frames(self) -> dict[str, Frame]:
-        return {
-            name: ch.latest_frame for name, ch in list(self._channels.items()) if ch.latest_frame is not None
-        }
+        frames = {name: ch.stream.latest_frame for name, ch in list(self._channels.items())}
+        return {name: frame for name, frame in frames.items() if frame is not None}
 
     def latest_events(self) -> dict[str, tuple[EventArray, tuple[int, int]]]:
         out = {}
         for name, ch in list(self._channels.items()):
-            parts = list(ch.recent_events)
+            parts = list(ch.stream.recent_events)
             if parts and ch.kind == "event_sensor":
                 out[name] = (EventArray.concatenate(parts), ch.device.geometry)  # type: ignore[union-attr]
         return out
@@ -342,8 +342,7 @@ class CaptureSession:
         writer = self._writer = WriterLoop(
             self._take,
             self._queue,
-            self._channels,
-            self._trigger_live,
+            writer_streams([ch.stream for ch in self._channels.values()], self._trigger_live),
             self._ledger,
             self._faults,
             self._control,
@@ -551,11 +550,10 @@ class CaptureSession:
                 f"take {self.path} stopped, {self._control.stop_reason}; everything up to the last flush "
                 f"({writer.last_flush_utc}) is in the file; free space and run `rigd recover` to seal it"
             )
-        take.set_window(self._window.start_us, self._window.end_us, self._window.margin_us, outside)
-        report, reason = finalize_take(
-            self.config, take, trigger, self._channels, self._ledger, self._faults, self._control, emitted
-        )
-        counts = {name: ch.written for name, ch in self._channels.items()}
+        window = (self._window.start_us, self._window.end_us, self._window.margin_us, outside)
+        parts = (self._channels, self._ledger, self._faults, self._control)
+        report, reason = finalize_take(self.config, take, trigger, *parts, emitted, window)
+        counts = {name: ch.stream.written for name, ch in self._channels.items()}
         counts.update(take.events_in_take())  # EVT words: a packet across a window edge is clipped on read
         return CaptureResult(
             self.path,

@@ -1,6 +1,7 @@
 """The writer thread: takes items off the queue, writes them, flushes the take periodically.
 
-It alone touches the take file while the take runs. Bad data from one device is refused
+It alone touches the take file while the take runs, and records in each device's stream what
+reached it (`streams`: no call back into the channels). Bad data from one device is refused
 and counted without costing the rest; a file system that refuses a write (disk full, I/O
 error) stops the take cleanly: everything flushed before stays, what comes after is counted.
 """
@@ -10,15 +11,16 @@ from __future__ import annotations
 import errno
 import logging
 import time
+from collections.abc import Mapping
+from typing import Any
 
 from rigd.app.capture.ballast import Ballast
-from rigd.app.capture.channel import DeviceChannel
 from rigd.app.capture.control import RunControl, utc_now
 from rigd.app.capture.faults import FaultBoard
-from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, QueueItem, StopItem, WriterQueue
+from rigd.app.capture.items import QueueItem, StopItem, WriterQueue
 from rigd.app.capture.ledger import LossLedger
-from rigd.app.capture.live import LiveStats
 from rigd.app.capture.overload import WriterLoad
+from rigd.app.capture.streams import Stream
 from rigd.core.errors import TakeError
 from rigd.take.writer import TakeWriter
 
@@ -30,8 +32,7 @@ class WriterLoop:
         self,
         writer: TakeWriter,
         queue: WriterQueue,
-        channels: dict[str, DeviceChannel],
-        trigger_live: LiveStats,
+        streams: Mapping[str, Stream[Any]],
         ledger: LossLedger,
         faults: FaultBoard,
         control: RunControl,
@@ -40,8 +41,8 @@ class WriterLoop:
     ) -> None:
         self.writer = writer
         self._queue = queue
-        self._channels = channels
-        self._trigger_live = trigger_live
+        self._streams = streams
+        """Each device's stream by the name its items carry (the box's: "trigger")."""
         self._ledger = ledger
         self._faults = faults
         self._control = control
@@ -77,13 +78,13 @@ class WriterLoop:
                 last_flush = now
 
     def _take(self, item: QueueItem) -> None:
-        channel = None if isinstance(item, PulsesItem) else self._channels[item.device]
-        (self._trigger_live if channel is None else channel.live).dequeued()
+        stream = self._streams[item.device]
+        stream.live.dequeued()
         if self.error is not None:
             self._refused(item, f"not written: the take stopped ({self.error})")
             return
         try:
-            self._write(item)
+            stream.write(self.writer, item)
         except TakeError as exc:
             # Bad data from one device must not cost the rest of the take.
             log.error("refused data from %s: %s", item.device, exc)
@@ -93,17 +94,7 @@ class WriterLoop:
             self._failed(exc)
             self._refused(item, f"not written: {exc}")
             return
-        if channel is not None and not isinstance(item, PulsesItem):
-            channel.record_written(item)
-
-    def _write(self, item: QueueItem) -> None:
-        writer = self.writer
-        if isinstance(item, FrameItem):
-            writer.append_frame(item.device, item.frame)
-        elif isinstance(item, EventsItem):
-            writer.append_packet(item.device, item.packet)
-        else:
-            writer.append_pulses(item.batch)
+        stream.landed(item)
 
     def _flush(self) -> None:
         self.writer.flush(journal=self._ledger.journal())

@@ -38,6 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from rigd.app.export.outputs import write_image
 from rigd.app.workflows.progress import ProgressCallback, ProgressUpdate
 from rigd.core.errors import ConfigError, TakeError
+from rigd.core.layout import Frames, frame_group
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -328,8 +329,8 @@ def _frame_series(
     with h5py.File(path, "r") as f:
         return {
             c: (
-                np.asarray(f[f"frames/{c}/pulse_index"][()], np.int64),
-                np.asarray(f[f"frames/{c}/exposure_us"][()], np.int64),
+                np.asarray(f[f"{frame_group(c)}/{Frames.PULSE_INDEX}"][()], np.int64),
+                np.asarray(f[f"{frame_group(c)}/{Frames.EXPOSURE}"][()], np.int64),
             )
             for c in cameras
         }

@@ -36,6 +36,7 @@ from rigd.app.export.common import ExportPlan
 from rigd.app.export.outputs import h5_output
 from rigd.app.export.sensors import rectify_map, sensor_calibration
 from rigd.app.workflows.progress import ProgressUpdate
+from rigd.core.layout import Events
 
 log = logging.getLogger(__name__)
 
@@ -65,10 +66,10 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
     with h5_output(dest / "events.h5") as out:
         f = out.file
         g = f.create_group("events")
-        dx = g.create_dataset("x", (n,), np.uint16, **kw)
-        dy = g.create_dataset("y", (n,), np.uint16, **kw)
-        dt = g.create_dataset("t", (n,), t_dtype, **kw)
-        dp = g.create_dataset("p", (n,), np.uint8, **kw)
+        dx = g.create_dataset(Events.X, (n,), np.uint16, **kw)
+        dy = g.create_dataset(Events.Y, (n,), np.uint16, **kw)
+        dt = g.create_dataset(Events.T, (n,), t_dtype, **kw)
+        dp = g.create_dataset(Events.P, (n,), np.uint8, **kw)
         done = 0
         last = -1  # relative time of the last event written so far
         for start in range(lo, hi, BLOCK):
@@ -85,8 +86,8 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
             done += len(ev)
             out.check()
             plan.progress(ProgressUpdate(f"events {sensor}", f"{done}/{n} events", done, n))
-        f.create_dataset("ms_to_idx", data=ms_to_idx)
-        f.create_dataset("t_offset", data=np.int64(t0 - origin))
+        f.create_dataset(Events.MS_TO_IDX, data=ms_to_idx)
+        f.create_dataset(Events.T_OFFSET, data=np.int64(t0 - origin))
         f.create_dataset("rig_time_origin_us", data=np.int64(origin))
         f.attrs["polarity"] = "p: 1 ON, 0 OFF (rigd.take.reader.Take gives +1/-1)"
     calib = sensor_calibration(plan, sensor)

@@ -64,7 +64,7 @@ from rigd.app.workflows.reconstruct_tasks import (
     snapshot,
 )
 from rigd.core.errors import ConfigError, RigdError
-from rigd.core.schema import FRAMES_GROUP
+from rigd.core.layout import FRAMES_GROUP, Frames
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -240,9 +240,9 @@ def _mid_exposures(path: Path, camera: str) -> NDArray[np.int64]:
     """Mid-exposure rig times of a camera's frames (exposure start + half the exposure)."""
     with h5py.File(path, "r") as f:
         g = f[FRAMES_GROUP][camera]
-        n = int(g["images"].shape[0])
-        start = np.asarray(g["t_exposure_start_us"][:n], np.int64)
-        exposure = np.asarray(g["exposure_us"][:n], np.int64)
+        n = int(g[Frames.IMAGES].shape[0])
+        start = np.asarray(g[Frames.T_EXPOSURE_START][:n], np.int64)
+        exposure = np.asarray(g[Frames.EXPOSURE][:n], np.int64)
     return start + exposure // 2
 
 

@@ -26,6 +26,7 @@ from reconstruction.filters import BackgroundActivityFilter
 from reconstruction.partition import interval_maps
 from rigd.core.errors import TakeFormatError
 from rigd.core.events import EventArray
+from rigd.core.layout import Events, event_group
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -106,7 +107,8 @@ def _check_order(path: Path, sensor: str, t: NDArray[np.int64], first_index: int
     if len(back):
         bad = first_index + int(back[0]) + 1
         raise TakeFormatError(
-            f"{path}: /events/{sensor}/t: event times go backwards at index {bad} (damaged take)"
+            f"{path}: /{event_group(sensor)}/{Events.T}: event times go backwards at index {bad} "
+            "(damaged take)"
         )
 
 

@@ -15,6 +15,7 @@ from rigd.app.capture.faults import DiskWatch, FaultBoard, FlushWatch
 from rigd.app.capture.items import EventsItem, FrameItem, StopItem, WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats, Observations
+from rigd.app.capture.streams import device_stream
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
@@ -142,9 +143,9 @@ def test_observations_interval_jitter() -> None:
     ],
 )
 def test_drain_rule_per_device(kind: str, newest: int | None, expected: bool) -> None:
-    ch = DeviceChannel.__new__(DeviceChannel)  # the rule reads only kind and live counters
-    ch.kind = kind  # type: ignore[assignment]
+    ch = DeviceChannel.__new__(DeviceChannel)  # the rule reads only its stream and live counters
     ch.live = LiveStats(kind)  # type: ignore[arg-type]
+    ch.stream = device_stream(kind, "dev", ch.live)  # type: ignore[arg-type]
     ch.live.last_host_ns = newest
     assert ch.drained(1_000, 33_333_333) is expected
     ch.live.state = "reconnecting"
