@@ -368,7 +368,7 @@ def judge(
         spec=spec,
         mevs_offered=_offered(spec, density),
         produced_events=sum(counters.get(s, {}).get("delivered", 0) for s in sensors),
-        outside_events=outside(sensors, ("before", "after")),
+        outside_events=outside(sensors, ("before", "after", "stored_before", "stored_after")),
         take_events=sum(res.events.get(s, 0) for s in sensors),
         produced_frames=sum(counters.get(c, {}).get("delivered", 0) for c in cams),
         outside_frames=outside(cams, ("before", "after")),

@@ -240,7 +240,19 @@ class Finalizer:
         g[Events.T_OFFSET][()] = np.int64(t_offset)
         g.attrs[Events.FIRST_IN_WINDOW] = np.int64(i0)
         g.attrs[Events.EVENTS_IN_WINDOW] = np.int64(i1 - i0)
+        self._note_stored_outside(sink, i0, sink.n_written - i1)
         sink.trig[TriggerEdges.T][...] = cmap.to_rig(sink.trig[TriggerEdges.T_DEVICE][...])
+
+    def _note_stored_outside(self, sink: EvtWordsSink, before: int, after: int) -> None:
+        """Events stored but outside the window (packets are kept whole, and the capture's gate
+        judged by its live estimate of the clock; the final map decides) go into the take's
+        `window_outside_json` as `stored_before` / `stored_after`, so that what the sensor sent
+        adds up: in the window + outside + lost. Set, not added: a resumed finalize repeats it."""
+        attrs = self._f.attrs
+        outside = json.loads(attrs[Root.WINDOW_OUTSIDE]) if Root.WINDOW_OUTSIDE in attrs else {}
+        entry = outside.setdefault(sink.name, {})
+        entry["stored_before"], entry["stored_after"] = int(before), int(after)
+        attrs[Root.WINDOW_OUTSIDE] = json.dumps(outside, sort_keys=True)
 
     def _finalize_events(self, sink: EventSink, cmap: ClockMap, t_offset: int) -> None:
         """Rewrite t as rig time - t_offset block by block and build ms_to_idx on the way.

@@ -666,6 +666,12 @@ class TakeWriter:
         attrs[Root.WINDOW_MARGIN] = np.int64(margin_us)
         attrs[Root.WINDOW_OUTSIDE] = json.dumps({k: dict(v) for k, v in outside.items()}, sort_keys=True)
 
+    def window_outside(self) -> dict[str, dict[str, int]]:
+        """Per device, what lies outside the window as the file records it (after finalize, with
+        the EVT-word sensors' stored events outside it, `stored_before`/`stored_after`)."""
+        text = self._f.attrs.get(Root.WINDOW_OUTSIDE)
+        return {} if text is None else dict(json.loads(text))
+
     def events_in_take(self) -> dict[str, int]:
         """Events each sensor's readers see: for EVT-word sensors, once finalized, those inside
         the take window (a packet across its edge is stored whole and clipped on read)."""

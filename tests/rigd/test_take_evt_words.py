@@ -7,6 +7,7 @@ call must agree, on the real Gen4.1 recording and on synthetic streams with a wi
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import h5py
@@ -116,6 +117,13 @@ def test_window_clips_what_a_straddling_packet_brought(
         assert_same(take.events("ev0", lo - 10_000, lo + 20_000), inside[inside.t < lo + 20_000])
         assert take.event_span("ev0") == (int(inside.t[0]), int(inside.t[-1]))
         assert int(take.event_histogram("ev0", 1000)[1].sum()) == len(inside)
+    # What was stored but lies outside the window is written down: stored = before + in + after.
+    all_rig = rig(ev)
+    with h5py.File(tmp_path / "w.h5") as f:
+        outside = json.loads(f.attrs["window_outside_json"])["ev0"]
+    assert outside["stored_before"] == int(np.count_nonzero(all_rig.t < lo))
+    assert outside["stored_after"] == int(np.count_nonzero(all_rig.t >= hi))
+    assert outside["stored_before"] + len(inside) + outside["stored_after"] == len(ev)
 
 
 @needs_data

@@ -63,7 +63,8 @@ class CaptureResult:
     """... last pulse + one period (None: no pulse was seen)."""
     outside_window: dict[str, dict[str, int]] = field(default_factory=dict)
     """Per device, what it delivered outside the window and was not written
-    (before / after, events or frames; triggers_before / triggers_after, trigger edges)."""
+    (before / after, events or frames; triggers_before / triggers_after, trigger edges), and for
+    an EVT-word sensor what is stored but outside it (stored_before / stored_after)."""
 
     @property
     def window_s(self) -> float | None:

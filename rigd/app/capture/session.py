@@ -568,7 +568,7 @@ class CaptureSession:
             end_reason=reason,
             window_start_us=self._window.start_us,
             window_end_us=self._window.end_us,
-            outside_window=outside,
+            outside_window=take.window_outside() or outside,
         )
 
     def _stop_trigger(self, trigger: TriggerChannel) -> int:

@@ -21,12 +21,17 @@ device that delivers late (a loaded host, a backlog drained at stop) cannot stre
   pulse 0, later frames are paired the same way; a frame of a pulse after the last is
   outside.
 * `host` (free-running or software-synced cameras, sensors without trigger-in, and the
-  fallback): by the host arrival time of the frame or packet against the host arrival times
-  of the pulse records (approximate: the transport latency).
+  fallback): by the host arrival time of the frame against the host arrival times of the
+  pulse records (approximate: the transport latency). An event packet is placed by its
+  events' device times, mapped to the host clock by the earliest arrival seen (arrival minus
+  newest device time, whose lower envelope a backlog cannot raise), so data read late is
+  judged by when it happened.
 
 What falls outside is not written and is counted (`OutsideCounts`): the take records it per
-device (`window_outside_json`). Within the sync accuracy of each device the data in the file
-lies in [window_start_us, window_end_us).
+device (`window_outside_json`). A packet of EVT words across an edge is stored whole; finalize
+counts its events outside the window by the final clock map (`stored_before`/`stored_after`).
+Within the sync accuracy of each device the data in the file lies in [window_start_us,
+window_end_us).
 """
 
 from __future__ import annotations
@@ -51,6 +56,9 @@ log = logging.getLogger(__name__)
 GateMode = Literal["trigger_in", "pulse_frames", "host"]
 #: Packets a gate holds at most while it waits for its sensor's first trigger edge.
 MAX_HELD_PACKETS = 5000
+#: Host mode: an event packet mapping further behind its arrival than this is judged by its
+#: arrival (above the overload shedder's lag bound; a device clock that jumped back).
+MAX_MAPPED_LAG_NS = 30_000_000_000
 
 
 class TakeWindow:
@@ -208,6 +216,7 @@ class WindowGate:
         self._d0: float | None = None  # device time of pulse 0
         self._ref: tuple[float, int] | None = None  # newest (device time, pulse index) pair
         self._rate = 1.0  # device us per box us, measured between paired edges
+        self._host_off_ns: int | None = None  # host mode: min(arrival - newest device time) of packets
 
     # -- device-time bounds ----------------------------------------------------------------
     def _device_time(self, rel_us: int) -> float | None:
@@ -320,20 +329,29 @@ class WindowGate:
         held, self._held, self._held_since_ns = self._held, [], None
         return held
 
-    def _split_events(self, packet: EventPacket) -> list[Item]:
+    def _split_events(
+        self,
+        packet: EventPacket,
+        bounds: tuple[float, float | None] | None = None,
+        host_off_ns: int | None = None,
+    ) -> list[Item]:
+        """The packet's part inside the window: by its trigger edges' device bounds, or by
+        `bounds` in device us (host mode, from the arrival estimate `host_off_ns`)."""
         triggers = packet.triggers
-        rising = triggers.rising(self._channel)
-        if len(rising) and self._ref is not None:
-            self._pair(rising.t[rising.t > self._ref[0]])
-        start, end = self.start_device_us, self.end_device_us
-        assert start is not None
+        if bounds is None:
+            rising = triggers.rising(self._channel)
+            if len(rising) and self._ref is not None:
+                self._pair(rising.t[rising.t > self._ref[0]])
+            start_dev, end = self.start_device_us, self.end_device_us
+            assert start_dev is not None
+            start: float = start_dev
+        else:
+            start, end = bounds
         t = packet.events.t
         n = len(t)
         lo = int(np.searchsorted(t, start, side="left"))
         hi = n if end is None else int(np.searchsorted(t, end, side="left"))
         hi = max(lo, hi)
-        self.counts.before += lo
-        self.counts.after += n - hi
         tt = triggers.t
         keep = tt >= start
         if end is not None:
@@ -342,16 +360,42 @@ class WindowGate:
             self.counts.triggers_before += int(np.count_nonzero(tt < start))
             self.counts.triggers_after += int(np.count_nonzero(~keep & (tt >= start)))
         newest = max(int(t[-1]) if n else -(2**62), int(tt.max()) if len(tt) else -(2**62))
-        self._reached(newest, end)
+        if host_off_ns is None:
+            self._reached(newest, end)
+        else:
+            self._reached(newest * 1000 + host_off_ns, self.window.host_bounds_ns()[1])
+        if packet.raw is not None and hi > lo:
+            # EVT words cannot be split: the packet is stored whole, and finalize counts its
+            # events outside the window by the final clock map (`stored_before`/`_after`);
+            # the take's reader clips them.
+            return [EventPacket(packet.events, triggers[keep], packet.host_time_ns, packet.raw)]
+        self.counts.before += lo
+        self.counts.after += n - hi
         if lo == 0 and hi == n and keep.all():
             return [packet]
         if hi == lo and not keep.any():
             return []
-        if packet.raw is not None and hi > lo:
-            # EVT words cannot be split: the packet is kept whole, its events outside the
-            # window counted as outside all the same (the take's reader clips them)
-            return [EventPacket(packet.events, triggers[keep], packet.host_time_ns, packet.raw)]
         return [EventPacket(packet.events[lo:hi], triggers[keep], packet.host_time_ns)]
+
+    def _arrival_bounds(self, packet: EventPacket) -> tuple[tuple[float, float | None], int] | None:
+        """Host mode, an event packet: the window in the sensor's clock, from the earliest any
+        packet arrived after its newest event (the lower envelope of arrival - device time; a
+        backlog only adds to it). So a packet read late, from a loaded host or a backlog, is
+        judged by when its events happened, not by when it was read. None (judge by arrival)
+        before a packet with events, or when this one maps further back than any backlog can
+        (a device clock that jumped back)."""
+        if not len(packet.events):
+            return None
+        h_start, h_end = self.window.host_bounds_ns()
+        if h_start is None:
+            return None
+        arrival = packet.host_time_ns - int(packet.events.t[-1]) * 1000
+        if self._host_off_ns is None or arrival < self._host_off_ns:
+            self._host_off_ns = arrival
+        off = self._host_off_ns
+        if arrival - off > MAX_MAPPED_LAG_NS:
+            return None
+        return ((h_start - off) / 1000, None if h_end is None else (h_end - off) / 1000), off
 
     def _admit_frame(self, frame: Frame) -> list[Item]:
         k = int(self._pair(np.array([frame.t_exposure_start_us], np.int64))[0])
@@ -365,6 +409,8 @@ class WindowGate:
         return [frame]
 
     def _by_host(self, item: Item) -> list[Item]:
+        if isinstance(item, EventPacket) and (mapped := self._arrival_bounds(item)) is not None:
+            return self._split_events(item, *mapped)
         host = item.host_time_ns
         h_start, h_end = self.window.host_bounds_ns()
         self._reached(host, h_end)

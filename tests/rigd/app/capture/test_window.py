@@ -115,28 +115,68 @@ def test_without_a_trigger_edge_the_window_falls_back_to_host_time() -> None:
     window = TakeWindow(RATE, margin_us=0, last_index=9)
     window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
     gate = WindowGate("ev", "trigger_in", window, hold_s=1.0, clock_ns=clock)
-    # Host ns of the window: [10.000 s, 10.010 s).
-    assert gate.admit(_packet(np.arange(10), host_ns=9_000_000_000)) == []
+    # Host ns of the window: [10.000 s, 10.010 s); the sensor's clock reads host us - 7 s.
+    first = 2_000_000 + np.arange(10)
+    assert gate.admit(_packet(first, host_ns=9_000_010_000)) == []
     clock.ns = 2_000_000_000  # past the hold: the held packet is placed by host time
-    out = gate.admit(_packet(np.arange(10, 20), host_ns=10_005_000_000))
+    inside = 3_005_000 + np.arange(10)
+    out = gate.admit(_packet(inside, host_ns=10_005_010_000))
     assert gate.mode == "host"
     assert gate.by_host_fallback
-    assert _events(out).tolist() == list(range(10, 20))
+    assert _events(out).tolist() == inside.tolist()
     assert gate.counts.before == 10
-    assert gate.admit(_packet(np.arange(20, 30), host_ns=10_010_000_000)) == []
+    assert gate.admit(_packet(3_010_000 + np.arange(10), host_ns=10_010_010_000)) == []
     assert gate.counts.after == 10
     assert gate.closed
+
+
+def test_host_mode_judges_a_late_packet_by_when_its_events_happened() -> None:
+    """A backlog (a loaded host) delivers packets late: what the sensor made inside the window
+    is kept though it is read after the window's end, and what it made before the window is
+    outside though it is read inside it. Placed by the lower envelope of arrival - device time."""
+    window = TakeWindow(RATE, margin_us=0, last_index=9)  # host ns [10.000 s, 10.010 s)
+    window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
+    gate = WindowGate("ev", "host", window)
+    # On time: device us = host us - 7 s (+ 10 us of transport).
+    assert gate.admit(_packet(2_990_000 + np.arange(10), host_ns=9_990_019_000)) == []
+    assert gate.counts.before == 10
+    # Made 5 ms before the window's start, read 3 ms inside it: outside.
+    assert gate.admit(_packet(2_995_000 + np.arange(10), host_ns=10_003_000_000)) == []
+    assert gate.counts.before == 20
+    # Made at 10.008 s, read 50 ms after the window's end: kept, and the window is not closed
+    # by the late arrival.
+    late = 3_008_000 + np.arange(10)
+    assert _events(gate.admit(_packet(late, host_ns=10_060_000_000))).tolist() == late.tolist()
+    assert not gate.closed
+    assert gate.counts.after == 0
+    # Made after the window's end: outside, and the gate is closed.
+    assert gate.admit(_packet(3_011_000 + np.arange(10), host_ns=10_070_000_000)) == []
+    assert gate.counts.after == 10
+    assert gate.closed
+
+
+def test_a_sensor_clock_that_jumps_back_is_judged_by_arrival() -> None:
+    """Device times far behind the arrival envelope (a clock reset) are no backlog: by arrival."""
+    window = TakeWindow(RATE, margin_us=0, last_index=9)
+    window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
+    gate = WindowGate("ev", "host", window)
+    hour = 3_600_000_000
+    assert gate.admit(_packet(hour + 2_990_000 + np.arange(10), host_ns=9_990_010_000)) == []
+    # The clock restarted near 0 (an hour behind): the packet is placed by its arrival, inside.
+    reset = np.arange(100, 110)
+    assert _events(gate.admit(_packet(reset, host_ns=10_004_000_000))).tolist() == reset.tolist()
 
 
 def test_held_packets_are_placed_by_host_time_at_the_end() -> None:
     """A sensor whose trigger edges never came: what it held is placed by host time."""
     window = TakeWindow(RATE, margin_us=0, last_index=9)
     gate = WindowGate("ev", "trigger_in", window, hold_s=60.0)
-    assert gate.admit(_packet(np.arange(10), host_ns=9_000_000_000)) == []
-    assert gate.admit(_packet(np.arange(10, 20), host_ns=10_005_000_000)) == []
+    assert gate.admit(_packet(2_000_000 + np.arange(10), host_ns=9_000_010_000)) == []
+    inside = 3_005_000 + np.arange(10)
+    assert gate.admit(_packet(inside, host_ns=10_005_010_000)) == []
     window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
     kept = _events(gate.finish())
-    assert kept.tolist() == list(range(10, 20))
+    assert kept.tolist() == inside.tolist()
     assert gate.counts.before == 10
     assert gate.by_host_fallback
 
