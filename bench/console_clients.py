@@ -17,7 +17,8 @@ Prints per level: the host's load average, frames/s and events/s written, frames
 (loss records' counts), the take's verdict, the writer queue's peak, the telemetry latency a
 client sees (receipt time minus the document's sampling time: median and p95), the documents and
 JPEGs each client got, the daemon process's CPU seconds per take second (the clients and the load
-run in child processes, so their CPU is not counted) and the stop time.
+run in child processes, so their CPU is not counted there), the clients' process's own CPU
+seconds per second (`cl CPU`: what a browser tab would cost the same host) and the stop time.
 """
 
 from __future__ import annotations
@@ -115,7 +116,8 @@ def clients_process(url: str, token: str, n: int, stop: Any, out: Any) -> None:
     flag.set()
     for t in threads:
         t.join(timeout=15)
-    out.put([(s.docs, s.jpegs, s.latencies_s, s.errors) for s in stats])
+    cpu = os.times()
+    out.put(([(s.docs, s.jpegs, s.latencies_s, s.errors) for s in stats], cpu.user + cpu.system))
 
 
 def busy(stop: Any) -> None:
@@ -173,7 +175,8 @@ def run_level(
     cpu1 = os.times()
     load1 = os.getloadavg()[0]
     stop.set()
-    stats = [ClientStats(d, j, lat, err) for d, j, lat, err in out.get(timeout=60)]
+    per_client, client_cpu = out.get(timeout=60)
+    stats = [ClientStats(d, j, lat, err) for d, j, lat, err in per_client]
     proc.join(timeout=15)
     for h in hogs:
         h.join(timeout=15)
@@ -201,6 +204,7 @@ def run_level(
         "docs_per_client_s": sum(s.docs for s in stats) / max(n_clients, 1) / wall,
         "jpegs_per_client_s": sum(s.jpegs for s in stats) / max(n_clients, 1) / wall,
         "cpu_per_s": ((cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)) / wall,
+        "client_cpu_per_s": client_cpu / (wall + 3.0),  # the clients' process, connected 3 s early
         "errors": sum(len(s.errors) for s in stats),
     }
 
@@ -244,14 +248,15 @@ def main() -> None:
     print(
         f"{'load':>4} {'loadavg':>7} {'clients':>7} {'frames/s':>9} {'events/s':>10} {'lost fr':>7} "
         f"{'lost ev':>9} {'verdict':>9} {'queue':>6} {'lat med ms':>10} {'lat p95 ms':>10} "
-        f"{'docs/s/cl':>9} {'jpeg/s/cl':>9} {'CPU s/s':>7} {'stop s':>6} {'errors':>6}"
+        f"{'docs/s/cl':>9} {'jpeg/s/cl':>9} {'CPU s/s':>7} {'cl CPU':>6} {'stop s':>6} {'errors':>6}"
     )
     for r in rows:
         print(
             f"{r['load']:>4} {r['loadavg']:>7.2f} {r['clients']:>7} {r['fps']:>9.1f} {r['eps']:>10,.0f} "
             f"{r['lost_frames']:>7} {r['lost_events']:>9,} {r['verdict']:>9} {r['peak_queue']:>6} "
             f"{r['lat_med_ms']:>10.1f} {r['lat_p95_ms']:>10.1f} {r['docs_per_client_s']:>9.2f} "
-            f"{r['jpegs_per_client_s']:>9.1f} {r['cpu_per_s']:>7.2f} {r['stop_s']:>6.2f} {r['errors']:>6}"
+            f"{r['jpegs_per_client_s']:>9.1f} {r['cpu_per_s']:>7.2f} "
+            f"{r['client_cpu_per_s']:>6.2f} {r['stop_s']:>6.2f} {r['errors']:>6}"
         )
 
 
