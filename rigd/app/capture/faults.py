@@ -18,6 +18,7 @@ from drivers.base import Trigger
 from rigd.app.capture.control import RunControl, utc_now
 from rigd.app.capture.results import ActiveFault
 from rigd.core.errors import DeviceError, TakeError
+from rigd.core.fault_codes import FaultCode
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +38,7 @@ class FaultBoard:
         self._active: dict[tuple[str, str | None], ActiveFault] = {}
         self._history: list[str] = []
 
-    def set(self, code: str, device: str | None, message: str) -> None:
+    def set(self, code: FaultCode, device: str | None, message: str) -> None:
         with self._lock:
             if (code, device) in self._active:
                 self._active[(code, device)].message = message
@@ -45,7 +46,7 @@ class FaultBoard:
             self._active[(code, device)] = ActiveFault(code, device, message, utc_now(), time.monotonic())
         log.error("fault %s%s: %s", code, f" ({device})" if device else "", message)
 
-    def clear(self, code: str, device: str | None) -> None:
+    def clear(self, code: FaultCode, device: str | None) -> None:
         with self._lock:
             fault = self._active.pop((code, device), None)
             if fault is not None:

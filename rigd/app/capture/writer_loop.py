@@ -22,6 +22,7 @@ from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.overload import WriterLoad
 from rigd.app.capture.streams import Stream
 from rigd.core.errors import TakeError
+from rigd.core.fault_codes import FaultCode
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -110,6 +111,6 @@ class WriterLoop:
         if self._ballast is not None:
             self._ballast.release(emergency=True)  # room to close the take cleanly
         full = exc.errno == errno.ENOSPC or "No space left" in str(exc)
-        code = "disk_full" if full else "writer_failed"
+        code: FaultCode = "disk_full" if full else "writer_failed"
         self._faults.set(code, None, f"writing {self.writer.path.name} failed: {exc}")
         self._control.request_stop(f"{'disk full' if full else 'write error'}: {exc}", fault=True)

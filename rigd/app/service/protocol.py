@@ -13,6 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from rigd.core.fault_codes import FaultCode
 from rigd.core.schema import LossRecord
 
 PROTOCOL_VERSION = 1
@@ -117,17 +118,7 @@ class Reply(_Strict):
 class Fault(_Strict):
     """Something wrong right now (cleared when it stops being true)."""
 
-    code: Literal[
-        "trigger_silent",
-        "trigger_garbage",
-        "device_failed",
-        "device_reconnecting",
-        "disk_low",
-        "disk_full",
-        "queue_full",
-        "writer_failed",
-        "writer_stalled",
-    ]
+    code: FaultCode
     device: str | None = None
     message: str
     since_utc: str

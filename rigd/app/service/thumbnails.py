@@ -24,7 +24,7 @@ def _resize(img: NDArray[np.uint8], width: int) -> NDArray[np.uint8]:
     height = max(1, round(h * width / w))
     while w >= 2 * width:  # exact halvings first: INTER_AREA's fast path
         w, h = w // 2, h // 2
-        img = cv2.resize(img[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA)
+        img = np.asarray(cv2.resize(img[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA), np.uint8)
     if w == width and h == height:
         return np.asarray(img, dtype=np.uint8)
     return np.asarray(cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA), dtype=np.uint8)
