@@ -18,12 +18,10 @@ import h5py
 import numpy as np
 
 from drivers.evt import StreamDecoder, encode
-from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.settings import WriterConfig
 from rigd.take import Take, TakeWriter, recover_take, validate_take
 from tests.rigd.test_take_recover import (
-    CAM_SHAPE,
     EV_PER_STEP,
     OFF_EV,
     PERIOD,
@@ -31,7 +29,7 @@ from tests.rigd.test_take_recover import (
     ROOT,
     H,
     W,
-    rig_config_json,
+    open_writer,
     step,
 )
 
@@ -39,18 +37,7 @@ WORDS_CFG = WriterConfig(event_storage="evt_words", fsync=False)
 
 
 def open_words_writer(path: Path) -> TakeWriter:
-    w = TakeWriter(
-        path,
-        rig_config_json=rig_config_json(),
-        take_id=path.stem,
-        config=WORDS_CFG,
-        rigd_version="t",
-        flush_interval_s=0.2,
-    )
-    w.add_trigger(DeviceInfo(kind="trigger", spec="sim://t/trigger"))
-    w.add_camera("cam0", DeviceInfo(kind="rgb_camera", spec="sim://t/cam0"), CAM_SHAPE, np.uint8, "{}")
-    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), W, H, "{}", "evt3")
-    return w
+    return open_writer(path, config=WORDS_CFG, evt_format="evt3")
 
 
 def step_bytes(k: int) -> bytes:

@@ -61,18 +61,25 @@ def rig_config_json() -> str:
     ).model_dump_json()
 
 
-def open_writer(path: Path, flush_interval_s: float | None = 0.2) -> TakeWriter:
+def open_writer(
+    path: Path,
+    flush_interval_s: float | None = 0.2,
+    *,
+    config: WriterConfig = WRITER_CFG,
+    evt_format: str | None = None,
+) -> TakeWriter:
+    """The test rig's writer; `evt_format`: its event sensor's packets carry EVT words."""
     w = TakeWriter(
         path,
         rig_config_json=rig_config_json(),
         take_id=path.stem,
-        config=WRITER_CFG,
+        config=config,
         rigd_version="test",
         flush_interval_s=flush_interval_s,
     )
     w.add_trigger(DeviceInfo(kind="trigger", spec="sim://t/trigger"))
     w.add_camera("cam0", DeviceInfo(kind="rgb_camera", spec="sim://t/cam0"), CAM_SHAPE, np.uint8, "{}")
-    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), W, H, "{}")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), W, H, "{}", evt_format)
     return w
 
 
