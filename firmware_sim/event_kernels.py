@@ -170,11 +170,12 @@ def _render_events_kernel(  # pragma: no cover - numba
     """Render the log intensity at t1 where sprites are or were, and emit the events since t0.
 
     Only pixels inside some sprite's quad at t0 or t1 (`quads`: (n, 2, 4, 2) image corners)
-    can change, so each row visits just the union of those spans. One fused pass per
-    pixel: inverse-map into each covering sprite (bilinear, alpha compositing over the
-    background), log through the table, compare with the reference. `last_log` (the log
-    image at t0) and `ref` are full-frame and updated in place; uncovered pixels read the
-    view's precomputed background log. Rows are atomic: when a row might not fit in the
+    can change, so each row visits just the union of those spans. Per row: each sprite in
+    turn is inverse-mapped along its own span (bilinear, alpha compositing over the
+    background, float32), then every pixel of the spans goes through the log table and is
+    compared with its reference. `last_log` (the log image at t0) and `ref` are full-frame
+    and updated in place; uncovered pixels read the view's precomputed background log. Rows
+    are atomic: when a row might not fit in the
     outputs, returns (n_out, that row) for the caller to grow them and resume.
     """
     _height, width = bg_int.shape
@@ -185,10 +186,15 @@ def _render_events_kernel(  # pragma: no cover - numba
     side = stack.shape[1]
     row = side * 2
     flat = stack.reshape(-1)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
     lo = np.empty(n_spr, np.int64)
     hi = np.empty(n_spr, np.int64)
     seg_lo = np.empty(n_spr, np.int64)
     seg_hi = np.empty(n_spr, np.int64)
+    # One row of composited intensity and whether a sprite covers each pixel.
+    acc = np.empty(width, np.float32)
+    hit = np.zeros(width, np.bool_)
     for y in range(y_start, y_end):
         fy = float(y)
         n_seg = 0
@@ -232,38 +238,48 @@ def _render_events_kernel(  # pragma: no cover - numba
             return n_out, y
         for i in range(n_seg):
             for x in range(seg_lo[i], seg_hi[i]):
-                fx = float(x)
-                inten = bg_int[y, x]
-                hit = False
-                for s in range(n_spr):
-                    if x < lo[s] or x >= hi[s]:
-                        continue
-                    rw = 1.0 / (hinv[s, 2, 0] * fx + hinv[s, 2, 1] * fy + hinv[s, 2, 2])
-                    u = (hinv[s, 0, 0] * fx + hinv[s, 0, 1] * fy + hinv[s, 0, 2]) * rw
-                    v = (hinv[s, 1, 0] * fx + hinv[s, 1, 1] * fy + hinv[s, 1, 2]) * rw
-                    lim = texels[s] - 1
-                    if u < 0.0 or v < 0.0 or u >= lim or v >= lim:
-                        continue
-                    iu = int(u)
-                    iv = int(v)
-                    fu = u - iu
-                    fv = v - iv
-                    # Flat indexing: (s, iv, iu, channel) in the C-contiguous stack.
-                    b = ((s * side + iv) * side + iu) * 2
-                    p00, a00 = flat[b], flat[b + 1]
-                    p01, a01 = flat[b + 2], flat[b + 3]
-                    p10, a10 = flat[b + row], flat[b + row + 1]
-                    p11, a11 = flat[b + row + 2], flat[b + row + 3]
-                    top_p = p00 + fu * (p01 - p00)
-                    bot_p = p10 + fu * (p11 - p10)
-                    top_a = a00 + fu * (a01 - a00)
-                    bot_a = a10 + fu * (a11 - a10)
-                    pa = top_p + fv * (bot_p - top_p)
-                    al = top_a + fv * (bot_a - top_a)
-                    inten = inten * (1.0 - al) + pa
-                    hit = True
-                if hit:
-                    f = min(max(inten, 0.0) * lut_scale, lut_max)
+                acc[x] = bg_int[y, x]
+                hit[x] = False
+        # Composite sprite by sprite over the row (in sprite order), each along its own span:
+        # straight loops in float32, twice as fast as visiting every sprite at every pixel.
+        for s in range(n_spr):
+            # The inverse homography on this row: (u, v, w) numerators are linear in x.
+            h00 = np.float32(hinv[s, 0, 0])
+            h01 = np.float32(hinv[s, 0, 1] * fy + hinv[s, 0, 2])
+            h10 = np.float32(hinv[s, 1, 0])
+            h11 = np.float32(hinv[s, 1, 1] * fy + hinv[s, 1, 2])
+            h20 = np.float32(hinv[s, 2, 0])
+            h21 = np.float32(hinv[s, 2, 1] * fy + hinv[s, 2, 2])
+            lim = np.float32(texels[s] - 1)
+            for x in range(lo[s], hi[s]):
+                fx = np.float32(x)
+                rw = one / (h20 * fx + h21)
+                u = (h00 * fx + h01) * rw
+                v = (h10 * fx + h11) * rw
+                if u < zero or v < zero or u >= lim or v >= lim:
+                    continue
+                iu = int(u)
+                iv = int(v)
+                fu = u - np.float32(iu)
+                fv = v - np.float32(iv)
+                # Flat indexing: (s, iv, iu, channel) in the C-contiguous stack.
+                b = ((s * side + iv) * side + iu) * 2
+                p00, a00 = flat[b], flat[b + 1]
+                p01, a01 = flat[b + 2], flat[b + 3]
+                p10, a10 = flat[b + row], flat[b + row + 1]
+                p11, a11 = flat[b + row + 2], flat[b + row + 3]
+                top_p = p00 + fu * (p01 - p00)
+                bot_p = p10 + fu * (p11 - p10)
+                top_a = a00 + fu * (a01 - a00)
+                bot_a = a10 + fu * (a11 - a10)
+                pa = top_p + fv * (bot_p - top_p)
+                al = top_a + fv * (bot_a - top_a)
+                acc[x] = acc[x] * (one - al) + pa
+                hit[x] = True
+        for i in range(n_seg):
+            for x in range(seg_lo[i], seg_hi[i]):
+                if hit[x]:
+                    f = min(max(acc[x], zero) * lut_scale, lut_max)
                     k = int(f)
                     ln = lut[k] + (f - k) * (lut[k + 1] - lut[k])
                 else:
@@ -338,10 +354,10 @@ def generate_events(
     if t1_us <= t0_us or not scene.objects:
         return out
     stamp: Clock = (clock.offset_us, clock.rate) if clock is not None else (0.0, 1.0)
-    n_sub = scene.substeps(view, t0_us, t1_us, MAX_STEP_PX)
-    times = np.linspace(t0_us, t1_us, n_sub + 1)
-    corners = scene.object_corners(view, times)  # (n_sub + 1, n_obj, 4, 2)
-    hinvs = np.linalg.inv(scene.object_homographies(view, times[1:]))
+    times, hs = scene.step_homographies(view, t0_us, t1_us, MAX_STEP_PX)
+    n_sub = len(times) - 1
+    corners = scene.corners_of(hs)  # (n_sub + 1, n_obj, 4, 2)
+    hinvs = np.linalg.inv(hs[1:])
     y_lo = max(math.floor(corners[..., 1].min()), 0)
     y_hi = min(math.floor(corners[..., 1].max()) + 2, view.height)
     # Log range of the scene is below 4 (lin_log(0) ~ 2.0, log(256) ~ 5.6).

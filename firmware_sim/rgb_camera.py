@@ -36,7 +36,7 @@ from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wa
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.frames import Frame
-from rigd.core.pixels import PIXEL_FORMATS, frame_shape, mosaic_rggb
+from rigd.core.pixels import PIXEL_FORMATS, frame_shape
 from rigd.core.settings import CameraSettings
 
 log = logging.getLogger(__name__)
@@ -307,10 +307,11 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             return not self._started or self._dead(self._world.now_us())
 
     def _render(self, job: _Exposure) -> NDArray[np.uint8]:
-        fmt = self.pixel_format
-        img = self._scene.render(self._view, job.true_us + job.exposure_us / 2.0, gray=fmt == "mono8")
+        fmt, t_mid = self.pixel_format, job.true_us + job.exposure_us / 2.0
         if fmt == "bayer_rg8":
-            img = mosaic_rggb(img)  # what a colour sensor's filter array lets through
+            img = self._scene.render_bayer(self._view, t_mid)  # what a colour filter array lets through
+        else:
+            img = self._scene.render(self._view, t_mid, gray=fmt == "mono8")
         gain = (job.exposure_us / _NOMINAL_EXPOSURE_US) * 10.0 ** (self._settings.gain_db / 20.0)
         if abs(gain - 1.0) > 1e-3:
             img = np.asarray(cv2.convertScaleAbs(img, alpha=gain), dtype=np.uint8)

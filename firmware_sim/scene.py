@@ -28,6 +28,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from rigd.core.pixels import mosaic_rggb
+
 log = logging.getLogger(__name__)
 
 F32 = NDArray[np.float32]
@@ -72,6 +74,36 @@ def _lin_log_kernel(inten: F32, out: F32, eps: float, knee: float) -> None:  # p
                 out[i, j] = math.log(v)
             else:
                 out[i, j] = log_knee + (v - knee) / knee
+
+
+@njit(nogil=True, cache=True)
+def _blend_premul_kernel(dst: U8, warped: U8) -> None:  # pragma: no cover - numba
+    """dst = dst * (1 - a) + premultiplied colour, rounded in integers, in place: warped is
+    (h, w, c + 1) with alpha last, dst (h, w, c). Compiled and nogil so the cameras render
+    in parallel with each other and the event sensors."""
+    h, w, c = dst.shape
+    for i in range(h):
+        for j in range(w):
+            inv = 255 - np.uint16(warped[i, j, c])
+            for k in range(c):
+                v = (np.uint16(dst[i, j, k]) * inv + 127) // 255 + np.uint16(warped[i, j, k])
+                dst[i, j, k] = v if v < 255 else 255
+
+
+@njit(nogil=True, cache=True)
+def _blend_premul_bayer_kernel(  # pragma: no cover - numba
+    dst: U8, warped: U8, x_odd: int, y_odd: int
+) -> None:
+    """`_blend_premul_kernel` into an RGGB mosaic: each pixel blends the one channel its
+    filter passes (R at even row and column, B at odd, G elsewhere; parities of dst's origin
+    given), which is exactly the mosaic of the RGB blend, at a third of the work."""
+    h, w = dst.shape
+    for i in range(h):
+        for j in range(w):
+            c = ((i + y_odd) & 1) + ((j + x_odd) & 1)
+            inv = 255 - np.uint16(warped[i, j, 3])
+            v = (np.uint16(dst[i, j]) * inv + 127) // 255 + np.uint16(warped[i, j, c])
+            dst[i, j] = v if v < 255 else 255
 
 
 #: Table of lin_log on [0, 256] in steps of 1/LOG_LUT_SCALE, for kernels (linear interpolation
@@ -237,6 +269,7 @@ class Scene:
             self.sprite_stack[i, : o.texels, : o.texels] = o.intensity_premul
         self.sprite_texels = np.array([o.texels for o in self.objects] or [1], np.int64)
         self._views: dict[tuple[str, int, int], View] = {}
+        self._bg_bayer: dict[tuple[str, int, int], U8] = {}
         self._lock = threading.Lock()
 
     @staticmethod
@@ -352,7 +385,10 @@ class Scene:
 
     def object_corners(self, view: View | str, true_us: F64) -> F64:
         """(..., n, 4, 2) image positions of each sprite's texture corners (the quad it covers)."""
-        hs = self.object_homographies(view, true_us)
+        return self.corners_of(self.object_homographies(view, true_us))
+
+    def corners_of(self, hs: F64) -> F64:
+        """(..., n, 4, 2) sprite corners in the image under texel -> image homographies hs."""
         sz = np.array([o.texels - 1 for o in self.objects], np.float64)
         corners = np.zeros((len(self.objects), 4, 3))
         corners[:, :, 2] = 1.0
@@ -379,15 +415,34 @@ class Scene:
 
     def substeps(self, view: View | str, t0_us: float, t1_us: float, max_step_px: float = 1.5) -> int:
         """Sub-steps needed in [t0, t1] so no sprite corner moves more than max_step_px per step."""
+        return len(self.step_homographies(view, t0_us, t1_us, max_step_px)[0]) - 1
+
+    def step_homographies(
+        self, view: View | str, t0_us: float, t1_us: float, max_step_px: float = 1.5
+    ) -> tuple[F64, F64]:
+        """Sub-step times over [t0, t1] (n + 1, so no sprite corner moves more than
+        max_step_px per step) and the sprites' homographies at them ((n + 1, n_obj, 3, 3)).
+
+        The probe that sizes the steps already evaluates the poses at [t0, t1], so the usual
+        single step (an event sensor's slice) costs one pass over the scene's motion, not three.
+        """
         v = self._as_view(view)
         if not self.objects or self.speed == 0.0 or t1_us <= t0_us:
-            return 1
+            times = np.array([t0_us, t1_us], np.float64)
+            return times, self.object_homographies(v, times)
         # Corner paths are smooth; sampling 4 points per coarse step bounds the path length.
         n_probe = max(2, min(64, int((t1_us - t0_us) / 2000.0) + 2))
         ts = np.linspace(t0_us, t1_us, n_probe)
-        xy = self.object_corners(v, ts)
+        hs = self.object_homographies(v, ts)
+        xy = self.corners_of(hs)
         path = np.linalg.norm(np.diff(xy, axis=0), axis=-1).sum(axis=0)  # (n, 4) px travelled
-        return max(1, math.ceil(float(path.max()) / max_step_px))
+        n_sub = max(1, math.ceil(float(path.max()) / max_step_px))
+        if n_sub == 1:
+            return ts[[0, -1]], hs[[0, -1]]
+        if n_sub == n_probe - 1:
+            return ts, hs
+        times = np.linspace(t0_us, t1_us, n_sub + 1)
+        return times, self.object_homographies(v, times)
 
     def changing_rois(self, view: View | str, times_us: F64) -> list[Box]:
         """Disjoint boxes covering every pixel that may change between the given times."""
@@ -437,25 +492,41 @@ class Scene:
             raise ValueError(f"roi {roi} is not inside the {v.width}x{v.height} view {v.name}")
         return c
 
+    def _warped_sprites(self, v: View, true_us: float, box: Box, gray: bool) -> list[tuple[Box, U8]]:
+        """Each visible sprite warped into its own box inside `box` (box-relative), in drawing
+        order: premultiplied colour with alpha last."""
+        out = []
+        for i, (x0, y0, x1, y1), h in self._sprites_in(v, true_us, box):
+            o = self.objects[i]
+            src = o.gray_premul if gray else o.rgba_premul
+            warped: U8 = np.asarray(cv2.warpPerspective(src, h, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR))
+            out.append(((x0 - box[0], y0 - box[1], x1 - box[0], y1 - box[1]), warped))
+        return out
+
     def render(self, view: View | str, true_us: float, roi: Box | None = None, gray: bool = False) -> U8:
         """uint8 image of the view (H, W, 3) RGB or (H, W) gray, or of `roi` only."""
         v = self._as_view(view)
         box = self._full_box(v, roi)
         bg = v.bg_gray if gray else v.bg_rgb
         out = bg[box[1] : box[3], box[0] : box[2]].copy()
-        for i, (x0, y0, x1, y1), h in self._sprites_in(v, true_us, box):
-            o = self.objects[i]
-            src = o.gray_premul if gray else o.rgba_premul
-            warped = cv2.warpPerspective(src, h, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR)
-            dst = out[y0 - box[1] : y1 - box[1], x0 - box[0] : x1 - box[0]]
-            if gray:
-                a, col = warped[..., 1], warped[..., 0]
-            else:
-                a, col = warped[..., 3:4], warped[..., :3]
-            # dst = dst * (1 - a) + premultiplied colour, in 16-bit integers.
-            blended = (dst.astype(np.uint16) * (255 - a) + 127) // 255 + col
-            np.minimum(blended, 255, out=blended)
-            dst[...] = blended
+        for (x0, y0, x1, y1), warped in self._warped_sprites(v, true_us, box, gray):
+            dst = out[y0:y1, x0:x1]
+            _blend_premul_kernel(dst[..., None] if gray else dst, warped)
+        return out
+
+    def render_bayer(self, view: View | str, true_us: float) -> U8:
+        """The RGGB mosaic (H, W) a Bayer sensor records: exactly `mosaic_rggb` of `render`'s
+        RGB image, made from the background's mosaic (once per view) and only the sprites'
+        pixels, so a frame costs a third of the copying and blending of an RGB one."""
+        v = self._as_view(view)
+        key = (v.name, v.width, v.height)
+        with self._lock:
+            bg = self._bg_bayer.get(key)
+            if bg is None:
+                bg = self._bg_bayer[key] = mosaic_rggb(v.bg_rgb)
+        out = bg.copy()
+        for (x0, y0, x1, y1), warped in self._warped_sprites(v, true_us, (0, 0, v.width, v.height), False):
+            _blend_premul_bayer_kernel(out[y0:y1, x0:x1], warped, x0 & 1, y0 & 1)
         return out
 
     def render_intensity(self, view: View | str, true_us: float, roi: Box | None = None) -> F32:
