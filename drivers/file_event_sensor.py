@@ -357,7 +357,8 @@ class FileEventSensor(EventSensor):
             data = fed
         else:  # held words: the chunk starts before (or ends short of) what was fed
             data = self._stream.read(self._chunk_at, consumed)
-        raw = EvtChunk(self._fmt, data, self._chunk_state, self._stream_id, self._chunk_at)
+        geometry = (self._decoder.width, self._decoder.height)
+        raw = EvtChunk(self._fmt, data, self._chunk_state, self._stream_id, self._chunk_at, geometry=geometry)
         self._chunk_at, self._chunk_state = consumed, self._decoder.state_copy()
         self._bytes_delivered += len(data)
         return EventPacket(decoded.events, decoded.triggers, self._arrival_ns(consumed), raw)

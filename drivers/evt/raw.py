@@ -308,7 +308,7 @@ class StreamDecoder:
                 f"{self.fmt}: decoder accounting: {used} bytes consumed, {len(before)} + {len(data)} "
                 f"given and {len(self._pending)} pending"
             )
-        return EvtChunk(self.fmt, body, state, self.stream, offset)
+        return EvtChunk(self.fmt, body, state, self.stream, offset, geometry=(self.width, self.height))
 
     def _decode(self, arr: NDArray[np.uint8], cfg: DecodeConfig) -> Decoded:
         """Decode what is pending (at most a partial word) and then arr."""

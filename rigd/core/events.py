@@ -146,7 +146,9 @@ class EvtChunk:
     one after a reconnect), `offset` is where `data` starts in it: two chunks follow each other
     without a gap when the second starts where the first ends in the same stream.
     `shift_us`: what the capture path added to the packet's times (a restarted clock re-tied);
-    the decoded times plus it are the packet's.
+    the decoded times plus it are the packet's. `geometry`: (width, height) of the decoder that
+    made the packet's events, which emits none outside it (it skips and counts such words), so a
+    take of that geometry need not check them again.
     """
 
     fmt: str
@@ -155,6 +157,7 @@ class EvtChunk:
     stream: int
     offset: int
     shift_us: int = 0
+    geometry: tuple[int, int] | None = None
 
     @property
     def end(self) -> int:

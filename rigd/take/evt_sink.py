@@ -226,7 +226,14 @@ class EvtWordsSink(TriggerIn):
         if n:
             try:
                 check_event_batch(
-                    ev, where, self.last_t, self.n_written, self.width, self.height, within=False
+                    ev,
+                    where,
+                    self.last_t,
+                    self.n_written,
+                    self.width,
+                    self.height,
+                    within=False,
+                    geometry=raw.geometry != (self.width, self.height),
                 )
             except TakeError:
                 self.refused += 1

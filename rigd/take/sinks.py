@@ -93,13 +93,15 @@ def check_event_batch(
     height: int,
     *,
     within: bool = True,
+    geometry: bool = True,
 ) -> None:
     """Refuse a batch (TakeError) that would break a sensor's time order or geometry; `seen`:
     events the sensor stored before it, `last_t`: the time of the last one. `within=False`
     skips the order of the events inside the batch: for events the production EVT decoder made,
     which never emits one earlier than the last (it counts such words as skipped), so checking
-    them again would only cost the writer thread; where the batch meets the previous one and
-    the geometry (the take's may differ from the decoder's) are still checked."""
+    them again would only cost the writer thread; where the batch meets the previous one is
+    still checked, and the geometry unless `geometry=False` (a packet whose decoder had the
+    take's geometry, `EvtChunk.geometry`)."""
     n = len(events)
     t = events.t
     if last_t is not None and int(t[0]) < last_t:
@@ -114,7 +116,7 @@ def check_event_batch(
             f"{where}: event {i} of the batch (#{seen + i} of the sensor) "
             f"has t={int(t[i])} us before event {i - 1} at {int(t[i - 1])} us; batch of {n} refused"
         )
-    for axis, arr, limit in (("x", events.x, width), ("y", events.y, height)):
+    for axis, arr, limit in (("x", events.x, width), ("y", events.y, height)) if geometry else ():
         if int(arr.max()) >= limit:
             i = int(np.argmax(arr >= limit))
             raise TakeError(

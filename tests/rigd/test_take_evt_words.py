@@ -233,3 +233,18 @@ def test_re_tied_clock_shift_is_applied_on_read(
     with open_take(tmp_path / "s.h5") as take, h5py.File(tmp_path / "s.h5") as f:
         assert set(f["events/ev0/evt_index"][:, 5].tolist()) == {0, shift}
         assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in moved])))
+
+
+def test_chunks_carry_their_decoders_geometry_and_a_take_of_another_one_checks_again(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """The decoder emits no event outside its width x height, so a take of that geometry skips
+    the writer's x/y check; a take of any other geometry still refuses what lies outside it."""
+    _ev, packets = synthetic
+    assert all(p.raw is not None and p.raw.geometry == (640, 480) for p in packets)
+    cfg = WriterConfig(event_storage="evt_words", fsync=False)
+    w = TakeWriter(tmp_path / "g.h5", rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 400, "{}", "evt3")
+    with pytest.raises(TakeError, match="y=4.. outside the sensor's 640x400 geometry"):
+        w.append_packet("ev0", packets[0])
+    w.close()

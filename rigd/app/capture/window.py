@@ -349,8 +349,9 @@ class WindowGate:
             start, end = bounds
         t = packet.events.t
         n = len(t)
-        lo = int(np.searchsorted(t, start, side="left"))
-        hi = n if end is None else int(np.searchsorted(t, end, side="left"))
+        # Integer keys: a float one would make numpy convert the whole int64 column to compare.
+        lo = int(np.searchsorted(t, math.ceil(start), side="left"))
+        hi = n if end is None else int(np.searchsorted(t, math.ceil(end), side="left"))
         hi = max(lo, hi)
         tt = triggers.t
         keep = tt >= start
