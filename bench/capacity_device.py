@@ -275,6 +275,9 @@ def run_level(
 ) -> DeviceLevel:
     """Capture one level: two looped `file://` sensors beside the replayed trigger and cameras."""
     cfg, _ = replay_config(src)
+    # The replay config carries the source take's writer settings (LZ4 frames, to keep the
+    # source small); the level is measured with the writer `rigd capture` uses by default.
+    cfg.writer = type(cfg.writer)()
     cfg.cameras = cfg.cameras[: spec.cameras]
     for cam in cfg.cameras:
         cam.spec += f"&preload={preload}"
@@ -491,7 +494,7 @@ def device_part(
             f"  burst: {BURST_BASE_MEVS:g} Mev/s per sensor, {BURST_PEAK_MEVS:g} Mev/s from {burst[0]:g} s "
             f"for {burst[1]:g} s of a {burst[2]:g} s take (Mev/s column: the base rate)"
         )
-    for lv in extra:
+    for lv in levels + extra:
         out += rss_lines(lv)
     out.append(f"  peak RSS of the whole run (VmHWM) {vm_kb('VmHWM') / 1024:.0f} MB")
     for src in sources.values():
