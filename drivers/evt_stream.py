@@ -234,9 +234,8 @@ class EvtStreamSensor(EventSensor):
         quiet, self._quiet = self._quiet, None
         if quiet is None or not chunk.continues(quiet):
             return chunk
-        return EvtChunk(
-            chunk.fmt, quiet.data + chunk.data, quiet.state, quiet.stream, quiet.offset, geometry=chunk.geometry
-        )
+        data = quiet.data + chunk.data
+        return EvtChunk(chunk.fmt, data, quiet.state, quiet.stream, quiet.offset, geometry=chunk.geometry)
 
     def _keep_quiet(self, chunk: EvtChunk) -> None:
         if chunk.data and len(chunk.data) <= _MAX_QUIET_BYTES:

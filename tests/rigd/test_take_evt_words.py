@@ -245,6 +245,6 @@ def test_chunks_carry_their_decoders_geometry_and_a_take_of_another_one_checks_a
     cfg = WriterConfig(event_storage="evt_words", fsync=False)
     w = TakeWriter(tmp_path / "g.h5", rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
     w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 400, "{}", "evt3")
-    with pytest.raises(TakeError, match="y=4.. outside the sensor's 640x400 geometry"):
+    with pytest.raises(TakeError, match=r"y=4\d\d outside the sensor's 640x400 geometry"):
         w.append_packet("ev0", packets[0])
     w.close()
