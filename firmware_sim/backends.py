@@ -1,9 +1,9 @@
 """Entry points of the `sim://` and `replay://` backends (see `[project.entry-points."rigd.backends"]`)."""
 
+from firmware_sim.box_devices import open_sim_trigger
 from firmware_sim.event_sensor import open_sim_event_sensor
 from firmware_sim.replay import open_replay_camera, open_replay_event_sensor, open_replay_trigger
 from firmware_sim.rgb_camera import open_sim_camera
-from firmware_sim.trigger_box import open_sim_trigger
 
 __all__ = [
     "open_replay_camera",

@@ -40,10 +40,11 @@ from drivers.evt_stream import EvtStreamSensor, GrabbingSource
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from drivers.serial_trigger import SerialTrigger
+from firmware_sim.box_devices import open_box_trigger
 from firmware_sim.clock import Hold
 from firmware_sim.event_sensor import SLICE_US, _Packet
 from firmware_sim.spec_params import ReplayCameraParams, ReplaySensorParams, ReplayTriggerParams, check_params
-from firmware_sim.trigger_box import START_LEAD_US, SimTriggerBox, open_box_trigger
+from firmware_sim.trigger_box import START_LEAD_US, SimTriggerBox
 from firmware_sim.world import (
     DeviceClock,
     SimWorld,

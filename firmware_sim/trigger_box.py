@@ -26,7 +26,6 @@ from __future__ import annotations
 import errno
 import json
 import logging
-import math
 import os
 import re
 import select
@@ -40,13 +39,11 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from firmware_sim.clock import Hold
-from firmware_sim.spec_params import SimTriggerParams, check_params
-from firmware_sim.world import DeviceClock, Edge, SimWorld, spec_world, truth_journal
+from firmware_sim.world import DeviceClock, Edge, SimWorld, truth_journal
 from rigd.core.errors import ConfigError
 
 if TYPE_CHECKING:
-    from drivers.registry import DeviceSpec
-    from drivers.serial_trigger import SerialTrigger
+    pass
 
 log = logging.getLogger(__name__)
 
@@ -636,98 +633,3 @@ BOX_PARAMS = {
     "boot_timeout_s",
     "clock",
 }
-_BOX_KEY = "trigger_box"
-
-
-class _BoxSlot:
-    """Per-world holder, so a closed box can be replaced by a fresh one."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.box: SimTriggerBox | None = None
-
-
-def _slot(world: SimWorld) -> _BoxSlot:
-    slot = world.resource(_BOX_KEY, _BoxSlot)
-    assert isinstance(slot, _BoxSlot)
-    return slot
-
-
-def find_trigger_box(world: SimWorld) -> SimTriggerBox | None:
-    """The world's trigger box (open or last closed), for tests to reach faults and state."""
-    return _slot(world).box
-
-
-def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
-    """Factory for `sim://<world>/trigger?...` (see `open_box_trigger`)."""
-    check_params(spec, SimTriggerParams, "trigger box")
-    return open_box_trigger(spec, spec_world(spec), SimTriggerBox)
-
-
-def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTriggerBox]) -> SerialTrigger:
-    """Start a sim box for the spec's world and open it with the real driver.
-
-    `transport=serial` (default): the box on a pty, opened with pyserial. `transport=hid`:
-    the box behind a fake hidapi device (firmware_sim.hid_box), opened with HidTransport.
-    Fault switches (docs/sim-faults.md): `silent_after=N`, `garbage_after=N`, besides
-    `drop_pulses`, `garbage_every` and `jitter_us`; `reply_timeout_s` / `boot_timeout_s` go to
-    the host driver.
-    """
-    from drivers.serial_trigger import SerialTrigger
-
-    transport = spec.param("transport", "serial")
-    if transport not in ("serial", "hid"):
-        raise ConfigError(f"device spec {spec.raw!r}: transport={transport!r}; use serial or hid")
-    # Host driver timeouts, as `serial://` and `hid://` specs take them.
-    reply_timeout_s = spec.float_param("reply_timeout_s", 1.0)
-    boot_timeout_s = spec.float_param("boot_timeout_s", 5.0)
-    for key, value in (("reply_timeout_s", reply_timeout_s), ("boot_timeout_s", boot_timeout_s)):
-        if not (0 < value < math.inf):
-            raise ConfigError(f"device spec {spec.raw!r}: {key}={spec.params[key]!r} must be > 0 seconds")
-    seed = spec.int_param("seed", 0)
-    slot = _slot(world)
-    with slot.lock:
-        if slot.box is not None and not slot.box.closed:
-            raise ConfigError(
-                f"device spec {spec.raw!r}: world {world.name!r} already has an open trigger box "
-                f"on {slot.box.port_path}"
-            )
-        box = box_class(
-            world,
-            offset_us=spec.float_param("offset_us", 0.0),
-            drift_ppm=spec.float_param("drift_ppm", 0.0),
-            jitter_us=spec.float_param("jitter_us", 0.0),
-            drop_pulses=spec.int_list_param("drop_pulses"),
-            garbage_every=spec.int_param("garbage_every", 0),
-            boot_ms=spec.int_param("boot_ms", 50),
-            seed=seed,
-            link="socket" if transport == "hid" else "pty",
-            silent_after=spec.int_param("silent_after", 0),
-            garbage_after=spec.int_param("garbage_after", 0),
-        )
-        slot.box = box
-    try:
-        if transport == "hid":
-            from drivers.trigger_link import HidTransport
-            from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidDevice, attach, box_serial
-
-            attach(box)
-            name = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/{box_serial(box)}"
-            link = HidTransport(FakeHidDevice(box), name)
-            return SerialTrigger(
-                transport=link,
-                spec=spec.raw,
-                on_close=box.close,
-                reply_timeout_s=reply_timeout_s,
-                boot_timeout_s=boot_timeout_s,
-            )
-        return SerialTrigger(
-            box.port_path,
-            spec=spec.raw,
-            on_close=box.close,
-            reply_timeout_s=reply_timeout_s,
-            boot_timeout_s=boot_timeout_s,
-        )
-    except BaseException:
-        box.close()
-        raise

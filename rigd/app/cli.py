@@ -14,7 +14,7 @@ import typer
 
 from rigd import __version__
 from rigd.app.commands.calibrate import calibrate_app
-from rigd.app.commands.consoles import stderr_console, stdout_console
+from rigd.app.commands.consoles import fail, stderr_console, stdout_console
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
 from rigd.app.commands.export import export
@@ -74,12 +74,10 @@ def _main(
     if log_level is not None:
         named = logging.getLevelNamesMapping().get(log_level.upper())
         if named is None:
-            raise _fail(
-                ConfigError(f"--log-level: unknown level {log_level!r} (debug, info, warning, error)")
-            )
+            raise fail(ConfigError(f"--log-level: unknown level {log_level!r} (debug, info, warning, error)"))
         level = named
     if log_format not in ("text", "json"):
-        raise _fail(ConfigError(f"--log-format: {log_format!r} is not text or json"))
+        raise fail(ConfigError(f"--log-format: {log_format!r} is not text or json"))
     setup_logging(level, "json" if log_format == "json" else "text", log_file)
 
 
@@ -97,11 +95,6 @@ StrictOpt = Annotated[
         "missing pulse, dropped frame or silent device).",
     ),
 ]
-
-
-def _fail(exc: Exception) -> typer.Exit:
-    console.print(f"[bold red]error:[/] {exc}", soft_wrap=True)
-    return typer.Exit(code=2)
 
 
 @app.command()
@@ -151,20 +144,20 @@ def capture(
     from rigd.app.inspect import summarize
 
     if sim_clock not in ("real", "virtual"):
-        raise _fail(ConfigError(f"--sim-clock {sim_clock!r}: use real or virtual"))
+        raise fail(ConfigError(f"--sim-clock {sim_clock!r}: use real or virtual"))
     try:  # before a daemon is asked, a device opened or a file made
         if duration is not None:
             check_duration(duration, "--duration")
         if out_dir is not None:
             check_out_dir(out_dir, "--out")
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     if replay is not None and config is not None:
-        raise _fail(ConfigError("--replay plays a take's own rig: drop --config"))
+        raise fail(ConfigError("--replay plays a take's own rig: drop --config"))
     if replay is not None and scene is not None:
-        raise _fail(ConfigError("--replay plays what the take recorded: drop --scene"))
+        raise fail(ConfigError("--replay plays what the take recorded: drop --scene"))
     if sim_clock == "virtual" and config is not None:
-        raise _fail(
+        raise fail(
             ConfigError(
                 "--sim-clock applies to the built-in sim rig and --replay; in a config, give every "
                 "sim:// spec clock=virtual"
@@ -174,11 +167,11 @@ def capture(
         in_process = replay is not None or sim_clock == "virtual" or scene is not None
         client = None if in_process else find_for_command(connect, local)
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     if client is not None:
         with client:
             if config is not None or out_dir is not None:
-                raise _fail(
+                raise fail(
                     ConfigError(
                         f"a rigd daemon runs at {client.endpoint} with its own rig config and take dir; "
                         "drop --config/--out to capture through it, or pass --local to capture in-process"
@@ -202,7 +195,7 @@ def capture(
                 rig = with_sim_scene(rig, scene)
         rig.check_devices()
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     duration = 5.0 if duration is None else duration
     with StageProgress(console, "capture", quiet=json_out) as bar:
         on_progress = _capture_progress(bar)
@@ -212,7 +205,7 @@ def capture(
                 rig, out_dir, duration, on_progress=on_progress, path=path, stop_signals=_STOPS
             )
         except RigdError as exc:
-            raise _fail(exc) from exc
+            raise fail(exc) from exc
         except KeyboardInterrupt:  # a second signal while finalizing: the take is left as it is
             console.print(
                 f"[bold red]aborted:[/] take {path} left unfinished; `rigd recover {path}` seals it",
@@ -354,14 +347,14 @@ def inspect(
     from rigd.app.inspect import status_hint, summarize, write_thumbnails
 
     if not take.exists():
-        raise _fail(FileNotFoundError(f"no such take: {take}"))
+        raise fail(FileNotFoundError(f"no such take: {take}"))
     try:
         summary = summarize(take)
         hint = status_hint(summary)
         if thumbnails is not None:
             write_thumbnails(take, thumbnails)
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     if json_out:
         out.print_json(summary.model_dump_json())
     else:
@@ -390,13 +383,13 @@ def convert_cmd(
     from rigd.app.convert import convert
 
     if not src.exists():
-        raise _fail(FileNotFoundError(f"no such file: {src}"))
+        raise fail(FileNotFoundError(f"no such file: {src}"))
     with StageProgress(console, "convert") as bar:
         bar.stage("converting", _events_in(src, sensor), "events", f"{src.name} -> {dst.name}")
         try:
             n = convert(src, dst, sensor=sensor, fmt=fmt, strict=strict, on_progress=bar.advance_to)
         except RigdError as exc:
-            raise _fail(exc) from exc
+            raise fail(exc) from exc
     out.print(f"{dst}: {n:,} events")
 
 

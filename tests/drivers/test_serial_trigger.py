@@ -21,8 +21,9 @@ from drivers.base import Capability
 from drivers.registry import DeviceSpec, open_device
 from drivers.serial_trigger import SerialTrigger, TriggerBoxError, open_serial_trigger
 from drivers.trigger_link import HidTransport, TransportError, hid_payload, hid_report, parse_hid_address
+from firmware_sim.box_devices import find_trigger_box, open_sim_trigger
 from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidApi, attach
-from firmware_sim.trigger_box import SimTriggerBox, find_trigger_box, open_sim_trigger
+from firmware_sim.trigger_box import SimTriggerBox
 from firmware_sim.world import SimWorld, get_world, reset_world
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import (

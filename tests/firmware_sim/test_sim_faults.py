@@ -24,8 +24,8 @@ import pytest
 
 from drivers.base import Trigger
 from drivers.registry import open_device
+from firmware_sim.box_devices import find_trigger_box
 from firmware_sim.clock import Hold, VirtualClock
-from firmware_sim.trigger_box import find_trigger_box
 from firmware_sim.world import TRUTH_LOG_ENV, SimWorld, close_truth_journals, get_world, reset_world
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError, DeviceError, DeviceTimeoutError

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from rich.markup import escape
 
-from rigd.app.commands.consoles import stderr_console
+from rigd.app.commands.consoles import fail, stderr_console
 from rigd.app.commands.help import RigdTyper
 from rigd.app.commands.progress import StageProgress
 from rigd.core.errors import RigdError
@@ -42,11 +42,6 @@ ReportOpt = Annotated[Path | None, typer.Option("--report", help="Write an HTML 
 ModelOpt = Annotated[
     str, typer.Option("--model", help="Lens model, or 'auto' for cross-validated selection.")
 ]
-
-
-def _fail(exc: Exception) -> typer.Exit:
-    _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
-    return typer.Exit(code=2)
 
 
 def _warn(result: IntrinsicsResult | RigResult) -> None:
@@ -103,7 +98,7 @@ def intrinsics_cmd(
         with StageProgress(_err, "calibrate intrinsics", quiet=json_out) as bar:
             result = run_intrinsics(options, bar)
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     _warn(result)
     if json_out:
         typer.echo(dumps_summary(result))
@@ -168,7 +163,7 @@ def rig_cmd(
     from rigd.app.workflows.calibration_truth import ground_truth_of, rig_errors
 
     if (take is None) == (not camera):
-        raise _fail(ValueError("give either a TAKE or --camera NAME=GLOB sets (at least two)"))
+        raise fail(ValueError("give either a TAKE or --camera NAME=GLOB sets (at least two)"))
     try:
         spec = parse_board(board)
         if events and take is None:
@@ -180,7 +175,7 @@ def rig_cmd(
         with StageProgress(_err, "calibrate rig", quiet=json_out) as bar:
             calib = run_rig(options, bar)
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     for r in calib.intrinsics.values():
         _warn(r)
     _warn(calib.rig)
@@ -270,7 +265,7 @@ def events_cmd(
         with StageProgress(_err, "calibrate events", quiet=json_out) as bar:
             calib = run_events(options, bar)
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     if sensor in truth:
         _err.print(intrinsics_error(sensor, truth[sensor], calib.intrinsics.K).line(), highlight=False)
     _warn(calib.intrinsics)

@@ -7,7 +7,9 @@ and cuts table cells to `trigg...`; what a script or a log reads must hold the w
 
 from __future__ import annotations
 
+import typer
 from rich.console import Console
+from rich.markup import escape
 
 #: Columns of a console that is not a terminal: no line or table of rigd's is this wide, so none
 #: is wrapped or truncated (a table is only as wide as its cells).
@@ -29,3 +31,10 @@ def stdout_console(*, highlight: bool = True) -> Console:
 def stderr_console(*, highlight: bool = True) -> Console:
     """A console on stderr (progress, warnings, errors)."""
     return _console(stderr=True, highlight=highlight)
+
+
+def fail(error: Exception | str, code: int = 2) -> typer.Exit:
+    """Say `error` on stderr as the commands' one error line and return the exit to raise
+    (`raise fail(exc) from None`); the message is printed as text, never as rich markup."""
+    stderr_console().print(f"[bold red]error:[/] {escape(str(error))}", soft_wrap=True, highlight=False)
+    return typer.Exit(code=code)

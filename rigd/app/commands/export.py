@@ -15,10 +15,9 @@ from typing import Annotated
 
 import typer
 from pydantic import ValidationError
-from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 
-from rigd.app.commands.consoles import stderr_console
+from rigd.app.commands.consoles import fail, stderr_console
 from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError, RigdError
 
@@ -30,11 +29,6 @@ EXPORT_WORLDS = ("board", "cam0", "floor")
 EXPORT_SPLITS = ("time", "camera")
 
 _err = stderr_console()
-
-
-def _fail(message: str, code: int = 2) -> typer.Exit:
-    _err.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True, highlight=False)
-    return typer.Exit(code=code)
 
 
 def export(
@@ -116,9 +110,9 @@ def export(
         )
     except ValidationError as exc:
         err = exc.errors()[0]
-        raise _fail(f"--{'-'.join(str(p) for p in err['loc']).replace('_', '-')}: {err['msg']}") from exc
+        raise fail(f"--{'-'.join(str(p) for p in err['loc']).replace('_', '-')}: {err['msg']}") from exc
     except RigdError as exc:
-        raise _fail(str(exc)) from exc
+        raise fail(str(exc)) from exc
     with Progress(
         TextColumn("[bold]{task.description}[/]"),
         BarColumn(),
@@ -137,9 +131,9 @@ def export(
         try:
             result = run_export(options, advance)
         except ExportWriteError as exc:
-            raise _fail(str(exc), code=1) from exc
+            raise fail(str(exc), code=1) from exc
         except RigdError as exc:
-            raise _fail(str(exc)) from exc
+            raise fail(str(exc)) from exc
     _err.print(
         f"{result.take_id} -> {result.out} ({result.format}): {result.timesteps} timesteps x "
         f"{len(result.cameras)} cameras ({result.train} train / {result.test} test views, split by "

@@ -22,7 +22,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from rigd.app.commands.consoles import stderr_console, stdout_console
+from rigd.app.commands.consoles import fail, stderr_console, stdout_console
 from rigd.app.config import RigConfig, default_control_endpoint, default_sim_rig
 from rigd.core.errors import ConfigError, RigdError
 
@@ -64,11 +64,6 @@ def _require_daemon(connect: str | None, hint: str) -> DaemonClient:
         _err.print(f"no rigd daemon at {endpoint}{hint}")
         raise typer.Exit(code=3)
     return client
-
-
-def _fail(exc: Exception, code: int = 2) -> typer.Exit:
-    _err.print(f"[bold red]error:[/] {exc}", soft_wrap=True)
-    return typer.Exit(code=code)
 
 
 def serve(
@@ -123,9 +118,9 @@ def serve(
         attachments.append(Announcer(console))
         run_daemon(rig, attachments)
     except ControlPlaneError as exc:
-        raise _fail(exc, code=CONTROL_PLANE_FAILED_EXIT) from exc
+        raise fail(exc, code=CONTROL_PLANE_FAILED_EXIT) from exc
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
 
 
 class Announcer:
@@ -168,9 +163,9 @@ def console_url(connect: ConnectOpt = None) -> None:
     try:
         login = read_login(path)
     except NoConsoleLoginError as exc:
-        raise _fail(exc, code=3) from exc
+        raise fail(exc, code=3) from exc
     except RigdError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     typer.echo(login.login_url)
 
 
@@ -183,7 +178,7 @@ def status(
         try:
             t = client.call("status")
         except RigdError as exc:
-            raise _fail(exc) from exc
+            raise fail(exc) from exc
     if json_out:
         typer.echo(json.dumps(t, indent=2))
         return
@@ -301,7 +296,7 @@ def stop(
         try:
             res = client.call("stop", reason="rigd stop")
         except RigdError as exc:
-            raise _fail(exc) from exc
+            raise fail(exc) from exc
         if not wait:
             typer.echo(f"stopping {res['take']}")
             return
@@ -357,7 +352,7 @@ def capture_via_daemon(
     try:
         res = client.call("capture", timeout_s=CAPTURE_START_TIMEOUT_S, duration_s=duration, label=label)
     except DaemonRequestError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     except DaemonUnavailableError as exc:
         log.error("capture request unanswered: %s", exc)
         _err.print(
@@ -410,5 +405,5 @@ def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
     endpoint = control_endpoint(connect)
     client = find_daemon(endpoint, timeout_s=2.0)
     if client is None and connect:
-        raise _fail(ConfigError(f"--connect: no rigd daemon answers at {connect}"), code=3)
+        raise fail(ConfigError(f"--connect: no rigd daemon answers at {connect}"), code=3)
     return client

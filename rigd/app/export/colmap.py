@@ -41,26 +41,12 @@ PINHOLE = 1
 
 
 def rotmat_to_qvec(R: F64) -> F64:
-    """(w, x, y, z) unit quaternion of a rotation matrix, w >= 0 (Shepperd's method)."""
-    m = np.asarray(R, np.float64)
-    tr = np.trace(m)
-    cand = np.array([tr, m[0, 0], m[1, 1], m[2, 2]])
-    i = int(np.argmax(cand))
-    if i == 0:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif i == 1:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif i == 2:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    qv = np.array(q)
-    qv /= np.linalg.norm(qv)
-    return qv if qv[0] >= 0 else -qv
+    """(w, x, y, z) unit quaternion of a rotation matrix, w >= 0 (COLMAP's order and sign)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
 
 
 def image_name(plan: ExportPlan, k: int, j: int) -> str:
