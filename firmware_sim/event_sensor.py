@@ -52,10 +52,11 @@ from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 
-#: True time between generator wake-ups. 10 ms, not shorter: the sprites move about 2 px per
-#: 5 ms, so 5 ms slices rendered more often than the 3 px motion bound needs and paid each
-#: slice's fixed cost twice (20-30 % more CPU per sensor, docs/simulation.md).
-SLICE_US = 10_000
+#: True time between generator wake-ups. Also the longest step between two renders: 10 ms
+#: slices let slow phases of the motion be rendered only every 3 px (`MAX_STEP_PX`), which cost
+#: the e2calib reconstruction a third of its focal accuracy on the board scene, for a CPU saving
+#: lost in the noise of `python -m bench.sim_devices` (docs/simulation.md).
+SLICE_US = 5_000
 #: On virtual time a sensor runs at most this many packets ahead of its reader.
 _VIRTUAL_LEAD_PACKETS = 8
 #: After stop, how long (wall seconds) a sensor on virtual time waits for room before dropping.
