@@ -225,10 +225,6 @@ class BoardScene(Scene):
         H = np.einsum("ij,...jk,kl->...il", v.K, H, self._board_from_texel)
         return H[..., None, :, :]
 
-    def substeps(self, view: View | str, t0_us: float, t1_us: float, max_step_px: float = 1.5) -> int:
-        """As Scene.substeps: enough sub-steps that no board corner moves more than max_step_px."""
-        return super().substeps(view, t0_us, t1_us, max_step_px)
-
 
 #: Values of the `scene` spec parameter.
 SCENE_KINDS = ("sprites", "board")

@@ -1,8 +1,8 @@
 """The ideal event pixel as numba kernels, and the renderer that feeds them only what moves.
 
 `generate_events` cuts an interval into sub-steps short enough that sprites move at most
-`MAX_STEP_PX` per sub-step, renders the log intensity only inside the boxes that can change,
-and compares it with each pixel's reference level in one fused pass
+`MAX_STEP_PX` per sub-step (and none longer than `MAX_STEP_US`), renders the log intensity
+only inside the boxes that can change, and compares it with each pixel's reference level in one fused pass
 (`_render_events_kernel`, nogil, so two sensors run in parallel). A pixel crossing k
 thresholds in one sub-step emits k events at times linearly interpolated between the two
 renders. This is the noise-free case of `firmware_sim.event_model`, whose kernel works on
@@ -25,6 +25,10 @@ from rigd.core.events import EventArray
 
 #: Largest sprite motion between two renders, in pixels.
 MAX_STEP_PX = 3.0
+#: Longest true time between two renders, us, however slowly the sprites move: the event
+#: times are interpolated linearly between renders, and the e2calib reconstruction of the
+#: board scene measurably loses focal accuracy with 10 ms steps (docs/simulation.md).
+MAX_STEP_US = 5_000.0
 
 I64 = NDArray[np.int64]
 F32 = NDArray[np.float32]
@@ -354,7 +358,7 @@ def generate_events(
     if t1_us <= t0_us or not scene.objects:
         return out
     stamp: Clock = (clock.offset_us, clock.rate) if clock is not None else (0.0, 1.0)
-    times, hs = scene.step_homographies(view, t0_us, t1_us, MAX_STEP_PX)
+    times, hs = scene.step_homographies(view, t0_us, t1_us, MAX_STEP_PX, MAX_STEP_US)
     n_sub = len(times) - 1
     corners = scene.corners_of(hs)  # (n_sub + 1, n_obj, 4, 2)
     hinvs = np.linalg.inv(hs[1:])

@@ -39,7 +39,13 @@ from drivers.evt_stream import EvtStreamSensor, GrabbingSource
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from firmware_sim.clock import Hold
-from firmware_sim.event_kernels import MAX_STEP_PX, EventBuffer, generate_events, warm_up_generator
+from firmware_sim.event_kernels import (
+    MAX_STEP_PX,
+    MAX_STEP_US,
+    EventBuffer,
+    generate_events,
+    warm_up_generator,
+)
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from firmware_sim.placement import Placement, check_ranges, ground_truth_facts, place
 from firmware_sim.scene import lin_log
@@ -52,11 +58,10 @@ from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 
-#: True time between generator wake-ups. Also the longest step between two renders: 10 ms
-#: slices let slow phases of the motion be rendered only every 3 px (`MAX_STEP_PX`), which cost
-#: the e2calib reconstruction a third of its focal accuracy on the board scene, for a CPU saving
-#: lost in the noise of `python -m bench.sim_devices` (docs/simulation.md).
-SLICE_US = 5_000
+#: True time between generator wake-ups: each slice's events are one EVT buffer. 10 ms halves
+#: the per-slice cost (geometry, sort, encoding, hand-over) of 5 ms slices; the renders inside a
+#: slice stay at most `event_kernels.MAX_STEP_US` (5 ms) apart, so the events are the same.
+SLICE_US = 10_000
 #: On virtual time a sensor runs at most this many packets ahead of its reader.
 _VIRTUAL_LEAD_PACKETS = 8
 #: After stop, how long (wall seconds) a sensor on virtual time waits for room before dropping.
@@ -344,8 +349,9 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
     # --- generator ------------------------------------------------------------------------
 
     def _model_events(self, model: EventSimulator, t0: float, t1: float) -> EventArray:
-        """Full pixel model: whole log frames at sub-steps of at most MAX_STEP_PX of motion."""
-        n_sub = self._scene.substeps(self._view, t0, t1, MAX_STEP_PX)
+        """Full pixel model: whole log frames at sub-steps of at most MAX_STEP_PX of motion
+        and MAX_STEP_US of time."""
+        n_sub = self._scene.substeps(self._view, t0, t1, MAX_STEP_PX, MAX_STEP_US)
         parts = []
         for t in np.linspace(t0, t1, n_sub + 1)[1:]:
             ti = round(t)

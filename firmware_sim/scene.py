@@ -413,15 +413,29 @@ class Scene:
         x1, y1 = min(int(b[2]), v.width), min(int(b[3]), v.height)
         return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
-    def substeps(self, view: View | str, t0_us: float, t1_us: float, max_step_px: float = 1.5) -> int:
-        """Sub-steps needed in [t0, t1] so no sprite corner moves more than max_step_px per step."""
-        return len(self.step_homographies(view, t0_us, t1_us, max_step_px)[0]) - 1
+    def substeps(
+        self,
+        view: View | str,
+        t0_us: float,
+        t1_us: float,
+        max_step_px: float = 1.5,
+        max_step_us: float = math.inf,
+    ) -> int:
+        """Sub-steps needed in [t0, t1] so no sprite corner moves more than max_step_px per step
+        (and no step lasts more than max_step_us)."""
+        return len(self.step_homographies(view, t0_us, t1_us, max_step_px, max_step_us)[0]) - 1
 
     def step_homographies(
-        self, view: View | str, t0_us: float, t1_us: float, max_step_px: float = 1.5
+        self,
+        view: View | str,
+        t0_us: float,
+        t1_us: float,
+        max_step_px: float = 1.5,
+        max_step_us: float = math.inf,
     ) -> tuple[F64, F64]:
         """Sub-step times over [t0, t1] (n + 1, so no sprite corner moves more than
-        max_step_px per step) and the sprites' homographies at them ((n + 1, n_obj, 3, 3)).
+        max_step_px, and no step lasts more than max_step_us) and the sprites' homographies at
+        them ((n + 1, n_obj, 3, 3)).
 
         The probe that sizes the steps already evaluates the poses at [t0, t1], so the usual
         single step (an event sensor's slice) costs one pass over the scene's motion, not three.
@@ -436,7 +450,7 @@ class Scene:
         hs = self.object_homographies(v, ts)
         xy = self.corners_of(hs)
         path = np.linalg.norm(np.diff(xy, axis=0), axis=-1).sum(axis=0)  # (n, 4) px travelled
-        n_sub = max(1, math.ceil(float(path.max()) / max_step_px))
+        n_sub = max(1, math.ceil(float(path.max()) / max_step_px), math.ceil((t1_us - t0_us) / max_step_us))
         if n_sub == 1:
             return ts[[0, -1]], hs[[0, -1]]
         if n_sub == n_probe - 1:
