@@ -437,8 +437,9 @@ class Scene:
         max_step_px, and no step lasts more than max_step_us) and the sprites' homographies at
         them ((n + 1, n_obj, 3, 3)).
 
-        The probe that sizes the steps already evaluates the poses at [t0, t1], so the usual
-        single step (an event sensor's slice) costs one pass over the scene's motion, not three.
+        The probe that sizes the steps already evaluates the poses where the usual steps fall
+        (an event sensor's slice in one or two steps), so a slice costs one pass over the
+        scene's motion, not three.
         """
         v = self._as_view(view)
         if not self.objects or self.speed == 0.0 or t1_us <= t0_us:
@@ -451,11 +452,9 @@ class Scene:
         xy = self.corners_of(hs)
         path = np.linalg.norm(np.diff(xy, axis=0), axis=-1).sum(axis=0)  # (n, 4) px travelled
         n_sub = max(1, math.ceil(float(path.max()) / max_step_px), math.ceil((t1_us - t0_us) / max_step_us))
-        if n_sub == 1:
-            return ts[[0, -1]], hs[[0, -1]]
-        if n_sub == n_probe - 1:
-            return ts, hs
         times = np.linspace(t0_us, t1_us, n_sub + 1)
+        if (n_probe - 1) % n_sub == 0:  # the steps fall on probes (1 or 2 steps a slice, usually)
+            return times, hs[:: (n_probe - 1) // n_sub]
         return times, self.object_homographies(v, times)
 
     def changing_rois(self, view: View | str, times_us: F64) -> list[Box]:
