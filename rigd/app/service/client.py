@@ -69,6 +69,12 @@ class DaemonClient:
             self._sock = sock
         return self._sock
 
+    def set_timeout(self, timeout_s: float) -> None:
+        """The deadline of later calls (sending and waiting for the reply)."""
+        self.timeout_s = timeout_s
+        if self._sock is not None:
+            self._sock.setsockopt(zmq.SNDTIMEO, int(timeout_s * 1000))
+
     def send_raw(self, payload: bytes, timeout_s: float | None = None) -> bytes:
         """Send bytes as they are and return the reply bytes (for tests and fuzzing)."""
         sock = self._socket()
@@ -115,9 +121,11 @@ class DaemonClient:
         self.close()
 
 
-def find_daemon(endpoint: str, timeout_s: float = 1.0) -> DaemonClient | None:
-    """A client for the daemon at `endpoint` if one answers a ping, else None (quickly when
-    its IPC socket does not even exist)."""
+def find_daemon(endpoint: str, timeout_s: float = 1.0, call_timeout_s: float = 5.0) -> DaemonClient | None:
+    """A client for the daemon at `endpoint` if one answers a ping within `timeout_s`, else
+    None (at once when its IPC socket does not even exist). The client's later calls wait up to
+    `call_timeout_s`: a daemon busy finalizing a take may take more than the probe's second to
+    answer, and that is not a daemon gone."""
     path = ipc_path(endpoint)
     if path is not None and not os.path.exists(path):
         return None
@@ -130,4 +138,5 @@ def find_daemon(endpoint: str, timeout_s: float = 1.0) -> DaemonClient | None:
     except DaemonRequestError as exc:
         client.close()
         raise RigdError(f"the daemon at {endpoint} refused ping: {exc}") from exc
+    client.set_timeout(call_timeout_s)
     return client
