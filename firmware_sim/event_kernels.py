@@ -2,8 +2,8 @@
 
 `generate_events` cuts an interval into sub-steps short enough that sprites move at most
 `MAX_STEP_PX` per sub-step (and none longer than `MAX_STEP_US`), renders the log intensity
-only inside the boxes that can change, and compares it with each pixel's reference level in one fused pass
-(`_render_events_kernel`, nogil, so two sensors run in parallel). A pixel crossing k
+only inside the boxes that can change, and compares it with each pixel's reference level in
+one fused pass (`_render_events_kernel`, nogil, so two sensors run in parallel). A pixel crossing k
 thresholds in one sub-step emits k events at times linearly interpolated between the two
 renders. This is the noise-free case of `firmware_sim.event_model`, whose kernel works on
 whole frames with per-pixel state (mismatch, noise, refractory, low-pass); the two stay
@@ -179,8 +179,8 @@ def _render_events_kernel(  # pragma: no cover - numba
     background, float32), then every pixel of the spans goes through the log table and is
     compared with its reference. `last_log` (the log image at t0) and `ref` are full-frame
     and updated in place; uncovered pixels read the view's precomputed background log. Rows
-    are atomic: when a row might not fit in the
-    outputs, returns (n_out, that row) for the caller to grow them and resume.
+    are atomic: when a row might not fit in the outputs, returns (n_out, that row) for the
+    caller to grow them and resume.
     """
     _height, width = bg_int.shape
     cap = out[0].shape[0]

@@ -351,9 +351,9 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
     def _model_events(self, model: EventSimulator, t0: float, t1: float) -> EventArray:
         """Full pixel model: whole log frames at sub-steps of at most MAX_STEP_PX of motion
         and MAX_STEP_US of time."""
-        n_sub = self._scene.substeps(self._view, t0, t1, MAX_STEP_PX, MAX_STEP_US)
+        times, _ = self._scene.step_homographies(self._view, t0, t1, MAX_STEP_PX, MAX_STEP_US)
         parts = []
-        for t in np.linspace(t0, t1, n_sub + 1)[1:]:
+        for t in times[1:]:
             ti = round(t)
             if ti <= self._model_t:
                 continue

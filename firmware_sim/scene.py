@@ -413,17 +413,9 @@ class Scene:
         x1, y1 = min(int(b[2]), v.width), min(int(b[3]), v.height)
         return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
-    def substeps(
-        self,
-        view: View | str,
-        t0_us: float,
-        t1_us: float,
-        max_step_px: float = 1.5,
-        max_step_us: float = math.inf,
-    ) -> int:
-        """Sub-steps needed in [t0, t1] so no sprite corner moves more than max_step_px per step
-        (and no step lasts more than max_step_us)."""
-        return len(self.step_homographies(view, t0_us, t1_us, max_step_px, max_step_us)[0]) - 1
+    def substeps(self, view: View | str, t0_us: float, t1_us: float, max_step_px: float = 1.5) -> int:
+        """Sub-steps needed in [t0, t1] so no sprite corner moves more than max_step_px per step."""
+        return len(self.step_homographies(view, t0_us, t1_us, max_step_px)[0]) - 1
 
     def step_homographies(
         self,
