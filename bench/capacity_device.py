@@ -8,9 +8,10 @@ The sources cost the host what real devices cost it, not what replaying a take c
 
 * two `file://` event sensors (`drivers.file_event_sensor`) on the real Gen4.1 EVT 3.0 bytes,
   looped over whole TIME_HIGH periods: the bytes sit in memory and are handed out paced
-  against the host clock (`pace`), and the capture decodes them on its reader threads with the
-  production `StreamDecoder`, as it would a Prophesee camera's. Mev/s per sensor offered =
-  pace x the recording's density (events of the looped periods / their span);
+  against the host clock (`pace`; the sensor's clock keeps real time, a pace below 1 thins the
+  events), and the capture scans them on its reader threads with the production
+  `StreamDecoder`, as it would a Prophesee camera's. Mev/s per sensor offered = pace x the
+  recording's density (events of the looped periods / their span);
 * the trigger box replayed from a source take (`replay://`, the simulated firmware on a pty),
   `enable_trigger_in=false` on the event sensors;
 * three 1280x720 30 Hz cameras replayed from the source take with `preload=N`: N frames held
@@ -25,7 +26,8 @@ produced vs in the take; loss records (counted + without a count, "N+M?", and th
 MB the sensors had due but the capture never read (`bytes_unread`); process CPU seconds per Mev
 (`time.process_time` over the take) and the same without the simulated trigger box's threads
 (its firmware runs on a microcontroller in a real rig; per-thread CPU from /proc); bytes per
-event on disk (storage of the take's `events/` datasets); take time vs duration and wall time;
+event on disk (storage of the take's `events/` datasets) and the share of EVT-word chunks the
+writer stored uncompressed while it was behind ("unz %"); take time vs duration and wall time;
 VmRSS at the level's start (after `malloc_trim`) and its peak (sampled every 0.5 s by a thread);
 how long a status query (`CaptureSession.progress`,
 what `rigd status` shows) takes, median and max; and the disk's own write rate measured in the
@@ -217,6 +219,8 @@ class DeviceLevel:
     unread_bytes: int
     """Bytes the sensors had due at their stop that the capture never read (its backlog)."""
     threads: dict[str, float] = field(default_factory=dict)
+    word_chunks: tuple[int, int] = (0, 0)
+    """EVT-word chunks stored uncompressed (the writer behind) and in all."""
 
     @property
     def missing_events(self) -> int:
@@ -356,10 +360,13 @@ def judge(
         if v and (any(w in k for w in _LOSS_WORDS) or k.startswith("decoder_skipped"))
     }
     sizes: list[int] = []
+    masks: list[int] = []
 
-    def visit(_name: str, obj: object) -> None:
+    def visit(name: str, obj: object) -> None:
         if isinstance(obj, h5py.Dataset):
             sizes.append(int(obj.id.get_storage_size()))
+            if name.endswith("evt_words"):
+                obj.id.chunk_iter(lambda info: masks.append(int(info.filter_mask)))
 
     with h5py.File(res.path, "r") as f:
         if "events" in f:
@@ -390,6 +397,7 @@ def judge(
         end_reason=res.end_reason,
         unread_bytes=sum(counters.get(s, {}).get("bytes_unread", 0) for s in sensors),
         threads=threads,
+        word_chunks=(sum(1 for m in masks if m), len(masks)),
     )
     return level
 
@@ -402,7 +410,7 @@ def _offered(spec: LevelSpec, density: float) -> float:
 def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
     head = (
         f"{'level':<14}{'cams':>9}{'Mev/s':>7}{'ev prod':>10}{'outside':>9}{'in take':>10}"
-        f"{'fr prod':>8}{'out':>5}{'in take':>8}{'loss':>8}{'CPU s/Mev':>10}{'net':>6}{'B/ev':>6}"
+        f"{'fr prod':>8}{'out':>5}{'in take':>8}{'loss':>8}{'CPU s/Mev':>10}{'net':>6}{'B/ev':>6}{'unz %':>6}"
         f"{'take/dur s':>11}{'wall s':>7}{'unread MB':>10}{'RSS MB':>10}{'status ms':>11}  verdict"
     )
     out = [head, "-" * len(head)]
@@ -419,6 +427,7 @@ def level_table(levels: Sequence[DeviceLevel]) -> list[str]:
             f"{lv.produced_frames:>8}{lv.outside_frames:>5}{lv.take_frames:>8}"
             f"{f'{sum(lv.losses.values())}+{len(lv.unknown_losses)}?':>8}"
             f"{_f(cpm, 10, 3)}{_f(net, 6, 3)}{_f(bpe, 6, 2)}"
+            f"{_f(100 * lv.word_chunks[0] / lv.word_chunks[1] if lv.word_chunks[1] else None, 6, 1)}"
             f"{f'{lv.capture_s:.1f}/{lv.spec.seconds:g}':>11}{lv.wall_s:>7.1f}{lv.unread_bytes / 1e6:>10.1f}"
             f"{f'{lv.rss_mb[0][1]:.0f}/{lv.peak_rss_mb:.0f}':>10}"
             f"{f'{statistics.median(st) * 1e3:.2f}/{max(st) * 1e3:.1f}':>11}  {verdict}"

@@ -430,7 +430,7 @@ class EventSensor(AcquiringDevice[EventPacket, EventSensorSettings]):
         return None
 
     def _size(self, item: EventPacket) -> int:
-        return len(item.events)
+        return item.n_events
 
 
 class Trigger(Device):

@@ -5,9 +5,12 @@ What a real sensor costs the host is its bytes arriving in memory, paced, and th
 `EvtFileStream` holds the file's stream once (read at open), knows the stream time at byte
 offsets (`drivers.evt.timepoints`), and cuts it at word boundaries where everything before the
 cut is due. With `loop`, an EVT 3.0 stream repeats a whole number of TIME_HIGH periods (4096 us)
-that starts at the first TIME_HIGH word of a period; pass p adds p x periods to every TIME_HIGH
-word of the pass (mod 4096, the decoder follows the 24-bit wrap), so the looped stream is a
-valid stream of the recording's density whose time keeps rising. The pass must not lean on
+that starts at the first TIME_HIGH word of a period; pass p adds the periods before it to every
+TIME_HIGH word of the pass (mod 4096, the decoder follows the 24-bit wrap), so the looped stream
+is a valid stream whose time keeps rising. Those are the recording's periods of the passes
+before, and, where a real-clock `Pace` thins the events, quiet periods after each pass (no word
+at all: the next pass's TIME_HIGH steps over them), spread so that the events come at the
+pace's density while the clock keeps real time. The pass must not lean on
 what came before it: its first event word comes after an ADDR_Y of the pass and its first
 vector after a VECT_BASE_X of the pass (the real Gen4.1 sample opens every period with
 TIME_HIGH, TIME_LOW, ADDR_Y), so every pass decodes to the same events shifted in time.
@@ -15,6 +18,7 @@ TIME_HIGH, TIME_LOW, ADDR_Y), so every pass decodes to the same events shifted i
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import os
@@ -39,12 +43,18 @@ _VECTOR_TYPES = (0x4, 0x5)
 @dataclass(frozen=True, slots=True)
 class Pace:
     """Stream time against host time: `pace` x real time (0: unpaced), and an optional burst:
-    from `burst_at_s` of host time on, for `burst_s`, `burst_pace` instead."""
+    from `burst_at_s` of host time on, for `burst_s`, `burst_pace` instead.
+
+    `real_clock` (a looped stream, which can space its passes out): the stream's clock never
+    runs slower than the host's; a pace below 1 thins the events instead (`density`), as a
+    device at a lower event rate does. Above 1 the clock runs faster: the recording has no more
+    events per microsecond to give."""
 
     pace: float = 0.0
     burst_at_s: float = 0.0
     burst_s: float = 0.0
     burst_pace: float = 0.0
+    real_clock: bool = False
 
     def __post_init__(self) -> None:
         for name in ("pace", "burst_at_s", "burst_s", "burst_pace"):
@@ -59,11 +69,28 @@ class Pace:
         return self.pace > 0
 
     def _phases(self) -> list[tuple[float, float, float]]:
-        """(host start s, host end s, pace) of each phase."""
+        """(host start s, host end s, clock rate) of each phase."""
         if not self.burst_s:
-            return [(0.0, math.inf, self.pace)]
+            return [(0.0, math.inf, self._rate(self.pace))]
         a, b = self.burst_at_s, self.burst_at_s + self.burst_s
-        return [(0.0, a, self.pace), (a, b, self.burst_pace), (b, math.inf, self.pace)]
+        rate, burst = self._rate(self.pace), self._rate(self.burst_pace)
+        return [(0.0, a, rate), (a, b, burst), (b, math.inf, rate)]
+
+    def _rate(self, pace: float) -> float:
+        return max(1.0, pace) if self.real_clock else pace
+
+    def density(self, stream_us: int) -> float:
+        """Events per recorded event at stream time `stream_us` (1 but for a real clock's
+        pace below 1)."""
+        if not self.real_clock or not self.paced:
+            return 1.0
+        h = self.host_s(stream_us)
+        pace = (
+            self.burst_pace
+            if self.burst_s and self.burst_at_s <= h < self.burst_at_s + self.burst_s
+            else self.pace
+        )
+        return min(1.0, pace)
 
     def stream_us(self, elapsed_s: float) -> int:
         """Stream time (us since the stream's start) due after `elapsed_s` of host time."""
@@ -90,7 +117,9 @@ class EvtFileStream:
     """The stream of a RAW file (EVT 3.0, or EVT 2.0 without loop) in memory, as one endless
     (`loop`) or finite byte sequence; offsets count from the stream's first byte."""
 
-    def __init__(self, path: Path, header_size: int, fmt: str, *, loop: bool) -> None:
+    def __init__(
+        self, path: Path, header_size: int, fmt: str, *, loop: bool, pace: Pace | None = None
+    ) -> None:
         if fmt not in WORDS or (loop and fmt != "evt3"):
             raise ConfigError(f"event file {path}: no wire-byte replay of {fmt} (loop={int(loop)})")
         self.fmt = fmt
@@ -132,6 +161,31 @@ class EvtFileStream:
         self._off, self._t = off, tp
         self.span_bytes = len(body)
         self._pass_cache: tuple[int, NDArray[np.uint8]] = (0, body)
+        self._pace = pace
+        self._starts = [0]
+        """TIME_HIGH periods before each pass (loop): its recording's periods, and quiet ones
+        after it where the pace thins the events (`Pace.density`)."""
+        self._quiet = 0.0  # quiet periods owed but not yet whole
+
+    def _start_us(self, p: int) -> int:
+        """Stream time at which pass p starts (loop)."""
+        starts = self._starts
+        while len(starts) <= p:
+            prev = starts[-1]
+            extra = 0
+            if self._pace is not None:
+                d = self._pace.density(prev * TH_PERIOD_US)
+                self._quiet += self._periods * (1.0 / d - 1.0)
+                extra = int(self._quiet)
+                self._quiet -= extra
+            starts.append(prev + self._periods + extra)
+        return starts[p] * TH_PERIOD_US
+
+    def _pass_at_us(self, due_us: int) -> int:
+        """The last pass that starts at or before `due_us` (loop)."""
+        while self._start_us(len(self._starts) - 1) <= due_us:
+            self._start_us(len(self._starts))
+        return bisect.bisect_right(self._starts, due_us // TH_PERIOD_US) - 1
 
     @property
     def end(self) -> int | None:
@@ -146,7 +200,8 @@ class EvtFileStream:
         if not self.loop:
             k = int(np.searchsorted(self._t, due_us + 1, side="right")) - 1
             return int(self._off[max(k, 0)])
-        p, r = divmod(due_us, self.period_us)
+        p = self._pass_at_us(due_us)
+        r = due_us - self._start_us(p)  # past the pass's own span: in its quiet periods, all due
         k = int(np.searchsorted(self._t, r + 1, side="right")) - 1
         return p * self.span_bytes + int(self._off[k])
 
@@ -159,7 +214,7 @@ class EvtFileStream:
             return int(self._t[min(k, len(self._t) - 1)]) - 1
         p, r = divmod(pos, self.span_bytes)
         k = int(np.searchsorted(self._off, r, side="right"))
-        return p * self.period_us + int(self._t[k]) - 1
+        return self._start_us(p) + int(self._t[k]) - 1
 
     def due_at_us(self, pos: int) -> int:
         """The stream time from which the bytes before `pos` are all due (when a device would
@@ -169,7 +224,7 @@ class EvtFileStream:
             return int(self._t[min(k, len(self._t) - 1)]) - 1
         p, r = divmod(pos, self.span_bytes)
         k = int(np.searchsorted(self._off, r, side="left"))
-        return max(0, p * self.period_us + int(self._t[k]) - 1)
+        return max(0, self._start_us(p) + int(self._t[k]) - 1)
 
     def passes_at(self, pos: int) -> int:
         """Passes begun once `pos` bytes were handed out (1 for a stream that does not loop)."""
@@ -199,7 +254,7 @@ class EvtFileStream:
         if buf is self._body:  # the recording itself stays as read
             buf = self._body.copy()
         words = buf.view(WORDS[self.fmt][1])
-        words[self._th_pos] = (_TH << 12) | ((self._th_val + p * self._periods) & 0xFFF)
+        words[self._th_pos] = (_TH << 12) | ((self._th_val + self._start_us(p) // TH_PERIOD_US) & 0xFFF)
         self._pass_cache = (p, buf)
         return buf
 

@@ -157,7 +157,8 @@ class GrabbingSource(abc.ABC, Generic[T]):
 
 class EvtStreamSensor(EventSensor):
     """Decodes a `ByteSource` into event packets; decoder skips are counted, never silent.
-    Every packet carries the words it was decoded from (`EventPacket.raw`)."""
+    Every packet carries the words it was decoded from (`EventPacket.raw`); the words of a
+    valid stream are only scanned (`StreamDecoder.scan`), their events decoded when asked for."""
 
     delivers_evt_words = True
 
@@ -220,11 +221,11 @@ class EvtStreamSensor(EventSensor):
             if got is None:
                 return self._flushed()
             data, host_ns = got
-            decoded, chunk = self._decoder.feed_chunk(data)
+            scanned, chunk = self._decoder.scan_chunk(data)
             self._bytes += len(data)
             chunk = self._joined(chunk)
-            if len(decoded.events) or len(decoded.triggers):
-                return EventPacket(decoded.events, decoded.triggers, host_ns, chunk)
+            if not scanned.empty:
+                return scanned.packet(host_ns, chunk)
             self._keep_quiet(chunk)
             if time.monotonic() >= deadline:
                 return None

@@ -14,7 +14,11 @@ LEN_S seconds of host time from START_S on (a load peak inside a steady take).
 period start, each pass's TIME_HIGH words moved on by the periods before it (see
 `drivers.evt_file_stream`): the stream stays valid and keeps the recording's density; what it
 keeps of the recording is in `stats().extra` (`loop_us`, `recorded_us`; the Gen4.1 sample
-keeps 8192 of the 8811 us its time words span, its last, partial period dropped).
+keeps 8192 of the 8811 us its time words span, its last, partial period dropped). A looped
+stream's clock runs in real time at any pace up to 1, as a device's does: `pace=0.8` puts quiet
+TIME_HIGH periods between passes (one in every ~10 of stream time for the Gen4.1 sample, 2.5
+periods a pass on average) so that the events come at 0.8 x the recording's rate; above 1 the
+clock runs faster (the recording has no more events per microsecond to give).
 
 EVT 2.1 recordings, EVT 2.0 with `loop=1` and DAT files (decoded events, no wire bytes at all)
 keep the older replay: the file is decoded in chunks of `chunk_bytes` and handed out decoded
@@ -31,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.base import Capability, EventSensor
-from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, StreamDecoder, read_dat, warm_up_decoder
+from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, Scanned, StreamDecoder, read_dat, warm_up_decoder
 from drivers.evt_file_stream import EvtFileStream, Pace
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
@@ -77,7 +81,7 @@ class FileEventSensor(EventSensor):
         self.pace, self.loop, self.chunk_bytes, self.strict = pace, loop, chunk_bytes, strict
         self.jump_confirm = jump_confirm
         self.packet_us = packet_us
-        self._pace = Pace(pace, *(burst or (0.0, 0.0, 0.0)))
+        self._pace = Pace(pace, *(burst or (0.0, 0.0, 0.0)), real_clock=loop)
         self._clock, self._sleep = clock, sleep
         self._header_size = 0
         self._label = f"event file sensor {self.path}"
@@ -187,7 +191,13 @@ class FileEventSensor(EventSensor):
             return
         if self._stream is None:  # the file's bytes, read once: later starts replay them again
             try:
-                self._stream = EvtFileStream(self.path, self._header_size, self._fmt, loop=self.loop)
+                self._stream = EvtFileStream(
+                    self.path,
+                    self._header_size,
+                    self._fmt,
+                    loop=self.loop,
+                    pace=self._pace if self.loop else None,
+                )
             except OSError as exc:
                 raise ConfigError(f"event file {self.path}: {_reason(exc, self.path)}") from exc
         width, height = self._geometry
@@ -323,14 +333,14 @@ class FileEventSensor(EventSensor):
             if cut > self._pos:
                 data = stream.read(self._pos, cut)
                 start, self._pos = self._pos, cut
-                packet = self._packet(decoder.feed(data), data, start, last=False)
+                packet = self._packet(decoder.scan(data), data, start, last=False)
                 if packet is not None:
                     return packet
                 continue
             if self._stopped_s is not None or (end is not None and self._pos >= end):
                 self._ended = True  # held words decided now: no more bytes will tell
                 tail = decoder.finish() if self._stopped_s is None else decoder.flush()
-                return self._packet(tail, b"", self._pos, last=True)
+                return self._packet(Scanned.of(tail), b"", self._pos, last=True)
             now = self._clock()
             left = deadline - now
             if left <= 0:
@@ -342,7 +352,7 @@ class FileEventSensor(EventSensor):
                 wait = self._pace.host_s(target) - (now - self._t0_host)
             self._sleep(max(0.0, min(wait, left)))
 
-    def _packet(self, decoded: Decoded, fed: bytes, fed_at: int, *, last: bool) -> EventPacket | None:
+    def _packet(self, scanned: Scanned, fed: bytes, fed_at: int, *, last: bool) -> EventPacket | None:
         """The packet of what the decoder consumed since the last packet; its EvtChunk holds
         exactly those bytes. None while nothing was decoded (the decoder holds the words back at
         a time jump, or they are time words alone): the next packet's chunk starts earlier.
@@ -350,8 +360,7 @@ class FileEventSensor(EventSensor):
         assert self._stream is not None
         assert self._decoder is not None
         consumed = self._decoder.bytes_consumed
-        empty = not len(decoded.events) and not len(decoded.triggers)
-        if consumed <= self._chunk_at or (empty and not last):
+        if consumed <= self._chunk_at or (scanned.empty and not last):
             return None
         if fed_at == self._chunk_at and consumed == fed_at + len(fed):
             data = fed
@@ -361,7 +370,7 @@ class FileEventSensor(EventSensor):
         raw = EvtChunk(self._fmt, data, self._chunk_state, self._stream_id, self._chunk_at, geometry=geometry)
         self._chunk_at, self._chunk_state = consumed, self._decoder.state_copy()
         self._bytes_delivered += len(data)
-        return EventPacket(decoded.events, decoded.triggers, self._arrival_ns(consumed), raw)
+        return scanned.packet(self._arrival_ns(consumed), raw)
 
     def _arrival_ns(self, pos: int) -> int:
         """Host time (monotonic ns) the bytes before `pos` were in memory: when they became

@@ -32,10 +32,11 @@ from drivers.evt.errors import (
     TRUNCATED,
     EvtDecodeError,
 )
+from drivers.evt.evt3_scan import scan_kernel
 from drivers.evt.jumps import MAX_KEPT_JUMPS, TimeJump, jump_counters, take_jumps
 from drivers.evt.kernels import JUMP_CONFIRM, DecodeConfig, DecodeKernel, decode_config, decode_out
 from rigd.core.errors import EventDataError
-from rigd.core.events import EventArray, EvtChunk, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, EventSpan, EvtChunk, TriggerEvents
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +66,36 @@ class Decoded:
             EventArray.concatenate([d.events for d in parts]),
             TriggerEvents.concatenate([d.triggers for d in parts]),
         )
+
+
+@dataclass(frozen=True, slots=True)
+class Scanned:
+    """What `StreamDecoder.scan_chunk` tells of a piece of the stream: its events' span and its
+    trigger edges, and its events when the piece had to be decoded (None: only scanned)."""
+
+    span: EventSpan
+    triggers: TriggerEvents
+    events: EventArray | None
+
+    @classmethod
+    def of(cls, decoded: Decoded) -> Scanned:
+        return cls(EventSpan.of(decoded.events), decoded.triggers, decoded.events)
+
+    @property
+    def empty(self) -> bool:
+        return not self.span.n and not len(self.triggers)
+
+    def packet(self, host_time_ns: int, raw: EvtChunk | None) -> EventPacket:
+        """The event packet of these words (`raw`), decoded later where they were only scanned."""
+        if self.events is not None:
+            return EventPacket(self.events, self.triggers, host_time_ns, raw)
+        if raw is None:
+            raise EventDataError("a scanned packet needs its words")
+        return EventPacket.scanned(self.span, self.triggers, host_time_ns, raw, decode_chunk)
+
+
+#: Trigger edges a scan stores per call before it hands the piece to the decoder instead.
+_SCAN_TRIGGERS = 64
 
 
 class _Out:
@@ -285,6 +316,34 @@ class StreamDecoder:
         decoded = self.feed(data)
         return decoded, self._chunk(state, before, data, offset)
 
+    def scan(self, data: bytes) -> Scanned:
+        """`feed` for a capture that stores the words: the events are counted, not decoded,
+        where the words are those of a valid stream (EVT 3.0); anything else (held or partial
+        words, a word the scan does not mirror) is decoded by `feed`, whose events then come
+        along. Either way the decoder's state afterwards is the same."""
+        if self.fmt != "evt3" or self._pending or not data or len(data) % self._word:
+            return Scanned.of(self.feed(data))
+        _, words = self._words(np.frombuffer(data, np.uint8))
+        st = self._state.copy()
+        trig = (
+            np.empty(_SCAN_TRIGGERS, np.int64),
+            np.empty(_SCAN_TRIGGERS, np.uint8),
+            np.empty(_SCAN_TRIGGERS, np.uint8),
+        )
+        clean, n, t_first, t_last, nt = scan_kernel(words, st, self.width, self.height, *trig)
+        if not clean:
+            return Scanned.of(self.feed(data))
+        self._state[:] = st
+        self.bytes_consumed += len(data)
+        span = EventSpan(int(n), int(t_first), int(t_last)) if n else EventSpan(0, -1, -1)
+        return Scanned(span, TriggerEvents(trig[0][:nt], trig[1][:nt], trig[2][:nt]), None)
+
+    def scan_chunk(self, data: bytes) -> tuple[Scanned, EvtChunk]:
+        """`scan`, and the bytes it took as a chunk, as `feed_chunk` does."""
+        state, before, offset = self._state.copy(), self._pending, self.bytes_consumed
+        scanned = self.scan(data)
+        return scanned, self._chunk(state, before, data, offset)
+
     def flush_chunk(self) -> tuple[Decoded, EvtChunk | None]:
         """`flush`, and its words as a chunk (None when nothing was held)."""
         if not self.holding:
@@ -395,6 +454,22 @@ class StreamDecoder:
                 self.time_jumps,
                 [j.offset for j in self.jumps],
             )
+
+
+def decode_chunk(chunk: EvtChunk) -> EventArray:
+    """A chunk's events decoded on their own from its state, with its shift added: what a
+    packet that was only scanned (`EventPacket.scanned`) holds."""
+    if chunk.geometry is None:
+        raise EventDataError(
+            f"{chunk.fmt} chunk at byte {chunk.offset} of stream {chunk.stream}: no geometry to decode with"
+        )
+    width, height = chunk.geometry
+    dec = StreamDecoder(chunk.fmt, width=width, height=height, state=chunk.state)
+    events = dec.feed(chunk.data).events
+    held = dec.flush().events
+    if len(held):
+        events = EventArray.concatenate([events, held])
+    return events.with_time(events.t + chunk.shift_us) if chunk.shift_us else events
 
 
 def decode_bytes(

@@ -6,7 +6,7 @@ stores it as uint8 1/0, the DSEC convention, so existing loaders read it unchang
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -169,11 +169,114 @@ class EvtChunk:
 
 
 @dataclass(frozen=True, slots=True)
+class EventSpan:
+    """How many events a packet holds and the times of its first and last one (-1 when none):
+    what a capture that stores the words as sent needs of them."""
+
+    n: int
+    t_first: int
+    t_last: int
+
+    @classmethod
+    def of(cls, events: EventArray) -> EventSpan:
+        if not len(events):
+            return cls(0, -1, -1)
+        return cls(len(events), int(events.t[0]), int(events.t[-1]))
+
+    def shifted(self, us: int) -> EventSpan:
+        return self if not self.n else EventSpan(self.n, self.t_first + us, self.t_last + us)
+
+
+#: Decodes a chunk's words on their own (its state, geometry and shift): `drivers.evt.decode_chunk`.
+ChunkDecoder = Callable[[EvtChunk], EventArray]
+
+
 class EventPacket:
     """Events and trigger edges read in one call, both in the sensor's clock; `raw`: the
-    bytes they were decoded from, for sensors that send an EVT stream (None otherwise)."""
+    bytes they were decoded from, for sensors that send an EVT stream (None otherwise).
 
-    events: EventArray
-    triggers: TriggerEvents
-    host_time_ns: int
-    raw: EvtChunk | None = None
+    A sensor that only scanned its words (`EventPacket.scanned`) gives their `span` and no
+    events: the capture path needs only the span, and stores the words. `events` decodes them
+    then, once, on the thread that asks (a live view, a columns take, a test)."""
+
+    __slots__ = ("_decode", "_events", "host_time_ns", "raw", "span", "triggers")
+
+    def __init__(
+        self, events: EventArray, triggers: TriggerEvents, host_time_ns: int, raw: EvtChunk | None = None
+    ) -> None:
+        self._events: EventArray | None = events
+        self._decode: ChunkDecoder | None = None
+        self.triggers = triggers
+        self.host_time_ns = host_time_ns
+        self.raw = raw
+        self.span = EventSpan.of(events)
+
+    @classmethod
+    def scanned(
+        cls, span: EventSpan, triggers: TriggerEvents, host_time_ns: int, raw: EvtChunk, decode: ChunkDecoder
+    ) -> EventPacket:
+        """A packet whose words were scanned, not decoded: `decode(raw)` gives its events."""
+        packet = cls.__new__(cls)
+        packet._events = None
+        packet._decode = decode
+        packet.triggers = triggers
+        packet.host_time_ns = host_time_ns
+        packet.raw = raw
+        packet.span = span
+        return packet
+
+    @property
+    def n_events(self) -> int:
+        return self.span.n
+
+    @property
+    def from_scan(self) -> bool:
+        """Whether the sensor only scanned the words (the events are decoded when asked for)."""
+        return self._decode is not None
+
+    @property
+    def decoded(self) -> bool:
+        """Whether the events are at hand (not still to be decoded from the words)."""
+        return self._events is not None
+
+    @property
+    def events(self) -> EventArray:
+        if self._events is None:
+            decode, raw = self._scan()
+            events = decode(raw)
+            if EventSpan.of(events) != self.span:
+                raise EventDataError(
+                    f"packet of {self.span.n} scanned events ({self.span.t_first}..{self.span.t_last} us) "
+                    f"decodes to {len(events)} ({EventSpan.of(events)}): scan and decoder disagree"
+                )
+            self._events = events
+        return self._events
+
+    def with_shift(self, us: int, raw: EvtChunk | None) -> EventPacket:
+        """The packet with `us` added to its times (`raw`: its words, with the shift noted)."""
+        triggers = TriggerEvents(self.triggers.t + us, self.triggers.p, self.triggers.channel)
+        if self._events is None:
+            decode, _ = self._scan()
+            if raw is None:
+                raise EventDataError("a scanned packet's shift needs its words")
+            return EventPacket.scanned(self.span.shifted(us), triggers, self.host_time_ns, raw, decode)
+        return EventPacket(self._events.with_time(self._events.t + us), triggers, self.host_time_ns, raw)
+
+    def with_triggers(self, triggers: TriggerEvents) -> EventPacket:
+        """The same events and words with other trigger edges (a window gate's)."""
+        if self._events is None:
+            decode, raw = self._scan()
+            return EventPacket.scanned(self.span, triggers, self.host_time_ns, raw, decode)
+        return EventPacket(self._events, triggers, self.host_time_ns, self.raw)
+
+    def _scan(self) -> tuple[ChunkDecoder, EvtChunk]:
+        """The decoder and words of a packet made by `scanned` (both there by construction)."""
+        if self._decode is None or self.raw is None:
+            raise EventDataError("not a scanned packet")
+        return self._decode, self.raw
+
+    def __repr__(self) -> str:
+        words = "" if self.raw is None else f", {len(self.raw.data)} B of words"
+        state = "decoded" if self.decoded else "scanned"
+        edges = f"{len(self.triggers)} trigger edge(s)"
+        return f"EventPacket({self.span}, {edges}, host {self.host_time_ns} ns, {state}{words})"

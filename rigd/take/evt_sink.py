@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from drivers.evt import StreamDecoder
 from rigd.core.errors import TakeError, TakeFormatError
-from rigd.core.events import EventPacket, EvtChunk, TriggerEvents
+from rigd.core.events import EventPacket, EventSpan, EvtChunk, TriggerEvents
 from rigd.core.layout import (
     EVENTS_GROUP,
     EVT_INDEX_COLUMNS,
@@ -59,6 +59,8 @@ ROW_US = 2000
 #: Rows per chunk of evt_index.
 _INDEX_CHUNK = 1024
 _ZSTD_LEVEL = 1
+#: HDF5 filter mask of a chunk stored without the Zstd filter (the dataset's only filter).
+_SKIP_ZSTD = 1
 _COL = {name: i for i, name in enumerate(EVT_INDEX_COLUMNS)}
 
 
@@ -141,6 +143,10 @@ class EvtWordsSink(TriggerIn):
     prev: EvtChunk | None = None
     """The last chunk stored (None after a refused one): whether the next row `follows`."""
     stats: DeviceWriteStats = field(default_factory=lambda: DeviceWriteStats("event_sensor"))
+    compress: bool = True
+    """False while the writer is behind: whole chunks are stored as they are (HDF5's filter mask
+    says so per chunk, and readers skip the decompression for them), trading bytes on disk for
+    writer time instead of shedding events."""
     _zstd: Any = field(default_factory=lambda: zstandard.ZstdCompressor(level=_ZSTD_LEVEL))
 
     @classmethod
@@ -215,46 +221,49 @@ class EvtWordsSink(TriggerIn):
         leaves no byte behind, and the next one starts a new row from its own state)."""
         raw = packet.raw
         where = f"{path}: /{EVENTS_GROUP}/{self.name}"
-        if raw is None and not len(packet.events):
+        span = packet.span
+        if raw is None and not span.n:
             return  # trigger edges alone (a window gate kept them, not the packet's words)
         if raw is None:
             raise TakeError(f"{where}: stores EVT words, but a packet came without them")
         if raw.fmt != self.fmt:
             raise TakeError(f"{where}: stores {self.fmt} words, but a packet carries {raw.fmt}")
-        ev = packet.events
-        n = len(ev)
+        n = span.n
         if n:
             try:
-                check_event_batch(
-                    ev,
-                    where,
-                    self.last_t,
-                    self.n_written,
-                    self.width,
-                    self.height,
-                    within=False,
-                    geometry=raw.geometry != (self.width, self.height),
-                )
+                if self.last_t is not None and span.t_first < self.last_t:
+                    raise TakeError(
+                        f"{where}: event 0 of the batch (#{self.n_written} of the sensor) has "
+                        f"t={span.t_first} us before the previous event at {self.last_t} us; "
+                        f"batch of {n} refused"
+                    )
+                if raw.geometry != (self.width, self.height):
+                    # the decoder that made the events had another geometry: check them (the
+                    # order inside was the production decoder's to keep)
+                    check_event_batch(
+                        packet.events, where, None, self.n_written, self.width, self.height, within=False
+                    )
             except TakeError:
                 self.refused += 1
                 self._close_row()
                 self.prev = None
                 raise
-        self._add_row(raw, n, ev.t, int(raw.shift_us))
+        self._add_row(raw, span, int(raw.shift_us))
         self.prev = raw
         self._append_words(raw.data)
         if n:
             if self.first_t is None:
-                self.first_t = int(ev.t[0])
-            self.last_t = int(ev.t[-1])
+                self.first_t = span.t_first
+            self.last_t = span.t_last
         self.n_written += n
         self.stats.items += n
         self.stats.raw_bytes += len(raw.data)
 
-    def _add_row(self, raw: EvtChunk, n: int, t: NDArray[np.int64], shift: int) -> None:
+    def _add_row(self, raw: EvtChunk, span: EventSpan, shift: int) -> None:
         row = self.row
-        t0 = int(t[0]) if n else (self.last_t if self.last_t is not None else 0)
-        t1 = int(t[-1]) if n else t0
+        n = span.n
+        t0 = span.t_first if n else (self.last_t if self.last_t is not None else 0)
+        t1 = span.t_last if n else t0
         if (
             row is not None
             and raw.continues(row.last)
@@ -305,7 +314,11 @@ class EvtWordsSink(TriggerIn):
             self.words.resize((self.alloc,))
         if len(data) < WORDS_CHUNK:
             data = bytes(data) + bytes(WORDS_CHUNK - len(data))
-        self.words.id.write_direct_chunk((offset,), self._zstd.compress(data), 0)
+        if self.compress:
+            self.words.id.write_direct_chunk((offset,), self._zstd.compress(data), 0)
+        else:
+            self.words.id.write_direct_chunk((offset,), data, _SKIP_ZSTD)
+            self.stats.uncompressed_chunks += 1
 
     # -- flush and close ---------------------------------------------------------------
     def write(self, *, final: bool) -> None:

@@ -61,6 +61,8 @@ class DeviceWriteStats:
     """Uncompressed payload bytes appended."""
     stored_bytes: int = 0
     """Bytes the device's datasets occupy in the file (after compression, flushed data only)."""
+    uncompressed_chunks: int = 0
+    """Chunks stored without their compression while the writer was behind (EVT words)."""
 
 
 def new_series(

@@ -403,9 +403,16 @@ class TakeWriter:
         sink = self._sensor(name)
         if isinstance(sink, EvtWordsSink):
             sink.add_packet(packet, self.path)
-        elif len(packet.events):
+        elif packet.n_events:
             sink.add_events(packet.events, self.path)
         sink.add_triggers(packet.triggers, packet.host_time_ns)
+
+    def compress_events(self, on: bool) -> None:
+        """Whether EVT-word chunks are compressed from here on (off: stored as they are, while
+        the writer catches up; the take stays readable, only larger)."""
+        for sink in self._events.values():
+            if isinstance(sink, EvtWordsSink):
+                sink.compress = on
 
     def append_triggers(self, name: str, triggers: TriggerEvents, host_time_ns: int | None = None) -> None:
         """Buffer trigger-in edges of an event sensor (device clock).

@@ -360,3 +360,52 @@ def test_burst_pace_is_piecewise_and_invertible() -> None:
         Pace(0.0, burst_at_s=1.0, burst_s=1.0, burst_pace=2.0)
     with pytest.raises(ConfigError, match="START_S:LEN_S:PACE"):
         open_device("event_sensor", f"file://{DATA / 'evt3_pedestrians.raw'}?pace=1&burst=1:2")
+
+
+@needs_data
+@pytest.mark.parametrize("pace", [0.8, 0.3])
+def test_looped_stream_keeps_real_time_below_pace_one(pace: float) -> None:
+    """A device's clock never runs slow: at pace < 1 the looped passes are spaced out by quiet
+    TIME_HIGH periods, so the events come at pace x the recording's rate on a real-time clock
+    (a window gate placing them by host time sees a clock that keeps up)."""
+    path = DATA / "evt3_gen41_sample.raw"
+    _, whole = read_raw(path)
+    t0 = int(whole.events.t[0])
+    per_pass = int(np.count_nonzero(whole.events.t < t0 + 8192))
+    ref = whole.events[:per_pass]
+    clock = FakeClock()
+    sensor = FileEventSensor(path, pace=pace, loop=True, clock=clock, sleep=clock.sleep)
+    sensor.start()
+    start = clock.now
+    packets = []
+    while clock.now - start < 0.4:
+        p = sensor.read_events(0.01)
+        if p is not None:
+            packets.append(p)
+        clock.now += 0.0005  # the reader's own time between reads
+    ev = _rechunked(packets, "evt3", sensor.geometry)
+    assert not any(v for k, v in sensor.stats().extra.items() if k.startswith("decoder_skipped"))
+    n_pass = len(ev) // per_pass
+    starts = []
+    for k in range(n_pass):
+        got = ev[k * per_pass : (k + 1) * per_pass]
+        np.testing.assert_array_equal(got.x, ref.x)
+        shift = got.t - ref.t
+        assert (shift == shift[0]).all()
+        starts.append(int(shift[0]))
+    steps = np.diff(starts)
+    assert set(steps.tolist()) <= {8192 + 4096 * q for q in range(8)}  # whole quiet periods between
+    assert float(np.mean(steps)) == pytest.approx(8192 / pace, rel=0.08)
+    # real time: the stream time handed out follows the host clock, not pace x it
+    assert (int(ev.t[-1]) - t0) / 1e6 == pytest.approx(clock.now - start, abs=0.012)
+
+
+def test_real_clock_pace_runs_no_slower_than_the_host() -> None:
+    pace = Pace(0.4, burst_at_s=2.0, burst_s=1.0, burst_pace=2.0, real_clock=True)
+    assert pace.stream_us(1.0) == 1_000_000  # thinned, not slowed
+    assert pace.stream_us(2.5) == 2_000_000 + 1_000_000  # a burst above 1 runs the clock faster
+    assert pace.density(500_000) == 0.4
+    assert pace.density(2_500_000) == 1.0
+    for s in (0.3, 2.0, 2.7, 3.9):
+        assert pace.host_s(pace.stream_us(s)) == pytest.approx(s, abs=1e-6)
+    assert Pace(0.4).density(500_000) == 1.0  # an unlooped replay slows its clock instead

@@ -4,23 +4,33 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from drivers.evt import StreamDecoder, encode
+from drivers.evt import Scanned, StreamDecoder, encode
 from rigd.core.events import EventArray, EventPacket
 
 
 def packets_from_bytes(
-    fmt: str, data: bytes, piece: int, *, width: int = 1280, height: int = 720
+    fmt: str, data: bytes, piece: int, *, width: int = 1280, height: int = 720, scan: bool = False
 ) -> Iterator[EventPacket]:
     """`data` fed in pieces of `piece` bytes; a packet per feed with events or edges (the bytes
-    of feeds that decoded to nothing are carried into the next packet, as the sensor does)."""
+    of feeds that decoded to nothing are carried into the next packet, as the sensor does).
+    `scan`: the words are scanned, not decoded, where they can be (as the capture's sensors do)."""
     dec = StreamDecoder(fmt, width=width, height=height)
     carry = None
     for pos in range(0, len(data), piece):
-        got, chunk = dec.feed_chunk(data[pos : pos + piece])
+        got, chunk = (
+            dec.scan_chunk(data[pos : pos + piece]) if scan else dec.feed_chunk(data[pos : pos + piece])
+        )
         if carry is not None:
-            chunk = type(chunk)(fmt, carry.data + chunk.data, carry.state, carry.stream, carry.offset)
+            chunk = type(chunk)(
+                fmt, carry.data + chunk.data, carry.state, carry.stream, carry.offset, geometry=chunk.geometry
+            )
             carry = None
-        if len(got.events) or len(got.triggers):
+        if isinstance(got, Scanned):
+            if not got.empty:
+                yield got.packet(pos, chunk)
+            elif chunk.data:
+                carry = chunk
+        elif len(got.events) or len(got.triggers):
             yield EventPacket(got.events, got.triggers, pos, chunk)
         elif chunk.data:
             carry = chunk

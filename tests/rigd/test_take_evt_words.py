@@ -140,6 +140,36 @@ def test_real_gen41_stream_round_trips(tmp_path: Path) -> None:
             assert stored.id.get_storage_size() / len(whole) <= 2.5
 
 
+@needs_data
+def test_words_stored_uncompressed_while_behind_read_the_same(tmp_path: Path) -> None:
+    """Scanned packets (events never decoded on the way in), their chunks stored uncompressed for
+    a while (the writer behind): the take reads the same events, only its bytes grew."""
+    data = real_body("evt3_gen41_sample.raw")
+    packets = list(packets_from_bytes("evt3", data, 16_000, scan=True))
+    assert sum(p.from_scan for p in packets) >= len(packets) - 2
+    whole = EventArray.concatenate([p.events for p in packets])
+    cfg = WriterConfig(fsync=False)
+    w = TakeWriter(tmp_path / "u.h5", rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), 1280, 720, "{}", "evt3")
+    third = len(packets) // 3
+    for i, p in enumerate(packets):
+        w.compress_events(not third <= i < 2 * third)
+        w.append_packet("ev0", p)
+        if i % 5 == 4:
+            w.flush()
+    w.finalize({"ev0": CMAP}, {}, REPORT)
+    w.close()
+    with open_take(tmp_path / "u.h5") as take:
+        assert_same(take.events("ev0"), rig(whole))
+    with h5py.File(tmp_path / "u.h5") as f:
+        words = f["events/ev0/evt_words"]
+        masks = [words.id.get_chunk_info(i).filter_mask for i in range(words.id.get_num_chunks())]
+        assert set(masks) == {0, 1}
+        np.testing.assert_array_equal(
+            np.asarray(words), np.frombuffer(b"".join(p.raw.data for p in packets), np.uint8)
+        )
+
+
 def test_unfinalized_take_reads_in_device_time_with_its_tail(
     tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
 ) -> None:

@@ -519,10 +519,10 @@ class DeviceChannel:
         if isinstance(item, Frame):
             self._arrived(item.t_exposure_start_us, None, item.host_time_ns)
         else:
-            ev = item.events
-            self._arrived(first_time(item), int(ev.t[-1]) if len(ev) else None, item.host_time_ns)
-            if self.anchors is not None and len(ev):
-                self.anchors.note(int(ev.t[-1]), item.host_time_ns)
+            span = item.span
+            self._arrived(first_time(item), span.t_last if span.n else None, item.host_time_ns)
+            if self.anchors is not None and span.n:
+                self.anchors.note(span.t_last, item.host_time_ns)
         gate = self.gate
         for part in [item] if gate is None else gate.admit(item):
             self._enqueue(part)

@@ -79,7 +79,7 @@ class ClockReset:
 
     def held_count(self) -> int:
         """Frames or events held back (what is lost if the device cannot be tied)."""
-        return sum(1 if kind == "frame" else len(item.events) for kind, item in self.held)
+        return sum(1 if kind == "frame" else item.n_events for kind, item in self.held)
 
     def shift(self, kind: str, item: Any) -> Any:
         assert self.offset is not None
@@ -88,13 +88,9 @@ class ClockReset:
             frame: Frame = item
             return dataclasses.replace(frame, t_exposure_start_us=frame.t_exposure_start_us + k)
         packet: EventPacket = item
-        trig = packet.triggers
         raw = packet.raw  # its words are not rewritten: the chunk says what was added
-        return EventPacket(
-            packet.events.with_time(packet.events.t + k),
-            type(trig)(trig.t + k, trig.p, trig.channel),
-            packet.host_time_ns,
-            None if raw is None else dataclasses.replace(raw, shift_us=raw.shift_us + k),
+        return packet.with_shift(
+            k, None if raw is None else dataclasses.replace(raw, shift_us=raw.shift_us + k)
         )
 
     def release(self) -> list[tuple[str, Any]]:

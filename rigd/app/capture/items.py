@@ -57,19 +57,20 @@ class EventsItem:
 
     @property
     def count(self) -> int:
-        return len(self.packet.events)
+        return self.packet.n_events
 
     @property
     def nbytes(self) -> int:
-        """Memory the item holds: decoded events and edges, and the wire bytes when kept."""
+        """Memory the item holds: decoded events (none when only scanned) and edges, and the
+        wire bytes when kept (the same however often it is asked: the queue adds and takes it)."""
         p = self.packet
         raw = 0 if p.raw is None else len(p.raw.data)
-        return EVENT_BYTES * len(p.events) + 10 * len(p.triggers) + raw
+        return (0 if p.from_scan else EVENT_BYTES * p.n_events) + 10 * len(p.triggers) + raw
 
     @property
     def t_range(self) -> tuple[int | None, int | None]:
-        t = self.packet.events.t
-        return (int(t[0]), int(t[-1])) if len(t) else (None, None)
+        span = self.packet.span
+        return (span.t_first, span.t_last) if span.n else (None, None)
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,8 +103,8 @@ def first_time(item: Frame | EventPacket) -> int | None:
     """Device time of the first thing in a frame or event packet."""
     if isinstance(item, Frame):
         return int(item.t_exposure_start_us)
-    if len(item.events):
-        return int(item.events.t[0])
+    if item.n_events:
+        return item.span.t_first
     return int(item.triggers.t[0]) if len(item.triggers) else None
 
 

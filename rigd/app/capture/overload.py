@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.ledger import LossLedger
-from rigd.core.events import EventArray, EventPacket
+from rigd.core.events import EventArray, EventPacket, EventSpan
 
 log = logging.getLogger(__name__)
 
@@ -110,13 +110,13 @@ class SliceShedder:
             if span is not None and now - span.last_shed_mono >= SPAN_CLOSE_S:
                 self._close()
             return packet
-        self._shed(packet.events, now)
+        self._shed(packet.span, now)
         if len(packet.triggers) == 0:
             return None
         return EventPacket(EventArray.empty(), packet.triggers, packet.host_time_ns)
 
-    def _shed(self, events: EventArray, now: float) -> None:
-        n = len(events)
+    def _shed(self, events: EventSpan, now: float) -> None:
+        n = events.n
         span = self._span
         if span is None:
             span = self._span = _Span(0, None, None, 0, now)
@@ -131,8 +131,8 @@ class SliceShedder:
         if n:
             span.count += n
             if span.t_first is None:
-                span.t_first = int(events.t[0])
-            span.t_last = int(events.t[-1])
+                span.t_first = events.t_first
+            span.t_last = events.t_last
         self.shed_events += n
 
     def _close(self) -> None:

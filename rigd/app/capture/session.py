@@ -292,9 +292,8 @@ class CaptureSession:
     def latest_events(self) -> dict[str, tuple[EventArray, tuple[int, int]]]:
         out = {}
         for name, ch in list(self._channels.items()):
-            parts = list(ch.stream.recent_events)
-            if parts and ch.kind == "event_sensor":
-                out[name] = (EventArray.concatenate(parts), ch.device.geometry)  # type: ignore[union-attr]
+            if ch.kind == "event_sensor" and ch.stream.recent_packets:
+                out[name] = (ch.stream.recent_events(), ch.device.geometry)  # type: ignore[union-attr]
         return out
 
     # -- opening -------------------------------------------------------------------------
@@ -348,6 +347,7 @@ class CaptureSession:
             self._control,
             self._ballast,
             config.writer.flush_interval_s,
+            relieve_at=config.writer.uncompressed_when_behind,
         )
         self._writer_thread = self._control.start_thread("writer", writer.run, daemon=False)
         self._threads = [

@@ -21,14 +21,15 @@ from drivers.base import EventSensor, RgbCamera
 from drivers.registry import open_device
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem
 from rigd.app.capture.live import LiveStats, Observations
-from rigd.core.events import EventArray
+from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
 from rigd.sync import DeviceObservations
 from rigd.take.writer import TakeWriter
 
-#: Recent event packets kept for the live event thumbnails.
+#: Recent event packets kept for the live event thumbnails, and the events decoded of them at most.
 RECENT_PACKETS = 8
+RECENT_EVENTS = 500_000
 
 ItemT = TypeVar("ItemT", FrameItem, EventsItem, PulsesItem)
 
@@ -79,8 +80,21 @@ class DeviceStream(Stream[ItemT]):
         """Trigger observations of what reached the file (one per pulse: small)."""
         self.latest_frame: Frame | None = None
         """The newest frame written (cameras), for the live view."""
-        self.recent_events: list[EventArray] = []
-        """The newest event packets written (event sensors), for the live thumbnails."""
+        self.recent_packets: list[EventPacket] = []
+        """The newest event packets written (event sensors), for the live thumbnails (their
+        events decoded only when a view asks: `recent_events`)."""
+
+    def recent_events(self) -> EventArray:
+        """The newest packets' events, at most `RECENT_EVENTS` packets' worth (decoded now
+        where the sensor only scanned them)."""
+        parts: list[EventArray] = []
+        n = 0
+        for packet in reversed(list(self.recent_packets)):
+            if n >= RECENT_EVENTS:
+                break
+            parts.append(packet.events)
+            n += packet.n_events
+        return EventArray.concatenate(parts[::-1])
 
     @abstractmethod
     def open(self, spec: str) -> RgbCamera | EventSensor:
@@ -137,15 +151,15 @@ class EventStream(DeviceStream[EventsItem]):
 
     def landed(self, item: EventsItem) -> None:
         packet = item.packet
-        if len(packet.events):
-            self.recent_events.append(packet.events)
-            del self.recent_events[:-RECENT_PACKETS]
+        if packet.n_events:
+            self.recent_packets.append(packet)
+            del self.recent_packets[:-RECENT_PACKETS]
         if len(packet.triggers):
             rising = packet.triggers.rising(self.trigger_in)
             self.obs.t.extend(rising.t.tolist())
             self.obs.host.extend([packet.host_time_ns] * len(rising))
-        self.written += len(packet.events)
-        self.live.total += len(packet.events)
+        self.written += packet.n_events
+        self.live.total += packet.n_events
 
 
 def device_stream(

@@ -347,12 +347,8 @@ class WindowGate:
             start: float = start_dev
         else:
             start, end = bounds
-        t = packet.events.t
-        n = len(t)
-        # Integer keys: a float one would make numpy convert the whole int64 column to compare.
-        lo = int(np.searchsorted(t, math.ceil(start), side="left"))
-        hi = n if end is None else int(np.searchsorted(t, math.ceil(end), side="left"))
-        hi = max(lo, hi)
+        lo_key = math.ceil(start)
+        hi_key = None if end is None else math.ceil(end)
         tt = triggers.t
         keep = tt >= start
         if end is not None:
@@ -360,16 +356,30 @@ class WindowGate:
         if not keep.all():
             self.counts.triggers_before += int(np.count_nonzero(tt < start))
             self.counts.triggers_after += int(np.count_nonzero(~keep & (tt >= start)))
-        newest = max(int(t[-1]) if n else -(2**62), int(tt.max()) if len(tt) else -(2**62))
+        span = packet.span
+        newest = max(span.t_last if span.n else -(2**62), int(tt.max()) if len(tt) else -(2**62))
         if host_off_ns is None:
             self._reached(newest, end)
         else:
             self._reached(newest * 1000 + host_off_ns, self.window.host_bounds_ns()[1])
-        if packet.raw is not None and hi > lo:
-            # EVT words cannot be split: the packet is stored whole, and finalize counts its
-            # events outside the window by the final clock map (`stored_before`/`_after`);
-            # the take's reader clips them.
-            return [EventPacket(packet.events, triggers[keep], packet.host_time_ns, packet.raw)]
+        n = span.n
+        if packet.raw is not None:
+            # EVT words cannot be split: a packet with events inside the window is stored whole,
+            # and finalize counts its events outside the window by the final clock map
+            # (`stored_before`/`_after`); the take's reader clips them. Its span tells where it
+            # lies unless it reaches past both edges (then its events say, decoded here).
+            if not n or span.t_last < lo_key:
+                lo = hi = n
+            elif hi_key is not None and span.t_first >= hi_key:
+                lo = hi = 0
+            elif span.t_first >= lo_key or hi_key is None or span.t_last < hi_key:
+                lo, hi = 0, n  # its first or its last event is inside
+            else:
+                lo, hi = self._cut(packet.events.t, lo_key, hi_key)
+            if hi > lo:
+                return [packet if keep.all() else packet.with_triggers(triggers[keep])]
+        else:
+            lo, hi = self._cut(packet.events.t, lo_key, hi_key)
         self.counts.before += lo
         self.counts.after += n - hi
         if lo == 0 and hi == n and keep.all():
@@ -378,6 +388,14 @@ class WindowGate:
             return []
         return [EventPacket(packet.events[lo:hi], triggers[keep], packet.host_time_ns)]
 
+    @staticmethod
+    def _cut(t: NDArray[np.int64], lo_key: int, hi_key: int | None) -> tuple[int, int]:
+        """[lo, hi): the events at or after lo_key and before hi_key (integer keys: a float one
+        would make numpy convert the whole int64 column to compare)."""
+        lo = int(np.searchsorted(t, lo_key, side="left"))
+        hi = len(t) if hi_key is None else int(np.searchsorted(t, hi_key, side="left"))
+        return lo, max(lo, hi)
+
     def _arrival_bounds(self, packet: EventPacket) -> tuple[tuple[float, float | None], int] | None:
         """Host mode, an event packet: the window in the sensor's clock, from the earliest any
         packet arrived after its newest event (the lower envelope of arrival - device time; a
@@ -385,12 +403,12 @@ class WindowGate:
         judged by when its events happened, not by when it was read. None (judge by arrival)
         before a packet with events, or when this one maps further back than any backlog can
         (a device clock that jumped back)."""
-        if not len(packet.events):
+        if not packet.n_events:
             return None
         h_start, h_end = self.window.host_bounds_ns()
         if h_start is None:
             return None
-        arrival = packet.host_time_ns - int(packet.events.t[-1]) * 1000
+        arrival = packet.host_time_ns - packet.span.t_last * 1000
         if self._host_off_ns is None or arrival < self._host_off_ns:
             self._host_off_ns = arrival
         off = self._host_off_ns
@@ -415,7 +433,7 @@ class WindowGate:
         host = item.host_time_ns
         h_start, h_end = self.window.host_bounds_ns()
         self._reached(host, h_end)
-        n = 1 if isinstance(item, Frame) else len(item.events)
+        n = 1 if isinstance(item, Frame) else item.n_events
         n_trig = 0 if isinstance(item, Frame) else len(item.triggers)
         if h_start is not None and host < h_start:
             self.counts.before += n

@@ -39,6 +39,8 @@ class WriterLoop:
         control: RunControl,
         ballast: Ballast | None,
         flush_interval_s: float,
+        *,
+        relieve_at: float = 0.0,
     ) -> None:
         self.writer = writer
         self._queue = queue
@@ -49,6 +51,10 @@ class WriterLoop:
         self._control = control
         self._ballast = ballast
         self._interval = flush_interval_s
+        self._relieve_at = relieve_at
+        self.relieved = 0
+        """Times the writer fell behind and stored EVT words uncompressed until it caught up."""
+        self._relieving = False
         self.error: OSError | None = None
         """What the file system refused; the take stopped there."""
         self.last_flush_utc: str | None = None
@@ -67,6 +73,8 @@ class WriterLoop:
                 return
             if item is not None:
                 t0 = time.monotonic()
+                if self._relieve_at:
+                    self._relieve()
                 self._take(item)
                 self.load.add(t0, time.monotonic())
             now = time.monotonic()
@@ -77,6 +85,24 @@ class WriterLoop:
                     self._failed(exc)
                 self.load.add(now, time.monotonic())
                 last_flush = now
+
+    def _relieve(self) -> None:
+        """Behind (the queue past `relieve_at`): EVT words go to the file uncompressed, so the
+        writer catches up on disk bytes instead of the sensors shedding events; back to
+        compressing once the queue is under a fifth of that."""
+        fill = self._queue.fill().worst
+        if not self._relieving and fill >= self._relieve_at:
+            self._relieving = True
+            self.relieved += 1
+            self.writer.compress_events(False)
+            log.warning(
+                "writer behind (queue %.0f %% full): EVT words stored uncompressed until it catches up",
+                100 * fill,
+            )
+        elif self._relieving and fill <= self._relieve_at / 5:
+            self._relieving = False
+            self.writer.compress_events(True)
+            log.info("writer caught up: EVT words compressed again")
 
     def _take(self, item: QueueItem) -> None:
         stream = self._streams[item.device]

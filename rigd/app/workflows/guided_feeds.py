@@ -95,7 +95,7 @@ class EventFeed:
         while True:
             packet = self.sensor.read_events(max(0.0, deadline - time.monotonic()))
             self.trigger.read_pulses(0.0)
-            if packet is not None and len(packet.events):
+            if packet is not None and packet.n_events:
                 self._parts.append(packet.events)
             t_end = self._t_end()
             if t_end is not None and (

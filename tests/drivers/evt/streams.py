@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 
-from drivers.evt import Decoded, StreamDecoder, parse_raw_header
+from drivers.evt import Decoded, Evt3Encoder, StreamDecoder, parse_raw_header
 from rigd.core.events import EventArray, TriggerEvents
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
@@ -51,3 +52,51 @@ def assert_matches_pypi_evt3(events: EventArray, name: str) -> None:
     np.testing.assert_array_equal(events.y, ref.y)
     np.testing.assert_array_equal(events.p, ref.polarity.astype(np.int8) * 2 - 1)
     np.testing.assert_array_equal(events.t, ref.timestamp.astype(np.int64))
+
+
+def encoder_stream(rng: np.random.Generator, n: int, n_trig: int, loops: int, pieces: int) -> bytes:
+    """Encoder output (vectors, ADDR_X, triggers) spanning `loops` 2^24 us roll-overs, encoded in
+    `pieces` calls of one streaming encoder."""
+    span = (loops + 1) * (1 << 24) + int(rng.integers(1, 1 << 24))
+    t = np.sort(rng.integers(0, span, n))
+    burst = rng.random(n) < 0.6
+    t = np.maximum.accumulate(np.where(burst, np.r_[t[:1], t[:-1]], t))
+    same = burst & (np.r_[-1, t[:-1]] == t)
+    y = np.where(same, np.r_[0, rng.integers(0, 720, n)[:-1]], rng.integers(0, 720, n))
+    # x clustered near both edges too, so vectors reach past the width (fallback) now and then
+    x = np.where(rng.random(n) < 0.2, rng.integers(1260, 1280, n), rng.integers(0, 1280, n))
+    x = np.where(same, np.minimum(np.r_[0, x[:-1]] + rng.integers(1, 14, n), 1279), x)
+    ev = EventArray.from_arrays(x, y, rng.integers(0, 2, n), t)
+    order = np.lexsort((ev.x, ev.p, ev.y, ev.t))
+    ev = ev[order]
+    tt = np.sort(rng.integers(0, span, n_trig)).astype(np.int64)
+    tr = TriggerEvents(
+        tt, rng.integers(0, 2, n_trig).astype(np.uint8), rng.integers(0, 16, n_trig).astype(np.uint8)
+    )
+    enc = Evt3Encoder()
+    cuts = np.linspace(0, span, pieces + 1).astype(np.int64)
+    out = []
+    for lo, hi in itertools.pairwise(cuts):
+        last = hi == cuts[-1]
+        e = ev[(ev.t >= lo) & ((ev.t < hi) | last)]
+        r = tr[(tr.t >= lo) & ((tr.t < hi) | last)]
+        out.append(enc.encode(e, r))
+    return b"".join(out)
+
+
+def mutated(rng: np.random.Generator, data: bytes, n_mut: int, *, cut: bool) -> bytes:
+    """`data`'s words with `n_mut` of them broken: random words, random types on kept payloads, or
+    bit flips; `cut`: from a random word on (a stream joined mid-way)."""
+    buf = np.frombuffer(data, "<u2").copy()
+    if buf.size:
+        idx = rng.integers(0, buf.size, n_mut)
+        kind = rng.integers(0, 4, n_mut)
+        rand = rng.integers(0, 1 << 16, n_mut)
+        buf[idx] = np.where(
+            kind == 0,
+            rand,
+            np.where(kind == 1, (rand & 0xF000) | (buf[idx] & 0xFFF), buf[idx] ^ (1 << (rand % 16))),
+        )
+        if cut:
+            buf = buf[int(rng.integers(0, buf.size)) :]
+    return buf.tobytes()

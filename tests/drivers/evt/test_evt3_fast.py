@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable
 from typing import Any
 
@@ -11,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.evt import Decoded, Evt3Encoder, EvtDecodeError, StreamDecoder, evt3, evt3_fast, raw
+from drivers.evt import Decoded, EvtDecodeError, StreamDecoder, evt3, evt3_fast, raw
 from drivers.evt.errors import STATS_SIZE
 from drivers.evt.kernels import decode_config
 from drivers.evt.raw import _Out
@@ -20,7 +19,9 @@ from tests.drivers.evt.streams import (
     SETTINGS,
     assert_matches_pypi_evt3,
     assert_same,
+    encoder_stream,
     feed_chunks,
+    mutated,
     needs_data,
     real_body,
 )
@@ -60,36 +61,6 @@ def _assert_same(a: Result, b: Result) -> None:
     assert a[2] == b[2]  # skip counts by kind
     assert a[3] == b[3]  # strict: offset and kind of the error
     assert a[4] == b[4]  # outgoing decoder state
-
-
-def _stream(rng: np.random.Generator, n: int, n_trig: int, loops: int, pieces: int) -> bytes:
-    """Encoder output (vectors, ADDR_X, triggers) spanning `loops` 2^24 us roll-overs, encoded in
-    `pieces` calls of one streaming encoder."""
-    span = (loops + 1) * (1 << 24) + int(rng.integers(1, 1 << 24))
-    t = np.sort(rng.integers(0, span, n))
-    burst = rng.random(n) < 0.6
-    t = np.maximum.accumulate(np.where(burst, np.r_[t[:1], t[:-1]], t))
-    same = burst & (np.r_[-1, t[:-1]] == t)
-    y = np.where(same, np.r_[0, rng.integers(0, 720, n)[:-1]], rng.integers(0, 720, n))
-    # x clustered near both edges too, so vectors reach past the width (fallback) now and then
-    x = np.where(rng.random(n) < 0.2, rng.integers(1260, 1280, n), rng.integers(0, 1280, n))
-    x = np.where(same, np.minimum(np.r_[0, x[:-1]] + rng.integers(1, 14, n), 1279), x)
-    ev = EventArray.from_arrays(x, y, rng.integers(0, 2, n), t)
-    order = np.lexsort((ev.x, ev.p, ev.y, ev.t))
-    ev = ev[order]
-    tt = np.sort(rng.integers(0, span, n_trig)).astype(np.int64)
-    tr = TriggerEvents(
-        tt, rng.integers(0, 2, n_trig).astype(np.uint8), rng.integers(0, 16, n_trig).astype(np.uint8)
-    )
-    enc = Evt3Encoder()
-    cuts = np.linspace(0, span, pieces + 1).astype(np.int64)
-    out = []
-    for lo, hi in itertools.pairwise(cuts):
-        last = hi == cuts[-1]
-        e = ev[(ev.t >= lo) & ((ev.t < hi) | last)]
-        r = tr[(tr.t >= lo) & ((tr.t < hi) | last)]
-        out.append(enc.encode(e, r))
-    return b"".join(out)
 
 
 # ------------------------------------------------------------------ production wiring
@@ -140,7 +111,7 @@ def test_real_files_match_pypi_evt3(name: str) -> None:
     sizes=st.lists(st.integers(1, 300), min_size=1, max_size=6),
 )
 def test_encoder_streams(seed: int, n: int, n_trig: int, loops: int, pieces: int, sizes: list[int]) -> None:
-    data = _stream(np.random.default_rng(seed), n, n_trig, loops, pieces)
+    data = encoder_stream(np.random.default_rng(seed), n, n_trig, loops, pieces)
     ref = _decode(data, "ref", strict=True)
     assert ref[3] is None
     _assert_same(_decode(data, "fast", strict=True), ref)
@@ -165,20 +136,7 @@ def test_dirty_input_falls_back(
     """Mutated words (unknown types, small TIME_HIGH falls, bad x/y, vectors without base, words
     before the first TIME_HIGH): tolerant skip counts, strict error offsets and events unchanged."""
     rng = np.random.default_rng(seed)
-    buf = np.frombuffer(_stream(rng, 400, 5, 2, 2), "<u2").copy()
-    if buf.size:
-        idx = rng.integers(0, buf.size, n_mut)
-        kind = rng.integers(0, 4, n_mut)
-        rand = rng.integers(0, 1 << 16, n_mut)
-        # random words, random types on kept payloads, or bit flips
-        buf[idx] = np.where(
-            kind == 0,
-            rand,
-            np.where(kind == 1, (rand & 0xF000) | (buf[idx] & 0xFFF), buf[idx] ^ (1 << (rand % 16))),
-        )
-        if cut:
-            buf = buf[int(rng.integers(0, buf.size)) :]
-    data = buf.tobytes()
+    data = mutated(rng, encoder_stream(rng, 400, 5, 2, 2), n_mut, cut=cut)
     w, h = geometry
     for strict in (False, True):
         ref = _decode(data, "ref", strict=strict, w=w, h=h)
@@ -231,7 +189,7 @@ def _run_small(data: bytes, kernel: Callable[..., tuple[int, int, int, int]]) ->
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_growing_outputs(seed: int) -> None:
-    data = _stream(np.random.default_rng(seed), 3000, 200, 2, 3)
+    data = encoder_stream(np.random.default_rng(seed), 3000, 200, 2, 3)
     a = _run_small(data, evt3.decode_kernel)
     b = _run_small(data, evt3_fast.decode_kernel)
     for x, y in zip(a, b, strict=True):

@@ -4,6 +4,7 @@ kept, the writer queue bounded in bytes, the writer's load measured on an inject
 from __future__ import annotations
 
 import threading
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from rigd.app.capture.items import EventsItem, FrameItem, WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.app.capture.overload import SHED_REASON, SPAN_CLOSE_S, Fill, SliceShedder, WriterLoad
+from rigd.app.capture.writer_loop import WriterLoop
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 
@@ -154,3 +156,17 @@ def test_writer_load_is_the_busy_share_of_the_recent_window() -> None:
     clock.now += 10.0
     assert load.fraction() == 0.0
     assert load.busy_s == pytest.approx(0.5)
+
+
+def test_a_writer_behind_stores_words_uncompressed_until_it_caught_up() -> None:
+    """Before any event slice is shed, the writer relieves itself of the compression: from
+    `relieve_at` of the queue's bound until it is back under a fifth of that."""
+    fills = iter([0.02, 0.12, 0.5, 0.03, 0.019, 0.05, 0.1])
+    calls: list[bool] = []
+    queue = SimpleNamespace(fill=lambda: Fill(next(fills), 0.0))
+    writer = SimpleNamespace(compress_events=calls.append)
+    loop = WriterLoop(writer, queue, {}, None, None, None, None, 1.0, relieve_at=0.1)  # type: ignore[arg-type]
+    for _ in range(7):
+        loop._relieve()
+    assert calls == [False, True, False]  # behind at 12 %, caught up at 1.9 %, behind again at 10 %
+    assert loop.relieved == 2

@@ -4,6 +4,7 @@ fell outside counted; a slow sensor does not hold the stop beyond `writer.stop_b
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import time
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from drivers.evt import Evt3Encoder, StreamDecoder
 from rigd.app.capture import CaptureSession, run_capture
 from rigd.app.capture.channel import DeviceChannel, TriggerChannel
 from rigd.app.capture.session import STOP_LEAD_S
@@ -330,3 +332,62 @@ def test_open_ended_take_ends_at_the_pulse_the_stop_fixed(tmp_path: Path) -> Non
     assert seen - 1 <= last <= seen - 1 + math.ceil(STOP_LEAD_S * 30) + 1  # records in flight
     assert last <= int(pulses.index.max())
     assert end == b0 + round(last * 1e6 / 30) + round(1e6 / 30)
+
+
+def _word_packets(t_events: Any, t_edges: Any, cuts: Sequence[int], *, scan: bool) -> list[EventPacket]:
+    """The events and edges as one EVT 3.0 stream cut into packets at event indices `cuts`, each
+    carrying its words: scanned (events decoded only when asked) or decoded."""
+    t = np.asarray(t_events, np.int64)
+    x = (np.arange(t.size) * 7) % 1280
+    ev = EventArray.from_arrays(x, np.full(t.size, 5), np.ones(t.size), t)
+    edges = np.asarray(t_edges, np.int64)
+    tr = TriggerEvents(edges, np.ones(edges.size, np.uint8), np.zeros(edges.size, np.uint8))
+    enc, dec = Evt3Encoder(), StreamDecoder("evt3", width=1280, height=720)
+    packets = []
+    bounds = [0, *cuts, t.size]
+    for a, b in itertools.pairwise(bounds):
+        lo = t[a] if a < t.size else np.iinfo(np.int64).max
+        hi = t[b] if b < t.size else np.iinfo(np.int64).max
+        data = enc.encode(ev[a:b], tr[(tr.t >= (lo if a else -1)) & (tr.t < hi)])
+        if scan:
+            scanned, chunk = dec.scan_chunk(data)
+            packets.append(scanned.packet(0, chunk))
+        else:
+            decoded, chunk = dec.feed_chunk(data)
+            packets.append(EventPacket(decoded.events, decoded.triggers, 0, chunk))
+    return packets
+
+
+@pytest.mark.parametrize(
+    ("parts", "before", "after", "kept"),
+    [
+        # held before the edge; across the start (the edge in it), inside, across the end, after
+        (
+            [(-3000, -1000, 50), (-500, 500, 50), (500, 4900, 100), (4900, 5500, 50), (6000, 7000, 50)],
+            40,
+            20,
+            3,
+        ),
+        # a packet reaching past both ends with no event inside: its events are decoded to tell
+        ([(-3000, -1000, 50), (-100, 6001, 6100), (6500, 7500, 50)], 41, 21, 0),
+    ],
+)
+def test_packets_with_words_are_judged_by_their_span_as_by_their_events(
+    parts: list[tuple[int, int, int]], before: int, after: int, kept: int
+) -> None:
+    """A sensor that only scans its words: the gate keeps whole packets with an event inside,
+    and drops and counts the others, exactly as it does decoded ones."""
+    d0 = 100_000
+    ts = [np.arange(d0 + a, d0 + b, step) for a, b, step in parts]
+    cuts = np.cumsum([len(t) for t in ts])[:-1].tolist()
+    results = []
+    for scan in (True, False):
+        packets = _word_packets(np.concatenate(ts), [d0], cuts, scan=scan)
+        assert all(p.from_scan is scan for p in packets[1:])  # the first: before a time base
+        gate = WindowGate("ev", "trigger_in", TakeWindow(RATE, margin_us=0, last_index=4))
+        out = [part for p in packets for part in gate.admit(p)] + gate.finish()
+        results.append(([(p.span, len(p.triggers)) for p in out if isinstance(p, EventPacket)], gate.counts))
+    assert results[0] == results[1]
+    spans, counts = results[0]
+    assert (counts.before, counts.after) == (before, after)
+    assert sum(1 for span, _ in spans if span.n) == kept
