@@ -85,7 +85,9 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
         self._streaming = False
         self._lost_bytes = 0
         self.settings = EventSensorSettings()
-        super().__init__(f"camera {self._serial}", buffers=buffers, drain_on_stop=True)
+        # the capture reads every few ms (`read_interval_ms`): what the HAL handed out meanwhile
+        # comes as one buffer
+        super().__init__(f"camera {self._serial}", buffers=buffers, merge=64, drain_on_stop=True)
 
     def _facility(self, getter: str, what: str) -> Any:
         fac = getattr(self._device, getter)()
@@ -142,7 +144,10 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
         log.warning("camera %s: host buffer full, a raw buffer was lost", self._serial)
 
     def _join(self, items: list[tuple[bytes, int]]) -> tuple[bytes, int]:
-        return items[0]
+        """The buffers in order as one, stamped when the last arrived (its newest events)."""
+        if len(items) == 1:
+            return items[0]
+        return b"".join(data for data, _ in items), items[-1][1]
 
     def _do_close(self) -> None:
         self._stop_stream()  # when the polling thread died before it could

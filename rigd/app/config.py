@@ -34,6 +34,14 @@ class EventSensorConfig(BaseModel):
     name: str = Field(pattern=_NAME, description="Name in the take (`events/<name>`).")
     spec: str = Field(description="Backend spec, e.g. `sim://default/ev0` or `file://rec.raw`.")
     settings: EventSensorSettings = Field(default_factory=EventSensorSettings)
+    read_interval_ms: float = Field(
+        5.0,
+        ge=0.0,
+        le=100.0,
+        description="The capture reads the sensor at most once per this many ms; what arrived in "
+        "between comes as one packet. Fewer, larger packets cost the host less per event "
+        "(bench.capacity --parts device); 0 reads each buffer as it comes.",
+    )
 
 
 class TriggerConfig(BaseModel):

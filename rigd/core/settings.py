@@ -103,11 +103,11 @@ class WriterConfig(BaseModel):
         "before event slices are shed (bench.capacity --parts device: the burst level).",
     )
     uncompressed_when_behind: float = Field(
-        0.1,
+        0.25,
         ge=0.0,
         le=1.0,
         description="Writer queue fill (fraction of its bounds) from which EVT words are stored "
-        "uncompressed until the queue is back under a fifth of it: the writer catches up by "
+        "uncompressed until the queue is back under half of it: the writer catches up by "
         "spending disk (2.81 instead of 2.37 B/ev on the real Gen4.1 stream) before any event "
         "slice is shed. 0: always compress.",
     )

@@ -3,7 +3,9 @@
 `/events/<name>/evt_words` holds the bytes (256 KiB chunks, Zstd level 1 through hdf5plugin's
 filter, so plain h5py reads them back); the writer compresses each whole chunk itself with
 `zstandard` (which releases the GIL) and hands it to HDF5 with `write_direct_chunk`, so storing
-an event costs about a memcpy and no HDF5 call per batch. `evt_index` has one row per stored
+an event costs about a memcpy and no HDF5 call per batch. While the writer is behind, whole
+chunks are stored uncompressed instead (`compress`; HDF5's per-chunk filter mask says so and
+readers skip the decompression). `evt_index` has one row per stored
 block: where its bytes are, its event count and first/last device time, the time shift a
 re-tied clock gave it, and the decoder state to decode it from (`StreamDecoder(state=...)`).
 Chunks that continue each other are merged into one row while it is under `ROW_BYTES`, so a
@@ -61,6 +63,9 @@ _INDEX_CHUNK = 1024
 _ZSTD_LEVEL = 1
 #: HDF5 filter mask of a chunk stored without the Zstd filter (the dataset's only filter).
 _SKIP_ZSTD = 1
+#: What a sink holds unwritten at most (a chunk being written, the pending bytes): what
+#: closing it on a full disk writes, uncompressed at worst.
+MAX_UNWRITTEN_BYTES = 2 * WORDS_CHUNK
 _COL = {name: i for i, name in enumerate(EVT_INDEX_COLUMNS)}
 
 
@@ -308,7 +313,8 @@ class EvtWordsSink(TriggerIn):
         del self.pend[:whole]
 
     def _write_chunk(self, data: memoryview | bytes, offset: int) -> None:
-        """One whole chunk (the last one zero-padded), compressed here and stored as is."""
+        """One whole chunk (the last one zero-padded): compressed here (Zstd releases the GIL),
+        or stored as it is while the writer is behind."""
         if offset + WORDS_CHUNK > self.alloc:
             self.alloc = offset + _GROW_CHUNKS * WORDS_CHUNK
             self.words.resize((self.alloc,))

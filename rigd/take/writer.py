@@ -60,6 +60,7 @@ from rigd.take.evt_sink import EvtWordsSink, is_evt_words
 from rigd.take.finalize import FinalizePlan, Finalizer
 from rigd.take.h5file import (
     TRUNCATED_EOF_ATTR,
+    Syncer,
     ZeroPadded,
     as_oserror,
     attr_text,
@@ -173,6 +174,7 @@ class TakeWriter:
         self._small_opts = compression_options(config.event_compression, shuffle=True)
         self._frame_opts = compression_options(config.frame_compression, shuffle=False)
         self._closed = False
+        self._syncer = Syncer(self.path.name)
         self._state = state
         self._version = SCHEMA_VERSION
         self._has_trigger = False
@@ -455,6 +457,10 @@ class TakeWriter:
         succeed, so the close completes, the lock is released, and the file on disk stays
         exactly as the failure left it (recovery repairs and seals it).
         """
+        try:
+            self._syncer.wait()  # not on a file descriptor about to be swapped
+        except OSError as exc:
+            log.error("take %s: the last flush's fsync failed too: %s", self.path, exc)
         fd = int(self._f.id.get_vfd_handle())
         null = os.open(os.devnull, os.O_RDWR)
         try:
@@ -495,7 +501,7 @@ class TakeWriter:
             f.attrs.modify(Root.LAST_FLUSH_UTC, np.bytes_(utc_now("milliseconds")))
             f.flush()
             if self._cfg.fsync:
-                os.fsync(f.id.get_vfd_handle())
+                self._syncer.start(int(f.id.get_vfd_handle()))
         except RuntimeError as exc:
             raise as_oserror(exc) from exc
         self._flush_count = n
@@ -590,6 +596,7 @@ class TakeWriter:
             return
         error: BaseException | None = None
         try:
+            self._syncer.wait()
             if self._state == "recording":
                 self._write_all()
                 self._drop_tails_after_flush()
@@ -617,6 +624,7 @@ class TakeWriter:
             return
         error: BaseException | None = None
         try:
+            self._syncer.wait()
             if self._state == "recording":
                 self._write_all()
                 self._drop_tails_after_flush()

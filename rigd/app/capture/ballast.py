@@ -13,6 +13,7 @@ from pathlib import Path
 
 from rigd.core.errors import ConfigError, TakeError
 from rigd.core.settings import WriterConfig
+from rigd.take.evt_sink import MAX_UNWRITTEN_BYTES, WORDS_CHUNK
 from rigd.take.sinks import EVENT_WRITE_BLOCK
 from rigd.take.writer import WRITE_CHUNK_CACHE_BYTES
 
@@ -106,14 +107,16 @@ _METADATA_BYTES = 1 << 20
 def minimum_ballast_bytes(writer: WriterConfig, frame_bytes: Iterable[int], n_event_sensors: int) -> int:
     """What marking a take failed and closing it on a full disk writes at most, once the
     ballast is given up: per event sensor its buffered events (a write block plus a chunk,
-    uncompressed at worst), the chunks its four event columns hold in HDF5's chunk cache
-    (`WRITE_CHUNK_CACHE_BYTES` each) and its five trigger-in series; per camera its cached
+    uncompressed at worst) and the chunks its four event columns hold in HDF5's chunk cache
+    (`WRITE_CHUNK_CACHE_BYTES` each), or its EVT words not written yet (`MAX_UNWRITTEN_BYTES`,
+    and a chunk of tail slots), whichever is more, and its five trigger-in series; per camera its cached
     frames (a frame larger than the cache is written through) and six frame series; the pulse
     series; the file's metadata and journal. With less, the take's `failed` mark and metadata
     may not reach the disk, and a take whose first flush never did cannot be read back (HDF5:
     "addr overflow"). `frame_bytes`: one frame of each camera."""
-    per_sensor = (EVENT_WRITE_BLOCK + writer.event_chunk) * _EVENT_BYTES
-    per_sensor += 4 * WRITE_CHUNK_CACHE_BYTES + 5 * _SERIES_BYTES
+    columns = (EVENT_WRITE_BLOCK + writer.event_chunk) * _EVENT_BYTES + 4 * WRITE_CHUNK_CACHE_BYTES
+    words = MAX_UNWRITTEN_BYTES + WORDS_CHUNK  # and its tail slots
+    per_sensor = max(columns, words) + 5 * _SERIES_BYTES
     cameras = sum(min(n, WRITE_CHUNK_CACHE_BYTES) + 6 * _SERIES_BYTES for n in frame_bytes)
     return n_event_sensors * per_sensor + cameras + 3 * _SERIES_BYTES + _METADATA_BYTES
 

@@ -181,6 +181,8 @@ class DeviceChannel:
         """How the device is opened and its items written and observed; the writer thread
         records there what reached the file."""
         self.what: LossKind = self.stream.what
+        self.read_interval_s = 0.0
+        """An event sensor is read at most once per this (what came in between: one packet)."""
         self.anchors: HostAnchors | None = (
             HostAnchors()
             if isinstance(settings, EventSensorSettings) and not settings.enable_trigger_in
@@ -352,6 +354,10 @@ class DeviceChannel:
                 self._deliver(item)
             if isinstance(dev, EventSensor):
                 self._note_stream_time(dev)
+                if item is not None and self.read_interval_s and not done.is_set():
+                    rest = self.read_interval_s - (time.monotonic() - asked)
+                    if rest > 0:
+                        done.wait(rest)  # the device buffers meanwhile: one read, one packet
             if item is None:
                 if done.is_set():
                     self._drop_held("the take ended before its restarted clock could be tied")

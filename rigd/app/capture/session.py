@@ -325,6 +325,7 @@ class CaptureSession:
             ch = self._channels[sen.name] = DeviceChannel(
                 sen.name, "event_sensor", sen.spec, sen.settings, ctx
             )
+            ch.read_interval_s = sen.read_interval_ms / 1000
             ch.shedder = SliceShedder(
                 sen.name, self._ledger, self._faults, max_lag_s=config.writer.overload_max_lag_s
             )

@@ -89,7 +89,7 @@ class WriterLoop:
     def _relieve(self) -> None:
         """Behind (the queue past `relieve_at`): EVT words go to the file uncompressed, so the
         writer catches up on disk bytes instead of the sensors shedding events; back to
-        compressing once the queue is under a fifth of that."""
+        compressing once the queue is under half of that."""
         fill = self._queue.fill().worst
         if not self._relieving and fill >= self._relieve_at:
             self._relieving = True
@@ -99,7 +99,7 @@ class WriterLoop:
                 "writer behind (queue %.0f %% full): EVT words stored uncompressed until it catches up",
                 100 * fill,
             )
-        elif self._relieving and fill <= self._relieve_at / 5:
+        elif self._relieving and fill <= self._relieve_at / 2:
             self._relieving = False
             self.writer.compress_events(True)
             log.info("writer caught up: EVT words compressed again")
