@@ -111,6 +111,33 @@ def output_bound(buf: NDArray[np.uint16]) -> tuple[int, int]:
 
 
 NOBASE = 1 << 40  # vector base while none was given (any vector then fails the x check)
+
+
+@njit(inline="always")
+def load_state(st: I64) -> tuple[int, int, int, int, int, int, int, int]:  # pragma: no cover - numba
+    """(started, loop, TIME_HIGH, y, vector base or NOBASE, vector polarity, shift, time) of a
+    decoder state: what the kernels keep in registers."""
+    loop = st[1]
+    th = st[2]
+    shift = st[ST_SHIFT]
+    base = st[5] if st[5] >= 0 else NOBASE
+    return st[0], loop, th, st[4], base, st[6], shift, ((loop << 24) | (th << 12) | st[3]) + shift
+
+
+@njit(inline="always")
+def store_state(  # pragma: no cover - numba
+    st: I64, started: int, loop: int, th: int, tcur: int, y: int, base: int, vpol: int
+) -> None:
+    """The registers back into the state (the shift is the caller's to set)."""
+    st[0] = started
+    st[1] = loop
+    st[2] = th
+    st[3] = tcur & 0xFFF
+    st[4] = y
+    st[5] = base if base < NOBASE else -1
+    st[6] = vpol
+
+
 _NOY = 0xFFFF  # y while none was given (>= any height, so events fail the y check)
 _BIG = 1 << 50
 _FAST_TYPES = (0x0, 0x2, 0x3, 0x4, 0x5, 0x6)
@@ -227,14 +254,7 @@ def decode_kernel(
     strict = cfg[2]
     cap = out[X].shape[0] - 12
     tcap = out[TRIG_T].shape[0]
-    started = st[0]
-    loop = st[1]
-    th = st[2]
-    y = st[4]
-    base = st[5] if st[5] >= 0 else NOBASE
-    vpol = st[6]
-    shift = st[ST_SHIFT]
-    tcur = ((loop << 24) | (th << 12) | st[3]) + shift
+    started, loop, th, y, base, vpol, shift, tcur = load_state(st)
     wm1 = width - 1
     err = OK
     while pos < end:
@@ -357,13 +377,7 @@ def decode_kernel(
             if err:
                 break
         pos += 1
-    st[0] = started
-    st[1] = loop
-    st[2] = th
-    st[3] = tcur & 0xFFF
-    st[4] = y
-    st[5] = base if base < NOBASE else -1
-    st[6] = vpol
+    store_state(st, started, loop, th, tcur, y, base, vpol)
     st[ST_SHIFT] = shift
     keep_last_times(st, out, n, nt)
     return pos, n, nt, err

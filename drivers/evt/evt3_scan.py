@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from drivers.evt.evt3 import NOBASE, ST_SHIFT, ST_TEV, ST_TTR, TH_JUMP
+from drivers.evt.evt3 import NOBASE, ST_TEV, ST_TTR, TH_JUMP, load_state, store_state
 from drivers.evt.kernels import I64, U8, U16, ctpop
 
 _U64 = np.uint64
@@ -39,15 +39,9 @@ def scan_kernel(
     Returns (clean, events, first event time, last event time, trigger edges stored in tt/tp/tc).
     Not clean: the stretch holds a word the scan does not mirror, and `st` and the counts are
     meaningless (the caller scans on a copy and decodes instead)."""
-    if st[0] == 0:
+    started, loop, th, y, base, vpol, shift, tcur = load_state(st)
+    if started == 0:
         return False, 0, -1, -1, 0
-    loop = st[1]
-    th = st[2]
-    y = st[4]
-    base = st[5] if st[5] >= 0 else NOBASE
-    vpol = st[6]
-    shift = st[ST_SHIFT]
-    tcur = ((loop << 24) | (th << 12) | st[3]) + shift
     last_ev = st[ST_TEV]
     last_tr = st[ST_TTR]
     n = 0
@@ -131,12 +125,7 @@ def scan_kernel(
         pos += 1
     if pos < end:
         return False, 0, -1, -1, 0
-    st[1] = loop
-    st[2] = th
-    st[3] = tcur & 0xFFF
-    st[4] = y
-    st[5] = base if base < NOBASE else -1
-    st[6] = vpol
+    store_state(st, started, loop, th, tcur, y, base, vpol)
     st[ST_TEV] = last_ev
     st[ST_TTR] = last_tr
     return True, n, t_first, last_ev, nt

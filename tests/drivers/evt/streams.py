@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
 
 from drivers.evt import Decoded, Evt3Encoder, StreamDecoder, parse_raw_header
 from rigd.core.events import EventArray, TriggerEvents
@@ -16,6 +17,14 @@ from rigd.core.events import EventArray, TriggerEvents
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real Prophesee recordings not found at {DATA}")
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+#: `@given` arguments of the tests on mutated encoder streams (`mutated`).
+DIRTY = {
+    "seed": st.integers(0, 2**32 - 1),
+    "n_mut": st.integers(1, 40),
+    "cut": st.booleans(),
+    "geometry": st.sampled_from([(1280, 720), (640, 480), (1270, 715)]),
+    "sizes": st.lists(st.integers(1, 500), min_size=1, max_size=4),
+}
 
 
 def real_body(name: str) -> bytes:

@@ -16,6 +16,7 @@ from drivers.evt.kernels import decode_config
 from drivers.evt.raw import _Out
 from rigd.core.events import EventArray, TriggerEvents
 from tests.drivers.evt.streams import (
+    DIRTY,
     SETTINGS,
     assert_matches_pypi_evt3,
     assert_same,
@@ -123,13 +124,7 @@ def test_encoder_streams(seed: int, n: int, n_trig: int, loops: int, pieces: int
 
 
 @SETTINGS
-@given(
-    seed=st.integers(0, 2**32 - 1),
-    n_mut=st.integers(1, 40),
-    cut=st.booleans(),
-    geometry=st.sampled_from([(1280, 720), (640, 480), (1270, 715)]),
-    sizes=st.lists(st.integers(1, 500), min_size=1, max_size=4),
-)
+@given(**DIRTY)
 def test_dirty_input_falls_back(
     seed: int, n_mut: int, cut: bool, geometry: tuple[int, int], sizes: list[int]
 ) -> None:

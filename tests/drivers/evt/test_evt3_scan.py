@@ -11,7 +11,15 @@ from drivers.evt import Scanned, StreamDecoder, decode_chunk
 from drivers.evt.raw import decode_bytes
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, EventPacket, EventSpan, EvtChunk, TriggerEvents
-from tests.drivers.evt.streams import SETTINGS, assert_same, encoder_stream, mutated, needs_data, real_body
+from tests.drivers.evt.streams import (
+    DIRTY,
+    SETTINGS,
+    assert_same,
+    encoder_stream,
+    mutated,
+    needs_data,
+    real_body,
+)
 
 
 def _both(data: bytes, sizes: list[int], w: int = 1280, h: int = 720) -> list[tuple[Scanned, EvtChunk]]:
@@ -70,13 +78,7 @@ def test_encoder_streams_scan_as_they_decode(
 
 
 @SETTINGS
-@given(
-    seed=st.integers(0, 2**32 - 1),
-    n_mut=st.integers(1, 40),
-    cut=st.booleans(),
-    geometry=st.sampled_from([(1280, 720), (640, 480), (1270, 715)]),
-    sizes=st.lists(st.integers(1, 500), min_size=1, max_size=4),
-)
+@given(**DIRTY)
 def test_broken_words_go_to_the_decoder(
     seed: int, n_mut: int, cut: bool, geometry: tuple[int, int], sizes: list[int]
 ) -> None:
