@@ -722,7 +722,9 @@ class TakeWriter:
             st = sink.stats
             if not self._closed:
                 st.stored_bytes = int(sum(d.id.get_storage_size() for d in sink.datasets()))
-            out[name] = DeviceWriteStats(st.kind, st.items, st.raw_bytes, st.stored_bytes)
+            out[name] = DeviceWriteStats(
+                st.kind, st.items, st.raw_bytes, st.stored_bytes, st.uncompressed_chunks
+            )
         return out
 
 

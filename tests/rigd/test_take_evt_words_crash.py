@@ -58,7 +58,7 @@ def expected_events(n: int) -> EventArray:
     return EventArray.concatenate([dec.feed(step_bytes(k)).events for k in range(n)])
 
 
-def _script(path: Path) -> str:
+def _script(path: Path, relieve: bool = False) -> str:
     return textwrap.dedent(
         f"""
         import time
@@ -71,6 +71,8 @@ def _script(path: Path) -> str:
         print("START", flush=True)
         k, last = 0, time.monotonic()
         while True:
+            if {relieve!r}:
+                w.compress_events(k // 40 % 2 == 0)  # the writer behind every other 40 steps
             append_words_step(w, dec, k)
             k += 1
             if time.monotonic() - last >= 0.2:
@@ -82,12 +84,12 @@ def _script(path: Path) -> str:
     )
 
 
-def _run_and_kill(path: Path, flushes: int, after_s: float) -> int:
+def _run_and_kill(path: Path, flushes: int, after_s: float, relieve: bool = False) -> int:
     """Run the writer script and SIGKILL it `after_s` after its `flushes`-th flush (so the
     kill lands at a random moment of its work however slow the machine is); returns the steps
     its last completed flush covered."""
     proc = subprocess.Popen(
-        [sys.executable, "-c", _script(path)], cwd=ROOT, stdout=subprocess.PIPE, text=True, bufsize=1
+        [sys.executable, "-c", _script(path, relieve)], cwd=ROOT, stdout=subprocess.PIPE, text=True, bufsize=1
     )
     assert proc.stdout is not None
     assert proc.stdout.readline().strip() == "START"
@@ -138,3 +140,27 @@ def test_sigkill_at_random_moments_then_recover_words(tmp_path: Path) -> None:
             want = exp.t[: len(ev)] - OFF_EV
             np.testing.assert_array_equal(win.t, want[(want >= a) & (want < a + PERIOD)])
     assert sealed, "no writer got three flushes in before its kill"
+
+
+def test_a_killed_take_with_chunks_stored_uncompressed_recovers_the_same(tmp_path: Path) -> None:
+    """Chunks the writer stored uncompressed while behind (their filter mask says so) read and
+    recover like the others, before and after the kill."""
+    masks: set[int] = set()
+    for i, after_s in enumerate((0.05, 0.3)):
+        path = tmp_path / f"relieved{i}.h5"
+        n = _run_and_kill(path, 4, after_s, relieve=True)
+        exp = expected_events(n + 200)
+        with Take(path) as take:
+            got = take.events("ev0")
+            assert len(got) >= n * EV_PER_STEP
+            np.testing.assert_array_equal(got.t, exp.t[: len(got)])
+        assert recover_take(path).outcome == "sealed"
+        assert validate_take(path) == []
+        with Take(path) as take:
+            ev = take.events("ev0")
+            np.testing.assert_array_equal(ev.t, exp.t[: len(ev)] - OFF_EV)
+            np.testing.assert_array_equal(ev.x, exp.x[: len(ev)])
+        with h5py.File(path, "r") as f:
+            words = f["events/ev0/evt_words"]
+            masks |= {words.id.get_chunk_info(c).filter_mask for c in range(words.id.get_num_chunks())}
+    assert masks == {0, 1}

@@ -70,6 +70,7 @@ class WriterLoop:
             if isinstance(item, StopItem):
                 if self.error is None:
                     self._flush()
+                self._note_relief()
                 return
             if item is not None:
                 t0 = time.monotonic()
@@ -103,6 +104,22 @@ class WriterLoop:
             self._relieving = False
             self.writer.compress_events(True)
             log.info("writer caught up: EVT words compressed again")
+
+    def _note_relief(self) -> None:
+        """At the end: how much the writer stored uncompressed while it was behind."""
+        if not self.relieved:
+            return
+        parts = [
+            f"{name} {st.uncompressed_chunks} chunk(s)"
+            for name, st in self.writer.stats.items()
+            if st.uncompressed_chunks
+        ]
+        log.warning(
+            "the writer fell behind %d time(s) and stored EVT words uncompressed meanwhile (%s): "
+            "the take is complete, only larger; the host is near its capacity",
+            self.relieved,
+            ", ".join(parts) or "no whole chunk",
+        )
 
     def _take(self, item: QueueItem) -> None:
         stream = self._streams[item.device]
