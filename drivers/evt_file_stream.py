@@ -68,16 +68,16 @@ class Pace:
     def paced(self) -> bool:
         return self.pace > 0
 
+    def _paces(self) -> list[tuple[float, float, float]]:
+        """(host start s, host end s, pace) of each phase."""
+        if not self.burst_s:
+            return [(0.0, math.inf, self.pace)]
+        a, b = self.burst_at_s, self.burst_at_s + self.burst_s
+        return [(0.0, a, self.pace), (a, b, self.burst_pace), (b, math.inf, self.pace)]
+
     def _phases(self) -> list[tuple[float, float, float]]:
         """(host start s, host end s, clock rate) of each phase."""
-        if not self.burst_s:
-            return [(0.0, math.inf, self._rate(self.pace))]
-        a, b = self.burst_at_s, self.burst_at_s + self.burst_s
-        rate, burst = self._rate(self.pace), self._rate(self.burst_pace)
-        return [(0.0, a, rate), (a, b, burst), (b, math.inf, rate)]
-
-    def _rate(self, pace: float) -> float:
-        return max(1.0, pace) if self.real_clock else pace
+        return [(lo, hi, max(1.0, p) if self.real_clock else p) for lo, hi, p in self._paces()]
 
     def density(self, stream_us: int) -> float:
         """Events per recorded event at stream time `stream_us` (1 but for a real clock's
@@ -85,12 +85,7 @@ class Pace:
         if not self.real_clock or not self.paced:
             return 1.0
         h = self.host_s(stream_us)
-        pace = (
-            self.burst_pace
-            if self.burst_s and self.burst_at_s <= h < self.burst_at_s + self.burst_s
-            else self.pace
-        )
-        return min(1.0, pace)
+        return min(1.0, next(p for lo, hi, p in self._paces() if lo <= h < hi))
 
     def stream_us(self, elapsed_s: float) -> int:
         """Stream time (us since the stream's start) due after `elapsed_s` of host time."""

@@ -456,6 +456,17 @@ class StreamDecoder:
             )
 
 
+def decode_from_state(
+    fmt: str, data: bytes | NDArray[np.uint8], state: NDArray[np.int64], width: int, height: int
+) -> EventArray:
+    """The events of a stored or sent piece of a stream, decoded on their own from the decoder
+    state before it (the words a kernel would hold back at its end decided with what is there)."""
+    dec = StreamDecoder(fmt, width=width, height=height, state=state)
+    events = dec.feed(data).events
+    held = dec.flush().events
+    return EventArray.concatenate([events, held]) if len(held) else events
+
+
 def decode_chunk(chunk: EvtChunk) -> EventArray:
     """A chunk's events decoded on their own from its state, with its shift added: what a
     packet that was only scanned (`EventPacket.scanned`) holds."""
@@ -463,12 +474,7 @@ def decode_chunk(chunk: EvtChunk) -> EventArray:
         raise EventDataError(
             f"{chunk.fmt} chunk at byte {chunk.offset} of stream {chunk.stream}: no geometry to decode with"
         )
-    width, height = chunk.geometry
-    dec = StreamDecoder(chunk.fmt, width=width, height=height, state=chunk.state)
-    events = dec.feed(chunk.data).events
-    held = dec.flush().events
-    if len(held):
-        events = EventArray.concatenate([events, held])
+    events = decode_from_state(chunk.fmt, chunk.data, chunk.state, *chunk.geometry)
     return events.with_time(events.t + chunk.shift_us) if chunk.shift_us else events
 
 

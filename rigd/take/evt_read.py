@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt import StreamDecoder
+from drivers.evt import decode_from_state
 from rigd.core.errors import TakeFormatError
 from rigd.core.events import EventArray
 from rigd.core.layout import EVT_INDEX_COLUMNS, Device, Events
@@ -117,11 +117,7 @@ class EvtWordsEvents:
         parts = []
         for a, b in itertools.pairwise(breaks):
             lo, hi = int(self.start[a]) - base, int(self.start[b - 1] + self.length[b - 1]) - base
-            dec = StreamDecoder(self.fmt, width=self.width, height=self.height, state=self.states[a])
-            ev = dec.feed(data[lo:hi]).events
-            held = dec.flush().events
-            if len(held):
-                ev = EventArray.concatenate([ev, held])
+            ev = decode_from_state(self.fmt, data[lo:hi], self.states[a], self.width, self.height)
             want = int(self.cum[b] - self.cum[a])
             if len(ev) != want:
                 raise TakeFormatError(

@@ -108,14 +108,14 @@ def minimum_ballast_bytes(writer: WriterConfig, frame_bytes: Iterable[int], n_ev
     """What marking a take failed and closing it on a full disk writes at most, once the
     ballast is given up: per event sensor its buffered events (a write block plus a chunk,
     uncompressed at worst) and the chunks its four event columns hold in HDF5's chunk cache
-    (`WRITE_CHUNK_CACHE_BYTES` each), or its EVT words not written yet (`MAX_UNWRITTEN_BYTES`,
-    and a chunk of tail slots), whichever is more, and its five trigger-in series; per camera its cached
+    (`WRITE_CHUNK_CACHE_BYTES` each), or its EVT words not written yet (`MAX_UNWRITTEN_BYTES`)
+    and its two tail slots, whichever is more, and its five trigger-in series; per camera its cached
     frames (a frame larger than the cache is written through) and six frame series; the pulse
     series; the file's metadata and journal. With less, the take's `failed` mark and metadata
     may not reach the disk, and a take whose first flush never did cannot be read back (HDF5:
     "addr overflow"). `frame_bytes`: one frame of each camera."""
     columns = (EVENT_WRITE_BLOCK + writer.event_chunk) * _EVENT_BYTES + 4 * WRITE_CHUNK_CACHE_BYTES
-    words = MAX_UNWRITTEN_BYTES + WORDS_CHUNK  # and its tail slots
+    words = MAX_UNWRITTEN_BYTES + 2 * WORDS_CHUNK  # and its two tail slots
     per_sensor = max(columns, words) + 5 * _SERIES_BYTES
     cameras = sum(min(n, WRITE_CHUNK_CACHE_BYTES) + 6 * _SERIES_BYTES for n in frame_bytes)
     return n_event_sensors * per_sensor + cameras + 3 * _SERIES_BYTES + _METADATA_BYTES
