@@ -35,7 +35,7 @@ from firmware_sim.board_scene import BoardScene
 from firmware_sim.world import get_world
 from rigd.app.capture import run_capture
 from rigd.app.config import RigConfig
-from rigd.app.export import ExportOptions, run_export
+from rigd.products.export import ExportOptions, run_export
 from rigd.take.reader import open_take
 
 log = logging.getLogger(__name__)

@@ -22,8 +22,8 @@ import numpy as np
 
 from rigd.app.capture import run_capture
 from rigd.app.config import RigConfig, default_sim_rig
-from rigd.app.inspect import write_thumbnails
-from rigd.app.workflows.calibrate import RigOptions, TakeSource, run_rig
+from rigd.products.calibrate import RigOptions, TakeSource, run_rig
+from rigd.products.inspect import write_thumbnails
 
 log = logging.getLogger("make_images")
 

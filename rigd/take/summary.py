@@ -71,7 +71,9 @@ class TakeSummary(BaseModel):
     pulses_seen_by_no_device: list[int] = Field(default_factory=list)
     losses: list[LossRecord] = Field(default_factory=list)
     warnings: list[str] = Field(default_factory=list)
-    problems: list[str] = Field(default_factory=list, description="Validation problems (rigd.app.inspect).")
+    problems: list[str] = Field(
+        default_factory=list, description="Validation problems (rigd.products.inspect)."
+    )
 
     def verdict_line(self) -> str:
         """`complete: nothing lost`, or the verdict and its first reasons (`TakeVerdict.line`)."""

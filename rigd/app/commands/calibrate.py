@@ -1,7 +1,7 @@
 """`rigd calibrate ...`: intrinsics from image files, rig extrinsics from image sets or a take,
 event-sensor intrinsics from a take.
 
-The commands parse arguments, call `rigd.app.workflows.calibrate` and print what it returns.
+The commands parse arguments, call `rigd.products.calibrate` and print what it returns.
 Register with `app.add_typer(calibrate_app, name="calibrate")`. Exit code 2 on a RigdError, with
 the message on stderr; `--json` prints the result on stdout.
 """
@@ -23,7 +23,7 @@ from rigd.core.errors import RigdError
 if TYPE_CHECKING:  # the calibration libraries (OpenCV, scipy, numba) load when a command runs
     from calibration.extrinsics import RigResult
     from calibration.intrinsics import IntrinsicsResult
-    from rigd.app.workflows.calibrate import EventsCalibration, ImageSets, RigCalibration
+    from rigd.products.calibrate import EventsCalibration, ImageSets, RigCalibration
 
 #: calibration.e2calib.METHODS, spelled out so that `--help` need not import the library
 #: (tests/app/commands/test_calibrate_cmd.py holds the two equal).
@@ -84,7 +84,7 @@ def intrinsics_cmd(
 ) -> None:
     """Intrinsics of one camera from image files, with lens-model selection."""
     from calibration.io import dumps_summary
-    from rigd.app.workflows.calibrate import IntrinsicsOptions, run_intrinsics
+    from rigd.products.calibrate import IntrinsicsOptions, run_intrinsics
 
     try:
         shared: dict[str, Any] = {
@@ -112,7 +112,7 @@ def intrinsics_cmd(
 
 def _image_sets(cameras: list[str]) -> ImageSets:
     """`NAME=GLOB` options as image files per camera; a usage error names the option at fault."""
-    from rigd.app.workflows.calibrate import ImageSets, glob_images
+    from rigd.products.calibrate import ImageSets, glob_images
 
     files: dict[str, list[Path]] = {}
     for item in cameras:
@@ -159,8 +159,8 @@ def rig_cmd(
     """
     from calibration.boards import parse_board
     from calibration.io import dumps_summary
-    from rigd.app.workflows.calibrate import RigOptions, TakeSource, run_rig
-    from rigd.app.workflows.calibration_truth import ground_truth_of, rig_errors
+    from rigd.products.calibrate import RigOptions, TakeSource, run_rig
+    from rigd.products.calibration_truth import ground_truth_of, rig_errors
 
     if (take is None) == (not camera):
         raise fail(ValueError("give either a TAKE or --camera NAME=GLOB sets (at least two)"))
@@ -246,8 +246,8 @@ def events_cmd(
     """Intrinsics of an event sensor from frames reconstructed from its events (e2calib-style).
 
     Every method is run and reported; the one with the lowest RMS is written to --out."""
-    from rigd.app.workflows.calibrate import EventsOptions, run_events
-    from rigd.app.workflows.calibration_truth import ground_truth_of, intrinsics_error
+    from rigd.products.calibrate import EventsOptions, run_events
+    from rigd.products.calibration_truth import ground_truth_of, intrinsics_error
 
     try:
         options = EventsOptions(

@@ -1,6 +1,6 @@
 """`rigd export TAKE --format F --out DIR`: a calibrated take as a trainer's or event loader's input.
 
-Parses the arguments into `ExportOptions`, runs `rigd.app.export.run_export` under a rich
+Parses the arguments into `ExportOptions`, runs `rigd.products.export.run_export` under a rich
 progress bar (on a terminal: frames, grids or events written / total of the current stage) and
 prints one summary line. A refused input (bad knob, a size over its bound, an `--out` that cannot
 take the export) is one line on stderr and exit code 2; a failed write (disk full) is one line and
@@ -18,13 +18,13 @@ from pydantic import ValidationError
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 
 from rigd.app.commands.consoles import fail, stderr_console
-from rigd.app.workflows.progress import ProgressUpdate
 from rigd.core.errors import ConfigError, RigdError
+from rigd.core.progress import ProgressUpdate
 
-#: rigd.app.export.FORMATS, spelled out so that `--help` need not import the exporters (h5py,
+#: rigd.products.export.FORMATS, spelled out so that `--help` need not import the exporters (h5py,
 #: OpenCV); tests/app/commands/test_lazy_imports.py holds the two equal.
 EXPORT_FORMATS = ("dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec")
-#: rigd.app.export.WORLDS and SPLITS, spelled out for the same reason.
+#: rigd.products.export.WORLDS and SPLITS, spelled out for the same reason.
 EXPORT_WORLDS = ("board", "cam0", "floor")
 EXPORT_SPLITS = ("time", "camera")
 
@@ -77,7 +77,7 @@ def export(
 ) -> None:
     """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap)
     or for event loaders (dsec); see docs/export.md."""
-    from rigd.app.export import (
+    from rigd.products.export import (
         FORMATS,
         SPLITS,
         WORLDS,

@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, ProgressColumn, Task, TaskID, TextColumn
 from rich.text import Text
 
-from rigd.app.workflows.progress import ProgressUpdate
+from rigd.core.progress import ProgressUpdate
 
 
 class CountColumn(ProgressColumn):

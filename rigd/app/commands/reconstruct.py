@@ -1,7 +1,7 @@
 """`rigd reconstruct TAKE... --out DIR`: denoise, segment, keyframes and snapshots per take.
 
 Parses the arguments into `ReconstructOptions` (every knob, the paper's values as defaults; the
-outputs are described in `rigd.app.workflows.reconstruct`), shows progress per stage in its own
+outputs are described in `rigd.products.reconstruct`), shows progress per stage in its own
 unit with the time left (`StageProgress`: a bar on a terminal, a line per stage with `rigd -v`
 otherwise) and prints one line per take with its rate; exit code 1 when any take failed.
 Register with `app.command("reconstruct")(reconstruct)`.
@@ -21,9 +21,9 @@ from rigd.app.commands.progress import StageProgress
 from rigd.core.errors import RigdError
 
 if TYPE_CHECKING:  # the pipeline (dask, numba, h5py) loads when the command runs
-    from rigd.app.workflows.reconstruct import ReconstructOptions, TakeReconstruction
+    from rigd.products.reconstruct import ReconstructOptions, TakeReconstruction
 
-#: rigd.app.workflows.reconstruct.LOCAL_SCHEDULERS, spelled out so that `--help` need not import
+#: rigd.products.reconstruct.LOCAL_SCHEDULERS, spelled out so that `--help` need not import
 #: the pipeline; tests/app/commands/test_lazy_imports.py holds the two equal.
 LOCAL_SCHEDULER_NAMES = ("threads", "processes", "sync")
 
@@ -105,8 +105,8 @@ def reconstruct(
     ] = 5.0,
 ) -> None:
     """Denoise, segment the rig's sequence by motion, choose keyframes and reconstruct snapshots per take."""
-    from rigd.app.workflows.reconstruct import ReconstructOptions
-    from rigd.app.workflows.reconstruct_tasks import FilterKnobs
+    from rigd.products.reconstruct import ReconstructOptions
+    from rigd.products.reconstruct_tasks import FilterKnobs
 
     try:
         filt = FilterKnobs(
@@ -151,7 +151,7 @@ _FILTER_FLAGS = {
 
 
 def _run(options: ReconstructOptions) -> None:
-    from rigd.app.workflows.reconstruct import run_reconstruct
+    from rigd.products.reconstruct import run_reconstruct
 
     try:
         with StageProgress(_err, "reconstruct") as progress:

@@ -1,6 +1,6 @@
-"""Use cases of the application as plain library calls: calibrate, reconstruct, guided calibration.
+"""Live workflows as plain library calls: guided calibration with the rig's own devices.
 
-The CLI commands, the daemon and a web page all call these; so they take typed options, return
-typed results, report progress through a callback and raise `RigdError`s, and never print.
-Import the submodule you need: each pulls in its own heavy dependencies.
+The CLI command and the web console both call these; so they take typed options, return typed
+results, report progress through a callback and raise `RigdError`s, and never print. Offline
+work on finished takes lives one layer down, in `rigd.products`.
 """

@@ -25,7 +25,6 @@ from calibration.intrinsics import RECOMMENDED_VIEWS, IntrinsicsResult
 from calibration.io import write_result
 from calibration.report import write_report
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, default_sim_rig
-from rigd.app.workflows.calibrate import Board
 from rigd.app.workflows.guided_feeds import (
     CameraFeed,
     ImageFeed,
@@ -34,6 +33,7 @@ from rigd.app.workflows.guided_feeds import (
     shutdown,
 )
 from rigd.core.errors import RigdError
+from rigd.products.calibrate import Board
 
 log = logging.getLogger(__name__)
 

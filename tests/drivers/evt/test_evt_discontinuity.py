@@ -29,11 +29,11 @@ from drivers.evt import (
 from drivers.evt.jumps import MAX_KEPT_JUMPS
 from drivers.evt_stream import EvtStreamSensor
 from drivers.file_event_sensor import FileEventSensor
-from rigd.app.convert import convert
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
+from rigd.products.convert import convert
 from rigd.take.reader import Take
 from tests.drivers.evt.streams import SETTINGS, assert_same, feed_chunks, needs_data, real_body
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from rigd.app.cli import STRICT_EXIT
+from rigd.app.commands.summaries import STRICT_EXIT
 
 #: Compiling every kernel from nothing takes seconds on an idle machine and minutes on a
 #: loaded 2-core one (the suite's 300 s per test is raised for this one); the bound is only

@@ -41,8 +41,8 @@ from firmware_sim.world import reset_world
 from rigd.app.capture.session import CaptureSession
 from rigd.app.cli import app
 from rigd.app.config import RigConfig, default_sim_rig
-from rigd.app.convert import convert
 from rigd.core.errors import ConfigError
+from rigd.products.convert import convert
 from rigd.take import Take
 from tests.rigd.test_take_roundtrip import make_take
 

@@ -12,11 +12,12 @@ import h5py
 import pytest
 from typer.testing import CliRunner
 
-from rigd.app.cli import STRICT_EXIT, app
+from rigd.app.cli import app
 from rigd.app.commands.service import take_summary_line, verdict_text
+from rigd.app.commands.summaries import STRICT_EXIT
 from rigd.app.console.takes import TakeList
-from rigd.app.inspect import summarize
 from rigd.core.schema import DeviceSync, LossRecord, SyncReport
+from rigd.products.inspect import summarize
 from rigd.take.verdict import TakeVerdict, take_verdict
 from tests.rigd.app.service.conftest import RunningDaemon, runtime_dir, start_daemon  # noqa: F401
 from tests.rigd.test_take_roundtrip import make_take

@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
-from rigd.app import cli
 from rigd.app.cli import app
+from rigd.app.commands import capture as capture_command
 from tests.rigd.app.service.conftest import RunningDaemon, runtime_dir, start_daemon  # noqa: F401
 
 
@@ -60,7 +60,7 @@ def test_a_daemon_take_shows_its_capturing_and_stopping_stages(
     capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
     caplog.set_level(logging.INFO)  # as `rigd -v`: off a terminal, a line per stage
-    cli._capture_remote(_ScriptedDaemon(), 2.0, None, False)  # type: ignore[arg-type]
+    capture_command._capture_remote(_ScriptedDaemon(), 2.0, None, False)  # type: ignore[arg-type]
     err = capsys.readouterr().err
     stages = [line for line in err.splitlines() if line.startswith("capture (daemon): ")]
     assert stages[0] == "capture (daemon): capturing (2 s of pulses)"

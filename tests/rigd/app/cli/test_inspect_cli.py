@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-import rigd.app.inspect as inspect_mod
+import rigd.products.inspect as inspect_mod
 from drivers.evt.raw import RawHeader, write_raw
 from rigd.app.cli import app
 from rigd.core.events import EventArray

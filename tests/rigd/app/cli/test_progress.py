@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from rigd.app.cli import app
 from rigd.app.commands.progress import StageProgress
-from rigd.app.workflows.progress import ProgressUpdate
+from rigd.core.progress import ProgressUpdate
 from tests.rigd.test_take_roundtrip import make_take
 
 

@@ -1,0 +1,583 @@
+"""Reconstruction of takes for 4D training: denoise, one rig-level segmentation, keyframes, snapshots.
+
+Per take, in three phases of independent tasks (`reconstruct_tasks`), each reading one bounded
+block of events, so memory does not grow with the take and the work spreads over every worker:
+
+1. **scan**: every block of every event sensor is filtered (background-activity filter) and its
+   kept events are counted in `partition_window_us` windows on the rig timebase.
+2. **keyframes**: the counts of all sensors together give one segmentation of the sequence
+   (paper Sec. 3.3, `reconstruction.partition.segment_starts`). The keyframe candidates are the
+   RGB frames' mid-exposure times (a regular grid for takes without cameras), at most
+   `max_candidates` per segment. The blocks are filtered again and summed into signed event maps
+   between candidates; per segment the canonical keyframe (Eq. 3) is chosen over the maps of all
+   sensors side by side.
+3. **snapshots**: a log-intensity image of every sensor at every keyframe (high-pass integration
+   over the time constants before it, or direct integration from the segment start).
+
+Output per take: `<out>/<take_id>/segments.json` (the segments, keyframes, candidate source,
+what the filter kept per sensor, the options), `<out>/<take_id>/<sensor>/snapshots.npz`, and
+`<out>/<take_id>/overview.png` (the event rate with the segments and keyframes on it, and keyframe
+snapshots per sensor: `reconstruct_picture`).
+
+Scheduling: the same Dask graph runs on local threads (default), local processes, the
+synchronous scheduler, or a `dask.distributed` cluster (`scheduler="tcp://host:8786"`). A take
+that cannot be read fails alone: its result carries `error` (one line naming the take).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import re
+import time
+import zipfile
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import h5py
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from reconstruction.partition import (
+    PartitionConfig,
+    Segment,
+    canonical_keyframe,
+    map_shape,
+    segment_starts,
+)
+from rigd.core.errors import ConfigError, RigdError
+from rigd.core.layout import FRAMES_GROUP, Frames
+from rigd.core.progress import ProgressCallback, ProgressUpdate, no_progress
+from rigd.products.reconstruct_picture import picks, write_overview
+from rigd.products.reconstruct_tasks import (
+    BlockMaps,
+    BlockScan,
+    FilterKnobs,
+    Grid,
+    Snapshot,
+    highpass_warmup_us,
+    map_block,
+    scan_block,
+    snapshot,
+)
+from rigd.take.reader import Take
+
+log = logging.getLogger(__name__)
+
+LOCAL_SCHEDULERS = ("threads", "processes", "sync")
+#: A dask.distributed address: PROTOCOL://HOST:PORT (HOST a name, IPv4 or [IPv6]), HOST:PORT
+#: (tcp), or an in-process scheduler's inproc://... address.
+_ADDRESS = re.compile(
+    r"((?:tcp|tls|ucx|ws|wss)://)?(?P<host>[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\])"
+    r":(?P<port>[0-9]{1,5})|inproc://\S+"
+)
+SCHEDULER_FORMS = f"{', '.join(LOCAL_SCHEDULERS)}, or a dask.distributed address tcp://HOST:PORT"
+#: Seconds to wait for a distributed scheduler to answer (dask's default is 30).
+CONNECT_TIMEOUT_S = 5
+#: The progress stages, each counted in its own unit (events, events, snapshots).
+STAGE_FILTER, STAGE_MAPS, STAGE_SNAPSHOTS = "filter + activity", "keyframe maps", "snapshots"
+
+
+class ReconstructOptions(BaseModel):
+    """Takes to reconstruct, where to, on which scheduler, and every knob (paper values as defaults)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    takes: list[Path]
+    out: Path
+    scheduler: str | None = None
+    """None or "threads": local threads; "processes"; "sync" (one thread); else a distributed address."""
+
+    @field_validator("scheduler")
+    @classmethod
+    def _known_scheduler(cls, v: str | None) -> str | None:
+        """A typo (`thread`) or a malformed address fails here, before any take is read."""
+        if v is None or v in LOCAL_SCHEDULERS:
+            return v
+        m = _ADDRESS.fullmatch(v)
+        if m is None or (m["port"] is not None and not 1 <= int(m["port"]) <= 65535):
+            shown = repr(v if len(v) <= 60 else v[:57] + "...")
+            raise ValueError(f"{shown}: expected {SCHEDULER_FORMS} (port 1-65535)")
+        return v
+
+    workers: int | None = Field(None, ge=1)
+    filter: FilterKnobs = FilterKnobs()
+    partition_window_us: int = Field(5_000, ge=100)
+    threshold: float = Field(2.0, gt=0)
+    """Activity budget per segment, kept events per pixel of all sensors."""
+    instant_weight: float = Field(1.0, ge=0)
+    min_segment_us: int = Field(10_000, ge=0)
+    map_scale: float = Field(0.25, gt=0, le=1)
+    max_candidates: int = Field(256, ge=0)
+    """Keyframe candidates per segment at most (evenly spaced); 0: all of them."""
+    keyframe_camera: str | None = None
+    candidate_interval_us: int = Field(33_333, ge=1)
+    """Candidate spacing in takes without cameras."""
+    e2i: Literal["highpass", "direct"] = "highpass"
+    contrast: float = Field(0.3, gt=0)
+    cutoff_hz: float = Field(5.0, gt=0)
+    block_events: int = Field(1 << 20, ge=1024)
+
+    def partition_config(self) -> PartitionConfig:
+        return PartitionConfig(
+            window_us=self.partition_window_us,
+            threshold=self.threshold,
+            instant_weight=self.instant_weight,
+            min_segment_us=self.min_segment_us,
+            map_scale=self.map_scale,
+        )
+
+
+class SensorReconstruction(BaseModel):
+    """What denoising kept of one sensor's events."""
+
+    events_in: int
+    events_kept: int
+
+
+class TakeReconstruction(BaseModel):
+    """One take's outcome; `take` is the path as given, `error` one line when it failed."""
+
+    take: str
+    segments: int = 0
+    sensors: dict[str, SensorReconstruction] = {}
+    seconds: float = 0.0
+    error: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class _Plan:
+    """What a take holds that the graph is built from (read once, on the caller's side)."""
+
+    path: Path
+    take_id: str
+    geometry: dict[str, tuple[int, int]]
+    blocks: dict[str, list[tuple[int, int]]]
+    t0_us: int
+    t1_us: int
+    candidates: NDArray[np.int64]
+    candidate_source: str
+
+    @property
+    def n_events(self) -> int:
+        return sum(hi - lo for b in self.blocks.values() for lo, hi in b)
+
+
+# --- scheduling ---------------------------------------------------------------------------------
+
+
+class _Runner:
+    """Computes lists of Dask tasks on one scheduler, calling `on_result` per finished task."""
+
+    def __init__(self, scheduler: str | None, workers: int | None) -> None:
+        try:
+            import dask  # noqa: F401
+        except ImportError as exc:  # pragma: no cover - depends on the environment
+            raise RigdError(
+                "rigd reconstruct needs dask: pip install dask (distributed for --scheduler)"
+            ) from exc
+        self.name = scheduler or "threads"
+        self.workers = workers
+        self._client: Any = None
+        if self.name not in LOCAL_SCHEDULERS:
+            try:
+                from dask.distributed import Client
+            except ImportError as exc:  # pragma: no cover - depends on the environment
+                raise RigdError(
+                    f"--scheduler {self.name}: a distributed scheduler needs dask.distributed "
+                    "(pip install distributed)"
+                ) from exc
+            try:
+                self._client = Client(self.name, timeout=CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError) as exc:
+                raise ConfigError(
+                    f"--scheduler {self.name}: no dask.distributed scheduler answered within "
+                    f"{CONNECT_TIMEOUT_S} s ({' '.join(str(exc).split())}); start one with "
+                    f"`dask scheduler` or use {', '.join(LOCAL_SCHEDULERS)}"
+                ) from exc
+            except ValueError as exc:  # an address dask cannot parse
+                raise ConfigError(
+                    f"--scheduler {self.name}: not a usable dask.distributed address "
+                    f"({' '.join(str(exc).split())}); expected {SCHEDULER_FORMS}"
+                ) from exc
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+
+    def compute(self, tasks: Sequence[Any], on_result: Callable[[Any], None]) -> list[Any]:
+        if not tasks:
+            return []
+        if self._client is not None:
+            from dask.distributed import as_completed
+
+            futures = self._client.compute(list(tasks))
+            for fut in as_completed(futures):
+                on_result(fut.result())
+            return [f.result() for f in futures]
+        import dask
+        from dask.callbacks import Callback
+
+        def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
+            on_result(result)
+
+        kwargs: dict[str, Any] = {"scheduler": self.name}
+        if self.workers is not None and self.name != "sync":
+            kwargs["num_workers"] = self.workers
+        with Callback(posttask=posttask):
+            return list(dask.compute(*tasks, **kwargs))
+
+
+# --- planning -----------------------------------------------------------------------------------
+
+
+def _mid_exposures(path: Path, camera: str) -> NDArray[np.int64]:
+    """Mid-exposure rig times of a camera's frames (exposure start + half the exposure)."""
+    with h5py.File(path, "r") as f:
+        g = f[FRAMES_GROUP][camera]
+        n = int(g[Frames.IMAGES].shape[0])
+        start = np.asarray(g[Frames.T_EXPOSURE_START][:n], np.int64)
+        exposure = np.asarray(g[Frames.EXPOSURE][:n], np.int64)
+    return start + exposure // 2
+
+
+def _plan(path: Path, o: ReconstructOptions) -> _Plan:
+    with Take(path) as take:
+        sensors = take.event_sensors
+        geometry = {s: take.geometry(s) for s in sensors}
+        blocks: dict[str, list[tuple[int, int]]] = {}
+        spans = []
+        for s in sensors:
+            n = take.event_count(s)
+            blocks[s] = [(lo, min(lo + o.block_events, n)) for lo in range(0, n, o.block_events)]
+            span = take.event_span(s) if n else None
+            if span is not None:
+                spans.append(span)
+        cameras = [c for c in take.cameras if len(take.frames(c))]
+        take_id = take.take_id or path.stem
+    t0 = min((a for a, _ in spans), default=0)
+    t1 = max((b for _, b in spans), default=0) + 1
+    if o.keyframe_camera is not None and o.keyframe_camera not in cameras:
+        raise ConfigError(
+            f"{path}: --keyframe-camera {o.keyframe_camera!r} is not a camera with frames here "
+            f"(it has {', '.join(cameras) or 'none'})"
+        )
+    camera = o.keyframe_camera or (cameras[0] if cameras else None)
+    if camera is not None:
+        cand = _mid_exposures(path, camera)
+        source = f"{camera} mid-exposure"
+    else:
+        cand = np.arange(t0, t1, o.candidate_interval_us, dtype=np.int64)
+        source = f"every {o.candidate_interval_us} us (no camera frames)"
+    cand = np.unique(cand[(cand >= t0) & (cand < t1)])
+    return _Plan(path, take_id, geometry, blocks, t0, t1, cand, source)
+
+
+def _even_subset(values: NDArray[np.int64], n_max: int) -> NDArray[np.int64]:
+    """At most n_max of the sorted values, evenly spaced, first and last kept (0: all)."""
+    if n_max <= 0 or len(values) <= n_max:
+        return values
+    return values[np.unique(np.linspace(0, len(values) - 1, n_max).round().astype(np.int64))]
+
+
+# --- the phases -----------------------------------------------------------------------------------
+
+
+def _keyframe(
+    a: int,
+    b: int,
+    cand_cuts: NDArray[np.int64],
+    cuts: NDArray[np.int64],
+    shapes: dict[str, tuple[int, int]],
+    *block_maps: BlockMaps,
+) -> int:
+    """Canonical keyframe time of the segment [cuts[a], cuts[b]) among the cut indices `cand_cuts`.
+
+    E(tau) of each sensor is the prefix sum of its interval maps from the segment start; the
+    sensors' maps are laid side by side, so Eq. 3's L1 distance runs over every pixel of the rig.
+    """
+    if len(cand_cuts) == 0:
+        return int(cuts[a])
+    n_pix = sum(sh * sw for sh, sw in shapes.values())
+    maps = np.empty((len(cand_cuts), n_pix), np.int32)
+    col = 0
+    for sensor, (sh, sw) in shapes.items():
+        # acc[j] = E(cuts[a + j]): a zero row, then the running sum of the intervals a, a+1, ...
+        acc = np.zeros((b - a + 1, sh, sw), np.int32)
+        for bm in block_maps:
+            if bm.sensor != sensor:
+                continue
+            lo, hi = max(a, bm.i0), min(b, bm.i0 + len(bm.maps))
+            if lo < hi:
+                acc[lo - a + 1 : hi - a + 1] += bm.maps[lo - bm.i0 : hi - bm.i0]
+        np.cumsum(acc, axis=0, out=acc)
+        maps[:, col : col + sh * sw] = acc[cand_cuts - a].reshape(len(cand_cuts), -1)
+        col += sh * sw
+        del acc
+    return int(cuts[cand_cuts[canonical_keyframe(maps, overwrite=True)]])
+
+
+def reconstruct_take(
+    path: Path,
+    options: ReconstructOptions,
+    progress: ProgressCallback = no_progress,
+    runner: _Runner | None = None,
+) -> TakeReconstruction:
+    """The three phases on one take; writes its outputs. Raises RigdError / OSError on a bad take."""
+    o = options
+    own = runner is None
+    run = runner or _Runner(o.scheduler, o.workers)
+    started = time.perf_counter()
+    try:
+        plan = _plan(path, o)
+        result = _phases(plan, o, run, progress)
+    finally:
+        if own:
+            run.close()
+    return result.model_copy(update={"seconds": round(time.perf_counter() - started, 3)})
+
+
+def _phases(
+    plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback
+) -> TakeReconstruction:
+    from dask import delayed  # dask is checked by _Runner, with its own message
+
+    path, filt, cfg = plan.path, o.filter, o.partition_config()
+    name = str(path)
+    total = plan.n_events
+    sensors = list(plan.blocks)
+    if not sensors or total == 0:
+        empty = {s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors}
+        _write(plan, o, [], empty)
+        return TakeReconstruction(take=name, sensors=empty)
+
+    # Phase 1: filter and count.
+    grid = Grid(plan.t0_us, cfg.window_us, max(1, -(-(plan.t1_us - plan.t0_us) // cfg.window_us)))
+    done = [0]
+
+    def count_events(stage: str, n_total: int) -> Callable[[Any], None]:
+        done[0] = 0
+
+        def on_result(r: Any) -> None:
+            if isinstance(r, BlockScan | BlockMaps):
+                done[0] += r.n_events
+                progress(ProgressUpdate(stage, name, done[0], n_total, "events"))
+
+        return on_result
+
+    progress(ProgressUpdate(STAGE_FILTER, name, 0, total, "events"))
+    scan_tasks = [
+        delayed(scan_block)(path, s, lo, hi, grid, filt) for s in sensors for lo, hi in plan.blocks[s]
+    ]
+    scans: list[BlockScan] = run.compute(scan_tasks, count_events(STAGE_FILTER, total))
+    counts = np.zeros(grid.n, np.int64)
+    kept = {s: 0 for s in sensors}
+    for sc in scans:
+        counts[sc.k0 : sc.k0 + len(sc.counts)] += sc.counts
+        kept[sc.sensor] += sc.n_kept
+    n_pix = sum(w * h for w, h in plan.geometry.values())
+    starts = segment_starts(counts, n_pix, cfg)
+    seg_t = np.array([plan.t0_us + s * cfg.window_us for s in starts], np.int64)
+    edges = np.append(seg_t, plan.t1_us)
+
+    # Phase 2: interval maps between the chosen candidates, canonical keyframe per segment.
+    chosen = [
+        _even_subset(plan.candidates[(plan.candidates >= a) & (plan.candidates < b)], o.max_candidates)
+        for a, b in itertools.pairwise(edges)
+    ]
+    cuts = np.unique(np.concatenate([edges, *chosen]))
+    shapes = {s: map_shape(*plan.geometry[s], cfg.map_scale) for s in sensors}
+    map_tasks: list[tuple[str, int, int, Any]] = []
+    for sc in scans:
+        if sc.n_kept == 0:
+            continue
+        i_a = max(0, int(np.searchsorted(cuts, sc.t_first_us, side="right")) - 1)
+        i_b = min(len(cuts) - 2, int(np.searchsorted(cuts, sc.t_last_us, side="right")) - 1)
+        task = delayed(map_block)(
+            path, sc.sensor, sc.lo, sc.hi, cuts[i_a : i_b + 2], i_a, filt, cfg.map_scale
+        )
+        map_tasks.append((sc.sensor, i_a, i_b, task))
+    key_tasks = []
+    for g, (a_t, b_t) in enumerate(itertools.pairwise(edges)):
+        a, b = int(np.searchsorted(cuts, a_t)), int(np.searchsorted(cuts, b_t))
+        cand_cuts = np.searchsorted(cuts, chosen[g]).astype(np.int64)
+        deps = [t for _, i_a, i_b, t in map_tasks if i_a < b and i_b >= a]
+        key_tasks.append(delayed(_keyframe)(a, b, cand_cuts, cuts, shapes, *deps))
+    n_mapped = sum(sc.n_events for sc in scans if sc.n_kept)
+    progress(ProgressUpdate(STAGE_MAPS, name, 0, n_mapped, "events"))
+    keys = [int(k) for k in run.compute(key_tasks, count_events(STAGE_MAPS, n_mapped))]
+
+    # Phase 3: one snapshot per sensor and keyframe, streamed to disk in batches (memory does not
+    # grow with the number of keyframes).
+    warm = highpass_warmup_us(o.cutoff_hz)
+    n_snaps = len(sensors) * len(keys)
+    snapped = [0]
+
+    def on_snapshot(r: Any) -> None:
+        if isinstance(r, Snapshot):
+            snapped[0] += 1
+            progress(ProgressUpdate(STAGE_SNAPSHOTS, name, snapped[0], n_snaps, "snapshots"))
+
+    progress(ProgressUpdate(STAGE_SNAPSHOTS, name, 0, n_snaps, "snapshots"))
+    batch = max(8, 4 * (o.workers or os.cpu_count() or 1))
+    shown = set(picks(len(keys)))
+    shots: dict[str, list[tuple[int, NDArray[np.float32]]]] = {s: [] for s in sensors}
+    for s in sensors:
+        w, h = plan.geometry[s]
+        with _SnapshotFile(o.out / plan.take_id / s / "snapshots.npz", len(keys), h, w) as dest:
+            for i in range(0, len(keys), batch):
+                tasks = [
+                    delayed(snapshot)(
+                        path,
+                        s,
+                        (k - warm) if o.e2i == "highpass" else int(edges[g]),
+                        k,
+                        filt,
+                        o.e2i,
+                        o.contrast,
+                        o.cutoff_hz,
+                        o.block_events,
+                    )
+                    for g, k in enumerate(keys[i : i + batch], start=i)
+                ]
+                for j, snap in enumerate(run.compute(tasks, on_snapshot), start=i):
+                    dest.append(snap.t_us, snap.image)
+                    if j in shown:  # the few the overview shows; the rest only go to disk
+                        shots[s].append((snap.t_us, snap.image))
+
+    segments = []
+    for g, k in enumerate(keys):
+        lo, hi = starts[g], (starts[g + 1] if g + 1 < len(starts) else grid.n)
+        ne = int(counts[lo:hi].sum())
+        segments.append(Segment(g, int(edges[g]), int(edges[g + 1]), k, ne, ne / n_pix))
+    per_sensor = {
+        s: SensorReconstruction(events_in=sum(h - lo for lo, h in plan.blocks[s]), events_kept=kept[s])
+        for s in sensors
+    }
+    _write(plan, o, segments, per_sensor, n_candidates=sum(len(c) for c in chosen))
+    write_overview(
+        o.out / plan.take_id / "overview.png",
+        counts,
+        cfg.window_us,
+        plan.t0_us,
+        segments,
+        shots,
+        plan.geometry,
+    )
+    log.info(
+        "%s: %d segments; %s",
+        plan.take_id,
+        len(segments),
+        ", ".join(f"{s} kept {v.events_kept} of {v.events_in}" for s, v in per_sensor.items()),
+    )
+    return TakeReconstruction(take=name, segments=len(segments), sensors=per_sensor)
+
+
+def _write(
+    plan: _Plan,
+    o: ReconstructOptions,
+    segments: list[Segment],
+    sensors: dict[str, SensorReconstruction],
+    n_candidates: int = 0,
+) -> None:
+    base = o.out / plan.take_id
+    base.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "take": str(plan.path),
+        "take_id": plan.take_id,
+        "t_start_us": plan.t0_us,
+        "t_end_us": plan.t1_us,
+        "candidates": {
+            "source": plan.candidate_source,
+            "available": len(plan.candidates),
+            "used": n_candidates,
+        },
+        "sensors": {s: v.model_dump() | {"geometry": list(plan.geometry[s])} for s, v in sensors.items()},
+        "options": o.model_dump(mode="json", exclude={"takes", "out", "scheduler", "workers"}),
+        "segments": [asdict(s) for s in segments],
+    }
+    (base / "segments.json").write_text(json.dumps(doc, indent=2))
+
+
+class _SnapshotFile:
+    """`snapshots.npz` (`times_us`, `log_intensity` (n, H, W) float32) written one image at a time.
+
+    The npz is a zip of .npy members; the image member's header is written first (n is known), then
+    each image's bytes as it comes, so only one snapshot is ever held. It is written to a temporary
+    name and renamed when complete: a failed run leaves no half file under the real name.
+    """
+
+    def __init__(self, path: Path, n: int, height: int, width: int) -> None:
+        self.path = path
+        self._n, self._shape = n, (height, width)
+        self._times: list[int] = []
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = path.with_name(path.name + ".partial")
+        self._zip = zipfile.ZipFile(self._tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
+        self._member = self._zip.open("log_intensity.npy", "w", force_zip64=True)
+        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False}
+        np.lib.format.write_array_header_2_0(self._member, header | {"shape": (n, height, width)})
+
+    def append(self, t_us: int, image: NDArray[np.float32]) -> None:
+        if image.shape != self._shape or len(self._times) >= self._n:
+            raise RigdError(f"{self.path}: snapshot {len(self._times)} of shape {image.shape} does not fit")
+        self._member.write(np.ascontiguousarray(image, np.float32).tobytes())
+        self._times.append(int(t_us))
+
+    def __enter__(self) -> _SnapshotFile:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self._member.close()
+        if exc_type is None and len(self._times) != self._n:
+            self._zip.close()
+            self._tmp.unlink(missing_ok=True)
+            raise RigdError(f"{self.path}: {len(self._times)} of {self._n} snapshots written")
+        if exc_type is None:
+            with self._zip.open("times_us.npy", "w") as f:
+                np.lib.format.write_array(f, np.asarray(self._times, np.int64))
+        self._zip.close()
+        if exc_type is None:
+            self._tmp.replace(self.path)
+        else:
+            self._tmp.unlink(missing_ok=True)
+
+
+def _failed(path: Path, exc: Exception) -> TakeReconstruction:
+    """The failed take's result: one line naming the take (prefixed when the error does not)."""
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    if str(path) not in msg:
+        msg = f"{path}: {msg}"
+    log.debug("reconstruct of %s failed", path, exc_info=exc)
+    return TakeReconstruction(take=str(path), error=msg)
+
+
+def run_reconstruct(
+    options: ReconstructOptions, progress: ProgressCallback = no_progress
+) -> list[TakeReconstruction]:
+    """Every take in turn, each spread over the scheduler's workers; results in input order.
+
+    A take failing with a RigdError or OSError (h5py's read errors) gets `error` set; the others run.
+    """
+    o = options
+    runner = _Runner(o.scheduler, o.workers)  # first: an unreachable scheduler leaves nothing behind
+    try:
+        o.out.mkdir(parents=True, exist_ok=True)
+    except BaseException:
+        runner.close()
+        raise
+    results = []
+    try:
+        for path in o.takes:
+            try:
+                results.append(reconstruct_take(path, o, progress, runner))
+            except (RigdError, OSError) as exc:
+                results.append(_failed(path, exc))
+    finally:
+        runner.close()
+    return results
