@@ -30,6 +30,7 @@ from rigd.app.commands.service import (
 )
 from rigd.app.commands.takes import takes
 from rigd.core.errors import ConfigError
+from rigd.core.extras import OPTIONAL, missing_extra
 
 app = RigdTyper(
     help="Capture daemon for a hybrid RGB + event-camera rig.",
@@ -109,6 +110,12 @@ def main() -> None:
     except KeyboardInterrupt:
         console.print("interrupted")
         sys.exit(130)
+    except ModuleNotFoundError as exc:  # a lean install (`pip install rigd`) running the rig
+        if exc.name is None or exc.name.split(".")[0] not in OPTIONAL:
+            raise
+        command = next((a for a in sys.argv[1:] if not a.startswith("-")), "")
+        fail(missing_extra(exc.name, f"`rigd {command}`".replace(" `", "`")))  # prints the one error line
+        sys.exit(2)
 
 
 if __name__ == "__main__":

@@ -57,3 +57,7 @@ class TakeTruncatedError(TakeFormatError):
         super().__init__(message)
         self.eof = eof
         self.stored_eof = stored_eof
+
+
+class MissingExtraError(RigdError):
+    """A feature needs a library that `pip install rigd` leaves out (an extra: rigd[capture], ...)."""

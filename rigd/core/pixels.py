@@ -14,11 +14,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, Final, Literal
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from rigd.core.errors import TakeFormatError
+from rigd.core.extras import require
 from rigd.core.layout import Frames
 
 PixelFormat = Literal["mono8", "rgb8", "bayer_rg8"]
@@ -31,8 +31,15 @@ BYTES_PER_PIXEL: Final = {"mono8": 1, "rgb8": 3, "bayer_rg8": 1}
 
 # OpenCV's name for the sensor's RGGB is BayerBG (see the module docstring). The edge-aware
 # variant: as fast as the bilinear one (bench.bayer_frames), with less zipper on sharp edges
-# (99th percentile error on the sim's board 1 DN against 5; docs/decisions/0016).
-_TO_RGB: Final = {"RGGB": cv2.COLOR_BayerBG2RGB_EA}
+# (99th percentile error on the sim's board 1 DN against 5; docs/decisions/0016). OpenCV is
+# imported on first use: a lean install (`pip install rigd`) reads every array of a take,
+# Bayer mosaics as stored, and asks for the `frames` extra only to demosaic.
+_TO_RGB: Final = {"RGGB": "COLOR_BayerBG2RGB_EA"}
+
+
+def _cv2() -> Any:
+    return require("cv2", "demosaicing Bayer frames or converting RGB to gray")
+
 
 U8 = NDArray[np.uint8]
 
@@ -69,12 +76,16 @@ def _check_mosaic(mosaic: NDArray[Any], pattern: str) -> None:
 def demosaic(mosaic: NDArray[Any], pattern: str = "RGGB") -> U8:
     """(H, W, 3) RGB of a Bayer mosaic (OpenCV's edge-aware demosaic: ~1 ms per 720p frame)."""
     _check_mosaic(mosaic, pattern)
-    return np.asarray(cv2.cvtColor(np.ascontiguousarray(mosaic), _TO_RGB[pattern]), dtype=np.uint8)
+    cv2 = _cv2()
+    return np.asarray(
+        cv2.cvtColor(np.ascontiguousarray(mosaic), getattr(cv2, _TO_RGB[pattern])), dtype=np.uint8
+    )
 
 
 def demosaic_gray(mosaic: NDArray[Any], pattern: str = "RGGB") -> U8:
     """(H, W) luminance of a Bayer mosaic, what a board detector needs: the gray of the
     demosaiced RGB (OpenCV's direct Bayer-to-gray is bilinear, with its zipper on edges)."""
+    cv2 = _cv2()
     return np.asarray(cv2.cvtColor(demosaic(mosaic, pattern), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
 
 
@@ -91,6 +102,7 @@ def to_gray(image: NDArray[Any], pixel_format: str | None) -> NDArray[Any]:
     if pixel_format is not None and is_bayer(pixel_format):
         return demosaic_gray(image, BAYER_PATTERNS[pixel_format])
     if image.ndim == 3 and image.shape[2] == 3:
+        cv2 = _cv2()
         return np.asarray(cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY))
     return image
 

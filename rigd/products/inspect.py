@@ -6,7 +6,6 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, Field
@@ -15,6 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from rigd.core.errors import TakeError, TakeFormatError
+from rigd.core.extras import require
 from rigd.products.loss_times import loss_lines
 from rigd.take.reader import Take, TakeSummary
 from rigd.take.recover import needs_recovery
@@ -250,6 +250,7 @@ def _pulse_line(summary: TakeSummary) -> str:
 
 
 def _to_bgr8(img: NDArray[np.generic]) -> NDArray[np.uint8]:
+    cv2 = require("cv2", "drawing thumbnails")
     a = np.asarray(img)
     if a.dtype != np.uint8:
         hi = float(np.percentile(a, 99.5)) if a.size else 1.0
@@ -295,6 +296,7 @@ def _tile(
 ) -> NDArray[np.uint8]:
     """Fit img into width x height (letterboxed) under a label bar; an event image is shrunk by
     its blocks' maxima first (`_max_pool`)."""
+    cv2 = require("cv2", "drawing thumbnails")
     h, w = img.shape[:2]
     s = min(width / w, height / h)
     if events and s < 0.5:
@@ -328,6 +330,7 @@ def _sample_span(cameras: list[Span], sensors: list[Span], rig: bool) -> Span:
 def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -> Path:
     """Contact sheet: one row per camera (n frames spread over the take) and one per event
     sensor (10 ms event images at the same rig times). Returns the PNG path."""
+    cv2 = require("cv2", "drawing thumbnails")
     if n_frames < 1:
         raise TakeError(f"n_frames must be >= 1, got {n_frames}")
     out = Path(out_png)
