@@ -302,17 +302,21 @@ class EvtWordsSink(TriggerIn):
             self._write_whole_chunks()
 
     def _write_whole_chunks(self) -> None:
+        # Each chunk goes out as its own bytes, never as a view of `pend`: a write that fails
+        # (disk full) keeps its arguments alive in the traceback the capture holds on to, and
+        # a view would then forbid every later resize of `pend` (BufferError), the one in
+        # `fail` included, which left the take "recording" instead of "failed".
         whole = len(self.pend) // WORDS_CHUNK * WORDS_CHUNK
         view = memoryview(self.pend)
         try:
             for pos in range(0, whole, WORDS_CHUNK):
-                self._write_chunk(view[pos : pos + WORDS_CHUNK], self.n_words_written)
+                self._write_chunk(bytes(view[pos : pos + WORDS_CHUNK]), self.n_words_written)
                 self.n_words_written += WORDS_CHUNK
         finally:
             view.release()
-        del self.pend[:whole]
+        self.pend = self.pend[whole:]
 
-    def _write_chunk(self, data: memoryview | bytes, offset: int) -> None:
+    def _write_chunk(self, data: bytes, offset: int) -> None:
         """One whole chunk (the last one zero-padded): compressed here (Zstd releases the GIL),
         or stored as it is while the writer is behind."""
         if offset + WORDS_CHUNK > self.alloc:
@@ -335,7 +339,7 @@ class EvtWordsSink(TriggerIn):
         if final and self.pend:
             self._write_chunk(bytes(self.pend), self.n_words_written)
             self.n_words_written += len(self.pend)
-            self.pend.clear()
+            self.pend = bytearray()
         elif not final:
             self._write_tail()
         if self.rows:

@@ -587,20 +587,20 @@ class TakeWriter:
     def fail(self, reason: str) -> None:
         """Mark the take failed with a reason; everything written so far stays readable.
 
-        A write that fails here (disk full) does not stop the status from being set; it is
-        raised afterwards as OSError.
+        Nothing that fails here stops the status from being set: a write that fails (disk
+        full) is raised afterwards as OSError, anything else as it was.
         """
         self._check_open()
         if self._state == "complete":
             log.warning("take %s: fail(%r) after finalize ignored", self.path, reason)
             return
-        error: BaseException | None = None
+        error: Exception | None = None
         try:
             self._syncer.wait()
             if self._state == "recording":
                 self._write_all()
                 self._drop_tails_after_flush()
-        except (OSError, RuntimeError) as exc:
+        except Exception as exc:  # noqa: BLE001 - raised below, once the status is set
             error = exc
         self._state = "failed"
         try:
@@ -610,8 +610,10 @@ class TakeWriter:
         except (OSError, RuntimeError) as exc:
             error = error or exc
         log.error("take %s marked failed: %s", self.path, reason)
-        if error is not None:
+        if isinstance(error, OSError | RuntimeError):
             raise as_oserror(error) from error
+        if error is not None:
+            raise error
 
     def close(self) -> None:
         """Write buffers and close. Idempotent; an unfinalized take stays "recording".

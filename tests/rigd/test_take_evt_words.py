@@ -278,3 +278,33 @@ def test_chunks_carry_their_decoders_geometry_and_a_take_of_another_one_checks_a
     with pytest.raises(TakeError, match=r"y=4\d\d outside the sensor's 640x400 geometry"):
         w.append_packet("ev0", packets[0])
     w.close()
+
+
+def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The capture keeps the disk-full error (and with it the failed call's arguments) until the
+    take is marked failed: nothing the failed write held may stop `fail` and `close`."""
+    from rigd.take.evt_sink import EvtWordsSink
+
+    _, packets = synthetic
+    path = tmp_path / "full.h5"
+    w = TakeWriter(
+        path, rig_config_json="{}", take_id="t", config=WriterConfig(fsync=False), rigd_version="t"
+    )
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), 640, 480, "{}", "evt3")
+    written = EvtWordsSink._write_chunk
+
+    def disk_full(self: EvtWordsSink, data: bytes, offset: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(EvtWordsSink, "_write_chunk", disk_full)
+    with pytest.raises(OSError, match="No space left") as kept:  # noqa: PT012 - fills in the loop
+        for p in packets:
+            w.append_packet("ev0", p)
+    monkeypatch.setattr(EvtWordsSink, "_write_chunk", written)
+    assert kept.value.__traceback__ is not None  # held, as the capture holds its error
+    w.fail("disk full")
+    w.close()
+    with open_take(path) as take:
+        assert take.status == "failed"
