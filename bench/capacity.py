@@ -43,7 +43,7 @@ import shutil
 import tempfile
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -371,7 +371,7 @@ def _floats(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v.strip()]
 
 
-def main(argv: Sequence[str] | None = None) -> None:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=5.0, help="length of each source take")
     ap.add_argument(
@@ -396,6 +396,115 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=None, help="directory on the disk to measure (default: tmp)")
     ap.add_argument("--keep", action="store_true", help="keep the takes (printed)")
     add_device_arguments(ap)
+    return ap
+
+
+@dataclass(slots=True)
+class _Run:
+    """What the parts of one run share: the arguments, where takes go, and the source takes a
+    later part reuses instead of recording again (the default rig's, the densest)."""
+
+    args: argparse.Namespace
+    src_dir: Path
+    cap_dir: Path
+    default: Source | None = None
+    """The default rig's take: threshold DEFAULT_THRESHOLD at 30 Hz."""
+    densest: Source | None = None
+    """The take with the most events per sensor so far (the microbenchmarks' data)."""
+    best_event_level: Level | None = None
+    """The highest passing event-rate level (the ceiling table's measured row)."""
+
+    def record(self, threshold: float = DEFAULT_THRESHOLD, rate_hz: float = 30.0) -> Source:
+        return record_source(self.src_dir, threshold=threshold, rate_hz=rate_hz, seconds=self.args.seconds)
+
+    def replay(self, source: Source) -> list[Level]:
+        a = self.args
+        return replay_runs(source, self.cap_dir, a.runs, keep=a.keep, max_lag_s=a.max_lag)
+
+    def drop(self, source: Source) -> None:
+        """Delete a source take no later part reuses (unless --keep)."""
+        if source is not self.default and source is not self.densest and not self.args.keep:
+            source.path.unlink(missing_ok=True)
+
+
+def _warm_up(run: _Run) -> None:
+    """Not reported: numba compiles its kernels and the page cache fills on the first replay,
+    which would otherwise count against the first level."""
+    warm = record_source(run.src_dir, threshold=DEFAULT_THRESHOLD, rate_hz=30.0, seconds=1.0)
+    replay_capture(warm, run.cap_dir)
+    warm.path.unlink(missing_ok=True)
+
+
+def _events_part(run: _Run) -> list[str]:
+    """1. Rising event rates beside the default cameras; keeps the default and densest takes."""
+    levels: list[list[Level]] = []
+    for thr in run.args.levels:
+        src = run.record(threshold=thr)
+        levels.append(run.replay(src))
+        if thr == DEFAULT_THRESHOLD and run.default is None:
+            run.default = src
+        if run.densest is None or src.mevs_per_sensor > run.densest.mevs_per_sensor:
+            previous, run.densest = run.densest, src
+            if previous is not None:
+                run.drop(previous)
+        else:
+            run.drop(src)
+    passing = [runs[0] for runs in levels if all(r.passed for r in runs)]
+    run.best_event_level = max(passing, key=lambda lv: lv.source.mevs_per_sensor) if passing else None
+    return level_table(
+        f"1. event rate per sensor, 3 x 720p rgb8 @ 30 Hz beside it ({run.args.seconds:g} s takes, "
+        "real-time replay)",
+        "threshold",
+        levels,
+    )
+
+
+def _frames_part(run: _Run) -> list[str]:
+    """2. Rising trigger rates at the default event threshold (30 Hz: the default take)."""
+    levels: list[list[Level]] = []
+    for rate in run.args.rates:
+        src = run.default if rate == 30.0 and run.default is not None else run.record(rate_hz=rate)
+        levels.append(run.replay(src))
+        if rate == 30.0 and run.default is None:
+            run.default = src
+        else:
+            run.drop(src)
+    return level_table(
+        f"2. trigger rate, event sensors at the default threshold {DEFAULT_THRESHOLD:g} beside it "
+        f"({run.args.seconds:g} s takes, real-time replay)",
+        "rate",
+        levels,
+    )
+
+
+def _micro_part(run: _Run, tmp: Path) -> list[str]:
+    """3. Where the time goes, on the densest take recorded (else the default rig's)."""
+    src = run.densest or run.default
+    if src is None:
+        src = run.default = run.record()
+    micro = micro_benchmarks(src.path, src.label, tmp, n_events=run.args.micro_events, repeat=run.args.repeat)
+    frame_mbs = run.default.frame_mbs if run.default is not None else 3 * 30 * micro.frame_mb
+    best = run.best_event_level
+    return [
+        f"3. where the time goes (data: {src.label}, sensor 0)",
+        *ceiling_table(micro, frame_mbs, None if best is None else best.source.mevs_per_sensor),
+    ]
+
+
+def _speed_part(run: _Run) -> list[str]:
+    """4. The default rig's take replayed on the virtual clock and in real time."""
+    if run.default is None:
+        run.default = run.record()
+    src = run.default
+    speed = [replay_capture(src, run.cap_dir, "virtual"), replay_capture(src, run.cap_dir, "real")]
+    return [
+        f"4. replay speed, default rig take ({src.label}, {src.mevs_per_sensor:.2f} Mev/s/sensor)",
+        *speed_table(speed),
+    ]
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    ap = _parser()
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log.setLevel(logging.INFO)
@@ -408,92 +517,23 @@ def main(argv: Sequence[str] | None = None) -> None:
     load0 = os.getloadavg()
     t_start = time.perf_counter()
     root = Path(tempfile.mkdtemp(prefix="rigd-capacity-", dir=args.out))
-    src_dir, cap_dir = root / "src", root / "cap"
-    src_dir.mkdir()
-    cap_dir.mkdir()
+    run = _Run(args, root / "src", root / "cap")
+    run.src_dir.mkdir()
+    run.cap_dir.mkdir()
+    steps: list[tuple[str, Callable[[], list[str]]]] = [
+        ("events", lambda: _events_part(run)),
+        ("frames", lambda: _frames_part(run)),
+        ("micro", lambda: _micro_part(run, root)),
+        ("speed", lambda: _speed_part(run)),
+        ("device", lambda: device_part_from_args(ap, args, run.cap_dir)),
+    ]
     out: list[str] = []
-    default: Source | None = None
-    densest: Source | None = None
-    best_event_level: Level | None = None
     try:
         if parts - {"device"}:
-            # Warm-up, not reported: numba compiles its kernels and the page cache fills on the
-            # first replay, which would otherwise count against the first level.
-            warm = record_source(src_dir, threshold=DEFAULT_THRESHOLD, rate_hz=30.0, seconds=1.0)
-            replay_capture(warm, cap_dir)
-            warm.path.unlink(missing_ok=True)
-        if "events" in parts:
-            levels: list[list[Level]] = []
-            for thr in args.levels:
-                src = record_source(src_dir, threshold=thr, rate_hz=30.0, seconds=args.seconds)
-                levels.append(replay_runs(src, cap_dir, args.runs, keep=args.keep, max_lag_s=args.max_lag))
-                if thr == DEFAULT_THRESHOLD and default is None:
-                    default = src
-                if densest is None or src.mevs_per_sensor > densest.mevs_per_sensor:
-                    if densest is not None and densest is not default and not args.keep:
-                        densest.path.unlink(missing_ok=True)
-                    densest = src
-                elif src is not default and not args.keep:
-                    src.path.unlink(missing_ok=True)
-            passing = [runs[0] for runs in levels if all(r.passed for r in runs)]
-            best_event_level = max(passing, key=lambda lv: lv.source.mevs_per_sensor) if passing else None
-            out += level_table(
-                f"1. event rate per sensor, 3 x 720p rgb8 @ 30 Hz beside it ({args.seconds:g} s takes, "
-                "real-time replay)",
-                "threshold",
-                levels,
-            )
-            out.append("")
-        if "frames" in parts:
-            levels = []
-            for rate in args.rates:
-                if rate == 30.0 and default is not None:
-                    src = default
-                else:
-                    src = record_source(
-                        src_dir, threshold=DEFAULT_THRESHOLD, rate_hz=rate, seconds=args.seconds
-                    )
-                levels.append(replay_runs(src, cap_dir, args.runs, keep=args.keep, max_lag_s=args.max_lag))
-                if rate == 30.0 and default is None:
-                    default = src
-                elif src is not default and src is not densest and not args.keep:
-                    src.path.unlink(missing_ok=True)
-            out += level_table(
-                f"2. trigger rate, event sensors at the default threshold {DEFAULT_THRESHOLD:g} beside it "
-                f"({args.seconds:g} s takes, real-time replay)",
-                "rate",
-                levels,
-            )
-            out.append("")
-        if "micro" in parts:
-            micro_src = densest or default
-            if micro_src is None:
-                micro_src = default = record_source(
-                    src_dir, threshold=DEFAULT_THRESHOLD, rate_hz=30.0, seconds=args.seconds
-                )
-            micro = micro_benchmarks(
-                micro_src.path, micro_src.label, root, n_events=args.micro_events, repeat=args.repeat
-            )
-            frame_mbs = default.frame_mbs if default is not None else 3 * 30 * micro.frame_mb
-            out.append(f"3. where the time goes (data: {micro_src.label}, sensor 0)")
-            measured = None if best_event_level is None else best_event_level.source.mevs_per_sensor
-            out += ceiling_table(micro, frame_mbs, measured)
-            out.append("")
-        if "speed" in parts:
-            if default is None:
-                default = record_source(
-                    src_dir, threshold=DEFAULT_THRESHOLD, rate_hz=30.0, seconds=args.seconds
-                )
-            speed = [replay_capture(default, cap_dir, "virtual"), replay_capture(default, cap_dir, "real")]
-            out.append(
-                f"4. replay speed, default rig take ({default.label}, "
-                f"{default.mevs_per_sensor:.2f} Mev/s/sensor)"
-            )
-            out += speed_table(speed)
-            out.append("")
-        if "device" in parts:
-            out += device_part_from_args(ap, args, cap_dir)
-            out.append("")
+            _warm_up(run)
+        for name, part in steps:
+            if name in parts:
+                out += [*part(), ""]
     finally:
         if args.keep:
             log.info("takes kept in %s", root)
