@@ -53,6 +53,8 @@ KEY_T_SHIFT = 33
 MAX_KEYED_SPAN = 1 << 30
 
 
+# numba kernels take every array as a parameter of its own (no objects), so their signatures
+# here and in event_kernels are long lists alike in shape; there is nothing to share.
 @njit(nogil=True, cache=True)
 def _emit_block(  # pragma: no cover - numba
     b: int,

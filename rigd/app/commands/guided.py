@@ -194,6 +194,7 @@ def guided(
             lines(update.feedback, update.seconds_left)
 
     try:
+        # One keyword per flag; alike in shape to the other commands' option models, nothing shared.
         options = GuidedOptions(
             camera=camera,
             out=out,

@@ -115,6 +115,7 @@ def reconstruct(
             radius_px=filter_radius,
             min_support=filter_support,
         )
+        # One keyword per flag; alike in shape to the other commands' option models, nothing shared.
         options = ReconstructOptions(
             takes=takes,
             out=out,
