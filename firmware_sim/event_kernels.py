@@ -80,6 +80,8 @@ def _emit_pixel(  # pragma: no cover - numba
     return n, r + sign * k * threshold
 
 
+# A numba kernel takes every array as a parameter of its own: its signature is alike in shape
+# to keyed_step's kernels, with nothing to share.
 @njit(nogil=True, cache=True)
 def generate_events_kernel(  # pragma: no cover - numba
     l_prev: F32,

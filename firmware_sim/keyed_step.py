@@ -4,6 +4,10 @@ threads (`prange`, nogil) or their serial twins; and `sort_by_time` for the seri
 
 from __future__ import annotations
 
+import types
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
@@ -35,8 +39,9 @@ from rigd.core.events import EventArray
 # 2. sort: each coarse bucket gathers its run of keys from every block in order (the
 #    noise's last), sorts them by the fine time (counting sort, stable) and unpacks them
 #    into its range of the output columns.
-# Each pass is a `prange` over blocks (or buckets) calling a per-block kernel; the `_ser`
-# twins run the same blocks in order on one thread.
+# Each pass is a `prange` over blocks (or buckets) calling a per-block kernel, compiled
+# twice from one source (`_threaded_and_serial`): the `_par` variant on numba's threads, the
+# `_ser` variant running the same blocks in order on one thread.
 
 #: Rows of the image are cut into at most this many blocks (the unit of parallel work).
 MAX_BLOCKS = 64
@@ -48,6 +53,8 @@ KEY_T_SHIFT = 33
 MAX_KEYED_SPAN = 1 << 30
 
 
+# numba kernels take every array as a parameter of its own (no objects), so their signatures
+# here and in event_kernels are long lists alike in shape; there is nothing to share.
 @njit(nogil=True, cache=True)
 def _emit_block(  # pragma: no cover - numba
     b: int,
@@ -218,8 +225,29 @@ def _sort_bucket(  # pragma: no cover - numba
         _unpack(gathered[order[e]], base, lo + e, out)
 
 
-@njit(nogil=True, cache=True, parallel=True)
-def _emit_par(  # pragma: no cover - numba
+def _threaded_and_serial(f: Callable[..., None]) -> tuple[Any, Any]:
+    """`f` compiled twice: with `parallel=True`, its `prange` loop runs over numba's
+    threads; without, `prange` runs as `range`, in order on the calling thread.
+
+    Each variant is compiled from its own copy of `f`, named `<f>_par` and
+    `<f>_ser`: numba's on-disk cache files a function under its module, qualified name
+    and first line, and within that by signature, CPU and bytecode, not by `parallel`, so two
+    dispatchers of one function would share one cache entry and one of them would load the
+    other's code (the serial twin the threaded code, or the other way round).
+    """
+
+    def compiled(suffix: str, parallel: bool) -> Any:
+        twin = types.FunctionType(
+            f.__code__, f.__globals__, f.__name__ + suffix, f.__defaults__, f.__closure__
+        )
+        twin.__qualname__ = f.__qualname__ + suffix
+        twin.__doc__ = f.__doc__
+        return njit(nogil=True, cache=True, parallel=parallel)(twin)
+
+    return compiled("_par", True), compiled("_ser", False)
+
+
+def _emit(  # pragma: no cover - numba
     frame: Frame,
     conv: LogInput,
     px: Pixels,
@@ -235,45 +263,21 @@ def _emit_par(  # pragma: no cover - numba
     bucketed: I64,
     table: F64,
 ) -> None:
+    """Pass 1: `_emit_block` for every block."""
     for b in prange(filled.shape[0]):
         _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed, table)
 
 
-@njit(nogil=True, cache=True)
-def _emit_ser(  # pragma: no cover - numba
-    frame: Frame,
-    conv: LogInput,
-    px: Pixels,
-    prm: StepParams,
-    t0: int,
-    t1: int,
-    rows: int,
-    shift: int,
-    hist: I64,
-    filled: I64,
-    resume: I64,
-    keys: I64,
-    bucketed: I64,
-    table: F64,
-) -> None:
-    for b in range(filled.shape[0]):
-        _emit_block(b, rows, frame, conv, px, prm, t0, t1, shift, hist, filled, resume, keys, bucketed, table)
-
-
-@njit(nogil=True, cache=True, parallel=True)
-def _sort_par(  # pragma: no cover - numba
+def _sort(  # pragma: no cover - numba
     bounds: I64, starts: I64, hist: I64, base: int, shift: int, bucketed: I64, noise: I64, out: EventOut
 ) -> None:
+    """Pass 2: `_sort_bucket` for every coarse bucket."""
     for q in prange(bounds.shape[0] - 1):
         _sort_bucket(q, bounds, starts, hist, base, shift, bucketed, noise, out)
 
 
-@njit(nogil=True, cache=True)
-def _sort_ser(  # pragma: no cover - numba
-    bounds: I64, starts: I64, hist: I64, base: int, shift: int, bucketed: I64, noise: I64, out: EventOut
-) -> None:
-    for q in range(bounds.shape[0] - 1):
-        _sort_bucket(q, bounds, starts, hist, base, shift, bucketed, noise, out)
+_emit_par, _emit_ser = _threaded_and_serial(_emit)
+_sort_par, _sort_ser = _threaded_and_serial(_sort)
 
 
 @njit(nogil=True, cache=True)

@@ -174,6 +174,8 @@ def make_decode_kernel(masked: bool, swapped: bool = False) -> DecodeKernel:
                         if bad and strict:
                             err = OUT_OF_RANGE_XY
                             break
+            # TIME_HIGH handling is written out here and in evt3.decode_kernel on purpose: the
+            # formats' bit widths differ, and the control flow (break, hold) stays in the hot loop.
             elif typ == 0x8:  # EVT_TIME_HIGH
                 v = w & 0xFFFFFFF
                 fell = started != 0 and v < th

@@ -329,6 +329,8 @@ def decode_kernel(
         elif typ == 0x3:
             base = v
             vpol = 1 if (w & 0x800) != 0 else -1
+        # TIME_HIGH handling is written out here and in evt2's kernel on purpose: the formats'
+        # bit widths differ, and the control flow (break, hold) stays in the hot loop.
         elif typ == 0x8:
             v12 = w & 0xFFF
             fell = started != 0 and v12 < th

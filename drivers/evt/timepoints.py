@@ -25,6 +25,34 @@ from rigd.core.errors import EventDataError
 GRAIN_US = 64
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _reach(
+    t: int,
+    i: int,
+    grain: int,
+    off: NDArray[np.int64],
+    tp: NDArray[np.int64],
+    fill: bool,
+    n: int,
+    tmax: int,
+    bucket: int,
+) -> tuple[int, int, int]:  # pragma: no cover - numba
+    """Word i has time t: a new point when t passes the running maximum into a new grain.
+    Returns (points, running maximum, grain of the last point)."""
+    if t > tmax:
+        tmax = t
+        b = t // grain
+        if b > bucket:
+            bucket = b
+            if fill:
+                off[n] = i
+                tp[n] = b * grain
+            n += 1
+    return n, tmax, bucket
+
+
+# One kernel per format, alike in shape on purpose: each reads its own word size and time
+# words with no per-word format branch; what they share is `_reach`.
 @njit(nogil=True, cache=True)
 def _evt3_points(
     words: NDArray[np.uint16], grain: int, off: NDArray[np.int64], tp: NDArray[np.int64], fill: bool
@@ -49,15 +77,7 @@ def _evt3_points(
             t = (loop << 24) | (th << 12) | (w & 0xFFF)
         else:
             continue
-        if t > tmax:
-            tmax = t
-            b = t // grain
-            if b > bucket:
-                bucket = b
-                if fill:
-                    off[n] = i
-                    tp[n] = b * grain
-                n += 1
+        n, tmax, bucket = _reach(t, i, grain, off, tp, fill, n, tmax, bucket)
     return n, tmax
 
 
@@ -81,15 +101,7 @@ def _evt2_points(
         th = v
         started = True
         t = (loop << 34) | (th << 6)
-        if t > tmax:
-            tmax = t
-            b = t // grain
-            if b > bucket:
-                bucket = b
-                if fill:
-                    off[n] = i
-                    tp[n] = b * grain
-                n += 1
+        n, tmax, bucket = _reach(t, i, grain, off, tp, fill, n, tmax, bucket)
     return n, tmax
 
 

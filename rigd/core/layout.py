@@ -25,6 +25,10 @@ SYNC_GROUP: Final = "sync"
 CALIBRATION_GROUP: Final = "calibration"
 
 
+# The classes below are name tables, one per place in the file: `NAME: Final = "name"` rows
+# alike in shape on purpose (one spelling per name), not code to share.
+
+
 class Root:
     """Attributes of `/` and the datasets at the top level."""
 

@@ -345,124 +345,29 @@ def reconstruct_take(
 def _phases(
     plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback
 ) -> TakeReconstruction:
-    from dask import delayed  # dask is checked by _Runner, with its own message
-
-    path, filt, cfg = plan.path, o.filter, o.partition_config()
-    name = str(path)
-    total = plan.n_events
+    name = str(plan.path)
     sensors = list(plan.blocks)
-    if not sensors or total == 0:
+    if not sensors or plan.n_events == 0:
         empty = {s: SensorReconstruction(events_in=0, events_kept=0) for s in sensors}
         _write(plan, o, [], empty)
         return TakeReconstruction(take=name, sensors=empty)
-
-    # Phase 1: filter and count.
-    grid = Grid(plan.t0_us, cfg.window_us, max(1, -(-(plan.t1_us - plan.t0_us) // cfg.window_us)))
-    done = [0]
-
-    def count_events(stage: str, n_total: int) -> Callable[[Any], None]:
-        done[0] = 0
-
-        def on_result(r: Any) -> None:
-            if isinstance(r, BlockScan | BlockMaps):
-                done[0] += r.n_events
-                progress(ProgressUpdate(stage, name, done[0], n_total, "events"))
-
-        return on_result
-
-    progress(ProgressUpdate(STAGE_FILTER, name, 0, total, "events"))
-    scan_tasks = [
-        delayed(scan_block)(path, s, lo, hi, grid, filt) for s in sensors for lo, hi in plan.blocks[s]
-    ]
-    scans: list[BlockScan] = run.compute(scan_tasks, count_events(STAGE_FILTER, total))
-    counts = np.zeros(grid.n, np.int64)
-    kept = {s: 0 for s in sensors}
-    for sc in scans:
-        counts[sc.k0 : sc.k0 + len(sc.counts)] += sc.counts
-        kept[sc.sensor] += sc.n_kept
-    n_pix = sum(w * h for w, h in plan.geometry.values())
-    starts = segment_starts(counts, n_pix, cfg)
-    seg_t = np.array([plan.t0_us + s * cfg.window_us for s in starts], np.int64)
-    edges = np.append(seg_t, plan.t1_us)
-
-    # Phase 2: interval maps between the chosen candidates, canonical keyframe per segment.
-    chosen = [
-        _even_subset(plan.candidates[(plan.candidates >= a) & (plan.candidates < b)], o.max_candidates)
-        for a, b in itertools.pairwise(edges)
-    ]
-    cuts = np.unique(np.concatenate([edges, *chosen]))
-    shapes = {s: map_shape(*plan.geometry[s], cfg.map_scale) for s in sensors}
-    map_tasks: list[tuple[str, int, int, Any]] = []
-    for sc in scans:
-        if sc.n_kept == 0:
-            continue
-        i_a = max(0, int(np.searchsorted(cuts, sc.t_first_us, side="right")) - 1)
-        i_b = min(len(cuts) - 2, int(np.searchsorted(cuts, sc.t_last_us, side="right")) - 1)
-        task = delayed(map_block)(
-            path, sc.sensor, sc.lo, sc.hi, cuts[i_a : i_b + 2], i_a, filt, cfg.map_scale
-        )
-        map_tasks.append((sc.sensor, i_a, i_b, task))
-    key_tasks = []
-    for g, (a_t, b_t) in enumerate(itertools.pairwise(edges)):
-        a, b = int(np.searchsorted(cuts, a_t)), int(np.searchsorted(cuts, b_t))
-        cand_cuts = np.searchsorted(cuts, chosen[g]).astype(np.int64)
-        deps = [t for _, i_a, i_b, t in map_tasks if i_a < b and i_b >= a]
-        key_tasks.append(delayed(_keyframe)(a, b, cand_cuts, cuts, shapes, *deps))
-    n_mapped = sum(sc.n_events for sc in scans if sc.n_kept)
-    progress(ProgressUpdate(STAGE_MAPS, name, 0, n_mapped, "events"))
-    keys = [int(k) for k in run.compute(key_tasks, count_events(STAGE_MAPS, n_mapped))]
-
-    # Phase 3: one snapshot per sensor and keyframe, streamed to disk in batches (memory does not
-    # grow with the number of keyframes).
-    warm = highpass_warmup_us(o.cutoff_hz)
-    n_snaps = len(sensors) * len(keys)
-    snapped = [0]
-
-    def on_snapshot(r: Any) -> None:
-        if isinstance(r, Snapshot):
-            snapped[0] += 1
-            progress(ProgressUpdate(STAGE_SNAPSHOTS, name, snapped[0], n_snaps, "snapshots"))
-
-    progress(ProgressUpdate(STAGE_SNAPSHOTS, name, 0, n_snaps, "snapshots"))
-    batch = max(8, 4 * (o.workers or os.cpu_count() or 1))
-    shown = set(picks(len(keys)))
-    shots: dict[str, list[tuple[int, NDArray[np.float32]]]] = {s: [] for s in sensors}
-    for s in sensors:
-        w, h = plan.geometry[s]
-        with _SnapshotFile(o.out / plan.take_id / s / "snapshots.npz", len(keys), h, w) as dest:
-            for i in range(0, len(keys), batch):
-                tasks = [
-                    delayed(snapshot)(
-                        path,
-                        s,
-                        (k - warm) if o.e2i == "highpass" else int(edges[g]),
-                        k,
-                        filt,
-                        o.e2i,
-                        o.contrast,
-                        o.cutoff_hz,
-                        o.block_events,
-                    )
-                    for g, k in enumerate(keys[i : i + batch], start=i)
-                ]
-                for j, snap in enumerate(run.compute(tasks, on_snapshot), start=i):
-                    dest.append(snap.t_us, snap.image)
-                    if j in shown:  # the few the overview shows; the rest only go to disk
-                        shots[s].append((snap.t_us, snap.image))
-
+    act = _scan(plan, o, run, progress)
+    chosen, keys = _keyframes(plan, o, run, progress, act)
+    shots = _snapshots(plan, o, run, progress, keys, act.edges)
+    cfg = o.partition_config()
     segments = []
     for g, k in enumerate(keys):
-        lo, hi = starts[g], (starts[g + 1] if g + 1 < len(starts) else grid.n)
-        ne = int(counts[lo:hi].sum())
-        segments.append(Segment(g, int(edges[g]), int(edges[g + 1]), k, ne, ne / n_pix))
+        lo, hi = act.starts[g], (act.starts[g + 1] if g + 1 < len(act.starts) else act.grid.n)
+        ne = int(act.counts[lo:hi].sum())
+        segments.append(Segment(g, int(act.edges[g]), int(act.edges[g + 1]), k, ne, ne / act.n_pix))
     per_sensor = {
-        s: SensorReconstruction(events_in=sum(h - lo for lo, h in plan.blocks[s]), events_kept=kept[s])
+        s: SensorReconstruction(events_in=sum(h - lo for lo, h in plan.blocks[s]), events_kept=act.kept[s])
         for s in sensors
     }
     _write(plan, o, segments, per_sensor, n_candidates=sum(len(c) for c in chosen))
     write_overview(
         o.out / plan.take_id / "overview.png",
-        counts,
+        act.counts,
         cfg.window_us,
         plan.t0_us,
         segments,
@@ -476,6 +381,148 @@ def _phases(
         ", ".join(f"{s} kept {v.events_kept} of {v.events_in}" for s, v in per_sensor.items()),
     )
     return TakeReconstruction(take=name, segments=len(segments), sensors=per_sensor)
+
+
+def _counting_events(
+    progress: ProgressCallback, stage: str, name: str, n_total: int
+) -> Callable[[Any], None]:
+    """An `on_result` that reports the events of the finished scans and maps of one stage."""
+    done = [0]
+
+    def on_result(r: Any) -> None:
+        if isinstance(r, BlockScan | BlockMaps):
+            done[0] += r.n_events
+            progress(ProgressUpdate(stage, name, done[0], n_total, "events"))
+
+    return on_result
+
+
+@dataclass(slots=True)
+class _Activity:
+    """Phase 1's outcome: what every block kept, counted per window of the rig, and the one
+    segmentation of the take those counts give."""
+
+    scans: list[BlockScan]
+    grid: Grid
+    counts: NDArray[np.int64]
+    kept: dict[str, int]
+    n_pix: int
+    """Pixels of all sensors together (the segmentation's budget is per pixel of the rig)."""
+    starts: list[int]
+    """Window index where each segment starts."""
+    edges: NDArray[np.int64]
+    """Rig times the segments start at, then the take's end."""
+
+
+def _scan(plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback) -> _Activity:
+    """Phase 1: filter every block, count what it kept per window, and segment the take."""
+    from dask import delayed  # dask is checked by _Runner, with its own message
+
+    cfg, name, total = o.partition_config(), str(plan.path), plan.n_events
+    grid = Grid(plan.t0_us, cfg.window_us, max(1, -(-(plan.t1_us - plan.t0_us) // cfg.window_us)))
+    progress(ProgressUpdate(STAGE_FILTER, name, 0, total, "events"))
+    scan_tasks = [
+        delayed(scan_block)(plan.path, s, lo, hi, grid, o.filter)
+        for s, blocks in plan.blocks.items()
+        for lo, hi in blocks
+    ]
+    scans: list[BlockScan] = run.compute(scan_tasks, _counting_events(progress, STAGE_FILTER, name, total))
+    counts = np.zeros(grid.n, np.int64)
+    kept = {s: 0 for s in plan.blocks}
+    for sc in scans:
+        counts[sc.k0 : sc.k0 + len(sc.counts)] += sc.counts
+        kept[sc.sensor] += sc.n_kept
+    n_pix = sum(w * h for w, h in plan.geometry.values())
+    starts = segment_starts(counts, n_pix, cfg)
+    seg_t = np.array([plan.t0_us + s * cfg.window_us for s in starts], np.int64)
+    return _Activity(scans, grid, counts, kept, n_pix, starts, np.append(seg_t, plan.t1_us))
+
+
+def _keyframes(
+    plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback, act: _Activity
+) -> tuple[list[NDArray[np.int64]], list[int]]:
+    """Phase 2: interval maps between the chosen candidates, canonical keyframe per segment.
+    Returns the candidates chosen per segment and the keyframes."""
+    from dask import delayed
+
+    cfg, name, edges = o.partition_config(), str(plan.path), act.edges
+    chosen = [
+        _even_subset(plan.candidates[(plan.candidates >= a) & (plan.candidates < b)], o.max_candidates)
+        for a, b in itertools.pairwise(edges)
+    ]
+    cuts = np.unique(np.concatenate([edges, *chosen]))
+    shapes = {s: map_shape(*plan.geometry[s], cfg.map_scale) for s in plan.blocks}
+    map_tasks: list[tuple[str, int, int, Any]] = []
+    for sc in act.scans:
+        if sc.n_kept == 0:
+            continue
+        i_a = max(0, int(np.searchsorted(cuts, sc.t_first_us, side="right")) - 1)
+        i_b = min(len(cuts) - 2, int(np.searchsorted(cuts, sc.t_last_us, side="right")) - 1)
+        task = delayed(map_block)(
+            plan.path, sc.sensor, sc.lo, sc.hi, cuts[i_a : i_b + 2], i_a, o.filter, cfg.map_scale
+        )
+        map_tasks.append((sc.sensor, i_a, i_b, task))
+    key_tasks = []
+    for g, (a_t, b_t) in enumerate(itertools.pairwise(edges)):
+        a, b = int(np.searchsorted(cuts, a_t)), int(np.searchsorted(cuts, b_t))
+        cand_cuts = np.searchsorted(cuts, chosen[g]).astype(np.int64)
+        deps = [t for _, i_a, i_b, t in map_tasks if i_a < b and i_b >= a]
+        key_tasks.append(delayed(_keyframe)(a, b, cand_cuts, cuts, shapes, *deps))
+    n_mapped = sum(sc.n_events for sc in act.scans if sc.n_kept)
+    progress(ProgressUpdate(STAGE_MAPS, name, 0, n_mapped, "events"))
+    keys = [int(k) for k in run.compute(key_tasks, _counting_events(progress, STAGE_MAPS, name, n_mapped))]
+    return chosen, keys
+
+
+def _snapshots(
+    plan: _Plan,
+    o: ReconstructOptions,
+    run: _Runner,
+    progress: ProgressCallback,
+    keys: list[int],
+    edges: NDArray[np.int64],
+) -> dict[str, list[tuple[int, NDArray[np.float32]]]]:
+    """Phase 3: one snapshot per sensor and keyframe, streamed to disk in batches (memory does
+    not grow with the number of keyframes). Returns the few the overview shows."""
+    from dask import delayed
+
+    name, path = str(plan.path), plan.path
+    warm = highpass_warmup_us(o.cutoff_hz)
+    n_snaps = len(plan.blocks) * len(keys)
+    snapped = [0]
+
+    def on_snapshot(r: Any) -> None:
+        if isinstance(r, Snapshot):
+            snapped[0] += 1
+            progress(ProgressUpdate(STAGE_SNAPSHOTS, name, snapped[0], n_snaps, "snapshots"))
+
+    progress(ProgressUpdate(STAGE_SNAPSHOTS, name, 0, n_snaps, "snapshots"))
+    batch = max(8, 4 * (o.workers or os.cpu_count() or 1))
+    shown = set(picks(len(keys)))
+    shots: dict[str, list[tuple[int, NDArray[np.float32]]]] = {s: [] for s in plan.blocks}
+    for s in plan.blocks:
+        w, h = plan.geometry[s]
+        with _SnapshotFile(o.out / plan.take_id / s / "snapshots.npz", len(keys), h, w) as dest:
+            for i in range(0, len(keys), batch):
+                tasks = [
+                    delayed(snapshot)(
+                        path,
+                        s,
+                        (k - warm) if o.e2i == "highpass" else int(edges[g]),
+                        k,
+                        o.filter,
+                        o.e2i,
+                        o.contrast,
+                        o.cutoff_hz,
+                        o.block_events,
+                    )
+                    for g, k in enumerate(keys[i : i + batch], start=i)
+                ]
+                for j, snap in enumerate(run.compute(tasks, on_snapshot), start=i):
+                    dest.append(snap.t_us, snap.image)
+                    if j in shown:  # the few the overview shows; the rest only go to disk
+                        shots[s].append((snap.t_us, snap.image))
+    return shots
 
 
 def _write(

@@ -1,4 +1,5 @@
-"""bench.capacity: its microbenchmark stages run on a tiny input (no timing asserts)."""
+"""bench.capacity: its microbenchmark stages (bench.capacity_micro) run on a tiny input (no timing
+asserts)."""
 
 from __future__ import annotations
 
@@ -6,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.capacity import (
+from bench.capacity import device_drops
+from bench.capacity_micro import (
     MicroResult,
     Stage,
     ceiling_table,
     decode_buffers,
-    device_drops,
     encode_slices,
     frame_writes,
     micro_events,

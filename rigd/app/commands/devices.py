@@ -15,7 +15,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from rigd.app.commands.consoles import stderr_console, stdout_console
+from rigd.app.commands.consoles import fail, stderr_console, stdout_console
 
 if TYPE_CHECKING:  # the driver layer (numpy) loads when the command runs
     from drivers.discovery import Discovery
@@ -92,5 +92,4 @@ def devices(
                 "&& sudo udevadm control --reload && sudo udevadm trigger"
             )
     except (OSError, ValueError) as exc:
-        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        raise typer.Exit(code=2) from exc
+        raise fail(exc) from exc

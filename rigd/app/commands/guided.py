@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from rigd.app.commands.consoles import stderr_console
+from rigd.app.commands.consoles import fail, stderr_console
 from rigd.core.errors import RigdError
 
 if TYPE_CHECKING:  # the session (OpenCV, scipy) and the rig load when the command runs
@@ -194,6 +194,7 @@ def guided(
             lines(update.feedback, update.seconds_left)
 
     try:
+        # One keyword per flag; alike in shape to the other commands' option models, nothing shared.
         options = GuidedOptions(
             camera=camera,
             out=out,
@@ -209,8 +210,7 @@ def guided(
         )
         outcome = run_guided(options, show)
     except RigdError as exc:
-        _err.print(f"[bold red]error:[/] {exc}")
-        raise typer.Exit(code=2) from exc
+        raise fail(exc) from exc
     finally:
         if live is not None:
             live.stop()

@@ -16,7 +16,7 @@ import typer
 from pydantic import ValidationError
 from rich.markup import escape
 
-from rigd.app.commands.consoles import stderr_console
+from rigd.app.commands.consoles import fail, stderr_console
 from rigd.app.commands.progress import StageProgress
 from rigd.core.errors import RigdError
 
@@ -115,6 +115,7 @@ def reconstruct(
             radius_px=filter_radius,
             min_support=filter_support,
         )
+        # One keyword per flag; alike in shape to the other commands' option models, nothing shared.
         options = ReconstructOptions(
             takes=takes,
             out=out,
@@ -137,8 +138,7 @@ def reconstruct(
         name = str(err["loc"][-1]) if err["loc"] else ""
         flag = _FILTER_FLAGS.get(name, "--" + name.replace("_", "-"))
         msg = str(err["msg"]).removeprefix("Value error, ")
-        _err.print(f"[bold red]error:[/] {escape(flag)}: {escape(msg)}", soft_wrap=True, highlight=False)
-        raise typer.Exit(code=2) from None
+        raise fail(f"{flag}: {msg}") from None
     _run(options)
 
 
@@ -157,8 +157,7 @@ def _run(options: ReconstructOptions) -> None:
         with StageProgress(_err, "reconstruct") as progress:
             results = run_reconstruct(options, progress)
     except RigdError as exc:  # the scheduler (a take's own failure is in its result)
-        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
-        raise typer.Exit(code=2) from None
+        raise fail(exc) from None
     for r in results:
         if r.error is not None:
             _err.print(f"[bold red]error:[/] {escape(r.error)}", soft_wrap=True, highlight=False)

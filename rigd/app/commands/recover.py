@@ -19,7 +19,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from rigd.app.commands.consoles import stderr_console, stdout_console
+from rigd.app.commands.consoles import fail, stderr_console, stdout_console
 from rigd.core.errors import TakeError
 
 if TYPE_CHECKING:  # the take file (h5py) loads when the command runs
@@ -46,8 +46,7 @@ def _take_dir(config: Path | None) -> Path:
     try:
         rig = RigConfig.load(config) if config is not None else default_sim_rig()
     except RigdError as exc:
-        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        raise typer.Exit(code=2) from exc
+        raise fail(exc) from exc
     return rig.service.take_dir
 
 
@@ -96,8 +95,7 @@ def recover_command(
     try:
         results = _recover_all(paths, dry_run=dry_run)
     except TakeError as exc:  # a directory that cannot be listed
-        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        raise typer.Exit(code=2) from exc
+        raise fail(exc) from exc
     if not results:
         _err.print("no unfinished takes found")
         raise typer.Exit(code=0 if paths and all(p.is_dir() for p in paths) else 2)

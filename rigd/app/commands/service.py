@@ -304,8 +304,7 @@ def stop(
         typer.echo(f"stopped take {last['path']}")
         typer.echo(f"  {take_summary_line(last)}")
         if last.get("error"):
-            _err.print(f"[bold red]error:[/] {last['error']}")
-            raise typer.Exit(code=1)
+            raise fail(last["error"], code=1)
 
 
 def take_summary_line(last: dict[str, Any]) -> str:
@@ -339,8 +338,7 @@ def _report_last(last: dict[str, Any]) -> None:
     ended = f", {last['end_reason']}" if last.get("end_reason") else ""
     typer.echo(f"take: {last['path']} ({last.get('verdict', last['status'])}{ended})")
     if last.get("error"):
-        _err.print(f"[bold red]error:[/] {last['error']}")
-        raise typer.Exit(code=1)
+        raise fail(last["error"], code=1)
 
 
 def capture_via_daemon(

@@ -186,7 +186,18 @@ def _page(ctx: ConsoleContext, name: str) -> str:
 
 
 def build_app(ctx: ConsoleContext) -> Starlette:
-    """The Starlette application of the console (routes below)."""
+    """The Starlette application of the console: the live view's routes, the takes', the guided
+    calibration's when it runs, and the static files."""
+    routes: list[Route | Mount] = [*_live_routes(ctx), *_take_routes(ctx)]
+    if ctx.guided is not None:
+        routes += ctx.guided.routes()
+    routes.append(Mount("/static", StaticFiles(directory=str(STATIC)), name="static"))
+    middleware = [Middleware(SecurityMiddleware, security=ctx.security), Middleware(BodyLimitMiddleware)]
+    return Starlette(routes=routes, middleware=middleware)
+
+
+def _live_routes(ctx: ConsoleContext) -> list[Route]:
+    """The pages, the daemon's status (polled and streamed), live previews, the event window."""
 
     async def page(request: Request) -> Response:
         # The login (`?token=` traded for a cookie) is the security middleware's.
@@ -235,6 +246,19 @@ def build_app(ctx: ConsoleContext) -> Starlette:
             return _error(400, "bad_request", f"window_ms must be one of {allowed}", "window_ms")
         ctx.live.event_window_ms = body.window_ms
         return JSONResponse({"ok": True, "window_ms": body.window_ms})
+
+    return [
+        Route("/", page),
+        Route("/calibrate", page),
+        Route("/api/status", status),
+        Route("/api/live", live),
+        Route("/api/preview/{device}.jpg", preview),
+        Route("/api/event-window", set_window, methods=["POST"]),
+    ]
+
+
+def _take_routes(ctx: ConsoleContext) -> list[Route]:
+    """Starting and stopping a take, and the takes on disk (list, notes, previews, event rates)."""
 
     async def start_take(request: Request) -> Response:
         body = await read_body(request, StartBody)
@@ -294,24 +318,13 @@ def build_app(ctx: ConsoleContext) -> Starlette:
             return _error(404, "not_found", str(exc))
         return JSONResponse(rates)
 
-    routes: list[Route | Mount] = [
-        Route("/", page),
-        Route("/calibrate", page),
-        Route("/api/status", status),
-        Route("/api/live", live),
-        Route("/api/preview/{device}.jpg", preview),
-        Route("/api/event-window", set_window, methods=["POST"]),
+    return [
         Route("/api/takes", takes),
         Route("/api/takes/start", start_take, methods=["POST"]),
         Route("/api/takes/stop", stop_take, methods=["POST"]),
         Route("/api/takes/{name}/preview/{camera}.jpg", take_preview),
         Route("/api/takes/{name}/rates", take_rates),
-        Mount("/static", StaticFiles(directory=str(STATIC)), name="static"),
     ]
-    if ctx.guided is not None:
-        routes[-1:-1] = ctx.guided.routes()
-    middleware = [Middleware(SecurityMiddleware, security=ctx.security), Middleware(BodyLimitMiddleware)]
-    return Starlette(routes=routes, middleware=middleware)
 
 
 def _notes_path(take: Path) -> Path:

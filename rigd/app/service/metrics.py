@@ -184,6 +184,20 @@ class MetricsExporter:
         ProcessCollector(registry=r)  # process_* (CPU, RSS, open fds, start time), Linux only
         r.register(_SdNotifyCollector())
 
+        # Declared in the order /metrics lists them.
+        self._declare_daemon_series(r)
+        self._declare_device_series(r)
+        self._declare_writer_series(r)
+        self._declare_outcome_series(r)
+
+        # Series that exist before the first snapshot, so alerts and dashboards see zeros.
+        for s in DAEMON_STATES:
+            self.state.labels(state=s).set(0)
+        for c in FAULT_CODES:
+            self.faults.labels(code=c).set(0)
+
+    def _declare_daemon_series(self, r: CollectorRegistry) -> None:
+        """The daemon's state and the running take's progress."""
         self.up = Gauge("rigd_up", "1 while the daemon serves.", registry=r)
         self.state = Gauge(
             "rigd_state", "1 for the daemon's current state, 0 otherwise.", ["state"], registry=r
@@ -196,6 +210,9 @@ class MetricsExporter:
         self.take_active = Gauge("rigd_take_active", "1 while a take is running.", registry=r)
         self.take_elapsed = Gauge("rigd_take_elapsed_seconds", "Age of the running take.", registry=r)
         self.pulses = Counter("rigd_pulses_total", "Trigger pulses recorded, all takes.", registry=r)
+
+    def _declare_device_series(self, r: CollectorRegistry) -> None:
+        """Per device: what it delivered and lost, its state, its clock's health."""
         self.device_items = Counter(
             "rigd_device_items_total",
             "Frames, events or pulse records written, all takes.",
@@ -233,6 +250,9 @@ class MetricsExporter:
             ["device"],
             registry=r,
         )
+
+    def _declare_writer_series(self, r: CollectorRegistry) -> None:
+        """The queue, the writer thread and the disk the takes go to."""
         self.queue_depth = Gauge("rigd_queue_depth", "Items in the acquisition->writer queue.", registry=r)
         self.queue_bytes = Gauge(
             "rigd_queue_bytes", "Bytes held by the acquisition->writer queue.", registry=r
@@ -259,6 +279,9 @@ class MetricsExporter:
         )
         self.disk_free = Gauge("rigd_disk_free_bytes", "Free bytes on the take directory's disk.", registry=r)
         self.disk_total = Gauge("rigd_disk_total_bytes", "Size of the take directory's disk.", registry=r)
+
+    def _declare_outcome_series(self, r: CollectorRegistry) -> None:
+        """Active faults and how the finished takes ended."""
         self.faults = Gauge("rigd_faults", "Active faults by code.", ["code"], registry=r)
         self.takes_completed = Counter("rigd_takes_completed_total", "Takes finalized.", registry=r)
         self.last_take_residual = Gauge(
@@ -271,12 +294,6 @@ class MetricsExporter:
         self.last_take_failed = Gauge(
             "rigd_last_take_failed", "1 when the last take ended with an error.", registry=r
         )
-
-        # Series that exist before the first snapshot, so alerts and dashboards see zeros.
-        for s in DAEMON_STATES:
-            self.state.labels(state=s).set(0)
-        for c in FAULT_CODES:
-            self.faults.labels(code=c).set(0)
 
     # -- lifecycle -------------------------------------------------------------------------
 

@@ -93,8 +93,19 @@ def test_snapshots_across_two_takes(exporter: MetricsExporter) -> None:
     assert val(s, "rigd_take_active") == 0
     assert val(s, "rigd_disk_free_bytes") == 900
     assert val(s, "rigd_disk_total_bytes") == 1000
+    a = _take_a_running(exporter)
+    idle = _take_a_ended(exporter)
+    b = _take_b_running(exporter)
 
-    # Take A, two snapshots.
+    # Every counter is monotonic across the whole sequence.
+    for key, value in a.items():
+        if key[0].endswith("_total"):
+            assert b[key] >= value, key
+            assert idle[key] >= value, key
+
+
+def _take_a_running(exporter: MetricsExporter) -> Samples:
+    """Take A, two snapshots: the per-take numbers, device states and faults of the last."""
     exporter.update(
         snap(
             2,
@@ -156,7 +167,11 @@ def test_snapshots_across_two_takes(exporter: MetricsExporter) -> None:
     # No jitter / data age in this snapshot: the series is absent, not NaN.
     assert ("rigd_device_interval_jitter_seconds", (("device", "cam0"),)) not in a
     assert ("rigd_device_last_data_age_seconds", (("device", "cam0"),)) not in a
+    return a
 
+
+def _take_a_ended(exporter: MetricsExporter) -> Samples:
+    """Take A ends: the counters are topped up from its summary."""
     # Take A ends. As the daemon does it, the next snapshot is idle with zeroed per-take
     # numbers and the take's summary, which holds what was written after the last snapshot.
     summary = summary_a()
@@ -180,7 +195,11 @@ def test_snapshots_across_two_takes(exporter: MetricsExporter) -> None:
     assert val(idle, "rigd_last_take_bytes") == 2600
     assert val(idle, "rigd_last_take_failed") == 0
     assert val(idle, "rigd_device_state", device="cam0", state="idle") == 1
+    return idle
 
+
+def _take_b_running(exporter: MetricsExporter) -> Samples:
+    """Take B, after A: the counters go on from where A left them."""
     # Take B: Telemetry's per-take numbers restart from zero; the counters keep growing.
     exporter.update(
         snap(
@@ -195,7 +214,7 @@ def test_snapshots_across_two_takes(exporter: MetricsExporter) -> None:
                 dev("ev0", "event_sensor", 500_000, lost=1),
             ],
             takes_completed=1,
-            last_take=summary,
+            last_take=summary_a(),
         )
     )
     b = scrape(exporter)
@@ -210,12 +229,7 @@ def test_snapshots_across_two_takes(exporter: MetricsExporter) -> None:
     # The trigger vanished from the snapshot: its gauges go, its counters stay.
     assert ("rigd_device_up", (("device", "trigger"),)) not in b
     assert val(b, "rigd_device_items_total", device="trigger", kind="trigger") == 60
-
-    # Every counter is monotonic across the whole sequence.
-    for key, value in a.items():
-        if key[0].endswith("_total"):
-            assert b[key] >= value, key
-            assert idle[key] >= value, key
+    return b
 
 
 def test_idle_snapshots_showing_final_numbers_do_not_double_count(exporter: MetricsExporter) -> None:
