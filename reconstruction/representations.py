@@ -171,7 +171,7 @@ def voxel_grid(
     `voxel_grid_bincount` to float32 rounding, without its copies and float64 grid. At
     1280x720x5 the grid is 18.4 MB and zeroing it costs about what the events do, so a loop over
     windows can pass the previous grid as `out` (C-contiguous float32 (B, H, W)): it is cleared
-    by reading it and rewriting only its non-zero cache lines, then refilled and returned.
+    by reading it and rewriting only its non-zero 512-byte blocks, then refilled and returned.
     `VoxelGridder` goes further (it resets only what it wrote) when a read-only view will do.
     """
     if bins < 1:

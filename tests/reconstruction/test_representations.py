@@ -146,10 +146,10 @@ def test_numba_voxel_grid_matches_the_bincount_reference(
     _voxel_parity(ev, bins, t0, t1, normalize)
 
 
-@pytest.mark.parametrize("shape", [(5, H, W), (1, 1, 1), (3, 4, 4), (2, 3, 17)])
+@pytest.mark.parametrize("shape", [(5, H, W), (1, 1, 1), (2, 3, 17), (3, 20, 30)])
 def test_reused_grid_is_cleared_bit_for_bit(shape: tuple[int, int, int]) -> None:
-    """`out=` is cleared by testing cache lines and rewriting the non-zero ones: whatever it
-    held (sparse values, -0.0, NaN, a tail shorter than a line), the grid equals a new one bit
+    """`out=` is cleared by testing blocks and rewriting the non-zero ones: whatever it
+    held (sparse values, -0.0, NaN, a tail shorter than a block), the grid equals a new one bit
     for bit, +0.0 wherever no event landed."""
     bins, h, w = shape
     ev = ev_of([0, w - 1, 0], [0, h - 1, h - 1], [1, -1, 1], [BIG, BIG + 500, BIG + 999])
