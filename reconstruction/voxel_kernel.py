@@ -10,10 +10,11 @@ int64 time since the window start, divided by the duration, times B - 1), so eve
 in the same bins with the same weights; only the accumulation is float32.
 
 The grid is addressed flat with unsigned indices: numba then emits neither negative-index
-wrap-around nor per-axis strides, which made the scatter ~1.7x faster (the loop is bound by the
-grid's memory, not by the arithmetic). At 1280x720x5 the grid is 18.4 MB, so zeroing it costs
-as much as the events do; `clear` zeroes a reused grid by reading it and writing back only the
-blocks that are not zero, no dearer than a full write and cheaper when most of it is zero.
+wrap-around nor per-axis strides, which made the scatter into a cached grid ~1.7x faster (it
+is bound by the grid's memory, not by the arithmetic). At 1280x720x5 the grid is 18.4 MB:
+zeroing it costs as much as the events do; `clear` zeroes a reused grid by reading it and
+writing back only the blocks that are not zero, no dearer than a full write and cheaper when
+most of it is zero.
 """
 
 from __future__ import annotations
