@@ -56,6 +56,7 @@ NUMPY_ROW = "voxel_grid_bincount (numpy, before)"
 NUMBA_ROW = "voxel_grid (numba, new grid)"
 NUMBA_OUT_ROW = "voxel_grid (numba, out= reused grid)"
 GRIDDER_ROW = "VoxelGridder (numba, resets what it wrote)"
+ZEROS_ROW = "np.zeros of the grid alone (memory floor)"
 
 
 class BaselineDataset(WindowDataset):
@@ -190,7 +191,10 @@ def time_loader(
 # ----------------------------------------------------------------------------- parts
 def voxel_micro(path: Path, windows: int) -> list[tuple[str, float, float]]:
     """Median and best ms per window, one thread: reading the events alone, the numpy voxel
-    grid, the numba one into a new grid, into a reused one (`out=`) and through a `VoxelGridder`."""
+    grid, the numba one into a new grid, into a reused one (`out=`) and through a `VoxelGridder`,
+    and a new zeroed grid with no events: what any dense new grid costs at least. The rows are
+    interleaved window by window, in an order rotated each window, so that on a shared host every
+    row sees the same load and none always runs after the numpy one has flushed the caches."""
     with Take(path) as take:
         span = take.event_span(SENSOR)
         assert span is not None
@@ -210,15 +214,18 @@ def voxel_micro(path: Path, windows: int) -> list[tuple[str, float, float]]:
         (NUMBA_ROW, voxel_grid),
         (NUMBA_OUT_ROW, functools.partial(voxel_grid, out=buf)),
         (GRIDDER_ROW, lambda ev, _w, _h, _b, t0, t1: gridder(ev, t0, t1)),
+        (ZEROS_ROW, lambda _ev, w_, h_, b_, _t0, _t1: np.zeros((b_, h_, w_), np.float32)),
     ]
-    for name, fn in impls:
+    for _, fn in impls:
         fn(evs[0], w, h, BINS, int(starts[0]), int(starts[0]) + WINDOW_US - 1)  # compile / warm
-        ts = []
-        for ev, t0 in zip(evs, starts, strict=True):
+    times: dict[str, list[float]] = {name: [] for name, _ in impls}
+    for k, (ev, t0) in enumerate(zip(evs, starts, strict=True)):
+        r = k % len(impls)
+        for name, fn in impls[r:] + impls[:r]:
             s = time.perf_counter()
             fn(ev, w, h, BINS, int(t0), int(t0) + WINDOW_US - 1)
-            ts.append(time.perf_counter() - s)
-        rows.append((name, statistics.median(ts) * 1e3, min(ts) * 1e3))
+            times[name].append(time.perf_counter() - s)
+    rows += [(name, statistics.median(ts) * 1e3, min(ts) * 1e3) for name, ts in times.items()]
     rows.append(("events per window (mean)", float(np.mean([len(e) for e in evs])), 0.0))
     return rows
 

@@ -146,6 +146,24 @@ def test_numba_voxel_grid_matches_the_bincount_reference(
     _voxel_parity(ev, bins, t0, t1, normalize)
 
 
+@pytest.mark.parametrize("shape", [(5, H, W), (1, 1, 1), (2, 3, 17), (3, 20, 30)])
+def test_reused_grid_is_cleared_bit_for_bit(shape: tuple[int, int, int]) -> None:
+    """`out=` is cleared by testing blocks and rewriting the non-zero ones: whatever it
+    held (sparse values, -0.0, NaN, a tail shorter than a block), the grid equals a new one bit
+    for bit, +0.0 wherever no event landed."""
+    bins, h, w = shape
+    ev = ev_of([0, w - 1, 0], [0, h - 1, h - 1], [1, -1, 1], [BIG, BIG + 500, BIG + 999])
+    rng = np.random.default_rng(0)
+    for garbage in (0.0, -0.0, np.nan, 7.0):
+        buf = np.zeros(shape, np.float32)
+        flat = buf.reshape(-1)
+        flat[rng.integers(0, flat.size, 3)] = garbage
+        flat[-1] = garbage
+        got = voxel_grid(ev, w, h, bins, BIG, BIG + 999, out=buf)
+        want = voxel_grid(ev, w, h, bins, BIG, BIG + 999)
+        np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+
+
 def test_numba_voxel_grid_edge_cases() -> None:
     # Empty window: all zeros, normalised or not.
     for normalize in (False, True):
