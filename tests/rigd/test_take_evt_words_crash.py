@@ -34,6 +34,10 @@ from tests.rigd.test_take_recover import (
 )
 
 WORDS_CFG = WriterConfig(event_storage="evt_words", fsync=False)
+#: Steps (about 1.8 kB of words each, a 256 kB chunk per ~145) each flush of the relieved writer
+#: waits for: by its 4th flush the writer has stored chunks both compressed and uncompressed
+#: (the mode flips every 40 steps), whatever the machine's speed.
+_RELIEVED_STEPS_PER_FLUSH = 130
 
 
 def open_words_writer(path: Path) -> TakeWriter:
@@ -69,14 +73,18 @@ def _script(path: Path, relieve: bool = False) -> str:
         w = open_words_writer(Path({str(path)!r}))
         dec = StreamDecoder("evt3", width=W, height=H)
         print("START", flush=True)
-        k, last = 0, time.monotonic()
+        k, last, flushed = 0, time.monotonic(), 0
+        per_flush = {_RELIEVED_STEPS_PER_FLUSH if relieve else 0}
         while True:
             if {relieve!r}:
                 w.compress_events(k // 40 % 2 == 0)  # the writer behind every other 40 steps
             append_words_step(w, dec, k)
             k += 1
-            if time.monotonic() - last >= 0.2:
+            # With `relieve`, a flush also waits for its share of steps: the chunks written in
+            # each mode are then there however slow the machine is.
+            if time.monotonic() - last >= 0.2 and k >= per_flush * (flushed + 1):
                 w.flush(journal=journal(k))
+                flushed += 1
                 print(f"F {{k}}", flush=True)
                 last = time.monotonic()
             time.sleep(0.0005)
