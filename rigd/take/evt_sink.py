@@ -255,7 +255,8 @@ class EvtWordsSink(TriggerIn):
                 raise
         self._add_row(raw, span, int(raw.shift_us))
         self.prev = raw
-        self._append_words(raw.data)
+        # Counted before the words go out: once in `pend` and the row, the packet is the
+        # sink's, and a chunk write that fails (disk full) is retried by `fail` / `close`.
         if n:
             if self.first_t is None:
                 self.first_t = span.t_first
@@ -263,6 +264,7 @@ class EvtWordsSink(TriggerIn):
         self.n_written += n
         self.stats.items += n
         self.stats.raw_bytes += len(raw.data)
+        self._append_words(raw.data)
 
     def _add_row(self, raw: EvtChunk, span: EventSpan, shift: int) -> None:
         row = self.row
@@ -305,16 +307,21 @@ class EvtWordsSink(TriggerIn):
         # Each chunk goes out as its own bytes, never as a view of `pend`: a write that fails
         # (disk full) keeps its arguments alive in the traceback the capture holds on to, and
         # a view would then forbid every later resize of `pend` (BufferError), the one in
-        # `fail` included, which left the take "recording" instead of "failed".
+        # `fail` included, which left the take "recording" instead of "failed". What was
+        # written leaves `pend` even when a later chunk fails, so a retry (`fail`, `close`)
+        # starts where the file ends.
         whole = len(self.pend) // WORDS_CHUNK * WORDS_CHUNK
+        done = 0
         view = memoryview(self.pend)
         try:
-            for pos in range(0, whole, WORDS_CHUNK):
-                self._write_chunk(bytes(view[pos : pos + WORDS_CHUNK]), self.n_words_written)
+            while done < whole:
+                self._write_chunk(bytes(view[done : done + WORDS_CHUNK]), self.n_words_written)
                 self.n_words_written += WORDS_CHUNK
+                done += WORDS_CHUNK
         finally:
             view.release()
-        self.pend = self.pend[whole:]
+            if done:
+                self.pend = self.pend[done:]
 
     def _write_chunk(self, data: bytes, offset: int) -> None:
         """One whole chunk (the last one zero-padded): compressed here (Zstd releases the GIL),
@@ -336,6 +343,8 @@ class EvtWordsSink(TriggerIn):
         partial last chunk, and trims evt_words to the bytes stored. Otherwise the partial
         chunk goes to a tail slot (a flush) and the row being built is closed."""
         self._close_row()
+        if len(self.pend) >= WORDS_CHUNK:  # whole chunks a write that failed left pending
+            self._write_whole_chunks()
         if final and self.pend:
             self._write_chunk(bytes(self.pend), self.n_words_written)
             self.n_words_written += len(self.pend)

@@ -284,27 +284,38 @@ def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(
     tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The capture keeps the disk-full error (and with it the failed call's arguments) until the
-    take is marked failed: nothing the failed write held may stop `fail` and `close`."""
+    take is marked failed: nothing the failed write held may stop `fail` and `close`, and what
+    `fail` then writes (in the room the ballast made) agrees with its index, to the event."""
     from rigd.take.evt_sink import EvtWordsSink
 
     _, packets = synthetic
     path = tmp_path / "full.h5"
-    w = TakeWriter(
-        path, rig_config_json="{}", take_id="t", config=WriterConfig(fsync=False), rigd_version="t"
-    )
+    cfg = WriterConfig(fsync=False)
+    w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
     w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), 640, 480, "{}", "evt3")
     written = EvtWordsSink._write_chunk
+    calls: list[int] = []
 
-    def disk_full(self: EvtWordsSink, data: bytes, offset: int) -> None:
-        raise OSError(28, "No space left on device")
+    def second_chunk_fills_the_disk(self: EvtWordsSink, data: bytes, offset: int) -> None:
+        calls.append(offset)
+        if len(calls) >= 2:
+            raise OSError(28, "No space left on device")
+        written(self, data, offset)
 
-    monkeypatch.setattr(EvtWordsSink, "_write_chunk", disk_full)
+    monkeypatch.setattr(EvtWordsSink, "_write_chunk", second_chunk_fills_the_disk)
+    appended = 0
     with pytest.raises(OSError, match="No space left") as kept:  # noqa: PT012 - fills in the loop
         for p in packets:
+            appended += 1
             w.append_packet("ev0", p)
     monkeypatch.setattr(EvtWordsSink, "_write_chunk", written)
     assert kept.value.__traceback__ is not None  # held, as the capture holds its error
+    assert 1 < appended < len(packets)
     w.fail("disk full")
     w.close()
     with open_take(path) as take:
         assert take.status == "failed"
+        got = take.events("ev0")
+    want = EventArray.concatenate([p.events for p in packets[:appended]])
+    np.testing.assert_array_equal(got.t, want.t)
+    np.testing.assert_array_equal(got.x, want.x)
