@@ -2,10 +2,10 @@
 the slot that keeps the error that ended it.
 
 Backends write no threads, condition variables or error slots of their own. The device base
-classes (`drivers.base`) and the grabbing byte sources (`drivers.evt_stream`) run the
-backend's `_grab(timeout_s)` on an `Acquisition`; what it returns waits in a
-`DeliveryQueue` whose overflow is counted, and an exception that ends the thread is kept
-and raised by the next read, so an unplugged device is reported where the caller reads.
+classes (`drivers.base`) run the backend's `_grab(timeout_s)` on an `Acquisition`; what it
+returns waits in a `DeliveryQueue` whose overflow is counted, and an exception that ends the
+thread is kept and raised by the next read, so an unplugged device is reported where the
+caller reads.
 """
 
 from __future__ import annotations
