@@ -82,7 +82,7 @@ def encode_slices(parts: Sequence[EventArray]) -> list[bytes]:
 
 
 def decode_buffers(buffers: Sequence[bytes], width: int, height: int) -> list[EventArray]:
-    """The production decoder, fed buffer by buffer as `EvtStreamSensor` feeds it."""
+    """The production decoder, fed buffer by buffer as `DecodingEventSensor` feeds it."""
     dec = StreamDecoder("evt3", width=width, height=height)
     return [dec.feed(b).events for b in buffers]
 

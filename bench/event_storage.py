@@ -1,7 +1,7 @@
 """Event storage on the real Gen4.1 stream: EVT words as sent vs decoded x/y/p/t columns.
 
 The real EVT 3.0 recording is cut into driver-sized buffers and decoded once with the
-production `StreamDecoder.feed_chunk` (as `EvtStreamSensor` does), giving the packets a capture
+production `StreamDecoder.feed_chunk` (as `DecodingEventSensor` does), giving the packets a capture
 hands the writer. They are then written, repeated with their times shifted on (each repeat's
 chunk says so in `shift_us`, as a re-tied clock does), through the real `TakeWriter` into a take
 on disk with fsync at every flush (one per second of data) and on close, once per storage. The

@@ -3,9 +3,10 @@
 The daemon talks only to these classes; which backend sits behind one is decided by the
 device spec (see `drivers.registry`). The public methods are concrete here and enforce the
 state machine (open -> configure* -> start -> stop -> ... -> close), so a backend writes only
-small hooks: `_do_configure`, `_do_start`, `_do_stop`, `_do_close`, and either `_grab`, which
-the acquisition thread the base owns calls (`drivers.lifecycle`), or `_read`, which runs on
-the reader's thread (a file replay, a decoder pulling from a byte source). Every backend,
+small hooks: `_do_configure`, `_do_start`, `_do_stop`, `_do_close`, and `_grab`, which the
+acquisition thread the base owns calls (`drivers.lifecycle`), or `_read`, which runs on the
+reader's thread (a file replay), or both (a streaming event sensor grabs device buffers and
+decodes them as they are read: `drivers.evt_stream.DecodingEventSensor`). Every backend,
 simulated or real, runs the contract suites in `drivers.testing`.
 """
 
@@ -18,10 +19,11 @@ import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import ClassVar, Generic, Self, TypeVar
+from typing import ClassVar, Generic, Self, cast
 
 import numpy as np
 from pydantic import BaseModel
+from typing_extensions import TypeVar  # a type parameter's default (PEP 696) before 3.13
 
 from drivers.lifecycle import Acquisition, DeliveryQueue, Drop, Signal
 from rigd.core.devices import DeviceInfo, DeviceKind, PulseBatch
@@ -197,18 +199,28 @@ class Device(abc.ABC):
 
 T = TypeVar("T")
 S = TypeVar("S", bound=BaseModel)
+G = TypeVar("G", default=T)
+"""What `_grab` returns and the queue holds: by default what reads return."""
+E = TypeVar("E", default=EventPacket)
+"""What an event sensor's `_grab` returns: a packet, or a device buffer its reads decode."""
 
 
-class AcquiringDevice(Device, Generic[T, S]):
+class AcquiringDevice(Device, Generic[T, S, G]):
     """Lifecycle of a device that acquires between start and stop (cameras, event sensors).
 
     A grabbing backend passes `queue_len` and implements `_grab(timeout_s)`: the base runs it
     on an acquisition thread from start to stop, keeps what it returns in a bounded queue
     (overflow counted under `_overflow_name`) and keeps the exception that ends it for the
-    next read. Any other backend implements `_read(timeout_s)` instead.
+    next read. Reads hand out one queued item each, unless the backend's `_read` takes several
+    at a time (`_read_queued`) and turns them into one (the grabbed type `G` differs from `T`
+    then: a streaming event sensor decodes buffers). Any other backend implements
+    `_read(timeout_s)` alone.
     """
 
     _overflow_name: ClassVar[str] = "host_queue_dropped"
+    #: Whether `stats().device_dropped` includes the queue's overflow; False where the backend
+    #: counts what an overflow lost in its own `_counters` (a simulated sensor: its events).
+    _overflow_is_loss: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -224,7 +236,7 @@ class AcquiringDevice(Device, Generic[T, S]):
         self._running = False
         self._count_lock = threading.Lock()
         self._delivered = 0
-        self._acq: Acquisition[T] | None = None
+        self._acq: Acquisition[G] | None = None
         if queue_len is not None:
             self._acq = Acquisition(
                 type(self).__name__,
@@ -288,7 +300,8 @@ class AcquiringDevice(Device, Generic[T, S]):
         if self._acq is not None:
             overflow = self._acq.queue.dropped
             extra[self._overflow_name] = overflow
-            dropped += overflow
+            if self._overflow_is_loss:
+                dropped += overflow
         with self._count_lock:
             delivered = self._delivered
         return AcquisitionStats(delivered=delivered, device_dropped=dropped, extra=extra)
@@ -306,16 +319,31 @@ class AcquiringDevice(Device, Generic[T, S]):
         return item
 
     @property
-    def _queue(self) -> DeliveryQueue[T]:
+    def _queue(self) -> DeliveryQueue[G]:
         """The bounded queue between the acquisition thread and the readers."""
-        if self._acq is None:
-            raise NotImplementedError(f"{type(self).__name__} has no acquisition thread")
-        return self._acq.queue
+        return self._acquisition.queue
 
     @property
     def _stopping(self) -> bool:
         """On the acquisition thread: stop() was asked (a draining grab finishes up)."""
         return self._acq is not None and self._acq.stopping.is_set()
+
+    @property
+    def _stop_asked(self) -> threading.Event:
+        """On the acquisition thread: set once stop() was asked, for a grab to wait on."""
+        return self._acquisition.stopping
+
+    @property
+    def _acquisition(self) -> Acquisition[G]:
+        if self._acq is None:
+            raise NotImplementedError(f"{type(self).__name__} has no acquisition thread")
+        return self._acq
+
+    def _read_queued(self, timeout_s: float, max_items: int = 1) -> list[G]:
+        """Reader's thread: up to `max_items` queued items, oldest first, waiting at most
+        `timeout_s` for the first; once the queue is empty, the error that ended the
+        acquisition thread, as DeviceError."""
+        return self._acquisition.read(timeout_s, max_items=max_items)
 
     # -- hooks -----------------------------------------------------------------------------
     def _do_configure(self, settings: S) -> None:
@@ -327,19 +355,20 @@ class AcquiringDevice(Device, Generic[T, S]):
     def _do_stop(self) -> None:
         """Make the device stop producing; the acquisition thread is joined right after."""
 
-    def _grab(self, timeout_s: float) -> T | Signal | None:
+    def _grab(self, timeout_s: float) -> G | Signal | None:
         """Acquisition thread: the next item, None when none came within the timeout, END
         when the device has nothing more. Exceptions end the thread and reach the reader."""
         raise NotImplementedError(f"{type(self).__name__} has no acquisition thread")
 
     def _read(self, timeout_s: float) -> T | None:
-        """Reader's thread: the next item or None. By default: from the acquisition queue."""
+        """Reader's thread: the next item or None. By default: the next grabbed item (a backend
+        whose grabbed items are not what it reads (`G`) turns them into one here)."""
         if self._acq is None:
             raise NotImplementedError(f"{type(self).__name__} implements neither _grab nor _read")
-        items = self._acq.read(timeout_s)
-        return items[0] if items else None
+        items = self._read_queued(timeout_s)
+        return cast(T, items[0]) if items else None
 
-    def _deliver(self, item: T) -> bool:
+    def _deliver(self, item: G) -> bool:
         """Acquisition thread: queue an item; False when the full queue lost one (counted)."""
         if self._queue.put(item) is None:
             return True
@@ -396,8 +425,10 @@ class RgbCamera(AcquiringDevice[Frame, CameraSettings]):
         return 1
 
 
-class EventSensor(AcquiringDevice[EventPacket, EventSensorSettings]):
-    """An event camera delivering change events and trigger-in edges."""
+class EventSensor(AcquiringDevice[EventPacket, EventSensorSettings, E]):
+    """An event camera delivering change events and trigger-in edges. A streaming sensor's
+    acquisition thread grabs device buffers (`E`) that its reads decode into packets
+    (`drivers.evt_stream.DecodingEventSensor`)."""
 
     kind = "event_sensor"
     #: Its packets carry the EVT words they were decoded from (`EventPacket.raw`, in the format

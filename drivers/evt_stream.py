@@ -1,99 +1,84 @@
 """An event sensor that delivers an EVT byte stream, decoded on the host.
 
 This is how a Prophesee camera talks (OpenEB's HAL hands out raw EVT buffers) and how the
-simulated sensor talks: both are `ByteSource`s behind one `EvtStreamSensor`, so the decoder
-the tests exercise is the one the rig runs. Sources that must be polled (the HAL, the
-simulated firmware) derive from `GrabbingSource`, which runs the poll on an acquisition
-thread into a bounded buffer whose overflow is counted.
+simulated and the replayed sensors talk: each is a `DecodingEventSensor`, so the decoder the
+tests exercise is the one the rig runs. The base class's acquisition thread polls the device
+(`_grab`: one buffer of EVT words and the host time it arrived) into the bounded queue whose
+overflow is counted; a read takes up to `merge` queued buffers, joins them and scans their
+words into one `EventPacket`, on the reader's thread. Lifecycle, the queue, error hand-over
+and the delivered count are the base class's (`drivers.base.AcquiringDevice`, decision 0010).
+
+A `file://` recording is not a device to poll: `drivers.file_event_sensor` cuts its stream by
+due time on the reader's thread, with a decoder of its own.
 """
 
 from __future__ import annotations
 
-import abc
 import logging
 import time
-from typing import Generic, Protocol, TypeVar
+from dataclasses import dataclass
+from typing import Generic
 
-from drivers.base import AcquisitionStats, Capability, EventSensor
+from typing_extensions import TypeVar
+
+from drivers.base import EventSensor
 from drivers.evt import StreamDecoder, warm_up_decoder
-from drivers.lifecycle import Acquisition, DeliveryQueue, Signal
-from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventPacket, EvtChunk
 from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 
-T = TypeVar("T")
 #: Bytes of time words (no event, no edge) carried into the next packet's chunk at most; past
 #: that they are let go (they decode to nothing) and the next chunk starts from its own state.
 _MAX_QUIET_BYTES = 1 << 20
 
 
-class ByteSource(Protocol):
-    """The device side of a streaming event sensor. `EvtStreamSensor` enforces the lifecycle:
-    a source sees configure only while stopped, start/stop in pairs, and close once."""
+@dataclass(frozen=True, slots=True)
+class EvtBuffer:
+    """One device buffer: EVT words as the device sent them, and the host monotonic time (ns)
+    they arrived."""
 
-    @property
-    def info(self) -> DeviceInfo: ...
-
-    @property
-    def capabilities(self) -> frozenset[Capability]: ...
-
-    @property
-    def geometry(self) -> tuple[int, int]: ...
-
-    @property
-    def evt_format(self) -> str:
-        """One of drivers.evt.FORMATS: the encoding of the bytes `read_bytes` returns."""
-        ...
-
-    def configure(self, settings: EventSensorSettings) -> None: ...
-
-    def start(self) -> None: ...
-
-    def stop(self) -> None: ...
-
-    def close(self) -> None: ...
-
-    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
-        """Next buffer and the host monotonic time (ns) it arrived, or None on timeout."""
-        ...
-
-    def warm_up(self) -> None:
-        """Compile what making the bytes runs (a simulator's kernels); see `Device.warm_up`."""
-        ...
-
-    def stats(self) -> AcquisitionStats:
-        """Device-side counters (what was lost in the device or transport)."""
-        ...
+    data: bytes
+    host_ns: int
 
 
-class GrabbingSource(abc.ABC, Generic[T]):
-    """A `ByteSource` whose device is polled by `_grab` on an acquisition thread; up to
-    `buffers` items wait for `read_bytes`, which joins up to `merge` of them into one buffer.
+B = TypeVar("B", bound=EvtBuffer, default=EvtBuffer)
 
-    Subclasses set `_info`, `_capabilities`, `_geometry` and `_fmt`, and implement `_grab`,
-    `_join` and `stats`; `_do_start` / `_do_stop` / `_do_close` as their device needs.
+
+class DecodingEventSensor(EventSensor[B], Generic[B]):
+    """An event sensor whose acquisition thread grabs EVT buffers that its reads decode.
+
+    Subclasses set `_info` and `_capabilities`, pass the stream's format and geometry, and
+    implement `_grab` (a `B`, None when nothing came, END when nothing more will) with the
+    lifecycle hooks their device needs; `_join` may check or note what a read takes before
+    calling this one. Subclasses that override `_counters`, `_do_close` or `warm_up` include
+    this class's (decoder counters, its skips logged at close, its kernels compiled).
+
+    Decoder skips are counted, never silent. Every packet carries the words it was decoded
+    from (`EventPacket.raw`); the words of a valid stream are only scanned
+    (`StreamDecoder.scan`), their events decoded when asked for.
     """
 
-    _info: DeviceInfo
-    _capabilities: frozenset[Capability]
-    _geometry: tuple[int, int]
-    _fmt: str
+    delivers_evt_words = True
 
-    def __init__(self, label: str, *, buffers: int, merge: int = 1, drain_on_stop: bool = False) -> None:
+    def __init__(
+        self,
+        fmt: str,
+        geometry: tuple[int, int],
+        *,
+        buffers: int,
+        merge: int = 1,
+        drain_on_stop: bool = False,
+        strict: bool = False,
+    ) -> None:
+        super().__init__(EventSensorSettings(), queue_len=buffers, drain_on_stop=drain_on_stop)
+        self._fmt = fmt
+        self._geometry = geometry
         self._merge = merge
-        self._acq: Acquisition[T] = Acquisition(
-            label, self._grab, DeliveryQueue(buffers), deliver=self._deliver, drain_on_stop=drain_on_stop
-        )
-
-    @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def capabilities(self) -> frozenset[Capability]:
-        return self._capabilities
+        self._decoder = StreamDecoder(fmt, width=geometry[0], height=geometry[1], strict=strict)
+        self._bytes = 0
+        self._quiet: EvtChunk | None = None
+        """Decoded bytes that gave nothing yet, so the next packet's chunk carries them."""
 
     @property
     def geometry(self) -> tuple[int, int]:
@@ -101,91 +86,8 @@ class GrabbingSource(abc.ABC, Generic[T]):
 
     @property
     def evt_format(self) -> str:
+        """One of drivers.evt.FORMATS: the encoding of the buffers `_grab` returns."""
         return self._fmt
-
-    def start(self) -> None:
-        self._check_present()
-        self._do_start()
-        self._acq.start()
-
-    def stop(self) -> None:
-        try:
-            self._do_stop()
-        finally:
-            self._acq.stop()
-
-    def close(self) -> None:
-        self._do_close()
-
-    def warm_up(self) -> None:
-        """Nothing to compile by default (a camera's firmware makes its bytes)."""
-
-    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
-        self._check_present()
-        items = self._acq.read(timeout_s, max_items=self._merge)
-        return self._join(items) if items else None
-
-    # -- hooks -----------------------------------------------------------------------------
-    def _check_present(self) -> None:
-        """Raise DeviceError when the device is gone (unplugged)."""
-
-    def _do_start(self) -> None: ...
-
-    def _do_stop(self) -> None: ...
-
-    def _do_close(self) -> None: ...
-
-    @abc.abstractmethod
-    def _grab(self, timeout_s: float) -> T | Signal | None:
-        """Acquisition thread: next item, None when none came, END when nothing more will."""
-
-    def _deliver(self, item: T) -> bool:
-        """Acquisition thread: buffer an item; False when the full buffer lost one (counted)."""
-        lost = self._acq.queue.put(item)
-        if lost is None:
-            return True
-        self._on_overflow(lost)
-        return False
-
-    def _on_overflow(self, lost: T) -> None:
-        log.warning("%s: host buffer full, a buffer was lost", self._acq.label)
-
-    @abc.abstractmethod
-    def _join(self, items: list[T]) -> tuple[bytes, int]:
-        """Reader's thread: one byte buffer and its host time (ns) from up to `merge` items."""
-
-
-class EvtStreamSensor(EventSensor):
-    """Decodes a `ByteSource` into event packets; decoder skips are counted, never silent.
-    Every packet carries the words it was decoded from (`EventPacket.raw`); the words of a
-    valid stream are only scanned (`StreamDecoder.scan`), their events decoded when asked for."""
-
-    delivers_evt_words = True
-
-    def __init__(self, source: ByteSource, *, strict: bool = False) -> None:
-        super().__init__(EventSensorSettings())
-        self.source = source
-        width, height = source.geometry
-        self._decoder = StreamDecoder(source.evt_format, width=width, height=height, strict=strict)
-        self._bytes = 0
-        self._quiet: EvtChunk | None = None
-        """Decoded bytes that gave nothing yet, so the next packet's chunk carries them."""
-
-    @property
-    def info(self) -> DeviceInfo:
-        return self.source.info
-
-    @property
-    def capabilities(self) -> frozenset[Capability]:
-        return self.source.capabilities
-
-    @property
-    def geometry(self) -> tuple[int, int]:
-        return self.source.geometry
-
-    @property
-    def evt_format(self) -> str:
-        return self.source.evt_format
 
     @property
     def stream_time_us(self) -> int | None:
@@ -193,34 +95,36 @@ class EvtStreamSensor(EventSensor):
         return self._decoder.time_us
 
     def warm_up(self) -> None:
-        """The source's kernels, then this stream's decoder (on a sample of its format)."""
-        self.source.warm_up()
-        warm_up_decoder(self.source.evt_format, *self.source.geometry)
-
-    def _do_configure(self, settings: EventSensorSettings) -> None:
-        self.source.configure(settings)
-
-    def _do_start(self) -> None:
-        self.source.start()
-
-    def _do_stop(self) -> None:
-        self.source.stop()
+        """This stream's decoder, compiled on a sample of its format."""
+        warm_up_decoder(self._fmt, *self._geometry)
 
     def _do_close(self) -> None:
-        self.source.close()
         skipped = {k: v for k, v in self._decoder.stats.items() if v}
         if skipped:
             log.warning("%s: decoder skipped %s", self.label, skipped)
         if self._decoder.time_jumps:
             log.warning("%s: stream time jumped back %d time(s)", self.label, self._decoder.time_jumps)
 
+    def _join(self, items: list[B]) -> tuple[bytes, int]:
+        """Reader's thread: the buffers in order as one, stamped when the last arrived (its
+        newest events)."""
+        if len(items) == 1:
+            return items[0].data, items[0].host_ns
+        return b"".join(b.data for b in items), items[-1].host_ns
+
     def _read(self, timeout_s: float) -> EventPacket | None:
+        """Up to `merge` buffers as one packet; buffers of time words alone are carried into the
+        next packet's chunk, and reading goes on until the timeout."""
         deadline = time.monotonic() + max(timeout_s, 0.0)
+        first = True
         while True:
-            got = self.source.read_bytes(max(0.0, deadline - time.monotonic()))
-            if got is None:
+            if not first:
+                self._check_present()
+            first = False
+            items = self._read_queued(max(0.0, deadline - time.monotonic()), self._merge)
+            if not items:
                 return self._flushed()
-            data, host_ns = got
+            data, host_ns = self._join(items)
             scanned, chunk = self._decoder.scan_chunk(data)
             self._bytes += len(data)
             chunk = self._joined(chunk)
@@ -254,10 +158,9 @@ class EvtStreamSensor(EventSensor):
         return None
 
     def _counters(self) -> tuple[int, dict[str, int]]:
-        dev = self.source.stats()
-        extra = dict(dev.extra)
-        extra["bytes_decoded"] = self._bytes
+        """The decoder's counters (subclasses put their device's in front)."""
+        extra = {"bytes_decoded": self._bytes}
         for kind, n in self._decoder.stats.items():
             extra[f"decoder_skipped_{kind}"] = n
         extra.update({f"decoder_{k}": v for k, v in self._decoder.jump_stats.items()})
-        return dev.device_dropped, extra
+        return 0, extra

@@ -48,7 +48,9 @@ log = logging.getLogger(__name__)
 
 class FileEventSensor(EventSensor):
     """Replays a RAW or DAT recording through the EventSensor interface, on the reader's
-    thread: the reader sets the pace (`pace=0`), so nothing is ever dropped."""
+    thread: the reader sets the pace (`pace=0`), so nothing is ever dropped. Not a
+    `drivers.evt_stream.DecodingEventSensor`: a file has no device to poll, and its stream is
+    cut by due time where it is read, so no acquisition thread or queue stands between them."""
 
     def __init__(
         self,

@@ -2,10 +2,10 @@
 the slot that keeps the error that ended it.
 
 Backends write no threads, condition variables or error slots of their own. The device base
-classes (`drivers.base`) and the grabbing byte sources (`drivers.evt_stream`) run the
-backend's `_grab(timeout_s)` on an `Acquisition`; what it returns waits in a
-`DeliveryQueue` whose overflow is counted, and an exception that ends the thread is kept
-and raised by the next read, so an unplugged device is reported where the caller reads.
+classes (`drivers.base`) run the backend's `_grab(timeout_s)` on an `Acquisition`; what it
+returns waits in a `DeliveryQueue` whose overflow is counted, and an exception that ends the
+thread is kept and raised by the next read, so an unplugged device is reported where the
+caller reads.
 """
 
 from __future__ import annotations
@@ -141,6 +141,7 @@ class Acquisition(Generic[T]):
         self._join_timeout_s = join_timeout_s
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
+        self._ended = False
 
     @property
     def error(self) -> BaseException | None:
@@ -156,6 +157,7 @@ class Acquisition(Generic[T]):
         if self.alive:
             raise DeviceError(f"{self.label}: acquisition is already running")
         self._error = None
+        self._ended = False
         self.stopping.clear()
         self._thread = threading.Thread(target=self._run, name=f"acq-{self.label}", daemon=True)
         self._thread.start()
@@ -184,7 +186,7 @@ class Acquisition(Generic[T]):
         return items
 
     def _idle(self) -> bool:
-        return self._error is not None or not self.alive
+        return self._error is not None or self._ended or not self.alive
 
     def _run(self) -> None:
         try:
@@ -201,6 +203,7 @@ class Acquisition(Generic[T]):
             log.exception("%s: acquisition failed", self.label)
             self.fail(exc)
         finally:
+            self._ended = True  # before the wake: a waiting reader sees the end at once
             self.queue.wake()
 
 

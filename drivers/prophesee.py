@@ -1,9 +1,10 @@
 """`prophesee://SERIAL` through OpenEB's Python HAL (`metavision_hal`), when installed.
 
-The HAL hands out raw EVT buffers (`I_EventsStream.get_latest_raw_data`); they go through
-`EvtStreamSensor`, i.e. rigd's own decoder, exactly like the simulated sensor's stream. The
-HAL facilities used for configuration (trigger-in, camera synchronization, biases, ROI, ERC)
-are optional per camera model: asking for one the camera lacks is a ConfigError naming it.
+The HAL hands out raw EVT buffers (`I_EventsStream.get_latest_raw_data`); the camera is a
+`DecodingEventSensor`, so they go through rigd's own decoder, exactly like the simulated
+sensor's stream. The HAL facilities used for configuration (trigger-in, camera
+synchronization, biases, ROI, ERC) are optional per camera model: asking for one the camera
+lacks is a ConfigError naming it.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ import logging
 import time
 from typing import Any
 
-from drivers.base import AcquisitionStats, Capability
-from drivers.evt_stream import EvtStreamSensor, GrabbingSource
+from drivers.base import Capability
+from drivers.evt_stream import DecodingEventSensor, EvtBuffer
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
@@ -37,11 +38,14 @@ def _import_hal() -> Any:
     return metavision_hal
 
 
-class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
-    """ByteSource over a live camera opened with the HAL; the HAL is polled on the
-    acquisition thread, so every HAL call after start happens there."""
+class PropheseeSensor(DecodingEventSensor[EvtBuffer]):
+    """A live camera opened with the HAL; the HAL is polled on the acquisition thread, so
+    every HAL call after start happens there. A buffer the full host queue gives up is counted
+    (`buffers_lost`, `bytes_lost`; its events are unknown until decoded)."""
 
-    def __init__(self, serial: str, *, buffers: int = 256, spec: str = "") -> None:
+    _overflow_name = "buffers_lost"
+
+    def __init__(self, serial: str, *, buffers: int = 256, spec: str = "", strict: bool = False) -> None:
         hal = _import_hal()
         self._hal = hal
         device = hal.DeviceDiscovery.open(serial)
@@ -51,7 +55,7 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
             )
         self._device = device
         geom = device.get_i_geometry()
-        self._geometry = (int(geom.get_width()), int(geom.get_height()))
+        geometry = (int(geom.get_width()), int(geom.get_height()))
         ident = device.get_i_hw_identification()
         self._serial = str(ident.get_serial()) if ident is not None else serial
         fmt = "EVT3"
@@ -59,7 +63,7 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
             fmt = str(ident.get_current_data_encoding_format()).upper()
         if fmt not in _FORMATS:
             raise DeviceError(f"camera {self._serial} streams {fmt}, which rigd does not decode")
-        self._fmt = _FORMATS[fmt]
+        fmt = _FORMATS[fmt]
         self._info = DeviceInfo(
             kind="event_sensor",
             spec=spec or f"prophesee://{serial}",
@@ -68,12 +72,8 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
             if ident is not None and hasattr(ident, "get_sensor_info")
             else "",
             serial=self._serial,
-            firmware=f"format={self._fmt}",
-            facts={
-                "evt_format": self._fmt,
-                "width": str(self._geometry[0]),
-                "height": str(self._geometry[1]),
-            },
+            firmware=f"format={fmt}",
+            facts={"evt_format": fmt, "width": str(geometry[0]), "height": str(geometry[1])},
         )
         caps = {Capability.DEVICE_TIMESTAMPS}
         if device.get_i_trigger_in() is not None:
@@ -84,10 +84,9 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
         self._stream = device.get_i_events_stream()
         self._streaming = False
         self._lost_bytes = 0
-        self.settings = EventSensorSettings()
         # the capture reads every few ms (`read_interval_ms`): what the HAL handed out meanwhile
         # comes as one buffer
-        super().__init__(f"camera {self._serial}", buffers=buffers, merge=64, drain_on_stop=True)
+        super().__init__(fmt, geometry, buffers=buffers, merge=64, drain_on_stop=True, strict=strict)
 
     def _facility(self, getter: str, what: str) -> Any:
         fac = getattr(self._device, getter)()
@@ -95,8 +94,7 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
             raise ConfigError(f"camera {self._serial} has no {what} facility ({getter})")
         return fac
 
-    def configure(self, settings: EventSensorSettings) -> None:
-        self.settings = settings.model_copy()
+    def _do_configure(self, settings: EventSensorSettings) -> None:
         if settings.enable_trigger_in:
             trig = self._facility("get_i_trigger_in", "trigger-in")
             if not trig.enable(settings.trigger_in_channel):
@@ -127,8 +125,8 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
         self._stream.start()
         self._streaming = True
 
-    def _grab(self, timeout_s: float) -> tuple[bytes, int] | Signal | None:
-        if self._acq.stopping.is_set():  # stop the stream from the thread that polls it
+    def _grab(self, timeout_s: float) -> EvtBuffer | Signal | None:
+        if self._stopping:  # stop the stream from the thread that polls it
             self._stop_stream()
             return END
         if self._stream.poll_buffer() < 0:
@@ -137,39 +135,43 @@ class PropheseeSource(GrabbingSource[tuple[bytes, int]]):
         data = self._stream.get_latest_raw_data()
         if data is None or len(data) == 0:
             return None
-        return bytes(data), time.monotonic_ns()
+        return EvtBuffer(bytes(data), time.monotonic_ns())
 
-    def _on_overflow(self, lost: tuple[bytes, int]) -> None:
-        self._lost_bytes += len(lost[0])
+    def _deliver(self, item: EvtBuffer) -> bool:
+        lost = self._queue.put(item)
+        if lost is None:
+            return True
+        self._lost_bytes += len(lost.data)
         log.warning("camera %s: host buffer full, a raw buffer was lost", self._serial)
-
-    def _join(self, items: list[tuple[bytes, int]]) -> tuple[bytes, int]:
-        """The buffers in order as one, stamped when the last arrived (its newest events)."""
-        if len(items) == 1:
-            return items[0]
-        return b"".join(data for data, _ in items), items[-1][1]
+        return False
 
     def _do_close(self) -> None:
         self._stop_stream()  # when the polling thread died before it could
+        super()._do_close()
 
     def _stop_stream(self) -> None:
         if self._streaming:
             self._streaming = False
             self._stream.stop()
 
-    def stats(self) -> AcquisitionStats:
-        lost = self._acq.queue.dropped
-        extra = {"buffers_lost": lost, "bytes_lost": self._lost_bytes}
+    def _counters(self) -> tuple[int, dict[str, int]]:
+        # Events inside lost buffers are unknown until decoded: the base counts what is known,
+        # the buffers (`buffers_lost`, in device_dropped).
+        extra = {"bytes_lost": self._lost_bytes}
         erc = self._device.get_i_erc_module()
         if erc is not None and hasattr(erc, "get_count_period"):
             extra["erc_enabled"] = int(bool(erc.is_enabled()))
-        # Events inside lost buffers are unknown until decoded: count what is known, the buffers.
-        return AcquisitionStats(delivered=0, device_dropped=lost, extra=extra)
+        _, decoder = super()._counters()
+        return 0, {**extra, **decoder}
 
 
-def open_prophesee_sensor(spec: DeviceSpec) -> EvtStreamSensor:
+def open_prophesee_sensor(spec: DeviceSpec) -> PropheseeSensor:
     """Factory for `prophesee://SERIAL?buffers=256` (empty serial: the first camera found)."""
     spec.check_params({"buffers", "strict"})
     serial = spec.location or spec.path.strip("/")
-    source = PropheseeSource(serial, buffers=spec.int_param("buffers", 256), spec=spec.raw)
-    return EvtStreamSensor(source, strict=bool(spec.int_param("strict", 0)))
+    return PropheseeSensor(
+        serial,
+        buffers=spec.int_param("buffers", 256),
+        spec=spec.raw,
+        strict=bool(spec.int_param("strict", 0)),
+    )

@@ -8,16 +8,16 @@ whole rendered frames instead.
 
 The sensor talks like a Prophesee camera: each slice's events and trigger-in edges are
 encoded into an EVT 3.0 byte stream (time-ordered, trigger edges interleaved), and the host
-side is the production `drivers.evt_stream.EvtStreamSensor`, which decodes it. The generator
+side is the production `drivers.evt_stream.DecodingEventSensor`, which decodes it. The generator
 runs `GENERATION_LAG_US` behind true time so the trigger box's edges for a slice are latched
 before the slice is encoded; an edge later than that cannot be placed in the time-ordered
 stream and is counted (`triggers_late`), never dropped silently. Buffers go into a bounded
 FIFO whose overflows are counted.
 
-`unplug_at_s` / `unplug_for_s` take the sensor off the bus (docs/sim-faults.md): `read_bytes`
-raises DeviceError, which `EvtStreamSensor.read_events` passes on to the capture pipeline, the
-generator stops, and the span of true time whose events the host never got goes into the
-ground truth (`GroundTruth.unplugged`).
+`unplug_at_s` / `unplug_for_s` take the sensor off the bus (docs/sim-faults.md): `read_events`
+raises DeviceError, which the capture pipeline gets as from a real camera, the generator stops,
+and the span of true time whose events the host never got goes into the ground truth
+(`GroundTruth.unplugged`).
 """
 
 from __future__ import annotations
@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import AcquisitionStats, Capability
+from drivers.base import Capability
 from drivers.evt import Evt3Encoder
-from drivers.evt_stream import EvtStreamSensor, GrabbingSource
+from drivers.evt_stream import DecodingEventSensor, EvtBuffer
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from firmware_sim.clock import Hold
@@ -54,7 +54,6 @@ from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wa
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.events import EventArray, TriggerEvents
-from rigd.core.settings import EventSensorSettings
 
 log = logging.getLogger(__name__)
 
@@ -85,11 +84,9 @@ class SensorParams:
 
 
 @dataclass(frozen=True, slots=True)
-class _Packet:
+class _Packet(EvtBuffer):
     """One slice's EVT buffer, with what the ground truth and the journal need to know of it."""
 
-    payload: bytes
-    host_ns: int
     n_events: int
     n_triggers: int
     t_first_us: int
@@ -123,18 +120,21 @@ MAX_LAG_US = 1_000_000
 _STOP_CATCH_UP_US = GENERATION_LAG_US + 2 * SLICE_US
 
 
-class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
+class SimEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
     """An ideal event sensor in a `SimWorld`, with its own drifting clock and trigger-in.
 
-    A `drivers.evt_stream.ByteSource`: it hands out EVT 3.0 buffers, as a camera would. Its
-    firmware runs on the acquisition thread: every slice it generates the events since the
-    last one, takes the trigger edges latched up to then and encodes both into one buffer of
-    the on-sensor FIFO (`buffer_packets` long; a packet that finds it full is lost, counted).
+    It hands out EVT 3.0 buffers, as a camera would, and the host decodes them
+    (`drivers.evt_stream.DecodingEventSensor`). Its firmware runs on the acquisition thread:
+    every slice it generates the events since the last one, takes the trigger edges latched up
+    to then and encodes both into one buffer of the on-sensor FIFO (`buffer_packets` long; a
+    packet that finds it full is lost, counted: `packets_dropped`, its events in
+    `device_dropped`).
     """
 
     _device_label = "event sensor"
     _capabilities = _CAPABILITIES
-    _fmt = "evt3"
+    _overflow_name = "packets_dropped"
+    _overflow_is_loss = False  # counted in events, by `_deliver`
 
     def __init__(self, where: Placement, params: SensorParams | None = None) -> None:
         p = params or SensorParams()
@@ -144,12 +144,15 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         if p.buffer_packets < 1:
             raise ConfigError(f"event sensor {name}: buffer_packets must be >= 1, got {p.buffer_packets}")
         super().__init__(
-            f"event sensor {name}", buffers=p.buffer_packets, merge=_MAX_MERGE, drain_on_stop=True
+            "evt3",
+            (where.width, where.height),
+            buffers=p.buffer_packets,
+            merge=_MAX_MERGE,
+            drain_on_stop=True,
         )
         self._world, self._name, self._scene, self._clock, self._p = world, name, where.scene, where.clock, p
         self._unplug = where.unplug
         self._view = where.scene.view(name, where.width, where.height)
-        self._geometry = (where.width, where.height)
         self._info = DeviceInfo(
             kind="event_sensor",
             spec=where.spec,
@@ -164,7 +167,6 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
                 **ground_truth_facts(where),
             },
         )
-        self._settings = EventSensorSettings()
         self._plug_in(world, name, self._info.spec)
         self._delivered_until_us = -math.inf
         self._journal = truth_journal()
@@ -196,10 +198,6 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
     @property
     def clock(self) -> DeviceClock:
         return self._clock
-
-    def configure(self, settings: EventSensorSettings) -> None:
-        self._check_present()
-        self._settings = settings.model_copy()
 
     def _do_start(self) -> None:
         if self._settings.sync_mode == "slave":
@@ -245,6 +243,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         encoder = Evt3Encoder()
         encoder.encode(events.with_time(events.t - events.t.min()) if len(events) else events, triggers)
         encoder.encode(EventArray.empty(), TriggerEvents.empty())
+        super().warm_up()
 
     def _do_stop(self) -> None:
         with self._lock:
@@ -256,6 +255,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         self._unlisten()
         if self._gen.hold is not None:
             self._gen.hold.release()
+        super()._do_close()
 
     def _join(self, parts: list[_Packet]) -> tuple[bytes, int]:
         with self._lock:
@@ -265,7 +265,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             self._delivered_until_us = parts[-1].true_end_us
         if self._journal is not None:
             self._write_journal(parts)
-        return b"".join(pk.payload for pk in parts), parts[-1].host_ns
+        return super()._join(parts)
 
     def _write_journal(self, parts: list[_Packet]) -> None:
         """One line per buffer handed to the reader (a decoded `EventPacket`), never per event."""
@@ -280,14 +280,12 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
             f'"t_last_device_us":{last},"host_time_ns":{time.monotonic_ns()}}}'
         )
 
-    def stats(self) -> AcquisitionStats:
+    def _counters(self) -> tuple[int, dict[str, int]]:
         with self._lock:
             counts = dict(self._counts)
             lost = self._events_lost
-        counts["packets_dropped"] = self._acq.queue.dropped
-        return AcquisitionStats(
-            delivered=counts["events_generated"] - lost, device_dropped=lost, extra=counts
-        )
+        _, decoder = super()._counters()
+        return lost, {**counts, **decoder}
 
     # --- unplug fault ---------------------------------------------------------------------
 
@@ -297,7 +295,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         Everything after the last slice the host read is lost: packets still queued, the
         slices the generator (running behind true time) had not encoded yet, and the window.
         """
-        lost = [*lost, *self._acq.queue.drain()]
+        lost = [*lost, *self._queue.drain()]
         self._events_lost += sum(pk.n_events for pk in lost)
         self._counts["packets_lost_unplugged"] += len(lost)
         if not self._unplug_noted:
@@ -379,10 +377,10 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         wake = gen.t_prev + SLICE_US + GENERATION_LAG_US
         if gen.hold is not None:
             # Virtual time: whole slices on a fixed grid, so the same world gives the same events.
-            stopping = not gen.hold.sleep_until(wake, self._acq.stopping)
+            stopping = not gen.hold.sleep_until(wake, self._stop_asked)
             t_now = self._world.now_us() if stopping else gen.t_prev + SLICE_US
         else:
-            stopping = self._acq.stopping.wait(max(0.0, (wake - self._world.now_us()) * 1e-6))
+            stopping = self._stop_asked.wait(max(0.0, (wake - self._world.now_us()) * 1e-6))
             t_now = self._world.now_us() - (0 if stopping else GENERATION_LAG_US)
             # A sensor cannot fall behind real time; a simulator on a busy CPU can. Past a bound
             # it skips ahead (and at stop it makes one slice more, not the whole backlog): the
@@ -477,7 +475,7 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         def give_up() -> bool:
             if self._dead(self._world.now_us()):
                 return True
-            if not self._acq.stopping.is_set():
+            if not self._stopping:
                 return False
             stopped_since[:] = stopped_since or [time.monotonic()]
             return time.monotonic() - stopped_since[0] > _STOP_ROOM_WAIT_S
@@ -489,18 +487,18 @@ class SimEventSensor(Unpluggable, GrabbingSource[_Packet]):
         at all; a full FIFO loses it (counted with its events and trigger edges)."""
         if self._gen.hold is not None:
             # Virtual time waits for the host to make room instead of losing the packet.
-            wait_for_room(self._acq.queue, _VIRTUAL_LEAD_PACKETS, self._give_up_waiting())
+            wait_for_room(self._queue, _VIRTUAL_LEAD_PACKETS, self._give_up_waiting())
         with self._lock:
             full = False
             if self._dead(self._world.now_us()):
                 self._note_unplug_locked([packet])
-            elif self._acq.queue.put(packet) is not None:
+            elif self._queue.put(packet) is not None:
                 full = True
                 self._events_lost += packet.n_events
                 self._counts["triggers_dropped"] += packet.n_triggers
             self._counts["events_generated"] += packet.n_events
             self._counts["triggers"] += packet.n_triggers
-            self._counts["bytes"] += len(packet.payload)
+            self._counts["bytes"] += len(packet.data)
         if full:
             log.warning(
                 "event sensor %s: buffer full, dropped a packet of %d events, %d triggers",
@@ -545,7 +543,7 @@ def _pixel_model(spec: DeviceSpec, seed: int) -> PixelModelConfig | None:
         raise ConfigError(f"device spec {spec.raw!r}: {exc}") from None
 
 
-def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
+def open_sim_event_sensor(spec: DeviceSpec) -> SimEventSensor:
     """Factory for `sim://<world>/<name>?threshold=&buffer_packets=&pixel_model=ideal|full`
     besides the placement parameters (`firmware_sim.placement`: offset_us, drift_ppm, seed,
     width, height, scene=sprites|board).
@@ -566,4 +564,4 @@ def open_sim_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
             ("buffer_packets", params.buffer_packets >= 1),
         ),
     )
-    return EvtStreamSensor(SimEventSensor(where, params))
+    return SimEventSensor(where, params)

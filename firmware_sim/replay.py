@@ -34,9 +34,9 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import AcquisitionStats, Capability, RgbCamera
+from drivers.base import Capability, RgbCamera
 from drivers.evt import Evt3Encoder
-from drivers.evt_stream import EvtStreamSensor, GrabbingSource
+from drivers.evt_stream import DecodingEventSensor
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
 from drivers.serial_trigger import SerialTrigger
@@ -61,7 +61,7 @@ from rigd.core.frames import Frame
 from rigd.core.layout import Frames, TriggerEdges, frame_group, trigger_in_group
 from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import DeviceSync, SyncReport
-from rigd.core.settings import CameraSettings, EventSensorSettings
+from rigd.core.settings import CameraSettings
 from rigd.core.timebase import ClockMap
 from rigd.take import Take
 
@@ -533,13 +533,15 @@ def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
 
 
 # ---------------------------------------------------------------------------------------- events
-class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
+class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
     """A recorded event sensor: every `SLICE_US` of true time, the recorded events and trigger
-    edges of that span, back in the sensor clock, as one EVT 3.0 buffer."""
+    edges of that span, back in the sensor clock, as one EVT 3.0 buffer that the host decodes.
+    A buffer the full queue gives up is counted as `packets_dropped`."""
 
     _device_label = "event sensor"
     _capabilities = frozenset({Capability.TRIGGER_IN, Capability.DEVICE_TIMESTAMPS, Capability.CLOCK_SYNC})
-    _fmt = "evt3"
+    _overflow_name = "packets_dropped"
+    _overflow_is_loss = False  # a replay's device_dropped stays 0: its loss is in packets_dropped
 
     def __init__(
         self,
@@ -555,10 +557,10 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         name = _device_name(spec)
         self._track = rec.sensor(name)
         self._clock_reset, self._base = clock_reset, 0
-        super().__init__(f"replay event sensor {name}", buffers=buffer_packets, merge=64, drain_on_stop=True)
+        geometry = (self._track.width, self._track.height)
+        super().__init__("evt3", geometry, buffers=buffer_packets, merge=64, drain_on_stop=True)
         self._world, self._name, self._rec, self._timeline = world, name, rec, timeline
         self._unplug = unplug
-        self._geometry = (self._track.width, self._track.height)
         self._info = DeviceInfo(
             kind="event_sensor",
             spec=spec.raw,
@@ -588,9 +590,6 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         }
         self._unlisten = self._fault.listen(self._on_unplug)
 
-    def configure(self, settings: EventSensorSettings) -> None:
-        self._check_present()
-
     def warm_up(self) -> None:
         """Compile the EVT 3.0 encoder a slice runs, on a throwaway encoder and a tiny sample."""
         one = np.zeros(1, np.uint16)
@@ -598,6 +597,7 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         Evt3Encoder().encode(
             events, TriggerEvents(np.zeros(1, np.int64), np.ones(1, np.uint8), np.zeros(1, np.uint8))
         )
+        super().warm_up()
 
     def _do_start(self) -> None:
         if self._take is None:
@@ -619,22 +619,23 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         if self._take is not None:
             self._take.close()
             self._take = None
+        super()._do_close()
 
     def _join(self, parts: list[_Packet]) -> tuple[bytes, int]:
         with self._lock:
             if self._dead(self._world.now_us()):
                 self._note_unplug_locked(parts)
                 raise self._unplugged_error()
-        return b"".join(pk.payload for pk in parts), parts[-1].host_ns
+        return super()._join(parts)
 
-    def stats(self) -> AcquisitionStats:
+    def _counters(self) -> tuple[int, dict[str, int]]:
         with self._lock:
             counts = dict(self._counts)
-        counts["packets_dropped"] = self._acq.queue.dropped
-        return AcquisitionStats(delivered=counts["events"], device_dropped=0, extra=counts)
+        _, decoder = super()._counters()
+        return 0, {**counts, **decoder}
 
     def _note_unplug_locked(self, lost: list[_Packet]) -> None:
-        lost = [*lost, *self._acq.queue.drain()]
+        lost = [*lost, *self._queue.drain()]
         self._counts["packets_lost_unplugged"] += len(lost)
         if not self._unplug_noted:
             self._unplug_noted = True
@@ -654,7 +655,7 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         else:
             start = self._t_prev if math.isfinite(self._t_prev) else self._world.now_us()
             wake = start + SLICE_US
-            stop = self._acq.stopping
+            stop = self._stop_asked
             awake = self._hold.sleep_until(wake, stop) if self._hold else self._world.sleep_until(wake, stop)
             now = self._world.now_us()
             if awake:
@@ -670,7 +671,7 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         packet = self._slice(self._t_prev, t_end, shift)
         self._t_prev = t_end
         if packet is not None and self._hold is not None:
-            wait_for_room(self._acq.queue, _VIRTUAL_LEAD, self._acq.stopping.is_set)
+            wait_for_room(self._queue, _VIRTUAL_LEAD, self._stop_asked.is_set)
         return packet
 
     def _take_until(self, hi_rig: int) -> EventArray:
@@ -721,14 +722,14 @@ class ReplayEventSource(Unpluggable, GrabbingSource[_Packet]):
         )
 
 
-def open_replay_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
+def open_replay_event_sensor(spec: DeviceSpec) -> ReplayEventSensor:
     """Factory for `replay:///abs/take.h5?device=ev0[&buffer_packets=&unplug_at_s=]`."""
     check_params(spec, ReplaySensorParams, f"replayed event sensor {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
     buffer_packets = spec.int_param("buffer_packets", 1024)
     if buffer_packets < 1:
         raise ConfigError(f"device spec {spec.raw!r}: buffer_packets={buffer_packets} must be >= 1")
-    source = ReplayEventSource(
+    return ReplayEventSensor(
         spec,
         world,
         rec,
@@ -737,7 +738,6 @@ def open_replay_event_sensor(spec: DeviceSpec) -> EvtStreamSensor:
         unplug=unplug_params(spec),
         clock_reset=clock_reset_param(spec),
     )
-    return EvtStreamSensor(source)
 
 
 def replay_spec(take: Path, device: str, **params: str) -> str:

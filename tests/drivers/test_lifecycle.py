@@ -132,6 +132,17 @@ def test_stop_does_not_wait_for_a_grab_that_never_ends_when_not_draining() -> No
     cam.close()
 
 
+def test_a_reader_waiting_learns_at_once_that_the_device_ended() -> None:
+    cam = CountingCamera(frames=0)
+    cam.go.clear()  # the grab idles until the reader waits, then says END
+    cam.start()
+    threading.Timer(0.2, cam.go.set).start()
+    t = time.monotonic()
+    assert cam.read_frame(5.0) is None
+    assert time.monotonic() - t < 2.0, "the reader waited out its timeout after the end"
+    cam.close()
+
+
 def test_delivery_queue_policies() -> None:
     newest = DeliveryQueue[int](2, "newest")
     assert [newest.put(i) for i in range(4)] == [None, None, 2, 3]

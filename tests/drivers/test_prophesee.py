@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 import types
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -17,7 +18,7 @@ import pytest
 from drivers.base import Capability, EventSensor
 from drivers.evt import Evt3Encoder, parse_raw_header, read_raw
 from drivers.registry import open_device
-from drivers.testing.event_sensor import EventSensorContract
+from drivers.testing.event_sensor import EventSensorContract, drain
 from rigd.core.errors import BackendUnavailableError, ConfigError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
@@ -177,6 +178,25 @@ def _synthetic_stream() -> _Stream:
         stream._encoder.encode(ev[i : i + 2000], TriggerEvents.empty()) for i in range(0, n, 2000)
     ]
     return stream
+
+
+def test_a_full_host_queue_loses_whole_buffers_and_counts_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    stream = _synthetic_stream()  # ten buffers of 2000 events
+    sizes = [len(c) for c in stream._chunks]
+    monkeypatch.setitem(sys.modules, "metavision_hal", _fake_hal(b"", [], stream=stream))
+    sensor = open_device("event_sensor", "prophesee://00050423?buffers=2")
+    sensor.start()
+    deadline = time.monotonic() + 10
+    while stream._chunks and time.monotonic() < deadline:  # nobody reads: two buffers fit
+        time.sleep(0.01)
+    sensor.stop()
+    packets = drain(sensor)
+    st = sensor.stats()
+    sensor.close()
+    assert st.device_dropped == st.extra["buffers_lost"] == 8
+    assert st.extra["bytes_lost"] == sum(sizes[2:])
+    assert st.delivered == sum(len(p.events) for p in packets) == 4000
+    assert st.extra["bytes_decoded"] == sum(sizes[:2])
 
 
 class TestPropheseeStandIn(EventSensorContract):

@@ -10,10 +10,9 @@ from uuid import uuid4
 import numpy as np
 import pytest
 
-from drivers.evt_stream import EvtStreamSensor
 from drivers.registry import DeviceSpec
 from firmware_sim.event_kernels import EventBuffer, generate_events, generate_events_kernel
-from firmware_sim.event_sensor import open_sim_event_sensor
+from firmware_sim.event_sensor import SimEventSensor, open_sim_event_sensor
 from firmware_sim.scene import Scene, lin_log
 from firmware_sim.world import DeviceClock, SimWorld, get_world, reset_world
 from rigd.core.errors import ConfigError
@@ -107,13 +106,13 @@ def world_name() -> Iterator[str]:
     reset_world(name)
 
 
-def open_ev(world: str, extra: str = "") -> EvtStreamSensor:
+def open_ev(world: str, extra: str = "") -> SimEventSensor:
     return open_sim_event_sensor(
         DeviceSpec.parse(f"sim://{world}/ev0?offset_us=412775&drift_ppm=-95&width=320&height=180{extra}")
     )
 
 
-def drain(sensor: EvtStreamSensor) -> list[EventPacket]:
+def drain(sensor: SimEventSensor) -> list[EventPacket]:
     out = []
     while (p := sensor.read_events(0.05)) is not None:
         out.append(p)
@@ -125,7 +124,7 @@ VIRTUAL = "&clock=virtual"
 
 
 def run_virtual(
-    sensor: EvtStreamSensor, world: SimWorld, seconds: float, *, read: bool = True
+    sensor: SimEventSensor, world: SimWorld, seconds: float, *, read: bool = True
 ) -> list[EventPacket]:
     """Let a started sensor run `seconds` of its world's virtual time from now, reading what it
     makes (or not, `read=False`: its FIFO fills), then stop it at that very instant and drain
@@ -192,10 +191,10 @@ def test_trigger_in_edges_are_stamped_in_the_sensor_clock(world_name: str) -> No
         packets = drain(sensor)
     trig = TriggerEvents.concatenate([p.triggers for p in packets])
     expected = sorted([(t, 1) for t in rising] + [(t + 500.0, 0) for t in rising])
-    assert trig.t.tolist() == [sensor.source.clock.stamp(t) for t, _ in expected]
+    assert trig.t.tolist() == [sensor.clock.stamp(t) for t, _ in expected]
     assert trig.p.tolist() == [p for _, p in expected]
     assert (trig.channel == 3).all()
-    assert get_world(world_name).truth.clocks["ev0"] is sensor.source.clock
+    assert get_world(world_name).truth.clocks["ev0"] is sensor.clock
 
 
 def test_trigger_in_can_be_disabled(world_name: str) -> None:

@@ -251,7 +251,7 @@ def test_event_sensor_unplug_reaches_read_events_and_replug_continues(world_name
     ev_after = np.concatenate([p.events.t for p in after])
     assert len(ev_before) > 0
     assert len(ev_after) > 0
-    clock = again.source.clock  # type: ignore[attr-defined]
+    clock = again.clock  # type: ignore[attr-defined]
     [(lost_from, lost_to)] = world.truth.unplugged["ev0"]
     assert lost_to == fault.end_us
     # Everything the host got lies before the lost span, everything after it on the same clock.

@@ -11,8 +11,12 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
+from drivers.base import Capability
 from drivers.evt import Decoded, Evt3Encoder, StreamDecoder, parse_raw_header
-from rigd.core.events import EventArray, TriggerEvents
+from drivers.evt_stream import DecodingEventSensor, EvtBuffer
+from drivers.lifecycle import END, Signal
+from rigd.core.devices import DeviceInfo
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real Prophesee recordings not found at {DATA}")
@@ -45,6 +49,28 @@ def feed_chunks(dec: StreamDecoder, data: bytes, sizes: list[int]) -> Iterator[D
         pos += k
         i += 1
     yield dec.finish()
+
+
+class FixedStream(DecodingEventSensor[EvtBuffer]):
+    """A streaming sensor handing out a fixed stream in small buffers (a camera's USB
+    transfers), one a read, then nothing more: the capture path's decoding as a camera's."""
+
+    _capabilities = frozenset({Capability.DEVICE_TIMESTAMPS})
+
+    def __init__(self, data: bytes, size: int, fmt: str = "evt3") -> None:
+        self._parts = [data[i : i + size] for i in range(0, len(data), size)]
+        super().__init__(fmt, (1280, 720), buffers=len(self._parts) + 1)  # nothing dropped
+        self._info = DeviceInfo(kind="event_sensor", spec="test://bytes")
+
+    def _grab(self, timeout_s: float) -> EvtBuffer | Signal | None:
+        return EvtBuffer(self._parts.pop(0), 0) if self._parts else END
+
+    def read_all(self) -> list[EventPacket]:
+        """Every packet until the stream has ended and been read."""
+        packets = []
+        while (p := self.read_events(10.0)) is not None:
+            packets.append(p)
+        return packets
 
 
 def assert_same(a: EventArray | TriggerEvents, b: EventArray | TriggerEvents) -> None:

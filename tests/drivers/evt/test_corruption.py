@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import AcquisitionStats, Capability
 from drivers.evt import (
     EvtDecodeError,
     StreamDecoder,
@@ -24,11 +23,8 @@ from drivers.evt import (
     read_dat,
     write_dat,
 )
-from drivers.evt_stream import EvtStreamSensor
-from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray, TriggerEvents
-from rigd.core.settings import EventSensorSettings
-from tests.drivers.evt.streams import DATA, assert_same, feed_chunks, real_body
+from tests.drivers.evt.streams import DATA, FixedStream, assert_same, feed_chunks, real_body
 
 WORD = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}
 
@@ -341,47 +337,16 @@ def test_dat_truncation_at_many_offsets(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ live stream
 
 
-class _Bytes:
-    """A ByteSource handing out a fixed stream in small buffers (a camera's USB transfers)."""
-
-    def __init__(self, data: bytes, size: int) -> None:
-        self._parts = [data[i : i + size] for i in range(0, len(data), size)]
-        self.info = DeviceInfo(kind="event_sensor", spec="test://bytes")
-        self.capabilities = frozenset({Capability.DEVICE_TIMESTAMPS})
-        self.geometry = (1280, 720)
-        self.evt_format = "evt3"
-
-    def configure(self, settings: EventSensorSettings) -> None:
-        """Nothing to set."""
-
-    def start(self) -> None:
-        """Always streaming."""
-
-    def stop(self) -> None:
-        """Always streaming."""
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
-        return (self._parts.pop(0), 0) if self._parts else None
-
-    def stats(self) -> AcquisitionStats:
-        return AcquisitionStats()
-
-
 def test_live_stream_corrupt_word_costs_only_its_events() -> None:
-    """The capture path (EvtStreamSensor) decodes with the same decoder: a zeroed TIME_LOW in a
-    live stream is counted as decoder_skipped_non_monotonic_time and time stays sorted."""
+    """The capture path (a DecodingEventSensor) decodes with the same decoder: a zeroed TIME_LOW
+    in a live stream is counted as decoder_skipped_non_monotonic_time and time stays sorted."""
     data = _synthetic("evt3")
     i = _pick(_types(data, "evt3"), 6, np.random.default_rng(12), 1)[0]
     bad = _set_word(data, "evt3", i, lambda v: 0x6000)
     ref = decode_bytes(bad, "evt3")
-    sensor = EvtStreamSensor(_Bytes(bad, 333))  # type: ignore[arg-type]
+    sensor = FixedStream(bad, 333)
     sensor.start()
-    packets = []
-    while (p := sensor.read_events(0.0)) is not None:
-        packets.append(p)
+    packets = sensor.read_all()
     ev = EventArray.concatenate([p.events for p in packets])
     extra = sensor.stats().extra
     sensor.close()

@@ -15,7 +15,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.base import AcquisitionStats, Capability
 from drivers.evt import (
     JUMP_CONFIRM,
     Decoded,
@@ -27,15 +26,12 @@ from drivers.evt import (
     encode,
 )
 from drivers.evt.jumps import MAX_KEPT_JUMPS
-from drivers.evt_stream import EvtStreamSensor
 from drivers.file_event_sensor import FileEventSensor
-from rigd.core.devices import DeviceInfo
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, TriggerEvents
-from rigd.core.settings import EventSensorSettings
 from rigd.products.convert import convert
 from rigd.take.reader import Take
-from tests.drivers.evt.streams import SETTINGS, assert_same, feed_chunks, needs_data, real_body
+from tests.drivers.evt.streams import SETTINGS, FixedStream, assert_same, feed_chunks, needs_data, real_body
 
 FORMATS = ("evt3", "evt2", "evt21", "evt21_le")
 WORD = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}
@@ -342,45 +338,13 @@ def test_reader_yields_what_is_decided_at_the_end(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ live stream
 
 
-class _Bytes:
-    """A ByteSource handing out a fixed stream in small buffers (a camera's USB transfers)."""
-
-    def __init__(self, data: bytes, size: int, fmt: str) -> None:
-        self._parts = [data[i : i + size] for i in range(0, len(data), size)]
-        self.info = DeviceInfo(kind="event_sensor", spec="test://bytes")
-        self.capabilities = frozenset({Capability.DEVICE_TIMESTAMPS})
-        self.geometry = (1280, 720)
-        self.evt_format = fmt
-
-    def configure(self, settings: EventSensorSettings) -> None:
-        """Nothing to set."""
-
-    def start(self) -> None:
-        """Always streaming."""
-
-    def stop(self) -> None:
-        """Always streaming."""
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-    def read_bytes(self, timeout_s: float) -> tuple[bytes, int] | None:
-        return (self._parts.pop(0), 0) if self._parts else None
-
-    def stats(self) -> AcquisitionStats:
-        return AcquisitionStats()
-
-
 def _live(data: bytes, fmt: str) -> tuple[Decoded, dict[str, int]]:
     """Read a live sensor to its end, stop it and read what the stop releases."""
-    sensor = EvtStreamSensor(_Bytes(data, 333, fmt))  # type: ignore[arg-type]
+    sensor = FixedStream(data, 333, fmt)
     sensor.start()
-    packets = []
-    while (p := sensor.read_events(0.0)) is not None:
-        packets.append(p)
+    packets = sensor.read_all()
     sensor.stop()
-    while (p := sensor.read_events(0.0)) is not None:
-        packets.append(p)
+    packets += sensor.read_all()
     extra = sensor.stats().extra
     sensor.close()
     return Decoded.concatenate([Decoded(p.events, p.triggers) for p in packets]), extra
