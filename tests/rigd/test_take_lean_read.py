@@ -19,15 +19,19 @@ from rigd.app.config import default_sim_rig
 from rigd.core.extras import OPTIONAL
 from rigd.take import open_take
 
-# Run with every optional library made unimportable, as in a fresh `pip install rigd`.
-LEAN_READ = """
-import json, sys
-BLOCKED = set(sys.argv[2].split(","))
+# Every optional library made unimportable, as in a fresh `pip install rigd`: the scripts below
+# run with the comma-separated names in their last argument blocked.
+LEAN = """
+import sys
+BLOCKED = set(sys.argv[-1].split(","))
 class Lean:
     def find_spec(self, name, path=None, target=None):
         if name.split(".")[0] in BLOCKED:
             raise ModuleNotFoundError(f"No module named {name!r}", name=name)
 sys.meta_path.insert(0, Lean())
+"""
+LEAN_READ = LEAN + """
+import json
 from rigd.core.errors import MissingExtraError
 from rigd.take import open_take
 out = {}
@@ -47,14 +51,7 @@ print(json.dumps(out))
 """
 
 
-LEAN_CLI = """
-import sys
-BLOCKED = set(sys.argv[1].split(","))
-class Lean:
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in BLOCKED:
-            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
-sys.meta_path.insert(0, Lean())
+LEAN_CLI = LEAN + """
 from rigd.app.cli import main
 sys.argv = ["rigd", "-v", "capture", "--duration", "1"]
 main()
