@@ -11,8 +11,14 @@ import pytest
 from calibration.boards import detect, parse_board
 from calibration.errors import BoardSpecError, CalibrationError, NoBoardFoundError
 from calibration.intrinsics import calibrate_images, calibrate_intrinsics, detect_images
-from tests.calibration.conftest import SYNTH_BOARD, synth_detections
-from tests.calibration.synth import SynthCamera, look_at, render, view_poses
+from firmware_sim.testing.board_views import (
+    SYNTH_BOARD,
+    SynthCamera,
+    look_at,
+    render,
+    synth_detections,
+    view_poses,
+)
 
 K0 = np.array([[600.0, 0.0, 322.3], [0.0, 598.5, 241.7], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])

@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from calibration.boards import BoardSpec, Detection, detect, parse_board
 from calibration.guided import TILT_BINS, GuidedSession, cell_name, tilt_angles, tilt_bin
 from calibration.io import read_opencv_yaml
-from tests.calibration.synth import SynthCamera, look_at, render, view_poses
+from firmware_sim.testing.board_views import SynthCamera, look_at, render, view_poses
 
 SIZE = (480, 360)
 K_TRUE = np.array([[420.0, 0, 241.0], [0, 420.0, 178.0], [0, 0, 1]])

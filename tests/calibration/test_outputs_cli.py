@@ -18,7 +18,7 @@ from calibration.intrinsics import calibrate_intrinsics
 from calibration.io import kalibr_camchain, read_opencv_yaml, write_json, write_opencv_yaml
 from calibration.report import write_report
 from rigd.app.commands.calibrate import calibrate_app
-from tests.calibration.conftest import DATA, REAL_BOARD, real_files
+from tests.calibration.real_data import DATA, REAL_BOARD, real_files
 
 app = typer.Typer()
 app.add_typer(calibrate_app, name="calibrate")

@@ -15,11 +15,11 @@ from drivers.registry import DeviceSpec
 from firmware_sim.event_kernels import EventBuffer, generate_events, generate_events_kernel
 from firmware_sim.event_sensor import open_sim_event_sensor
 from firmware_sim.scene import Scene, lin_log
+from firmware_sim.testing.wire import fire_pulses
 from firmware_sim.world import DeviceClock, SimWorld, get_world, reset_world
 from rigd.core.errors import ConfigError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.settings import EventSensorSettings
-from tests.firmware_sim.test_sim_rgb_camera import fire_pulses
 
 C = 0.3
 

@@ -26,13 +26,13 @@ from drivers.base import Trigger
 from drivers.registry import open_device
 from firmware_sim.box_devices import find_trigger_box
 from firmware_sim.clock import Hold, VirtualClock
+from firmware_sim.testing.wire import fire_pulses
 from firmware_sim.world import TRUTH_LOG_ENV, SimWorld, close_truth_journals, get_world, reset_world
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError, DeviceError, DeviceTimeoutError
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
-from tests.firmware_sim.test_sim_rgb_camera import fire_pulses
 
 SMALL = "width=160&height=120"
 

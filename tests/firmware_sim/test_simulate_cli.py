@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import typer
 from typer.testing import CliRunner
 
 from firmware_sim.cli import parse_noise, simulate_events
+from firmware_sim.testing.frames import make_folder
 from rigd.take import open_take, validate_take
 
 app = typer.Typer()
@@ -20,17 +20,6 @@ app.command("simulate-events")(simulate_events)
 @app.callback()
 def _root() -> None:
     """Keeps simulate-events a named sub-command, as in rigd/app/cli.py."""
-
-
-def make_folder(tmp_path: Path, n: int = 5) -> Path:
-    rng = np.random.default_rng(0)
-    tex = cv2.GaussianBlur(rng.uniform(0, 255, (40, 200)).astype(np.float32), (0, 0), 2.0)
-    tex = np.clip((tex - tex.mean()) * 5 + 128, 0, 255).astype(np.uint8)
-    folder = tmp_path / "frames"
-    folder.mkdir()
-    for i in range(n):
-        cv2.imwrite(str(folder / f"f{i:03d}.png"), np.ascontiguousarray(tex[:, 3 * i : 3 * i + 60]))
-    return folder
 
 
 def test_simulate_folder_to_take(tmp_path: Path) -> None:

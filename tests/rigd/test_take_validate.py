@@ -13,9 +13,9 @@ import h5py
 import numpy as np
 import pytest
 
+from firmware_sim.testing.takes import make_take
 from rigd.core.errors import TakeError
 from rigd.take import open_take, validate_take
-from tests.rigd.test_take_roundtrip import make_take
 
 
 @pytest.fixture(scope="module")

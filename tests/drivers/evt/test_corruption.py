@@ -25,10 +25,10 @@ from drivers.evt import (
     write_dat,
 )
 from drivers.evt_stream import EvtStreamSensor
+from drivers.testing.evt_streams import DATA, assert_same, feed_chunks, real_body
 from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
-from tests.drivers.evt.streams import DATA, assert_same, feed_chunks, real_body
 
 WORD = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}
 

@@ -14,8 +14,7 @@ from drivers.evt import Decoded, EvtDecodeError, StreamDecoder, evt3, evt3_fast,
 from drivers.evt.errors import STATS_SIZE
 from drivers.evt.kernels import decode_config
 from drivers.evt.raw import _Out
-from rigd.core.events import EventArray, TriggerEvents
-from tests.drivers.evt.streams import (
+from drivers.testing.evt_streams import (
     DIRTY,
     SETTINGS,
     assert_matches_pypi_evt3,
@@ -26,6 +25,7 @@ from tests.drivers.evt.streams import (
     needs_data,
     real_body,
 )
+from rigd.core.events import EventArray, TriggerEvents
 
 KERNELS = {"ref": evt3.decode_kernel, "fast": evt3_fast.decode_kernel}
 

@@ -26,8 +26,7 @@ from drivers.evt import (
     write_dat,
     write_raw,
 )
-from rigd.core.events import EventArray, TriggerEvents
-from tests.drivers.evt.streams import (
+from drivers.testing.evt_streams import (
     DATA,
     SETTINGS,
     assert_matches_pypi_evt3,
@@ -36,6 +35,7 @@ from tests.drivers.evt.streams import (
     needs_data,
     real_body,
 )
+from rigd.core.events import EventArray, TriggerEvents
 
 # file, events, first t, last t (../shared/data/README.md, OpenEB semantics)
 REAL = [

@@ -13,6 +13,8 @@ import pytest
 
 from calibration.boards import parse_board
 from calibration.errors import BoardSpecError, CalibrationError, NoBoardFoundError
+from firmware_sim.testing.stereo import BOARD, T1, stereo_board_take
+from firmware_sim.testing.takes import make_take
 from rigd.core.errors import RigdError
 from rigd.core.progress import ProgressUpdate
 from rigd.products.calibrate import (
@@ -28,9 +30,7 @@ from rigd.products.calibrate import (
     run_rig,
 )
 from rigd.take.reader import open_take
-from tests.calibration.conftest import DATA, REAL_BOARD, real_files
-from tests.rigd.app.workflows.takes import BOARD, T1, stereo_board_take
-from tests.rigd.test_take_roundtrip import make_take
+from tests.calibration.real_data import DATA, REAL_BOARD, real_files
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.products.reconstruct import ReconstructOptions, run_reconstruct
-from tests.rigd.test_take_roundtrip import make_take
 
 
 def _good(d: Path, name: str = "good.h5") -> Path:

@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.products import reconstruct
 from rigd.products.reconstruct import ReconstructOptions
-from tests.rigd.test_take_roundtrip import make_take
 
 runner = CliRunner()
 

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import MAPS, make_take
 from rigd.app.cli import app
+from rigd.app.testing.crash import append_step, open_writer, step
 from rigd.core.errors import TakeFormatError
 from rigd.products.inspect import event_image, summarize, write_thumbnails
 from rigd.take import Take, recover_take
-from tests.rigd.test_take_recover import append_step, open_writer, step
-from tests.rigd.test_take_roundtrip import MAPS, make_take
 
 
 @pytest.fixture(scope="module")

@@ -37,6 +37,7 @@ from firmware_sim.spec_params import (
     SpecParams,
     allowed_range,
 )
+from firmware_sim.testing.takes import make_take
 from firmware_sim.world import reset_world
 from rigd.app.capture.session import CaptureSession
 from rigd.app.cli import app
@@ -44,7 +45,6 @@ from rigd.app.config import RigConfig, default_sim_rig
 from rigd.core.errors import ConfigError
 from rigd.products.convert import convert
 from rigd.take import Take
-from tests.rigd.test_take_roundtrip import make_take
 
 
 def _small_rig(world: str, **writer: Any) -> RigConfig:

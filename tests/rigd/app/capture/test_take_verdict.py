@@ -12,15 +12,15 @@ import h5py
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.app.commands.service import take_summary_line, verdict_text
 from rigd.app.commands.summaries import STRICT_EXIT
 from rigd.app.console.takes import TakeList
+from rigd.app.testing.daemon import RunningDaemon
 from rigd.core.schema import DeviceSync, LossRecord, SyncReport
 from rigd.products.inspect import summarize
 from rigd.take.verdict import TakeVerdict, take_verdict
-from tests.rigd.app.service.conftest import RunningDaemon, runtime_dir, start_daemon  # noqa: F401
-from tests.rigd.test_take_roundtrip import make_take
 
 FRAMES = {"cam0": 90}
 EVENTS = {"ev0": 1_000_000}
@@ -230,7 +230,7 @@ def test_the_daemon_status_lines_carry_the_verdict() -> None:
 
 
 def test_a_daemon_take_reports_its_verdict_and_capture_strict_follows_it(
-    start_daemon: Callable[..., RunningDaemon],  # noqa: F811
+    start_daemon: Callable[..., RunningDaemon],
 ) -> None:
     rd = start_daemon()
     endpoint = rd.config.service.control_endpoint

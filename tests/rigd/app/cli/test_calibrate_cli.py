@@ -10,10 +10,11 @@ import cv2
 import pytest
 from typer.testing import CliRunner
 
-from bench.e2calib import BOARD, capture_board_take
+from firmware_sim.testing.board import BOARD
+from firmware_sim.testing.stereo import BOARD as STEREO_BOARD
+from firmware_sim.testing.stereo import stereo_board_take
 from rigd.app.cli import app
-from tests.rigd.app.workflows.takes import BOARD as STEREO_BOARD
-from tests.rigd.app.workflows.takes import stereo_board_take
+from rigd.app.testing.board import capture_board_take
 
 runner = CliRunner()
 
@@ -156,9 +157,9 @@ def test_calibrate_rig_on_a_take_with_ground_truth_prints_its_error(tmp_path: Pa
     import h5py
     import numpy as np
 
+    from firmware_sim.testing.stereo import DIST, SIZE, T1
+    from firmware_sim.testing.stereo import K as K_TRUE
     from rigd.take.calibration import GROUND_TRUTH_SOURCE, read_ground_truth, store_calibration
-    from tests.rigd.app.workflows.takes import DIST, SIZE, T1
-    from tests.rigd.app.workflows.takes import K as K_TRUE
 
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=6)
     intr = {"K": K_TRUE.tolist(), "dist": DIST.tolist(), "image_size": list(SIZE)}

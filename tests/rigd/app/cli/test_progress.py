@@ -9,10 +9,10 @@ from pathlib import Path
 from rich.console import Console
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.app.commands.progress import StageProgress
 from rigd.core.progress import ProgressUpdate
-from tests.rigd.test_take_roundtrip import make_take
 
 
 def test_capture_names_every_phase_after_the_pulses(small_rig: Path, tmp_path: Path) -> None:

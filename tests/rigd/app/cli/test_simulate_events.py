@@ -8,9 +8,9 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
+from firmware_sim.testing.frames import make_folder
+from firmware_sim.testing.stereo import stereo_board_take
 from rigd.app.cli import app
-from tests.firmware_sim.test_simulate_cli import make_folder
-from tests.rigd.app.workflows.takes import stereo_board_take
 
 runner = CliRunner()
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
-from tests.rigd.test_take_roundtrip import make_take
 
 runner = CliRunner()
 

@@ -12,8 +12,8 @@ import httpx
 import pytest
 
 from calibration.io import read_opencv_yaml
+from rigd.app.testing.console import ConsoleDaemon
 from tests.rigd.app.console.browser import chromium_page
-from tests.rigd.app.console.conftest import ConsoleDaemon
 
 pytestmark = pytest.mark.timeout(300)
 

@@ -25,7 +25,7 @@ from rigd.app.cli import app as cli
 from rigd.app.commands.service import Announcer
 from rigd.app.console.login import ConsoleLogin, login_path, write_login
 from rigd.app.console.security import TOKEN_HEADER, cookie_name
-from tests.rigd.app.console.conftest import ConsoleDaemon
+from rigd.app.testing.console import ConsoleDaemon
 
 REPO = Path(__file__).resolve().parents[4]
 NOBODY = 65534

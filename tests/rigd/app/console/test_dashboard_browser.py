@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from rigd.app.testing.console import ConsoleDaemon
 from tests.rigd.app.console.browser import chromium_page
-from tests.rigd.app.console.conftest import ConsoleDaemon
 
 DEVICES = ("cam0", "cam1", "cam2", "ev0", "ev1")
 

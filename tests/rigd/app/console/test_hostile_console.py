@@ -34,9 +34,9 @@ from rigd.app.console.server import ConsoleServer
 from rigd.app.console.takes import TakeList
 from rigd.app.service.client import DaemonClient
 from rigd.app.service.daemon import Daemon
+from rigd.app.testing.console import console_rig
+from rigd.app.testing.daemon import serve_in_thread
 from rigd.core.errors import RigdError
-from tests.rigd.app.console.conftest import console_rig
-from tests.rigd.app.service.conftest import serve_in_thread
 
 #: The body limit (the control socket's message limit).
 LIMIT = 64 * 1024

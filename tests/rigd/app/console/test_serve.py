@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.rigd.app.console.conftest import console_rig
+from rigd.app.testing.console import console_rig
 
 REPO = Path(__file__).resolve().parents[4]
 

@@ -16,7 +16,7 @@ import typer
 
 from rigd.app.commands.service import DAEMON_LOST_EXIT, capture_via_daemon
 from rigd.app.service.client import DaemonClient, DaemonUnavailableError
-from tests.rigd.app.service.conftest import REPO, endpoints, small_rig, spawn_daemon
+from rigd.app.testing.daemon import REPO, endpoints, small_rig, spawn_daemon
 
 TAKE = "/takes/rig-20261123-walk.h5"
 

@@ -19,9 +19,9 @@ import h5py
 import numpy as np
 
 from rigd.app.service.client import DaemonClient
+from rigd.app.testing.daemon import endpoints, small_rig, spawn_daemon
 from rigd.take.reader import Take
 from rigd.take.validate import validate_take
-from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
 
 N_KILLS = 20
 FLUSH_S = 0.5

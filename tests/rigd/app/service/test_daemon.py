@@ -19,8 +19,8 @@ from rigd.app.cli import app
 from rigd.app.config import RigConfig
 from rigd.app.service.client import DaemonClient, DaemonRequestError, find_daemon
 from rigd.app.service.protocol import Reply, Telemetry, ThumbnailHeader
+from rigd.app.testing.daemon import small_rig, wait_idle
 from rigd.core.errors import ConfigError
-from tests.rigd.app.service.conftest import small_rig, wait_idle
 
 
 def test_ping_status_config(start_daemon: Any) -> None:

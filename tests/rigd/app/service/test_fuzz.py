@@ -14,7 +14,7 @@ import pytest
 from rigd.app.service.client import DaemonClient
 from rigd.app.service.daemon import Daemon
 from rigd.app.service.protocol import Reply
-from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
+from rigd.app.testing.daemon import endpoints, small_rig, spawn_daemon
 
 N_MESSAGES = 10_000
 

@@ -27,8 +27,8 @@ from rigd.app.service.client import DaemonClient, find_daemon
 from rigd.app.service.daemon import ControlPlaneError, Daemon
 from rigd.app.service.protocol import ARGS_MODELS, COMMANDS, PROTOCOL_VERSION, Reply
 from rigd.app.service.requests import MAX_INT_DIGITS, reply_bytes
+from rigd.app.testing.daemon import REPO, RunningDaemon, endpoints, small_rig
 from rigd.take.reader import open_take
-from tests.rigd.app.service.conftest import REPO, RunningDaemon, endpoints, small_rig
 
 #: Lone surrogates as JSON escapes (valid JSON, text no encoder can write back).
 SURROGATES = ["\\ud800", "\\udbff", "\\udc00", "\\udfff", "\\udc80"]

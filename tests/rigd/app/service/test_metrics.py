@@ -19,8 +19,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from rigd import __version__
 from rigd.app.service.metrics import MetricsExporter
 from rigd.app.service.protocol import DeviceTelemetry, Fault, TakeSummary, Telemetry
+from rigd.app.testing.daemon import REPO, endpoints, small_rig
 from rigd.core.errors import ConfigError
-from tests.rigd.app.service.conftest import REPO, endpoints, small_rig
 
 TAKE_A = "/var/lib/rigd/takes/take-A.h5"
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]

@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from rigd.app.service.client import DaemonClient
-from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
-from tests.rigd.app.test_recover_dir import BAD
-from tests.rigd.test_take_recover import _unfinished
+from rigd.app.testing.crash import BAD
+from rigd.app.testing.crash import unfinished as _unfinished
+from rigd.app.testing.daemon import endpoints, small_rig, spawn_daemon
 
 
 def _populate(take_dir: Path) -> tuple[Path, list[Path]]:

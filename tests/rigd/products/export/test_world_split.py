@@ -10,15 +10,14 @@ import h5py
 import numpy as np
 import pytest
 
-from bench.e2calib import board_rig
 from firmware_sim.board_scene import BoardScene
 from firmware_sim.world import get_world
 from rigd.app.capture import run_capture
 from rigd.app.config import RigConfig
+from rigd.app.testing.board import board_rig
 from rigd.core.errors import ConfigError, TakeError
 from rigd.products.export import ExportOptions, run_export
-
-from .test_formats import check_dsec_events
+from tests.rigd.products.export.dsec_checks import check_dsec_events
 
 RES = (320, 180)
 
