@@ -76,6 +76,7 @@ def test_two_views_warn() -> None:
         calibrate_intrinsics(dets[:1], board)
 
 
+@pytest.mark.slow
 def test_all_fronto_parallel_warns() -> None:
     board = parse_board(SYNTH_BOARD)
     cam = SynthCamera(K0, DIST)
@@ -95,6 +96,7 @@ def test_all_fronto_parallel_warns() -> None:
     assert any("fronto-parallel" in w for w in res.warnings)
 
 
+@pytest.mark.slow
 def test_board_partly_outside_and_blurred_views_are_reported(tmp_path: Path) -> None:
     board = parse_board(SYNTH_BOARD)
     cam = SynthCamera(K0, DIST)

@@ -19,6 +19,8 @@ from rigd.app.commands.calibrate import calibrate_app
 from rigd.app.testing.board import capture_board_take
 from rigd.take.reader import open_take
 
+pytestmark = pytest.mark.slow
+
 RES = (480, 270)
 runner = CliRunner()
 

@@ -59,6 +59,7 @@ def hold(session: GuidedSession, det: Detection, t_us: int) -> bool:
     return session.offer_detection(det, t_us + 33_000).captured
 
 
+@pytest.mark.slow
 def test_still_vs_moving(board: BoardSpec, images: list[np.ndarray]) -> None:
     s = GuidedSession(board, SIZE, still_px=1.0)
     first = s.offer(images[0], 0)

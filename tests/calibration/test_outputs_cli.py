@@ -25,6 +25,7 @@ app.add_typer(calibrate_app, name="calibrate")
 runner = CliRunner()
 
 
+@pytest.mark.slow
 def test_yaml_json_kalibr_and_report(real_detections, tmp_path: Path) -> None:
     board = parse_board(REAL_BOARD)
     res = calibrate_intrinsics(real_detections["left"][0], board, camera="left")
@@ -48,6 +49,7 @@ def test_yaml_json_kalibr_and_report(real_detections, tmp_path: Path) -> None:
     assert "reprojection RMS per view" in html
 
 
+@pytest.mark.slow
 def test_cli_intrinsics_json_yaml_report(tmp_path: Path) -> None:
     files = [str(f) for f in real_files("left")]
     out = tmp_path / "left.yaml"
@@ -78,6 +80,7 @@ def test_cli_intrinsics_json_yaml_report(tmp_path: Path) -> None:
     assert (tmp_path / "left.html").exists()
 
 
+@pytest.mark.slow
 def test_cli_rig_from_image_sets(tmp_path: Path) -> None:
     real_files("left")
     out = tmp_path / "rig.json"

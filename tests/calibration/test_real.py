@@ -12,6 +12,8 @@ from calibration.extrinsics import calibrate_rig
 from calibration.intrinsics import calibrate_intrinsics
 from tests.calibration.real_data import REAL_BOARD, real_files, view_id
 
+pytestmark = pytest.mark.slow
+
 
 def plain_opencv(side: str) -> tuple[float, np.ndarray, np.ndarray]:
     """findChessboardCorners + cornerSubPix(11x11) + calibrateCamera (5-parameter model)."""

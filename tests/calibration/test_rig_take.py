@@ -19,6 +19,8 @@ from firmware_sim.world import get_world
 from rigd.app.commands.calibrate import calibrate_app
 from rigd.app.testing.board import capture_board_take
 
+pytestmark = pytest.mark.slow
+
 RES = (480, 270)
 WORLD = "t-rig-take"
 runner = CliRunner()

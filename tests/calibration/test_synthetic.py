@@ -14,6 +14,8 @@ from calibration.extrinsics import calibrate_rig
 from calibration.intrinsics import calibrate_intrinsics
 from firmware_sim.testing.board_views import SYNTH_BOARD, SynthCamera, synth_detections, view_poses
 
+pytestmark = pytest.mark.slow
+
 K0 = np.array([[600.0, 0.0, 322.3], [0.0, 598.5, 241.7], [0.0, 0.0, 1.0]])
 SIMPLE = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])
 #: Strong barrel distortion from a decentred wide-angle lens: needs tangential terms and k3.

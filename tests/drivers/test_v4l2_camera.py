@@ -87,6 +87,7 @@ def test_free_running_frames_with_host_time_and_software_sync() -> None:
     assert cap.released
 
 
+@pytest.mark.slow
 def test_mono_and_unplug_is_reported() -> None:
     cap = FakeCapture()
     cam = V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9"), capture=cap)
@@ -135,6 +136,7 @@ def test_real_v4l2_node_free_runs() -> None:
         cam.close()
 
 
+@pytest.mark.slow
 def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path: Path) -> None:
     """A V4L2 camera in a rig: frames land in rig time through the host clock, each goes to
     the nearest pulse, and the take says its sync is software-only."""
@@ -178,6 +180,7 @@ def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path:
         assert any("free-running" in w for w in res.report.warnings)
 
 
+@pytest.mark.slow
 def test_camera_unplugged_mid_take_is_reported_and_the_take_goes_on(tmp_path: Path) -> None:
     import threading
     import uuid

@@ -34,6 +34,7 @@ def run_kernel(l0: float, l1: float, ref: float, cap: int = 64) -> tuple[EventAr
     return EventArray(buf.x[:n], buf.y[:n], buf.p[:n], buf.t[:n]), float(r[0, 0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [0, 1, 2, 5])
 @pytest.mark.parametrize("sign", [1, -1])
 def test_kernel_ramp_of_k_thresholds_gives_k_interpolated_events(k: int, sign: int) -> None:
@@ -249,6 +250,7 @@ def _events_for(world: str, extra: str, seconds: float = 0.4) -> EventArray:
         return EventArray.concatenate([p.events for p in run_virtual(sensor, get_world(world), seconds)])
 
 
+@pytest.mark.slow
 def test_full_pixel_model_runs_in_the_rig_sensor(world_name: str) -> None:
     """`pixel_model=full` puts the seeded pixel model of firmware_sim.event_model behind the
     rig's sensor: with noise off it sees the same motion as the ideal kernel, and its noise

@@ -22,6 +22,7 @@ def _root() -> None:
     """Keeps simulate-events a named sub-command, as in rigd/app/cli.py."""
 
 
+@pytest.mark.slow
 def test_simulate_folder_to_take(tmp_path: Path) -> None:
     folder = make_folder(tmp_path)
     out = tmp_path / "ev.h5"
@@ -60,6 +61,7 @@ def test_simulate_folder_to_take(tmp_path: Path) -> None:
     assert validate_take(out) == []
 
 
+@pytest.mark.slow
 def test_fixed_substeps(tmp_path: Path) -> None:
     folder = make_folder(tmp_path)
     out = tmp_path / "ev.h5"
@@ -106,6 +108,7 @@ def test_parse_noise() -> None:
     assert parse_noise(None) == {}
 
 
+@pytest.mark.slow
 def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: Path) -> None:
     from rigd.app.cli import app as rigd_app
 
@@ -118,6 +121,7 @@ def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: P
         assert len(take.events("ev0")) > 0
 
 
+@pytest.mark.slow
 def test_simulate_to_evt3_raw_decodes_to_the_take_events(tmp_path: Path) -> None:
     from drivers.evt import read_raw
 

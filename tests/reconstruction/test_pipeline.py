@@ -19,6 +19,8 @@ from reconstruction.metrics import affine_align, motion_roi, psnr, psnr_roi, ssi
 from reconstruction.partition import PartitionConfig, export_segments, load_segments, partition
 from rigd.core.events import EventArray
 
+pytestmark = pytest.mark.slow
+
 W, H = 96, 72
 C = 0.15
 

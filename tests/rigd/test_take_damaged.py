@@ -39,6 +39,7 @@ def _overflowed(tmp_path: Path, eoa: int) -> Path:
     return p
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("eoa", [2000, 8000])
 def test_addr_overflow_is_one_line(tmp_path: Path, eoa: int) -> None:
     p = _overflowed(tmp_path, eoa)

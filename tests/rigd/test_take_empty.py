@@ -17,6 +17,8 @@ from rigd.core.schema import SyncReport
 from rigd.core.timebase import ClockMap
 from rigd.take import Take, TakeWriter, find_unfinished, recover_take, validate_take
 
+pytestmark = pytest.mark.slow
+
 N = 20
 MAPS = {"cam0": ClockMap(OFF_CAM, 0, 1.0, 0.0), "ev0": ClockMap(OFF_EV, 0, 1.0, 0.0)}
 #: (frames, events, trigger edges, pulses): every combination with something empty.

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 
 from drivers.evt import StreamDecoder
 from rigd.app.testing.crash import (
@@ -29,6 +30,8 @@ from rigd.app.testing.crash import (
 )
 from rigd.core.events import EventArray
 from rigd.take import Take, recover_take, validate_take
+
+pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).parents[2]
 

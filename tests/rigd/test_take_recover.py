@@ -197,6 +197,7 @@ def _check_recovered(path: Path, n_flushed: int) -> None:
         assert report.devices["cam0"].residual_max_us < 1.0
 
 
+@pytest.mark.slow
 def test_sigkill_at_random_moments_then_recover(tmp_path: Path) -> None:
     """8 writers SIGKILLed at seeded random moments, 3 more killed between two column appends:
     flushed data intact, every take seals."""
@@ -263,6 +264,7 @@ def small_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(finalize_mod, "_FINALIZE_BLOCK", 2 * CHUNK)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage", ["scratch_written", "scratch_logged", "t_written"])
 @pytest.mark.usefixtures("small_blocks")
 def test_crash_mid_finalize_resumes_exactly(
@@ -306,6 +308,7 @@ def test_crash_mid_finalize_resumes_exactly(
     assert validate_take(crash) == []
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("small_blocks")
 def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
     """A real kill between writing a block and confirming it; recover_take finishes exactly."""
@@ -377,6 +380,7 @@ def _damage(f: h5py.File) -> None:
     f["trigger/pulses/t_us"].resize((f["trigger/pulses/t_us"].shape[0] + 1,))
 
 
+@pytest.mark.slow
 def test_repair_trims_and_reports_everything(tmp_path: Path) -> None:
     path = _unfinished(tmp_path / "d.h5", n=40)
     with h5py.File(path, "r+") as f:
@@ -585,6 +589,7 @@ def live_writer(tmp_path: Path) -> Iterator[Path]:
         proc.wait()
 
 
+@pytest.mark.slow
 def test_locked_take_is_in_use_and_untouched(live_writer: Path) -> None:
     before = live_writer.read_bytes()
     for dry in (True, False):
@@ -659,6 +664,7 @@ def test_recover_command(tmp_path: Path) -> None:
     assert "junk.h5" in res.output
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("then", ["abandon", "fail_and_close"])
 def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: str) -> None:
     """A write that fails for lack of space leaves the file shorter than its header says; HDF5

@@ -124,6 +124,7 @@ def test_window_edge_cases(written: Written) -> None:
         np.testing.assert_array_equal(take.events("ev0", t_end_us=mid).t, t_rig[t_rig < mid])
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(a=st.integers(-200_000, 1_200_000), length=st.integers(0, 300_000))
 def test_window_property(written: Written, a: int, length: int) -> None:

@@ -140,6 +140,7 @@ def test_never_finalized_take_opens_and_validates(tmp_path: Path) -> None:
         assert take.time_domain == "device"
 
 
+@pytest.mark.slow
 def test_crash_after_flush_leaves_a_readable_take(tmp_path: Path) -> None:
     """A process killed after flush (no close) leaves everything flushed readable."""
     path = tmp_path / "crash.h5"

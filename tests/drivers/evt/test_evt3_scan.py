@@ -77,6 +77,7 @@ def test_encoder_streams_scan_as_they_decode(
     _both(encoder_stream(np.random.default_rng(seed), n, n_trig, loops, 2), sizes)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(**DIRTY)
 def test_broken_words_go_to_the_decoder(

@@ -61,6 +61,7 @@ def _check(fmt: str, data: bytes, cuts: list[int]) -> None:
     assert_same(again.triggers, whole.triggers)
 
 
+@pytest.mark.slow
 @needs_data
 @SETTINGS
 @given(cuts=st.lists(st.integers(0, 1 << 22), min_size=1, max_size=12))
@@ -84,6 +85,7 @@ def test_chunks_across_time_jumps_redecode_from_their_state(
     _check(fmt, data, [c % (len(data) + 1) for c in cuts])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_held_words_leave_the_state_at_their_start(fmt: str) -> None:
     """Cut just past a jump's TIME_HIGH: the decoder holds it back, and the next chunk, which

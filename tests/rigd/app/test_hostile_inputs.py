@@ -18,6 +18,8 @@ from typer.testing import CliRunner
 from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 
+pytestmark = pytest.mark.slow
+
 Make = Callable[[Path, Path], Path]
 """(directory, a good take there) -> the hostile input."""
 

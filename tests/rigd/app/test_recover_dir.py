@@ -42,6 +42,7 @@ def _app() -> typer.Typer:
     return app
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(BAD))
 def test_recover_dir_seals_the_others_and_reports_each_bad_file(tmp_path: Path, kind: str) -> None:
     d, good, bad = _dir_with(tmp_path, [kind])
@@ -54,6 +55,7 @@ def test_recover_dir_seals_the_others_and_reports_each_bad_file(tmp_path: Path, 
     assert bad[0].exists()  # reported, not moved (the command leaves files where they are)
 
 
+@pytest.mark.slow
 def test_every_bad_file_reported_once_the_rest_sealed(tmp_path: Path) -> None:
     """All kinds at once. A file whose header still reads (a truncated take) is listed as
     unfinished by the scan and reported when its recovery fails; the others at the scan."""
@@ -69,6 +71,7 @@ def test_every_bad_file_reported_once_the_rest_sealed(tmp_path: Path) -> None:
     }
 
 
+@pytest.mark.slow
 def test_recover_command_dir_with_bad_files(tmp_path: Path) -> None:
     d, good, bad = _dir_with(tmp_path, sorted(BAD))
     res = CliRunner().invoke(_app(), [str(d)])
@@ -183,6 +186,7 @@ def test_recover_with_no_path_searches_the_configs_take_dir(
         assert any(str(p) in line and "sealed complete" in line for line in res.stdout.splitlines())
 
 
+@pytest.mark.slow
 def test_recover_says_each_problem_once(tmp_path: Path) -> None:
     """Through the real command line (its logging set up): a bad file is one report line,
     not a log line and then the same again."""

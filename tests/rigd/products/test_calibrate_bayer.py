@@ -16,6 +16,8 @@ from firmware_sim.world import reset_world
 from rigd.app.testing.board import capture_board_take
 from rigd.products.calibrate import TakeSource, take_views
 
+pytestmark = pytest.mark.slow
+
 RES = (480, 270)
 
 

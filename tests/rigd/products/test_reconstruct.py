@@ -40,6 +40,8 @@ from rigd.products.reconstruct_tasks import FilterKnobs
 from rigd.take import TakeWriter
 from rigd.take.reader import Take
 
+pytestmark = pytest.mark.slow
+
 W, H = 96, 64
 PERIOD_US = 33_333
 EXPOSURE_US = 8_000

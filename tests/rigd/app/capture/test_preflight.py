@@ -48,6 +48,7 @@ def test_cameras_without_a_trigger_input_in_hardware_mode_are_refused_in_one_lin
     assert all(cap.released for cap in opened)  # and every opened device was closed
 
 
+@pytest.mark.slow
 def test_free_run_cameras_pass_and_are_recorded_as_software_synced(tmp_path: Path) -> None:
     register_backend(
         "rgb_camera",

@@ -172,6 +172,7 @@ def clean_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_take(tmp_path_factory.mktemp("verdict") / "clean.h5").path
 
 
+@pytest.mark.slow
 def test_inspect_shows_the_verdict_first_and_strict_exits_on_a_degraded_take(
     clean_take: Path, tmp_path: Path
 ) -> None:
@@ -229,6 +230,7 @@ def test_the_daemon_status_lines_carry_the_verdict() -> None:
     assert verdict_text(old_daemon).startswith("unknown")
 
 
+@pytest.mark.slow
 def test_a_daemon_take_reports_its_verdict_and_capture_strict_follows_it(
     start_daemon: Callable[..., RunningDaemon],
 ) -> None:

@@ -31,6 +31,7 @@ def _stages(stderr: str, title: str) -> list[str]:
     return [line.removeprefix(f"{title}: ") for line in stderr.splitlines() if line.startswith(f"{title}: ")]
 
 
+@pytest.mark.slow
 def test_calibrate_events_reports_frames_per_stage(board_take: Path, tmp_path: Path) -> None:
     out = tmp_path / "ev0.yaml"
     args = [
@@ -57,6 +58,7 @@ def test_calibrate_events_reports_frames_per_stage(board_take: Path, tmp_path: P
     assert "reconstructing" in stages[2]
 
 
+@pytest.mark.slow
 def test_calibrate_rig_from_a_take_counts_frames_per_camera(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=6)
     r = runner.invoke(
@@ -69,6 +71,7 @@ def test_calibrate_rig_from_a_take_counts_frames_per_camera(tmp_path: Path) -> N
     assert any(s.startswith("calibrate") for s in stages)
 
 
+@pytest.mark.slow
 def test_calibration_warnings_are_said_once(board_take: Path, tmp_path: Path) -> None:
     out = tmp_path / "ev0.yaml"
     r = runner.invoke(app, ["calibrate", "events", str(board_take), "-s", "ev0", "-b", BOARD, "-o", str(out)])
@@ -80,6 +83,7 @@ def test_calibration_warnings_are_said_once(board_take: Path, tmp_path: Path) ->
         assert r.stderr.count(text) == 1, (text, r.stderr)
 
 
+@pytest.mark.slow
 def test_rig_output_says_what_each_number_is(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=8)
     out, report = tmp_path / "rig.yaml", tmp_path / "rig.html"
@@ -109,6 +113,7 @@ def test_rig_output_says_what_each_number_is(tmp_path: Path) -> None:
     assert "avg_reprojection_error" in html
 
 
+@pytest.mark.slow
 def test_intrinsics_report_says_why_a_model_was_chosen(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=10)
     report = tmp_path / "rig.html"
@@ -149,6 +154,7 @@ def test_report_ticks_are_round_numbers() -> None:
     assert nice_step(3.0) == pytest.approx(0.5)
 
 
+@pytest.mark.slow
 def test_calibrate_rig_on_a_take_with_ground_truth_prints_its_error(tmp_path: Path) -> None:
     """A take that carries its ground truth (as a sim take does from its capture): the rig
     calibration is scored against it, and storing the result into the take keeps the truth."""

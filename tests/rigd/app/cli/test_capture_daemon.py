@@ -15,6 +15,7 @@ from rigd.app.commands import capture as capture_command
 from rigd.app.testing.daemon import RunningDaemon
 
 
+@pytest.mark.slow
 def test_capture_through_the_daemon_prints_the_summary_table(
     start_daemon: Callable[..., RunningDaemon],
 ) -> None:

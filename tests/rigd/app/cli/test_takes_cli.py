@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from firmware_sim.testing.takes import make_take
@@ -14,6 +15,7 @@ from rigd.app.cli import app
 runner = CliRunner()
 
 
+@pytest.mark.slow
 def test_lists_each_take_with_verdict_devices_and_size(tmp_path: Path) -> None:
     make_take(tmp_path / "a.h5")
     make_take(tmp_path / "b.h5", finalize=False)

@@ -57,6 +57,7 @@ def _send(http: httpx.Client, method: str, path: str, **kw: object) -> httpx.Res
     return http.request(method, path, **kw)  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_every_route_needs_the_secret(console_daemon: Callable[..., ConsoleDaemon]) -> None:
     cd = console_daemon()
     requests = _requests(cd)
@@ -197,6 +198,7 @@ _OTHER_USER = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_another_user_can_neither_read_the_secret_nor_start_a_take(
     console_daemon: Callable[..., ConsoleDaemon], request: pytest.FixtureRequest
 ) -> None:

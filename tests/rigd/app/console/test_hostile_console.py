@@ -369,6 +369,7 @@ def outside_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run_capture(RigConfig.from_data(data), out, 0.5).path
 
 
+@pytest.mark.slow
 def test_symlinks_in_take_dir_and_calibration_are_never_followed(
     served: Served, outside_take: Path, tmp_path: Path
 ) -> None:

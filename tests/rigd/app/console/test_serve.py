@@ -37,6 +37,7 @@ def _read_until_ready(proc: subprocess.Popen[str], deadline_s: float = 60.0) -> 
     pytest.fail(f"no 'ready' within {deadline_s} s: {lines}")
 
 
+@pytest.mark.slow
 def test_serve_prints_its_endpoints_serves_the_console_and_stops_cleanly(
     tmp_path: Path, runtime_dir: Path
 ) -> None:

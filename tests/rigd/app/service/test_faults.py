@@ -21,6 +21,8 @@ from rigd.app.testing.daemon import small_rig, wait_idle
 from rigd.core.errors import RigdError, TakeError
 from rigd.take import open_take
 
+pytestmark = pytest.mark.slow
+
 
 def _world() -> str:
     return f"f-{uuid.uuid4().hex[:6]}"

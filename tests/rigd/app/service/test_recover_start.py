@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from rigd.app.service.client import DaemonClient
 from rigd.app.testing.crash import BAD
 from rigd.app.testing.crash import unfinished as _unfinished
@@ -58,6 +60,7 @@ def test_recover_command_reports_unreadable_files(tmp_path: Path, start_daemon: 
     assert rd.client.call("ping")["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_rigd_serve_process_starts_with_unreadable_takes(runtime_dir: Path, tmp_path: Path) -> None:
     """`rigd serve` as systemd runs it: it must answer, not exit at start."""
     take_dir = tmp_path / "takes"

@@ -36,6 +36,8 @@ from rigd.take.calibration import GROUND_TRUTH_SOURCE, store_calibration
 from rigd.take.reader import open_take
 from tests.rigd.products.export.dsec_checks import check_dsec_events
 
+pytestmark = pytest.mark.slow
+
 RES = (480, 270)
 WORLD = "t-export"
 F64 = NDArray[np.float64]
