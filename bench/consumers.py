@@ -30,11 +30,11 @@ import cv2
 import h5py
 import numpy as np
 
-from bench.e2calib import board_rig, capture_board_take
 from firmware_sim.board_scene import BoardScene
 from firmware_sim.world import get_world
 from rigd.app.capture import run_capture
 from rigd.app.config import RigConfig
+from rigd.app.testing.board import board_rig, capture_board_take
 from rigd.products.export import ExportOptions, run_export
 from rigd.take.reader import open_take
 

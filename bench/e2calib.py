@@ -1,4 +1,4 @@
-# ruff: noqa: N803, N806  (K follows the notation of the calibration literature)
+# ruff: noqa: N806  (K follows the notation of the calibration literature)
 """e2calib on the sim rig: reconstruction method vs calibration error vs time.
 
 `python -m bench.e2calib [--seconds 4] [--width 640 --height 360] [--threshold 0.3]`
@@ -23,108 +23,11 @@ import logging
 import tempfile
 import time
 from pathlib import Path
-from typing import Literal
 
-import numpy as np
-
-from calibration.boards import parse_board
-from calibration.e2calib import METHODS, E2CalibResult, ReconstructionParams, calibrate_events
-from firmware_sim.board_scene import BoardScene
-from firmware_sim.scene import REF_FOCAL, REF_WIDTH
-from firmware_sim.world import reset_world
-from rigd.app.capture import CaptureResult, run_capture
-from rigd.app.config import RigConfig, default_sim_rig
+from calibration.e2calib import ReconstructionParams
+from firmware_sim.testing.board import BOARD, score, sensor_results, true_k
+from rigd.app.testing.board import capture_board_take
 from rigd.take.reader import open_take
-
-log = logging.getLogger(__name__)
-
-BOARD = BoardScene().board_spec
-
-
-def board_rig(
-    world: str,
-    resolution: tuple[int, int],
-    threshold: float | None = None,
-    rate_hz: float = 30.0,
-    clock: Literal["real", "virtual"] = "real",
-    pixel_format: Literal["mono8", "rgb8", "bayer_rg8"] = "mono8",
-) -> RigConfig:
-    """The built-in sim rig with every device watching the moving board (mono8 frames unless
-    `pixel_format` says otherwise).
-
-    `clock="virtual"` runs the sim world on virtual time: the same board poses every run."""
-    reset_world(world)
-    cfg = default_sim_rig(
-        world=world, resolution=resolution, pixel_format=pixel_format, rate_hz=rate_hz, clock=clock
-    )
-    data = cfg.model_dump()
-    for dev in data["cameras"]:
-        dev["spec"] += "&scene=board"
-    for dev in data["event_sensors"]:
-        dev["spec"] += "&scene=board" + (f"&threshold={threshold:g}" if threshold else "")
-    return RigConfig.model_validate(data)
-
-
-def capture_board_take(
-    out_dir: Path,
-    seconds: float,
-    resolution: tuple[int, int] = (640, 360),
-    threshold: float | None = None,
-    world: str = "e2calib",
-    clock: Literal["real", "virtual"] = "real",
-    pixel_format: Literal["mono8", "rgb8", "bayer_rg8"] = "mono8",
-) -> CaptureResult:
-    """Capture a take of the sim rig watching the moving board (`clock="virtual"`: a
-    deterministic take, the same for every run whatever the machine's load; the world is reset)."""
-    rig = board_rig(world, resolution, threshold, clock=clock, pixel_format=pixel_format)
-    return run_capture(rig, out_dir, seconds)
-
-
-def true_k(width: int) -> np.ndarray:
-    """Ground-truth K of every sim view at a resolution (the sim's pinhole, centre at w/2, h/2)."""
-    f = REF_FOCAL * width / REF_WIDTH
-    return np.array([[f, 0, width / 2.0], [0, f, 0.0], [0, 0, 1]])
-
-
-def score(res: E2CalibResult, K_true: np.ndarray) -> list[dict[str, object]]:
-    """One table row per method: error of the focal lengths (worse of fx, fy) and principal point."""
-    rows: list[dict[str, object]] = []
-    for m in res.methods:
-        row: dict[str, object] = {
-            "sensor": res.sensor,
-            "method": m.method,
-            "frames": f"{m.detected}/{m.frames}",
-            "time_s": m.total_s,
-        }
-        if m.intrinsics is not None:
-            K = m.intrinsics.camera_matrix()
-            row["focal_err_pct"] = 100 * max(abs(K[0, 0] / K_true[0, 0] - 1), abs(K[1, 1] / K_true[1, 1] - 1))
-            row["pp_err_px"] = float(np.hypot(K[0, 2] - K_true[0, 2], K[1, 2] - K_true[1, 2]))
-            row["rms_px"] = m.intrinsics.rms_px
-        rows.append(row)
-    return rows
-
-
-def sensor_results(
-    take_path: Path, board: str = BOARD, params: ReconstructionParams | None = None
-) -> dict[str, E2CalibResult]:
-    """Calibrate every event sensor of a take with every method, at the cameras' mid-exposures."""
-    spec = parse_board(board)
-    out: dict[str, E2CalibResult] = {}
-    with open_take(take_path) as take:
-        cam = take.frames(take.cameras[0])
-        times = cam.timestamps_us + cam[0].exposure_us // 2
-        for sensor in take.event_sensors:
-            out[sensor] = calibrate_events(
-                take.events(sensor),
-                take.geometry(sensor),
-                times,
-                spec,
-                sensor=sensor,
-                methods=METHODS,
-                params=params,
-            )
-    return out
 
 
 def main() -> None:

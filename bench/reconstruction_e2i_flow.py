@@ -15,10 +15,10 @@ import time
 import numpy as np
 
 from bench.reconstruction_interp import THRESHOLD, H, W, make_scene
+from firmware_sim.testing.sprites import simulate, texture, translate
 from reconstruction.e2i import METHODS, log_intensity, reconstruct
 from reconstruction.flow import PRESETS, FlowEstimator, endpoint_error
 from reconstruction.metrics import affine_align, psnr, ssim
-from tests.reconstruction.synth import simulate, texture, translate
 
 
 def bench_e2i() -> None:

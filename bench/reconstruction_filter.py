@@ -18,9 +18,9 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from firmware_sim.testing.sprites import SpriteScene, linear_path, simulate
 from reconstruction.filters import BackgroundActivityFilter
 from rigd.core.events import EventArray
-from tests.reconstruction.synth import SpriteScene, linear_path, simulate
 
 W, H = 640, 480
 

@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
+from firmware_sim.testing.sprites import SpriteScene, simulate
 from reconstruction.interpolate import METHODS, interpolate
 from reconstruction.metrics import psnr, psnr_roi, ssim
-from tests.reconstruction.synth import SpriteScene, simulate
 
 W, H = 240, 180
 THRESHOLD = 0.15

@@ -1,6 +1,10 @@
 """Root conftest: its presence (with tests/__init__.py) puts the repo root on sys.path under
-pytest's default import mode, so tests share helpers (`from tests.drivers.fake_aravis import
-...`) with plain `pytest`. The contract suites every backend runs live in `drivers.testing`."""
+pytest's default import mode, so tests import the checkout's packages and a few helper modules
+of their own (`from tests.drivers.fake_aravis import ...`) with plain `pytest`. Scenario
+builders shared with the benches live in the testing packages: `drivers.testing` (device
+contract suites, EVT streams), `firmware_sim.testing` (synthetic takes and scenes) and
+`rigd.app.testing` (board captures, daemons, the console, crashed writers). A conftest is
+never imported as a module, nor a test module by another."""
 
 from __future__ import annotations
 

@@ -11,8 +11,14 @@ import pytest
 from calibration.boards import detect, parse_board
 from calibration.errors import BoardSpecError, CalibrationError, NoBoardFoundError
 from calibration.intrinsics import calibrate_images, calibrate_intrinsics, detect_images
-from tests.calibration.conftest import SYNTH_BOARD, synth_detections
-from tests.calibration.synth import SynthCamera, look_at, render, view_poses
+from firmware_sim.testing.board_views import (
+    SYNTH_BOARD,
+    SynthCamera,
+    look_at,
+    render,
+    synth_detections,
+    view_poses,
+)
 
 K0 = np.array([[600.0, 0.0, 322.3], [0.0, 598.5, 241.7], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])
@@ -70,6 +76,7 @@ def test_two_views_warn() -> None:
         calibrate_intrinsics(dets[:1], board)
 
 
+@pytest.mark.slow
 def test_all_fronto_parallel_warns() -> None:
     board = parse_board(SYNTH_BOARD)
     cam = SynthCamera(K0, DIST)
@@ -89,6 +96,7 @@ def test_all_fronto_parallel_warns() -> None:
     assert any("fronto-parallel" in w for w in res.warnings)
 
 
+@pytest.mark.slow
 def test_board_partly_outside_and_blurred_views_are_reported(tmp_path: Path) -> None:
     board = parse_board(SYNTH_BOARD)
     cam = SynthCamera(K0, DIST)

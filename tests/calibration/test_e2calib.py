@@ -11,12 +11,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bench.e2calib import BOARD, capture_board_take, score, sensor_results, true_k
 from calibration.boards import detect, parse_board
 from calibration.e2calib import ReconstructionParams, detector_image, reconstruct, to_uint8
 from firmware_sim.board_scene import BoardScene
+from firmware_sim.testing.board import BOARD, score, sensor_results, true_k
 from rigd.app.commands.calibrate import calibrate_app
+from rigd.app.testing.board import capture_board_take
 from rigd.take.reader import open_take
+
+pytestmark = pytest.mark.slow
 
 RES = (480, 270)
 runner = CliRunner()

@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from calibration.boards import BoardSpec, Detection, detect, parse_board
 from calibration.guided import TILT_BINS, GuidedSession, cell_name, tilt_angles, tilt_bin
 from calibration.io import read_opencv_yaml
-from tests.calibration.synth import SynthCamera, look_at, render, view_poses
+from firmware_sim.testing.board_views import SynthCamera, look_at, render, view_poses
 
 SIZE = (480, 360)
 K_TRUE = np.array([[420.0, 0, 241.0], [0, 420.0, 178.0], [0, 0, 1]])
@@ -59,6 +59,7 @@ def hold(session: GuidedSession, det: Detection, t_us: int) -> bool:
     return session.offer_detection(det, t_us + 33_000).captured
 
 
+@pytest.mark.slow
 def test_still_vs_moving(board: BoardSpec, images: list[np.ndarray]) -> None:
     s = GuidedSession(board, SIZE, still_px=1.0)
     first = s.offer(images[0], 0)

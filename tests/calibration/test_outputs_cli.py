@@ -18,13 +18,14 @@ from calibration.intrinsics import calibrate_intrinsics
 from calibration.io import kalibr_camchain, read_opencv_yaml, write_json, write_opencv_yaml
 from calibration.report import write_report
 from rigd.app.commands.calibrate import calibrate_app
-from tests.calibration.conftest import DATA, REAL_BOARD, real_files
+from tests.calibration.real_data import DATA, REAL_BOARD, real_files
 
 app = typer.Typer()
 app.add_typer(calibrate_app, name="calibrate")
 runner = CliRunner()
 
 
+@pytest.mark.slow
 def test_yaml_json_kalibr_and_report(real_detections, tmp_path: Path) -> None:
     board = parse_board(REAL_BOARD)
     res = calibrate_intrinsics(real_detections["left"][0], board, camera="left")
@@ -48,6 +49,7 @@ def test_yaml_json_kalibr_and_report(real_detections, tmp_path: Path) -> None:
     assert "reprojection RMS per view" in html
 
 
+@pytest.mark.slow
 def test_cli_intrinsics_json_yaml_report(tmp_path: Path) -> None:
     files = [str(f) for f in real_files("left")]
     out = tmp_path / "left.yaml"
@@ -78,6 +80,7 @@ def test_cli_intrinsics_json_yaml_report(tmp_path: Path) -> None:
     assert (tmp_path / "left.html").exists()
 
 
+@pytest.mark.slow
 def test_cli_rig_from_image_sets(tmp_path: Path) -> None:
     real_files("left")
     out = tmp_path / "rig.json"

@@ -10,7 +10,9 @@ import pytest
 from calibration.boards import parse_board
 from calibration.extrinsics import calibrate_rig
 from calibration.intrinsics import calibrate_intrinsics
-from tests.calibration.conftest import REAL_BOARD, real_files, view_id
+from tests.calibration.real_data import REAL_BOARD, real_files, view_id
+
+pytestmark = pytest.mark.slow
 
 
 def plain_opencv(side: str) -> tuple[float, np.ndarray, np.ndarray]:

@@ -13,10 +13,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bench.e2calib import BOARD, capture_board_take
 from firmware_sim.board_scene import BoardScene
+from firmware_sim.testing.board import BOARD
 from firmware_sim.world import get_world
 from rigd.app.commands.calibrate import calibrate_app
+from rigd.app.testing.board import capture_board_take
+
+pytestmark = pytest.mark.slow
 
 RES = (480, 270)
 WORLD = "t-rig-take"

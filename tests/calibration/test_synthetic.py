@@ -12,8 +12,9 @@ import pytest
 from calibration.boards import parse_board
 from calibration.extrinsics import calibrate_rig
 from calibration.intrinsics import calibrate_intrinsics
-from tests.calibration.conftest import SYNTH_BOARD, synth_detections
-from tests.calibration.synth import SynthCamera, view_poses
+from firmware_sim.testing.board_views import SYNTH_BOARD, SynthCamera, synth_detections, view_poses
+
+pytestmark = pytest.mark.slow
 
 K0 = np.array([[600.0, 0.0, 322.3], [0.0, 598.5, 241.7], [0.0, 0.0, 1.0]])
 SIMPLE = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])
@@ -103,7 +104,7 @@ def test_rig_extrinsics_ground_truth() -> None:
     cams = {c: SynthCamera(K0, dists[c]) for c in gt}
     poses0 = view_poses(board, cams["cam0"], 24, 1.0, seed=5, max_tilt=35.0, margin_px=60.0)
     from calibration.boards import detect
-    from tests.calibration.synth import render
+    from firmware_sim.testing.board_views import render
 
     views: dict[str, dict] = {}
     per_cam: dict[str, list] = {c: [] for c in gt}

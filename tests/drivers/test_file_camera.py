@@ -432,6 +432,7 @@ def test_bad_parameters_are_refused(tmp_path: Path) -> None:
     assert DeviceSpec.parse(f"file://{folder}?pace=0").params == {"pace": "0"}
 
 
+@pytest.mark.slow
 def test_a_replayed_camera_in_a_sim_rig_is_synchronized_by_host_time(tmp_path: Path) -> None:
     """A looping folder replay beside the simulated rig: the take holds its frames with the
     replay's counters, and says its sync is software-only."""

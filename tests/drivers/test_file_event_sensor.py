@@ -126,6 +126,7 @@ def test_paced_replay_releases_events_no_earlier_than_their_time(tmp_path: Path)
     assert clock.now - start >= 0.19
 
 
+@pytest.mark.slow
 def test_loop_keeps_time_increasing(tmp_path: Path) -> None:
     t = np.arange(100, 10_100, 100, dtype=np.int64)
     ev = EventArray.from_arrays(np.zeros_like(t), np.zeros_like(t), np.ones_like(t), t)

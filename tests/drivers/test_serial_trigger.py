@@ -142,6 +142,7 @@ def test_garbage_fault_counted_and_pulses_recovered(world_name: str, transport: 
         trig.close()
 
 
+@pytest.mark.slow
 def test_unrecoverable_pulses_stay_visible(world_name: str, transport: str) -> None:
     trig, box, _ = _open(world_name, "garbage_every=3&seed=2", transport)
     try:

@@ -14,44 +14,10 @@ import pytest
 from drivers.base import Capability, RgbCamera
 from drivers.registry import DeviceSpec
 from drivers.testing.camera import FreeRunCameraContract
+from drivers.testing.fake_capture import FakeCapture
 from drivers.v4l2_camera import V4l2Camera, open_v4l2_camera, parse_v4l2_spec
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.settings import CameraSettings
-
-
-class FakeCapture:
-    """cv2.VideoCapture stand-in: BGR frames with a counter in pixel (0, 0); `unplug()` ends them."""
-
-    def __init__(self, width: int = 64, height: int = 48) -> None:
-        self.props: dict[int, float] = {cv2.CAP_PROP_FRAME_WIDTH: width, cv2.CAP_PROP_FRAME_HEIGHT: height}
-        self.n = 0
-        self.plugged = True
-        self.released = False
-
-    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
-        return True
-
-    def set(self, prop: int, value: float) -> bool:
-        self.props[prop] = value
-        return True
-
-    def get(self, prop: int) -> float:
-        return self.props.get(prop, 0.0)
-
-    def read(self) -> tuple[bool, np.ndarray | None]:
-        time.sleep(0.005)
-        if not self.plugged:
-            return False, None
-        img = np.zeros(
-            (int(self.get(cv2.CAP_PROP_FRAME_HEIGHT)), int(self.get(cv2.CAP_PROP_FRAME_WIDTH)), 3), np.uint8
-        )
-        img[..., 0] = 255  # blue in BGR
-        img[0, 0, 1] = self.n % 256
-        self.n += 1
-        return True, img
-
-    def release(self) -> None:
-        self.released = True
 
 
 class TestV4l2StandIn(FreeRunCameraContract):
@@ -121,6 +87,7 @@ def test_free_running_frames_with_host_time_and_software_sync() -> None:
     assert cap.released
 
 
+@pytest.mark.slow
 def test_mono_and_unplug_is_reported() -> None:
     cap = FakeCapture()
     cam = V4l2Camera(DeviceSpec.parse("v4l2:///dev/video9"), capture=cap)
@@ -169,6 +136,7 @@ def test_real_v4l2_node_free_runs() -> None:
         cam.close()
 
 
+@pytest.mark.slow
 def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path: Path) -> None:
     """A V4L2 camera in a rig: frames land in rig time through the host clock, each goes to
     the nearest pulse, and the take says its sync is software-only."""
@@ -212,6 +180,7 @@ def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path:
         assert any("free-running" in w for w in res.report.warnings)
 
 
+@pytest.mark.slow
 def test_camera_unplugged_mid_take_is_reported_and_the_take_goes_on(tmp_path: Path) -> None:
     import threading
     import uuid

@@ -13,8 +13,8 @@ from drivers.testing.camera import FreeRunCameraContract, HardwareTriggerCameraC
 from drivers.testing.event_sensor import EventSensorContract
 from firmware_sim.event_sensor import open_sim_event_sensor
 from firmware_sim.rgb_camera import open_sim_camera
+from firmware_sim.testing.wire import fire_pulses
 from firmware_sim.world import get_world, reset_world
-from tests.firmware_sim.test_sim_rgb_camera import fire_pulses
 
 
 @pytest.fixture

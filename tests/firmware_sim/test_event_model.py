@@ -17,6 +17,7 @@ def const(value: float, width: int = 1, height: int = 1) -> np.ndarray:
     return np.full((height, width), value, np.float32)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("c", [0.3, 0.17])
 @pytest.mark.parametrize("k", [1, 2, 3, 5, 8])
 def test_ramp_of_k_thresholds_gives_k_events_at_the_right_times(k: int, c: float) -> None:
@@ -44,6 +45,7 @@ def test_ramp_over_several_steps_gives_the_same_times() -> None:
     assert np.abs(ev_one.t - np.arange(1, k + 1) * 10_000).max() <= 1
 
 
+@pytest.mark.slow
 def test_step_up_then_down_gives_on_then_off() -> None:
     sim = EventSimulator(8, 4)
     sim.step(np.full((4, 8), 40, np.uint8), 0)
@@ -313,6 +315,7 @@ NOISY = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [np.float32, np.uint8, np.uint16])
 @pytest.mark.parametrize("cfg", NOISY, ids=["clean", "dense", "noisy"])
 def test_parallel_serial_and_reference_give_the_same_events(

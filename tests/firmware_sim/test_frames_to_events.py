@@ -140,6 +140,7 @@ def test_resize_and_bad_frames() -> None:
     assert to_gray(np.zeros((H, W, 4), np.uint8), 0, (20, 10)).shape == (10, 20)
 
 
+@pytest.mark.slow
 def test_streaming_uses_constant_memory() -> None:
     tex = texture(3, margin=600)
 
@@ -210,6 +211,7 @@ def test_inputs_arrays_folder_video_take(tmp_path: Path) -> None:
         open_source(folder)
 
 
+@pytest.mark.slow
 def test_simulate_to_take_roundtrip(tmp_path: Path) -> None:
     frames = [bar_frame(10 + 8 * i) for i in range(6)]
     cfg = PixelModelConfig(sigma=0.02, seed=3)

@@ -17,6 +17,8 @@ from rigd.core.errors import ConfigError
 from rigd.core.timebase import ClockMap
 from rigd.take import Take
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -15,6 +15,7 @@ def scene() -> Scene:
     return Scene(seed=3)
 
 
+@pytest.mark.slow
 def test_same_seed_same_images_other_seed_differs(scene: Scene) -> None:
     a = scene.render(scene.view("cam0", 320, 180), 1.25e6)
     b = Scene(seed=3).render("cam0", 1.25e6)
@@ -133,6 +134,7 @@ def test_lin_log_is_log_above_knee_linear_below_and_continuous() -> None:
     np.testing.assert_allclose(interp, lin_log(xs[None])[0], atol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make", [Scene, BoardScene], ids=["sprites", "board"])
 @pytest.mark.parametrize("size", [(320, 180), (321, 181)], ids=["even", "odd"])
 def test_bayer_render_is_exactly_the_mosaic_of_the_rgb_render(

@@ -14,11 +14,11 @@ from drivers.registry import DeviceSpec
 from firmware_sim.event_kernels import EventBuffer, generate_events, generate_events_kernel
 from firmware_sim.event_sensor import SimEventSensor, open_sim_event_sensor
 from firmware_sim.scene import Scene, lin_log
+from firmware_sim.testing.wire import fire_pulses
 from firmware_sim.world import DeviceClock, SimWorld, get_world, reset_world
 from rigd.core.errors import ConfigError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.settings import EventSensorSettings
-from tests.firmware_sim.test_sim_rgb_camera import fire_pulses
 
 C = 0.3
 
@@ -33,6 +33,7 @@ def run_kernel(l0: float, l1: float, ref: float, cap: int = 64) -> tuple[EventAr
     return EventArray(buf.x[:n], buf.y[:n], buf.p[:n], buf.t[:n]), float(r[0, 0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [0, 1, 2, 5])
 @pytest.mark.parametrize("sign", [1, -1])
 def test_kernel_ramp_of_k_thresholds_gives_k_interpolated_events(k: int, sign: int) -> None:
@@ -248,6 +249,7 @@ def _events_for(world: str, extra: str, seconds: float = 0.4) -> EventArray:
         return EventArray.concatenate([p.events for p in run_virtual(sensor, get_world(world), seconds)])
 
 
+@pytest.mark.slow
 def test_full_pixel_model_runs_in_the_rig_sensor(world_name: str) -> None:
     """`pixel_model=full` puts the seeded pixel model of firmware_sim.event_model behind the
     rig's sensor: with noise off it sees the same motion as the ideal kernel, and its noise

@@ -26,13 +26,13 @@ from drivers.base import Trigger
 from drivers.registry import open_device
 from firmware_sim.box_devices import find_trigger_box
 from firmware_sim.clock import Hold, VirtualClock
+from firmware_sim.testing.wire import fire_pulses
 from firmware_sim.world import TRUTH_LOG_ENV, SimWorld, close_truth_journals, get_world, reset_world
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError, DeviceError, DeviceTimeoutError
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
-from tests.firmware_sim.test_sim_rgb_camera import fire_pulses
 
 SMALL = "width=160&height=120"
 
@@ -91,6 +91,7 @@ def hold_at(world: SimWorld, true_us: float) -> tuple[Hold, threading.Event]:
     return hold, reached
 
 
+@pytest.mark.slow
 def test_camera_unplug_fails_reads_and_opens_then_replug_continues_on_the_same_clock(
     world_name: str,
 ) -> None:
@@ -172,6 +173,7 @@ def test_virtual_time_runs_past_an_unplug(world_name: str) -> None:
         cam.close()
 
 
+@pytest.mark.slow
 def test_counter_reset_and_bad_unplug_params(world_name: str) -> None:
     world = get_world(world_name)
     spec = f"sim://{world_name}/cam0?{SMALL}&unplug_at_s=0.05&unplug_for_s=0.1&counter_reset=1"
@@ -306,6 +308,7 @@ def run_trigger(trig: Trigger, rate_hz: float, seconds: float) -> PulseBatch:
     )
 
 
+@pytest.mark.slow
 def test_silent_after_hangs_the_link_but_not_the_trigger(world_name: str) -> None:
     world = get_world(world_name)
     trig = open_device("trigger", f"sim://{world_name}/trigger?silent_after=5&reply_timeout_s=0.3")
@@ -327,6 +330,7 @@ def test_silent_after_hangs_the_link_but_not_the_trigger(world_name: str) -> Non
     assert not pulse_thread_alive(world_name)
 
 
+@pytest.mark.slow
 def test_garbage_after_garbles_every_line_and_close_returns(world_name: str) -> None:
     world = get_world(world_name)
     trig = open_device("trigger", f"sim://{world_name}/trigger?garbage_after=5&reply_timeout_s=0.3")
@@ -354,6 +358,7 @@ def journal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
     close_truth_journals()
 
 
+@pytest.mark.slow
 def test_journal_lines_match_what_the_host_read(world_name: str, journal: Path) -> None:
     trig = open_device("trigger", f"sim://{world_name}/trigger")
     cam = open_device("rgb_camera", f"sim://{world_name}/cam0?{SMALL}")

@@ -14,6 +14,8 @@ from drivers.registry import DeviceSpec
 from firmware_sim.world import reset_world
 from rigd.core.settings import EventSensorSettings
 
+pytestmark = pytest.mark.slow
+
 
 def test_a_lagging_generator_skips_ahead_and_counts_it(monkeypatch: pytest.MonkeyPatch) -> None:
     slow_s = 0.1

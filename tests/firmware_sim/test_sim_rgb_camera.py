@@ -12,29 +12,12 @@ import pytest
 from drivers.base import Capability
 from drivers.registry import DeviceSpec
 from firmware_sim.rgb_camera import SimRgbCamera, open_sim_camera
+from firmware_sim.testing.wire import fire_pulses
 from firmware_sim.world import Edge, SimWorld, get_world, reset_world
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.frames import Frame
 from rigd.core.pixels import mosaic_rggb
 from rigd.core.settings import CameraSettings
-
-
-def fire_pulses(world: SimWorld, n: int, rate_hz: float = 100.0, width_us: float = 500.0) -> list[float]:
-    """Fire n pulses on the wire in real time (rising, then falling after width_us).
-
-    Returns the true times of the rising edges.
-    """
-    period = 1e6 / rate_hz
-    t_first = world.now_us() + 2000.0
-    times = []
-    for i in range(n):
-        t = t_first + i * period
-        world.sleep_until(t)
-        world.wire.fire(Edge(True, t, i))
-        world.sleep_until(t + width_us)
-        world.wire.fire(Edge(False, t + width_us, i))
-        times.append(t)
-    return times
 
 
 def fire_in_thread(world: SimWorld, n: int, rate_hz: float = 100.0) -> tuple[threading.Thread, list[float]]:

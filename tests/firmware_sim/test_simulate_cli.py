@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import typer
 from typer.testing import CliRunner
 
 from firmware_sim.cli import parse_noise, simulate_events
+from firmware_sim.testing.frames import make_folder
 from rigd.take import open_take, validate_take
 
 app = typer.Typer()
@@ -22,17 +22,7 @@ def _root() -> None:
     """Keeps simulate-events a named sub-command, as in rigd/app/cli.py."""
 
 
-def make_folder(tmp_path: Path, n: int = 5) -> Path:
-    rng = np.random.default_rng(0)
-    tex = cv2.GaussianBlur(rng.uniform(0, 255, (40, 200)).astype(np.float32), (0, 0), 2.0)
-    tex = np.clip((tex - tex.mean()) * 5 + 128, 0, 255).astype(np.uint8)
-    folder = tmp_path / "frames"
-    folder.mkdir()
-    for i in range(n):
-        cv2.imwrite(str(folder / f"f{i:03d}.png"), np.ascontiguousarray(tex[:, 3 * i : 3 * i + 60]))
-    return folder
-
-
+@pytest.mark.slow
 def test_simulate_folder_to_take(tmp_path: Path) -> None:
     folder = make_folder(tmp_path)
     out = tmp_path / "ev.h5"
@@ -71,6 +61,7 @@ def test_simulate_folder_to_take(tmp_path: Path) -> None:
     assert validate_take(out) == []
 
 
+@pytest.mark.slow
 def test_fixed_substeps(tmp_path: Path) -> None:
     folder = make_folder(tmp_path)
     out = tmp_path / "ev.h5"
@@ -117,6 +108,7 @@ def test_parse_noise() -> None:
     assert parse_noise(None) == {}
 
 
+@pytest.mark.slow
 def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: Path) -> None:
     from rigd.app.cli import app as rigd_app
 
@@ -129,6 +121,7 @@ def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: P
         assert len(take.events("ev0")) > 0
 
 
+@pytest.mark.slow
 def test_simulate_to_evt3_raw_decodes_to_the_take_events(tmp_path: Path) -> None:
     from drivers.evt import read_raw
 

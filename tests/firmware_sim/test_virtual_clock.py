@@ -118,6 +118,7 @@ def _capture(tmp: Path, world: str) -> Take:
     return Take(result.path)
 
 
+@pytest.mark.slow
 def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -> None:
     """The whole pipeline (pty trigger, EVT decoding, window, sync, finalize) on virtual time:
     frames (pixels and times) and events are the same twice."""
@@ -140,6 +141,7 @@ def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -
     reset_world("det-b")
 
 
+@pytest.mark.slow
 def test_a_slow_virtual_world_is_not_cut_by_wall_clock_deadlines(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

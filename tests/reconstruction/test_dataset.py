@@ -44,6 +44,7 @@ class FakeTake:
         return FakeSeries()
 
 
+@pytest.mark.slow
 def test_window_sampler() -> None:
     samples = list(WindowSampler(FakeTake(), "ev0", "cam0", window_us=100_000, bins=3, n_samples=4))
     assert len(samples) == 4

@@ -52,6 +52,7 @@ def first_half_share(starts: np.ndarray) -> float:
     return float(np.mean(starts + WINDOW // 2 < MID))
 
 
+@pytest.mark.slow
 def test_event_weighted_windows_follow_activity(take_path: Path) -> None:
     with open_take(take_path) as take:
         ev = WindowSampler(take, "ev0", window_us=WINDOW, sampling="events", seed=3)
@@ -98,6 +99,7 @@ def test_event_sampling_needs_a_histogram() -> None:
         WindowSampler(NoHistogram(), "ev0", sampling="busy")  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_torch_dataset_uses_the_sampling(take_path: Path) -> None:
     pytest.importorskip("torch")
     with open_take(take_path) as take:

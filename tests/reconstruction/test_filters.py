@@ -60,6 +60,7 @@ def event_streams(draw: st.DrawFn) -> tuple[EventArray, int, int]:
     metric=st.sampled_from(["chebyshev", "euclidean"]),
     update_on_drop=st.booleans(),
 )
+@pytest.mark.slow
 def test_matches_brute_force(
     data: tuple[EventArray, int, int],
     radius: int,
@@ -83,6 +84,7 @@ def test_matches_brute_force(
     np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(data=event_streams(), cuts=st.lists(st.integers(0, 120), max_size=5))
 def test_chunked_equals_whole(data: tuple[EventArray, int, int], cuts: list[int]) -> None:
@@ -132,6 +134,7 @@ def test_extremes() -> None:
         BackgroundActivityFilter(8, 8).mask(EventArray.from_arrays([8], [0], [1], [5]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("radius", "metric"), [(4, "chebyshev"), (5, "euclidean"), (40, "euclidean")])
 def test_large_radius_matches_brute_force(radius: int, metric: str) -> None:
     # radius 40: rows of 81 px take two SIMD compares (64 + 24 lanes) in the kernel

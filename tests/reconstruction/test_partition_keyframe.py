@@ -27,6 +27,7 @@ def check(maps: np.ndarray) -> None:
     assert canonical_keyframe(maps) == ref
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(hnp.arrays(np.float32, shapes(), elements=st.integers(-3, 3).map(float)))
 def test_small_integer_maps_many_ties(maps: np.ndarray) -> None:
@@ -41,6 +42,7 @@ def test_small_integer_maps_many_ties(maps: np.ndarray) -> None:
         elements=st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, width=32),
     )
 )
+@pytest.mark.slow
 def test_float_maps(maps: np.ndarray) -> None:
     check(maps)
 
@@ -53,10 +55,12 @@ def test_float_maps(maps: np.ndarray) -> None:
         elements=st.sampled_from([0.0, 1e-30, -1e-30, 0.1, 1e30, -1e30, 3e38, -3e38, 16777217.0]),
     )
 )
+@pytest.mark.slow
 def test_extreme_magnitudes(maps: np.ndarray) -> None:
     check(maps)
 
 
+@pytest.mark.slow
 @settings(max_examples=100, deadline=None)
 @given(st.data(), shapes(20), st.integers(2, 4))
 def test_duplicated_maps(data: st.DataObject, shape: tuple[int, int, int], copies: int) -> None:
@@ -123,6 +127,7 @@ def test_non_finite_rejected() -> None:
         canonical_keyframe(maps, small_n=0)
 
 
+@pytest.mark.slow
 def test_user_scale_runs() -> None:
     """100k maps (a long segment's candidate times) at a small map size: just runs."""
     rng = np.random.default_rng(0)
@@ -131,6 +136,7 @@ def test_user_scale_runs() -> None:
     assert 0 <= k < 100_000
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(hnp.arrays(np.int32, shapes(), elements=st.integers(-50, 50)))
 def test_integer_maps_in_place_equal_the_reference(maps: np.ndarray) -> None:

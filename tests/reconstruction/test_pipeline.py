@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from firmware_sim.testing.sprites import SpriteScene, linear_path, simulate, texture, translate
 from reconstruction import losses
 from reconstruction.e2i import METHODS as E2I_METHODS
 from reconstruction.e2i import log_intensity, reconstruct
@@ -17,7 +18,8 @@ from reconstruction.interpolate import interpolate
 from reconstruction.metrics import affine_align, motion_roi, psnr, psnr_roi, ssim
 from reconstruction.partition import PartitionConfig, export_segments, load_segments, partition
 from rigd.core.events import EventArray
-from tests.reconstruction.synth import SpriteScene, linear_path, simulate, texture, translate
+
+pytestmark = pytest.mark.slow
 
 W, H = 96, 72
 C = 0.15

@@ -77,6 +77,7 @@ def test_small_exact() -> None:
     same_time=st.booleans(),
     seed=st.integers(0, 2**16),
 )
+@pytest.mark.slow
 def test_extremes_finite_and_conserved(n: int, burst: int, offset: int, same_time: bool, seed: int) -> None:
     rng = np.random.default_rng(seed)
     t = np.full(n, offset + 7) if same_time else offset + np.sort(rng.integers(0, 1000, n))
@@ -134,6 +135,7 @@ def _voxel_parity(ev: EventArray, bins: int, t0: int | None, t1: int | None, nor
     normalize=st.booleans(),
     seed=st.integers(0, 2**16),
 )
+@pytest.mark.slow
 def test_numba_voxel_grid_matches_the_bincount_reference(
     n: int, bins: int, offset: int, span: int, windowed: bool, normalize: bool, seed: int
 ) -> None:
@@ -206,6 +208,7 @@ def test_numba_voxel_grid_edge_cases() -> None:
     normalize=st.booleans(),
     seed=st.integers(0, 2**16),
 )
+@pytest.mark.slow
 def test_voxel_gridder_equals_voxel_grid_window_after_window(
     sizes: list[int], bins: int, normalize: bool, seed: int
 ) -> None:

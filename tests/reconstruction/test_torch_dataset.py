@@ -85,6 +85,7 @@ def loader_batches(ds: Any, workers: int, batch_size: int = 4) -> list[dict[str,
         ("time_surface", "time_surface", {"tau_us": 5000.0}),
     ],
 )
+@pytest.mark.slow
 def test_device_and_worker_representations_agree(
     representation: str, key: str, options: dict[str, Any]
 ) -> None:
@@ -150,6 +151,7 @@ def test_a_dataset_without_open_take_refuses_to_be_pickled_for_a_spawned_worker(
     assert ds[1]["voxels"].shape == (5, H, W)
 
 
+@pytest.mark.slow
 def test_importing_the_packages_does_not_import_torch() -> None:
     code = (
         "import sys, rigd, rigd.take, reconstruction, reconstruction.dataset, "
@@ -159,6 +161,7 @@ def test_importing_the_packages_does_not_import_torch() -> None:
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.slow
 def test_without_torch_the_dataset_says_how_to_install_it() -> None:
     code = (
         "import sys; sys.modules['torch'] = None\n"

@@ -93,6 +93,7 @@ def windows(draw: st.DrawFn) -> tuple[EventArray, int, int]:
     return ev, t0, t0 + span
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(batch=st.lists(windows(), min_size=1, max_size=4), bins=st.sampled_from([1, 2, 5]))
 def test_batches_match_numpy_window_by_window(batch: list[tuple[EventArray, int, int]], bins: int) -> None:

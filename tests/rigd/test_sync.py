@@ -83,6 +83,7 @@ def test_pulses_missing_from_box_log_are_reported_not_invented() -> None:
     assert res.report.devices["cam0"].unmatched_observations == 2
 
 
+@pytest.mark.slow
 def test_hour_long_take_keeps_matching_through_drift() -> None:
     n = int(3600 * RATE)
     pulses, obs, true_idx, truth = _scenario(n, drift_ppm=-100.0, seed=3, drop_pulses=(50_000,))

@@ -18,6 +18,8 @@ from rigd.take.calibration import GROUND_TRUTH_SOURCE, store_calibration
 from rigd.take.reader import Take
 from rigd.take.validate import validate_take
 
+pytestmark = pytest.mark.slow
+
 BOARD_IMAGES = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "chessboard-stereo"
 
 

@@ -12,10 +12,10 @@ import pytest
 from typer.testing import CliRunner
 
 from rigd.app.cli import app
+from rigd.app.testing.crash import append_step, open_writer
 from rigd.core.errors import TakeFormatError
 from rigd.take import Take, find_unfinished, recover_take
 from rigd.take.recover import needs_recovery
-from tests.rigd.test_take_recover import append_step, open_writer
 
 #: Byte offset of the end-of-file address in a version 0 superblock (8-byte addresses).
 _SB0_EOF = 40
@@ -39,6 +39,7 @@ def _overflowed(tmp_path: Path, eoa: int) -> Path:
     return p
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("eoa", [2000, 8000])
 def test_addr_overflow_is_one_line(tmp_path: Path, eoa: int) -> None:
     p = _overflowed(tmp_path, eoa)

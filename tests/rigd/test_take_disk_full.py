@@ -32,6 +32,8 @@ from rigd.core.frames import Frame
 from rigd.core.settings import WriterConfig
 from rigd.take.writer import TakeWriter
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:

@@ -12,10 +12,12 @@ import pytest
 from typer.testing import CliRunner
 
 from rigd.app.cli import app
+from rigd.app.testing.crash import OFF_CAM, OFF_EV, PERIOD, RIG0, open_writer, step
 from rigd.core.schema import SyncReport
 from rigd.core.timebase import ClockMap
 from rigd.take import Take, TakeWriter, find_unfinished, recover_take, validate_take
-from tests.rigd.test_take_recover import OFF_CAM, OFF_EV, PERIOD, RIG0, open_writer, step
+
+pytestmark = pytest.mark.slow
 
 N = 20
 MAPS = {"cam0": ClockMap(OFF_CAM, 0, 1.0, 0.0), "ev0": ClockMap(OFF_EV, 0, 1.0, 0.0)}

@@ -14,6 +14,8 @@ import h5py
 import numpy as np
 import pytest
 
+from drivers.testing.evt_packets import packets_from_bytes, packets_of
+from drivers.testing.evt_streams import assert_same, needs_data, real_body
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import TakeError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
@@ -21,8 +23,6 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take
-from tests.drivers.evt.streams import assert_same, needs_data, real_body
-from tests.rigd.evt_packets import packets_from_bytes, packets_of
 
 CMAP = ClockMap(device_ref_us=400_000, rig_ref_us=5_000_000, rate=0.999905, frac_us=-0.4)
 REPORT = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)

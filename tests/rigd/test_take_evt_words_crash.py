@@ -16,45 +16,28 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 
-from drivers.evt import StreamDecoder, encode
-from rigd.core.events import EventArray, EventPacket
-from rigd.core.settings import WriterConfig
-from rigd.take import Take, TakeWriter, recover_take, validate_take
-from tests.rigd.test_take_recover import (
+from drivers.evt import StreamDecoder
+from rigd.app.testing.crash import (
     EV_PER_STEP,
     OFF_EV,
     PERIOD,
     RIG0,
-    ROOT,
     H,
     W,
-    open_writer,
-    step,
+    step_bytes,
 )
+from rigd.core.events import EventArray
+from rigd.take import Take, recover_take, validate_take
 
-WORDS_CFG = WriterConfig(event_storage="evt_words", fsync=False)
 #: Steps (about 1.8 kB of words each, a 256 kB chunk per ~145) each flush of the relieved writer
 #: waits for: by its 4th flush the writer has stored chunks both compressed and uncompressed
 #: (the mode flips every 40 steps), whatever the machine's speed.
 _RELIEVED_STEPS_PER_FLUSH = 130
+pytestmark = pytest.mark.slow
 
-
-def open_words_writer(path: Path) -> TakeWriter:
-    return open_writer(path, config=WORDS_CFG, evt_format="evt3")
-
-
-def step_bytes(k: int) -> bytes:
-    s = step(k)
-    return encode("evt3", s.events, s.triggers)
-
-
-def append_words_step(w: TakeWriter, dec: StreamDecoder, k: int) -> None:
-    s = step(k)
-    w.append_pulses(s.pulse)
-    w.append_frame("cam0", s.frame)
-    got, chunk = dec.feed_chunk(step_bytes(k))
-    w.append_packet("ev0", EventPacket(got.events, got.triggers, s.packet_host_ns, chunk))
+ROOT = Path(__file__).parents[2]
 
 
 def expected_events(n: int) -> EventArray:
@@ -68,8 +51,7 @@ def _script(path: Path, relieve: bool = False) -> str:
         import time
         from pathlib import Path
         from drivers.evt import StreamDecoder
-        from tests.rigd.test_take_evt_words_crash import append_words_step, open_words_writer
-        from tests.rigd.test_take_recover import journal, W, H
+        from rigd.app.testing.crash import append_words_step, journal, open_words_writer, W, H
         w = open_words_writer(Path({str(path)!r}))
         dec = StreamDecoder("evt3", width=W, height=H)
         print("START", flush=True)

@@ -9,10 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigd.core.errors import TakeFormatError
-from rigd.take import Take, find_unfinished, recover_take, validate_take
-from rigd.take.recover import needs_recovery
-from tests.rigd.test_take_recover import (
+from rigd.app.testing.crash import (
     EV_PER_STEP,
     OFF_CAM,
     OFF_EV,
@@ -22,6 +19,9 @@ from tests.rigd.test_take_recover import (
     open_writer,
     step,
 )
+from rigd.core.errors import TakeFormatError
+from rigd.take import Take, find_unfinished, recover_take, validate_take
+from rigd.take.recover import needs_recovery
 
 
 def _failed(path: Path, n: int = 30, *, pulses: bool = True, events: bool = True) -> Path:

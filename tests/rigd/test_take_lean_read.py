@@ -30,7 +30,9 @@ class Lean:
             raise ModuleNotFoundError(f"No module named {name!r}", name=name)
 sys.meta_path.insert(0, Lean())
 """
-LEAN_READ = LEAN + """
+LEAN_READ = (
+    LEAN
+    + """
 import json
 from rigd.core.errors import MissingExtraError
 from rigd.take import open_take
@@ -49,13 +51,17 @@ with open_take(sys.argv[1]) as take:
 out["loaded"] = sorted(m for m in BLOCKED if m in sys.modules)
 print(json.dumps(out))
 """
+)
 
 
-LEAN_CLI = LEAN + """
+LEAN_CLI = (
+    LEAN
+    + """
 from rigd.app.cli import main
 sys.argv = ["rigd", "-v", "capture", "--duration", "1"]
 main()
 """
+)
 
 
 def test_the_rig_on_a_lean_install_names_the_extra_to_install(tmp_path: Path) -> None:

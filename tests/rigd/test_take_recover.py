@@ -15,7 +15,6 @@ import sys
 import textwrap
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -26,133 +25,33 @@ from typer.testing import CliRunner
 
 import rigd.take.finalize as finalize_mod
 from rigd.app.commands.recover import recover_command
-from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, TriggerConfig
-from rigd.core.devices import DeviceInfo, PulseBatch
+from rigd.app.testing.crash import (
+    CHUNK,
+    EV_PER_STEP,
+    MAPS,
+    N_STEPS,
+    OFF_EV,
+    WRITER_CFG,
+    Expected,
+    append_step,
+    check_recovered,
+    expected,
+    journal,
+    open_writer,
+    step,
+)
+from rigd.app.testing.crash import (
+    report as _report,
+)
+from rigd.app.testing.crash import (
+    unfinished as _unfinished,
+)
 from rigd.core.errors import TakeError, TakeFormatError
-from rigd.core.events import EventArray, TriggerEvents
-from rigd.core.frames import Frame
+from rigd.core.events import TriggerEvents
 from rigd.core.layout import Root
-from rigd.core.schema import LossRecord, SyncReport
-from rigd.core.settings import TriggerSettings, WriterConfig
-from rigd.core.timebase import ClockMap
 from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
 
 ROOT = Path(__file__).parents[2]
-W, H = 64, 48
-CAM_SHAPE = (6, 8)
-PERIOD = 33_333
-RIG0 = 5_000_000  # rig time of pulse 0
-OFF_EV = 1_234_567  # ev0 device time = rig time + OFF_EV
-OFF_CAM = 777_001  # cam0 device time = rig time + OFF_CAM
-HOST0 = 10**12  # host monotonic ns at rig time 0
-EV_PER_STEP = 300
-CHUNK = 1024
-WRITER_CFG = WriterConfig(event_chunk=CHUNK, event_compression="lz4")
-
-
-def rig_config_json() -> str:
-    return RigConfig(
-        name="crash-rig",
-        trigger=TriggerConfig(spec="sim://t/trigger", settings=TriggerSettings(rate_hz=1e6 / PERIOD)),
-        cameras=[CameraConfig(name="cam0", spec="sim://t/cam0")],
-        event_sensors=[EventSensorConfig(name="ev0", spec="sim://t/ev0")],
-        writer=WRITER_CFG,
-    ).model_dump_json()
-
-
-def open_writer(
-    path: Path,
-    flush_interval_s: float | None = 0.2,
-    *,
-    config: WriterConfig = WRITER_CFG,
-    evt_format: str | None = None,
-) -> TakeWriter:
-    """The test rig's writer; `evt_format`: its event sensor's packets carry EVT words."""
-    w = TakeWriter(
-        path,
-        rig_config_json=rig_config_json(),
-        take_id=path.stem,
-        config=config,
-        rigd_version="test",
-        flush_interval_s=flush_interval_s,
-    )
-    w.add_trigger(DeviceInfo(kind="trigger", spec="sim://t/trigger"))
-    w.add_camera("cam0", DeviceInfo(kind="rgb_camera", spec="sim://t/cam0"), CAM_SHAPE, np.uint8, "{}")
-    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), W, H, "{}", evt_format)
-    return w
-
-
-@dataclass(frozen=True)
-class Step:
-    """Everything the rig delivers for pulse k."""
-
-    pulse: PulseBatch
-    frame: Frame
-    events: EventArray
-    triggers: TriggerEvents
-    packet_host_ns: int
-
-
-def step(k: int) -> Step:
-    rig = RIG0 + k * PERIOD
-    host = HOST0 + rig * 1000 + 300_000  # 0.3 ms after the pulse
-    img = np.full(CAM_SHAPE, k % 251, np.uint8)
-    img[0, 0] = k // 251 % 256
-    rng = np.random.default_rng(k)
-    t = rig + OFF_EV + np.sort(rng.integers(0, PERIOD, EV_PER_STEP))
-    ev = EventArray.from_arrays(
-        rng.integers(0, W, EV_PER_STEP), rng.integers(0, H, EV_PER_STEP), rng.integers(0, 2, EV_PER_STEP), t
-    )
-    trig_t = np.array([rig + OFF_EV, rig + OFF_EV + 1000], np.int64)
-    return Step(
-        PulseBatch(np.array([k], np.int64), np.array([rig], np.int64), np.array([host], np.int64)),
-        Frame(img, rig + OFF_CAM, 5000, k, host + 2_000_000),
-        ev,
-        TriggerEvents(trig_t, np.array([1, 0], np.uint8), np.zeros(2, np.uint8)),
-        host + 1_000_000,
-    )
-
-
-def append_step(w: TakeWriter, k: int) -> None:
-    s = step(k)
-    w.append_pulses(s.pulse)
-    w.append_frame("cam0", s.frame)
-    w.append_events("ev0", s.events)
-    w.append_triggers("ev0", s.triggers, s.packet_host_ns)
-
-
-def journal(k: int) -> dict[str, object]:
-    return {
-        "losses": [LossRecord(device="ev0", what="events", count=k, reason="test: queue full").model_dump()],
-        "device_counters": {"ev0": {"delivered": k * EV_PER_STEP}},
-        "failed_devices": {},
-        "trigger_link": {"corrupt_lines": 1},
-        "warnings": [f"flushed after step {k}"],
-    }
-
-
-@dataclass
-class Expected:
-    """The first n steps, concatenated, in device time."""
-
-    pulse_t: np.ndarray
-    frame_t: np.ndarray
-    images: np.ndarray
-    ev: EventArray
-    trig_t: np.ndarray
-    trig_host: np.ndarray
-
-
-def expected(n: int) -> Expected:
-    steps = [step(k) for k in range(n)]
-    return Expected(
-        np.array([s.pulse.t_us[0] for s in steps], np.int64),
-        np.array([s.frame.t_exposure_start_us for s in steps], np.int64),
-        np.stack([s.frame.image for s in steps]) if steps else np.empty((0, *CAM_SHAPE), np.uint8),
-        EventArray.concatenate([s.events for s in steps]),
-        np.concatenate([s.triggers.t for s in steps]) if steps else np.empty(0, np.int64),
-        np.repeat([s.packet_host_ns for s in steps], 2).astype(np.int64),
-    )
 
 
 def _kill_script(path: Path, kill_at_append: int | None = None) -> str:
@@ -163,7 +62,7 @@ def _kill_script(path: Path, kill_at_append: int | None = None) -> str:
         import os, signal, sys, time
         from pathlib import Path
         import rigd.take.sinks as sinks
-        from tests.rigd.test_take_recover import append_step, journal, open_writer
+        from rigd.app.testing.crash import append_step, journal, open_writer
         KILL_AT = {kill_at_append!r}
         if KILL_AT is not None:
             calls = [0]
@@ -247,52 +146,7 @@ def _check_prefix(f: h5py.File, n: int, exp: Expected) -> None:
     np.testing.assert_array_equal(f["trigger/pulses/t_us"][:n], exp.pulse_t[:n])
 
 
-def _check_recovered(path: Path, n_flushed: int) -> None:
-    """A sealed take: valid, readable, at least what was flushed, and exact rig times."""
-    assert validate_take(path) == []
-    with Take(path) as take:
-        assert take.status == "complete"
-        assert take.time_domain == "rig"
-        assert take.recovered_utc is not None
-        rep = take.recovery_report
-        assert rep is not None
-        assert rep["outcome"] == "sealed"
-        n_frames = len(take.frames("cam0"))
-        n_ev = take.event_count("ev0")
-        n_pulses = len(take.pulses())
-        assert n_frames >= n_flushed
-        assert n_pulses >= n_flushed
-        assert n_ev >= n_flushed * EV_PER_STEP
-        exp = expected(max(n_frames, n_pulses, -(-n_ev // EV_PER_STEP)))
-        ev = take.events("ev0")
-        np.testing.assert_array_equal(ev.t, exp.ev.t[:n_ev] - OFF_EV)
-        np.testing.assert_array_equal(ev.x, exp.ev.x[:n_ev])
-        np.testing.assert_array_equal(ev.p, exp.ev.p[:n_ev])
-        fs = take.frames("cam0")
-        np.testing.assert_array_equal(fs.timestamps_us, exp.frame_t[:n_frames] - OFF_CAM)
-        assert [fs[i].pulse_index for i in (0, n_frames - 1)] == [0, n_frames - 1]
-        tr = take.triggers("ev0")
-        np.testing.assert_array_equal(tr.t, exp.trig_t[: len(tr)] - OFF_EV)
-        np.testing.assert_array_equal(take.pulses().t_us, exp.pulse_t[:n_pulses])
-        # Windowed reads work like on any finalized take.
-        a = RIG0 + 3 * PERIOD
-        win = take.events("ev0", a, a + PERIOD)
-        want = exp.ev.t[:n_ev] - OFF_EV
-        np.testing.assert_array_equal(win.t, want[(want >= a) & (want < a + PERIOD)])
-        report = take.sync_report
-        assert report is not None
-        # The journal of the last flush made it into the report (it may be one flush newer).
-        jl = [r for r in report.losses if r.reason == "test: queue full"]
-        assert len(jl) == 1
-        assert jl[0].count >= n_flushed
-        assert report.device_counters["ev0"]["delivered"] >= n_flushed * EV_PER_STEP
-        assert report.trigger_link == {"corrupt_lines": 1}
-        assert any("ended by a crash" in r.reason for r in report.losses)
-        assert any("ended by a crash" in w for w in report.warnings)
-        assert report.devices["ev0"].residual_max_us < 1.0
-        assert report.devices["cam0"].residual_max_us < 1.0
-
-
+@pytest.mark.slow
 def test_sigkill_at_random_moments_then_recover(tmp_path: Path) -> None:
     """8 writers SIGKILLed at seeded random moments, 3 more killed between two column appends:
     flushed data intact, every take seals."""
@@ -323,30 +177,11 @@ def test_sigkill_at_random_moments_then_recover(tmp_path: Path) -> None:
         assert rr.sealed
         assert rr.flush_interval_s == pytest.approx(0.2)
         assert rr.frames["cam0"] >= n_flushed
-        _check_recovered(path, n_flushed)
+        check_recovered(path, n_flushed)
         assert recover_take(path).outcome == "not_needed"
 
 
 # -- finalize interrupted ------------------------------------------------------------------
-N_STEPS = 120
-MAPS = {"cam0": ClockMap(OFF_CAM, 0), "ev0": ClockMap(OFF_EV, 0)}
-
-
-def _report(n: int) -> SyncReport:
-    return SyncReport(
-        rate_hz=1e6 / PERIOD, n_pulses=n, t_first_pulse_us=RIG0, t_last_pulse_us=RIG0 + (n - 1) * PERIOD
-    )
-
-
-def _unfinished(path: Path, n: int = N_STEPS) -> Path:
-    w = open_writer(path)
-    for k in range(n):
-        append_step(w, k)
-    w.flush(journal=journal(n))
-    w.close()
-    return path
-
-
 def _finalized_arrays(path: Path) -> dict[str, np.ndarray]:
     with h5py.File(path, "r") as f:
         out = {
@@ -378,6 +213,7 @@ def small_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(finalize_mod, "_FINALIZE_BLOCK", 2 * CHUNK)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage", ["scratch_written", "scratch_logged", "t_written"])
 @pytest.mark.usefixtures("small_blocks")
 def test_crash_mid_finalize_resumes_exactly(
@@ -421,6 +257,7 @@ def test_crash_mid_finalize_resumes_exactly(
     assert validate_take(crash) == []
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("small_blocks")
 def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
     """A real kill between writing a block and confirming it; recover_take finishes exactly."""
@@ -437,7 +274,7 @@ def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
         from pathlib import Path
         import rigd.take.finalize as fm
         import rigd.take.writer as wm
-        from tests.rigd.test_take_recover import MAPS, N_STEPS, WRITER_CFG, CHUNK, _report
+        from rigd.app.testing.crash import MAPS, N_STEPS, WRITER_CFG, CHUNK, report as _report
         fm._FINALIZE_BLOCK = 2 * CHUNK
         seen = []
         def kill(stage, sensor, start):
@@ -550,7 +387,7 @@ def live_writer(tmp_path: Path) -> Iterator[Path]:
         f"""
         import threading
         from pathlib import Path
-        from tests.rigd.test_take_recover import append_step, open_writer
+        from rigd.app.testing.crash import append_step, open_writer
         w = open_writer(Path({str(path)!r}))
         for k in range(5):
             append_step(w, k)
@@ -569,6 +406,7 @@ def live_writer(tmp_path: Path) -> Iterator[Path]:
         proc.wait()
 
 
+@pytest.mark.slow
 def test_locked_take_is_in_use_and_untouched(live_writer: Path) -> None:
     before = live_writer.read_bytes()
     for dry in (True, False):

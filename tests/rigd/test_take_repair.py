@@ -17,22 +17,25 @@ import h5py
 import numpy as np
 import pytest
 
-from rigd.core.errors import TakeError, TakeFormatError
-from rigd.core.frames import Frame
-from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
-from tests.rigd.test_take_recover import (
+from rigd.app.testing.crash import (
     CAM_SHAPE,
     CHUNK,
     EV_PER_STEP,
     OFF_EV,
-    ROOT,
     WRITER_CFG,
-    _check_recovered,
-    _unfinished,
+    check_recovered,
     expected,
     open_writer,
     step,
 )
+from rigd.app.testing.crash import (
+    unfinished as _unfinished,
+)
+from rigd.core.errors import TakeError, TakeFormatError
+from rigd.core.frames import Frame
+from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
+
+ROOT = Path(__file__).parents[2]
 
 
 # -- repair ----------------------------------------------------------------------------------
@@ -57,6 +60,7 @@ def _damage(f: h5py.File) -> None:
     f["trigger/pulses/t_us"].resize((f["trigger/pulses/t_us"].shape[0] + 1,))
 
 
+@pytest.mark.slow
 def test_repair_trims_and_reports_everything(tmp_path: Path) -> None:
     path = _unfinished(tmp_path / "d.h5", n=40)
     with h5py.File(path, "r+") as f:
@@ -166,6 +170,7 @@ def test_truncated_failed_take_is_repaired_and_sealed(tmp_path: Path) -> None:
     assert find_unfinished(tmp_path) == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("then", ["abandon", "fail_and_close"])
 def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: str) -> None:
     """A write that fails for lack of space leaves the file shorter than its header says; HDF5
@@ -178,7 +183,7 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
         f"""
         import os, resource, signal, sys
         from pathlib import Path
-        from tests.rigd.test_take_recover import append_step, journal, open_writer
+        from rigd.app.testing.crash import append_step, journal, open_writer
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes past the limit fail with EFBIG
         w = open_writer(Path({str(path)!r}))
         resource.setrlimit(resource.RLIMIT_FSIZE, (2_000_000, 2_000_000))
@@ -238,7 +243,7 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
     assert rr.truncated_bytes == dry.truncated_bytes
     assert rr.trims == dry.trims
     assert any("short of what its header records" in w for w in rr.warnings)
-    _check_recovered(path, n_flushed)
+    check_recovered(path, n_flushed)
     with h5py.File(path, "r") as f:
         assert "truncated_eof" not in f.attrs
 

@@ -13,9 +13,9 @@ import h5py
 import numpy as np
 import pytest
 
+from firmware_sim.testing.takes import make_take
 from rigd.core.errors import TakeError
 from rigd.take import open_take, validate_take
-from tests.rigd.test_take_roundtrip import make_take
 
 
 @pytest.fixture(scope="module")
@@ -140,6 +140,7 @@ def test_never_finalized_take_opens_and_validates(tmp_path: Path) -> None:
         assert take.time_domain == "device"
 
 
+@pytest.mark.slow
 def test_crash_after_flush_leaves_a_readable_take(tmp_path: Path) -> None:
     """A process killed after flush (no close) leaves everything flushed readable."""
     path = tmp_path / "crash.h5"

@@ -96,6 +96,7 @@ def test_layout_uses_the_chunk(written: Written) -> None:
         np.testing.assert_array_equal(take.events("ev0").t, written.t)
 
 
+@pytest.mark.slow
 def test_windows_on_chunk_and_ms_edges(written: Written) -> None:
     cand = edges(written)
     rng = np.random.default_rng(1)
@@ -124,6 +125,7 @@ def test_iter_events_matches(written: Written) -> None:
         np.testing.assert_array_equal(got, t)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(data=st.data())
 def test_random_windows_match_brute_force(written: Written, data: st.DataObject) -> None:

@@ -23,8 +23,8 @@ from drivers.evt import (
     read_dat,
     write_dat,
 )
+from drivers.testing.evt_streams import DATA, FixedStream, assert_same, feed_chunks, real_body
 from rigd.core.events import EventArray, TriggerEvents
-from tests.drivers.evt.streams import DATA, FixedStream, assert_same, feed_chunks, real_body
 
 WORD = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}
 
@@ -142,6 +142,7 @@ def _pick(types: np.ndarray, want: int, rng: np.random.Generator, k: int) -> lis
     return sorted(rng.choice(idx, min(k, idx.size), replace=False).tolist())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("name", "fmt", "data"), STREAMS, ids=[s[0] for s in STREAMS])
 def test_zeroed_time_low(name: str, fmt: str, data: bytes) -> None:
     """EVT3: TIME_LOW's value zeroed (its events fall back in time) and the whole word zeroed (an
@@ -164,6 +165,7 @@ def test_zeroed_time_low(name: str, fmt: str, data: bytes) -> None:
     assert total > 0  # some of these corruptions did take time back
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("name", "fmt", "data"), STREAMS, ids=[s[0] for s in STREAMS])
 def test_corrupt_time_high(name: str, fmt: str, data: bytes) -> None:
     """A TIME_HIGH that falls a little (skipped), and one zeroed whole (EVT3: an ADDR_Y 0; EVT2:
@@ -183,6 +185,7 @@ def test_corrupt_time_high(name: str, fmt: str, data: bytes) -> None:
         _check(data, _set_word(data, fmt, i, lambda v: 0), fmt, i, w, h)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("name", "fmt", "data"), STREAMS, ids=[s[0] for s in STREAMS])
 def test_time_high_jump_is_refuted_by_the_next_one(name: str, fmt: str, data: bytes) -> None:
     """A TIME_HIGH zeroed (on the Gen4.1 file, above 2048: read alone, a roll-over) or set to a
@@ -200,6 +203,7 @@ def test_time_high_jump_is_refuted_by_the_next_one(name: str, fmt: str, data: by
     assert jumps > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("name", "fmt", "data"), STREAMS, ids=[s[0] for s in STREAMS])
 def test_random_words_and_flipped_bits(name: str, fmt: str, data: bytes) -> None:
     """A random word (any type but TIME_HIGH, whose random values OpenEB reads as a roll-over or
@@ -219,6 +223,7 @@ def test_random_words_and_flipped_bits(name: str, fmt: str, data: bytes) -> None
         _check(data, _set_word(data, fmt, i, lambda v, bit=bit: v ^ (1 << bit)), fmt, i, w, h)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("name", "fmt", "data"), STREAMS, ids=[s[0] for s in STREAMS])
 def test_truncation_at_many_offsets(name: str, fmt: str, data: bytes) -> None:
     w, h = _geometry(name)

@@ -14,8 +14,7 @@ from drivers.evt import Decoded, EvtDecodeError, StreamDecoder, evt3, evt3_fast,
 from drivers.evt.errors import STATS_SIZE
 from drivers.evt.kernels import decode_config
 from drivers.evt.raw import _Out
-from rigd.core.events import EventArray, TriggerEvents
-from tests.drivers.evt.streams import (
+from drivers.testing.evt_streams import (
     DIRTY,
     SETTINGS,
     assert_matches_pypi_evt3,
@@ -26,6 +25,7 @@ from tests.drivers.evt.streams import (
     needs_data,
     real_body,
 )
+from rigd.core.events import EventArray, TriggerEvents
 
 KERNELS = {"ref": evt3.decode_kernel, "fast": evt3_fast.decode_kernel}
 
@@ -75,6 +75,7 @@ def test_production_path_uses_fast_kernel() -> None:
 # ------------------------------------------------------------------ real files
 
 
+@pytest.mark.slow
 @needs_data
 @pytest.mark.parametrize("name", ["evt3_gen41_sample.raw", "evt3_pedestrians.raw"])
 def test_real_files(name: str) -> None:
@@ -111,6 +112,7 @@ def test_real_files_match_pypi_evt3(name: str) -> None:
     pieces=st.integers(1, 4),
     sizes=st.lists(st.integers(1, 300), min_size=1, max_size=6),
 )
+@pytest.mark.slow
 def test_encoder_streams(seed: int, n: int, n_trig: int, loops: int, pieces: int, sizes: list[int]) -> None:
     data = encoder_stream(np.random.default_rng(seed), n, n_trig, loops, pieces)
     ref = _decode(data, "ref", strict=True)
@@ -123,6 +125,7 @@ def test_encoder_streams(seed: int, n: int, n_trig: int, loops: int, pieces: int
 # ------------------------------------------------------------------ dirty input
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(**DIRTY)
 def test_dirty_input_falls_back(
@@ -191,6 +194,7 @@ def test_growing_outputs(seed: int) -> None:
         np.testing.assert_array_equal(x, y)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_vector_base_runs(seed: int) -> None:
     """Runs of (VECT_BASE_X, vector) pairs, decoded by the fast kernel's pair loop: bases near and

@@ -9,9 +9,7 @@ from hypothesis import strategies as st
 
 from drivers.evt import Scanned, StreamDecoder, decode_chunk
 from drivers.evt.raw import decode_bytes
-from rigd.core.errors import EventDataError
-from rigd.core.events import EventArray, EventPacket, EventSpan, EvtChunk, TriggerEvents
-from tests.drivers.evt.streams import (
+from drivers.testing.evt_streams import (
     DIRTY,
     SETTINGS,
     assert_same,
@@ -20,6 +18,8 @@ from tests.drivers.evt.streams import (
     needs_data,
     real_body,
 )
+from rigd.core.errors import EventDataError
+from rigd.core.events import EventArray, EventPacket, EventSpan, EvtChunk, TriggerEvents
 
 
 def _both(data: bytes, sizes: list[int], w: int = 1280, h: int = 720) -> list[tuple[Scanned, EvtChunk]]:
@@ -77,6 +77,7 @@ def test_encoder_streams_scan_as_they_decode(
     _both(encoder_stream(np.random.default_rng(seed), n, n_trig, loops, 2), sizes)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(**DIRTY)
 def test_broken_words_go_to_the_decoder(

@@ -16,10 +16,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.evt import Decoded, StreamDecoder
+from drivers.testing.evt_streams import FORMATS, SETTINGS, assert_same, needs_data, real_body
+from drivers.testing.evt_streams import joined as _joined
 from rigd.core.errors import EventDataError
 from rigd.core.events import EvtChunk
-from tests.drivers.evt.streams import SETTINGS, assert_same, needs_data, real_body
-from tests.drivers.evt.test_evt_discontinuity import FORMATS, _joined
 
 _REAL = "evt3_gen41_sample.raw"
 
@@ -61,6 +61,7 @@ def _check(fmt: str, data: bytes, cuts: list[int]) -> None:
     assert_same(again.triggers, whole.triggers)
 
 
+@pytest.mark.slow
 @needs_data
 @SETTINGS
 @given(cuts=st.lists(st.integers(0, 1 << 22), min_size=1, max_size=12))
@@ -84,6 +85,7 @@ def test_chunks_across_time_jumps_redecode_from_their_state(
     _check(fmt, data, [c % (len(data) + 1) for c in cuts])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_held_words_leave_the_state_at_their_start(fmt: str) -> None:
     """Cut just past a jump's TIME_HIGH: the decoder holds it back, and the next chunk, which

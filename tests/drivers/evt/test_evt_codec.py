@@ -26,8 +26,7 @@ from drivers.evt import (
     write_dat,
     write_raw,
 )
-from rigd.core.events import EventArray, TriggerEvents
-from tests.drivers.evt.streams import (
+from drivers.testing.evt_streams import (
     DATA,
     SETTINGS,
     assert_matches_pypi_evt3,
@@ -36,6 +35,7 @@ from tests.drivers.evt.streams import (
     needs_data,
     real_body,
 )
+from rigd.core.events import EventArray, TriggerEvents
 
 # file, events, first t, last t (../shared/data/README.md, OpenEB semantics)
 REAL = [
@@ -102,6 +102,7 @@ def test_evt3_matches_pypi_evt3(name: str) -> None:
     assert_matches_pypi_evt3(read_raw(DATA / name)[1].events, name)
 
 
+@pytest.mark.slow
 @needs_data
 def test_raw_write_read_round_trip(tmp_path: Path) -> None:
     _, dec = read_raw(DATA / "evt3_pedestrians.raw")
@@ -261,6 +262,7 @@ def test_unknown_type_evt2() -> None:
         decode_bytes(data, "evt2", strict=True)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(30)
 @pytest.mark.parametrize("fmt", ["evt3", "evt2", "evt21", "evt21_le"])
 def test_fuzz_random_and_mutated(fmt: str) -> None:

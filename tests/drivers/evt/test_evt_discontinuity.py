@@ -23,49 +23,27 @@ from drivers.evt import (
     RawReader,
     StreamDecoder,
     decode_bytes,
-    encode,
 )
 from drivers.evt.jumps import MAX_KEPT_JUMPS
 from drivers.file_event_sensor import FileEventSensor
+from drivers.testing.evt_streams import (
+    FORMATS,
+    SETTINGS,
+    SHIFT,
+    WORD,
+    FixedStream,
+    assert_same,
+    feed_chunks,
+    needs_data,
+    real_body,
+)
+from drivers.testing.evt_streams import joined as _joined
+from drivers.testing.evt_streams import segment as _segment
+from drivers.testing.evt_streams import time_highs as _time_highs
 from rigd.core.errors import EventDataError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import TriggerEvents
 from rigd.products.convert import convert
 from rigd.take.reader import Take
-from tests.drivers.evt.streams import SETTINGS, FixedStream, assert_same, feed_chunks, needs_data, real_body
-
-FORMATS = ("evt3", "evt2", "evt21", "evt21_le")
-WORD = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}
-SHIFT = {"evt3": 12, "evt2": 6, "evt21": 6, "evt21_le": 6}  # TIME_HIGH period: 1 << SHIFT us
-
-
-def _time_highs(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:
-    """Word indices and values of the TIME_HIGH words."""
-    if fmt == "evt3":
-        w = np.frombuffer(data, "<u2", len(data) // 2).astype(np.int64)
-        idx = np.flatnonzero(w >> 12 == 8)
-        return idx, w[idx] & 0xFFF
-    u32 = np.frombuffer(data, "<u4", len(data) // 4).astype(np.int64)
-    half = {"evt2": u32, "evt21": u32[0::2], "evt21_le": u32[1::2]}[fmt]
-    idx = np.flatnonzero(half >> 28 == 8)
-    return idx, half[idx] & 0xFFFFFFF
-
-
-def _segment(fmt: str, rng: np.random.Generator, t0: int, periods: int, per_period: int) -> bytes:
-    """An encoded stream starting at its own base t0 (no TIME_HIGH words before it, as a sensor
-    re-based there sends): events and a few trigger edges over `periods` TIME_HIGH periods."""
-    span = periods << SHIFT[fmt]
-    n = max(1, periods * per_period)
-    t = np.sort(np.r_[t0, rng.integers(t0, t0 + span, n - 1)]).astype(np.int64)
-    ev = EventArray.from_arrays(rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n), t)
-    ev = ev[np.lexsort((ev.x, ev.p, ev.y, ev.t))]
-    k = int(rng.integers(0, 4))
-    tt = np.sort(rng.integers(t0, t0 + span, k)).astype(np.int64)
-    tr = TriggerEvents(tt, rng.integers(0, 2, k).astype(np.uint8), np.zeros(k, np.uint8))
-    data = encode(fmt, ev, tr)
-    idx, val = _time_highs(data, fmt)
-    mask = 0xFFF if fmt == "evt3" else 0xFFFFFFF
-    first = int(idx[int(np.flatnonzero(val == (t0 >> SHIFT[fmt]) & mask)[0])])
-    return data[first * WORD[fmt] :]
 
 
 def _decode(data: bytes, fmt: str, sizes: list[int], **kw: int) -> tuple[Decoded, StreamDecoder]:
@@ -189,14 +167,6 @@ def test_single_corrupt_time_high_is_still_rejected(
         with pytest.raises(EvtDecodeError, match="non_monotonic_time_high") as exc:
             decode_bytes(bytes(buf), fmt, strict=True)
         assert exc.value.offset == i * ws
-
-
-def _joined(fmt: str, seed: int, jump_periods: int = 30) -> tuple[bytes, bytes, bytes]:
-    rng = np.random.default_rng(seed)
-    s = SHIFT[fmt]
-    a = _segment(fmt, rng, 1000 << s, 50, 4)
-    b = _segment(fmt, rng, (1050 - jump_periods) << s, 50, 4)
-    return a, b, a + b
 
 
 @pytest.mark.parametrize("fmt", FORMATS)

@@ -46,6 +46,7 @@ def _truth_rig(truth: GroundTruth, device: str, t_device: np.ndarray) -> np.ndar
     return box.offset_us + true_us * box.rate
 
 
+@pytest.mark.slow
 def test_take_has_every_frame_and_events(faulty_capture: tuple[CaptureResult, GroundTruth]) -> None:
     res, _ = faulty_capture
     with Take(res.path) as take:
@@ -102,6 +103,7 @@ def test_sync_accuracy_against_ground_truth(faulty_capture: tuple[CaptureResult,
             assert abs(d.drift_ppm - truth.clocks[sensor].drift_ppm + truth.clocks["trigger"].drift_ppm) < 5
 
 
+@pytest.mark.slow
 def test_cli_capture_and_inspect_json(tmp_path: Path) -> None:
     cfg = _rig(f"cli-{uuid.uuid4().hex[:8]}")
     cfg_path = tmp_path / "rig.json"
@@ -129,6 +131,7 @@ def test_bad_config_is_a_clear_error(tmp_path: Path) -> None:
     assert "trigger.settings.rate_hz" in r.output
 
 
+@pytest.mark.slow
 def test_master_slave_event_sensors_share_a_clock(tmp_path: Path) -> None:
     world = f"ms-{uuid.uuid4().hex[:8]}"
     cfg = _rig(world)
@@ -165,6 +168,7 @@ def test_slave_without_master_is_rejected() -> None:
         RigConfig.from_data(cfg)
 
 
+@pytest.mark.slow
 def test_capture_with_the_full_pixel_model(tmp_path: Path) -> None:
     """The rig's sim event sensors running the seeded pixel model (mismatch + shot noise)."""
     cfg = default_sim_rig(world=f"pm-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
@@ -181,6 +185,7 @@ def test_capture_with_the_full_pixel_model(tmp_path: Path) -> None:
         assert "pixel_model=full" in take.config["event_sensors"][0]["spec"]
 
 
+@pytest.mark.slow
 def test_a_sensor_that_sees_nothing_does_not_cost_the_take(tmp_path: Path) -> None:
     """ev1 sees no contrast (its threshold is far above any change in the scene): the take
     completes with everything the others recorded, and says ev1 recorded no events."""

@@ -15,8 +15,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
-from tests.rigd.test_take_roundtrip import make_take
+
+pytestmark = pytest.mark.slow
 
 Make = Callable[[Path, Path], Path]
 """(directory, a good take there) -> the hostile input."""

@@ -6,65 +6,19 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import h5py
-import numpy as np
 import pytest
 import typer
 from typer.testing import CliRunner
 
 from rigd.app.commands.recover import recover_command
 from rigd.app.config import ServiceConfig, default_sim_rig
+from rigd.app.testing.crash import BAD
+from rigd.app.testing.crash import unfinished as _unfinished
 from rigd.take.recover_dir import RecoveryProblem, move_aside, recover_dir, scan_dir
-from tests.rigd.test_take_recover import _unfinished
-
-
-def _zero(p: Path) -> None:
-    p.write_bytes(b"")
-
-
-def _random(p: Path) -> None:
-    p.write_bytes(np.random.default_rng(7).integers(0, 256, 4096, dtype=np.uint8).tobytes())
-
-
-def _text(p: Path) -> None:
-    p.write_text("this is not an HDF5 file\n" * 50)
-
-
-def _hdf5_signature_then_junk(p: Path) -> None:
-    p.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)) * 8)
-
-
-def _truncated_take(p: Path) -> None:
-    """A take cut to its first half: the header opens, its attributes do not read."""
-    full = p.with_suffix(".full")
-    with h5py.File(full, "w") as f:
-        f.attrs["schema"] = "rigd.take"
-        f.attrs["status"] = "recording"
-        f["x"] = np.arange(100_000)
-    data = full.read_bytes()
-    p.write_bytes(data[: len(data) // 2])
-    full.unlink()
-
-
-def _truncated_real_take(p: Path) -> None:
-    """A real unfinished take cut far below its last flush (not the zero-padded kind)."""
-    _unfinished(p, n=5)
-    data = p.read_bytes()
-    p.write_bytes(data[:2048])
-
-
-BAD: dict[str, Callable[[Path], None]] = {
-    "zero": _zero,
-    "random": _random,
-    "text": _text,
-    "signature": _hdf5_signature_then_junk,
-    "truncated": _truncated_take,
-    "truncated_take": _truncated_real_take,
-}
 
 
 def _dir_with(tmp_path: Path, kinds: list[str]) -> tuple[Path, list[Path], list[Path]]:
@@ -88,6 +42,7 @@ def _app() -> typer.Typer:
     return app
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(BAD))
 def test_recover_dir_seals_the_others_and_reports_each_bad_file(tmp_path: Path, kind: str) -> None:
     d, good, bad = _dir_with(tmp_path, [kind])
@@ -100,6 +55,7 @@ def test_recover_dir_seals_the_others_and_reports_each_bad_file(tmp_path: Path, 
     assert bad[0].exists()  # reported, not moved (the command leaves files where they are)
 
 
+@pytest.mark.slow
 def test_every_bad_file_reported_once_the_rest_sealed(tmp_path: Path) -> None:
     """All kinds at once. A file whose header still reads (a truncated take) is listed as
     unfinished by the scan and reported when its recovery fails; the others at the scan."""
@@ -115,6 +71,7 @@ def test_every_bad_file_reported_once_the_rest_sealed(tmp_path: Path) -> None:
     }
 
 
+@pytest.mark.slow
 def test_recover_command_dir_with_bad_files(tmp_path: Path) -> None:
     d, good, bad = _dir_with(tmp_path, sorted(BAD))
     res = CliRunner().invoke(_app(), [str(d)])
@@ -229,6 +186,7 @@ def test_recover_with_no_path_searches_the_configs_take_dir(
         assert any(str(p) in line and "sealed complete" in line for line in res.stdout.splitlines())
 
 
+@pytest.mark.slow
 def test_recover_says_each_problem_once(tmp_path: Path) -> None:
     """Through the real command line (its logging set up): a bad file is one report line,
     not a log line and then the same again."""

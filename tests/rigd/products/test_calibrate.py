@@ -13,6 +13,8 @@ import pytest
 
 from calibration.boards import parse_board
 from calibration.errors import BoardSpecError, CalibrationError, NoBoardFoundError
+from firmware_sim.testing.stereo import BOARD, T1, stereo_board_take
+from firmware_sim.testing.takes import make_take
 from rigd.core.errors import RigdError
 from rigd.core.progress import ProgressUpdate
 from rigd.products.calibrate import (
@@ -28,9 +30,7 @@ from rigd.products.calibrate import (
     run_rig,
 )
 from rigd.take.reader import open_take
-from tests.calibration.conftest import DATA, REAL_BOARD, real_files
-from tests.rigd.app.workflows.takes import BOARD, T1, stereo_board_take
-from tests.rigd.test_take_roundtrip import make_take
+from tests.calibration.real_data import DATA, REAL_BOARD, real_files
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +46,7 @@ def test_board_option_takes_a_spec_string_or_a_board_spec(tmp_path: Path) -> Non
         IntrinsicsOptions(images=[], board="chessboard:9x6", out=tmp_path / "x.yaml")
 
 
+@pytest.mark.slow
 def test_intrinsics_writes_result_report_and_take_entry(stereo_take: Path, tmp_path: Path) -> None:
     updates: list[ProgressUpdate] = []
     options = IntrinsicsOptions(
@@ -88,6 +89,7 @@ def test_glob_images_in_name_order(tmp_path: Path) -> None:
     assert glob_images(str(tmp_path / "none*.png")) == []
 
 
+@pytest.mark.slow
 def test_rig_from_image_sets(tmp_path: Path) -> None:
     real_files("left")
     sets = ImageSets(files={side: glob_images(f"{DATA}/{side}*.jpg") for side in ("left", "right")})
@@ -122,6 +124,7 @@ def test_rig_from_image_sets(tmp_path: Path) -> None:
     ]
 
 
+@pytest.mark.slow
 def test_rig_from_a_take_recovers_the_baseline_and_stores_it(stereo_take: Path, tmp_path: Path) -> None:
     options = RigOptions(
         board=BOARD,
@@ -143,6 +146,7 @@ def test_rig_from_a_take_recovers_the_baseline_and_stores_it(stereo_take: Path, 
     np.testing.assert_allclose(stored["cam1"]["t"], t)
 
 
+@pytest.mark.slow
 def test_rig_needs_two_calibrated_devices(tmp_path: Path) -> None:
     sets = ImageSets(files={"left": real_files("left")})
     with pytest.raises(CalibrationError, match="at least 2 cameras"):

@@ -9,11 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.e2calib import BOARD, capture_board_take, true_k
 from calibration.boards import parse_board
 from calibration.intrinsics import IntrinsicsResult
+from firmware_sim.testing.board import BOARD, true_k
 from firmware_sim.world import reset_world
+from rigd.app.testing.board import capture_board_take
 from rigd.products.calibrate import TakeSource, take_views
+
+pytestmark = pytest.mark.slow
 
 RES = (480, 270)
 

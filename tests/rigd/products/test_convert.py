@@ -19,6 +19,7 @@ DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["evt3_gen41_sample.raw", "evt2_gen3_sample.raw", "evt3_pedestrians.raw"])
 @pytest.mark.parametrize("fmt", ["evt3", "evt2", "evt21"])
 def test_raw_take_raw_round_trip(tmp_path: Path, name: str, fmt: str) -> None:
@@ -50,6 +51,7 @@ def test_dat_round_trip(tmp_path: Path) -> None:
     np.testing.assert_array_equal(again.x, ref.x)
 
 
+@pytest.mark.slow
 def test_cli_convert_then_inspect_shows_the_same_events(tmp_path: Path) -> None:
     runner = CliRunner()
     take_path = tmp_path / "ped.h5"
@@ -137,6 +139,7 @@ def _dir(tmp_path: Path) -> Path:
         (_dir, "is a directory"),
     ],
 )
+@pytest.mark.slow
 def test_unreadable_input_is_one_line_naming_the_file(
     tmp_path: Path, make: Callable[[Path], Path], problem: str
 ) -> None:

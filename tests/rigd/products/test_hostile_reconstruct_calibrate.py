@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.products.reconstruct import ReconstructOptions, run_reconstruct
-from tests.rigd.test_take_roundtrip import make_take
 
 
 def _good(d: Path, name: str = "good.h5") -> Path:
@@ -176,6 +176,7 @@ def _left() -> list[str]:
     ("spec", "shown"),
     [("8x6", "4 of 16 images show a 8x6 board"), ("9x7", "0 of 16 images show a 9x7 board"), ("10x6", "")],
 )
+@pytest.mark.slow
 def test_wrong_corner_count_names_the_size_that_detects(tmp_path: Path, spec: str, shown: str) -> None:
     out = tmp_path / "cam.yaml"
     argv = ["calibrate", "intrinsics", *_left(), "--board", f"chessboard:{spec}:0.025", "--out", str(out)]
@@ -190,6 +191,7 @@ def test_wrong_corner_count_names_the_size_that_detects(tmp_path: Path, spec: st
     assert not out.exists()
 
 
+@pytest.mark.slow
 @needs_stereo
 def test_allow_few_views_calibrates_from_the_views_found(tmp_path: Path) -> None:
     out = tmp_path / "cam.yaml"
@@ -200,6 +202,7 @@ def test_allow_few_views_calibrates_from_the_views_found(tmp_path: Path) -> None
     assert out.is_file()
 
 
+@pytest.mark.slow
 @needs_stereo
 def test_few_views_and_no_nearby_size_refuses_in_one_line(tmp_path: Path) -> None:
     blank = np.full((512, 640, 3), 128, np.uint8)

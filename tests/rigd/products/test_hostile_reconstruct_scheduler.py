@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.products import reconstruct
 from rigd.products.reconstruct import ReconstructOptions
-from tests.rigd.test_take_roundtrip import make_take
 
 runner = CliRunner()
 
@@ -75,6 +75,7 @@ def take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_take(tmp_path_factory.mktemp("sched") / "take.h5", n_events=5_000).path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", BAD)
 def test_bad_scheduler_is_refused_at_parse_time(take: Path, tmp_path: Path, value: str) -> None:
     before = _digest(take)
@@ -92,6 +93,7 @@ def test_accepted_forms(tmp_path: Path, value: str) -> None:
     assert ReconstructOptions(takes=[], out=tmp_path, scheduler=value).scheduler == value
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(st.text(max_size=40))
 def test_any_scheduler_text_is_accepted_or_named(value: str) -> None:
@@ -103,6 +105,7 @@ def test_any_scheduler_text_is_accepted_or_named(value: str) -> None:
         assert "threads, processes, sync" in err["msg"]
 
 
+@pytest.mark.slow
 def test_unreachable_scheduler_fails_after_the_connect_timeout(
     take: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

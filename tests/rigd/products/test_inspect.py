@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import MAPS, make_take
 from rigd.app.cli import app
+from rigd.app.testing.crash import append_step, open_writer, step
 from rigd.core.errors import TakeFormatError
 from rigd.products.inspect import event_image, summarize, write_thumbnails
 from rigd.take import Take, recover_take
-from tests.rigd.test_take_recover import append_step, open_writer, step
-from tests.rigd.test_take_roundtrip import MAPS, make_take
 
 
 @pytest.fixture(scope="module")
@@ -88,6 +88,7 @@ def _inspect(path: Path, *args: str) -> tuple[int, str]:
     return res.exit_code, res.output
 
 
+@pytest.mark.slow
 def test_inspect_exit_codes_by_status(take_path: Path, tmp_path: Path) -> None:
     assert _inspect(take_path)[0] == 0
     rec = make_take(tmp_path / "rec.h5", finalize=False).path
@@ -130,6 +131,7 @@ def test_inspect_exit_codes_by_status(take_path: Path, tmp_path: Path) -> None:
         "trigger/pulses/t_us",
     ],
 )
+@pytest.mark.slow
 def test_missing_dataset_is_named_in_one_line(take_path: Path, tmp_path: Path, hpath: str) -> None:
     p = tmp_path / "cut.h5"
     shutil.copy(take_path, p)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from reconstruction.filters import background_activity_filter
 from reconstruction.partition import (
     PartitionConfig,
@@ -38,7 +39,8 @@ from rigd.products.reconstruct import (
 from rigd.products.reconstruct_tasks import FilterKnobs
 from rigd.take import TakeWriter
 from rigd.take.reader import Take
-from tests.rigd.test_take_roundtrip import make_take
+
+pytestmark = pytest.mark.slow
 
 W, H = 96, 64
 PERIOD_US = 33_333

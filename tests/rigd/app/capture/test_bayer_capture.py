@@ -33,6 +33,7 @@ def bayer_take(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     reset_world(world)
 
 
+@pytest.mark.slow
 def test_take_stores_the_mosaics_with_what_they_are(bayer_take: Path) -> None:
     assert validate_take(bayer_take) == []
     with h5py.File(bayer_take, "r") as f:
@@ -74,6 +75,7 @@ def test_take_reads_back_as_rgb(bayer_take: Path) -> None:
     assert summary.cameras["cam0"].shape == [H, W]
 
 
+@pytest.mark.slow
 def test_inspect_shows_the_pixel_format(bayer_take: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     r = runner.invoke(app, ["inspect", str(bayer_take)], env={"COLUMNS": "200"})
@@ -85,6 +87,7 @@ def test_inspect_shows_the_pixel_format(bayer_take: Path, tmp_path: Path) -> Non
     assert sheet.stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_replay_delivers_the_recorded_mosaics(bayer_take: Path, tmp_path: Path) -> None:
     config, duration = replay_config(bayer_take, clock="virtual")
     try:

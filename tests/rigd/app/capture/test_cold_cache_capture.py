@@ -18,6 +18,8 @@ import pytest
 
 from rigd.app.commands.summaries import STRICT_EXIT
 
+pytestmark = pytest.mark.slow
+
 #: Compiling every kernel from nothing takes seconds on an idle machine and minutes on a
 #: loaded 2-core one (the suite's 300 s per test is raised for this one); the bound is only
 #: there so a hang fails instead of blocking the suite.

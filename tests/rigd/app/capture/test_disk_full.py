@@ -16,6 +16,8 @@ from rigd.core.errors import TakeError
 from rigd.take.reader import Take
 from rigd.take.recover import recover_take
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:

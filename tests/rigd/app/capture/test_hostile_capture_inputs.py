@@ -37,6 +37,7 @@ from firmware_sim.spec_params import (
     SpecParams,
     allowed_range,
 )
+from firmware_sim.testing.takes import make_take
 from firmware_sim.world import reset_world
 from rigd.app.capture.session import CaptureSession
 from rigd.app.cli import app
@@ -44,7 +45,6 @@ from rigd.app.config import RigConfig, default_sim_rig
 from rigd.core.errors import ConfigError
 from rigd.products.convert import convert
 from rigd.take import Take
-from tests.rigd.test_take_roundtrip import make_take
 
 
 def _small_rig(world: str, **writer: Any) -> RigConfig:
@@ -109,6 +109,7 @@ def _spec_variants() -> Iterator[tuple[str, str, str]]:
                 yield kind, name, value
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("kind", "param", "value"), list(_spec_variants()))
 def test_spec_parameter_is_refused_naming_device_parameter_and_range(
     kind: str, param: str, value: str
@@ -157,6 +158,7 @@ def test_every_sim_spec_parameter_has_a_model_field() -> None:
         ("width=100&width=200", ["camera cam0", "width", "more than once"]),
     ],
 )
+@pytest.mark.slow
 def test_capture_refuses_a_hostile_sim_spec_and_writes_nothing(
     tmp_path: Path, query: str, words: list[str]
 ) -> None:
@@ -225,6 +227,7 @@ def test_config_number_is_strict_and_bounded(tmp_path: Path, key: tuple[Any, ...
 
 
 # -- duration and take directory ------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("duration", ["nan", "inf", "-inf", "1e308", "0", "-1", "1e9", "604801"])
 @pytest.mark.parametrize("local", [False, True], ids=["any", "local"])
 def test_capture_refuses_a_bad_duration_and_creates_nothing(
@@ -269,6 +272,7 @@ def test_capture_refuses_a_bad_out_before_opening_devices(tmp_path: Path, make: 
 
 
 # -- replay ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_replay_of_a_converted_take_says_what_it_lacks(tmp_path: Path) -> None:
     make_take(tmp_path / "src.h5")
     convert(tmp_path / "src.h5", tmp_path / "ev0.raw", sensor="ev0")
@@ -314,6 +318,7 @@ def _jitter_rig(d: Path) -> list[str]:
     return ["--config", str(d / "rig.json"), "--duration", "60"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["jitter", "clock map"])
 def test_one_sigterm_ends_a_pathological_capture_within_the_bound(
     tmp_path: Path, recorded: Path, case: str
@@ -403,6 +408,7 @@ def _wait_pulses(session: CaptureSession, n: int) -> None:
         session.wait(0.05)
 
 
+@pytest.mark.slow
 def test_a_device_whose_stop_never_returns_does_not_hold_the_take(
     tmp_path: Path, stuck_backend: threading.Event
 ) -> None:
@@ -429,6 +435,7 @@ def test_a_device_whose_stop_never_returns_does_not_hold_the_take(
         )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["stop", "duration"])
 def test_a_clean_stop_records_no_loss_and_does_not_wait_out_the_bound(tmp_path: Path, how: str) -> None:
     world = f"clean-{uuid.uuid4().hex[:8]}"

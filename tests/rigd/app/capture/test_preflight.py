@@ -11,11 +11,11 @@ import h5py
 import pytest
 
 from drivers.registry import DeviceSpec, register_backend
+from drivers.testing.fake_capture import FakeCapture
 from drivers.v4l2_camera import V4l2Camera
 from rigd.app.capture import CaptureSession
 from rigd.app.config import CameraConfig, default_sim_rig
 from rigd.core.errors import ConfigError
-from tests.drivers.test_v4l2_camera import FakeCapture
 
 
 def test_cameras_without_a_trigger_input_in_hardware_mode_are_refused_in_one_line(tmp_path: Path) -> None:
@@ -48,6 +48,7 @@ def test_cameras_without_a_trigger_input_in_hardware_mode_are_refused_in_one_lin
     assert all(cap.released for cap in opened)  # and every opened device was closed
 
 
+@pytest.mark.slow
 def test_free_run_cameras_pass_and_are_recorded_as_software_synced(tmp_path: Path) -> None:
     register_backend(
         "rgb_camera",

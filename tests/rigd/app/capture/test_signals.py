@@ -43,6 +43,7 @@ def _wait_for_data(out_dir: Path, proc: subprocess.Popen[str], deadline_s: float
     pytest.fail("no take data within the deadline")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
 def test_signal_stops_the_take_cleanly_and_names_it(tmp_path: Path, sig: signal.Signals) -> None:
     out_dir = tmp_path / "takes"

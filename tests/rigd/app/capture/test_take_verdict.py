@@ -12,15 +12,15 @@ import h5py
 import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.app.commands.service import take_summary_line, verdict_text
 from rigd.app.commands.summaries import STRICT_EXIT
 from rigd.app.console.takes import TakeList
+from rigd.app.testing.daemon import RunningDaemon
 from rigd.core.schema import DeviceSync, LossRecord, SyncReport
 from rigd.products.inspect import summarize
 from rigd.take.verdict import TakeVerdict, take_verdict
-from tests.rigd.app.service.conftest import RunningDaemon, runtime_dir, start_daemon  # noqa: F401
-from tests.rigd.test_take_roundtrip import make_take
 
 FRAMES = {"cam0": 90}
 EVENTS = {"ev0": 1_000_000}
@@ -172,6 +172,7 @@ def clean_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_take(tmp_path_factory.mktemp("verdict") / "clean.h5").path
 
 
+@pytest.mark.slow
 def test_inspect_shows_the_verdict_first_and_strict_exits_on_a_degraded_take(
     clean_take: Path, tmp_path: Path
 ) -> None:
@@ -229,8 +230,9 @@ def test_the_daemon_status_lines_carry_the_verdict() -> None:
     assert verdict_text(old_daemon).startswith("unknown")
 
 
+@pytest.mark.slow
 def test_a_daemon_take_reports_its_verdict_and_capture_strict_follows_it(
-    start_daemon: Callable[..., RunningDaemon],  # noqa: F811
+    start_daemon: Callable[..., RunningDaemon],
 ) -> None:
     rd = start_daemon()
     endpoint = rd.config.service.control_endpoint

@@ -92,6 +92,7 @@ def test_packets_are_split_at_the_window_end_and_the_gate_closes() -> None:
     assert gate.counts.before == 0
 
 
+@pytest.mark.slow
 def test_dropped_pulses_and_drift_keep_the_end_in_place() -> None:
     # 60 s at 30 Hz with a device clock 100 ppm fast: 6 ms of drift, a fifth of a period.
     rate, ppm = 30.0, 100.0
@@ -274,6 +275,7 @@ def _check_take_is_in_its_window(path: Path, tol_us: int) -> tuple[int, int, dic
     return start, end, outside
 
 
+@pytest.mark.slow
 def test_sim_take_holds_its_trigger_window(tmp_path: Path) -> None:
     res = run_capture(_sim_rig("win"), tmp_path, 1.0)  # type: ignore[arg-type]
     start, end, outside = _check_take_is_in_its_window(res.path, tol_us=50)
@@ -289,6 +291,7 @@ def test_sim_take_holds_its_trigger_window(tmp_path: Path) -> None:
     assert not [r for r in res.report.losses if "take window" in r.reason]
 
 
+@pytest.mark.slow
 def test_slow_sensors_do_not_hold_the_stop(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Event packets reach the writer four times slower than the sensors make them: the stop
     waits `stop_backlog_s`, stops the sensors, reads for `stop_backlog_s` more and records
@@ -311,6 +314,7 @@ def test_slow_sensors_do_not_hold_the_stop(tmp_path: Path, monkeypatch: pytest.M
         assert any("left unread" in r for r in reasons), reasons
 
 
+@pytest.mark.slow
 def test_open_ended_take_ends_at_the_pulse_the_stop_fixed(tmp_path: Path) -> None:
     """A daemon's take (no duration) stopped by request: the window ends one period after the
     box's last pulse, at most STOP_LEAD_S of pulses past those seen when the stop came."""

@@ -10,10 +10,11 @@ import cv2
 import pytest
 from typer.testing import CliRunner
 
-from bench.e2calib import BOARD, capture_board_take
+from firmware_sim.testing.board import BOARD
+from firmware_sim.testing.stereo import BOARD as STEREO_BOARD
+from firmware_sim.testing.stereo import stereo_board_take
 from rigd.app.cli import app
-from tests.rigd.app.workflows.takes import BOARD as STEREO_BOARD
-from tests.rigd.app.workflows.takes import stereo_board_take
+from rigd.app.testing.board import capture_board_take
 
 runner = CliRunner()
 
@@ -30,6 +31,7 @@ def _stages(stderr: str, title: str) -> list[str]:
     return [line.removeprefix(f"{title}: ") for line in stderr.splitlines() if line.startswith(f"{title}: ")]
 
 
+@pytest.mark.slow
 def test_calibrate_events_reports_frames_per_stage(board_take: Path, tmp_path: Path) -> None:
     out = tmp_path / "ev0.yaml"
     args = [
@@ -56,6 +58,7 @@ def test_calibrate_events_reports_frames_per_stage(board_take: Path, tmp_path: P
     assert "reconstructing" in stages[2]
 
 
+@pytest.mark.slow
 def test_calibrate_rig_from_a_take_counts_frames_per_camera(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=6)
     r = runner.invoke(
@@ -68,6 +71,7 @@ def test_calibrate_rig_from_a_take_counts_frames_per_camera(tmp_path: Path) -> N
     assert any(s.startswith("calibrate") for s in stages)
 
 
+@pytest.mark.slow
 def test_calibration_warnings_are_said_once(board_take: Path, tmp_path: Path) -> None:
     out = tmp_path / "ev0.yaml"
     r = runner.invoke(app, ["calibrate", "events", str(board_take), "-s", "ev0", "-b", BOARD, "-o", str(out)])
@@ -79,6 +83,7 @@ def test_calibration_warnings_are_said_once(board_take: Path, tmp_path: Path) ->
         assert r.stderr.count(text) == 1, (text, r.stderr)
 
 
+@pytest.mark.slow
 def test_rig_output_says_what_each_number_is(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=8)
     out, report = tmp_path / "rig.yaml", tmp_path / "rig.html"
@@ -108,6 +113,7 @@ def test_rig_output_says_what_each_number_is(tmp_path: Path) -> None:
     assert "avg_reprojection_error" in html
 
 
+@pytest.mark.slow
 def test_intrinsics_report_says_why_a_model_was_chosen(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=10)
     report = tmp_path / "rig.html"
@@ -148,6 +154,7 @@ def test_report_ticks_are_round_numbers() -> None:
     assert nice_step(3.0) == pytest.approx(0.5)
 
 
+@pytest.mark.slow
 def test_calibrate_rig_on_a_take_with_ground_truth_prints_its_error(tmp_path: Path) -> None:
     """A take that carries its ground truth (as a sim take does from its capture): the rig
     calibration is scored against it, and storing the result into the take keeps the truth."""
@@ -156,9 +163,9 @@ def test_calibrate_rig_on_a_take_with_ground_truth_prints_its_error(tmp_path: Pa
     import h5py
     import numpy as np
 
+    from firmware_sim.testing.stereo import DIST, SIZE, T1
+    from firmware_sim.testing.stereo import K as K_TRUE
     from rigd.take.calibration import GROUND_TRUTH_SOURCE, read_ground_truth, store_calibration
-    from tests.rigd.app.workflows.takes import DIST, SIZE, T1
-    from tests.rigd.app.workflows.takes import K as K_TRUE
 
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=6)
     intr = {"K": K_TRUE.tolist(), "dist": DIST.tolist(), "image_size": list(SIZE)}

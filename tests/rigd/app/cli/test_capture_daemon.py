@@ -12,11 +12,12 @@ from typer.testing import CliRunner
 
 from rigd.app.cli import app
 from rigd.app.commands import capture as capture_command
-from tests.rigd.app.service.conftest import RunningDaemon, runtime_dir, start_daemon  # noqa: F401
+from rigd.app.testing.daemon import RunningDaemon
 
 
+@pytest.mark.slow
 def test_capture_through_the_daemon_prints_the_summary_table(
-    start_daemon: Callable[..., RunningDaemon],  # noqa: F811
+    start_daemon: Callable[..., RunningDaemon],
 ) -> None:
     rd = start_daemon()
     endpoint = rd.config.service.control_endpoint

@@ -35,6 +35,7 @@ def test_every_command_is_walked() -> None:
     assert {"", "capture", "inspect", "calibrate", "calibrate events", "simulate-events", "serve"} <= names
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", _commands(), ids=lambda p: " ".join(p) or "rigd")
 def test_help_uses_one_placeholder_style(path: list[str]) -> None:
     r = CliRunner().invoke(app, [*path, "--help"], prog_name="rigd", env={"COLUMNS": "200", "NO_COLOR": "1"})

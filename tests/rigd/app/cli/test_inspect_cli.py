@@ -12,10 +12,10 @@ from typer.testing import CliRunner
 
 import rigd.products.inspect as inspect_mod
 from drivers.evt.raw import RawHeader, write_raw
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.core.events import EventArray
 from rigd.core.schema import LossRecord, SyncReport
-from tests.rigd.test_take_roundtrip import make_take
 
 runner = CliRunner()
 

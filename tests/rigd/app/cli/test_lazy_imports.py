@@ -11,6 +11,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 HEAVY = ("numba", "h5py", "cv2", "dask", "starlette", "uvicorn", "zmq", "torch", "scipy")
 
 
@@ -20,10 +22,12 @@ def _loaded_after(code: str) -> list[str]:
     return list(json.loads(done.stdout.strip().splitlines()[-1]))
 
 
+@pytest.mark.slow
 def test_importing_the_cli_loads_no_heavy_library() -> None:
     assert _loaded_after("import rigd.app.cli") == []
 
 
+@pytest.mark.slow
 def test_help_of_every_command_loads_no_heavy_library() -> None:
     code = (
         "import sys\nfrom typer.testing import CliRunner\nfrom rigd.app.cli import app\n"
@@ -64,6 +68,7 @@ def test_core_exports_load_on_first_use() -> None:
         getattr(rigd.core, name)
 
 
+@pytest.mark.slow
 def test_status_path_loads_no_numpy() -> None:
     """`rigd status` needs the protocol client and its models, not numpy (0.2 s of a 1 s start)."""
     code = (

@@ -6,15 +6,17 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
+import pytest
 from rich.console import Console
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.app.commands.progress import StageProgress
 from rigd.core.progress import ProgressUpdate
-from tests.rigd.test_take_roundtrip import make_take
 
 
+@pytest.mark.slow
 def test_capture_names_every_phase_after_the_pulses(small_rig: Path, tmp_path: Path) -> None:
     r = CliRunner().invoke(
         app,
@@ -33,6 +35,7 @@ def test_capture_names_every_phase_after_the_pulses(small_rig: Path, tmp_path: P
     assert "sealing the take" in lines[3]
 
 
+@pytest.mark.slow
 def test_off_a_terminal_stage_lines_need_verbose_and_json_has_none(small_rig: Path, tmp_path: Path) -> None:
     args = ["capture", "--local", "--config", str(small_rig), "-d", "0.5", "--out", str(tmp_path)]
     r = CliRunner().invoke(app, args)  # a script reading the output gets the summary alone

@@ -6,15 +6,17 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.frames import make_folder
+from firmware_sim.testing.stereo import stereo_board_take
 from rigd.app.cli import app
-from tests.firmware_sim.test_simulate_cli import make_folder
-from tests.rigd.app.workflows.takes import stereo_board_take
 
 runner = CliRunner()
 
 
+@pytest.mark.slow
 def test_from_a_take_it_names_the_camera(tmp_path: Path) -> None:
     take = stereo_board_take(tmp_path / "stereo.h5", n_views=3)
     r = runner.invoke(app, ["simulate-events", str(take), "--out", str(tmp_path / "a.h5"), "--substeps", "1"])
@@ -52,6 +54,7 @@ def test_hitting_the_sub_step_cap_is_one_warning_with_the_count(tmp_path: Path) 
     assert "Raise --max-substeps to" in text
 
 
+@pytest.mark.slow
 def test_no_warning_when_the_cap_is_not_reached(tmp_path: Path) -> None:
     folder = make_folder(tmp_path)
     r = runner.invoke(app, ["simulate-events", str(folder), "--out", str(tmp_path / "ev.h5"), "--fps", "30"])

@@ -6,14 +6,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
+from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
-from tests.rigd.test_take_roundtrip import make_take
 
 runner = CliRunner()
 
 
+@pytest.mark.slow
 def test_lists_each_take_with_verdict_devices_and_size(tmp_path: Path) -> None:
     make_take(tmp_path / "a.h5")
     make_take(tmp_path / "b.h5", finalize=False)

@@ -12,10 +12,10 @@ import httpx
 import pytest
 
 from calibration.io import read_opencv_yaml
+from rigd.app.testing.console import ConsoleDaemon
 from tests.rigd.app.console.browser import chromium_page
-from tests.rigd.app.console.conftest import ConsoleDaemon
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
 
 def test_guided_session_from_the_page_to_the_written_calibration(

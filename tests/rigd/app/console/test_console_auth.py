@@ -25,7 +25,7 @@ from rigd.app.cli import app as cli
 from rigd.app.commands.service import Announcer
 from rigd.app.console.login import ConsoleLogin, login_path, write_login
 from rigd.app.console.security import TOKEN_HEADER, cookie_name
-from tests.rigd.app.console.conftest import ConsoleDaemon
+from rigd.app.testing.console import ConsoleDaemon
 
 REPO = Path(__file__).resolve().parents[4]
 NOBODY = 65534
@@ -57,6 +57,7 @@ def _send(http: httpx.Client, method: str, path: str, **kw: object) -> httpx.Res
     return http.request(method, path, **kw)  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_every_route_needs_the_secret(console_daemon: Callable[..., ConsoleDaemon]) -> None:
     cd = console_daemon()
     requests = _requests(cd)
@@ -197,6 +198,7 @@ _OTHER_USER = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_another_user_can_neither_read_the_secret_nor_start_a_take(
     console_daemon: Callable[..., ConsoleDaemon], request: pytest.FixtureRequest
 ) -> None:

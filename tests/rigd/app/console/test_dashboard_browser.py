@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
+from rigd.app.testing.console import ConsoleDaemon
 from tests.rigd.app.console.browser import chromium_page
-from tests.rigd.app.console.conftest import ConsoleDaemon
 
 DEVICES = ("cam0", "cam1", "cam2", "ev0", "ev1")
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
 
 def test_dashboard_live_views_start_stop_and_take_list(

@@ -34,9 +34,9 @@ from rigd.app.console.server import ConsoleServer
 from rigd.app.console.takes import TakeList
 from rigd.app.service.client import DaemonClient
 from rigd.app.service.daemon import Daemon
+from rigd.app.testing.console import console_rig
+from rigd.app.testing.daemon import serve_in_thread
 from rigd.core.errors import RigdError
-from tests.rigd.app.console.conftest import console_rig
-from tests.rigd.app.service.conftest import serve_in_thread
 
 #: The body limit (the control socket's message limit).
 LIMIT = 64 * 1024
@@ -369,6 +369,7 @@ def outside_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run_capture(RigConfig.from_data(data), out, 0.5).path
 
 
+@pytest.mark.slow
 def test_symlinks_in_take_dir_and_calibration_are_never_followed(
     served: Served, outside_take: Path, tmp_path: Path
 ) -> None:

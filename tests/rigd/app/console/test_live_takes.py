@@ -52,6 +52,7 @@ def test_latest_slot_keeps_only_the_newest() -> None:
     assert slot.get() == (100, 99)
 
 
+@pytest.mark.slow
 def test_many_readers_cost_one_sample_per_period() -> None:
     """Fifty threads asking for the status as fast as they can: the daemon is sampled at most
     once per publication period (5 Hz), whoever asks."""
@@ -115,6 +116,7 @@ def take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run_capture(RigConfig.from_data(data), out, 0.5).path
 
 
+@pytest.mark.slow
 def test_take_list_says_what_a_take_needs(take: Path) -> None:
     takes = TakeList(take.parent, thumbnail_width=32)
     (entry,) = takes.entries()

@@ -22,8 +22,8 @@ from rigd.app.console.security import (
     parse_bind,
 )
 from rigd.app.console.server import ConsoleServer
+from rigd.app.testing.console import ConsoleDaemon
 from rigd.core.errors import ConfigError
-from tests.rigd.app.console.conftest import ConsoleDaemon
 
 TOKEN = "t0ken-for-the-console-tests"
 

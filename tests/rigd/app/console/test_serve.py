@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.rigd.app.console.conftest import console_rig
+from rigd.app.testing.console import console_rig
 
 REPO = Path(__file__).resolve().parents[4]
 
@@ -37,6 +37,7 @@ def _read_until_ready(proc: subprocess.Popen[str], deadline_s: float = 60.0) -> 
     pytest.fail(f"no 'ready' within {deadline_s} s: {lines}")
 
 
+@pytest.mark.slow
 def test_serve_prints_its_endpoints_serves_the_console_and_stops_cleanly(
     tmp_path: Path, runtime_dir: Path
 ) -> None:

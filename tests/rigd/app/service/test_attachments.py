@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from rigd.app.service.daemon import Daemon
+from rigd.app.testing.daemon import endpoints, small_rig
 from rigd.core.errors import ConfigError
-from tests.rigd.app.service.conftest import endpoints, small_rig
 
 
 class _Refuses:

@@ -16,7 +16,7 @@ import typer
 
 from rigd.app.commands.service import DAEMON_LOST_EXIT, capture_via_daemon
 from rigd.app.service.client import DaemonClient, DaemonUnavailableError
-from tests.rigd.app.service.conftest import REPO, endpoints, small_rig, spawn_daemon
+from rigd.app.testing.daemon import REPO, endpoints, small_rig, spawn_daemon
 
 TAKE = "/takes/rig-20261123-walk.h5"
 
@@ -48,6 +48,7 @@ def _run(client: _Client, capsys: pytest.CaptureFixture[str], progress: Any = No
     return exc.value.exit_code, capsys.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("after", [0, 1, 5])
 def test_daemon_gone_while_following_the_take(after: int, capsys: pytest.CaptureFixture[str]) -> None:
     code, err = _run(_Client("status", after=after), capsys)
@@ -89,6 +90,7 @@ def test_daemon_gone_before_answering_capture(capsys: pytest.CaptureFixture[str]
     assert "rigd recover" in err, err
 
 
+@pytest.mark.slow
 def test_rigd_capture_daemon_killed_mid_take(runtime_dir: Path, tmp_path: Path) -> None:
     """End to end: `rigd capture` in its own process, the daemon SIGKILLed once the take runs."""
     cfg = small_rig("lost", take_dir=str(tmp_path / "takes"))

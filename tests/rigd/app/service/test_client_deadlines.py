@@ -51,6 +51,7 @@ def slow_daemon(tmp_path: Path) -> Iterator[str]:
     sock.close()
 
 
+@pytest.mark.slow
 def test_a_found_client_waits_longer_than_the_probe(slow_daemon: str) -> None:
     client = find_daemon(slow_daemon, timeout_s=1.0)
     assert client is not None

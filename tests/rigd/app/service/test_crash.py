@@ -17,11 +17,14 @@ from typing import Any
 
 import h5py
 import numpy as np
+import pytest
 
 from rigd.app.service.client import DaemonClient
+from rigd.app.testing.daemon import endpoints, small_rig, spawn_daemon
 from rigd.take.reader import Take
 from rigd.take.validate import validate_take
-from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
+
+pytestmark = pytest.mark.slow
 
 N_KILLS = 20
 FLUSH_S = 0.5

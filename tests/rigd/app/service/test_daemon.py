@@ -19,8 +19,8 @@ from rigd.app.cli import app
 from rigd.app.config import RigConfig
 from rigd.app.service.client import DaemonClient, DaemonRequestError, find_daemon
 from rigd.app.service.protocol import Reply, Telemetry, ThumbnailHeader
+from rigd.app.testing.daemon import small_rig, wait_idle
 from rigd.core.errors import ConfigError
-from tests.rigd.app.service.conftest import small_rig, wait_idle
 
 
 def test_ping_status_config(start_daemon: Any) -> None:
@@ -36,6 +36,7 @@ def test_ping_status_config(start_daemon: Any) -> None:
     assert rd.client.call("config")["name"] == "sim-rig"
 
 
+@pytest.mark.slow
 def test_timed_capture_through_daemon(start_daemon: Any) -> None:
     rd = start_daemon()
     started = rd.client.call("capture", duration_s=1.0, label="unit")
@@ -57,6 +58,7 @@ def test_timed_capture_through_daemon(start_daemon: Any) -> None:
         assert f.attrs["end_reason"] == "all 30 pulses done"
 
 
+@pytest.mark.slow
 def test_open_ended_capture_stop_and_telemetry(start_daemon: Any) -> None:
     rd = start_daemon()
     sub = zmq.Context.instance().socket(zmq.SUB)
@@ -147,6 +149,7 @@ def test_structured_errors(start_daemon: Any) -> None:
     assert c.call("ping")["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_oversized_message_is_cut_at_the_transport(start_daemon: Any) -> None:
     rd = start_daemon()
     c = DaemonClient(rd.config.service.control_endpoint, timeout_s=1.0)
@@ -180,6 +183,7 @@ def test_remote_tcp_needs_curve() -> None:
     small_rig("sec", control="tcp://127.0.0.1:5555")  # loopback is fine
 
 
+@pytest.mark.slow
 def test_curve_remote_control(start_daemon: Any, tmp_path: Path) -> None:
     import zmq.auth
 
@@ -213,6 +217,7 @@ def test_curve_remote_control(start_daemon: Any, tmp_path: Path) -> None:
         bad.close()
 
 
+@pytest.mark.slow
 def test_cli_talks_to_daemon(start_daemon: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     rd = start_daemon()
     ep = rd.config.service.control_endpoint
@@ -248,6 +253,7 @@ def test_cli_talks_to_daemon(start_daemon: Any, monkeypatch: pytest.MonkeyPatch)
     assert "frames from 3 cameras" in res.output
 
 
+@pytest.mark.slow
 def test_cli_without_daemon(runtime_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("RIGD_RUNTIME_DIR", str(runtime_dir))
     runner = CliRunner()
@@ -261,6 +267,7 @@ def test_cli_without_daemon(runtime_dir: Path, monkeypatch: pytest.MonkeyPatch) 
     assert find_daemon(f"ipc://{runtime_dir}/control.sock") is None
 
 
+@pytest.mark.slow
 def test_bad_config_one_line_errors(tmp_path: Path) -> None:
     runner = CliRunner()
     cases = {
@@ -301,6 +308,7 @@ def test_devices_through_daemon(start_daemon: Any) -> None:
     assert [s["source"] for s in direct["sources"]] == [s["source"] for s in data["sources"]]
 
 
+@pytest.mark.slow
 def test_control_answers_while_devices_open(start_daemon: Any, tmp_path: Path) -> None:
     """A slow device open runs off the control loop: status and ping answer meanwhile, and a
     stop asked for while starting ends the take right after it starts."""
@@ -370,6 +378,7 @@ def test_dealer_and_multipart_envelopes(start_daemon: Any) -> None:
     assert rd.client.call("ping")["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_recover_runs_off_the_control_loop(start_daemon: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     """Sealing big takes takes minutes: meanwhile the daemon answers, and refuses a capture
     or a second recovery (they would race over the same take directory)."""

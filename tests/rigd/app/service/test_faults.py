@@ -17,9 +17,11 @@ import numpy as np
 import pytest
 
 from rigd.app.capture import CaptureSession, run_capture
+from rigd.app.testing.daemon import small_rig, wait_idle
 from rigd.core.errors import RigdError, TakeError
 from rigd.take import open_take
-from tests.rigd.app.service.conftest import small_rig, wait_idle
+
+pytestmark = pytest.mark.slow
 
 
 def _world() -> str:

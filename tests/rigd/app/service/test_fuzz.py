@@ -14,7 +14,7 @@ import pytest
 from rigd.app.service.client import DaemonClient
 from rigd.app.service.daemon import Daemon
 from rigd.app.service.protocol import Reply
-from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
+from rigd.app.testing.daemon import endpoints, small_rig, spawn_daemon
 
 N_MESSAGES = 10_000
 
@@ -86,6 +86,7 @@ def _message(rng: random.Random) -> bytes:
     return body
 
 
+@pytest.mark.slow
 def test_fuzzed_messages_all_answered_daemon_serving_memory_flat(runtime_dir: Path, tmp_path: Path) -> None:
     cfg = small_rig("fuzz", take_dir=str(tmp_path / "takes"))
     proc = spawn_daemon(cfg, runtime_dir, tmp_path / "daemon.log")

@@ -27,8 +27,8 @@ from rigd.app.service.client import DaemonClient, find_daemon
 from rigd.app.service.daemon import ControlPlaneError, Daemon
 from rigd.app.service.protocol import ARGS_MODELS, COMMANDS, PROTOCOL_VERSION, Reply
 from rigd.app.service.requests import MAX_INT_DIGITS, reply_bytes
+from rigd.app.testing.daemon import REPO, RunningDaemon, endpoints, small_rig
 from rigd.take.reader import open_take
-from tests.rigd.app.service.conftest import REPO, RunningDaemon, endpoints, small_rig
 
 #: Lone surrogates as JSON escapes (valid JSON, text no encoder can write back).
 SURROGATES = ["\\ud800", "\\udbff", "\\udc00", "\\udfff", "\\udc80"]
@@ -166,6 +166,7 @@ def _mark_nth_string(doc: Any, n: int) -> Any:
     where=st.integers(0, 10_000),
     surrogate=st.sampled_from(SURROGATES),
 )
+@pytest.mark.slow
 def test_a_lone_surrogate_anywhere_in_any_request_is_refused(
     daemon: Daemon, cmd: str, args: dict[str, Any], where: int, surrogate: str
 ) -> None:
@@ -275,6 +276,7 @@ def _wait(cond: Callable[[], bool], timeout: float, what: str) -> None:
         time.sleep(0.05)
 
 
+@pytest.mark.slow
 def test_a_dead_control_loop_finalizes_the_take_and_ends_serve(
     start_daemon: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -19,8 +19,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from rigd import __version__
 from rigd.app.service.metrics import MetricsExporter
 from rigd.app.service.protocol import DeviceTelemetry, Fault, TakeSummary, Telemetry
+from rigd.app.testing.daemon import REPO, endpoints, small_rig
 from rigd.core.errors import ConfigError
-from tests.rigd.app.service.conftest import REPO, endpoints, small_rig
 
 TAKE_A = "/var/lib/rigd/takes/take-A.h5"
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
@@ -272,6 +272,7 @@ def test_new_take_straight_after_another(exporter: MetricsExporter) -> None:
     assert val(s, "rigd_written_bytes_total") == 30
 
 
+@pytest.mark.slow
 def test_close_frees_the_port_and_is_idempotent() -> None:
     exp = MetricsExporter(port=0)
     exp.start()
@@ -340,6 +341,7 @@ def test_metrics_beyond_loopback_without_a_token_are_refused(tmp_path: Path) -> 
     MetricsExporter("0.0.0.0", 0, token_file=_token_file(tmp_path, "x" * 24))
 
 
+@pytest.mark.slow
 def test_metrics_beyond_loopback_stop_rigd_serve_with_one_line(tmp_path: Path, runtime_dir: Path) -> None:
     """Like the control socket's non-private bind: exit 2, one line naming the key, nothing bound."""
     cfg = small_rig(

@@ -6,10 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from rigd.app.service.client import DaemonClient
-from tests.rigd.app.service.conftest import endpoints, small_rig, spawn_daemon
-from tests.rigd.app.test_recover_dir import BAD
-from tests.rigd.test_take_recover import _unfinished
+from rigd.app.testing.crash import BAD
+from rigd.app.testing.crash import unfinished as _unfinished
+from rigd.app.testing.daemon import endpoints, small_rig, spawn_daemon
 
 
 def _populate(take_dir: Path) -> tuple[Path, list[Path]]:
@@ -58,6 +60,7 @@ def test_recover_command_reports_unreadable_files(tmp_path: Path, start_daemon: 
     assert rd.client.call("ping")["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_rigd_serve_process_starts_with_unreadable_takes(runtime_dir: Path, tmp_path: Path) -> None:
     """`rigd serve` as systemd runs it: it must answer, not exit at start."""
     take_dir = tmp_path / "takes"

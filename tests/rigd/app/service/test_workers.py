@@ -103,6 +103,7 @@ def test_devices_flood_bounded_threads_busy_replies_ping_answers(
     assert len(_pool_threads()) == POOL_WORKERS
 
 
+@pytest.mark.slow
 def test_capture_not_refused_while_the_pool_is_full(
     start_daemon: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:

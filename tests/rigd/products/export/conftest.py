@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import pytest
 
-from bench.e2calib import capture_board_take
+from rigd.app.testing.board import capture_board_take
 
 RES = (320, 180)
 WORLD = "t-export-cli"

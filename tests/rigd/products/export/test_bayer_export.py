@@ -17,6 +17,8 @@ from rigd.products.export import FORMATS, ExportOptions, run_export
 from rigd.take.calibration import store_calibration
 from rigd.take.reader import open_take
 
+pytestmark = pytest.mark.slow
+
 RES = (320, 180)
 
 

@@ -27,6 +27,7 @@ def _one_error_line(output: str) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_uncalibrated_take_is_refused_naming_the_command(takes: tuple[Path, Path], tmp_path: Path) -> None:
     raw, _ = takes
     r = runner.invoke(app, ["export", str(raw), "--format", "colmap", "--out", str(tmp_path / "o")])
@@ -47,6 +48,7 @@ def test_uncalibrated_take_is_refused_naming_the_command(takes: tuple[Path, Path
         (["--format", "dsec", "--segments-missing"], "no such directory"),
     ],
 )
+@pytest.mark.slow
 def test_bad_input_is_one_line(
     takes: tuple[Path, Path], tmp_path: Path, args: list[str], expect: str
 ) -> None:
@@ -80,6 +82,7 @@ def test_camera_without_frames_is_one_line(takes: tuple[Path, Path], tmp_path: P
     assert "camera 'cam2' has no frames" in _one_error_line(r.output)
 
 
+@pytest.mark.slow
 def test_export_with_segments(takes: tuple[Path, Path], tmp_path: Path) -> None:
     """The segments.json of `rigd reconstruct` is carried, keyframes with their export time."""
     _, take = takes
@@ -111,6 +114,7 @@ def test_export_with_segments(takes: tuple[Path, Path], tmp_path: Path) -> None:
     assert abs(steps[got["keyframe_step"]] - t_mid) <= 20_000
 
 
+@pytest.mark.slow
 def test_dynamic3dgs_seg_masks(takes: tuple[Path, Path], tmp_path: Path) -> None:
     _, take = takes
     out = tmp_path / "o"

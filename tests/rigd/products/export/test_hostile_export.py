@@ -105,6 +105,7 @@ def _export(take: Path, out: Path, *args: str) -> tuple[int, str]:
     return r.exit_code, r.output
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("flag", "value", "why", "fmt"), KNOB_CASES)
 def test_hostile_knob_is_one_line_and_writes_nothing(
     takes: tuple[Path, Path], tmp_path: Path, flag: str, value: str, why: str, fmt: str
@@ -153,6 +154,7 @@ def _refusal(check: Callable[[], object]) -> str | None:
     return None
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.text(max_size=50))
 def test_any_resize_text_is_a_size_or_names_the_flag(text: str) -> None:
@@ -166,6 +168,7 @@ def test_any_resize_text_is_a_size_or_names_the_flag(text: str) -> None:
         assert "\n" not in error
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.one_of(st.text(max_size=30), st.integers().map(str), st.floats().map(str)))
 def test_any_bins_text_is_a_count_or_names_the_flag(text: str) -> None:
@@ -186,6 +189,7 @@ def test_any_bins_text_is_a_count_or_names_the_flag(text: str) -> None:
     fmt=st.sampled_from(FORMATS),
     avail=st.integers(0, 1 << 40),
 )
+@pytest.mark.slow
 def test_a_resize_passes_only_within_every_bound(w: int, h: int, fmt: str, avail: int) -> None:
     budget = bounds.Budget(avail)
     per_px = bounds.image_bytes_per_px(fmt, 2)
@@ -206,6 +210,7 @@ def test_a_resize_passes_only_within_every_bound(w: int, h: int, fmt: str, avail
     window=st.integers(0, 10**7),
     avail=st.integers(0, 1 << 40),
 )
+@pytest.mark.slow
 def test_voxel_bins_pass_only_within_every_bound(bins: int, w: int, h: int, window: int, avail: int) -> None:
     windows = np.array([[0, window]], np.int64)
     budget = bounds.Budget(avail)
@@ -279,6 +284,7 @@ def test_unwritable_parent_is_one_line(takes: tuple[Path, Path], tmp_path: Path)
     assert list(ro.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_existing_exports_are_named_and_replaced_only_with_force(
     takes: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -298,6 +304,7 @@ def test_existing_exports_are_named_and_replaced_only_with_force(
     assert _leftovers(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_incomplete_export_of_an_older_rigd_is_named(takes: tuple[Path, Path], tmp_path: Path) -> None:
     _, take = takes
     out = tmp_path / "o"
@@ -368,6 +375,7 @@ def full_sizes(takes: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactor
         ("dsec", 0.9),
     ],
 )
+@pytest.mark.slow
 def test_full_disk_is_one_line_and_leaves_nothing(
     takes: tuple[Path, Path], full_sizes: dict[str, int], small_disk: Path, fmt: str, share: float
 ) -> None:
@@ -384,6 +392,7 @@ def test_full_disk_is_one_line_and_leaves_nothing(
     assert _digest(take) == before
 
 
+@pytest.mark.slow
 def test_export_fits_a_disk_of_its_size(
     takes: tuple[Path, Path], full_sizes: dict[str, int], small_disk: Path
 ) -> None:
@@ -421,6 +430,7 @@ main()
         ("dsec", "rectify_map.h5", 0),
     ],
 )
+@pytest.mark.slow
 def test_failed_hdf5_write_is_one_line(
     takes: tuple[Path, Path], tmp_path: Path, fmt: str, name: str, offset: int
 ) -> None:
@@ -492,6 +502,7 @@ def _wait_for(reached: Path, p: subprocess.Popen[str]) -> None:
         ("swap", True, "replacement was interrupted"),
     ],
 )
+@pytest.mark.slow
 def test_killed_export_leaves_no_output_and_rerun_says_what_to_do(
     takes: tuple[Path, Path], tmp_path: Path, stage: str, previous: bool, left: str
 ) -> None:
@@ -552,6 +563,7 @@ def test_killed_export_leaves_no_output_and_rerun_says_what_to_do(
         "\udcff",
     ],
 )
+@pytest.mark.slow
 def test_hostile_segments_file_is_one_line(takes: tuple[Path, Path], tmp_path: Path, content: str) -> None:
     _, take = takes
     before = _digest(take)

@@ -10,15 +10,14 @@ import h5py
 import numpy as np
 import pytest
 
-from bench.e2calib import board_rig
 from firmware_sim.board_scene import BoardScene
 from firmware_sim.world import get_world
 from rigd.app.capture import run_capture
 from rigd.app.config import RigConfig
+from rigd.app.testing.board import board_rig
 from rigd.core.errors import ConfigError, TakeError
 from rigd.products.export import ExportOptions, run_export
-
-from .test_formats import check_dsec_events
+from tests.rigd.products.export.dsec_checks import check_dsec_events
 
 RES = (320, 180)
 
@@ -35,6 +34,7 @@ def _meta_centres(root: Path) -> dict[str, np.ndarray]:
     return out
 
 
+@pytest.mark.slow
 def test_world_board_is_the_scene_plane(takes: tuple[Path, Path], tmp_path: Path) -> None:
     """--world board: every camera where the simulator put it in its world (the board plane)."""
     _, take = takes
@@ -45,6 +45,7 @@ def test_world_board_is_the_scene_plane(takes: tuple[Path, Path], tmp_path: Path
         np.testing.assert_allclose(c, -R.T @ t, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_world_floor_is_gravity_aligned_with_every_point_above_the_floor(
     takes: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -83,6 +84,7 @@ def test_world_board_needs_a_board(takes: tuple[Path, Path], tmp_path: Path) -> 
             del g["calibration"]
 
 
+@pytest.mark.slow
 def test_split_camera_holds_out_a_camera_at_every_timestep(takes: tuple[Path, Path], tmp_path: Path) -> None:
     _, take = takes
     out = tmp_path / "s"
@@ -106,6 +108,7 @@ def test_split_camera_holds_out_a_camera_at_every_timestep(takes: tuple[Path, Pa
         assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_split_time_in_panoptic_layout(takes: tuple[Path, Path], tmp_path: Path) -> None:
     _, take = takes
     out = tmp_path / "t"
@@ -126,6 +129,7 @@ def late_take(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return cap.path
 
 
+@pytest.mark.slow
 def test_dsec_times_past_2_32_us(late_take: Path, tmp_path: Path) -> None:
     """Rig times past 2^32 us: t_offset stays under 1 ms (times count from the take's start),
     so EventSlicer's uint32 `t + t_offset` neither wraps nor overflows."""

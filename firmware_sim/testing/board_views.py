@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.boards import BoardSpec, board_image_origin, render_board
+from calibration.boards import BoardSpec, Detection, board_image_origin, detect, render_board
 
 F64 = NDArray[np.float64]
 _PX_PER_SQUARE = 60
@@ -38,7 +38,7 @@ class SynthCamera:
             pts = np.stack([(xs + 0.5) / _SS - 0.5, (ys + 0.5) / _SS - 0.5], -1).reshape(-1, 1, 2)
             crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
             und = cv2.undistortPoints(pts, self.K, self.dist, R=None, P=None, criteria=crit)
-            self._rays = und.reshape(h * _SS, w * _SS, 2)
+            self._rays = np.asarray(und, np.float64).reshape(h * _SS, w * _SS, 2)
         return self._rays
 
 
@@ -53,7 +53,7 @@ def look_at(
     c, r = board.inner_corners
     mid = np.array([(c - 1) * board.square_m / 2, (r - 1) * board.square_m / 2, 0.0])
     t = np.asarray(center_cam, np.float64) - R @ mid
-    return cv2.Rodrigues(R)[0].ravel(), t
+    return np.asarray(cv2.Rodrigues(R)[0], np.float64).ravel(), t
 
 
 def render(
@@ -123,4 +123,24 @@ def view_poses(
         ):
             out.append(pose)
     assert len(out) == n, "could not place the board; lower depth spread or board size"
+    return out
+
+
+#: The board of the synthetic calibration tests.
+SYNTH_BOARD = "chessboard:9x6:0.03"
+
+
+def synth_detections(
+    board: BoardSpec,
+    cam: SynthCamera,
+    poses: list[tuple[np.ndarray, np.ndarray]],
+    seed: int = 0,
+    noise_dn: float = 2.0,
+) -> list[Detection]:
+    """The board detected in each rendered view (every view must show it)."""
+    out = []
+    for i, (rv, tv) in enumerate(poses):
+        d = detect(render(board, cam, rv, tv, noise_dn=noise_dn, seed=seed * 1000 + i), board, f"v{i:02d}")
+        assert d is not None, f"synthetic view {i} not detected"
+        out.append(d)
     return out

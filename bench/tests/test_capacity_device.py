@@ -42,6 +42,7 @@ def test_disk_probe_writes_and_removes_its_file(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 @needs_data
 def test_a_slow_level_holds_and_accounts_for_every_event(tmp_path: Path) -> None:
     """Two file:// sensors at 0.5 Mev/s beside one small preloaded camera: whatever the

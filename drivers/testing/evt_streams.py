@@ -1,4 +1,6 @@
-"""What the EVT codec tests share: the real recordings, chunked feeding and array comparison."""
+"""What the EVT codec tests share: the real recordings (`shared/data/events` beside the checkout;
+tests that need them are skipped without), synthetic encoder streams, chunked feeding and
+array comparison."""
 
 from __future__ import annotations
 
@@ -12,13 +14,13 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 from drivers.base import Capability
-from drivers.evt import Decoded, Evt3Encoder, StreamDecoder, parse_raw_header
+from drivers.evt import Decoded, Evt3Encoder, StreamDecoder, encode, parse_raw_header
 from drivers.evt_stream import DecodingEventSensor, EvtBuffer
 from drivers.lifecycle import END, Signal
 from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 
-DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "events"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real Prophesee recordings not found at {DATA}")
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 #: `@given` arguments of the tests on mutated encoder streams (`mutated`).
@@ -135,3 +137,49 @@ def mutated(rng: np.random.Generator, data: bytes, n_mut: int, *, cut: bool) -> 
         if cut:
             buf = buf[int(rng.integers(0, buf.size)) :]
     return buf.tobytes()
+
+
+# -- streams that jump back in time (two recordings joined) ---------------------------------
+FORMATS = ("evt3", "evt2", "evt21", "evt21_le")
+WORD = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}
+SHIFT = {"evt3": 12, "evt2": 6, "evt21": 6, "evt21_le": 6}  # TIME_HIGH period: 1 << SHIFT us
+
+
+def time_highs(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:
+    """Word indices and values of the TIME_HIGH words."""
+    if fmt == "evt3":
+        w = np.frombuffer(data, "<u2", len(data) // 2).astype(np.int64)
+        idx = np.flatnonzero(w >> 12 == 8)
+        return idx, w[idx] & 0xFFF
+    u32 = np.frombuffer(data, "<u4", len(data) // 4).astype(np.int64)
+    half = {"evt2": u32, "evt21": u32[0::2], "evt21_le": u32[1::2]}[fmt]
+    idx = np.flatnonzero(half >> 28 == 8)
+    return idx, half[idx] & 0xFFFFFFF
+
+
+def segment(fmt: str, rng: np.random.Generator, t0: int, periods: int, per_period: int) -> bytes:
+    """An encoded stream starting at its own base t0 (no TIME_HIGH words before it, as a sensor
+    re-based there sends): events and a few trigger edges over `periods` TIME_HIGH periods."""
+    span = periods << SHIFT[fmt]
+    n = max(1, periods * per_period)
+    t = np.sort(np.r_[t0, rng.integers(t0, t0 + span, n - 1)]).astype(np.int64)
+    ev = EventArray.from_arrays(rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n), t)
+    ev = ev[np.lexsort((ev.x, ev.p, ev.y, ev.t))]
+    k = int(rng.integers(0, 4))
+    tt = np.sort(rng.integers(t0, t0 + span, k)).astype(np.int64)
+    tr = TriggerEvents(tt, rng.integers(0, 2, k).astype(np.uint8), np.zeros(k, np.uint8))
+    data = encode(fmt, ev, tr)
+    idx, val = time_highs(data, fmt)
+    mask = 0xFFF if fmt == "evt3" else 0xFFFFFFF
+    first = int(idx[int(np.flatnonzero(val == (t0 >> SHIFT[fmt]) & mask)[0])])
+    return data[first * WORD[fmt] :]
+
+
+def joined(fmt: str, seed: int, jump_periods: int = 30) -> tuple[bytes, bytes, bytes]:
+    """Two segments, the second based `jump_periods` TIME_HIGH periods before the first ends:
+    (first, second, both joined)."""
+    rng = np.random.default_rng(seed)
+    s = SHIFT[fmt]
+    a = segment(fmt, rng, 1000 << s, 50, 4)
+    b = segment(fmt, rng, (1050 - jump_periods) << s, 50, 4)
+    return a, b, a + b

@@ -1,28 +1,24 @@
-"""Fixtures for the daemon tests: a small sim rig, private runtime dirs, daemons in a thread
-or in a subprocess (for the kill tests)."""
+"""Daemons on a small sim rig for the tests and benchmarks: the rig's config, a daemon in a
+thread or in a `rigd serve` process (for the kill and memory tests), its private endpoints."""
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-
-import pytest
 
 from rigd.app.config import RigConfig, default_sim_rig
 from rigd.app.service.client import DaemonClient, find_daemon
 from rigd.app.service.daemon import Daemon
 
-REPO = Path(__file__).resolve().parents[4]
+#: The checkout a `rigd serve` subprocess runs in.
+REPO = Path(__file__).resolve().parents[3]
 
 
 def small_rig(world: str, *, extra: dict[str, str] | None = None, **service: object) -> RigConfig:
@@ -43,17 +39,10 @@ def small_rig(world: str, *, extra: dict[str, str] | None = None, **service: obj
     return RigConfig.from_data(data)
 
 
-@pytest.fixture
-def runtime_dir() -> Iterator[Path]:
-    """A short private directory for IPC sockets (socket paths are limited to ~100 bytes)."""
-    d = Path(tempfile.mkdtemp(prefix="rigd-t-"))
-    os.chmod(d, 0o700)
-    yield d
-    shutil.rmtree(d, ignore_errors=True)
-
-
 @dataclass
 class RunningDaemon:
+    """A daemon serving in a thread, a client of it, its config and its thread's errors."""
+
     daemon: Daemon
     thread: threading.Thread
     client: DaemonClient
@@ -62,6 +51,7 @@ class RunningDaemon:
 
 
 def endpoints(runtime: Path) -> dict[str, str]:
+    """The control and telemetry endpoints of a daemon whose sockets are in `runtime`."""
     return {"control": f"ipc://{runtime}/control.sock", "telemetry": f"ipc://{runtime}/telemetry.sock"}
 
 
@@ -86,31 +76,8 @@ def serve_in_thread(daemon: Daemon, name: str) -> tuple[threading.Thread, list[B
     return th, errors
 
 
-@pytest.fixture
-def start_daemon(runtime_dir: Path, tmp_path: Path) -> Iterator[object]:
-    """Factory: start a Daemon in a thread on a small sim rig; stopped at teardown."""
-    running: list[RunningDaemon] = []
-
-    def start(config: RigConfig | None = None, **kw: object) -> RunningDaemon:
-        cfg = config or small_rig(f"svc-{uuid.uuid4().hex[:6]}", take_dir=str(tmp_path / "takes"), **kw)
-        data = cfg.model_dump(mode="json")
-        data["service"].update(endpoints(runtime_dir))
-        cfg = RigConfig.from_data(data)
-        daemon = Daemon(cfg)
-        th, errors = serve_in_thread(daemon, "daemon-under-test")
-        client = DaemonClient(cfg.service.control_endpoint, timeout_s=10)
-        rd = RunningDaemon(daemon, th, client, cfg, errors)
-        running.append(rd)
-        return rd
-
-    yield start
-    for rd in running:
-        rd.client.close()
-        rd.daemon.shutdown()
-        rd.thread.join(timeout=60)
-
-
 def wait_idle(client: DaemonClient, timeout: float = 60.0) -> dict[str, object]:
+    """The daemon's status once it is idle again (its take ended)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         t = client.call("status")

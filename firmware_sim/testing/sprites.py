@@ -59,7 +59,7 @@ class SpriteScene:
         out = self.bg.copy()
         for spr, path in zip(self.sprites, self.paths, strict=True):
             x, y = path(t_s)
-            m = np.float32([[1, 0, x], [0, 1, y]])
+            m = np.array([[1, 0, x], [0, 1, y]], np.float32)
             warped = cv2.warpAffine(spr, m, (self.width, self.height), flags=cv2.INTER_LINEAR)
             alpha = cv2.warpAffine(np.ones_like(spr), m, (self.width, self.height), flags=cv2.INTER_LINEAR)
             out = out * (1 - alpha) + warped
@@ -117,7 +117,8 @@ def linear_path(x0: float, y0: float, vx: float, vy: float) -> Path:
 
 def translate(img: F32, dx: float, dy: float) -> F32:
     """img shifted by (dx, dy): out(x, y) = img(x - dx, y - dy); the flow img -> out is (dx, dy)."""
-    m = np.float32([[1, 0, dx], [0, 1, dy]])
-    return cv2.warpAffine(
+    m = np.array([[1, 0, dx], [0, 1, dy]], np.float32)
+    out = cv2.warpAffine(
         img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT
     )
+    return np.asarray(out, np.float32)

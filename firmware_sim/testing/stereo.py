@@ -1,6 +1,6 @@
 # ruff: noqa: N806  (K follows the notation of the calibration literature)
 """A stereo take of a board with known truth: two cameras 10 cm apart along x, one frame each per
-trigger pulse, rendered through known intrinsics (tests.calibration.synth)."""
+trigger pulse, rendered through known intrinsics (`firmware_sim.testing.board_views`)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 
 from calibration.boards import parse_board
+from firmware_sim.testing.board_views import SynthCamera, render, view_poses
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.frames import Frame
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter
-from tests.calibration.synth import SynthCamera, render, view_poses
 
 BOARD = "chessboard:9x6:0.03"
 SIZE = (320, 240)
@@ -47,7 +47,7 @@ def stereo_board_take(path: Path, n_views: int = 12) -> Path:
     for i, (rv, tv) in enumerate(poses):
         R = cv2.Rodrigues(rv)[0]
         for name, tv_cam in (("cam0", tv), ("cam1", tv + T1)):
-            rv_cam = cv2.Rodrigues(R)[0].ravel()
+            rv_cam = np.asarray(cv2.Rodrigues(R)[0], np.float64).ravel()
             img = render(board, cam, rv_cam, tv_cam, noise_dn=1.0, seed=10 * i + len(name))
             w.append_frame(name, Frame(img, int(t[i]), 2000, i, 1000 + i))
     w.append_pulses(PulseBatch(np.arange(n_views, dtype=np.int64), t, t * 1000))
