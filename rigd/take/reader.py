@@ -247,6 +247,11 @@ class Take:
             raise TakeFormatError(f"{self.path}: /{hpath} is missing or not a dataset")
         return node
 
+    def _check_open(self) -> None:
+        """A closed file answers `get` with None: say it is closed, not that a device is missing."""
+        if not self._f:
+            raise TakeError(f"{self.path}: the take is closed")
+
     def _require_rig(self, hpath: str) -> None:
         if self.time_domain != TimeDomain.RIG:
             raise TakeError(
@@ -266,6 +271,7 @@ class Take:
 
     def frames(self, camera: str, demosaic: bool = True) -> FrameSeries:
         """One camera's frames; a Bayer camera's demosaiced to RGB unless `demosaic=False`."""
+        self._check_open()
         g = self._f.get(f"{FRAMES_GROUP}/{camera}")
         if not isinstance(g, h5py.Group):
             raise TakeError(f"{self.path}: no camera {camera!r} (has {self.cameras})")
@@ -276,6 +282,7 @@ class Take:
         sensor's datasets open); like a FrameSeries, it reads only while the Take is open."""
         series = self._series.get(name)
         if series is None:
+            self._check_open()
             g = self._f.get(f"{EVENTS_GROUP}/{name}")
             if not isinstance(g, h5py.Group):
                 raise TakeError(f"{self.path}: no event sensor {name!r} (has {self.event_sensors})")
