@@ -259,25 +259,25 @@ def _check_recovered(path: Path, n_flushed: int) -> None:
         assert rep is not None
         assert rep["outcome"] == "sealed"
         n_frames = len(take.frames("cam0"))
-        n_ev = take.event_count("ev0")
+        n_ev = take.sensor("ev0").count
         n_pulses = len(take.pulses())
         assert n_frames >= n_flushed
         assert n_pulses >= n_flushed
         assert n_ev >= n_flushed * EV_PER_STEP
         exp = expected(max(n_frames, n_pulses, -(-n_ev // EV_PER_STEP)))
-        ev = take.events("ev0")
+        ev = take.sensor("ev0").events()
         np.testing.assert_array_equal(ev.t, exp.ev.t[:n_ev] - OFF_EV)
         np.testing.assert_array_equal(ev.x, exp.ev.x[:n_ev])
         np.testing.assert_array_equal(ev.p, exp.ev.p[:n_ev])
         fs = take.frames("cam0")
         np.testing.assert_array_equal(fs.timestamps_us, exp.frame_t[:n_frames] - OFF_CAM)
         assert [fs[i].pulse_index for i in (0, n_frames - 1)] == [0, n_frames - 1]
-        tr = take.triggers("ev0")
+        tr = take.sensor("ev0").triggers
         np.testing.assert_array_equal(tr.t, exp.trig_t[: len(tr)] - OFF_EV)
         np.testing.assert_array_equal(take.pulses().t_us, exp.pulse_t[:n_pulses])
         # Windowed reads work like on any finalized take.
         a = RIG0 + 3 * PERIOD
-        win = take.events("ev0", a, a + PERIOD)
+        win = take.sensor("ev0").events(a, a + PERIOD)
         want = exp.ev.t[:n_ev] - OFF_EV
         np.testing.assert_array_equal(win.t, want[(want >= a) & (want < a + PERIOD)])
         report = take.sync_report
@@ -310,7 +310,7 @@ def test_sigkill_at_random_moments_then_recover(tmp_path: Path) -> None:
             assert int(f.attrs["flush_count"]) >= (1 if n_flushed else 0)
             _check_prefix(f, n_flushed, exp)
         with Take(path) as take:  # the reader merges the tail of an unrecovered take
-            np.testing.assert_array_equal(take.events("ev0").t[: n_flushed * EV_PER_STEP], exp.ev.t)
+            np.testing.assert_array_equal(take.sensor("ev0").events().t[: n_flushed * EV_PER_STEP], exp.ev.t)
         assert find_unfinished(tmp_path) == [path]
         dry = recover_take(path, dry_run=True)
         rr = recover_take(path)
@@ -525,8 +525,8 @@ def test_repair_trims_and_reports_everything(tmp_path: Path) -> None:
     }
     assert validate_take(path) == []
     with Take(path) as take:
-        assert take.event_count("ev0") == 40 * EV_PER_STEP
-        assert len(take.triggers("ev0")) == 77
+        assert take.sensor("ev0").count == 40 * EV_PER_STEP
+        assert len(take.sensor("ev0").triggers) == 77
         assert len(take.frames("cam0")) == 40
         report = take.sync_report
         assert report is not None
@@ -569,7 +569,7 @@ def test_no_pulses_seals_failed_and_keeps_data(tmp_path: Path) -> None:
         assert take.time_domain == "device"
         assert take.summary().failure_reason is not None
         assert take.recovery_report is not None
-        np.testing.assert_array_equal(take.events("ev0").t, expected(10).ev.t)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(10).ev.t)
     assert find_unfinished(tmp_path) == []
     assert recover_take(path).outcome == "not_needed"
 
@@ -598,7 +598,7 @@ def test_truncated_failed_take_is_repaired_and_sealed(tmp_path: Path) -> None:
         assert take.status == "complete"
         assert take.time_domain == "rig"
         assert take.summary().failure_reason == "disk full"
-        np.testing.assert_array_equal(take.events("ev0").t, expected(40).ev.t - OFF_EV)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(40).ev.t - OFF_EV)
     assert find_unfinished(tmp_path) == []
 
 
@@ -624,8 +624,8 @@ def test_schema_1_0_takes_still_read_validate_and_recover(tmp_path: Path) -> Non
     with open_take(done) as take:
         assert take.schema_version == "1.0"
         assert take.journal is None
-        np.testing.assert_array_equal(take.trigger_host_times("ev0"), np.full(60, -1))
-        np.testing.assert_array_equal(take.triggers("ev0").t, expected(30).trig_t - OFF_EV)
+        np.testing.assert_array_equal(take.sensor("ev0").trigger_host_times, np.full(60, -1))
+        np.testing.assert_array_equal(take.sensor("ev0").triggers.t, expected(30).trig_t - OFF_EV)
     rec = _unfinished(tmp_path / "rec.h5", n=30)
     _as_schema_1_0(rec)
     assert validate_take(rec) == []
@@ -635,7 +635,7 @@ def test_schema_1_0_takes_still_read_validate_and_recover(tmp_path: Path) -> Non
     assert validate_take(rec) == []
     with open_take(rec) as take:
         assert take.schema_version == "1.0"  # a resumed take keeps its version
-        np.testing.assert_array_equal(take.events("ev0").t, expected(30).ev.t - OFF_EV)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(30).ev.t - OFF_EV)
     # A 1.1 take must have the dataset.
     bad = _unfinished(tmp_path / "bad.h5", n=3)
     with h5py.File(bad, "r+") as f:
@@ -662,7 +662,9 @@ def test_journal_flush_bookkeeping_and_host_times(tmp_path: Path) -> None:
         assert "T" in str(f.attrs["last_flush_utc"])
     with open_take(path) as take:
         assert take.journal == {"losses": [], "warnings": ["second"]}
-        np.testing.assert_array_equal(take.trigger_host_times("ev0"), [step(0).packet_host_ns] * 2 + [-1])
+        np.testing.assert_array_equal(
+            take.sensor("ev0").trigger_host_times, [step(0).packet_host_ns] * 2 + [-1]
+        )
     with pytest.raises(TakeError, match="flush_interval_s"):
         TakeWriter(
             tmp_path / "z.h5",
@@ -831,7 +833,8 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
                 assert take.status == "complete"
                 assert take.summary().failure_reason == "disk full"
                 np.testing.assert_array_equal(
-                    take.events("ev0").t[: n_flushed * EV_PER_STEP], expected(n_flushed).ev.t - OFF_EV
+                    take.sensor("ev0").events().t[: n_flushed * EV_PER_STEP],
+                    expected(n_flushed).ev.t - OFF_EV,
                 )
             return
     with pytest.raises(TakeFormatError, match=r"truncated by a failed write"):

@@ -403,10 +403,10 @@ def check_dsec_events(root: Path, take: Path, res: tuple[int, int] = RES) -> Non
             # cropped to the frames' span: first exposure start .. last exposure end
             assert off <= stamps[0]
             assert t_all[-1] + off <= stamps[-1] + 10_000
-            assert n == len(tk.events(sensor, origin + off, origin + int(t_all[-1]) + off + 1))
+            assert n == len(tk.sensor(sensor).events(origin + off, origin + int(t_all[-1]) + off + 1))
             for a, b in ((stamps[3], stamps[4]), (stamps[5] + 17, stamps[-2] - 5)):
                 got = _slice_dsec(path, a, b)
-                ref = tk.events(sensor, origin + a, origin + b)
+                ref = tk.sensor(sensor).events(origin + a, origin + b)
                 assert len(ref) > 100
                 assert got["t"].dtype == np.uint32
                 np.testing.assert_array_equal(got["t"].astype(np.int64) + origin, ref.t)
@@ -430,7 +430,7 @@ def test_voxel_grids_hold_each_frames_events(exported: Fixture) -> None:
                 assert vox.shape == (30, 5, RES[1], RES[0])
                 for k in (0, 7, 29):
                     a, b = int(win[k, 0]), int(win[k, 1])
-                    ev = tk.events(sensor, a + 1, b + 1)  # the window is (a, b]
+                    ev = tk.sensor(sensor).events(a + 1, b + 1)  # the window is (a, b]
                     # bilinear weights in time sum to 1: the grid sums to the polarity sum
                     assert abs(float(vox[k].sum()) - float(ev.p.sum())) < 1e-2 * max(len(ev), 1)
                     counts = np.zeros((RES[1], RES[0]))
