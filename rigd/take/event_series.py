@@ -181,12 +181,14 @@ class EventSeries:
     def get_events(self, t_start_us: int, t_end_us: int) -> dict[str, NDArray[Any]] | None:
         """DSEC `EventSlicer.get_events`: the events with t_start_us <= t < t_end_us as a dict
         of arrays `p` (uint8, 1 ON / 0 OFF, the DSEC convention), `x`, `y` (uint16) and `t`
-        (int64 rig us), or None where the window reaches past the sensor's ms index (past the
-        millisecond of its last event), as the slicer answers. Needs t_start_us < t_end_us.
+        (int64 rig us), or None where the window ends past the millisecond of the last event
+        (past the ms index, as the slicer answers). Needs t_start_us < t_end_us and rig time.
         """
         if int(t_start_us) >= int(t_end_us):
             raise TakeError(f"{self._take.path}: {self._where}: t_start_us must be < t_end_us")
-        if -(-(int(t_end_us) - self.t_offset) // 1000) >= self._n_ms():
+        self._take._require_rig(self._where)
+        end = self._indexed_until()
+        if end is None or int(t_end_us) > end:
             return None
         ev = self.events(int(t_start_us), int(t_end_us))
         return {"p": (ev.p > 0).astype(np.uint8), "x": ev.x, "y": ev.y, "t": ev.t}
@@ -345,14 +347,14 @@ class EventSeries:
             raise TakeFormatError(f"{self._take.path}: {self._where}/{Events.MS_TO_IDX} is missing")
         return c, c.ms_to_idx
 
-    def _n_ms(self) -> int:
-        """Entries of the ms index (for EVT words: the one finalize would build)."""
-        words = self._words(rig=True)
-        if words is None:
-            return int(self._rig_columns()[1].shape[0])
-        span = words.span()
-        last_rel = -1 if span is None else span[1] - self.t_offset
-        return last_rel // 1000 + 1 if last_rel >= 0 else 0
+    def _indexed_until(self) -> int | None:
+        """The latest window end EventSlicer answers (rig us): the end of the last event's
+        millisecond, counted from t_offset (the slicer rounds a window's end up to the next ms
+        and needs that entry; `rigd export --format dsec` writes it). None without events."""
+        span = self.span
+        if span is None:
+            return None
+        return self.t_offset + 1000 * ((span[1] - self.t_offset) // 1000 + 1)
 
     def _read_events(self, lo: int, hi: int) -> EventArray:
         n, slot, m = self._tail()
