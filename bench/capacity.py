@@ -110,7 +110,7 @@ def take_counts(path: Path) -> tuple[dict[str, int], dict[str, int], int]:
     with Take(path) as take:
         return (
             {c: len(take.frames(c)) for c in take.cameras},
-            {s: take.event_count(s) for s in take.event_sensors},
+            {s: take.sensor(s).count for s in take.event_sensors},
             sum(int(np.prod(take.frames(c, demosaic=False).stored_shape)) for c in take.cameras),
         )
 

@@ -247,10 +247,10 @@ def micro_benchmarks(
     """Every stage on a source take's data (first `n_events` of its first sensor)."""
     with Take(path) as take:
         sensor = take.event_sensors[0]
-        width, height = take.geometry(sensor)
-        n = min(n_events, take.event_count(sensor))
-        read_times = timed(lambda: take.events_by_index(sensor, 0, n), repeat)
-        events = take.events_by_index(sensor, 0, n)
+        width, height = take.sensor(sensor).geometry
+        n = min(n_events, take.sensor(sensor).count)
+        read_times = timed(lambda: take.sensor(sensor).by_index(0, n), repeat)
+        events = take.sensor(sensor).by_index(0, n)
         cam = take.frames(take.cameras[0], demosaic=False)  # frames as stored: the writer's input
         k = min(30, len(cam))
         frame_read = timed(lambda: [cam[i] for i in range(k)], repeat)

@@ -7,7 +7,7 @@ Each consumer is installed into its own scratch venv under --work (outside the p
 nerfstudio and tonic from the registry, 4DGaussians, Dynamic3DGaussians and DSEC's EventSlicer
 from the pinned commits below, cloned for the check (never copied into the project). The checks
 (bench/consumer_checks/, run with the venv's python) call the consumers' loaders unmodified and
-compare with references written here from the take (`Take.events`, the simulator's ground-truth
+compare with references written here from the take (`take.sensor(name).events`, the simulator's ground-truth
 board corners). 4DGaussians and Dynamic3DGaussians import CUDA extensions: the checks stub them
 in the scratch venv only (consumer_checks/cuda_stubs.py) and say so in their output. For
 nerfstudio, `ns-train nerfacto --max-num-iterations 3` runs on the CPU up to where it needs the
@@ -190,7 +190,7 @@ def export(take: Path, fmt: str, out: Path) -> Path:
 
 
 def dsec_reference(take: Path, export_dir: Path, n_windows: int = 22) -> Path:
-    """Windows between consecutive frame times (the export's us) and `Take.events` in each."""
+    """Windows between consecutive frame times (the export's us) and `take.sensor(name).events` in each."""
     stamps = np.array(
         [int(s) for s in (export_dir / "images" / "cam0" / "timestamps.txt").read_text().split()]
     )
@@ -203,7 +203,7 @@ def dsec_reference(take: Path, export_dir: Path, n_windows: int = 22) -> Path:
         n = 0
         for s, sensor in enumerate(sensors):
             for w, (a, b) in enumerate(windows):
-                ev = tk.events(sensor, origin + int(a), origin + int(b))
+                ev = tk.sensor(sensor).events(origin + int(a), origin + int(b))
                 bounds[s, w] = n, n + len(ev)
                 n += len(ev)
                 parts["x"].append(ev.x)

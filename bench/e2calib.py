@@ -55,8 +55,7 @@ def main() -> None:
         params = ReconstructionParams(contrast=args.threshold or 0.3)
         results = sensor_results(take_path, params=params)
         with open_take(take_path) as take:
-            width = take.geometry(take.event_sensors[0])[0]
-            height = take.geometry(take.event_sensors[0])[1]
+            width, height = take.sensor(take.event_sensors[0]).geometry
         K = true_k(width)
         K[1, 2] = height / 2.0
         print(f"e2calib: {take_path.name}, {width}x{height}, board {BOARD}")

@@ -1,6 +1,6 @@
 """Random 50 ms event windows from a long take: chunk size x codec vs read time, write rate, size.
 
-A training job draws random windows of a take (`Take.events(sensor, t0, t1)`). Each read
+A training job draws random windows of a take (`take.sensor(name).events(t0, t1)`). Each read
 decodes every HDF5 chunk of `x, y, p, t` the window overlaps, so the event chunk size sets the
 cost of a window, while the writer's append rate and the file size depend on it too. This bench
 writes the same realistic event stream (about 1.3 Mev/s on 1280x720, the default sim rig's
@@ -223,7 +223,7 @@ def time_windows(path: Path, starts: NDArray[np.int64], window_us: int, legacy: 
             if legacy:
                 k = legacy_window(f, off, int(s), int(s) + window_us)
             else:
-                k = len(take.events(SENSOR, int(s), int(s) + window_us))
+                k = len(take.sensor(SENSOR).events(int(s), int(s) + window_us))
             if i >= 3:
                 wall.append(time.perf_counter() - w0)
                 cpu.append(time.thread_time() - c0)
@@ -244,7 +244,7 @@ def run_one(
     n, rate, rate_cpu, bpe = write_take(path, block, minutes * 60, chunk, codec, words)
     window_us = int(args.window_ms * 1000)
     with open_take(path) as take:
-        span = take.event_span(SENSOR)
+        span = take.sensor(SENSOR).span
     if span is None:
         raise RuntimeError(f"{path}: no events written")
     starts = np.random.default_rng(args.seed).integers(span[0], span[1] - window_us, args.windows + 3)

@@ -100,7 +100,7 @@ def run_cli(label: str, take: Path, args: list[str], timeout_s: float, cwd: Path
                 segments += len(json.loads(doc_path.read_text())["segments"])
             kept = sum(int(m.group(1)) for m in re.finditer(r"(\d+)/\d+ events kept", err if ok else ""))
     with Take(take) as t:
-        events = sum(t.event_count(s) for s in t.event_sensors)
+        events = sum(t.sensor(s).count for s in t.event_sensors)
     return Run(label, wall, peak[0] if peak else 0.0, events, kept, segments, ok, note)
 
 
@@ -167,7 +167,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="bench-reconstruct-"))
     take = a.take or capture(a.seconds, work / "takes")
     with Take(take) as t:
-        span = max((t.event_span(s) or (0, 0))[1] - (t.event_span(s) or (0, 0))[0] for s in t.event_sensors)
+        span = max((sp[1] - sp[0] if (sp := t.sensor(s).span) else 0) for s in t.event_sensors)
     print(
         f"take: {take} ({span / 1e6:.1f} s of events), {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}"
     )

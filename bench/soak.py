@@ -42,7 +42,7 @@ def _check_take(path: Path) -> dict[str, Any]:
         frames = {c: int(f[f"frames/{c}/images"].shape[0]) for c in f["frames"]}
         status = str(f.attrs["status"])
     with open_take(path) as take:  # either event layout (columns, EVT words)
-        events = sum(take.event_count(s) for s in take.event_sensors)
+        events = sum(take.sensor(s).count for s in take.event_sensors)
     emitted = int(report.get("pulses_emitted") or pulses)
     unreported = 0
     for cam, n in frames.items():

@@ -67,7 +67,7 @@ def main() -> None:
                 for sensor in take.event_sensors:
                     d = res.report.devices[sensor]
                     cmap = ClockMap(d.device_ref_us, d.rig_ref_us, d.rate, d.frac_us)
-                    t_rig = take.events(sensor).t
+                    t_rig = take.sensor(sensor).events().t
                     dev = truth.clocks[sensor]
                     true_us = (cmap.to_device(t_rig).astype(np.float64) - dev.offset_us) / dev.rate
                     _row(jitter, sensor, d, t_rig - box.at(true_us))

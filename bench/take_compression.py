@@ -112,7 +112,7 @@ def run_codec(codec: str, ev: EventArray, frames: list[NDArray[np.uint8]], out_d
     t0 = time.perf_counter()
     got = 0
     with open_take(path) as take:
-        for win in take.iter_events("ev0", 50_000):
+        for win in take.sensor("ev0").iter(50_000):
             got += len(win)
     t_rd = time.perf_counter() - t0
     if got != n:

@@ -107,7 +107,7 @@ def find_or_record(take_dir: Path, seconds: float) -> Path:
     takes = sorted(take_dir.glob("*.h5"), key=lambda p: p.stat().st_mtime)
     for path in reversed(takes):
         with Take(path) as take:
-            span = take.event_span(SENSOR) if SENSOR in take.event_sensors else None
+            span = take.sensor(SENSOR).span if SENSOR in take.event_sensors else None
             if span is not None and take.status == "complete" and span[1] - span[0] >= 0.9 * seconds * 1e6:
                 log.info("reusing %s", path)
                 return path
@@ -196,15 +196,15 @@ def voxel_micro(path: Path, windows: int) -> list[tuple[str, float, float]]:
     interleaved window by window, in an order rotated each window, so that on a shared host every
     row sees the same load and none always runs after the numpy one has flushed the caches."""
     with Take(path) as take:
-        span = take.event_span(SENSOR)
+        span = take.sensor(SENSOR).span
         assert span is not None
-        w, h = take.geometry(SENSOR)
+        w, h = take.sensor(SENSOR).geometry
         rng = np.random.default_rng(1)
         starts = rng.integers(span[0], span[1] - WINDOW_US, windows)
         evs, read = [], []
         for t0 in starts:
             s = time.perf_counter()
-            evs.append(take.events(SENSOR, int(t0), int(t0) + WINDOW_US))
+            evs.append(take.sensor(SENSOR).events(int(t0), int(t0) + WINDOW_US))
             read.append(time.perf_counter() - s)
     rows = [("Take.events (read the window)", statistics.median(read) * 1e3, min(read) * 1e3)]
     buf = np.zeros((BINS, h, w), np.float32)
@@ -251,7 +251,7 @@ def run_model_cells(args: argparse.Namespace, path: Path, device: torch.device) 
     """Model alone on a resident batch, then fed by the baseline, worker and device loaders."""
     step = ModelStep(BINS, device)
     with Take(path) as take:
-        w, h = take.geometry(SENSOR)
+        w, h = take.sensor(SENSOR).geometry
     x = torch.randn(args.batch, BINS, h, w, device=device)
     for _ in range(3):
         step(x)

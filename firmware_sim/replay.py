@@ -187,8 +187,8 @@ class Recording:
                     sync = report.devices.get(name)
                     if sync is None:
                         raise ConfigError(f"replay {path}: event sensor {name} has no clock fit")
-                    trig = take.triggers(name)
-                    w, h = take.geometry(name)
+                    series = take.sensor(name)
+                    trig, (w, h) = series.triggers, series.geometry
                     self.sensors[name] = SensorTrack(
                         name,
                         w,
@@ -198,7 +198,7 @@ class Recording:
                         np.asarray(f[f"{trigger_in_group(name)}/{TriggerEdges.T_DEVICE}"][...], np.int64),
                         trig.p,
                         trig.channel,
-                        take.event_count(name),
+                        series.count,
                     )
 
     @staticmethod
@@ -606,7 +606,7 @@ class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
         now = self._world.now_us()
         self._t_prev = None if shift is None else now
         self._buf = EventArray.empty()
-        self._pos = 0 if shift is None else self._take.event_index(self._name, math.ceil(now + shift))
+        self._pos = 0 if shift is None else self._take.sensor(self._name).index(math.ceil(now + shift))
         self._base = reset_base(self._clock_reset, self._world, self._name, self._track.cmap, shift, now)
         self._final = False
         self._hold = self._world.hold() if self._world.virtual else None
@@ -680,7 +680,7 @@ class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
         n = self._track.n_events
         while self._pos < n and (len(self._buf) == 0 or int(self._buf.t[-1]) < hi_rig):
             stop = min(self._pos + _READ_AHEAD, n)
-            block = self._take.events_by_index(self._name, self._pos, stop)
+            block = self._take.sensor(self._name).by_index(self._pos, stop)
             self._buf = EventArray.concatenate([self._buf, block])
             self._pos = stop
         k = int(np.searchsorted(self._buf.t, hi_rig, side="left"))

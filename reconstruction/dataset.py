@@ -1,17 +1,18 @@
 """Training-job reader: random time windows of a take as arrays, for a 4D trainer.
 
 The layering rule keeps this package free of rigd.take, so the reader works on any object with
-the `TakeLike` shape (rigd.take.reader.Take has it): `events(sensor, t0, t1)`, `geometry(sensor)`,
-`event_span(sensor)`, `frames(camera)` (with `timestamps_us` and indexing giving an object with
-`.image` or an array), and optionally `calibration` (a dict). Each sample holds the voxel grid of
+the `TakeLike` shape (rigd.take.reader.Take has it): `sensor(name)` giving one sensor's events
+(`SensorLike`, as rigd.take's EventSeries: `events(t0, t1)`, `geometry`, `span`),
+`frames(camera)` (with `timestamps_us` and indexing giving an object with `.image` or an
+array), and optionally `calibration` (a dict). Each sample holds the voxel grid of
 the window, the camera frames inside it with their timestamps, the window bounds, and the
 calibration when the take carries one.
 
 Windows start uniformly at random, or (`sampling="events"`) with probability proportional to
 the events they hold, as the 4D E-SloMo paper's event-weighted sampling does, so training sees
 the fast, event-dense motion more often. The weights come from a coarse event histogram
-(`event_histogram(sensor, bin_us)`, which `Take` answers from the ms index), never from the
-events themselves.
+(`sensor(name).histogram(bin_us)`, which `EventSeries` answers from the ms index), never from
+the events themselves.
 """
 
 from __future__ import annotations
@@ -30,12 +31,18 @@ from rigd.core.events import EventArray
 log = logging.getLogger(__name__)
 
 
+class SensorLike(Protocol):
+    """One event sensor's events (rigd.take's EventSeries); `histogram(bin_us)` optional."""
+
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> EventArray: ...
+    @property
+    def geometry(self) -> tuple[int, int]: ...
+    @property
+    def span(self) -> tuple[int, int] | None: ...
+
+
 class TakeLike(Protocol):
-    def events(
-        self, sensor: str, t_start_us: int | None = None, t_end_us: int | None = None
-    ) -> EventArray: ...
-    def geometry(self, sensor: str) -> tuple[int, int]: ...
-    def event_span(self, sensor: str) -> tuple[int, int] | None: ...
+    def sensor(self, name: str) -> SensorLike: ...
     def frames(self, camera: str) -> Any: ...
 
 
@@ -59,7 +66,7 @@ class WindowSampler:
     Random but reproducible (`seed`); `n_samples` windows, or endless with None. `sampling`:
     `"uniform"` start times, or `"events"`: a start's probability is proportional to the
     events in its window, counted in bins of `bin_us` (default: a tenth of the window, whole
-    ms), so the weighting is exact to one bin. Needs `take.event_histogram`.
+    ms), so the weighting is exact to one bin. Needs `take.sensor(sensor).histogram`.
     """
 
     def __init__(
@@ -75,7 +82,8 @@ class WindowSampler:
         sampling: Literal["uniform", "events"] = "uniform",
         bin_us: int | None = None,
     ) -> None:
-        span = take.event_span(sensor)
+        events = take.sensor(sensor)
+        span = events.span
         if span is None or span[1] - span[0] < window_us:
             raise ValueError(f"sensor {sensor!r} has no event span of at least {window_us} us")
         if sampling not in ("uniform", "events"):
@@ -84,7 +92,7 @@ class WindowSampler:
         self.window_us, self.bins, self.n_samples = int(window_us), int(bins), n_samples
         self.span = (int(span[0]), int(span[1]))
         self.sampling = sampling
-        self.width, self.height = take.geometry(sensor)
+        self.width, self.height = events.geometry
         self._rng = np.random.default_rng(seed)
         self._weighted: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]] | None = None
         if sampling == "events":
@@ -94,10 +102,10 @@ class WindowSampler:
         """Per histogram bin: the first and last start time in it that keeps the window inside
         the span, and the cumulative probability of drawing a start there (its window's events
         times the share of the bin that is a valid start)."""
-        hist = getattr(self.take, "event_histogram", None)
+        hist = getattr(self.take.sensor(self.sensor), "histogram", None)
         if hist is None:
-            raise ValueError("sampling='events' needs a take with event_histogram(sensor, bin_us)")
-        t0, counts = hist(self.sensor, int(bin_us))
+            raise ValueError("sampling='events' needs a take whose sensor(name) has histogram(bin_us)")
+        t0, counts = hist(int(bin_us))
         counts = np.asarray(counts, np.int64)
         k = np.arange(counts.size, dtype=np.int64)
         per_window = -(-self.window_us // bin_us)  # bins a window starting at a bin's start covers
@@ -121,7 +129,7 @@ class WindowSampler:
 
     def sample_at(self, t0: int) -> Sample:
         t1 = t0 + self.window_us
-        ev = self.take.events(self.sensor, t0, t1)
+        ev = self.take.sensor(self.sensor).events(t0, t1)
         vox = voxel_grid(ev, self.width, self.height, self.bins, t0, t1 - 1)
         frames: NDArray[Any] = np.zeros((0,), np.uint8)
         ftimes = np.zeros(0, np.int64)

@@ -144,7 +144,7 @@ class WindowDataset:
         take = self.take()
         t0 = int(self.starts[i])
         t1 = t0 + self.window_us
-        ev = take.events(self.sensor, t0, t1)
+        ev = take.sensor(self.sensor).events(t0, t1)
         frames, ftimes = self._frames(take, t0, t1)
         item: dict[str, Any] = {
             "frames": torch.from_numpy(np.ascontiguousarray(frames)),

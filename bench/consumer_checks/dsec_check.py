@@ -1,5 +1,5 @@
 """DSEC's EventSlicer (scripts/utils/eventslicer.py at the pinned commit) on rigd's dsec exports:
-every reference window identical to `Take.events`, times in uint32 without wrapping.
+every reference window identical to `take.sensor(name).events`, times in uint32 without wrapping.
 
 usage: python dsec_check.py DSEC_REPO EXPORT_DIR REFERENCE_NPZ [EXPORT_DIR REFERENCE_NPZ ...]
 """

@@ -55,8 +55,8 @@ def sensor_results(
         times = cam.timestamps_us + cam[0].exposure_us // 2
         for sensor in take.event_sensors:
             out[sensor] = calibrate_events(
-                take.events(sensor),
-                take.geometry(sensor),
+                take.sensor(sensor).events(),
+                take.sensor(sensor).geometry,
                 times,
                 spec,
                 sensor=sensor,

@@ -341,14 +341,15 @@ def _event_sensor_views(
 ) -> tuple[dict[str, Detection], IntrinsicsResult | None]:
     """The board in frames of one sensor reconstructed at the pulse instants, keyed by pulse; None
     when the sensor has no events or the board is in no reconstruction (it leaves the rig)."""
-    ev = take.events(sensor)
+    series = take.sensor(sensor)
+    ev = series.events()
     if len(ev) == 0:
         log.warning("take %s: event sensor %s has no events; left out of the rig", take.path, sensor)
         return {}, None
     names = [f"{sensor}#{k}" for k in keys]
     rec = detect_in_reconstructions(
         ev,
-        take.geometry(sensor),
+        series.geometry,
         times,
         board,
         params=source.event_params,
@@ -387,7 +388,7 @@ def event_times(take_path: Path, sensor: str, rate_hz: float | None = None) -> N
         if rate_hz is not None:
             if rate_hz <= 0:
                 raise RigdError(f"--rate must be > 0 Hz, got {rate_hz}")
-            span = take.event_span(sensor)
+            span = take.sensor(sensor).span
             if span is None:
                 raise RigdError(f"{take_path}: event sensor {sensor!r} has no events")
             return np.arange(span[0], span[1], 1e6 / rate_hz).astype(np.int64)
@@ -395,7 +396,7 @@ def event_times(take_path: Path, sensor: str, rate_hz: float | None = None) -> N
             cam = take.frames(take.cameras[0])
             if len(cam):
                 return np.asarray(cam.timestamps_us + cam[0].exposure_us // 2, np.int64)
-        trig = take.triggers(sensor)
+        trig = take.sensor(sensor).triggers
         return np.asarray(trig.t[trig.p == 1], np.int64)
 
 
@@ -466,8 +467,8 @@ def calibrate_take_events(
     times = event_times(take_path, sensor, rate_hz)
     progress(ProgressUpdate("read", f"{sensor}: events of {take_path.name}"))
     with open_take(take_path) as take:
-        events = take.events(sensor)
-        size = take.geometry(sensor)
+        series = take.sensor(sensor)
+        events, size = series.events(), series.geometry
     progress(ProgressUpdate("check", f"{sensor}: is the board in a few frames over the take?"))
     _check_board_seen(take_path, sensor, events, size, times, board, methods, params)
     return calibrate_events(

@@ -242,11 +242,12 @@ def take_to_recording(
             sensor = take.event_sensors[0]
         if sensor not in take.event_sensors:
             raise ConvertError(f"{src} has no event sensor {sensor!r}; it has {take.event_sensors}")
-        width, height = take.geometry(sensor)
-        total = take.event_count(sensor)
-        triggers = take.triggers(sensor)
+        series = take.sensor(sensor)
+        width, height = series.geometry
+        total = series.count
+        triggers = series.triggers
         if dst.suffix.lower() == ".dat":
-            ev = take.events_by_index(sensor, 0, total)
+            ev = series.by_index(0, total)
             write_dat(dst, ev, width=width, height=height)
             return len(ev)
         encoder: Evt3Encoder | Evt2Encoder | Evt21Encoder
@@ -264,7 +265,7 @@ def take_to_recording(
                 RawHeader(fmt=fmt, width=width, height=height, fields={"converted_from": src.name}).to_bytes()
             )
             for start in range(0, max(total, 1), _CHUNK_EVENTS):
-                ev = take.events_by_index(sensor, start, min(start + _CHUNK_EVENTS, total))
+                ev = series.by_index(start, min(start + _CHUNK_EVENTS, total))
                 last = start + len(ev) >= total
                 t_hi = int(ev.t[-1]) if len(ev) else None
                 upto = (

@@ -344,7 +344,7 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
             ts = take.frames(cam).timestamps_us
             if ts.size:
                 cam_spans.append((int(ts[0]), int(ts[-1])))
-        ev_spans = [span for sen in take.event_sensors if (span := take.event_span(sen))]
+        ev_spans = [span for sen in take.event_sensors if (span := take.sensor(sen).span)]
         if not cam_spans and not ev_spans:
             raise TakeError(f"{take.path}: nothing to draw: no frames and no events")
         t0, t1 = _sample_span(cam_spans, ev_spans, rig)
@@ -352,7 +352,7 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
         times = np.linspace(t0, t1, n_frames + 2)[1:-1].astype(np.int64)
         tile_w = max(32, _MAX_SHEET_WIDTH // n_frames)
         shapes = [take.frames(c).shape for c in take.cameras] + [
-            take.geometry(s)[::-1] for s in take.event_sensors
+            take.sensor(s).geometry[::-1] for s in take.event_sensors
         ]
         aspect = max(sh[0] / sh[1] for sh in shapes)
         tile_h = max(24, min(_MAX_TILE_HEIGHT, round(tile_w * aspect)))
@@ -371,15 +371,16 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
                 tiles.append(_tile(_to_bgr8(fr.image), tile_w, tile_h, label))
             rows.append(np.hstack(tiles))
         for sen in take.event_sensors:
-            width, height = take.geometry(sen)
+            series = take.sensor(sen)
+            width, height = series.geometry
             tiles = []
             for t in times:
                 if rig:
-                    ev = take.events(sen, int(t) - _EVENT_WINDOW_US // 2, int(t) + _EVENT_WINDOW_US // 2)
+                    ev = series.events(int(t) - _EVENT_WINDOW_US // 2, int(t) + _EVENT_WINDOW_US // 2)
                 else:
-                    n = take.event_count(sen)
+                    n = series.count
                     k = int((t - t0) * max(n - 1, 0) // max(t1 - t0, 1))
-                    ev = take.events_by_index(sen, k, k + 100_000)
+                    ev = series.by_index(k, k + 100_000)
                 img = event_image(ev.x, ev.y, ev.p, width, height)
                 t_ev = int(t) if rig or not len(ev) else int(ev.t[0])
                 label = f"{sen} t={t_ev / 1e6:.3f}s {len(ev)} ev ({domain})"

@@ -249,13 +249,13 @@ def _mid_exposures(path: Path, camera: str) -> NDArray[np.int64]:
 def _plan(path: Path, o: ReconstructOptions) -> _Plan:
     with Take(path) as take:
         sensors = take.event_sensors
-        geometry = {s: take.geometry(s) for s in sensors}
+        geometry = {s: take.sensor(s).geometry for s in sensors}
         blocks: dict[str, list[tuple[int, int]]] = {}
         spans = []
         for s in sensors:
-            n = take.event_count(s)
+            n = take.sensor(s).count
             blocks[s] = [(lo, min(lo + o.block_events, n)) for lo in range(0, n, o.block_events)]
-            span = take.event_span(s) if n else None
+            span = take.sensor(s).span if n else None
             if span is not None:
                 spans.append(span)
         cameras = [c for c in take.cameras if len(take.frames(c))]

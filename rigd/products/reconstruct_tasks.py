@@ -118,16 +118,17 @@ def _read_filtered(
     """(kept events of [lo, hi), all of them), checking time order and warming the filter up."""
     path = take.path
     start = max(lo - 1, 0)  # one event before the block: the order check then covers every pair
-    ev = take.events_by_index(sensor, start, hi)
+    series = take.sensor(sensor)
+    ev = series.by_index(start, hi)
     _check_order(path, sensor, ev.t, start)
     ev = ev[lo - start :]
     if len(ev) == 0 or not filt.enabled:
         return ev, ev
-    w, h = take.geometry(sensor)
+    w, h = series.geometry
     warm = EventArray.empty()
     if lo > 0:
-        j = min(take.event_index(sensor, int(ev.t[0]) - filt.warmup_us), lo)
-        warm = take.events_by_index(sensor, j, lo)
+        j = min(series.index(int(ev.t[0]) - filt.warmup_us), lo)
+        warm = series.by_index(j, lo)
     keep = filt.make(w, h).mask(EventArray.concatenate([warm, ev]) if len(warm) else ev)
     return ev[keep[len(warm) :]], ev
 
@@ -166,7 +167,7 @@ def map_block(
     """
     with Take(path) as take:
         kept, block = _read_filtered(take, sensor, lo, hi, filt)
-        w, h = take.geometry(sensor)
+        w, h = take.sensor(sensor).geometry
     return BlockMaps(sensor, i0, interval_maps(kept, w, h, cuts, scale), len(block))
 
 
@@ -193,15 +194,16 @@ def snapshot(
     the whole segment once, in bounded pieces.
     """
     with Take(path) as take:
-        w, h = take.geometry(sensor)
-        lo = take.event_index(sensor, t_from_us - filt.warmup_us)
-        start = take.event_index(sensor, t_from_us)
-        hi = take.event_index(sensor, t_us)
+        series = take.sensor(sensor)
+        w, h = series.geometry
+        lo = series.index(t_from_us - filt.warmup_us)
+        start = series.index(t_from_us)
+        hi = series.index(t_us)
         baf = filt.make(w, h) if filt.enabled else None
         integ = EventIntegrator(w, h, method, contrast=contrast, cutoff_hz=cutoff_hz, t0_us=t_from_us)  # type: ignore[arg-type]
         for a in range(lo, hi, block_events):
             b = min(a + block_events, hi)
-            ev = take.events_by_index(sensor, a, b)
+            ev = series.by_index(a, b)
             _check_order(path, sensor, ev.t, a)
             keep = baf.mask(ev) if baf is not None else np.ones(len(ev), np.bool_)
             keep[: max(0, start - a)] = False  # the filter's warm-up only

@@ -1,6 +1,7 @@
 """Take files: writing (capture pipeline), reading (training jobs), validation and recovery."""
 
 from rigd.core.errors import TakeInUseError, TakeTruncatedError
+from rigd.take.event_series import EventSeries
 from rigd.take.frame_series import FrameSeries
 from rigd.take.h5file import compression_options
 from rigd.take.reader import (
@@ -21,6 +22,7 @@ __all__ = [
     "CameraSummary",
     "DeviceWriteStats",
     "EventSensorSummary",
+    "EventSeries",
     "FrameSeries",
     "RecoveryReport",
     "Take",

@@ -49,7 +49,7 @@ def test_reconstruction_shows_the_board(board_take: Path) -> None:
     with open_take(board_take) as take:
         cam = take.frames("cam1")
         t = int(cam.timestamps_us[40] + cam[40].exposure_us // 2)
-        events, size = take.events("ev0"), take.geometry("ev0")
+        events, size = take.sensor("ev0").events(), take.sensor("ev0").geometry
     p = ReconstructionParams()
     hpf = reconstruct(events, size, [t], "hpf", p)
     assert detect(to_uint8(hpf[0]), parse_board(BOARD)) is not None

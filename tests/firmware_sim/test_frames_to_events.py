@@ -232,7 +232,7 @@ def test_simulate_to_take_roundtrip(tmp_path: Path) -> None:
     assert min(seen[1:]) >= 2
     with open_take(out) as take:
         assert take.status == "complete"
-        ev = take.events(EVENT_SENSOR_NAME)
+        ev = take.sensor(EVENT_SENSOR_NAME).events()
         np.testing.assert_array_equal(ev.t, expected.t)
         np.testing.assert_array_equal(ev.x, expected.x)
         np.testing.assert_array_equal(ev.p, expected.p)

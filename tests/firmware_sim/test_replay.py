@@ -45,11 +45,11 @@ def _same_take(a: Take, b: Take) -> None:
             assert np.array_equal(fa[i].image, fb[i].image)
             assert fa[i].frame_counter == fb[i].frame_counter
     for sensor in a.event_sensors:
-        ea, eb = a.events(sensor), b.events(sensor)
+        ea, eb = a.sensor(sensor).events(), b.sensor(sensor).events()
         assert len(ea) == len(eb) > 0
         for k in "txyp":
             assert np.array_equal(getattr(ea, k), getattr(eb, k)), (sensor, k)
-        assert np.array_equal(a.triggers(sensor).t, b.triggers(sensor).t)
+        assert np.array_equal(a.sensor(sensor).triggers.t, b.sensor(sensor).triggers.t)
     ra, rb = a.sync_report, b.sync_report
     assert ra is not None
     assert rb is not None

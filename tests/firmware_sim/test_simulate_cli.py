@@ -51,8 +51,8 @@ def test_simulate_folder_to_take(tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     assert "5 frames" in res.output
     with open_take(out) as take:
-        assert take.geometry("ev0") == (30, 20)
-        assert take.event_count("ev0") > 0
+        assert take.sensor("ev0").geometry == (30, 20)
+        assert take.sensor("ev0").count > 0
         assert len(take.frames("cam0")) == 5
         model = take.config["simulator"]["pixel_model"]
         assert (model["threshold"], model["sigma"], model["seed"]) == (0.2, 0.02, 4)
@@ -118,7 +118,7 @@ def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: P
     assert res.exit_code == 0, res.output
     with open_take(out) as take:
         assert take.event_sensors == ["ev0"]
-        assert len(take.events("ev0")) > 0
+        assert len(take.sensor("ev0").events()) > 0
 
 
 @pytest.mark.slow
@@ -132,7 +132,7 @@ def test_simulate_to_evt3_raw_decodes_to_the_take_events(tmp_path: Path) -> None
     assert res.exit_code == 0, res.output
     hdr, dec = read_raw(tmp_path / "ev.raw", strict=True)
     with open_take(tmp_path / "ev.h5") as take:
-        ref = take.events("ev0")
+        ref = take.sensor("ev0").events()
     assert (hdr.width, hdr.height) == take_geometry(tmp_path / "ev.h5")
     np.testing.assert_array_equal(dec.events.t, ref.t)
     np.testing.assert_array_equal(dec.events.x, ref.x)
@@ -141,4 +141,4 @@ def test_simulate_to_evt3_raw_decodes_to_the_take_events(tmp_path: Path) -> None
 
 def take_geometry(path: Path) -> tuple[int, int]:
     with open_take(path) as take:
-        return take.geometry("ev0")
+        return take.sensor("ev0").geometry

@@ -131,7 +131,7 @@ def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -
         for i in (0, 7, 14):
             assert np.array_equal(fa[i].image, fb[i].image)
     for sensor in ("ev0", "ev1"):
-        ea, eb = a.events(sensor), b.events(sensor)
+        ea, eb = a.sensor(sensor).events(), b.sensor(sensor).events()
         assert len(ea) > 10_000
         assert np.array_equal(ea.t, eb.t)
         assert np.array_equal(ea.x, eb.x)

@@ -30,14 +30,19 @@ class FakeTake:
             np.sort(rng.integers(0, 10**6, n)),
         )
 
-    def events(self, sensor: str, t_start_us: int | None = None, t_end_us: int | None = None) -> EventArray:
+    def sensor(self, name: str) -> FakeTake:  # its one sensor's events are the take's
+        return self
+
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> EventArray:
         t = self._ev.t
         return self._ev[(t >= (t_start_us or 0)) & (t < (t_end_us or 2**62))]
 
-    def geometry(self, sensor: str) -> tuple[int, int]:
+    @property
+    def geometry(self) -> tuple[int, int]:
         return 6, 4
 
-    def event_span(self, sensor: str) -> tuple[int, int] | None:
+    @property
+    def span(self) -> tuple[int, int] | None:
         return int(self._ev.t[0]), int(self._ev.t[-1])
 
     def frames(self, camera: str) -> FakeSeries:

@@ -65,35 +65,35 @@ def test_event_weighted_windows_follow_activity(take_path: Path) -> None:
         for drawn in (s_ev, s_uni):
             assert drawn.min() >= T0
             assert drawn.max() <= T1 - 1 - WINDOW
-        # Iterating draws the same way, and each window holds what Take.events says.
+        # Iterating draws the same way, and each window holds what EventSeries.events says.
         samples = list(WindowSampler(take, "ev0", window_us=WINDOW, bins=2, n_samples=40, sampling="events"))
         assert first_half_share(np.array([s.t0_us for s in samples])) > 0.75
         s = samples[0]
         assert s.voxels.shape == (2, H, W)
-        assert (np.abs(s.voxels).sum() > 0) == (len(take.events("ev0", s.t0_us, s.t1_us)) > 0)
+        assert (np.abs(s.voxels).sum() > 0) == (len(take.sensor("ev0").events(s.t0_us, s.t1_us)) > 0)
 
 
 def test_event_histogram_matches_the_events(take_path: Path) -> None:
     with open_take(take_path) as take:
-        t = take.events("ev0").t
+        t = take.sensor("ev0").events().t
         for bin_us in (1000, 5000, 7000):
-            start, counts = take.event_histogram("ev0", bin_us)
+            start, counts = take.sensor("ev0").histogram(bin_us)
             edges = start + bin_us * np.arange(counts.size + 1)
             np.testing.assert_array_equal(counts, np.histogram(t, edges)[0])
             assert counts.sum() == t.size
         with pytest.raises(TakeError, match="multiple of 1000"):
-            take.event_histogram("ev0", 1500)
+            take.sensor("ev0").histogram(1500)
 
 
 def test_event_sampling_needs_a_histogram() -> None:
     class NoHistogram:
-        def event_span(self, sensor: str) -> tuple[int, int]:
-            return 0, 1_000_000
+        def sensor(self, name: str) -> NoHistogram:
+            return self
 
-        def geometry(self, sensor: str) -> tuple[int, int]:
-            return W, H
+        span = (0, 1_000_000)
+        geometry = (W, H)
 
-    with pytest.raises(ValueError, match="event_histogram"):
+    with pytest.raises(ValueError, match="histogram"):
         WindowSampler(NoHistogram(), "ev0", sampling="events")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="sampling"):
         WindowSampler(NoHistogram(), "ev0", sampling="busy")  # type: ignore[arg-type]

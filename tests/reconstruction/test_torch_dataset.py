@@ -47,14 +47,19 @@ class DenseTake:
             T0 + np.sort(rng.integers(0, 10**6, n)),
         )
 
-    def events(self, sensor: str, t_start_us: int | None = None, t_end_us: int | None = None) -> EventArray:
+    def sensor(self, name: str) -> DenseTake:  # its one sensor's events are the take's
+        return self
+
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> EventArray:
         t = self.ev.t
         return self.ev[(t >= (t_start_us or 0)) & (t < (t_end_us or 2**62))]
 
-    def geometry(self, sensor: str) -> tuple[int, int]:
+    @property
+    def geometry(self) -> tuple[int, int]:
         return W, H
 
-    def event_span(self, sensor: str) -> tuple[int, int] | None:
+    @property
+    def span(self) -> tuple[int, int] | None:
         return int(self.ev.t[0]), int(self.ev.t[-1])
 
     def frames(self, camera: str) -> FrameSeries:
@@ -133,7 +138,7 @@ def test_device_voxels_match_the_numpy_reference_of_each_window() -> None:
     (batch,) = loader_batches(ds, workers=0, batch_size=6)
     assert batch["frames"].numel() == 0
     for i, (t0, t1) in enumerate(zip(batch["t0_us"].tolist(), batch["t1_us"].tolist(), strict=True)):
-        ev = take.events("ev0", t0, t1)
+        ev = take.sensor("ev0").events(t0, t1)
         assert_voxel_parity(batch["voxels"][i].numpy(), voxel_grid_bincount(ev, W, H, 5, t0, t1 - 1))
     assert int(batch["events"].counts.sum()) == sum(
         int(((take.ev.t >= a) & (take.ev.t < b) & (take.ev.x < W)).sum())
@@ -183,7 +188,7 @@ def test_without_torch_the_dataset_says_how_to_install_it() -> None:
 @pytest.mark.slow
 def test_sim_take_through_device_workers(tmp_path: Path) -> None:
     """A take recorded on the simulator's virtual clock, read through two workers that each open
-    it: the device-built voxels equal the reference on `Take.events` of each window."""
+    it: the device-built voxels equal the reference on `take.sensor(name).events` of each window."""
     pytest.importorskip("torch")
     from rigd.app.capture import run_capture
     from rigd.app.config import default_sim_rig
@@ -203,7 +208,7 @@ def test_sim_take_through_device_workers(tmp_path: Path) -> None:
         for b in batches:
             assert int(b["events_off_sensor"].sum()) == 0
             for i, (t0, t1) in enumerate(zip(b["t0_us"].tolist(), b["t1_us"].tolist(), strict=True)):
-                ev = take.events("ev0", t0, t1)
+                ev = take.sensor("ev0").events(t0, t1)
                 total += len(ev)
                 assert_voxel_parity(b["voxels"][i].numpy(), voxel_grid_bincount(ev, 160, 90, 5, t0, t1 - 1))
                 times = take.frames("cam0").timestamps_us

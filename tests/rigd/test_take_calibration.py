@@ -76,6 +76,6 @@ def test_store_rejects_unknown_devices_and_keeps_the_take(take_path: Path) -> No
         assert take.calibration is not None
         np.testing.assert_allclose(take.calibration["ev1"]["t"], [0.2, 0.0, 0.0])
         assert take.calibration["ev1"]["result"]["source"] == "again"
-        assert len(take.events("ev0")) > 0
+        assert len(take.sensor("ev0").events()) > 0
     shown = CliRunner().invoke(app, ["inspect", str(take_path)]).stdout
     assert "calibration: ev1 pose only, posed in the rig frame (again)" in shown

@@ -51,7 +51,7 @@ def _check_readable(path: Path, frames: int, events: int) -> None:
     res = CliRunner().invoke(app, ["inspect", str(path), "--json"])
     assert res.exit_code in (0, 1), res.output
     with Take(path) as take:
-        assert len(take.events("ev0").t) == (N * 300 if events else 0)
+        assert len(take.sensor("ev0").events().t) == (N * 300 if events else 0)
         fs = take.frames("cam0")
         assert len(fs) == (N if frames else 0)
         assert len(fs.timestamps_us) == len(fs)
@@ -82,7 +82,7 @@ def test_finalize_with_empty_devices(
     _check_readable(path, frames, events)
     with Take(path) as take:
         assert take.status == "complete"
-        ev = take.events("ev0")
+        ev = take.sensor("ev0").events()
         if events:
             np.testing.assert_array_equal(ev.t[:300], step(0).events.t - OFF_EV)
         rep = take.sync_report

@@ -81,21 +81,21 @@ def test_words_and_columns_read_the_same(
         with h5py.File(paths["evt_words"]) as f:
             assert f["events/ev0"].attrs["storage"] == "evt_words"
             assert "x" not in f["events/ev0"]
-        assert words.event_count("ev0") == cols.event_count("ev0") == len(ev)
-        assert_same(words.events("ev0"), rig(ev))
-        assert_same(words.events("ev0", int(lo), int(hi)), cols.events("ev0", int(lo), int(hi)))
-        assert_same(words.events("ev0", int(lo)), cols.events("ev0", int(lo)))
-        assert_same(words.events("ev0", None, int(hi)), cols.events("ev0", None, int(hi)))
+        assert words.sensor("ev0").count == cols.sensor("ev0").count == len(ev)
+        assert_same(words.sensor("ev0").events(), rig(ev))
+        assert_same(words.sensor("ev0").events(int(lo), int(hi)), cols.sensor("ev0").events(int(lo), int(hi)))
+        assert_same(words.sensor("ev0").events(int(lo)), cols.sensor("ev0").events(int(lo)))
+        assert_same(words.sensor("ev0").events(None, int(hi)), cols.sensor("ev0").events(None, int(hi)))
         for t in (0, int(lo), int(lo) + 1, int(hi), 10**12):
-            assert words.event_index("ev0", t) == cols.event_index("ev0", t)
-        assert_same(words.events_by_index("ev0", 1234, 56789), cols.events_by_index("ev0", 1234, 56789))
-        assert words.event_span("ev0") == cols.event_span("ev0")
-        o1, c1 = words.event_histogram("ev0", 10_000)
-        o2, c2 = cols.event_histogram("ev0", 10_000)
+            assert words.sensor("ev0").index(t) == cols.sensor("ev0").index(t)
+        assert_same(words.sensor("ev0").by_index(1234, 56789), cols.sensor("ev0").by_index(1234, 56789))
+        assert words.sensor("ev0").span == cols.sensor("ev0").span
+        o1, c1 = words.sensor("ev0").histogram(10_000)
+        o2, c2 = cols.sensor("ev0").histogram(10_000)
         assert o1 == o2
         np.testing.assert_array_equal(c1, c2)
-        a = list(words.iter_events("ev0", 50_000))
-        b = list(cols.iter_events("ev0", 50_000))
+        a = list(words.sensor("ev0").iter(50_000))
+        b = list(cols.sensor("ev0").iter(50_000))
         assert len(a) == len(b)
         for x, y in zip(a, b, strict=True):
             assert_same(x, y)
@@ -112,11 +112,11 @@ def test_window_clips_what_a_straddling_packet_brought(
     inside = rig(ev)
     inside = inside[(inside.t >= lo) & (inside.t < hi)]
     with open_take(tmp_path / "w.h5") as take:
-        assert take.event_count("ev0") == len(inside)
-        assert_same(take.events("ev0"), inside)
-        assert_same(take.events("ev0", lo - 10_000, lo + 20_000), inside[inside.t < lo + 20_000])
-        assert take.event_span("ev0") == (int(inside.t[0]), int(inside.t[-1]))
-        assert int(take.event_histogram("ev0", 1000)[1].sum()) == len(inside)
+        assert take.sensor("ev0").count == len(inside)
+        assert_same(take.sensor("ev0").events(), inside)
+        assert_same(take.sensor("ev0").events(lo - 10_000, lo + 20_000), inside[inside.t < lo + 20_000])
+        assert take.sensor("ev0").span == (int(inside.t[0]), int(inside.t[-1]))
+        assert int(take.sensor("ev0").histogram(1000)[1].sum()) == len(inside)
     # What was stored but lies outside the window is written down: stored = before + in + after.
     all_rig = rig(ev)
     with h5py.File(tmp_path / "w.h5") as f:
@@ -133,7 +133,7 @@ def test_real_gen41_stream_round_trips(tmp_path: Path) -> None:
     whole = EventArray.concatenate([p.events for p in packets])
     write(tmp_path / "r.h5", packets, "evt_words", flush_every=3)
     with open_take(tmp_path / "r.h5") as take:
-        assert_same(take.events("ev0"), rig(whole))
+        assert_same(take.sensor("ev0").events(), rig(whole))
         with h5py.File(tmp_path / "r.h5") as f:
             stored = f["events/ev0/evt_words"]
             assert stored.shape[0] == sum(len(p.raw.data) for p in packets if p.raw is not None)
@@ -160,7 +160,7 @@ def test_words_stored_uncompressed_while_behind_read_the_same(tmp_path: Path) ->
     w.finalize({"ev0": CMAP}, {}, REPORT)
     w.close()
     with open_take(tmp_path / "u.h5") as take:
-        assert_same(take.events("ev0"), rig(whole))
+        assert_same(take.sensor("ev0").events(), rig(whole))
     with h5py.File(tmp_path / "u.h5") as f:
         words = f["events/ev0/evt_words"]
         masks = [words.id.get_chunk_info(i).filter_mask for i in range(words.id.get_num_chunks())]
@@ -184,8 +184,8 @@ def test_unfinalized_take_reads_in_device_time_with_its_tail(
     w.flush()
     with open_take(path) as take:
         n = sum(len(p.events) for p in packets[:5])
-        assert take.event_count("ev0") == n
-        assert_same(take.events("ev0"), ev[:n])
+        assert take.sensor("ev0").count == n
+        assert_same(take.sensor("ev0").events(), ev[:n])
     w.close()
 
 
@@ -199,7 +199,7 @@ def test_bad_batch_is_refused_whole(tmp_path: Path, synthetic: tuple[EventArray,
         w.append_packet("ev0", packets[0])
     w.close()
     with open_take(path) as take:
-        assert take.event_count("ev0") == 0
+        assert take.sensor("ev0").count == 0
 
 
 def test_refused_batch_mid_stream_leaves_no_bytes(
@@ -224,7 +224,7 @@ def test_refused_batch_mid_stream_leaves_no_bytes(
         index = f["events/ev0/evt_index"][...]
         assert index[1:, 6].min() == 0  # the row after the refused batch does not follow on
         assert f["events/ev0/evt_words"].shape[0] == sum(len(p.raw.data) for p in packets if p.raw)
-        assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in packets])))
+        assert_same(take.sensor("ev0").events(), rig(EventArray.concatenate([p.events for p in packets])))
 
 
 @pytest.mark.parametrize("fmt", [None, "dat"])
@@ -262,7 +262,7 @@ def test_re_tied_clock_shift_is_applied_on_read(
     write(tmp_path / "s.h5", moved, "evt_words", width=640, height=480)
     with open_take(tmp_path / "s.h5") as take, h5py.File(tmp_path / "s.h5") as f:
         assert set(f["events/ev0/evt_index"][:, 5].tolist()) == {0, shift}
-        assert_same(take.events("ev0"), rig(EventArray.concatenate([p.events for p in moved])))
+        assert_same(take.sensor("ev0").events(), rig(EventArray.concatenate([p.events for p in moved])))
 
 
 def test_chunks_carry_their_decoders_geometry_and_a_take_of_another_one_checks_again(
@@ -315,7 +315,7 @@ def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(
     w.close()
     with open_take(path) as take:
         assert take.status == "failed"
-        got = take.events("ev0")
+        got = take.sensor("ev0").events()
     want = EventArray.concatenate([p.events for p in packets[:appended]])
     np.testing.assert_array_equal(got.t, want.t)
     np.testing.assert_array_equal(got.x, want.x)

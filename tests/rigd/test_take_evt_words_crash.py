@@ -110,7 +110,7 @@ def test_sigkill_at_random_moments_then_recover_words(tmp_path: Path) -> None:
         exp = expected_events(n + 200)
         ne = n * EV_PER_STEP
         with Take(path) as take:  # unrecovered: device time, the flushed tail included
-            got = take.events("ev0")
+            got = take.sensor("ev0").events()
             assert len(got) >= ne
             np.testing.assert_array_equal(got.t, exp.t[: len(got)])
         rr = recover_take(path)
@@ -120,13 +120,13 @@ def test_sigkill_at_random_moments_then_recover_words(tmp_path: Path) -> None:
         sealed += 1
         assert validate_take(path) == []
         with Take(path) as take:
-            ev = take.events("ev0")
+            ev = take.sensor("ev0").events()
             assert len(ev) >= ne
-            assert take.event_count("ev0") == len(ev)
+            assert take.sensor("ev0").count == len(ev)
             np.testing.assert_array_equal(ev.t, exp.t[: len(ev)] - OFF_EV)
             np.testing.assert_array_equal(ev.x, exp.x[: len(ev)])
             a = RIG0 + 2 * PERIOD
-            win = take.events("ev0", a, a + PERIOD)
+            win = take.sensor("ev0").events(a, a + PERIOD)
             want = exp.t[: len(ev)] - OFF_EV
             np.testing.assert_array_equal(win.t, want[(want >= a) & (want < a + PERIOD)])
     assert sealed, "no writer got three flushes in before its kill"
@@ -141,13 +141,13 @@ def test_a_killed_take_with_chunks_stored_uncompressed_recovers_the_same(tmp_pat
         n = _run_and_kill(path, 4, after_s, relieve=True)
         exp = expected_events(n + 200)
         with Take(path) as take:
-            got = take.events("ev0")
+            got = take.sensor("ev0").events()
             assert len(got) >= n * EV_PER_STEP
             np.testing.assert_array_equal(got.t, exp.t[: len(got)])
         assert recover_take(path).outcome == "sealed"
         assert validate_take(path) == []
         with Take(path) as take:
-            ev = take.events("ev0")
+            ev = take.sensor("ev0").events()
             np.testing.assert_array_equal(ev.t, exp.t[: len(ev)] - OFF_EV)
             np.testing.assert_array_equal(ev.x, exp.x[: len(ev)])
         with h5py.File(path, "r") as f:

@@ -63,7 +63,7 @@ def test_failed_take_is_sealed_with_its_reason(tmp_path: Path) -> None:
         assert s.failure_reason == "disk full"
         assert s.recovered_utc is not None
         assert any("marked failed by its writer (disk full)" in w for w in s.warnings)
-        np.testing.assert_array_equal(take.events("ev0").t, expected(30).ev.t - OFF_EV)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(30).ev.t - OFF_EV)
         np.testing.assert_array_equal(take.frames("cam0").timestamps_us, expected(30).frame_t - OFF_CAM)
     assert not needs_recovery(path)
     assert find_unfinished(tmp_path) == []
@@ -93,7 +93,7 @@ def test_failed_take_with_an_empty_sensor_is_sealed(tmp_path: Path) -> None:
     assert rr.outcome == "sealed", rr
     assert validate_take(path) == []
     with Take(path) as take:
-        assert len(take.events("ev0")) == 0
+        assert len(take.sensor("ev0").events()) == 0
         assert take.summary().failure_reason == "disk full"
         rep = take.sync_report
         assert rep is not None

@@ -39,8 +39,8 @@ from rigd.take import open_take
 out = {}
 with open_take(sys.argv[1]) as take:
     out["status"] = take.status
-    out["events"] = {s: int(len(take.events(s))) for s in take.event_sensors}
-    out["triggers"] = {s: int(len(take.triggers(s).t)) for s in take.event_sensors}
+    out["events"] = {s: int(len(take.sensor(s).events())) for s in take.event_sensors}
+    out["triggers"] = {s: int(len(take.sensor(s).triggers.t)) for s in take.event_sensors}
     out["mosaics"] = {c: list(take.frames(c, demosaic=False).raw(0).shape) for c in take.cameras}
     out["calibrated"] = sorted(take.calibration or {})
     out["verdict"] = take.summary().verdict
@@ -100,9 +100,9 @@ def test_a_take_reads_without_any_extra(take_path: Path) -> None:
     lean = json.loads(run.stdout)
     with open_take(take_path) as take:  # the same take, read with everything installed
         assert lean["status"] == take.status == "complete"
-        assert lean["events"] == {s: len(take.events(s)) for s in take.event_sensors}
+        assert lean["events"] == {s: len(take.sensor(s).events()) for s in take.event_sensors}
         assert all(n > 0 for n in lean["events"].values())
-        assert lean["triggers"] == {s: len(take.triggers(s).t) for s in take.event_sensors}
+        assert lean["triggers"] == {s: len(take.sensor(s).triggers.t) for s in take.event_sensors}
         assert lean["mosaics"] == {c: [90, 160] for c in take.cameras}
         assert lean["calibrated"] == sorted(take.calibration or {})
         assert lean["verdict"] == take.summary().verdict

@@ -163,7 +163,7 @@ def test_sigkill_at_random_moments_then_recover(tmp_path: Path) -> None:
             assert int(f.attrs["flush_count"]) >= (1 if n_flushed else 0)
             _check_prefix(f, n_flushed, exp)
         with Take(path) as take:  # the reader merges the tail of an unrecovered take
-            np.testing.assert_array_equal(take.events("ev0").t[: n_flushed * EV_PER_STEP], exp.ev.t)
+            np.testing.assert_array_equal(take.sensor("ev0").events().t[: n_flushed * EV_PER_STEP], exp.ev.t)
         assert find_unfinished(tmp_path) == [path]
         dry = recover_take(path, dry_run=True)
         rr = recover_take(path)
@@ -329,8 +329,8 @@ def test_schema_1_0_takes_still_read_validate_and_recover(tmp_path: Path) -> Non
     with open_take(done) as take:
         assert take.schema_version == "1.0"
         assert take.journal is None
-        np.testing.assert_array_equal(take.trigger_host_times("ev0"), np.full(60, -1))
-        np.testing.assert_array_equal(take.triggers("ev0").t, expected(30).trig_t - OFF_EV)
+        np.testing.assert_array_equal(take.sensor("ev0").trigger_host_times, np.full(60, -1))
+        np.testing.assert_array_equal(take.sensor("ev0").triggers.t, expected(30).trig_t - OFF_EV)
     rec = _unfinished(tmp_path / "rec.h5", n=30)
     _as_schema_1_0(rec)
     assert validate_take(rec) == []
@@ -340,7 +340,7 @@ def test_schema_1_0_takes_still_read_validate_and_recover(tmp_path: Path) -> Non
     assert validate_take(rec) == []
     with open_take(rec) as take:
         assert take.schema_version == "1.0"  # a resumed take keeps its version
-        np.testing.assert_array_equal(take.events("ev0").t, expected(30).ev.t - OFF_EV)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(30).ev.t - OFF_EV)
     # A 1.1 take must have the dataset.
     bad = _unfinished(tmp_path / "bad.h5", n=3)
     with h5py.File(bad, "r+") as f:
@@ -367,7 +367,9 @@ def test_journal_flush_bookkeeping_and_host_times(tmp_path: Path) -> None:
         assert "T" in str(f.attrs["last_flush_utc"])
     with open_take(path) as take:
         assert take.journal == {"losses": [], "warnings": ["second"]}
-        np.testing.assert_array_equal(take.trigger_host_times("ev0"), [step(0).packet_host_ns] * 2 + [-1])
+        np.testing.assert_array_equal(
+            take.sensor("ev0").trigger_host_times, [step(0).packet_host_ns] * 2 + [-1]
+        )
     with pytest.raises(TakeError, match="flush_interval_s"):
         TakeWriter(
             tmp_path / "z.h5",

@@ -93,8 +93,8 @@ def test_repair_trims_and_reports_everything(tmp_path: Path) -> None:
     }
     assert validate_take(path) == []
     with Take(path) as take:
-        assert take.event_count("ev0") == 40 * EV_PER_STEP
-        assert len(take.triggers("ev0")) == 77
+        assert take.sensor("ev0").count == 40 * EV_PER_STEP
+        assert len(take.sensor("ev0").triggers) == 77
         assert len(take.frames("cam0")) == 40
         report = take.sync_report
         assert report is not None
@@ -137,7 +137,7 @@ def test_no_pulses_seals_failed_and_keeps_data(tmp_path: Path) -> None:
         assert take.time_domain == "device"
         assert take.summary().failure_reason is not None
         assert take.recovery_report is not None
-        np.testing.assert_array_equal(take.events("ev0").t, expected(10).ev.t)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(10).ev.t)
     assert find_unfinished(tmp_path) == []
     assert recover_take(path).outcome == "not_needed"
 
@@ -166,7 +166,7 @@ def test_truncated_failed_take_is_repaired_and_sealed(tmp_path: Path) -> None:
         assert take.status == "complete"
         assert take.time_domain == "rig"
         assert take.summary().failure_reason == "disk full"
-        np.testing.assert_array_equal(take.events("ev0").t, expected(40).ev.t - OFF_EV)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(40).ev.t - OFF_EV)
     assert find_unfinished(tmp_path) == []
 
 
@@ -227,7 +227,8 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
                 assert take.status == "complete"
                 assert take.summary().failure_reason == "disk full"
                 np.testing.assert_array_equal(
-                    take.events("ev0").t[: n_flushed * EV_PER_STEP], expected(n_flushed).ev.t - OFF_EV
+                    take.sensor("ev0").events().t[: n_flushed * EV_PER_STEP],
+                    expected(n_flushed).ev.t - OFF_EV,
                 )
             return
     with pytest.raises(TakeFormatError, match=r"truncated by a failed write"):

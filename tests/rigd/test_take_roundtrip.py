@@ -38,7 +38,7 @@ def test_events_mapped_exactly(written: Written) -> None:
         assert take.status == "complete"
         assert take.take_id == "take-1"
         assert take.config == {"name": "test-rig"}
-        ev = take.events("ev0")
+        ev = take.sensor("ev0").events()
         np.testing.assert_array_equal(ev.t, want)
         np.testing.assert_array_equal(ev.x, written.ev.x)
         np.testing.assert_array_equal(ev.y, written.ev.y)
@@ -87,7 +87,7 @@ def test_frames_triggers_pulses(written: Written) -> None:
         assert fs.nearest(int(want[5]) + 10) == 5
         assert fs.nearest(int(want[5]) - 10) == 5
         assert fs.nearest(0) == 0
-        tr = take.triggers("ev0")
+        tr = take.sensor("ev0").triggers
         np.testing.assert_array_equal(tr.t, MAPS["ev0"].to_rig(written.trig_t_device))
         pulses = take.pulses()
         np.testing.assert_array_equal(pulses.t_us, written.pulses_t)
@@ -116,12 +116,12 @@ def test_window_edge_cases(written: Written) -> None:
     with open_take(written.path) as take:
         for a, b in cases:
             idx = _brute(t_rig, a, b)
-            ev = take.events("ev0", a, b)
+            ev = take.sensor("ev0").events(a, b)
             np.testing.assert_array_equal(ev.t, t_rig[idx], err_msg=f"window [{a}, {b})")
             np.testing.assert_array_equal(ev.x, written.ev.x[idx])
-        assert len(take.events("ev0", mid, mid + 1)) >= 1
-        np.testing.assert_array_equal(take.events("ev0", t_start_us=mid).t, t_rig[t_rig >= mid])
-        np.testing.assert_array_equal(take.events("ev0", t_end_us=mid).t, t_rig[t_rig < mid])
+        assert len(take.sensor("ev0").events(mid, mid + 1)) >= 1
+        np.testing.assert_array_equal(take.sensor("ev0").events(t_start_us=mid).t, t_rig[t_rig >= mid])
+        np.testing.assert_array_equal(take.sensor("ev0").events(t_end_us=mid).t, t_rig[t_rig < mid])
 
 
 @pytest.mark.slow
@@ -131,14 +131,14 @@ def test_window_property(written: Written, a: int, length: int) -> None:
     t_rig = MAPS["ev0"].to_rig(written.ev_t_device)
     start = int(t_rig[0]) + a
     with open_take(written.path) as take:
-        ev = take.events("ev0", start, start + length)
+        ev = take.sensor("ev0").events(start, start + length)
     np.testing.assert_array_equal(ev.t, t_rig[_brute(t_rig, start, start + length)])
 
 
 def test_iter_events_covers_all_in_order(written: Written) -> None:
     t_rig = MAPS["ev0"].to_rig(written.ev_t_device)
     with open_take(written.path) as take:
-        windows = list(take.iter_events("ev0", 7_000))
+        windows = list(take.sensor("ev0").iter(7_000))
     t0 = int(t_rig[0])
     assert len(windows) == -(-(int(t_rig[-1]) + 1 - t0) // 7_000)
     for k, w in enumerate(windows):
@@ -151,7 +151,7 @@ def test_other_codecs_roundtrip(tmp_path: Path, codec: str) -> None:
     wr = make_take(tmp_path / f"{codec}.h5", compression=codec, n_events=3000)
     assert validate_take(wr.path) == []
     with open_take(wr.path) as take:
-        np.testing.assert_array_equal(take.events("ev0").t, MAPS["ev0"].to_rig(wr.ev_t_device))
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, MAPS["ev0"].to_rig(wr.ev_t_device))
 
 
 @pytest.mark.parametrize("fsync", [False, True])
@@ -178,14 +178,14 @@ def test_unfinalized_take_opens_and_refuses_time_queries(tmp_path: Path) -> None
     with open_take(wr.path) as take:
         assert take.status == "recording"
         assert take.sync_report is None
-        np.testing.assert_array_equal(take.events("ev0").t, wr.ev_t_device)  # device time, all of it
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, wr.ev_t_device)  # device time, all of it
         assert len(take.frames("cam0")) == 9
         with pytest.raises(TakeError, match="never finalized"):
-            take.events("ev0", 0, 10)
+            take.sensor("ev0").events(0, 10)
         with pytest.raises(TakeError, match="never finalized"):
             take.frames("cam0").index_at(0)
         with pytest.raises(TakeError, match="never finalized"):
-            next(iter(take.iter_events("ev0", 1000)))
+            next(iter(take.sensor("ev0").iter(1000)))
 
 
 def _writer(path: Path) -> TakeWriter:
@@ -209,7 +209,7 @@ def test_writer_rejects_decreasing_t_without_writing(tmp_path: Path) -> None:
         w.append_events("ev0", unsorted)
     w.close()
     with open_take(tmp_path / "a.h5") as take:
-        np.testing.assert_array_equal(take.events("ev0").t, good.t)
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, good.t)
 
 
 def test_writer_rejects_out_of_geometry_without_writing(tmp_path: Path) -> None:
@@ -224,7 +224,7 @@ def test_writer_rejects_out_of_geometry_without_writing(tmp_path: Path) -> None:
     w.append_events("ev0", ok)  # the refused batches did not move last_t either
     w.close()
     with open_take(tmp_path / "b.h5") as take:
-        ev = take.events("ev0")
+        ev = take.sensor("ev0").events()
         assert len(ev) == 1
         assert int(ev.x[0]) == W - 1
 
@@ -252,7 +252,7 @@ def test_fail_marks_take_failed_and_keeps_data(tmp_path: Path) -> None:
     w.close()
     with open_take(tmp_path / "f.h5") as take:
         assert take.status == "failed"
-        assert len(take.events("ev0")) == 500
+        assert len(take.sensor("ev0").events()) == 500
         assert take.summary().failure_reason == "disk on fire"
 
 
@@ -266,7 +266,7 @@ def test_finalize_needs_every_clock_map(tmp_path: Path) -> None:
     w.close()
     with open_take(tmp_path / "m.h5") as take:
         # No pulse in the report: t_offset is the first event.
-        ev = take.events("ev0")
+        ev = take.sensor("ev0").events()
         np.testing.assert_array_equal(ev.t, make_events(10, 1000).t + 7)
         assert validate_take(tmp_path / "m.h5") == []
 

@@ -167,4 +167,4 @@ def test_crash_after_flush_leaves_a_readable_take(tmp_path: Path) -> None:
     assert validate_take(path) == []
     with open_take(path) as take:
         assert take.status == "recording"
-        np.testing.assert_array_equal(take.events("ev0").t, np.arange(5000))
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, np.arange(5000))

@@ -1,4 +1,4 @@
-"""Time-window reads (`Take.events(sensor, t0, t1)`) against a brute-force mask over all events,
+"""Time-window reads (`take.sensor(name).events(t0, t1)`) against a brute-force mask over all events,
 for several event chunk sizes, the old default (262 144) among them: windows across chunk
 boundaries, on ms-index edges, before `t_offset`, past the ends, empty and reversed."""
 
@@ -68,7 +68,7 @@ def written(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFac
 
 
 def brute(take: Take, t0: int, t1: int) -> EventArray:
-    ev = take.events("ev0")
+    ev = take.sensor("ev0").events()
     return ev[np.flatnonzero((ev.t >= t0) & (ev.t < t1))]
 
 
@@ -92,8 +92,8 @@ def edges(w: Written) -> list[int]:
 def test_layout_uses_the_chunk(written: Written) -> None:
     with open_take(written.path) as take:
         assert take._f["events/ev0/t"].chunks == (written.chunk,)
-        assert take.event_count("ev0") == N_EVENTS
-        np.testing.assert_array_equal(take.events("ev0").t, written.t)
+        assert take.sensor("ev0").count == N_EVENTS
+        np.testing.assert_array_equal(take.sensor("ev0").events().t, written.t)
 
 
 @pytest.mark.slow
@@ -104,24 +104,25 @@ def test_windows_on_chunk_and_ms_edges(written: Written) -> None:
         for t0 in rng.choice(cand, min(60, len(cand)), replace=False):
             for length in (0, 1, 999, 1000, 1001, 50_000, 400_000):
                 assert_same(
-                    take.events("ev0", int(t0), int(t0) + length), brute(take, int(t0), int(t0) + length)
+                    take.sensor("ev0").events(int(t0), int(t0) + length),
+                    brute(take, int(t0), int(t0) + length),
                 )
 
 
 def test_whole_and_outside(written: Written) -> None:
     t = written.t
     with open_take(written.path) as take:
-        assert len(take.events("ev0", int(t[0]) - 10**9, int(t[-1]) + 10**9)) == N_EVENTS
-        assert len(take.events("ev0", int(t[-1]) + 1, int(t[-1]) + 50_000)) == 0
-        assert len(take.events("ev0", int(t[0]) - 50_000, int(t[0]))) == 0
-        assert len(take.events("ev0", int(t[N_EVENTS // 2]), int(t[100]))) == 0  # reversed: empty
-        assert take.event_index("ev0", int(t[N_EVENTS // 2])) == int(np.searchsorted(t, t[N_EVENTS // 2]))
+        assert len(take.sensor("ev0").events(int(t[0]) - 10**9, int(t[-1]) + 10**9)) == N_EVENTS
+        assert len(take.sensor("ev0").events(int(t[-1]) + 1, int(t[-1]) + 50_000)) == 0
+        assert len(take.sensor("ev0").events(int(t[0]) - 50_000, int(t[0]))) == 0
+        assert len(take.sensor("ev0").events(int(t[N_EVENTS // 2]), int(t[100]))) == 0  # reversed: empty
+        assert take.sensor("ev0").index(int(t[N_EVENTS // 2])) == int(np.searchsorted(t, t[N_EVENTS // 2]))
 
 
 def test_iter_events_matches(written: Written) -> None:
     t = written.t
     with open_take(written.path) as take:
-        got = np.concatenate([w.t for w in take.iter_events("ev0", 50_000)])
+        got = np.concatenate([w.t for w in take.sensor("ev0").iter(50_000)])
         np.testing.assert_array_equal(got, t)
 
 
@@ -135,4 +136,4 @@ def test_random_windows_match_brute_force(written: Written, data: st.DataObject)
     t0 = data.draw(st.one_of(st.integers(lo, hi), st.sampled_from(cand)), "t0")
     length = data.draw(st.one_of(st.integers(-2_000, 120_000), st.sampled_from([0, 1, 1000, 50_000])), "len")
     with open_take(written.path) as take:
-        assert_same(take.events("ev0", t0, t0 + length), brute(take, t0, t0 + length))
+        assert_same(take.sensor("ev0").events(t0, t0 + length), brute(take, t0, t0 + length))

@@ -84,6 +84,6 @@ def _events_in(src: Path, sensor: str | None) -> int | None:
         with Take(src) as take:
             names = take.event_sensors
             name = sensor if sensor is not None else (names[0] if len(names) == 1 else None)
-            return take.event_count(name) if name in names else None
+            return take.sensor(name).count if name in names else None
     except (OSError, RigdError):
         return None  # convert says what is wrong with the file

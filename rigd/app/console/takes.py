@@ -227,12 +227,13 @@ class TakeList:
         out: dict[str, Any] = {}
         with open_take(self.path_of(name)) as take:
             for sensor in take.event_sensors:
-                span = take.event_span(sensor)
+                series = take.sensor(sensor)
+                span = series.span
                 if span is None or span[1] <= span[0]:
                     out[sensor] = {"t_s": [], "rate_hz": []}
                     continue
                 edges = np.linspace(span[0], span[1] + 1, RATE_BINS + 1).astype(np.int64)
-                idx = np.array([take.event_index(sensor, int(t)) for t in edges], np.int64)
+                idx = np.array([series.index(int(t)) for t in edges], np.int64)
                 dt_s = np.diff(edges) / 1e6
                 out[sensor] = {
                     "t_s": ((edges[:-1] - edges[0]) / 1e6).round(4).tolist(),

@@ -244,25 +244,25 @@ def check_recovered(path: Path, n_flushed: int) -> None:
         assert rep is not None
         assert rep["outcome"] == "sealed"
         n_frames = len(take.frames("cam0"))
-        n_ev = take.event_count("ev0")
+        n_ev = take.sensor("ev0").count
         n_pulses = len(take.pulses())
         assert n_frames >= n_flushed
         assert n_pulses >= n_flushed
         assert n_ev >= n_flushed * EV_PER_STEP
         exp = expected(max(n_frames, n_pulses, -(-n_ev // EV_PER_STEP)))
-        ev = take.events("ev0")
+        ev = take.sensor("ev0").events()
         np.testing.assert_array_equal(ev.t, exp.ev.t[:n_ev] - OFF_EV)
         np.testing.assert_array_equal(ev.x, exp.ev.x[:n_ev])
         np.testing.assert_array_equal(ev.p, exp.ev.p[:n_ev])
         fs = take.frames("cam0")
         np.testing.assert_array_equal(fs.timestamps_us, exp.frame_t[:n_frames] - OFF_CAM)
         assert [fs[i].pulse_index for i in (0, n_frames - 1)] == [0, n_frames - 1]
-        tr = take.triggers("ev0")
+        tr = take.sensor("ev0").triggers
         np.testing.assert_array_equal(tr.t, exp.trig_t[: len(tr)] - OFF_EV)
         np.testing.assert_array_equal(take.pulses().t_us, exp.pulse_t[:n_pulses])
         # Windowed reads work like on any finalized take.
         a = RIG0 + 3 * PERIOD
-        win = take.events("ev0", a, a + PERIOD)
+        win = take.sensor("ev0").events(a, a + PERIOD)
         want = exp.ev.t[:n_ev] - OFF_EV
         np.testing.assert_array_equal(win.t, want[(want >= a) & (want < a + PERIOD)])
         report = take.sync_report

@@ -93,7 +93,7 @@ def check_sizes(options: ExportOptions, take: Take, frames: FrameTable) -> None:
     budget = bounds.Budget(bounds.available_memory())
     if options.resize is not None:
         bounds.check_resize(options.resize, options.format, IMAGE_THREADS, budget)
-    geometry = {s: take.geometry(s) for s in take.event_sensors}
+    geometry = {s: take.sensor(s).geometry for s in take.event_sensors}
     bounds.check_voxel_bins(options.voxel_bins, geometry, voxel_windows(frames.step_times_us), budget)
 
 

@@ -54,7 +54,8 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
     take = plan.take
     t0, t1 = plan.frames.span_us
     origin = time_origin_us(plan)
-    lo, hi = take.event_index(sensor, t0), take.event_index(sensor, t1)
+    series = take.sensor(sensor)
+    lo, hi = series.index(t0), series.index(t1)
     n = hi - lo
     t_dtype = np.uint32 if t1 - t0 < 2**32 else np.int64
     dest = plan.out / "events" / sensor
@@ -73,7 +74,7 @@ def write_events(plan: ExportPlan, sensor: str) -> int:
         done = 0
         last = -1  # relative time of the last event written so far
         for start in range(lo, hi, BLOCK):
-            ev = take.events_by_index(sensor, start, min(start + BLOCK, hi))
+            ev = series.by_index(start, min(start + BLOCK, hi))
             rel = ev.t - t0
             s = slice(done, done + len(ev))
             dx[s], dy[s], dt[s], dp[s] = ev.x, ev.y, rel.astype(t_dtype), (ev.p > 0).astype(np.uint8)

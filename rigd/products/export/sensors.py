@@ -94,7 +94,7 @@ def voxel_windows(times_us: NDArray[np.int64]) -> NDArray[np.int64]:
 
 def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
     """voxels.h5 of one sensor: one (bins, H, W) grid per exported timestep; returns T."""
-    w, h = plan.take.geometry(sensor)
+    w, h = plan.take.sensor(sensor).geometry
     bins = plan.options.voxel_bins
     times = plan.frames.step_times_us
     win = voxel_windows(times)
@@ -110,7 +110,7 @@ def write_voxels(plan: ExportPlan, sensor: str, dest: Path) -> int:
         )
         for k, (a, b) in enumerate(win):
             # (a, b]: events at a belong to the previous window, events at b to this one.
-            ev = plan.take.events(sensor, int(a) + 1, int(b) + 1)
+            ev = plan.take.sensor(sensor).events(int(a) + 1, int(b) + 1)
             ds[k] = voxel_grid(ev, w, h, bins, int(a), int(b))
             out.check()
             if (k + 1) % 10 == 0 or k + 1 == len(times):

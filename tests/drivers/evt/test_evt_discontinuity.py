@@ -277,7 +277,7 @@ def test_convert_and_file_replay_of_a_joined_recording(tmp_path: Path) -> None:
     assert convert(src, tmp_path / "t.h5") == 2 * len(ref.events)
     with Take(tmp_path / "t.h5") as take:
         report = take.sync_report
-        assert take.event_count("ev0") == 2 * len(ref.events)
+        assert take.sensor("ev0").count == 2 * len(ref.events)
     assert report is not None
     assert not report.losses
     hdr = len(RawHeader(fmt="evt3", width=1280, height=720).to_bytes())

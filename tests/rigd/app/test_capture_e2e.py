@@ -55,7 +55,7 @@ def test_take_has_every_frame_and_events(faulty_capture: tuple[CaptureResult, Gr
             assert abs(len(take.frames(cam)) - 58) <= 1  # 60 pulses, 2 dropped by the box
         assert len(take.frames("cam1")) == 56  # and 2 frames lost in transport
         for sensor in ("ev0", "ev1"):
-            ev = take.events(sensor)
+            ev = take.sensor(sensor).events()
             assert len(ev) > 1000
             assert ev.t.dtype == np.int64
             assert (np.diff(ev.t) >= 0).all()
@@ -96,7 +96,7 @@ def test_sync_accuracy_against_ground_truth(faulty_capture: tuple[CaptureResult,
         for sensor in take.event_sensors:
             d = res.report.devices[sensor]
             cmap = ClockMap(d.device_ref_us, d.rig_ref_us, d.rate, d.frac_us)
-            t_rig = take.events(sensor).t
+            t_rig = take.sensor(sensor).events().t
             t_dev = cmap.to_device(t_rig)
             err = t_rig - _truth_rig(truth, sensor, t_dev)
             assert np.sqrt(np.mean(err**2)) <= 1.0, sensor
@@ -149,8 +149,8 @@ def test_master_slave_event_sensors_share_a_clock(tmp_path: Path) -> None:
     assert rep.devices["ev0"].clock_from == "own_pulses"
     truth = get_world(world).truth
     with Take(res.path) as take:
-        assert len(take.triggers("ev1")) == 0
-        t_rig = take.events("ev1").t
+        assert len(take.sensor("ev1").triggers) == 0
+        t_rig = take.sensor("ev1").events().t
         assert len(t_rig) > 1000
         d = rep.devices["ev1"]
         t_dev = ClockMap(d.device_ref_us, d.rig_ref_us, d.rate, d.frac_us).to_device(t_rig)
@@ -198,5 +198,5 @@ def test_a_sensor_that_sees_nothing_does_not_cost_the_take(tmp_path: Path) -> No
     assert any(w.startswith("ev1: recorded no events") for w in res.report.warnings), res.report.warnings
     with Take(res.path) as take:
         assert take.status == "complete"
-        assert len(take.events("ev1").t) == 0
-        assert len(take.events("ev0").t) == res.events["ev0"]
+        assert len(take.sensor("ev1").events().t) == 0
+        assert len(take.sensor("ev0").events().t) == res.events["ev0"]

@@ -159,7 +159,7 @@ def test_event_times_at_pulses_or_at_a_rate(tmp_path: Path) -> None:
     with open_take(path) as take:
         frames = take.frames("cam0")
         mid = frames.timestamps_us + frames[0].exposure_us // 2
-        span = take.event_span("ev0")
+        span = take.sensor("ev0").span
     np.testing.assert_array_equal(event_times(path, "ev0"), mid)
     at_rate = event_times(path, "ev0", rate_hz=100.0)
     assert span is not None

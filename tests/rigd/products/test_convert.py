@@ -28,11 +28,11 @@ def test_raw_take_raw_round_trip(tmp_path: Path, name: str, fmt: str) -> None:
     take_path = tmp_path / "t.h5"
     assert convert(src, take_path) == len(ref.events)
     with Take(take_path) as take:
-        ev = take.events("ev0")
-        assert take.geometry("ev0") == (hdr.width, hdr.height)
+        ev = take.sensor("ev0").events()
+        assert take.sensor("ev0").geometry == (hdr.width, hdr.height)
         for col in ("x", "y", "p", "t"):
             np.testing.assert_array_equal(getattr(ev, col), getattr(ref.events, col))
-        np.testing.assert_array_equal(take.triggers("ev0").t, ref.triggers.t)
+        np.testing.assert_array_equal(take.sensor("ev0").triggers.t, ref.triggers.t)
     back = tmp_path / f"back.{fmt}.raw"
     convert(take_path, back, fmt=fmt)
     hdr2, again = read_raw(back)
@@ -95,7 +95,7 @@ def test_one_corrupt_word_costs_only_its_events(tmp_path: Path) -> None:
     r = CliRunner().invoke(app, ["convert", str(src), str(tmp_path / "t.h5")])
     assert r.exit_code == 0, r.output
     with Take(tmp_path / "t.h5") as take:
-        ev = take.events("ev0")
+        ev = take.sensor("ev0").events()
         report = take.sync_report
     assert report is not None
     (loss,) = report.losses
@@ -193,7 +193,7 @@ def test_dat_record_out_of_time_order_is_a_loss(tmp_path: Path) -> None:
     assert convert(src, tmp_path / "d.h5") == len(ref) - 1
     with Take(tmp_path / "d.h5") as take:
         report = take.sync_report
-        assert take.event_count("ev0") == len(ref) - 1
+        assert take.sensor("ev0").count == len(ref) - 1
     assert report is not None
     (loss,) = report.losses
     assert loss.count == 1

@@ -120,12 +120,12 @@ def test_blocks_give_the_whole_stream_result(moving_take: Path, tmp_path: Path) 
     cfg = PartitionConfig()
     counts = None
     with Take(moving_take) as take:
-        t0 = min(take.event_span(s)[0] for s in ("ev0", "ev1"))  # type: ignore[index]
-        t1 = max(take.event_span(s)[1] for s in ("ev0", "ev1")) + 1  # type: ignore[index]
+        t0 = min(take.sensor(s).span[0] for s in ("ev0", "ev1"))  # type: ignore[index]
+        t1 = max(take.sensor(s).span[1] for s in ("ev0", "ev1")) + 1  # type: ignore[index]
         for s in ("ev0", "ev1"):
-            kept = background_activity_filter(take.events(s), W, H)
+            kept = background_activity_filter(take.sensor(s).events(), W, H)
             assert r.sensors[s].events_kept == len(kept)
-            assert r.sensors[s].events_in == take.event_count(s)
+            assert r.sensors[s].events_in == take.sensor(s).count
             c = window_counts(kept, t0, t1, cfg.window_us)
             counts = c if counts is None else counts + c
     doc = json.loads((tmp_path / "moving" / "segments.json").read_text())
@@ -140,7 +140,7 @@ def test_keyframes_are_the_brute_force_argmin_over_mid_exposures(moving_take: Pa
     assert doc["candidates"]["source"] == "cam0 mid-exposure"
     mids = np.arange(0, SPAN, PERIOD_US, dtype=np.int64) + EXPOSURE_US // 2
     with Take(moving_take) as take:
-        kept = {s: background_activity_filter(take.events(s), W, H) for s in ("ev0", "ev1")}
+        kept = {s: background_activity_filter(take.sensor(s).events(), W, H) for s in ("ev0", "ev1")}
     checked = 0
     for seg in doc["segments"]:
         a, b = seg["t_start_us"], seg["t_end_us"]
@@ -233,7 +233,7 @@ def test_highpass_snapshot_matches_integrating_the_whole_stream(moving_take: Pat
     with np.load(tmp_path / "moving" / "ev0" / "snapshots.npz") as z:
         times, snaps = z["times_us"], z["log_intensity"]
     with Take(moving_take) as take:
-        kept = background_activity_filter(take.events("ev0"), W, H)
+        kept = background_activity_filter(take.sensor("ev0").events(), W, H)
     full = reconstruct(kept, W, H, times, "highpass", contrast=0.3, cutoff_hz=5.0)
     assert np.abs(full - snaps).max() < 1e-3
 

@@ -259,12 +259,12 @@ def _check_take_is_in_its_window(path: Path, tol_us: int) -> tuple[int, int, dic
         first = int(pulses.t_us[np.argmin(pulses.index)])
         assert start == first - margin
         for sensor in take.event_sensors:
-            t = take.events(sensor).t
+            t = take.sensor(sensor).events().t
             assert t.size > 0
             # The gate cuts in the sensor's clock; its rig times agree within the sync accuracy.
             assert t.min() >= start - tol_us, sensor
             assert t.max() < end + tol_us, sensor
-            trig = take.triggers(sensor).t
+            trig = take.sensor(sensor).triggers.t
             assert trig.size == 0 or (trig.min() >= start - tol_us and trig.max() < end + tol_us)
         for cam in take.cameras:
             ts = take.frames(cam).timestamps_us

@@ -45,7 +45,7 @@ def _plain_event_times(g: h5py.Group) -> np.ndarray:
     EVT words has no times to read plainly: the reader decodes its flushed words (tail too)."""
     if g.attrs.get("storage") == "evt_words":
         with Take(g.file.filename) as take:
-            return take.events(g.name.rsplit("/", 1)[-1]).t
+            return take.sensor(g.name.rsplit("/", 1)[-1]).events().t
     t = g["t"][...]
     for slot, (start, rows) in enumerate(g.attrs.get("tail_meta", np.zeros((2, 2), np.int64))):
         if start == t.shape[0] and rows:

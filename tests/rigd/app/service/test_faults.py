@@ -69,7 +69,7 @@ def test_unplugged_device_gap_recorded_others_go_on_reconnects(
         assert res.events["ev1"] > 0
         assert rep.devices["ev1"].residual_rms_us < 5.0
         with open_take(res.path) as take:  # either event layout (columns or EVT words)
-            t = take.events("ev1").t
+            t = take.sensor("ev1").events().t
         big = np.diff(t).max()
         assert big > 0.5e6, "the unplugged window should be a hole in ev1's events"
 

@@ -52,10 +52,10 @@ def check_dsec_events(root: Path, take: Path, res: tuple[int, int]) -> None:
             # cropped to the frames' span: first exposure start .. last exposure end
             assert off <= stamps[0]
             assert t_all[-1] + off <= stamps[-1] + 10_000
-            assert n == len(tk.events(sensor, origin + off, origin + int(t_all[-1]) + off + 1))
+            assert n == len(tk.sensor(sensor).events(origin + off, origin + int(t_all[-1]) + off + 1))
             for a, b in ((stamps[3], stamps[4]), (stamps[5] + 17, stamps[-2] - 5)):
                 got = _slice_dsec(path, a, b)
-                ref = tk.events(sensor, origin + a, origin + b)
+                ref = tk.sensor(sensor).events(origin + a, origin + b)
                 assert len(ref) > 100
                 assert got["t"].dtype == np.uint32
                 np.testing.assert_array_equal(got["t"].astype(np.int64) + origin, ref.t)

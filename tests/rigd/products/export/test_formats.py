@@ -380,7 +380,7 @@ def test_voxel_grids_hold_each_frames_events(exported: Fixture) -> None:
                 assert vox.shape == (30, 5, RES[1], RES[0])
                 for k in (0, 7, 29):
                     a, b = int(win[k, 0]), int(win[k, 1])
-                    ev = tk.events(sensor, a + 1, b + 1)  # the window is (a, b]
+                    ev = tk.sensor(sensor).events(a + 1, b + 1)  # the window is (a, b]
                     # bilinear weights in time sum to 1: the grid sums to the polarity sum
                     assert abs(float(vox[k].sum()) - float(ev.p.sum())) < 1e-2 * max(len(ev), 1)
                     counts = np.zeros((RES[1], RES[0]))
