@@ -18,6 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
+from drivers.testing.evt_packets import packets_of
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError
 from rigd.core.events import EventArray, TriggerEvents
@@ -25,7 +26,6 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import EventSeries, Take, TakeWriter, open_take
-from tests.rigd.evt_packets import packets_of
 
 W, H = 64, 48
 N = 30_000
