@@ -27,10 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 
 from firmware_sim.board_scene import BoardScene
+from firmware_sim.testing.board import true_mid_exposures
 from firmware_sim.world import get_world
 from rigd.app.capture import run_capture
 from rigd.app.config import RigConfig
@@ -222,29 +222,13 @@ def dsec_reference(take: Path, export_dir: Path, n_windows: int = 22) -> Path:
     return dest
 
 
-def _true_times(take: Path) -> dict[str, dict[int, float]]:
-    """Rig mid-exposure us of every frame -> the simulator's true mid-exposure time."""
-    rows = get_world(WORLD).truth.frames
-    out: dict[str, dict[int, float]] = {}
-    with open_take(take) as tk, h5py.File(take, "r") as f:
-        for cam in tk.cameras:
-            start = {int(c): t for c, t, ok in rows[cam] if ok}
-            counters = f[f"frames/{cam}/frame_counter"][()]
-            exp = f[f"frames/{cam}/exposure_us"][()]
-            mid = tk.frames(cam).timestamps_us + exp // 2
-            out[cam] = {
-                int(m): start[int(c)] + float(e) / 2 for m, c, e in zip(mid, counters, exp, strict=True)
-            }
-    return out
-
-
 def board_views(take: Path, export_dir: Path) -> Path:
     """views.json of a PanopticSports export: per image with the whole board in view, the
     ground-truth corners in the export's world and the corners cv2 finds (pixel centres at
     integers, as the rasterizer draws)."""
     scene = get_world(WORLD).resource("scene", BoardScene)
     assert isinstance(scene, BoardScene)
-    truth = _true_times(take)
+    truth = true_mid_exposures(take, WORLD)
     result = json.loads((export_dir / "export.json").read_text())
     M = np.asarray(result["rig_to_world"], np.float64)
     with open_take(take) as tk:

@@ -25,6 +25,7 @@ from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import BackendUnavailableError, ConfigError, DeviceError
 from rigd.core.frames import Frame
+from rigd.core.pixels import frame_shape
 from rigd.core.settings import CameraSettings
 
 log = logging.getLogger(__name__)
@@ -120,9 +121,7 @@ class V4l2Camera(RgbCamera):
 
     @property
     def frame_shape(self) -> tuple[int, ...]:
-        if self._settings.pixel_format == "mono8":
-            return (self._height, self._width)
-        return (self._height, self._width, 3)
+        return frame_shape(self._height, self._width, self._settings.pixel_format or "rgb8")
 
     @property
     def frame_dtype(self) -> np.dtype[np.generic]:

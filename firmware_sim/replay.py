@@ -516,9 +516,7 @@ def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
     over a buffer costs, not an HDF5 read, for benchmarks of the capture."""
     check_params(spec, ReplayCameraParams, f"replayed camera {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
-    buffer_frames = spec.int_param("buffer_frames", 32)
-    if buffer_frames < 1:
-        raise ConfigError(f"device spec {spec.raw!r}: buffer_frames={buffer_frames} must be >= 1")
+    buffer_frames = _buffers(spec, "buffer_frames", 32)
     return ReplayCamera(
         spec,
         world,
@@ -722,13 +720,19 @@ class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
         )
 
 
+def _buffers(spec: DeviceSpec, name: str, default: int) -> int:
+    """A replayed device's buffer size parameter: at least one."""
+    n = spec.int_param(name, default)
+    if n < 1:
+        raise ConfigError(f"device spec {spec.raw!r}: {name}={n} must be >= 1")
+    return n
+
+
 def open_replay_event_sensor(spec: DeviceSpec) -> ReplayEventSensor:
     """Factory for `replay:///abs/take.h5?device=ev0[&buffer_packets=&unplug_at_s=]`."""
     check_params(spec, ReplaySensorParams, f"replayed event sensor {spec.params.get('device', '?')}")
     world, rec, timeline = replay_world(spec)
-    buffer_packets = spec.int_param("buffer_packets", 1024)
-    if buffer_packets < 1:
-        raise ConfigError(f"device spec {spec.raw!r}: buffer_packets={buffer_packets} must be >= 1")
+    buffer_packets = _buffers(spec, "buffer_packets", 1024)
     return ReplayEventSensor(
         spec,
         world,

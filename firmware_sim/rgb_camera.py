@@ -139,6 +139,8 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             "unplug_lost": 0,
             "closed_mid_exposure": 0,
         }
+        # Every sim device hears the trigger wire and its unplug fault the same way (two calls
+        # alike in the camera and the event sensor, each with its own counters above).
         self._unsubscribe = world.wire.subscribe(self._on_edge)
         self._unlisten = self._fault.listen(self._on_unplug)
 

@@ -53,6 +53,8 @@ class PackedEvents:
         return int(self.pix.nbytes + self.p.nbytes + self.dt.nbytes)
 
 
+# A numba kernel takes every event column as a parameter of its own: its signature is alike
+# in shape to voxel_kernel's, with nothing to share.
 @njit(nogil=True, cache=True)
 def _pack_kernel(
     x: NDArray[np.uint16],

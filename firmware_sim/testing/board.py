@@ -7,12 +7,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from calibration.boards import parse_board
 from calibration.e2calib import METHODS, E2CalibResult, ReconstructionParams, calibrate_events
 from firmware_sim.board_scene import BoardScene
 from firmware_sim.scene import REF_FOCAL, REF_WIDTH
+from firmware_sim.world import get_world
 from firmware_sim.world import reset_world as reset_world  # rigd.app.testing resets a board's world
 from rigd.take.reader import open_take
 
@@ -63,4 +65,21 @@ def sensor_results(
                 methods=METHODS,
                 params=params,
             )
+    return out
+
+
+def true_mid_exposures(take: Path, world: str) -> dict[str, dict[int, float]]:
+    """Per camera, the rig mid-exposure time (us) of every frame of a take of `world` -> the
+    simulator's true mid-exposure time: what a consumer's pose at that frame should match."""
+    rows = get_world(world).truth.frames
+    out: dict[str, dict[int, float]] = {}
+    with open_take(take) as tk, h5py.File(take, "r") as f:
+        for cam in tk.cameras:
+            start = {int(c): t for c, t, ok in rows[cam] if ok}
+            counters = f[f"frames/{cam}/frame_counter"][()]
+            exp = f[f"frames/{cam}/exposure_us"][()]
+            mid = tk.frames(cam).timestamps_us + exp // 2
+            out[cam] = {
+                int(m): start[int(c)] + float(e) / 2 for m, c, e in zip(mid, counters, exp, strict=True)
+            }
     return out

@@ -28,6 +28,7 @@ import pytest
 from numpy.typing import NDArray
 
 from firmware_sim.board_scene import BoardScene
+from firmware_sim.testing.board import true_mid_exposures
 from firmware_sim.world import get_world
 from rigd.app.testing.board import capture_board_take
 from rigd.core.progress import ProgressUpdate, no_progress
@@ -65,22 +66,6 @@ class Fixture:
     progress: list[ProgressUpdate]
 
 
-def _truth_times(take: Path) -> dict[str, dict[int, float]]:
-    """Rig mid-exposure time of every frame -> the sim's true render time (mid-exposure)."""
-    rows = get_world(WORLD).truth.frames
-    out: dict[str, dict[int, float]] = {}
-    with open_take(take) as tk, h5py.File(take, "r") as f:
-        for cam in tk.cameras:
-            true_start = {int(c): t for c, t, ok in rows[cam] if ok}
-            counters = f[f"frames/{cam}/frame_counter"][()]
-            exp = f[f"frames/{cam}/exposure_us"][()]
-            mid = tk.frames(cam).timestamps_us + exp // 2
-            out[cam] = {
-                int(m): true_start[int(c)] + float(e) / 2 for m, c, e in zip(mid, counters, exp, strict=True)
-            }
-    return out
-
-
 def _store_dist(take: Path, dist: list[float]) -> None:
     """The take's stored ground truth with a lens distortion added to every device."""
     with open_take(take) as tk:
@@ -110,7 +95,7 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> Fixture:
             take=cap.path, format="nerfstudio", out=out["resized"], resize=(384, 216), world="board"
         )
     )
-    return Fixture(cap.path, scene, _truth_times(cap.path), out, updates)
+    return Fixture(cap.path, scene, true_mid_exposures(cap.path, WORLD), out, updates)
 
 
 # --- independent readers ------------------------------------------------------------------
