@@ -136,12 +136,7 @@ def sink_append(
         f.flush()
         stored = sum(int(ds.id.get_storage_size()) for ds in sink.ds.values())
     if path is not None:
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        path.unlink()
+        _sync_and_remove(path)
     return stored
 
 
@@ -159,6 +154,11 @@ def frame_writes(frames: Sequence[Frame], n: int, opts: dict[str, Any], path: Pa
             )
         sink.write_series()
         sink.trim_images()
+    _sync_and_remove(path)
+
+
+def _sync_and_remove(path: Path) -> None:
+    """What a take on disk costs includes getting it there: fsync, then the file goes."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
