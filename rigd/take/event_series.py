@@ -93,6 +93,7 @@ class EventSeries:
         self._columns: _EventColumns | None = None
         self._evt: EvtWordsEvents | None = None
         self._evt_read = False
+        self._until: int | None = None
 
     def __repr__(self) -> str:
         return f"EventSeries({str(self._take.path)!r}, {self.name!r})"
@@ -351,10 +352,12 @@ class EventSeries:
         """The latest window end EventSlicer answers (rig us): the end of the last event's
         millisecond, counted from t_offset (the slicer rounds a window's end up to the next ms
         and needs that entry; `rigd export --format dsec` writes it). None without events."""
-        span = self.span
-        if span is None:
-            return None
-        return self.t_offset + 1000 * ((span[1] - self.t_offset) // 1000 + 1)
+        if self._until is None:  # asked after `_require_rig`: a finalized take, which never changes
+            span = self.span
+            if span is None:
+                return None
+            self._until = self.t_offset + 1000 * ((span[1] - self.t_offset) // 1000 + 1)
+        return self._until
 
     def _read_events(self, lo: int, hi: int) -> EventArray:
         n, slot, m = self._tail()
