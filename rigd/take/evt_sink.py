@@ -41,7 +41,7 @@ from rigd.core.layout import (
     Storage,
     TriggerEdges,
 )
-from rigd.take.h5file import append_rows, require_dataset, require_group
+from rigd.take.h5file import append_rows, chunk_is_stored, require_dataset, require_group, write_chunk
 from rigd.take.sinks import DeviceWriteStats, TriggerIn, check_event_batch, new_series
 from rigd.take.tails import choose_tail_slot
 
@@ -152,6 +152,8 @@ class EvtWordsSink(TriggerIn):
     """False while the writer is behind: whole chunks are stored as they are (HDF5's filter mask
     says so per chunk, and readers skip the decompression for them), trading bytes on disk for
     writer time instead of shedding events."""
+    write_failed: bool = False
+    """A chunk write failed (disk full): every later one is checked to be in HDF5's index."""
     _zstd: Any = field(default_factory=lambda: zstandard.ZstdCompressor(level=_ZSTD_LEVEL))
 
     @classmethod
@@ -331,11 +333,21 @@ class EvtWordsSink(TriggerIn):
             self.words.resize((self.alloc,))
         if len(data) < WORDS_CHUNK:
             data = bytes(data) + bytes(WORDS_CHUNK - len(data))
-        if self.compress:
-            self.words.id.write_direct_chunk((offset,), self._zstd.compress(data), 0)
-        else:
-            self.words.id.write_direct_chunk((offset,), data, _SKIP_ZSTD)
+        try:
+            if self.compress:
+                write_chunk(self.words, (offset,), self._zstd.compress(data))
+            else:
+                write_chunk(self.words, (offset,), data, _SKIP_ZSTD)
+        except Exception:
+            self.write_failed = True
+            raise
+        if not self.compress:
             self.stats.uncompressed_chunks += 1
+        if self.write_failed and not chunk_is_stored(self.words, (offset,)):
+            raise TakeError(
+                f"{self.words.file.filename}: {self.words.name}: the chunk at byte {offset}, written "
+                "again after a failed write, is missing from HDF5's chunk index"
+            )
 
     # -- flush and close ---------------------------------------------------------------
     def write(self, *, final: bool) -> None:

@@ -105,6 +105,41 @@ def append_rows(ds: h5py.Dataset, start: int, data: NDArray[Any]) -> None:
     ds[start:end] = data
 
 
+def write_chunk(ds: h5py.Dataset, coord: tuple[int, ...], data: Any, filter_mask: int = 0) -> None:
+    """`write_direct_chunk` that a failed write leaves retryable.
+
+    HDF5 (1.14) notes where a new chunk goes before writing its bytes and indexes the chunk only
+    once the write succeeded. A write that fails (disk full) leaves that note behind, and the
+    retry of the same chunk at the same size then writes the bytes but never indexes them: the
+    chunk reads back as fill value. Looking up another chunk replaces the note, so the retry
+    allocates and indexes afresh; a retry HDF5 still did not index is an error, never a gap.
+    """
+    try:
+        ds.id.write_direct_chunk(coord, data, filter_mask)
+    except Exception:
+        _forget_last_chunk(ds, coord)
+        raise
+
+
+def chunk_is_stored(ds: h5py.Dataset, coord: tuple[int, ...]) -> bool:
+    """Whether the dataset's chunk index holds the chunk at `coord` (not a fill-value gap)."""
+    return ds.id.get_chunk_info_by_coord(coord).byte_offset is not None
+
+
+def _forget_last_chunk(ds: h5py.Dataset, coord: tuple[int, ...]) -> None:
+    shape = ds.shape
+    step = ds.chunks[0] if ds.chunks else 1
+    other = coord[0] - step if coord[0] >= step else coord[0] + step
+    try:
+        if other >= shape[0]:  # a dataset of one chunk: look one chunk past its end
+            ds.resize((other + 1, *shape[1:]))
+        ds[(other, *(0 for _ in shape[1:]))]  # one element: a lookup of that chunk
+        if ds.shape != shape:
+            ds.resize(shape)
+    except Exception as exc:  # noqa: BLE001 - the failed write is what the caller raises
+        log.warning("%s: chunk %s: could not clear HDF5's note of the failed write: %s", ds.name, coord, exc)
+
+
 def fsync_dir(directory: Path) -> None:
     """Make a new file's name durable (POSIX: fsync the directory that holds it)."""
     fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)

@@ -36,7 +36,7 @@ from rigd.core.layout import (
     TriggerEdges,
 )
 from rigd.core.pixels import BAYER_PATTERNS, PIXEL_FORMATS, is_bayer, stored_pixel_format
-from rigd.take.h5file import append_rows, require_dataset, require_group
+from rigd.take.h5file import append_rows, require_dataset, require_group, write_chunk
 from rigd.take.tails import choose_tail_slot, create_tail_slots, drop_tail_slots
 
 #: Frames are allocated in blocks of this many, so the images dataset is not resized per frame.
@@ -404,7 +404,7 @@ class CameraSink:
             self.images.resize((self.alloc, *self.shape))
         data = np.ascontiguousarray(img)
         if self.direct:
-            self.images.id.write_direct_chunk((n, *(0 for _ in self.shape)), data, 0)
+            write_chunk(self.images, (n, *(0 for _ in self.shape)), data)
         else:
             self.images[n] = data
         self.n_frames = n + 1

@@ -7,7 +7,10 @@ call must agree, on the real Gen4.1 recording and on synthetic streams with a wi
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
+import os
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -278,6 +281,60 @@ def test_chunks_carry_their_decoders_geometry_and_a_take_of_another_one_checks_a
     with pytest.raises(TakeError, match=r"y=4\d\d outside the sensor's 640x400 geometry"):
         w.append_packet("ev0", packets[0])
     w.close()
+
+
+def _fill(disk: Path) -> Path:
+    """Take every free byte of `disk` into one file (what another writer would do)."""
+    ballast = disk / "ballast"
+    fd = os.open(ballast, os.O_WRONLY | os.O_CREAT)
+    try:
+        for block in (1 << 16, 1 << 12, 1):  # to the last page
+            try:
+                while os.write(fd, bytes(block)):
+                    pass
+            except OSError as exc:
+                assert exc.errno == errno.ENOSPC, exc
+    finally:
+        os.close(fd)
+    return ballast
+
+
+@pytest.mark.parametrize("storage", ["evt_words", "columns"])
+def test_what_a_full_disk_refused_is_stored_and_indexed_once_there_is_room(
+    tmp_path: Path,
+    synthetic: tuple[EventArray, list[EventPacket]],
+    mount_tmpfs: Callable[[str], Path],
+    storage: str,
+) -> None:
+    """On a real full disk (not a mocked write): HDF5 notes where a new chunk goes before writing
+    it and indexes it only after; the retry `fail` makes in the room the ballast left must not
+    reuse that note, or the chunk is written but never indexed and reads back as zeros."""
+    _, packets = synthetic
+    disk = mount_tmpfs("4m")
+    path = disk / "full.h5"
+    w = TakeWriter(
+        path, rig_config_json="{}", take_id="t", config=WriterConfig(event_storage=storage), rigd_version="t"
+    )
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), 640, 480, "{}", "evt3")
+    w.flush()
+    ballast = _fill(disk)
+    appended = 0
+    with pytest.raises(OSError, match="No space left") as failed:  # noqa: PT012 - fills in the loop
+        for p in packets:
+            appended += 1
+            w.append_packet("ev0", p)
+            if storage == "columns" and appended % 4 == 0:  # columns reach the disk on a flush
+                w.flush()
+    assert failed.value.errno == errno.ENOSPC
+    ballast.unlink()
+    w.fail("disk full")
+    w.close()
+    with open_take(path) as take:
+        assert take.status == "failed"
+        got = take.sensor("ev0").events()
+    want = EventArray.concatenate([p.events for p in packets[:appended]])
+    np.testing.assert_array_equal(got.t, want.t)
+    np.testing.assert_array_equal(got.x, want.x)
 
 
 def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(
