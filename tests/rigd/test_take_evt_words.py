@@ -289,11 +289,10 @@ def _fill(disk: Path) -> Path:
     fd = os.open(ballast, os.O_WRONLY | os.O_CREAT)
     try:
         for block in (1 << 16, 1 << 12, 1):  # to the last page
-            try:
+            with pytest.raises(OSError, match="No space left") as full:  # noqa: PT012 - until full
                 while os.write(fd, bytes(block)):
                     pass
-            except OSError as exc:
-                assert exc.errno == errno.ENOSPC, exc
+            assert full.value.errno == errno.ENOSPC, full.value
     finally:
         os.close(fd)
     return ballast
