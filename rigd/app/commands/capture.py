@@ -5,11 +5,12 @@ from __future__ import annotations
 import signal
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from rigd.app.commands.consoles import fail, stderr_console, stdout_console
+from rigd.app.commands.flags import sim_clock_flag
 from rigd.app.commands.progress import StageProgress
 from rigd.app.commands.service import ConnectOpt, capture_via_daemon, find_for_command
 from rigd.app.commands.summaries import StrictOpt, check_strict, print_summary
@@ -87,7 +88,7 @@ def capture(
         if strict:
             check_strict(last["path"], last.get("verdict"), last.get("verdict_reasons") or [])
         return
-    clock: Literal["real", "virtual"] = "virtual" if sim_clock == "virtual" else "real"
+    clock = sim_clock_flag(sim_clock, config, "the built-in sim rig and --replay")
     try:
         if replay is not None:
             from rigd.app.replay import replay_config
@@ -118,8 +119,7 @@ def _refuse_bad_flags(
     a device opened or a file made."""
     from rigd.app.capture.request import check_duration, check_out_dir
 
-    if sim_clock not in ("real", "virtual"):
-        raise fail(ConfigError(f"--sim-clock {sim_clock!r}: use real or virtual"))
+    sim_clock_flag(sim_clock, config, "the built-in sim rig and --replay")
     try:
         if duration is not None:
             check_duration(duration, "--duration")
@@ -131,13 +131,6 @@ def _refuse_bad_flags(
         raise fail(ConfigError("--replay plays a take's own rig: drop --config"))
     if replay is not None and scene is not None:
         raise fail(ConfigError("--replay plays what the take recorded: drop --scene"))
-    if sim_clock == "virtual" and config is not None:
-        raise fail(
-            ConfigError(
-                "--sim-clock applies to the built-in sim rig and --replay; in a config, give every "
-                "sim:// spec clock=virtual"
-            )
-        )
 
 
 def _capture_in_process(

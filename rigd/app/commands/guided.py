@@ -24,6 +24,7 @@ from rich.table import Table
 from rich.text import Text
 
 from rigd.app.commands.consoles import fail, stderr_console
+from rigd.app.commands.flags import sim_clock_flag
 from rigd.core.errors import RigdError
 
 if TYPE_CHECKING:  # the session (OpenCV, scipy) and the rig load when the command runs
@@ -168,11 +169,20 @@ def guided(
     resolution: Annotated[
         str, typer.Option("--resolution", help="Frame size of the built-in sim rig (ignored with --config).")
     ] = "640x360",
+    sim_clock: Annotated[
+        str,
+        typer.Option(
+            "--sim-clock",
+            help="real, or virtual: the built-in sim rig runs as fast as the CPU allows, every frame is "
+            "looked at and --max-seconds counts the camera's time: the same session on any machine.",
+        ),
+    ] = "real",
     json_out: Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout.")] = False,
 ) -> None:
     """Guided intrinsic calibration: show the board where told until the uncertainty target is met."""
     from rigd.app.workflows.guided import GuidedFrame, GuidedOptions, run_guided
 
+    clock = sim_clock_flag(sim_clock, config, "the built-in sim rig")
     sim_resolution = _parse_resolution(resolution) if config is None else None
     live = Live(console=_err, refresh_per_second=8, transient=False) if _err.is_terminal else None
     lines = _Lines(_err, camera)
@@ -207,6 +217,7 @@ def guided(
             min_views=min_views,
             model=model,
             resolution=sim_resolution,
+            sim_clock=clock,
         )
         outcome = run_guided(options, show)
     except RigdError as exc:

@@ -205,10 +205,9 @@ class GuidedController:
 
     def _work(self, run: GuidedRun) -> None:
         o = run.options
-        t_end = time.monotonic() + o.max_seconds
         fb = None
         try:
-            while not self._stop.is_set() and not self._finish.is_set() and time.monotonic() < t_end:
+            while not self._stop.is_set() and not self._finish.is_set() and not run.budget.spent:
                 with self._lock:
                     drops, self._drops = self._drops, []
                 for i in sorted(drops, reverse=True):
@@ -217,7 +216,7 @@ class GuidedController:
                 if looked is None:
                     continue
                 fb, image = looked
-                self._publish(run, fb.model_dump(mode="json"), image, t_end)
+                self._publish(run, fb.model_dump(mode="json"), image)
             if self._stop.is_set() and not self._finish.is_set():
                 run.close()
                 self._set_doc(state="cancelled", camera=o.camera)
@@ -232,7 +231,7 @@ class GuidedController:
         finally:
             self.daemon.release_devices()
 
-    def _publish(self, run: GuidedRun, fb: dict[str, Any], image: np.ndarray, t_end: float) -> None:
+    def _publish(self, run: GuidedRun, fb: dict[str, Any], image: np.ndarray) -> None:
         session = run.session
         ghost = session.hint_outline()
         now = time.monotonic()
@@ -261,7 +260,7 @@ class GuidedController:
             min_views=o.min_views,
             done_views=o.done_views,
             sigma_names=list(SIGMA_NAMES),
-            seconds_left=max(0.0, t_end - time.monotonic()),
+            seconds_left=run.budget.left(),
         )
 
     def _write(self, run: GuidedRun) -> None:

@@ -11,9 +11,11 @@ from __future__ import annotations
 import logging
 import math
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,6 +68,9 @@ class GuidedOptions(BaseModel):
     min_views: int = 6
     model: str = "k1k2"
     resolution: tuple[int, int] | None = None
+    sim_clock: Literal["real", "virtual"] = "real"
+    """The built-in sim rig's clock (ignored with `config`): "virtual" gives the same session
+    on any machine, however loaded (see SessionBudget)."""
 
     @property
     def out_path(self) -> Path:
@@ -125,14 +130,61 @@ def run_guided(
     started = run.open()
     try:
         progress(started)
-        t_end = time.monotonic() + options.max_seconds
-        while time.monotonic() < t_end and not run.session.done:
+        while not run.budget.spent and not run.session.done:
             looked = run.step()
             if looked is not None:
-                progress(GuidedFrame(looked[0], run.session, max(0.0, t_end - time.monotonic())))
+                progress(GuidedFrame(looked[0], run.session, run.budget.left()))
     finally:
         run.close()
     return run.finish()
+
+
+class SessionBudget:
+    """The session's time left: wall seconds on a rig in real time; on a sim rig on virtual time,
+    seconds of the camera's own time looked at (frame timestamps).
+
+    Why two: a live rig gives its frames in wall time and a technician waits in wall time. A sim
+    on virtual time runs as fast as the host allows, so a wall-clock limit would make the session
+    (and a test of it) depend on how loaded the machine is; the camera's time does not. A sim that
+    stops sending frames for STALL_S wall seconds ends the session all the same.
+    """
+
+    #: Wall seconds without a frame after which a session on virtual time gives up.
+    STALL_S = 30.0
+
+    def __init__(
+        self, seconds: float, *, device_time: bool, wall: Callable[[], float] = time.monotonic
+    ) -> None:
+        self.seconds = seconds
+        self.device_time = device_time
+        self._wall = wall
+        self._wall_start = self._last_frame_wall = wall()
+        self._t_first_us: int | None = None
+        self._t_last_us: int | None = None
+
+    def saw(self, t_us: int) -> None:
+        """A frame of camera time `t_us` was looked at."""
+        if self._t_first_us is None:
+            self._t_first_us = t_us
+        self._t_last_us = t_us
+        self._last_frame_wall = self._wall()
+
+    def left(self) -> float:
+        """Seconds left (>= 0)."""
+        if not self.device_time:
+            return max(0.0, self.seconds - (self._wall() - self._wall_start))
+        if self._t_first_us is None or self._t_last_us is None:
+            return self.seconds
+        return max(0.0, self.seconds - (self._t_last_us - self._t_first_us) / 1e6)
+
+    @property
+    def stalled(self) -> bool:
+        """On virtual time: no frame for STALL_S wall seconds."""
+        return self.device_time and self._wall() - self._last_frame_wall >= self.STALL_S
+
+    @property
+    def spent(self) -> bool:
+        return self.left() <= 0.0 or self.stalled
 
 
 class GuidedRun:
@@ -146,9 +198,14 @@ class GuidedRun:
         self.options = options
         o = options
         if rig is None:
-            rig = RigConfig.load(o.config) if o.config else guided_sim_rig(o.resolution or SIM_RESOLUTION)
+            if o.config:
+                rig = RigConfig.load(o.config)
+            else:
+                rig = guided_sim_rig(o.resolution or SIM_RESOLUTION, o.sim_clock)
         self.rig = rig
         self.device_cfg = _device_config(rig, o.camera)
+        self.virtual_time = rig.on_virtual_time()
+        self.budget = SessionBudget(o.max_seconds, device_time=self.virtual_time)
         self._feed: ImageFeed | None = None
         self._session: GuidedSession | None = None
         self.frames = 0
@@ -177,7 +234,9 @@ class GuidedRun:
             except BaseException:
                 shutdown(trigger, cam)
                 raise
-            feed = CameraFeed(trigger, cam)
+            # On virtual time nothing goes stale (time waits while the camera's buffer is full):
+            # every frame is looked at, the same ones however loaded the host.
+            feed = CameraFeed(trigger, cam, newest_only=not self.virtual_time)
         else:
             feed = open_event_feed(self.rig, dev)
             try:
@@ -199,7 +258,9 @@ class GuidedRun:
             return None
         image, t_us = got
         self.frames += 1
-        return self.session.offer(image, t_us), image
+        feedback = self.session.offer(image, t_us)
+        self.budget.saw(t_us)
+        return feedback, image
 
     def close(self) -> None:
         """Stop and close the devices (idempotent)."""
@@ -260,9 +321,13 @@ def views_text(outcome: GuidedOutcome) -> str:
     )
 
 
-def guided_sim_rig(resolution: tuple[int, int]) -> RigConfig:
-    """The built-in sim rig, in its own world, with mono frames of `resolution`."""
-    return default_sim_rig(world=SIM_WORLD, resolution=resolution, pixel_format="mono8")
+def guided_sim_rig(resolution: tuple[int, int], clock: Literal["real", "virtual"] = "real") -> RigConfig:
+    """The built-in sim rig, in its own world (one per clock: a world runs on one), with mono
+    frames of `resolution`."""
+    # On virtual time a world of its own per session: time starts at 0 in a fresh world, so
+    # every session in a process is the same one (a process keeps its worlds and their truth logs).
+    world = f"{SIM_WORLD}-virtual-{uuid.uuid4().hex[:8]}" if clock == "virtual" else SIM_WORLD
+    return default_sim_rig(world=world, resolution=resolution, pixel_format="mono8", clock=clock)
 
 
 def own_sim_world(rig: RigConfig, suffix: str = "-guided") -> RigConfig:

@@ -57,19 +57,21 @@ def shutdown(trigger: Trigger, device: RgbCamera | EventSensor) -> None:
 
 
 class CameraFeed:
-    """The newest frame of a started camera (older ones are skipped: a live feed must not lag)."""
+    """The newest frame of a started camera: older ones are skipped, a live feed must not lag
+    (`newest_only=False`: every frame, in order, for a sim on virtual time)."""
 
-    def __init__(self, trigger: Trigger, cam: RgbCamera) -> None:
+    def __init__(self, trigger: Trigger, cam: RgbCamera, *, newest_only: bool = True) -> None:
         self.trigger, self.cam = trigger, cam
         shape = cam.frame_shape
         self.size = (int(shape[1]), int(shape[0]))
         self.skipped = 0
+        self.newest_only = newest_only
 
     def read(self, timeout_s: float) -> tuple[NDArray[np.uint8], int] | None:
         frame = self.cam.read_frame(timeout_s)
         if frame is None:
             return None
-        while (newer := self.cam.read_frame(0.0)) is not None:
+        while self.newest_only and (newer := self.cam.read_frame(0.0)) is not None:
             frame, self.skipped = newer, self.skipped + 1
         self.trigger.read_pulses(0.0)  # nobody needs the pulse records; keep the queue short
         # A Bayer camera's mosaic is demosaiced: the board is found in (and shown from) RGB.
