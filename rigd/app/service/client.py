@@ -6,9 +6,10 @@ fresh one on the next call (ZeroMQ's "lazy pirate" pattern).
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
-import os
+import socket
 import uuid
 from pathlib import Path
 from typing import Any, Self
@@ -122,13 +123,19 @@ class DaemonClient:
 
 
 def find_daemon(endpoint: str, timeout_s: float = 1.0, call_timeout_s: float = 5.0) -> DaemonClient | None:
-    """A client for the daemon at `endpoint` if one answers a ping within `timeout_s`, else
-    None (at once when its IPC socket does not even exist). The client's later calls wait up to
-    `call_timeout_s`: a daemon busy finalizing a take may take more than the probe's second to
-    answer, and that is not a daemon gone."""
+    """A client for the daemon at `endpoint` if one answers a ping, else None. The client's
+    later calls wait up to `call_timeout_s`: a daemon busy finalizing a take may take more than
+    a second to answer, and that is not a daemon gone.
+
+    On IPC the socket file says at once whether a daemon listens (none, or a stale file a killed
+    daemon left, refuses the connection), so a listening one gets `call_timeout_s` to answer the
+    ping: on a loaded host a live daemon answered a 1 s probe too late and was reported absent.
+    Elsewhere (TCP) the ping must come within `timeout_s`."""
     path = ipc_path(endpoint)
-    if path is not None and not os.path.exists(path):
-        return None
+    if path is not None:
+        if not _ipc_listening(path):
+            return None
+        timeout_s = max(timeout_s, call_timeout_s)
     client = DaemonClient(endpoint, timeout_s=timeout_s)
     try:
         client.call("ping")
@@ -140,3 +147,18 @@ def find_daemon(endpoint: str, timeout_s: float = 1.0, call_timeout_s: float = 5
         raise RigdError(f"the daemon at {endpoint} refused ping: {exc}") from exc
     client.set_timeout(call_timeout_s)
     return client
+
+
+def _ipc_listening(path: Path) -> bool:
+    """Whether something accepts connections on the Unix socket at `path` (no file, a stale
+    one, or a file that is no socket: False)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        try:
+            probe.connect(str(path))
+        except (FileNotFoundError, ConnectionRefusedError, NotADirectoryError):
+            return False
+        except OSError as exc:
+            if exc.errno in (errno.ENOTSOCK, errno.ECONNREFUSED, errno.ENOENT):
+                return False
+            raise
+    return True
