@@ -12,6 +12,7 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from rigd.app.config import RigConfig, default_sim_rig
 from rigd.app.service.client import DaemonClient, find_daemon
@@ -21,11 +22,18 @@ from rigd.app.service.daemon import Daemon
 REPO = Path(__file__).resolve().parents[3]
 
 
-def small_rig(world: str, *, extra: dict[str, str] | None = None, **service: object) -> RigConfig:
+def small_rig(
+    world: str,
+    *,
+    extra: dict[str, str] | None = None,
+    clock: Literal["real", "virtual"] = "real",
+    **service: object,
+) -> RigConfig:
     """The default sim rig at 160x120 (fast enough for many takes on 2 cores).
 
-    `extra` appends query parameters to one device's spec: {"cam1": "unplug_at_s=1"}."""
-    cfg = default_sim_rig(world=world, resolution=(160, 120))
+    `extra` appends query parameters to one device's spec: {"cam1": "unplug_at_s=1"}. `clock`
+    "virtual": the rig loses nothing to a loaded host (a test of what a take holds)."""
+    cfg = default_sim_rig(world=world, resolution=(160, 120), clock=clock)
     data = cfg.model_dump(mode="json")
     for dev in [*data["cameras"], *data["event_sensors"]]:
         if extra and dev["name"] in extra:
