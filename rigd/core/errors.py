@@ -59,5 +59,11 @@ class TakeTruncatedError(TakeFormatError):
         self.stored_eof = stored_eof
 
 
+class WriteDeferredError(OSError):
+    """The file system refused a write of data the take had already taken in (disk full): the
+    take holds that data and writes it when it is failed or closed, in the room the ballast
+    makes. An OSError like any refused write (the take stops), but the data is not a loss."""
+
+
 class MissingExtraError(RigdError):
     """A feature needs a library that `pip install rigd` leaves out (an extra: rigd[capture], ...)."""

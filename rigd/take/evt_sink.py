@@ -19,6 +19,7 @@ slots (`tail_evt_words`, attr `tail_words_meta`: [first byte, bytes held] per sl
 
 from __future__ import annotations
 
+import errno
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -30,7 +31,7 @@ import zstandard
 from numpy.typing import NDArray
 
 from drivers.evt import StreamDecoder
-from rigd.core.errors import TakeError, TakeFormatError
+from rigd.core.errors import TakeError, TakeFormatError, WriteDeferredError
 from rigd.core.events import EventPacket, EventSpan, EvtChunk, TriggerEvents
 from rigd.core.layout import (
     EVENTS_GROUP,
@@ -266,7 +267,10 @@ class EvtWordsSink(TriggerIn):
         self.n_written += n
         self.stats.items += n
         self.stats.raw_bytes += len(raw.data)
-        self._append_words(raw.data)
+        try:
+            self._append_words(raw.data)
+        except OSError as exc:  # the words are in `pend`: `fail` / `close` write them
+            raise WriteDeferredError(exc.errno or errno.EIO, exc.strerror or str(exc)) from exc
 
     def _add_row(self, raw: EvtChunk, span: EventSpan, shift: int) -> None:
         row = self.row

@@ -35,7 +35,7 @@ from numpy.typing import DTypeLike, NDArray
 
 from drivers.evt import FORMATS as EVT_FORMATS
 from rigd.core.devices import DeviceInfo, PulseBatch
-from rigd.core.errors import TakeError, TakeFormatError, TakeTruncatedError
+from rigd.core.errors import TakeError, TakeFormatError, TakeTruncatedError, WriteDeferredError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.layout import (
@@ -404,7 +404,11 @@ class TakeWriter:
         as columns; its trigger edges either way (events checked whole first)."""
         sink = self._sensor(name)
         if isinstance(sink, EvtWordsSink):
-            sink.add_packet(packet, self.path)
+            try:
+                sink.add_packet(packet, self.path)
+            except WriteDeferredError:
+                sink.add_triggers(packet.triggers, packet.host_time_ns)  # the packet is the take's
+                raise
         elif packet.n_events:
             sink.add_events(packet.events, self.path)
         sink.add_triggers(packet.triggers, packet.host_time_ns)

@@ -20,7 +20,7 @@ import pytest
 from drivers.testing.evt_packets import packets_from_bytes, packets_of
 from drivers.testing.evt_streams import assert_same, needs_data, real_body
 from rigd.core.devices import DeviceInfo
-from rigd.core.errors import TakeError
+from rigd.core.errors import TakeError, WriteDeferredError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
@@ -307,8 +307,17 @@ def test_what_a_full_disk_refused_is_stored_and_indexed_once_there_is_room(
 ) -> None:
     """On a real full disk (not a mocked write): HDF5 notes where a new chunk goes before writing
     it and indexes it only after; the retry `fail` makes in the room the ballast left must not
-    reuse that note, or the chunk is written but never indexed and reads back as zeros."""
-    _, packets = synthetic
+    reuse that note, or the chunk is written but never indexed and reads back as zeros. The
+    packet whose write failed is the take's (`WriteDeferredError`), its trigger edges too."""
+    packets = [
+        EventPacket(
+            p.events,
+            TriggerEvents(p.events.t[:1].copy(), np.ones(1, np.uint8), np.zeros(1, np.uint8)),
+            p.host_time_ns,
+            p.raw,
+        )
+        for p in synthetic[1]
+    ]
     disk = mount_tmpfs("4m")
     path = disk / "full.h5"
     w = TakeWriter(
@@ -325,15 +334,18 @@ def test_what_a_full_disk_refused_is_stored_and_indexed_once_there_is_room(
             if storage == "columns" and appended % 4 == 0:  # columns reach the disk on a flush
                 w.flush()
     assert failed.value.errno == errno.ENOSPC
+    assert isinstance(failed.value, WriteDeferredError) == (storage == "evt_words")
     ballast.unlink()
     w.fail("disk full")
     w.close()
     with open_take(path) as take:
         assert take.status == "failed"
         got = take.sensor("ev0").events()
+        edges = take.sensor("ev0").triggers
     want = EventArray.concatenate([p.events for p in packets[:appended]])
     np.testing.assert_array_equal(got.t, want.t)
     np.testing.assert_array_equal(got.x, want.x)
+    np.testing.assert_array_equal(edges.t, [p.events.t[0] for p in packets[:appended]])
 
 
 def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(

@@ -21,7 +21,7 @@ from rigd.app.capture.items import QueueItem, StopItem, WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.overload import WriterLoad
 from rigd.app.capture.streams import Stream
-from rigd.core.errors import TakeError
+from rigd.core.errors import TakeError, WriteDeferredError
 from rigd.core.fault_codes import FaultCode
 from rigd.take.writer import TakeWriter
 
@@ -134,6 +134,8 @@ class WriterLoop:
             log.error("refused data from %s: %s", item.device, exc)
             self._refused(item, str(exc))
             return
+        except WriteDeferredError as exc:
+            self._failed(exc)  # the take holds the item and writes it when it is failed
         except OSError as exc:
             self._failed(exc)
             self._refused(item, f"not written: {exc}")
