@@ -534,12 +534,13 @@ def open_replay_camera(spec: DeviceSpec) -> ReplayCamera:
 class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
     """A recorded event sensor: every `SLICE_US` of true time, the recorded events and trigger
     edges of that span, back in the sensor clock, as one EVT 3.0 buffer that the host decodes.
-    A buffer the full queue gives up is counted as `packets_dropped`."""
+    A buffer the full queue gives up is counted as `packets_dropped`, its events in
+    `device_dropped` and its trigger edges in `triggers_dropped` (as the sim sensor counts)."""
 
     _device_label = "event sensor"
     _capabilities = frozenset({Capability.TRIGGER_IN, Capability.DEVICE_TIMESTAMPS, Capability.CLOCK_SYNC})
     _overflow_name = "packets_dropped"
-    _overflow_is_loss = False  # a replay's device_dropped stays 0: its loss is in packets_dropped
+    _overflow_is_loss = False  # counted in events, by `_deliver`
 
     def __init__(
         self,
@@ -585,7 +586,10 @@ class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
             "bytes": 0,
             "inexact_times": 0,
             "packets_lost_unplugged": 0,
+            "triggers_dropped": 0,
         }
+        self._events_lost = 0
+        """Events of the buffers the full queue gave up (real time: the reader fell behind)."""
         self._unlisten = self._fault.listen(self._on_unplug)
 
     def warm_up(self) -> None:
@@ -628,9 +632,25 @@ class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
 
     def _counters(self) -> tuple[int, dict[str, int]]:
         with self._lock:
-            counts = dict(self._counts)
+            counts, lost = dict(self._counts), self._events_lost
         _, decoder = super()._counters()
-        return 0, {**counts, **decoder}
+        return lost, {**counts, **decoder}
+
+    def _deliver(self, item: _Packet) -> bool:
+        """Into the queue; a full one gives up a buffer: its events and edges are counted."""
+        lost = self._queue.put(item)
+        if lost is None:
+            return True
+        with self._lock:
+            self._events_lost += lost.n_events
+            self._counts["triggers_dropped"] += lost.n_triggers
+        log.warning(
+            "replay event sensor %s: reader behind, queue full: dropped a buffer of %d events, %d triggers",
+            self._name,
+            lost.n_events,
+            lost.n_triggers,
+        )
+        return False
 
     def _note_unplug_locked(self, lost: list[_Packet]) -> None:
         lost = [*lost, *self._queue.drain()]

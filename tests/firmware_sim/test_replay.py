@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -151,3 +152,38 @@ def test_preloaded_cameras_cycle_frames_held_in_memory(recorded: Path, tmp_path:
                 assert fb[i].frame_counter == fa[i].frame_counter
     with pytest.raises(ConfigError, match="preload"):
         open_device("rgb_camera", f"replay://{recorded}?device=cam0&preload=-1")
+
+
+def test_a_full_queue_in_real_time_counts_the_events_it_gave_up(recorded: Path) -> None:
+    """A reader that falls behind a real-time replay: every buffer the full queue gives up is
+    counted with its events (`device_dropped`, the capture's loss ledger reads it), so what was
+    read plus what was dropped is what the replay sliced."""
+    config, _ = replay_config(recorded, clock="real", faults={"ev0": {"buffer_packets": "1"}})
+    [ev_cfg] = [s for s in config.event_sensors if s.name == "ev0"]
+    trigger = open_device("trigger", config.trigger.spec)
+    sensor = open_device("event_sensor", ev_cfg.spec)
+    try:
+        trigger.configure(config.trigger.settings)
+        sensor.configure(ev_cfg.settings)
+        sensor.start()
+        trigger.arm()
+        trigger.start()
+        # Nobody reads: with one slot, every buffer after the first overflows. Waits for the
+        # drops themselves (the bound only ends a test that would hang).
+        deadline = time.monotonic() + 60
+        while sensor.stats().extra["packets_dropped"] < 3:
+            assert time.monotonic() < deadline, sensor.stats()
+            time.sleep(0.01)
+        trigger.stop()
+        sensor.stop()
+        read = 0
+        while (packet := sensor.read_events(0.0)) is not None:
+            read += packet.n_events
+        stats = sensor.stats()
+    finally:
+        sensor.close()
+        trigger.close()
+        reset_world(f"replay:{recorded.resolve()}")
+    assert stats.device_dropped > 0
+    assert stats.extra["triggers_dropped"] >= 0
+    assert read + stats.device_dropped == stats.extra["events"], stats
