@@ -154,13 +154,14 @@ def is_lock_error(exc: OSError) -> bool:
     return isinstance(exc, BlockingIOError) or "errno = 11," in str(exc)
 
 
-def open_h5(path: Path, mode: str) -> h5py.File:
+def open_h5(path: Path, mode: str, *, rdcc_nbytes: int | None = None) -> h5py.File:
     """Open with HDF5 file locking on, so a take a live writer holds is never opened
-    (best-effort: file systems without locks open anyway)."""
+    (best-effort: file systems without locks open anyway). `rdcc_nbytes`: each dataset's raw
+    chunk cache (None: HDF5's default)."""
     if not path.is_file():
         raise TakeError(f"{path}: no such take file")
     try:
-        return h5py.File(path, mode, locking="best-effort")
+        return h5py.File(path, mode, locking="best-effort", rdcc_nbytes=rdcc_nbytes)
     except OSError as exc:
         if is_lock_error(exc):
             raise TakeInUseError(

@@ -19,10 +19,13 @@ The names other packages import from here are re-exported from those modules.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
 import re
+import resource
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -105,11 +108,19 @@ _JOURNAL_MIN_BYTES = 4096
 #: Writers whose file could not be closed even with its pending writes discarded: HDF5 (2.0)
 #: crashes the process when the objects of such a file are freed, so they are kept.
 _UNCLOSABLE: list[TakeWriter] = []
-#: Raw-data chunk cache of each dataset while writing (HDF5 2.0's default is 8 MiB). The writer
-#: writes whole chunks (events, one frame per chunk), so a cache only holds them back: dirty
-#: chunks that a full disk leaves nowhere to go when the take is marked failed and closed. The
-#: disk ballast must cover what they can hold (`rigd.app.capture.ballast`).
-WRITE_CHUNK_CACHE_BYTES = 1 << 20
+#: Raw-data chunk cache of each dataset while writing (HDF5 2.0's default is 8 MiB): none. The
+#: writer writes whole chunks (events, one frame per chunk) and appends rows once a flush, so a
+#: cache only holds data back: dirty chunks that a full disk leaves nowhere to go when the take
+#: is marked failed and closed (the ballast would have to cover them). Worse, HDF5 notes where a
+#: cached chunk goes before writing it and indexes it only after: when that write fails (disk
+#: full), the retry `fail` makes in the ballast's room writes the chunk but never indexes it, and
+#: it reads back as zeros (columns storage: a whole chunk of event times, silently). Uncached,
+#: a write fails at the call that made it, and its retry is indexed (tests/rigd/test_take_evt_words).
+WRITE_CHUNK_CACHE_BYTES = 0
+#: Free disk `fail` needs to flush the take's metadata (object headers, chunk indexes, the
+#: status and the journal); with less it leaves the take as last flushed rather than risk a
+#: flush that fails half way (the disk ballast frees far more: rigd.app.capture.ballast).
+FAIL_FLUSH_ROOM_BYTES = 1 << 20
 
 
 class TakeWriter:
@@ -174,6 +185,8 @@ class TakeWriter:
         self._small_opts = compression_options(config.event_compression, shuffle=True)
         self._frame_opts = compression_options(config.frame_compression, shuffle=False)
         self._closed = False
+        self._refused: OSError | None = None
+        """What the file refused when `fail` tried to write (then `close` writes nothing)."""
         self._syncer = Syncer(self.path.name)
         self._state = state
         self._version = SCHEMA_VERSION
@@ -204,7 +217,7 @@ class TakeWriter:
         """
         path = Path(path)
         try:
-            f = open_h5(path, "r+")
+            f = open_h5(path, "r+", rdcc_nbytes=WRITE_CHUNK_CACHE_BYTES)
         except TakeTruncatedError as exc:
             if not extend_truncated:
                 raise
@@ -454,10 +467,11 @@ class TakeWriter:
         self._drop_tails()
 
     def _discard_pending(self) -> None:
-        """Point the file descriptor at /dev/null so HDF5 can close a file it failed to write.
+        """Point the file descriptor at a sink that takes every write so HDF5 can close a
+        file it failed to write (`_discard_sink`).
 
         After a failed write HDF5 still holds dirty data it cannot write; closing then fails,
-        and freeing the file's objects crashes the process (HDF5 2.0). Writes to /dev/null
+        and freeing the file's objects crashes the process (HDF5 2.0). Writes to the sink
         succeed, so the close completes, the lock is released, and the file on disk stays
         exactly as the failure left it (recovery repairs and seals it).
         """
@@ -466,7 +480,7 @@ class TakeWriter:
         except OSError as exc:
             log.error("take %s: the last flush's fsync failed too: %s", self.path, exc)
         fd = int(self._f.id.get_vfd_handle())
-        null = os.open(os.devnull, os.O_RDWR)
+        null = _discard_sink()
         try:
             os.dup2(null, fd)
         finally:
@@ -591,31 +605,57 @@ class TakeWriter:
     def fail(self, reason: str) -> None:
         """Mark the take failed with a reason; everything written so far stays readable.
 
-        Nothing that fails here stops the status from being set: a write that fails (disk
-        full) is raised afterwards as OSError, anything else as it was.
+        Writes what is buffered, then the status, and flushes; a write that fails (disk full)
+        is raised afterwards as OSError, anything else as it was. Where the file refuses the
+        buffered writes, or the disk has less than FAIL_FLUSH_ROOM_BYTES free, nothing more
+        is written: the take stays as last flushed (`rigd recover` seals it) and `close`
+        writes nothing either.
         """
         self._check_open()
         if self._state == "complete":
             log.warning("take %s: fail(%r) after finalize ignored", self.path, reason)
             return
         error: Exception | None = None
+        recording = self._state == "recording"
         try:
             self._syncer.wait()
-            if self._state == "recording":
+            if recording:
                 self._write_all()
-                self._drop_tails_after_flush()
         except Exception as exc:  # noqa: BLE001 - raised below, once the status is set
             error = exc
         self._state = "failed"
-        try:
-            self._f.attrs[Root.STATUS] = Status.FAILED
-            self._f.attrs[Root.FAILURE_REASON] = reason
-            self._f.flush()
-        except (OSError, RuntimeError) as exc:
-            error = error or exc
+        refused = isinstance(error, OSError | RuntimeError)
+        if not refused and (free := shutil.disk_usage(self.path.parent).free) < FAIL_FLUSH_ROOM_BYTES:
+            error = OSError(
+                errno.ENOSPC,
+                f"{os.strerror(errno.ENOSPC)}: {free} bytes free on the take's disk, too few to "
+                f"write its metadata ({FAIL_FLUSH_ROOM_BYTES} needed): the take stays as last flushed",
+            )
+            refused = True
+        if not refused:
+            try:
+                if recording:
+                    self._drop_tails_after_flush()
+                self._f.attrs[Root.STATUS] = Status.FAILED
+                self._f.attrs[Root.FAILURE_REASON] = reason
+                self._f.flush()
+            except (OSError, RuntimeError) as exc:
+                error = error or exc
+                refused = True
+        if refused:
+            # The file refuses writes even now (no room freed, a size limit), or the disk has no
+            # room for the metadata: the take stays as last flushed. No flush is tried: one that
+            # fails half way damages the file (its header then refers past its end) and leaves
+            # HDF5 unable to close it ("slist already enabled"), its lock held until exit.
+            assert error is not None
+            self._refused = as_oserror(error)
+            log.error(
+                "take %s marked failed (%s); the file refuses writes: it stays as last flushed",
+                self.path,
+                reason,
+            )
+            raise self._refused from error
         log.error("take %s marked failed: %s", self.path, reason)
-        if isinstance(error, OSError | RuntimeError):
-            raise as_oserror(error) from error
         if error is not None:
             raise error
 
@@ -628,10 +668,12 @@ class TakeWriter:
         """
         if self._closed:
             return
-        error: BaseException | None = None
+        error: BaseException | None = self._refused
         try:
             self._syncer.wait()
-            if self._state == "recording":
+            if error is not None:
+                pass  # `fail` found the file refusing writes: nothing more is tried
+            elif self._state == "recording":
                 self._write_all()
                 self._drop_tails_after_flush()
             else:
@@ -774,3 +816,12 @@ def _write_journal(f: h5py.File, blob: bytes, n: int) -> None:
     row = np.zeros(node.shape[1], np.uint8)
     row[: len(blob)] = np.frombuffer(blob, np.uint8)
     node[n % 2] = row
+
+
+def _discard_sink() -> int:
+    """A descriptor every write and extension succeeds on: an anonymous in-memory file, which
+    HDF5 can extend to the end it records on close (it cannot extend /dev/null: EINVAL), or
+    /dev/null under a file-size limit (which applies to the memory file too: EFBIG)."""
+    if resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY:
+        return os.open(os.devnull, os.O_RDWR)
+    return os.memfd_create("rigd-discarded-writes")

@@ -106,8 +106,10 @@ def test_the_default_rig_filling_a_small_disk_leaves_a_take_that_reads_and_recov
 
 
 def _damaged_take(disk: Path) -> Path:
-    """A take whose writer filled the disk before its first flush with no ballast to close in:
-    its header records an end before the data its datasets point to."""
+    """A take an older rigd left on a full disk with no ballast to close in: it flushed the
+    take's metadata onto the full disk when marking it failed, and HDF5 wrote part of it, so the
+    header records an end before the data its datasets point to. (This writer tries no flush
+    once the file refuses writes: the take stays as last flushed, whole.)"""
     path = disk / "damaged.h5"
     w = TakeWriter(path, rig_config_json="{}", take_id="damaged", config=WriterConfig(), rigd_version="t")
     shape = (720, 1280, 3)
@@ -118,12 +120,14 @@ def _damaged_take(disk: Path) -> Path:
         for i in range(1000):
             for c in range(3):
                 w.append_frame(f"cam{c}", Frame(img, 1000 * i, 100, i, i))
-    # Frames go to the file as their own chunks (no chunk cache): what fails afterwards is
-    # HDF5 flushing its metadata onto the full disk, reported as ENOSPC or as EIO.
-    with pytest.raises(OSError, match=r"No space left|Unable to flush"):
-        w.fail("disk full")
-    with pytest.raises(OSError, match=r"No space left|Unable to flush"):
-        w.close()
+    # What an older writer's `fail` did: write its buffers, then flush, onto the full disk.
+    with pytest.raises(OSError, match="No space left"):
+        w._write_all()
+    w._f.attrs["status"] = "failed"
+    with pytest.raises(RuntimeError, match="Unable to flush"):
+        w._f.flush()
+    with pytest.raises(OSError, match="No space left"):
+        w.close()  # HDF5 cannot close it any more ("slist already enabled"): kept until exit
     return path
 
 
@@ -139,11 +143,43 @@ def test_inspect_never_crashes_on_a_take_a_full_disk_damaged(small_disk: Path) -
         lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
         assert len(lines) == 1, res.stderr
         assert lines[0].startswith(f"error: {copy}: damaged"), lines[0]
-        assert f"rigd recover {copy}" in lines[0]
+        # What recovery can do: the data HDF5 cannot read ("`rigd recover PATH` seals what is
+        # left"), or a header HDF5 refuses to open ("`rigd recover` cannot repair it").
+        assert "`rigd recover" in lines[0], lines[0]
     before = copy.read_bytes()
     rec = runner.invoke(app, ["recover", str(copy)])
     assert rec.exit_code != 0, rec.output
     assert "Traceback" not in rec.output
-    assert "recovery saved nothing of this take and left the file as it was" in rec.output, rec.output
+    saved_nothing = ("recovery saved nothing of this take and left the file as it was", "cannot repair it")
+    assert any(said in rec.output for said in saved_nothing), rec.output
     assert copy.read_bytes() == before
     assert os.path.getsize(copy) > 0
+
+
+def test_a_writer_the_full_disk_refuses_leaves_the_take_as_last_flushed_and_closes(
+    small_disk: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """No ballast to close in: `fail` finds its writes refused and tries no flush (one that
+    fails half way leaves HDF5 unable to close the file), so the take stays whole as last
+    flushed, `close` closes it, and recovery seals it."""
+    path = small_disk / "refused.h5"
+    w = TakeWriter(path, rig_config_json="{}", take_id="refused", config=WriterConfig(), rigd_version="t")
+    shape = (720, 1280, 3)
+    w.add_camera("cam0", DeviceInfo(kind="rgb_camera", spec="test://cam0"), shape, np.uint8, "{}")
+    img = np.random.default_rng(0).integers(0, 255, shape, dtype=np.uint8)
+    w.append_frame("cam0", Frame(img, 0, 100, 0, 0))
+    w.flush()
+    with pytest.raises(OSError, match="No space left"):  # noqa: PT012 - the disk fills in the loop
+        for i in range(1, 1000):
+            w.append_frame("cam0", Frame(img, 1000 * i, 100, i, i))
+    with pytest.raises(OSError, match="No space left"):
+        w.fail("disk full")
+    with pytest.raises(OSError, match="No space left"):
+        w.close()
+    assert "could not be closed" not in caplog.text  # closed, its lock released
+    seen = CliRunner().invoke(app, ["inspect", "--json", str(path)])
+    assert seen.exit_code == 1, seen.output
+    assert json.loads(seen.stdout)["status"] == "recording"  # as last flushed
+    rec = CliRunner().invoke(app, ["recover", str(path)])
+    assert rec.exit_code == 0, rec.output
+    assert "SEALED" in rec.stdout, rec.stdout

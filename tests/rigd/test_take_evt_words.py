@@ -283,8 +283,8 @@ def test_chunks_carry_their_decoders_geometry_and_a_take_of_another_one_checks_a
     w.close()
 
 
-def _fill(disk: Path) -> Path:
-    """Take every free byte of `disk` into one file (what another writer would do)."""
+def _fill(disk: Path, leave: int = 0) -> Path:
+    """Take every free byte of `disk` but `leave` into one file (what another writer would do)."""
     ballast = disk / "ballast"
     fd = os.open(ballast, os.O_WRONLY | os.O_CREAT)
     try:
@@ -293,6 +293,8 @@ def _fill(disk: Path) -> Path:
                 while os.write(fd, bytes(block)):
                     pass
             assert full.value.errno == errno.ENOSPC, full.value
+        if leave:
+            os.ftruncate(fd, os.fstat(fd).st_size - leave)
     finally:
         os.close(fd)
     return ballast
@@ -346,6 +348,46 @@ def test_what_a_full_disk_refused_is_stored_and_indexed_once_there_is_room(
     np.testing.assert_array_equal(got.t, want.t)
     np.testing.assert_array_equal(got.x, want.x)
     np.testing.assert_array_equal(edges.t, [p.events.t[0] for p in packets[:appended]])
+
+
+@pytest.mark.parametrize(("before", "left"), [(5, 65536), (20, 16384), (40, 16384)])
+def test_columns_a_full_disk_stopped_mid_flush_read_back_whole(
+    tmp_path: Path, mount_tmpfs: Callable[[str], Path], before: int, left: int
+) -> None:
+    """Columns reach the disk at flushes. With HDF5's chunk cache, a chunk whose flush the full
+    disk refused was written again by `fail` but never indexed: 4,096 event times read back as
+    0, silently, in each of these three cases. The writer keeps no chunk cache (a write fails at
+    its call, and its retry is indexed): the take reads back every event it counted."""
+    rng = np.random.default_rng(3)
+    n = 200_000
+    t = 400_000 + np.cumsum(rng.integers(0, 25, n))
+    ev = EventArray.from_arrays(rng.integers(0, 640, n), rng.integers(0, 480, n), rng.integers(0, 2, n), t)
+    packets = packets_of(ev[np.lexsort((ev.x, ev.p, ev.y, ev.t))], 4000, width=640, height=480)
+    disk = mount_tmpfs("8m")
+    path = disk / "full.h5"
+    cfg = WriterConfig(event_storage="columns", event_chunk=4096)
+    w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+    w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="sim://t/ev0"), 640, 480, "{}", "evt3")
+    for p in packets[:before]:
+        w.append_packet("ev0", p)
+    w.flush()
+    ballast = _fill(disk, leave=left)
+    appended = before
+    with pytest.raises(OSError, match=r"No space left|Unable to"):  # noqa: PT012 - fills in the loop
+        for i, p in enumerate(packets[before:]):
+            w.append_packet("ev0", p)
+            appended += 1
+            if i % 3 == 2:
+                w.flush()
+    ballast.unlink()
+    w.fail("disk full")
+    w.close()
+    with open_take(path) as take:
+        got = take.sensor("ev0").events()
+    want = EventArray.concatenate([p.events for p in packets[:appended]])
+    assert len(got) == len(want)
+    bad = np.flatnonzero(got.t != want.t)
+    assert not len(bad), f"{len(bad)} event times differ from index {bad[0]}: {got.t[bad[:3]]}"
 
 
 def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(

@@ -107,10 +107,10 @@ _METADATA_BYTES = 1 << 20
 def minimum_ballast_bytes(writer: WriterConfig, frame_bytes: Iterable[int], n_event_sensors: int) -> int:
     """What marking a take failed and closing it on a full disk writes at most, once the
     ballast is given up: per event sensor its buffered events (a write block plus a chunk,
-    uncompressed at worst) and the chunks its four event columns hold in HDF5's chunk cache
-    (`WRITE_CHUNK_CACHE_BYTES` each), or its EVT words not written yet (`MAX_UNWRITTEN_BYTES`)
-    and its two tail slots, whichever is more, and its five trigger-in series; per camera its cached
-    frames (a frame larger than the cache is written through) and six frame series; the pulse
+    uncompressed at worst) and what its four event columns hold in HDF5's chunk cache
+    (`WRITE_CHUNK_CACHE_BYTES` each: none, the writer keeps no cache), or its EVT words not
+    written yet (`MAX_UNWRITTEN_BYTES`) and its two tail slots, whichever is more, and its five
+    trigger-in series; per camera its cached frames (none) and six frame series; the pulse
     series; the file's metadata and journal. With less, the take's `failed` mark and metadata
     may not reach the disk, and a take whose first flush never did cannot be read back (HDF5:
     "addr overflow"). `frame_bytes`: one frame of each camera."""

@@ -41,7 +41,7 @@ def small_rig(
     if extra and "trigger" in extra:
         data["trigger"]["spec"] += "&" + extra["trigger"]
     data["writer"]["disk_reserve_mb"] = 0
-    data["writer"]["disk_ballast_mb"] = 24  # the minimum for this rig is about 20
+    data["writer"]["disk_ballast_mb"] = 24  # above this rig's minimum (about 11 MB)
     data["service"].update({"metrics_port": None, "thumbnail_interval_s": 0.5, "telemetry_interval_s": 0.2})
     data["service"].update(service)
     return RigConfig.from_data(data)

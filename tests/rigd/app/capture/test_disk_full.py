@@ -28,8 +28,9 @@ def _resize(where: Path, mb: int) -> None:
     subprocess.run(["mount", "-o", f"remount,size={mb}m", str(where)], check=True)
 
 
-#: The smallest ballast this rig is allowed (`rigd.app.capture.ballast.minimum_ballast_bytes`);
-#: the disk sizes below are the ballast plus 1 to 27 MB of room for data.
+#: A ballast above the smallest this rig is allowed (`rigd.app.capture.ballast.minimum_ballast_bytes`:
+#: 10 MB since the writer keeps no chunk cache, 19 MB before); the disk sizes below are the
+#: ballast plus 1 to 27 MB of room for data.
 BALLAST_MB = 19
 
 
