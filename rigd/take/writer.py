@@ -19,13 +19,10 @@ The names other packages import from here are re-exported from those modules.
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import os
 import re
-import resource
-import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -77,6 +74,7 @@ from rigd.take.h5file import (
     require_group,
     utc_now,
 )
+from rigd.take.refused import discard_pending_writes, no_room_to_flush
 from rigd.take.repair import Trim, check_repair, stored_prefix
 from rigd.take.sinks import CameraSink, DeviceWriteStats, EventSink, PulseSink
 from rigd.take.tails import tail_rows
@@ -117,10 +115,6 @@ _UNCLOSABLE: list[TakeWriter] = []
 #: it reads back as zeros (columns storage: a whole chunk of event times, silently). Uncached,
 #: a write fails at the call that made it, and its retry is indexed (tests/rigd/test_take_evt_words).
 WRITE_CHUNK_CACHE_BYTES = 0
-#: Free disk `fail` needs to flush the take's metadata (object headers, chunk indexes, the
-#: status and the journal); with less it leaves the take as last flushed rather than risk a
-#: flush that fails half way (the disk ballast frees far more: rigd.app.capture.ballast).
-FAIL_FLUSH_ROOM_BYTES = 1 << 20
 
 
 class TakeWriter:
@@ -467,28 +461,12 @@ class TakeWriter:
         self._drop_tails()
 
     def _discard_pending(self) -> None:
-        """Point the file descriptor at a sink that takes every write so HDF5 can close a
-        file it failed to write (`_discard_sink`).
-
-        After a failed write HDF5 still holds dirty data it cannot write; closing then fails,
-        and freeing the file's objects crashes the process (HDF5 2.0). Writes to the sink
-        succeed, so the close completes, the lock is released, and the file on disk stays
-        exactly as the failure left it (recovery repairs and seals it).
-        """
+        """Let HDF5 close a file it failed to write (rigd.take.refused)."""
         try:
             self._syncer.wait()  # not on a file descriptor about to be swapped
         except OSError as exc:
             log.error("take %s: the last flush's fsync failed too: %s", self.path, exc)
-        fd = int(self._f.id.get_vfd_handle())
-        null = _discard_sink()
-        try:
-            os.dup2(null, fd)
-        finally:
-            os.close(null)
-        log.error(
-            "take %s: writes HDF5 could not complete were discarded; the file stays as last flushed",
-            self.path,
-        )
+        discard_pending_writes(self._f, self.path)
 
     def flush(self, journal: Mapping[str, Any] | None = None) -> None:
         """Write every buffer and flush HDF5, so a crash from here on loses nothing written.
@@ -607,7 +585,7 @@ class TakeWriter:
 
         Writes what is buffered, then the status, and flushes; a write that fails (disk full)
         is raised afterwards as OSError, anything else as it was. Where the file refuses the
-        buffered writes, or the disk has less than FAIL_FLUSH_ROOM_BYTES free, nothing more
+        buffered writes, or the disk has too little room (rigd.take.refused), nothing more
         is written: the take stays as last flushed (`rigd recover` seals it) and `close`
         writes nothing either.
         """
@@ -625,13 +603,8 @@ class TakeWriter:
             error = exc
         self._state = "failed"
         refused = isinstance(error, OSError | RuntimeError)
-        if not refused and (free := shutil.disk_usage(self.path.parent).free) < FAIL_FLUSH_ROOM_BYTES:
-            error = OSError(
-                errno.ENOSPC,
-                f"{os.strerror(errno.ENOSPC)}: {free} bytes free on the take's disk, too few to "
-                f"write its metadata ({FAIL_FLUSH_ROOM_BYTES} needed): the take stays as last flushed",
-            )
-            refused = True
+        if not refused and (no_room := no_room_to_flush(self.path)) is not None:
+            error, refused = no_room, True
         if not refused:
             try:
                 if recording:
@@ -644,9 +617,7 @@ class TakeWriter:
                 refused = True
         if refused:
             # The file refuses writes even now (no room freed, a size limit), or the disk has no
-            # room for the metadata: the take stays as last flushed. No flush is tried: one that
-            # fails half way damages the file (its header then refers past its end) and leaves
-            # HDF5 unable to close it ("slist already enabled"), its lock held until exit.
+            # room for the metadata: the take stays as last flushed, no flush tried (refused.py).
             assert error is not None
             self._refused = as_oserror(error)
             log.error(
@@ -816,12 +787,3 @@ def _write_journal(f: h5py.File, blob: bytes, n: int) -> None:
     row = np.zeros(node.shape[1], np.uint8)
     row[: len(blob)] = np.frombuffer(blob, np.uint8)
     node[n % 2] = row
-
-
-def _discard_sink() -> int:
-    """A descriptor every write and extension succeeds on: an anonymous in-memory file, which
-    HDF5 can extend to the end it records on close (it cannot extend /dev/null: EINVAL), or
-    /dev/null under a file-size limit (which applies to the memory file too: EFBIG)."""
-    if resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY:
-        return os.open(os.devnull, os.O_RDWR)
-    return os.memfd_create("rigd-discarded-writes")

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -14,14 +11,6 @@ from rigd.app.console.server import ConsoleServer
 from rigd.app.service.daemon import Daemon
 from rigd.app.testing.console import ConsoleDaemon, console_rig
 from rigd.app.testing.daemon import serve_in_thread
-
-
-@pytest.fixture
-def runtime_dir() -> Iterator[Path]:
-    d = Path(tempfile.mkdtemp(prefix="rigd-c-"))
-    os.chmod(d, 0o700)
-    yield d
-    shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture
