@@ -17,7 +17,6 @@
 #include "serial.h"
 
 #define MAX_LINE 64u          /* longest host line accepted, without the newline */
-#define MAX_TOKENS 8u
 #define MAX_TS_COUNT 64u
 #define START_LEAD_US 20000u
 #define MIN_RATE_UHZ 1000ULL           /* 0.001 Hz */
@@ -538,39 +537,35 @@ static void handle_line(char *raw, uint8_t n)
             (uint8_t)((hi << 4) | lo) != sum) {
             err_begin(PSTR("CHECKSUM"));
             line_str_P(PSTR("checksum *"));
-            for (uint8_t i = 0; i < 8 && hh[i]; i++)
-                line_char(hh[i] == '$' || hh[i] == '*' ? '?' : hh[i]);
+            line_shown(hh, 8);
             line_str_P(PSTR(" does not match the line"));
             line_end(-1);
             return;
         }
     }
-    char *tok[MAX_TOKENS];
+    /* No command takes more than two arguments: keep the first three tokens and the last
+     * (the tag), and count the rest, so a long line still names its command and its tag. */
+    char *tok[3];
+    char *last = 0;
     uint8_t ntok = 0;
     for (char *p = text; *p;) {
         while (*p == ' ')
             *p++ = '\0';
         if (!*p)
             break;
-        if (ntok < MAX_TOKENS)
+        if (ntok < 3)
             tok[ntok] = p;
+        last = p;
         ntok++;
         while (*p && *p != ' ')
             p++;
     }
-    if (ntok > MAX_TOKENS) {
-        /* No command takes this many: the tag (if any) is lost among them, so none is echoed. */
-        err_begin(PSTR("BADARG"));
-        line_str_P(PSTR("too many arguments"));
-        line_end(-1);
-        return;
-    }
-    if (ntok && tok[ntok - 1][0] == '#') {
+    if (ntok && last[0] == '#') {
         uint64_t tag;
-        if (!parse_uint(tok[ntok - 1] + 1, &tag) || tag > 65535u) {
+        if (!parse_uint(last + 1, &tag) || tag > 65535u) {
             err_begin(PSTR("BADARG"));
             line_str_P(PSTR("tag #"));
-            line_quoted(tok[ntok - 1] + 1, 16);
+            line_shown(last + 1, 16);
             line_str_P(PSTR(" is not an integer 0..65535"));
             line_end(-1);
             return;

@@ -191,11 +191,16 @@ void line_u32(uint32_t v)
     }
 }
 
+void line_shown(const char *s, uint8_t max)
+{
+    for (uint8_t i = 0; i < max && s[i]; i++)
+        line_char(s[i] == '$' || s[i] == '*' ? '?' : s[i]);
+}
+
 void line_quoted(const char *s, uint8_t max)
 {
     line_char('\'');
-    for (uint8_t i = 0; i < max && s[i]; i++)
-        line_char(s[i] == '$' || s[i] == '*' ? '?' : s[i]);
+    line_shown(s, max);
     line_char('\'');
 }
 

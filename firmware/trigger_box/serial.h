@@ -26,8 +26,9 @@ void line_str(const char *s);
 void line_str_P(PGM_P s);
 void line_u64(uint64_t v);
 void line_u32(uint32_t v);
-/* Text the host sent, quoted, at most `max` bytes, with '$' and '*' (framing bytes a payload
- * must not contain) shown as '?'. */
+/* Text the host sent, at most `max` bytes, with '$' and '*' (framing bytes a payload must
+ * not contain) shown as '?'; line_quoted puts it in single quotes. */
+void line_shown(const char *s, uint8_t max);
 void line_quoted(const char *s, uint8_t max);
 void line_end(int32_t tag);
 
