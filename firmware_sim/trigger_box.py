@@ -41,6 +41,7 @@ import numpy as np
 from firmware_sim.clock import Hold
 from firmware_sim.world import DeviceClock, Edge, SimWorld, truth_journal
 from rigd.core.errors import ConfigError
+from rigd.core.timebase import pulse_offset_us
 
 if TYPE_CHECKING:
     pass
@@ -75,6 +76,12 @@ IDLE, ARMED, RUNNING = "IDLE", "ARMED", "RUNNING"
 
 #: What became of a line the box meant to send.
 SendResult = Literal["sent", "garbled", "dropped", "silent"]
+
+
+def _shown(text: str, limit: int = 16) -> str:
+    """Host text quoted back in a reply: never the framing bytes '$' and '*', which a payload
+    must not contain (docs/trigger-protocol.md, "Framing")."""
+    return text[:limit].replace("$", "?").replace("*", "?")
 
 
 def checksum(payload: bytes) -> int:
@@ -355,12 +362,12 @@ class SimTriggerBox:
             if "*" in text:
                 text, hh = text.rsplit("*", 1)
                 if not re.fullmatch(r"[0-9A-Fa-f]{2}", hh) or int(hh, 16) != checksum(text.encode()):
-                    raise _CommandError("CHECKSUM", f"checksum *{hh} does not match the line")
+                    raise _CommandError("CHECKSUM", f"checksum *{_shown(hh, 8)} does not match the line")
             tokens = text.split()
             if tokens and tokens[-1].startswith("#"):
                 tag_text = tokens.pop()[1:]
                 if not _UINT_RE.match(tag_text) or int(tag_text) > 65535:
-                    raise _CommandError("BADARG", f"tag #{tag_text} is not an integer 0..65535")
+                    raise _CommandError("BADARG", f"tag #{_shown(tag_text)} is not an integer 0..65535")
                 tag = int(tag_text)
             if not tokens:
                 raise _CommandError("UNKNOWN", "empty command")
@@ -372,7 +379,7 @@ class SimTriggerBox:
     def _dispatch(self, cmd: str, args: list[str]) -> list[str]:
         handler = _COMMANDS.get(cmd)
         if handler is None:
-            raise _CommandError("UNKNOWN", f"unknown command {cmd[:16]!r}")
+            raise _CommandError("UNKNOWN", f"unknown command {_shown(cmd)!r}")
         name, min_args, max_args = handler
         if not min_args <= len(args) <= max_args:
             want = str(min_args) if min_args == max_args else f"{min_args}..{max_args}"
@@ -390,7 +397,7 @@ class SimTriggerBox:
         text = args[0]
         if not _RATE_RE.match(text) or not MIN_RATE_HZ <= float(text) <= MAX_RATE_HZ:
             raise _CommandError(
-                "BADARG", f"rate {text[:16]!r} not a decimal in {MIN_RATE_HZ}..{MAX_RATE_HZ:g} Hz"
+                "BADARG", f"rate {_shown(text)!r} not a decimal in {MIN_RATE_HZ}..{MAX_RATE_HZ:g} Hz"
             )
         period_us = 1e6 / float(text)
         if self.jitter_us * JITTER_PERIODS > period_us:
@@ -410,7 +417,7 @@ class SimTriggerBox:
     def _cmd_width(self, args: list[str]) -> list[str]:
         text = args[0]
         if not _UINT_RE.match(text) or not 1 <= int(text) <= MAX_WIDTH_US:
-            raise _CommandError("BADARG", f"width {text[:16]!r} not an integer in 1..{MAX_WIDTH_US} us")
+            raise _CommandError("BADARG", f"width {_shown(text)!r} not an integer in 1..{MAX_WIDTH_US} us")
         with self._lock:
             if self._state == RUNNING:
                 raise _CommandError("STATE", "WIDTH not allowed while RUNNING")
@@ -432,7 +439,7 @@ class SimTriggerBox:
         if args:
             if not _UINT_RE.match(args[0]) or not 1 <= int(args[0]) <= MAX_PULSES:
                 raise _CommandError(
-                    "BADARG", f"pulse count {args[0][:16]!r} not an integer in 1..{MAX_PULSES}"
+                    "BADARG", f"pulse count {_shown(args[0])!r} not an integer in 1..{MAX_PULSES}"
                 )
             target = int(args[0])
         with self._lock:
@@ -476,12 +483,16 @@ class SimTriggerBox:
     def _cmd_clock(self, args: list[str]) -> list[str]:
         return [f"CLOCK {self.box_now()}"]
 
+    def _cmd_diag(self, args: list[str]) -> list[str]:
+        with self._lock:
+            return [f"DIAG records_dropped={self.tx_dropped} rx_lost=0 late_edges=0"]
+
     def _cmd_ts(self, args: list[str]) -> list[str]:
         first_text, count_text = args
         if not _UINT_RE.match(first_text):
-            raise _CommandError("BADARG", f"first index {first_text[:16]!r} not a non-negative integer")
+            raise _CommandError("BADARG", f"first index {_shown(first_text)!r} not a non-negative integer")
         if not _UINT_RE.match(count_text) or not 1 <= int(count_text) <= MAX_TS_COUNT:
-            raise _CommandError("BADARG", f"count {count_text[:16]!r} not an integer in 1..{MAX_TS_COUNT}")
+            raise _CommandError("BADARG", f"count {_shown(count_text)!r} not an integer in 1..{MAX_TS_COUNT}")
         first, count = int(first_text), int(count_text)
         with self._lock:
             lo = max(first, self._count - RING_SIZE)
@@ -495,8 +506,11 @@ class SimTriggerBox:
         return self.box_now() + START_LEAD_US
 
     def _pulse_box_time(self, t0: int, rate_hz: float, k: int) -> int | None:
-        """Box time of pulse k of the run; None when the schedule has no more (a replay's end)."""
-        return t0 + round(k * 1e6 / rate_hz)
+        """Box time of pulse k of the run; None when the schedule has no more (a replay's end).
+
+        The exact rational with halves rounded up, in integers: the same b_k as the AVR
+        firmware (docs/trigger-protocol.md, "Pulses")."""
+        return t0 + pulse_offset_us(k, rate_hz)
 
     def _halt_scheduler(self) -> None:
         sched = self._scheduler
@@ -615,6 +629,7 @@ _COMMANDS: dict[str, tuple[str, int, int]] = {
     "STATUS?": ("_cmd_status", 0, 0),
     "CLOCK?": ("_cmd_clock", 0, 0),
     "TS?": ("_cmd_ts", 2, 2),
+    "DIAG?": ("_cmd_diag", 0, 0),
 }
 
 #: Spec parameters of a box on the pty (sim and replay alike).

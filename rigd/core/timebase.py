@@ -18,6 +18,14 @@ from rigd.core.errors import SyncError
 _BLOCK = 1 << 20
 
 
+def pulse_offset_us(k: int, rate_hz: float) -> int:
+    """Box time of pulse k after pulse 0: round(k * 1e6 / rate), the exact rational with halves
+    rounded up (docs/trigger-protocol.md, "Pulses"). A protocol rate has at most six decimals,
+    so rate * 1e6 is an exact integer and this is integer arithmetic, as in the firmware."""
+    rate_uhz = round(rate_hz * 1e6)
+    return (2 * k * 10**12 + rate_uhz) // (2 * rate_uhz)
+
+
 @dataclass(frozen=True, slots=True)
 class ClockMap:
     """rig_us = rig_ref_us + frac_us + rate * (device_us - device_ref_us).

@@ -4,7 +4,8 @@ the writer.
 A take holds the data of its trigger window: from the first pulse minus
 `writer.window_margin_us` to the last pulse plus one trigger period, in rig time (the trigger
 box clock). The box reports pulse k at `b_k = b_0 + round(k * 1e6 / rate)`, so the window is
-known relative to pulse 0 as soon as the last pulse index is (a fixed-duration take knows it
+known relative to pulse 0 as soon as the last pulse index is (halves rounded up:
+`rigd.core.timebase.pulse_offset_us`) (a fixed-duration take knows it
 from the start; an open-ended one when the box is stopped).
 
 Each `WindowGate` applies the window in its device's own clock while the take runs, so a
@@ -50,6 +51,7 @@ from numpy.typing import NDArray
 from rigd.core.errors import RigdError
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
+from rigd.core.timebase import pulse_offset_us
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +86,7 @@ class TakeWindow:
 
     def offset_us(self, k: int) -> int:
         """Box time of pulse k after pulse 0 (the box's schedule, no drift)."""
-        return round(k * 1e6 / self.rate_hz)
+        return pulse_offset_us(k, self.rate_hz)
 
     def note_pulses(
         self, index: NDArray[np.int64], t_us: NDArray[np.int64], host_time_ns: NDArray[np.int64]
