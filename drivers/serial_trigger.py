@@ -495,6 +495,18 @@ class SerialTrigger(Trigger):
         """The box's state, counters and settings as it reports them."""
         return self._status()
 
+    def diag(self) -> dict[str, int]:
+        """The box's own counters (`DIAG?`, protocol v1.1): records it could not send live,
+        input bytes it lost, edges it armed late. A v1 box answers `ERR UNKNOWN`."""
+        fields = self._simple("DIAG?", "DIAG")
+        out: dict[str, int] = {}
+        for f in fields[1:]:
+            key, _, value = f.partition("=")
+            if not value.isdigit():
+                raise ProtocolError(f"trigger box {self.port}: DIAG? field {f!r} is not key=<count>")
+            out[key] = int(value)
+        return out
+
     def _is_running(self) -> bool:
         status = self._status()
         running = status["state"] == "RUNNING"

@@ -258,6 +258,7 @@ def run_checks(
     out_dir: Path = Path("takes"),
     duration_s: float = 600.0,
     disk_test: bool = True,
+    trigger_test: bool = False,
 ) -> list[Check]:
     """Every check, in the order an operator would fix them."""
     r = readings or Readings()
@@ -283,7 +284,83 @@ def run_checks(
     checks += _guard("socket buffers", lambda: _check_rmem(r, plan))
     checks += _guard("hdf5 plugins", lambda: _check_hdf5(r, rig))
     checks += _guard("backends", lambda: _check_backends(r, rig, found()))
+    if trigger_test and rig is not None:
+        checks += _guard("trigger box", lambda: check_trigger_box(rig))
     return checks
+
+
+#: Pulses the trigger-box check asks for (a third of a second at the default 30 Hz).
+TRIGGER_TEST_PULSES = 10
+
+
+def check_trigger_box(rig: RigConfig) -> list[Check]:
+    """Open the rig's trigger box with the real driver and let it pulse: its identity, that
+    every pulse record arrives on the documented schedule, and the box's own counters.
+
+    The cameras and sensors on the trigger line see TRIGGER_TEST_PULSES pulses."""
+    from drivers.registry import open_device
+    from drivers.serial_trigger import SerialTrigger
+    from rigd.core.errors import DeviceError, ProtocolError
+    from rigd.core.timebase import pulse_offset_us
+
+    name = "trigger box"
+    spec = rig.trigger.spec
+    try:
+        trig = open_device("trigger", spec)
+    except (ConfigError, DeviceError) as exc:
+        return [Check(name, "FAIL", f"{spec}: cannot open it: {exc}", _TRIGGER_FIX)]
+    try:
+        info = trig.info
+        who = f"{info.vendor} {info.model} serial {info.serial} firmware {info.firmware} on {spec}"
+        settings = rig.trigger.settings
+        trig.configure(settings)
+        trig.arm()
+        t0 = trig.start(TRIGGER_TEST_PULSES)
+        deadline = time.monotonic() + TRIGGER_TEST_PULSES / settings.rate_hz + 5.0
+        got: dict[int, int] = {}
+        while len(got) < TRIGGER_TEST_PULSES and time.monotonic() < deadline:
+            batch = trig.read_pulses(0.1)
+            got.update(zip(batch.index.tolist(), batch.t_us.tolist(), strict=True))
+        trig.stop()
+        want = {k: t0 + pulse_offset_us(k, settings.rate_hz) for k in range(TRIGGER_TEST_PULSES)}
+        if got != want:
+            wrong = sorted(k for k in want if got.get(k) != want[k])
+            return [
+                Check(
+                    name,
+                    "FAIL",
+                    f"{who}: pulse records {wrong[:10]} missing or off the schedule "
+                    f"t0 + round(k * 1e6 / {settings.rate_hz:g}) (docs/trigger-protocol.md)",
+                    _TRIGGER_FIX,
+                )
+            ]
+        counters = ""
+        if isinstance(trig, SerialTrigger):
+            link = trig.stats
+            counters = f"; link: {link['corrupt_lines']} corrupt lines, {link['retries']} retries"
+            try:
+                diag = trig.diag()
+                counters += "; box: " + ", ".join(f"{k}={v}" for k, v in diag.items())
+            except ProtocolError as exc:  # a v1 box has no DIAG?
+                log.debug("trigger box %s has no DIAG?: %s", spec, exc)
+        return [
+            Check(
+                name,
+                "OK",
+                f"{who}: {TRIGGER_TEST_PULSES} pulses at {settings.rate_hz:g} Hz, every record on "
+                f"its schedule{counters}",
+            )
+        ]
+    except (DeviceError, ProtocolError) as exc:
+        return [Check(name, "FAIL", f"{spec}: {exc}", _TRIGGER_FIX)]
+    finally:
+        trig.close()
+
+
+_TRIGGER_FIX = (
+    "check the cable and the port, that no daemon holds it (rigd status), that the config's ?baud= "
+    "matches the firmware build (docs/hardware.md), and reflash the box"
+)
 
 
 def _check_devices(found: Discovery) -> list[Check]:

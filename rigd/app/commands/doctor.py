@@ -31,6 +31,14 @@ def doctor(
     disk_test: Annotated[
         bool, typer.Option("--disk-test/--no-disk-test", help="Measure disk write speed (writes 64 MiB).")
     ] = True,
+    trigger_test: Annotated[
+        bool,
+        typer.Option(
+            "--trigger-test/--no-trigger-test",
+            help="With --config: open the trigger box and let it send 10 pulses (the devices on its "
+            "line see them); checks its identity, its schedule and its counters.",
+        ),
+    ] = True,
     json_out: Annotated[bool, typer.Option("--json", help="Print the checks as JSON.")] = False,
 ) -> None:
     """Check permissions, USB links, usbfs, disk, clocks, buffers and backends; suggest fixes."""
@@ -42,7 +50,9 @@ def doctor(
     except RigdError as exc:
         _err.print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(code=2) from exc
-    checks = run_checks(rig=rig, out_dir=out_dir, duration_s=duration, disk_test=disk_test)
+    checks = run_checks(
+        rig=rig, out_dir=out_dir, duration_s=duration, disk_test=disk_test, trigger_test=trigger_test
+    )
     if json_out:
         typer.echo(json.dumps(checks_to_dict(checks), indent=2))
     else:

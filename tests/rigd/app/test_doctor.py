@@ -248,3 +248,35 @@ def test_bayer_cameras_are_planned_at_one_byte_per_pixel() -> None:
     assert cams["rgb8"] == pytest.approx(3 * 1280 * 720 * 3 * 30.0)
     assert cams["bayer_rg8"] == pytest.approx(cams["rgb8"] / 3)
     assert cams["mono8"] == pytest.approx(cams["bayer_rg8"])
+
+
+@pytest.mark.slow
+def test_the_trigger_box_check_lets_the_box_pulse_and_reads_its_counters() -> None:
+    from uuid import uuid4
+
+    from firmware_sim.world import reset_world
+    from rigd.app.doctor import TRIGGER_TEST_PULSES, check_trigger_box
+
+    world = f"doctor-{uuid4().hex[:8]}"
+    try:
+        rig = default_sim_rig(world=world)
+        [check] = check_trigger_box(rig)
+        assert check.status == "OK", check
+        assert "trigbox-sim" in check.message
+        assert f"{TRIGGER_TEST_PULSES} pulses at 30 Hz, every record on its schedule" in check.message
+        assert "records_dropped=0" in check.message
+        rig.trigger.spec = f"sim://{world}/trigger?drop_pulses=3&garbage_after=1"
+        [check] = check_trigger_box(rig)
+        assert check.status == "FAIL", check  # a record it cannot get back is a failed box
+    finally:
+        reset_world(world)
+
+
+def test_the_trigger_box_check_names_a_port_it_cannot_open(tmp_path: Path) -> None:
+    from rigd.app.doctor import check_trigger_box
+
+    rig = RigConfig.model_validate({**RIG, "trigger": {"spec": f"serial://{tmp_path}/ttyNONE"}})
+    [check] = check_trigger_box(rig)
+    assert check.status == "FAIL"
+    assert "ttyNONE" in check.message
+    assert "cannot open it" in check.message
