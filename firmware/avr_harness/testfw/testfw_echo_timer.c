@@ -5,6 +5,7 @@
  *    1000 timer ticks (8000 CPU cycles): OCR1A advanced in the compare ISR;
  *  - OCIE1A (and so the toggling) is enabled only after the byte 'S' arrives, so the harness's
  *    quiet register (TIMSK1 & 0x06) is "quiet" until then; 'Q' disables it again;
+ *  - mirrors INT0 (PD2, any change) onto PB5 (LED) in the INT0 ISR, for the harness's SET;
  *  - sleeps in SLEEP_MODE_IDLE whenever there is nothing to do.
  */
 #include <avr/interrupt.h>
@@ -53,6 +54,14 @@ ISR(USART_UDRE_vect)
 	tx_tail = (uint8_t)((tx_tail + 1u) % TX_SIZE);
 }
 
+ISR(INT0_vect)
+{
+	if (PIND & _BV(PIND2))
+		PORTB |= _BV(PORTB5);
+	else
+		PORTB &= (uint8_t)~_BV(PORTB5);
+}
+
 ISR(TIMER1_COMPA_vect)
 {
 	OCR1A += PERIOD_TICKS;
@@ -65,6 +74,8 @@ int main(void)
 	UBRR0 = 1; /* 16 MHz / (8 * (1 + 1)) = 1 Mbaud */
 	UCSR0C = _BV(UCSZ01) | _BV(UCSZ00);
 	UCSR0B = _BV(RXEN0) | _BV(TXEN0) | _BV(RXCIE0);
+	EICRA = _BV(ISC00); /* INT0 on any change */
+	EIMSK = _BV(INT0);
 	TCCR1A = 0;
 	TCCR1B = _BV(CS11); /* normal mode, clk/8 */
 	set_sleep_mode(SLEEP_MODE_IDLE);
