@@ -35,7 +35,9 @@ FONT = cv2.FONT_HERSHEY_SIMPLEX
 BOLD = cv2.FONT_HERSHEY_DUPLEX
 
 
-def text(img: np.ndarray, s: str, x: int, y: int, scale: float = 0.55, color=BLACK, bold: bool = False) -> None:
+def text(
+    img: np.ndarray, s: str, x: int, y: int, scale: float = 0.55, color=BLACK, bold: bool = False
+) -> None:
     cv2.putText(img, s, (x, y), BOLD if bold else FONT, scale, color, 1, cv2.LINE_AA)
 
 
@@ -99,11 +101,43 @@ def draw() -> np.ndarray:
     text(img, "trigger box enclosure", ex0 + 10, ey0 + 22, 0.5, GREY)
 
     # Host.
-    box(img, 20, 430, 230, 590, BOX_HOST, "Host PC (rigd)", ["/dev/ttyACM0: Uno, Mega", "/dev/ttyUSB0: Nano clone", "config [trigger] spec =", "serial:///dev/ttyACM0", "  ?baud=1000000"])
+    box(
+        img,
+        20,
+        430,
+        230,
+        590,
+        BOX_HOST,
+        "Host PC (rigd)",
+        [
+            "/dev/ttyACM0: Uno, Mega",
+            "/dev/ttyUSB0: Nano clone",
+            "config [trigger] spec =",
+            "serial:///dev/ttyACM0",
+            "  ?baud=1000000",
+        ],
+    )
 
     # Arduino.
     ax0, ay0, ax1, ay1 = 300, 400, 520, 640
-    box(img, ax0, ay0, ax1, ay1, BOX_BOARD, "Arduino", ["Uno R3 / Nano", "(ATmega328P, 16 MHz)", "or Mega 2560", "", "D13 LED: lit while", "a run is going", "D8 (ICP1): reserved"])
+    box(
+        img,
+        ax0,
+        ay0,
+        ax1,
+        ay1,
+        BOX_BOARD,
+        "Arduino",
+        [
+            "Uno R3 / Nano",
+            "(ATmega328P, 16 MHz)",
+            "or Mega 2560",
+            "",
+            "D13 LED: lit while",
+            "a run is going",
+            "D8 (ICP1): reserved",
+        ],
+    )
     # Board pins on its right edge.
     pins = {"D9 TRIG": 440, "5V": 480, "3V3": 520}
     for name, y in pins.items():
@@ -208,9 +242,16 @@ def draw() -> np.ndarray:
     lx, ly = 905, 420
     cv2.rectangle(img, (lx, ly), (cx1, ly + 150), LIGHT, -1)
     cv2.rectangle(img, (lx, ly), (cx1, ly + 150), BLACK, 1)
-    text(img, "Camera I/O pins (signal / return); camera power GND stays unconnected", lx + 8, ly + 22, 0.48, bold=True)
+    text(
+        img,
+        "Camera I/O pins (signal / return); camera power GND stays unconnected",
+        lx + 8,
+        ly + 22,
+        0.48,
+        bold=True,
+    )
     legend = [
-        "Basler ace U/Classic: Hirose HR10 6-pin, pin 2 = Line 1 in, pin 5 = I/O GND",
+        "Basler ace U/Classic: Hirose HR10 6-pin, pin 2 = Line 1 in, pin 5 = opto GND",
         "FLIR Blackfly S: HR10A-7R-6PB, pin 2 = OPTOIN (Line 0), pin 5 = Opto GND",
         "Alvium G1 (GigE): 10-pin TFM, pin 5 = GPI3 (isolated), pin 3 = OPTO-IN-GND",
         "Opto inputs: high > 2.2 V (Basler) / 2.6 V (FLIR) / 3.0 V (Alvium),",
@@ -222,7 +263,16 @@ def draw() -> np.ndarray:
     # Event sensors.
     for i, y in enumerate(ev_rows):
         top = y - 32
-        box(img, cx0, top, cx1, top + 70, BOX_EV, f"Event sensor {i} (EVK4)", ["Trigger In + GND: 3.3 V input assumed"])
+        box(
+            img,
+            cx0,
+            top,
+            cx1,
+            top + 70,
+            BOX_EV,
+            f"Event sensor {i} (EVK4)",
+            ["Trigger In + GND: 3.3 V input assumed"],
+        )
         wire(img, [(wall, y - 6), (cx0, y - 6)], ORANGE, 3)
         wire(img, [(wall, y + 6), (cx0, y + 6)], BLACK, 2)
     text(img, "coax (RG-174), <= 2 m", 905, ev_rows[0] - 44, 0.5, bold=True)
@@ -232,12 +282,26 @@ def draw() -> np.ndarray:
     # Event sensors' USB to the host: the ground loop.
     wire(img, [(cx1 - 60, ev_rows[1] + 38), (cx1 - 60, 1030)], BLUE, 4)
     wire(img, [(cx1, ev_rows[0]), (cx1 + 12, ev_rows[0]), (cx1 + 12, 1030), (125, 1030), (125, 590)], BLUE, 4)
-    text(img, "EVK4 USB 3 to the host: EVK ground = host ground = box ground (keep the loop small)", 300, 1022, 0.5, BLUE, bold=True)
+    text(
+        img,
+        "EVK4 USB 3 to the host: EVK ground = host ground = box ground (keep the loop small)",
+        300,
+        1022,
+        0.5,
+        BLUE,
+        bold=True,
+    )
     text(img, "cameras' own data/power links not shown", 1120, 95, 0.45, GREY)
 
     # Colour legend.
     lx, ly = 20, 120
-    items = [(RED, "5 V trigger"), (ORANGE, "3.3 V trigger"), (BLACK, "signal return"), (GREEN, "ground"), (BLUE, "USB")]
+    items = [
+        (RED, "5 V trigger"),
+        (ORANGE, "3.3 V trigger"),
+        (BLACK, "signal return"),
+        (GREEN, "ground"),
+        (BLUE, "USB"),
+    ]
     text(img, "Legend", lx, ly, 0.55, bold=True)
     for i, (c, s) in enumerate(items):
         y = ly + 26 + 24 * i
