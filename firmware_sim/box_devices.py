@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidDevice, attach, box_serial
 from firmware_sim.spec_params import SimTriggerParams, check_params
@@ -24,23 +24,42 @@ if TYPE_CHECKING:
 _BOX_KEY = "trigger_box"
 
 
-class _BoxSlot:
-    """Per-world holder, so a closed box can be replaced by a fresh one."""
+class OneBoxPerWorld(Protocol):
+    """What the slot needs of any simulated box (the Python model or the AVR firmware)."""
+
+    port_path: str
+
+    @property
+    def closed(self) -> bool: ...
+
+
+class BoxSlot:
+    """Per-world holder of the world's one trigger box, so a closed box can be replaced by a
+    fresh one and no world gets two (their clocks would both claim to be the rig's)."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.box: SimTriggerBox | None = None
+        self.box: OneBoxPerWorld | None = None
+
+    def check_free(self, spec: DeviceSpec, world: SimWorld) -> None:
+        """Refuse a second open box (call with the lock held)."""
+        if self.box is not None and not self.box.closed:
+            raise ConfigError(
+                f"device spec {spec.raw!r}: world {world.name!r} already has an open trigger box "
+                f"on {self.box.port_path}"
+            )
 
 
-def _slot(world: SimWorld) -> _BoxSlot:
-    slot = world.resource(_BOX_KEY, _BoxSlot)
-    assert isinstance(slot, _BoxSlot)
+def box_slot(world: SimWorld) -> BoxSlot:
+    slot = world.resource(_BOX_KEY, BoxSlot)
+    assert isinstance(slot, BoxSlot)
     return slot
 
 
 def find_trigger_box(world: SimWorld) -> SimTriggerBox | None:
-    """The world's trigger box (open or last closed), for tests to reach faults and state."""
-    return _slot(world).box
+    """The world's Python trigger box (open or last closed), for tests to reach faults and state."""
+    box = box_slot(world).box
+    return box if isinstance(box, SimTriggerBox) else None
 
 
 def open_sim_trigger(spec: DeviceSpec) -> SerialTrigger:
@@ -70,13 +89,9 @@ def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTrigg
         if not (0 < value < math.inf):
             raise ConfigError(f"device spec {spec.raw!r}: {key}={spec.params[key]!r} must be > 0 seconds")
     seed = spec.int_param("seed", 0)
-    slot = _slot(world)
+    slot = box_slot(world)
     with slot.lock:
-        if slot.box is not None and not slot.box.closed:
-            raise ConfigError(
-                f"device spec {spec.raw!r}: world {world.name!r} already has an open trigger box "
-                f"on {slot.box.port_path}"
-            )
+        slot.check_free(spec, world)
         box = box_class(
             world,
             offset_us=spec.float_param("offset_us", 0.0),

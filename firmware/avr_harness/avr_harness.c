@@ -418,6 +418,19 @@ static void check_state(void)
 		    ", PC 0x%04x (byte address)", (uint64_t)avr->cycle, (unsigned)avr->pc);
 }
 
+/* The instruction at PC is SLEEP (0x9588; simavr's pc is a byte address). */
+static bool next_is_sleep(avr_t *avr)
+{
+	return avr->pc + 1u <= avr->flashend &&
+	       (avr->flash[avr->pc] | (avr->flash[avr->pc + 1] << 8)) == 0x9588;
+}
+
+/* Bytes from the host wait in the harness or the UART FIFO (the firmware has not read them). */
+static bool host_waiting(void)
+{
+	return H.to_avr.len > 0 || !uart_fifo_isempty(&H.uart->input);
+}
+
 enum stop_reason { STOP_LIMIT, STOP_NOT_QUIET, STOP_LINE, STOP_SIGNAL };
 
 /* Runs until avr->cycle >= limit, a signal, or (free) the firmware stops being quiet or a
@@ -443,6 +456,12 @@ static enum stop_reason run(uint64_t limit, bool free_run)
 		}
 		if (H.to_avr.len && !H.xoff)
 			feed_uart();
+		if (free_run && is_quiet() && (avr->state == cpu_Sleeping || next_is_sleep(avr)))
+			/* A sleep jump goes to the next timer event (a timer overflow, tens of ms
+			 * away), past the moment the firmware became idle (its last UART byte out,
+			 * say): bound it to two cycles (the SLEEP itself takes one), so FREE stops
+			 * where the firmware went idle, whatever the host's timing. */
+			avr_cycle_timer_register(avr, 2, limit_timer, &H);
 		if (free_run && is_idle()) {
 			/* time stands still until the host, the test or a signal says something */
 			if (line_ready() || H.stdin_eof || service_io(-1))
@@ -464,9 +483,12 @@ static enum stop_reason run(uint64_t limit, bool free_run)
 
 /* ---------------------------------------------------------------- control protocol */
 
+/* `AT <cycle> quiet|scheduled[ host]`: " host" while host bytes wait for the firmware, so a
+ * controller that paces the AVR behind something else can let it run to answer them. */
 static void answer_at(const char *what)
 {
-	printf("AT %" PRIu64 " %s\n", (uint64_t)H.avr->cycle, what);
+	service_io(0);
+	printf("AT %" PRIu64 " %s%s\n", (uint64_t)H.avr->cycle, what, host_waiting() ? " host" : "");
 	fflush(stdout);
 }
 

@@ -66,11 +66,13 @@ class Edge:
 
 class Step(NamedTuple):
     """Where a RUN or FREE stopped: the AVR cycle, whether the firmware was quiet (nothing
-    scheduled), and the edges since the previous answer."""
+    scheduled), the edges since the previous answer, and whether bytes from the host were
+    waiting for the firmware then."""
 
     cycle: int
     quiet: bool
     edges: list[Edge]
+    host_waiting: bool = False
 
 
 def find_binary() -> Path:
@@ -230,11 +232,17 @@ class AvrHarness:
     def _step(self, command: str) -> Step:
         line, edges = self._answer(command)
         parts = line.split()
-        if len(parts) != 3 or parts[0] != "AT" or not parts[1].isdigit() or parts[2] not in QUIET_WORDS:
+        if (
+            len(parts) not in (3, 4)
+            or parts[0] != "AT"
+            or not parts[1].isdigit()
+            or parts[2] not in QUIET_WORDS
+            or parts[3:] not in ([], ["host"])
+        ):
             raise ProtocolError(
-                f"avr_harness answered {command!r} with {line!r} (want 'AT <cycle> quiet|scheduled')"
+                f"avr_harness answered {command!r} with {line!r} (want 'AT <cycle> quiet|scheduled[ host]')"
             )
-        return Step(int(parts[1]), parts[2] == "quiet", edges)
+        return Step(int(parts[1]), parts[2] == "quiet", edges, len(parts) == 4)
 
     # ------------------------------------------------------------------ control clock
 
