@@ -50,6 +50,7 @@ DEFINE_FIFO(uint16_t, uart_fifo);
 #define EDGE_FLUSH_S 0.1
 #define LAG_REPORT_S 3.0
 #define LAG_REPORT_MIN_S 0.005      /* lag below this is scheduling noise, not "behind" */
+#define FREE_LINE_MAX 4096          /* FREE feeds a newline-less stream in pieces this big */
 
 enum clock_mode { CLOCK_REAL, CLOCK_MAX, CLOCK_CONTROL };
 
@@ -94,6 +95,10 @@ static struct {
 	bool edges_dirty;
 	double edges_flushed_at;
 	bool has_quiet;
+	/* FREE hands the firmware one host line at a time, each when it is idle: free_feeding is
+	 * on during FREE, free_budget the bytes of the current line not yet fed. */
+	bool free_feeding;
+	size_t free_budget;
 	uint16_t quiet_addr;
 	uint8_t quiet_mask;
 	double wall_start;
@@ -242,8 +247,26 @@ static void feed_uart(void)
 {
 	avr_uart_t *u = H.uart;
 	while (H.to_avr.len && !H.xoff && avr_regbit_get(H.avr, u->rxen) &&
-	       !uart_fifo_isfull(&u->input))
+	       !uart_fifo_isfull(&u->input)) {
+		if (H.free_feeding) {
+			if (!H.free_budget)
+				break;
+			H.free_budget--;
+		}
 		avr_raise_irq(H.uart_input, ring_pop(&H.to_avr));
+	}
+}
+
+/* Bytes up to and including the first newline waiting for the firmware (a whole host line),
+ * or, with no newline in FREE_LINE_MAX bytes, that many; 0 while a line is still coming. */
+static size_t next_line_len(void)
+{
+	const ring_t *r = &H.to_avr;
+	size_t limit = r->len < FREE_LINE_MAX ? r->len : FREE_LINE_MAX;
+	for (size_t i = 0; i < limit; i++)
+		if (r->data[(r->head + i) % r->cap] == '\n')
+			return i + 1;
+	return r->len >= FREE_LINE_MAX ? FREE_LINE_MAX : 0;
 }
 
 static avr_uart_t *find_uart0(avr_t *avr)
@@ -400,11 +423,23 @@ static bool is_quiet(void)
 	return H.has_quiet && (H.avr->data[H.quiet_addr] & H.quiet_mask) == 0;
 }
 
-/* Control mode FREE: nothing can change until the host or the test says something. */
+/* The firmware has nothing to do: quiet, asleep, its UART FIFO empty and done sending. */
+static bool firmware_idle(void)
+{
+	return is_quiet() && H.avr->state == cpu_Sleeping && uart_fifo_isempty(&H.uart->input) &&
+	       H.uart->tx_cnt == 0;
+}
+
+/* Control mode FREE: nothing can change until the host or the test says something. Host bytes
+ * are given to the firmware a whole line at a time, each only once it is idle, so how the host's
+ * writes were split in time never shows in the firmware's cycle count: its clock at START, and
+ * every pulse time after it, depend on the commands alone. */
 static bool is_idle(void)
 {
-	return is_quiet() && H.avr->state == cpu_Sleeping && H.to_avr.len == 0 &&
-	       uart_fifo_isempty(&H.uart->input) && H.uart->tx_cnt == 0;
+	if (!firmware_idle() || H.free_budget)
+		return false;
+	H.free_budget = next_line_len();
+	return H.free_budget == 0;
 }
 
 static void check_state(void)
@@ -438,6 +473,8 @@ enum stop_reason { STOP_LIMIT, STOP_NOT_QUIET, STOP_LINE, STOP_SIGNAL };
 static enum stop_reason run(uint64_t limit, bool free_run)
 {
 	avr_t *avr = H.avr;
+	H.free_feeding = free_run;
+	H.free_budget = 0;
 	if (limit != UINT64_MAX && limit > avr->cycle)
 		/* at limit - 1: a sleep jump adds 1 + the timer distance, so it lands on limit */
 		avr_cycle_timer_register(avr, limit - 1 - avr->cycle, limit_timer, NULL);
