@@ -43,7 +43,7 @@ DEFINE_FIFO(uint16_t, uart_fifo);
 
 #define MAX_PINS 16
 #define MAX_SETS 32                 /* pending SET commands (simavr has 64 cycle timers) */
-#define OUT_BUF_SIZE (1u << 20)     /* firmware -> host */
+#define OUT_BUF_SIZE (1u << 20)     /* firmware -> host (default of --out-buffer) */
 #define IN_BUF_SIZE (64u << 10)     /* host -> firmware */
 #define LINE_MAX_LEN 4096
 #define STEPS_PER_SERVICE 4096      /* instructions between I/O polls and pacing checks */
@@ -333,8 +333,8 @@ static void note_lag(double lag, double now)
 				H.lag_worst * 1e3, LAG_REPORT_S, H.avr->cycle);
 		if (H.overflowed != H.overflow_reported) {
 			fprintf(stderr, "avr_harness: %" PRIu64 " firmware bytes lost: the pty "
-				"output buffer (%u bytes) was full (nobody reading the pty)\n",
-				H.overflowed - H.overflow_reported, OUT_BUF_SIZE);
+				"output buffer (%zu bytes) was full (nobody reading the pty)\n",
+				H.overflowed - H.overflow_reported, H.from_avr.cap);
 			H.overflow_reported = H.overflowed;
 		}
 		H.lag_worst = 0;
@@ -618,7 +618,7 @@ static void usage(FILE *f)
 {
 	fputs("usage: avr_harness --elf ELF [--mcu atmega328p] [--freq 16000000]\n"
 	      "       [--pin NAME=PORTBIT]... [--input-pin NAME=PORTBIT]... [--edges FILE]\n"
-	      "       [--clock real|max|control] [--quiet-reg ADDR:MASK]\n", f);
+	      "       [--clock real|max|control] [--quiet-reg ADDR:MASK] [--out-buffer BYTES]\n", f);
 }
 
 static void open_pty(void)
@@ -648,7 +648,7 @@ int main(int argc, char **argv)
 {
 	const char *elf = NULL, *mcu = "atmega328p", *edges = NULL, *clock = "real";
 	const char *quiet = NULL;
-	unsigned long freq = 16000000;
+	unsigned long freq = 16000000, out_buffer = OUT_BUF_SIZE;
 	static const struct option opts[] = {
 		{ "elf", required_argument, 0, 'e' },
 		{ "mcu", required_argument, 0, 'm' },
@@ -658,6 +658,7 @@ int main(int argc, char **argv)
 		{ "edges", required_argument, 0, 'o' },
 		{ "clock", required_argument, 0, 'c' },
 		{ "quiet-reg", required_argument, 0, 'q' },
+		{ "out-buffer", required_argument, 0, 'b' },
 		{ "help", no_argument, 0, 'h' },
 		{ 0, 0, 0, 0 },
 	};
@@ -686,6 +687,13 @@ int main(int argc, char **argv)
 		case 'o': edges = optarg; break;
 		case 'c': clock = optarg; break;
 		case 'q': quiet = optarg; break;
+		case 'b': {
+			char *end;
+			out_buffer = strtoul(optarg, &end, 10);
+			if (*end || out_buffer < 1 || out_buffer > (1ul << 30))
+				die("--out-buffer %s: want a size in bytes (1..2^30)", optarg);
+			break;
+		}
 		case 'h': usage(stdout); return 0;
 		default: usage(stderr); return 2;
 		}
@@ -771,7 +779,7 @@ int main(int argc, char **argv)
 		setvbuf(H.edges, NULL, _IOFBF, 1 << 16);
 
 	ring_init(&H.to_avr, IN_BUF_SIZE);
-	ring_init(&H.from_avr, OUT_BUF_SIZE);
+	ring_init(&H.from_avr, out_buffer);
 
 	struct sigaction sa;
 	memset(&sa, 0, sizeof(sa));

@@ -116,6 +116,7 @@ class AvrHarness:
         edges_path: Path | None = None,
         quiet_reg: tuple[int, int] | Literal["default"] | None = "default",
         binary: Path | None = None,
+        out_buffer: int | None = None,
         start_timeout_s: float = 10.0,
     ) -> None:
         defaults = MCU_DEFAULTS.get(mcu)
@@ -138,6 +139,8 @@ class AvrHarness:
             args += ["--edges", str(edges_path)]
         if quiet_reg is not None:
             args += ["--quiet-reg", f"0x{quiet_reg[0]:X}:0x{quiet_reg[1]:X}"]
+        if out_buffer is not None:  # bytes of firmware output held for the pty (default 1 MiB)
+            args += ["--out-buffer", str(out_buffer)]
         # a file, not a pipe: nobody has to drain it while the harness runs for hours
         self._stderr: IO[bytes] = tempfile.TemporaryFile(prefix="avr_harness-stderr-")  # noqa: SIM115
         self._buf = b""

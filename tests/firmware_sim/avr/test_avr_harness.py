@@ -282,3 +282,34 @@ def test_edge_lines_parse_strictly() -> None:
     for bad in ("123 TRIG", "x TRIG 1", "1 TRIG 2", "1 TRIG 1 extra"):
         with pytest.raises(ProtocolError):
             parse_edge_line(bad)
+
+
+def pty_queue(port: serial.Serial) -> int:
+    """Bytes waiting in the pty for the host to read."""
+    return port.in_waiting
+
+
+@pytest.mark.slow
+def test_max_clock_stalls_instead_of_losing_output(echo_elf: Path) -> None:
+    """Echo 300 kB while nobody reads the pty, with a 4 KiB harness output buffer: far more
+    than it and the pty's queues hold, so the harness must stall the AVR (and so the host's
+    writes) rather than drop a byte. Reading starts once the pty's queue stops growing (it is
+    full); every byte comes back, in order."""
+    payload = PLAIN_BYTES * (300_000 // len(PLAIN_BYTES))
+    with AvrHarness(echo_elf, clock="max", out_buffer=4096) as h, open_port(h) as port:
+        port.write_timeout = 120
+        writer = threading.Thread(target=port.write, args=(payload,), daemon=True)
+        writer.start()
+        deadline = time.monotonic() + 60
+        queued = -1
+        while pty_queue(port) != queued:
+            assert time.monotonic() < deadline, "the pty's queue kept growing"
+            queued = pty_queue(port)
+            writer.join(0.3)
+        assert writer.is_alive(), "all 300 kB fit somewhere: the stall was not exercised"
+        port.timeout = 120
+        echoed = port.read(len(payload))
+        writer.join(120)
+        assert not writer.is_alive()
+    assert len(echoed) == len(payload)
+    assert echoed == payload
