@@ -416,6 +416,9 @@ static void check_state(void)
 	if (avr->state == cpu_Done)
 		die("the AVR stopped (sleeping with interrupts off) at cycle %" PRIu64
 		    ", PC 0x%04x (byte address)", (uint64_t)avr->cycle, (unsigned)avr->pc);
+	if (avr->state != cpu_Running && avr->state != cpu_Sleeping)
+		die("the AVR entered simavr state %d at cycle %" PRIu64 ", PC 0x%04x (byte address)",
+		    avr->state, (uint64_t)avr->cycle, (unsigned)avr->pc);
 }
 
 enum stop_reason { STOP_LIMIT, STOP_NOT_QUIET, STOP_LINE, STOP_SIGNAL };
@@ -810,6 +813,17 @@ int main(int argc, char **argv)
 	if (H.overflowed != H.overflow_reported)
 		fprintf(stderr, "avr_harness: %" PRIu64 " firmware bytes lost: the pty output "
 			"buffer was full\n", H.overflowed - H.overflow_reported);
+	/* what is still buffered either way: hand over what the pty takes, count the rest */
+	while (H.from_avr.len && ring_drain(&H.from_avr, H.master) > 0)
+		;
+	if (H.from_avr.len)
+		fprintf(stderr, "avr_harness: %zu firmware bytes not delivered at exit (the pty "
+			"was full)\n", H.from_avr.len);
+	size_t in_uart = uart_fifo_get_read_size(&H.uart->input);
+	if (H.to_avr.len || in_uart)
+		fprintf(stderr, "avr_harness: %zu host bytes had not reached the firmware at exit "
+			"(%zu waiting, %zu in the UART FIFO)\n", H.to_avr.len + in_uart,
+			H.to_avr.len, in_uart);
 	if (stop_signal)
 		fprintf(stderr, "avr_harness: stopped by signal %d at cycle %" PRIu64 "\n",
 			(int)stop_signal, (uint64_t)avr->cycle);

@@ -313,3 +313,35 @@ def test_max_clock_stalls_instead_of_losing_output(echo_elf: Path) -> None:
         assert not writer.is_alive()
     assert len(echoed) == len(payload)
     assert echoed == payload
+
+
+@pytest.mark.slow
+def test_real_clock_counts_the_output_it_loses(echo_elf: Path) -> None:
+    """Real time cannot stall: with nobody reading the pty and a 16-byte output buffer, echoed
+    bytes are lost, and the harness says how many on stderr."""
+    payload = PLAIN_BYTES * (300_000 // len(PLAIN_BYTES))  # ~3.3 s at 1 Mbaud
+    h = AvrHarness(echo_elf, out_buffer=16)
+    try:
+        with open_port(h) as port:
+            port.write_timeout = 60
+            port.write(payload)
+            port.flush()
+            queued = port.in_waiting  # (the pty hangs up once the harness has exited)
+            h.close()
+    finally:
+        h.close()
+    assert h.returncode == 0
+    lost = re.search(r"avr_harness: (\d+) firmware bytes lost", h.stderr_tail())
+    assert lost, h.stderr_tail()
+    assert int(lost.group(1)) > 0
+    assert queued + int(lost.group(1)) <= len(payload)
+
+
+def test_close_ends_a_blocked_free(control: AvrHarness) -> None:
+    control.run_until(30_000)
+    thread, out = free_in_thread(control)
+    control.close()  # QUIT: the FREE answers `AT 30000 quiet`, then the harness exits
+    thread.join(20)
+    assert not thread.is_alive()
+    assert out in ([Step(30_000, True, [])], [])  # [] if QUIT overtook the FREE
+    assert control.returncode == 0
