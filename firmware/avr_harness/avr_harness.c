@@ -735,6 +735,8 @@ int main(int argc, char **argv)
 		die("--elf %s: %s", elf, strerror(errno));
 	if (elf_read_firmware(elf, &fw) != 0)
 		die("--elf %s: not an AVR ELF simavr can load", elf);
+	if (fw.flashsize == 0)  /* simavr 1.6 "loads" a file that is no ELF at all as empty */
+		die("--elf %s: no program in it (not an AVR ELF?)", elf);
 	/* the options win over the ELF's .mmcu section */
 	snprintf(fw.mmcu, sizeof(fw.mmcu), "%s", mcu);
 	fw.frequency = H.freq;

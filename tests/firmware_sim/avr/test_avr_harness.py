@@ -345,3 +345,12 @@ def test_close_ends_a_blocked_free(control: AvrHarness) -> None:
     assert not thread.is_alive()
     assert out in ([Step(30_000, True, [])], [])  # [] if QUIT overtook the FREE
     assert control.returncode == 0
+
+
+def test_a_file_that_is_no_firmware_is_refused_before_the_pty(harness_env: Path, tmp_path: Path) -> None:
+    not_elf = tmp_path / "fw.elf"
+    not_elf.write_text("not an ELF\n")
+    with pytest.raises(DeviceError, match=r"--elf .*fw\.elf: (not an AVR ELF|no program in it)"):
+        AvrHarness(not_elf, clock="control")
+    with pytest.raises(DeviceError, match=r"the atmega328p has no port L"):
+        AvrHarness(harness_env / "testfw_busy.elf", pins={"X": "L1"})
