@@ -354,3 +354,20 @@ def test_a_file_that_is_no_firmware_is_refused_before_the_pty(harness_env: Path,
         AvrHarness(not_elf, clock="control")
     with pytest.raises(DeviceError, match=r"the atmega328p has no port L"):
         AvrHarness(harness_env / "testfw_busy.elf", pins={"X": "L1"})
+
+
+def test_atmega2560_with_the_default_pins(harness_env: Path) -> None:
+    """The Mega's defaults: TRIG=B5 (OC1A), LED=B7, quiet while TIMSK1 & 0x06 == 0."""
+    elf = harness_env / "testfw_echo_timer_2560.elf"
+    with AvrHarness(elf, mcu="atmega2560", clock="control", input_pins={"EXT": "D0"}) as h:
+        with open_port(h) as port:
+            start = start_pulses(h, port)
+            step = h.run_until(start.cycle + 6 * EDGE_PERIOD + 100)
+            assert port.read(1) == b"S"
+        edges = start.edges + step.edges
+        assert [(e.pin, e.value) for e in edges] == [("TRIG", 1), ("TRIG", 0)] * 3
+        assert {b.cycle - a.cycle for a, b in itertools.pairwise(edges)} == {EDGE_PERIOD}
+        h.set_pin(step.cycle + 1000, "EXT", 1)
+        (led,) = h.run_until(step.cycle + 2000).edges
+        assert led.pin == "LED"
+        assert led.value == 1
