@@ -146,6 +146,7 @@ class AvrHarness:
         self._stderr_tail: deque[str] = deque(maxlen=STDERR_TAIL_LINES)
         self._buf = b""
         self._write_lock = threading.Lock()
+        self._read_lock = threading.Lock()  # close() leaves stdout open under a reading free()
         self._closed = False
         self._exit_reported = False
         log.debug("starting %s", " ".join(args))
@@ -205,6 +206,10 @@ class AvrHarness:
 
     def _read_line(self, deadline: float | None) -> str:
         """One stdout line (without the newline); DeviceTimeoutError past the deadline."""
+        with self._read_lock:
+            return self._read_line_locked(deadline)
+
+    def _read_line_locked(self, deadline: float | None) -> str:
         assert self._proc.stdout is not None
         fd = self._proc.stdout.fileno()
         while b"\n" not in self._buf:
@@ -296,8 +301,10 @@ class AvrHarness:
                     f"avr_harness exited with status {rc}; its stderr ends:\n{self.stderr_tail()}"
                 )
         finally:
-            if self._proc.stdout is not None:
+            # a free() in another thread reads the answer to QUIT first (the pipe then ends)
+            if self._proc.stdout is not None and self._read_lock.acquire(timeout=timeout_s):
                 self._proc.stdout.close()
+                self._read_lock.release()
             self._stderr_thread.join(5.0)
 
     def _stop(self, timeout_s: float) -> None:
