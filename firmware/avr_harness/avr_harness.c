@@ -43,7 +43,7 @@ DEFINE_FIFO(uint16_t, uart_fifo);
 
 #define MAX_PINS 16
 #define MAX_SETS 32                 /* pending SET commands (simavr has 64 cycle timers) */
-#define OUT_BUF_SIZE (1u << 20)     /* firmware -> host */
+#define OUT_BUF_SIZE (1u << 20)     /* firmware -> host (default of --out-buffer) */
 #define IN_BUF_SIZE (64u << 10)     /* host -> firmware */
 #define LINE_MAX_LEN 4096
 #define STEPS_PER_SERVICE 4096      /* instructions between I/O polls and pacing checks */
@@ -356,8 +356,8 @@ static void note_lag(double lag, double now)
 				H.lag_worst * 1e3, LAG_REPORT_S, H.avr->cycle);
 		if (H.overflowed != H.overflow_reported) {
 			fprintf(stderr, "avr_harness: %" PRIu64 " firmware bytes lost: the pty "
-				"output buffer (%u bytes) was full (nobody reading the pty)\n",
-				H.overflowed - H.overflow_reported, OUT_BUF_SIZE);
+				"output buffer (%zu bytes) was full (nobody reading the pty)\n",
+				H.overflowed - H.overflow_reported, H.from_avr.cap);
 			H.overflow_reported = H.overflowed;
 		}
 		H.lag_worst = 0;
@@ -451,6 +451,9 @@ static void check_state(void)
 	if (avr->state == cpu_Done)
 		die("the AVR stopped (sleeping with interrupts off) at cycle %" PRIu64
 		    ", PC 0x%04x (byte address)", (uint64_t)avr->cycle, (unsigned)avr->pc);
+	if (avr->state != cpu_Running && avr->state != cpu_Sleeping)
+		die("the AVR entered simavr state %d at cycle %" PRIu64 ", PC 0x%04x (byte address)",
+		    avr->state, (uint64_t)avr->cycle, (unsigned)avr->pc);
 }
 
 /* The instruction at PC is SLEEP (0x9588; simavr's pc is a byte address). */
@@ -677,7 +680,7 @@ static void usage(FILE *f)
 {
 	fputs("usage: avr_harness --elf ELF [--mcu atmega328p] [--freq 16000000]\n"
 	      "       [--pin NAME=PORTBIT]... [--input-pin NAME=PORTBIT]... [--edges FILE]\n"
-	      "       [--clock real|max|control] [--quiet-reg ADDR:MASK]\n", f);
+	      "       [--clock real|max|control] [--quiet-reg ADDR:MASK] [--out-buffer BYTES]\n", f);
 }
 
 static void open_pty(void)
@@ -707,7 +710,7 @@ int main(int argc, char **argv)
 {
 	const char *elf = NULL, *mcu = "atmega328p", *edges = NULL, *clock = "real";
 	const char *quiet = NULL;
-	unsigned long freq = 16000000;
+	unsigned long freq = 16000000, out_buffer = OUT_BUF_SIZE;
 	static const struct option opts[] = {
 		{ "elf", required_argument, 0, 'e' },
 		{ "mcu", required_argument, 0, 'm' },
@@ -717,6 +720,7 @@ int main(int argc, char **argv)
 		{ "edges", required_argument, 0, 'o' },
 		{ "clock", required_argument, 0, 'c' },
 		{ "quiet-reg", required_argument, 0, 'q' },
+		{ "out-buffer", required_argument, 0, 'b' },
 		{ "help", no_argument, 0, 'h' },
 		{ 0, 0, 0, 0 },
 	};
@@ -745,6 +749,13 @@ int main(int argc, char **argv)
 		case 'o': edges = optarg; break;
 		case 'c': clock = optarg; break;
 		case 'q': quiet = optarg; break;
+		case 'b': {
+			char *end;
+			out_buffer = strtoul(optarg, &end, 10);
+			if (*end || out_buffer < 1 || out_buffer > (1ul << 30))
+				die("--out-buffer %s: want a size in bytes (1..2^30)", optarg);
+			break;
+		}
 		case 'h': usage(stdout); return 0;
 		default: usage(stderr); return 2;
 		}
@@ -783,6 +794,8 @@ int main(int argc, char **argv)
 		die("--elf %s: %s", elf, strerror(errno));
 	if (elf_read_firmware(elf, &fw) != 0)
 		die("--elf %s: not an AVR ELF simavr can load", elf);
+	if (fw.flashsize == 0)  /* simavr 1.6 "loads" a file that is no ELF at all as empty */
+		die("--elf %s: no program in it (not an AVR ELF?)", elf);
 	/* the options win over the ELF's .mmcu section */
 	snprintf(fw.mmcu, sizeof(fw.mmcu), "%s", mcu);
 	fw.frequency = H.freq;
@@ -830,7 +843,7 @@ int main(int argc, char **argv)
 		setvbuf(H.edges, NULL, _IOFBF, 1 << 16);
 
 	ring_init(&H.to_avr, IN_BUF_SIZE);
-	ring_init(&H.from_avr, OUT_BUF_SIZE);
+	ring_init(&H.from_avr, out_buffer);
 
 	struct sigaction sa;
 	memset(&sa, 0, sizeof(sa));
@@ -861,6 +874,17 @@ int main(int argc, char **argv)
 	if (H.overflowed != H.overflow_reported)
 		fprintf(stderr, "avr_harness: %" PRIu64 " firmware bytes lost: the pty output "
 			"buffer was full\n", H.overflowed - H.overflow_reported);
+	/* what is still buffered either way: hand over what the pty takes, count the rest */
+	while (H.from_avr.len && ring_drain(&H.from_avr, H.master) > 0)
+		;
+	if (H.from_avr.len)
+		fprintf(stderr, "avr_harness: %zu firmware bytes not delivered at exit (the pty "
+			"was full)\n", H.from_avr.len);
+	size_t in_uart = uart_fifo_get_read_size(&H.uart->input);
+	if (H.to_avr.len || in_uart)
+		fprintf(stderr, "avr_harness: %zu host bytes had not reached the firmware at exit "
+			"(%zu waiting, %zu in the UART FIFO)\n", H.to_avr.len + in_uart,
+			H.to_avr.len, in_uart);
 	if (stop_signal)
 		fprintf(stderr, "avr_harness: stopped by signal %d at cycle %" PRIu64 "\n",
 			(int)stop_signal, (uint64_t)avr->cycle);

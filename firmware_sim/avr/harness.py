@@ -13,14 +13,14 @@ import logging
 import os
 import select
 import subprocess
-import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Literal, NamedTuple
+from typing import Literal, NamedTuple
 
 from rigd.core.errors import BackendUnavailableError, DeviceError, DeviceTimeoutError, ProtocolError
 
@@ -33,6 +33,8 @@ DEFAULT_BINARY = HARNESS_DIR / "build" / "avr_harness"
 BUILD_COMMAND = f"make -C {HARNESS_DIR}"
 #: Environment variable naming another harness binary (a CI build elsewhere).
 BINARY_ENV = "RIGD_AVR_HARNESS"
+#: stderr lines kept for error messages.
+STDERR_TAIL_LINES = 40
 
 ClockMode = Literal["real", "max", "control"]
 QUIET_WORDS = ("quiet", "scheduled")
@@ -118,6 +120,7 @@ class AvrHarness:
         edges_path: Path | None = None,
         quiet_reg: tuple[int, int] | Literal["default"] | None = "default",
         binary: Path | None = None,
+        out_buffer: int | None = None,
         start_timeout_s: float = 10.0,
     ) -> None:
         defaults = MCU_DEFAULTS.get(mcu)
@@ -140,10 +143,12 @@ class AvrHarness:
             args += ["--edges", str(edges_path)]
         if quiet_reg is not None:
             args += ["--quiet-reg", f"0x{quiet_reg[0]:X}:0x{quiet_reg[1]:X}"]
-        # a file, not a pipe: nobody has to drain it while the harness runs for hours
-        self._stderr: IO[bytes] = tempfile.TemporaryFile(prefix="avr_harness-stderr-")  # noqa: SIM115
+        if out_buffer is not None:  # bytes of firmware output held for the pty (default 1 MiB)
+            args += ["--out-buffer", str(out_buffer)]
+        self._stderr_tail: deque[str] = deque(maxlen=STDERR_TAIL_LINES)
         self._buf = b""
         self._write_lock = threading.Lock()
+        self._read_lock = threading.Lock()  # close() leaves stdout open under a reading free()
         self._closed = False
         self._exit_reported = False
         log.debug("starting %s", " ".join(args))
@@ -151,8 +156,14 @@ class AvrHarness:
             args,
             stdin=subprocess.PIPE if clock == "control" else subprocess.DEVNULL,
             stdout=subprocess.PIPE,
-            stderr=self._stderr,
+            stderr=subprocess.PIPE,
         )
+        # its stderr (lag and lost-byte reports, the reason it stopped) goes to this module's
+        # log as it comes, and the last lines into error messages
+        self._stderr_thread = threading.Thread(
+            target=self._pump_stderr, name="avr_harness-stderr", daemon=True
+        )
+        self._stderr_thread.start()
         try:
             line = self._read_line(time.monotonic() + start_timeout_s)
             if not line.startswith("pty: /dev/"):
@@ -170,12 +181,22 @@ class AvrHarness:
         """The harness's exit status, None while it runs."""
         return self._proc.poll()
 
-    def stderr_tail(self, limit: int = 4000) -> str:
-        """The last `limit` characters the harness wrote on stderr."""
-        self._stderr.flush()
-        size = self._stderr.seek(0, os.SEEK_END)
-        self._stderr.seek(max(0, size - limit))
-        return self._stderr.read().decode(errors="replace")
+    def stderr_tail(self) -> str:
+        """The last lines the harness wrote on stderr (all of them once it has exited)."""
+        if self._proc.poll() is not None:
+            self._stderr_thread.join(5.0)
+        return "\n".join(self._stderr_tail)
+
+    def _pump_stderr(self) -> None:
+        assert self._proc.stderr is not None
+        for raw in self._proc.stderr:
+            line = raw.decode(errors="replace").rstrip("\n")
+            self._stderr_tail.append(line)
+            if line.startswith("avr_harness: stopped by signal"):
+                log.debug("%s", line)
+            else:
+                log.warning("%s", line)
+        self._proc.stderr.close()
 
     def _exited_error(self, what: str) -> DeviceError:
         try:
@@ -187,6 +208,10 @@ class AvrHarness:
 
     def _read_line(self, deadline: float | None) -> str:
         """One stdout line (without the newline); DeviceTimeoutError past the deadline."""
+        with self._read_lock:
+            return self._read_line_locked(deadline)
+
+    def _read_line_locked(self, deadline: float | None) -> str:
         assert self._proc.stdout is not None
         fd = self._proc.stdout.fileno()
         while b"\n" not in self._buf:
@@ -284,9 +309,11 @@ class AvrHarness:
                     f"avr_harness exited with status {rc}; its stderr ends:\n{self.stderr_tail()}"
                 )
         finally:
-            if self._proc.stdout is not None:
+            # a free() in another thread reads the answer to QUIT first (the pipe then ends)
+            if self._proc.stdout is not None and self._read_lock.acquire(timeout=timeout_s):
                 self._proc.stdout.close()
-            self._stderr.close()
+                self._read_lock.release()
+            self._stderr_thread.join(5.0)
 
     def _stop(self, timeout_s: float) -> None:
         if self.clock == "control":
@@ -313,7 +340,7 @@ class AvrHarness:
         self._proc.wait()
         if self._proc.stdout is not None:
             self._proc.stdout.close()
-        self._stderr.close()
+        self._stderr_thread.join(5.0)
 
     def __enter__(self) -> AvrHarness:
         return self

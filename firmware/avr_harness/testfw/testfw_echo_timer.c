@@ -1,17 +1,32 @@
 /*
- * Test firmware for the simavr harness (ATmega328P, 16 MHz):
+ * Test firmware for the simavr harness (ATmega328P or ATmega2560, 16 MHz):
  *  - UART0 at 1 Mbaud (U2X, UBRR=1), interrupt-driven RX, echoes every byte it receives;
- *  - Timer1 in normal mode, prescaler 8, toggles OC1A (PB1) by hardware output compare every
+ *  - Timer1 in normal mode, prescaler 8, toggles OC1A (328P PB1, 2560 PB5) by output compare every
  *    1000 timer ticks (8000 CPU cycles): OCR1A advanced in the compare ISR;
  *  - OCIE1A (and so the toggling) is enabled only after the byte 'S' arrives, so the harness's
  *    quiet register (TIMSK1 & 0x06) is "quiet" until then; 'Q' disables it again;
- *  - mirrors INT0 (PD2, any change) onto PB5 (LED) in the INT0 ISR, for the harness's SET;
+ *  - mirrors INT0 (328P PD2, 2560 PD0; any change) onto the LED pin (328P PB5, 2560 PB7) in
+ *    the INT0 ISR, for the harness's SET;
  *  - sleeps in SLEEP_MODE_IDLE whenever there is nothing to do.
  */
 #include <avr/interrupt.h>
 #include <avr/io.h>
 #include <avr/sleep.h>
 #include <stdint.h>
+
+#if defined(__AVR_ATmega2560__)
+#define RX_VECT USART0_RX_vect
+#define UDRE_VECT USART0_UDRE_vect
+#define OC1A_BIT PB5
+#define LED_BIT PB7
+#define INT0_BIT PD0
+#else
+#define RX_VECT USART_RX_vect
+#define UDRE_VECT USART_UDRE_vect
+#define OC1A_BIT PB1
+#define LED_BIT PB5
+#define INT0_BIT PD2
+#endif
 
 #define PERIOD_TICKS 1000u
 #define TX_SIZE 64u
@@ -29,7 +44,7 @@ static void tx_put(uint8_t b)
 	UCSR0B |= _BV(UDRIE0);
 }
 
-ISR(USART_RX_vect)
+ISR(RX_VECT)
 {
 	uint8_t b = UDR0;
 	if (b == 'S') {
@@ -44,7 +59,7 @@ ISR(USART_RX_vect)
 	tx_put(b);
 }
 
-ISR(USART_UDRE_vect)
+ISR(UDRE_VECT)
 {
 	if (tx_head == tx_tail) {
 		UCSR0B &= (uint8_t)~_BV(UDRIE0);
@@ -56,10 +71,10 @@ ISR(USART_UDRE_vect)
 
 ISR(INT0_vect)
 {
-	if (PIND & _BV(PIND2))
-		PORTB |= _BV(PORTB5);
+	if (PIND & _BV(INT0_BIT))
+		PORTB |= _BV(LED_BIT);
 	else
-		PORTB &= (uint8_t)~_BV(PORTB5);
+		PORTB &= (uint8_t)~_BV(LED_BIT);
 }
 
 ISR(TIMER1_COMPA_vect)
@@ -69,7 +84,7 @@ ISR(TIMER1_COMPA_vect)
 
 int main(void)
 {
-	DDRB = _BV(DDB1) | _BV(DDB5);
+	DDRB = _BV(OC1A_BIT) | _BV(LED_BIT);
 	UCSR0A = _BV(U2X0);
 	UBRR0 = 1; /* 16 MHz / (8 * (1 + 1)) = 1 Mbaud */
 	UCSR0C = _BV(UCSZ01) | _BV(UCSZ00);

@@ -282,3 +282,92 @@ def test_edge_lines_parse_strictly() -> None:
     for bad in ("123 TRIG", "x TRIG 1", "1 TRIG 2", "1 TRIG 1 extra"):
         with pytest.raises(ProtocolError):
             parse_edge_line(bad)
+
+
+def pty_queue(port: serial.Serial) -> int:
+    """Bytes waiting in the pty for the host to read."""
+    return port.in_waiting
+
+
+@pytest.mark.slow
+def test_max_clock_stalls_instead_of_losing_output(echo_elf: Path) -> None:
+    """Echo 300 kB while nobody reads the pty, with a 4 KiB harness output buffer: far more
+    than it and the pty's queues hold, so the harness must stall the AVR (and so the host's
+    writes) rather than drop a byte. Reading starts once the pty's queue stops growing (it is
+    full); every byte comes back, in order."""
+    payload = PLAIN_BYTES * (300_000 // len(PLAIN_BYTES))
+    with AvrHarness(echo_elf, clock="max", out_buffer=4096) as h, open_port(h) as port:
+        port.write_timeout = 120
+        writer = threading.Thread(target=port.write, args=(payload,), daemon=True)
+        writer.start()
+        deadline = time.monotonic() + 60
+        queued = -1
+        while pty_queue(port) != queued:
+            assert time.monotonic() < deadline, "the pty's queue kept growing"
+            queued = pty_queue(port)
+            writer.join(0.3)
+        assert writer.is_alive(), "all 300 kB fit somewhere: the stall was not exercised"
+        port.timeout = 120
+        echoed = port.read(len(payload))
+        writer.join(120)
+        assert not writer.is_alive()
+    assert len(echoed) == len(payload)
+    assert echoed == payload
+
+
+@pytest.mark.slow
+def test_real_clock_counts_the_output_it_loses(echo_elf: Path) -> None:
+    """Real time cannot stall: with nobody reading the pty and a 16-byte output buffer, echoed
+    bytes are lost, and the harness says how many on stderr."""
+    payload = PLAIN_BYTES * (300_000 // len(PLAIN_BYTES))  # ~3.3 s at 1 Mbaud
+    h = AvrHarness(echo_elf, out_buffer=16)
+    try:
+        with open_port(h) as port:
+            port.write_timeout = 60
+            port.write(payload)
+            port.flush()
+            queued = port.in_waiting  # (the pty hangs up once the harness has exited)
+            h.close()
+    finally:
+        h.close()
+    assert h.returncode == 0
+    lost = re.search(r"avr_harness: (\d+) firmware bytes lost", h.stderr_tail())
+    assert lost, h.stderr_tail()
+    assert int(lost.group(1)) > 0
+    assert queued + int(lost.group(1)) <= len(payload)
+
+
+def test_close_ends_a_blocked_free(control: AvrHarness) -> None:
+    control.run_until(30_000)
+    thread, out = free_in_thread(control)
+    control.close()  # QUIT: the FREE answers `AT 30000 quiet`, then the harness exits
+    thread.join(20)
+    assert not thread.is_alive()
+    assert out in ([Step(30_000, True, [])], [])  # [] if QUIT overtook the FREE
+    assert control.returncode == 0
+
+
+def test_a_file_that_is_no_firmware_is_refused_before_the_pty(harness_env: Path, tmp_path: Path) -> None:
+    not_elf = tmp_path / "fw.elf"
+    not_elf.write_text("not an ELF\n")
+    with pytest.raises(DeviceError, match=r"--elf .*fw\.elf: (not an AVR ELF|no program in it)"):
+        AvrHarness(not_elf, clock="control")
+    with pytest.raises(DeviceError, match=r"the atmega328p has no port L"):
+        AvrHarness(harness_env / "testfw_busy.elf", pins={"X": "L1"})
+
+
+def test_atmega2560_with_the_default_pins(harness_env: Path) -> None:
+    """The Mega's defaults: TRIG=B5 (OC1A), LED=B7, quiet while TIMSK1 & 0x06 == 0."""
+    elf = harness_env / "testfw_echo_timer_2560.elf"
+    with AvrHarness(elf, mcu="atmega2560", clock="control", input_pins={"EXT": "D0"}) as h:
+        with open_port(h) as port:
+            start = start_pulses(h, port)
+            step = h.run_until(start.cycle + 6 * EDGE_PERIOD + 100)
+            assert port.read(1) == b"S"
+        edges = start.edges + step.edges
+        assert [(e.pin, e.value) for e in edges] == [("TRIG", 1), ("TRIG", 0)] * 3
+        assert {b.cycle - a.cycle for a, b in itertools.pairwise(edges)} == {EDGE_PERIOD}
+        h.set_pin(step.cycle + 1000, "EXT", 1)
+        (led,) = h.run_until(step.cycle + 2000).edges
+        assert led.pin == "LED"
+        assert led.value == 1
