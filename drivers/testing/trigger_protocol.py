@@ -72,11 +72,21 @@ class RawPort:
                 if not line.startswith("T "):
                     return out
 
-    def sync(self) -> None:
+    def sync(self, attempts: int = 5) -> None:
         """Flush a half line out of the box and wait for its PONG (READY may have gone to a
-        flushed buffer when the port was opened)."""
-        self.send(b"\n")
-        self.cmd("PING", tag=65535)
+        flushed buffer when the port was opened). A PING lost in a flood the box is still
+        working through (its `ERR OVERRUN`) is sent again, as a host driver does."""
+        for attempt in range(attempts):
+            self.send(b"\n")
+            self.send(b"PING #65535\n")
+            deadline = time.monotonic() + 5.0
+            try:
+                while self.line(max(0.0, deadline - time.monotonic())) != "PONG #65535":
+                    pass
+                return
+            except TimeoutError:
+                if attempt == attempts - 1:
+                    raise
 
     def close(self) -> None:
         self.ser.close()

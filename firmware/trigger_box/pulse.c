@@ -13,6 +13,11 @@
  * touch no pin, approach it. The compare-A interrupt after each edge arms the next one; after
  * a rising edge it also queues the pulse record and computes the next pulse time.
  *
+ * No compare flag is ever cleared by writing TIFR1: stale compare-A matches are told apart by
+ * the interrupt itself (`armed`, `armed_tick`), and an early compare-B wake-up only re-plans.
+ * simavr 1.6 clears every raised Timer1 flag on any TIFR1 write, overflow included, which
+ * loses an overflow (and so 32.8 ms of box clock) whenever one is pending at that moment.
+ *
  * Toggle rather than set/clear: in normal mode the set/clear output modes must not act on
  * overflow, but simavr 1.6 (Debian's, which CI runs) applies their PWM-mode overflow action
  * on every overflow and OCR write. Toggle and disconnected have no overflow action on either,
@@ -64,6 +69,10 @@ static uint64_t next_b;               /* b_k of the next rising edge, us */
 static uint64_t rise_tick, fall_tick;
 static volatile uint32_t count;
 
+/* An edge is armed on OCR1A (its compare interrupt is then that edge, not an old match). */
+static uint8_t armed;
+static uint64_t armed_tick;
+
 static pulse_record_t queue[RECORD_QUEUE];
 static volatile uint8_t q_head, q_tail;
 static volatile uint32_t records_dropped;
@@ -98,19 +107,26 @@ void pulse_init(void)
     DDRB |= _BV(ISR_PROBE_BIT);
 #endif
     TCCR1A = 0;
-    TIFR1 = _BV(TOV1);
     TIMSK1 = _BV(TOIE1);
 }
 
+static uint64_t last_ticks; /* the newest ticks_locked() result: time never goes back */
+
 /* Ticks now; interrupts must be off. A pending overflow not yet counted is added when TCNT1
- * has wrapped (a small value), not when the overflow came just after the read. */
+ * has wrapped (a small value), not when the overflow came just after the read. simavr 1.6
+ * can show TCNT1 wrapped a few cycles before it raises TOV1 (its overflow is a cycle timer
+ * run after the instruction); a reading that would go back in time is that wrap, counted here. */
 static uint64_t ticks_locked(void)
 {
     uint16_t t = TCNT1;
     uint64_t hi = ovf_ticks;
     if ((TIFR1 & _BV(TOV1)) && t < 0x8000u)
         hi += 0x10000u;
-    return hi + t;
+    uint64_t now = hi + t;
+    if (now < last_ticks)
+        now += 0x10000u;
+    last_ticks = now;
+    return now;
 }
 
 uint64_t clock_us(void)
@@ -139,8 +155,9 @@ static void arm_next_edge(void)
     uint64_t d = target - now;
     if (d <= ARM_WINDOW) {
         OCR1A = (uint16_t)(target - 1u);
-        TIFR1 = _BV(OCF1A);
         TCCR1A = _BV(COM1A0);
+        armed = 1;
+        armed_tick = target;
         TIMSK1 = (uint8_t)((TIMSK1 & ~_BV(OCIE1B)) | _BV(OCIE1A));
     } else {
         /* Park: PORT holds the line's present level (high between a rise and its fall). */
@@ -149,12 +166,12 @@ static void arm_next_edge(void)
         else
             TRIG_PORT &= (uint8_t)~_BV(TRIG_BIT);
         TCCR1A = 0;
+        armed = 0;
         uint64_t step = d - ARM_WINDOW / 2u;
         if (step > ARM_WINDOW)
             step = ARM_WINDOW;
         OCR1B = (uint16_t)(now + step);
-        TIFR1 = _BV(OCF1B);
-        TIMSK1 = (uint8_t)((TIMSK1 & ~_BV(OCIE1A)) | _BV(OCIE1B));
+        TIMSK1 |= _BV(OCIE1B);
     }
 }
 
@@ -162,6 +179,7 @@ static void arm_next_edge(void)
 static void finish_locked(void)
 {
     TIMSK1 = (uint8_t)(TIMSK1 & ~(_BV(OCIE1A) | _BV(OCIE1B)));
+    armed = 0;
     TRIG_PORT &= (uint8_t)~_BV(TRIG_BIT); /* called only while the line is low */
     TCCR1A = 0;
     if (!stopping)
@@ -186,7 +204,12 @@ static void advance_schedule(void)
 
 ISR(TIMER1_COMPA_vect)
 {
+    /* OCR1A matches every timer period: a match while the pin is parked, or one flagged
+     * before this edge was armed, is not the edge. */
+    if (!armed || ticks_locked() < armed_tick)
+        return;
     PROBE_ON();
+    armed = 0;
     if (!phase) {
         /* Pulse `count` rose: arm its fall first, it is the only deadline here. */
         phase = 1;
