@@ -20,6 +20,7 @@
 #include <poll.h>
 #include <pty.h>
 #include <signal.h>
+#include <sys/prctl.h>
 #include <stdarg.h>
 #include <stdbool.h>
 #include <stdint.h>
@@ -97,6 +98,7 @@ static struct {
 	bool has_quiet;
 	/* FREE hands the firmware one host line at a time, each when it is idle: free_feeding is
 	 * on during FREE, free_budget the bytes of the current line not yet fed. */
+	bool free_lines;      /* --free-lines: the host speaks in lines (off: a byte stream) */
 	bool free_feeding;
 	size_t free_budget;
 	uint16_t quiet_addr;
@@ -436,6 +438,8 @@ static bool firmware_idle(void)
  * every pulse time after it, depend on the commands alone. */
 static bool is_idle(void)
 {
+	if (!H.free_lines)
+		return firmware_idle() && H.to_avr.len == 0;
 	if (!firmware_idle() || H.free_budget)
 		return false;
 	H.free_budget = next_line_len();
@@ -476,7 +480,7 @@ enum stop_reason { STOP_LIMIT, STOP_NOT_QUIET, STOP_LINE, STOP_SIGNAL };
 static enum stop_reason run(uint64_t limit, bool free_run)
 {
 	avr_t *avr = H.avr;
-	H.free_feeding = free_run;
+	H.free_feeding = free_run && H.free_lines;
 	H.free_budget = 0;
 	if (limit != UINT64_MAX && limit > avr->cycle)
 		/* at limit - 1: a sleep jump adds 1 + the timer distance, so it lands on limit */
@@ -680,7 +684,8 @@ static void usage(FILE *f)
 {
 	fputs("usage: avr_harness --elf ELF [--mcu atmega328p] [--freq 16000000]\n"
 	      "       [--pin NAME=PORTBIT]... [--input-pin NAME=PORTBIT]... [--edges FILE]\n"
-	      "       [--clock real|max|control] [--quiet-reg ADDR:MASK] [--out-buffer BYTES]\n", f);
+	      "       [--clock real|max|control] [--quiet-reg ADDR:MASK] [--out-buffer BYTES]\n"
+	      "       [--free-lines]\n", f);
 }
 
 static void open_pty(void)
@@ -720,6 +725,7 @@ int main(int argc, char **argv)
 		{ "edges", required_argument, 0, 'o' },
 		{ "clock", required_argument, 0, 'c' },
 		{ "quiet-reg", required_argument, 0, 'q' },
+		{ "free-lines", no_argument, 0, 'L' },
 		{ "out-buffer", required_argument, 0, 'b' },
 		{ "help", no_argument, 0, 'h' },
 		{ 0, 0, 0, 0 },
@@ -749,6 +755,7 @@ int main(int argc, char **argv)
 		case 'o': edges = optarg; break;
 		case 'c': clock = optarg; break;
 		case 'q': quiet = optarg; break;
+		case 'L': H.free_lines = true; break;
 		case 'b': {
 			char *end;
 			out_buffer = strtoul(optarg, &end, 10);
@@ -850,6 +857,10 @@ int main(int argc, char **argv)
 	sa.sa_handler = on_signal;  /* no SA_RESTART: poll() returns EINTR */
 	sigaction(SIGTERM, &sa, NULL);
 	sigaction(SIGINT, &sa, NULL);
+	/* A harness whose parent died (a killed test, a killed `python -m firmware_sim.avr`) would
+	 * run a max-clock firmware at full CPU forever: it is told, and stops like on SIGTERM. */
+	if (prctl(PR_SET_PDEATHSIG, SIGTERM) != 0)
+		die("prctl(PR_SET_PDEATHSIG): %s", strerror(errno));
 	signal(SIGPIPE, SIG_IGN);
 	if (H.mode == CLOCK_CONTROL) {
 		int fl = fcntl(STDIN_FILENO, F_GETFL);

@@ -14,7 +14,7 @@
  * a rising edge it also queues the pulse record and computes the next pulse time.
  *
  * No compare flag is ever cleared by writing TIFR1: stale compare-A matches are told apart by
- * the interrupt itself (`armed`, `armed_tick`), and an early compare-B wake-up only re-plans.
+ * the interrupt itself (`armed`, `armed_ocr`), and an early compare-B wake-up only re-plans.
  * simavr 1.6 clears every raised Timer1 flag on any TIFR1 write, overflow included, which
  * loses an overflow (and so 32.8 ms of box clock) whenever one is pending at that moment.
  *
@@ -66,12 +66,18 @@ static volatile uint8_t ended;
 static uint8_t phase;                 /* 0: the next edge rises; 1: it falls */
 static uint64_t acc_q, acc_m;         /* k*q + floor(k*r/rate), (k*r) mod rate for pulse k */
 static uint64_t next_b;               /* b_k of the next rising edge, us */
-static uint64_t rise_tick, fall_tick;
+static uint64_t rise_tick;            /* rising edge of the next pulse */
 static volatile uint32_t count;
 
-/* An edge is armed on OCR1A (its compare interrupt is then that edge, not an old match). */
-static uint8_t armed;
-static uint64_t armed_tick;
+/* An edge is armed on OCR1A (`armed_ocr`): its compare interrupt is that edge once TCNT1 has
+ * passed it; before, it is a match flagged before the arming (a flag pending when the
+ * interrupt is enabled is served at once on the chip, not in simavr 1.6). */
+static volatile uint8_t armed;
+static volatile uint16_t armed_ocr;
+/* Per run: the next edge can be armed by one OCR1A write from the compare interrupt (it is
+ * under half a timer period away), with no 64-bit arithmetic before it. */
+static uint8_t fall_fast, rise_fast;
+static uint64_t cur_fall_tick;        /* falling edge of the pulse now high */
 
 static pulse_record_t queue[RECORD_QUEUE];
 static volatile uint8_t q_head, q_tail;
@@ -144,7 +150,7 @@ ISR(TIMER1_OVF_vect)
 /* Arm the next edge on OCR1A if it is near, else a compare-B wake-up; interrupts off. */
 static void arm_next_edge(void)
 {
-    uint64_t target = phase ? fall_tick : rise_tick;
+    uint64_t target = phase ? cur_fall_tick : rise_tick;
     uint64_t now = ticks_locked();
     if (target < now + MIN_ARM_TICKS) {
         /* Only possible if interrupts were held off far longer than this firmware ever does;
@@ -154,10 +160,10 @@ static void arm_next_edge(void)
     }
     uint64_t d = target - now;
     if (d <= ARM_WINDOW) {
-        OCR1A = (uint16_t)(target - 1u);
+        armed_ocr = (uint16_t)(target - 1u);
+        OCR1A = armed_ocr;
         TCCR1A = _BV(COM1A0);
         armed = 1;
-        armed_tick = target;
         TIMSK1 = (uint8_t)((TIMSK1 & ~_BV(OCIE1B)) | _BV(OCIE1A));
     } else {
         /* Park: PORT holds the line's present level (high between a rise and its fall). */
@@ -199,21 +205,39 @@ static void advance_schedule(void)
     }
     next_b = run_t0 + acc_q + ((acc_m << 1) >= run_rate ? 1u : 0u);
     rise_tick = next_b << 1;
-    fall_tick = rise_tick + run_width_ticks;
+}
+
+/* Arm the edge at the tick whose low 16 bits are `tick_lo` with one OCR1A write: from the
+ * compare interrupt of the previous edge, when it is known to be less than half a period
+ * away. Should the interrupt have come too late for it, the slow path places it late and
+ * counts it. */
+static void fast_arm(uint16_t tick_lo)
+{
+    uint16_t ocr = (uint16_t)(tick_lo - 1u);
+    OCR1A = ocr;
+    armed_ocr = ocr;
+    if ((int16_t)(TCNT1 - ocr) > 0) {
+        arm_next_edge();
+        return;
+    }
+    armed = 1;
 }
 
 ISR(TIMER1_COMPA_vect)
 {
     /* OCR1A matches every timer period: a match while the pin is parked, or one flagged
      * before this edge was armed, is not the edge. */
-    if (!armed || ticks_locked() < armed_tick)
+    if (!armed || (int16_t)(TCNT1 - armed_ocr) <= 0)
         return;
     PROBE_ON();
     armed = 0;
     if (!phase) {
         /* Pulse `count` rose: arm its fall first, it is the only deadline here. */
         phase = 1;
-        arm_next_edge();
+        if (fall_fast)
+            fast_arm((uint16_t)cur_fall_tick);
+        else
+            arm_next_edge();
         uint32_t k = count;
         count = k + 1u;
         uint8_t head = q_head;
@@ -229,10 +253,15 @@ ISR(TIMER1_COMPA_vect)
             advance_schedule();
     } else {
         phase = 0;
-        if (stopping || (run_target && count >= run_target))
+        if (stopping || (run_target && count >= run_target)) {
             finish_locked();
-        else
-            arm_next_edge();
+        } else {
+            cur_fall_tick = rise_tick + run_width_ticks;
+            if (rise_fast)
+                fast_arm((uint16_t)rise_tick);
+            else
+                arm_next_edge();
+        }
     }
     PROBE_OFF();
 }
@@ -278,7 +307,10 @@ void pulse_start(uint64_t t0_us, uint64_t rate_uhz, uint32_t width_us, uint32_t 
         acc_m = 0;
         next_b = t0_us;
         rise_tick = t0_us << 1;
-        fall_tick = rise_tick + run_width_ticks;
+        cur_fall_tick = rise_tick + run_width_ticks;
+        fall_fast = run_width_ticks <= ARM_WINDOW;
+        rise_fast = 2u * (q + 1u) - run_width_ticks <= ARM_WINDOW; /* the longest low time */
+        armed = 0;
         active = 1;
         LED_PORT |= _BV(LED_BIT);
         arm_next_edge();

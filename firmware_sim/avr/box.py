@@ -63,7 +63,9 @@ class AvrTriggerBox:
 
     def __init__(self, world: SimWorld, elf: Path, *, mcu: str = "atmega328p") -> None:
         self.world = world
-        self.harness = AvrHarness(elf, mcu=mcu, clock="control")
+        # The host speaks in lines: FREE hands the firmware each when it is idle, so the
+        # host's timing never reaches the firmware's clock (docs/decisions/0027).
+        self.harness = AvrHarness(elf, mcu=mcu, clock="control", free_lines=True)
         self.port_path = self.harness.port_path
         #: (cycle, level) of every trigger-pin change, for tests.
         self.edges: list[tuple[int, int]] = []

@@ -121,6 +121,7 @@ class AvrHarness:
         quiet_reg: tuple[int, int] | Literal["default"] | None = "default",
         binary: Path | None = None,
         out_buffer: int | None = None,
+        free_lines: bool = False,
         start_timeout_s: float = 10.0,
     ) -> None:
         defaults = MCU_DEFAULTS.get(mcu)
@@ -145,6 +146,8 @@ class AvrHarness:
             args += ["--quiet-reg", f"0x{quiet_reg[0]:X}:0x{quiet_reg[1]:X}"]
         if out_buffer is not None:  # bytes of firmware output held for the pty (default 1 MiB)
             args += ["--out-buffer", str(out_buffer)]
+        if free_lines:  # FREE feeds the host's bytes a whole line at a time, each when idle
+            args += ["--free-lines"]
         self._stderr_tail: deque[str] = deque(maxlen=STDERR_TAIL_LINES)
         self._buf = b""
         self._write_lock = threading.Lock()

@@ -68,7 +68,9 @@ class FirmwareProcess:
     def pin_changes(self, pin: str = "TRIG") -> list[PinChange]:
         """The edges file so far (the harness flushes it at least every 100 ms and at exit)."""
         out = []
-        for line in self.edges_path.read_text().splitlines():
+        text = self.edges_path.read_text()
+        complete = text[: text.rfind("\n") + 1]  # the harness may be writing the last line
+        for line in complete.splitlines():
             cycle, name, value = line.split()
             if name == pin:
                 out.append(PinChange(int(cycle), name, int(value)))

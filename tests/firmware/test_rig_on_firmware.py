@@ -1,7 +1,8 @@
 """The whole default rig on the firmware: `rigd capture --config deploy/configs/sim-rig-avr.toml`
 runs the AVR image under simavr as the trigger box, on the virtual clock. Every sim camera and
 event sensor sees the firmware's own edges; the take is complete, every frame and trigger-in
-edge sits on its pulse, and two runs give the same take."""
+edge sits on its pulse (the sync residual is only the devices' own whole-microsecond stamps),
+and two runs give the same take."""
 
 from __future__ import annotations
 
@@ -51,7 +52,10 @@ def test_the_default_rig_on_the_firmware_is_complete_in_sync_and_the_same_twice(
         assert report.pulses_seen_by_no_device == []
         for name, dev in report.devices.items():
             assert dev.n_matched == n, name
-            assert dev.residual_max_us == 0.0, (name, dev.residual_max_us)
+            # The firmware's edges carry no jitter: what is left is each device stamping whole
+            # microseconds of its own drifting clock (the Python box with jitter_us=0 leaves the
+            # same), under half a microsecond.
+            assert dev.residual_max_us < 0.5, (name, dev.residual_max_us)
         for cam in ("cam0", "cam1", "cam2"):
             fa, fb = ta.frames(cam, demosaic=False), tb.frames(cam, demosaic=False)
             assert len(fa) == len(fb) == n
