@@ -59,7 +59,10 @@ def _require_daemon(connect: str | None, hint: str) -> DaemonClient:
     from rigd.app.service.client import find_daemon
 
     endpoint = control_endpoint(connect)
-    client = find_daemon(endpoint)
+    try:
+        client = find_daemon(endpoint)
+    except RigdError as exc:  # another user's daemon, or one that refused the ping
+        raise fail(exc) from exc
     if client is None:
         _err.print(f"no rigd daemon at {endpoint}{hint}")
         raise typer.Exit(code=3)
@@ -424,7 +427,10 @@ def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
     from rigd.app.service.client import find_daemon
 
     endpoint = control_endpoint(connect)
-    client = find_daemon(endpoint, timeout_s=2.0)
+    try:
+        client = find_daemon(endpoint, timeout_s=2.0)
+    except RigdError as exc:  # another user's daemon: say so rather than capture beside it
+        raise fail(exc) from exc
     if client is None and connect:
         raise fail(ConfigError(f"--connect: no rigd daemon answers at {connect}"), code=3)
     return client
