@@ -104,7 +104,7 @@ class ConsoleSecurity:
         if not is_loopback(host) and token is None:
             raise ConfigError(
                 f"--http {host}: the console listens beyond loopback; that needs a token "
-                f"(--http-token or {TOKEN_ENV}) or a loopback address"
+                f"(--http-token-file or {TOKEN_ENV}) or a loopback address"
             )
         return cls(host, token or secrets.token_urlsafe(32))
 
