@@ -45,6 +45,23 @@ MAX_NDIM = 4
 MAX_RATIO = 1100
 #: A dataset this small (declared bytes) is let through whatever it stores.
 SMALL_BYTES = 1 << 20
+#: Datasets a reader reads whole (indexes and per-frame / per-pulse series, not images or event
+#: columns, which it reads in blocks) may declare at most this much beyond `WHOLE_RATIO` times
+#: what they store: what one read of them allocates stays bounded whatever they compress to.
+WHOLE_READ_BYTES = 256 << 20
+WHOLE_RATIO = 64
+_WHOLE_NAMES = frozenset(
+    {
+        "evt_index",
+        "t_exposure_start_us",
+        "t_exposure_start_device_us",
+        "exposure_us",
+        "frame_counter",
+        "pulse_index",
+        "journal_json",
+    }
+)
+_WHOLE_GROUPS = frozenset({"trigger", "pulses"})
 #: dtype kinds a take stores: signed, unsigned, float, bool; strings are checked apart.
 _KINDS = frozenset("iufb")
 
@@ -84,7 +101,13 @@ def check_structure(f: h5py.File, path: Path, size: int | None = None) -> None:
         _Walk(f, path, file_size).run()
     except (OSError, RuntimeError, ValueError, KeyError, TypeError) as exc:
         # HDF5 refusing an object header or link table is damage too, named like the rest
-        raise TakeFormatError(f"{path}: its structure cannot be read (HDF5: {describe(exc)})") from exc
+        why = describe(exc)
+        if "addr overflow" in why:  # a header recording an end before what it points to
+            raise TakeFormatError(
+                f"{path}: damaged by a failed write (disk full before the first flush?): HDF5 "
+                f"refuses its structure ({why}) and `rigd recover` cannot repair it"
+            ) from exc
+        raise TakeFormatError(f"{path}: damaged, its structure cannot be read (HDF5: {why})") from exc
 
 
 class _Walk:
@@ -186,6 +209,14 @@ class _Walk:
             )
 
     def chunked(self, ds: h5py.Dataset, hpath: str, declared: int, stored: int) -> None:
+        parts = hpath.split("/")
+        whole = parts[-1] in _WHOLE_NAMES or (len(parts) > 2 and parts[-2] in _WHOLE_GROUPS)
+        if whole and declared > max(WHOLE_READ_BYTES, stored * WHOLE_RATIO):
+            raise self.fail(
+                hpath,
+                f"declares {declared:,} bytes of data (shape {ds.shape}, {ds.dtype}) in {stored:,} stored: "
+                f"more than {WHOLE_RATIO}x beyond {WHOLE_READ_BYTES >> 20} MiB for a dataset read whole",
+            )
         if declared > SMALL_BYTES and declared > stored * MAX_RATIO:
             raise self.fail(
                 hpath,

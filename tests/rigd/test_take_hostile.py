@@ -118,8 +118,9 @@ def test_take_pointing_at_another_file_is_refused_unread(
     with pytest.raises(TakeFormatError, match=hpath):
         summarize(p)
     r = CliRunner().invoke(app, ["inspect", str(p)])
-    assert r.exit_code == 1, r.output
-    assert r.output.startswith("verdict: damaged"), r.output
+    assert r.exit_code == 2, r.output
+    assert r.stdout.startswith("verdict: damaged"), r.output
+    assert r.stderr.startswith(f"error: {p}: {hpath}"), r.stderr
     assert "Traceback" not in r.output
     assert "ssh key" not in r.output
 
@@ -166,7 +167,19 @@ def _contiguous_unwritten(f: h5py.File) -> str:
     return "/events/ev0/ms_to_idx"
 
 
-@pytest.mark.parametrize("edit", [_huge_events, _huge_trigger, _contiguous_unwritten])
+def _compressed_index(f: h5py.File) -> str:
+    # Written, not a gap: 400 MB of zeros that deflate to well under 1/1000 of that.
+    g = f["trigger/pulses"]
+    del g["index"]
+    ds = g.create_dataset("index", (50_000_000,), np.int64, chunks=(1 << 20,), compression="gzip")
+    block = np.zeros(1 << 20, np.int64)
+    for start in range(0, ds.shape[0], block.size):
+        n = min(block.size, ds.shape[0] - start)
+        ds[start : start + n] = block[:n]
+    return "/trigger/pulses/index"
+
+
+@pytest.mark.parametrize("edit", [_huge_events, _huge_trigger, _contiguous_unwritten, _compressed_index])
 def test_declared_size_beyond_the_stored_bytes_is_refused_before_any_read(
     good: Path, tmp_path: Path, edit: Callable[[h5py.File], str]
 ) -> None:
@@ -236,7 +249,7 @@ def test_phantom_frames_are_refused(good: Path, tmp_path: Path) -> None:
             g[k].resize((20_000_000, *g[k].shape[1:]))
     with pytest.raises(TakeFormatError, match=r"/frames/cam0/.*declares"):
         read_everything(p)
-    assert CliRunner().invoke(app, ["inspect", str(p)]).output.startswith("verdict: damaged")
+    assert CliRunner().invoke(app, ["inspect", str(p)]).stdout.startswith("verdict: damaged")
 
 
 # -- item 7: malformed metadata is one TakeFormatError -------------------------------------------

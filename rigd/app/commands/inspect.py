@@ -37,13 +37,13 @@ def inspect(
             write_thumbnails(take, thumbnails)
     except TakeInUseError as exc:
         raise fail(exc) from exc
-    except TakeFormatError as exc:  # the verdict first, as for any take; nothing else is trusted
+    except TakeFormatError as exc:  # the verdict first, as for any take; then the error (exit 2)
         from rigd.take.verdict import damaged_verdict
 
         line = damaged_verdict([str(exc)]).line()
         head, sep, rest = line.partition(" — ")
         out.print(f"[bold red]verdict: {escape(head)}[/]{sep}{escape(rest)}", soft_wrap=True, highlight=False)
-        raise typer.Exit(code=1) from exc
+        raise fail(exc) from exc
     except RigdError as exc:
         raise fail(exc) from exc
     if json_out:
