@@ -16,7 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-from rigd.core.errors import EventDataError, RigdError, TakeFormatError
+from rigd.core.errors import EventDataError, TakeError, TakeFormatError
 
 #: What reading damaged metadata raises (h5py: OSError/RuntimeError for unreadable data).
 DAMAGE_ERRORS: tuple[type[BaseException], ...] = (
@@ -54,7 +54,7 @@ def _wrap(fn: Callable[..., Any], what: str) -> Callable[..., Any]:
     def guarded(self: Any, *args: Any, **kwargs: Any) -> Any:
         try:
             return fn(self, *args, **kwargs)
-        except (RigdError, OutOfRangeError):
+        except (TakeError, OutOfRangeError):
             raise
         except RecursionError as exc:
             raise as_format_error(self._where_file(), what, exc) from None

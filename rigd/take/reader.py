@@ -160,11 +160,19 @@ class Take:
             node = self._f.get(name)
             if node is not None and not isinstance(node, h5py.Group):
                 raise TakeFormatError(f"{self.path}: /{name} is not a group")
+        lengths: dict[str, dict[str, int]] = {}
         for hpath in self._required():
             ds = self._f.get(hpath)
             if not isinstance(ds, h5py.Dataset):
                 raise TakeFormatError(f"{self.path}: /{hpath}: required dataset is missing (damaged take)")
             self._check_dataset(hpath, ds)
+            parent, _, name = hpath.rpartition("/")
+            if ds.ndim and name not in (Events.EVT_WORDS, Events.EVT_INDEX, Events.MS_TO_IDX):
+                lengths.setdefault(parent, {})[name] = int(ds.shape[0])
+        for parent, sizes in lengths.items():  # one row per event, frame, edge or pulse in each
+            if len(set(sizes.values())) > 1:
+                desc = ", ".join(f"{k}={n:,}" for k, n in sizes.items())
+                raise TakeFormatError(f"{self.path}: /{parent}: datasets have unequal lengths ({desc})")
         for group, names in ((EVENTS_GROUP, self.event_sensors), (FRAMES_GROUP, self.cameras)):
             for name in names:
                 self._check_geometry(f"/{group}/{name}", self._f[f"{group}/{name}"])
