@@ -4,6 +4,7 @@ it, a take runs to completion meanwhile, and a restarted daemon is ready with it
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import threading
@@ -113,3 +114,21 @@ def test_take_list_and_preview_refuse_fifo_takes(tmp_path: Path) -> None:
     assert entries["fifo-unfinished.h5"].verdict == "damaged"
     with pytest.raises(TakeError, match="external file"):
         TakeList(take_dir).preview("fifo-sealed.h5", "cam0")
+
+
+def test_rigd_takes_and_recover_answer_with_fifo_takes(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from rigd.app.cli import app
+
+    take_dir = tmp_path / "takes"
+    unfinished_fifo = _fifo_unfinished(take_dir, tmp_path)
+    _fifo_sealed(take_dir, tmp_path)
+    runner = CliRunner()
+    listed = runner.invoke(app, ["takes", str(take_dir), "--json"])
+    assert listed.exit_code == 0, listed.output
+    assert [r["verdict"] for r in json.loads(listed.stdout)] == ["damaged", "damaged"]
+    rec = runner.invoke(app, ["recover", str(take_dir)])
+    assert "Traceback" not in rec.output
+    assert str(unfinished_fifo) in rec.output
+    assert "external file" in rec.output
