@@ -26,8 +26,9 @@ log = logging.getLogger(__name__)
 
 #: What reading a damaged file can raise besides TakeError: h5py reports HDF5 library
 #: failures (bad superblock, heap or chunk) as OSError, malformed attributes and datatypes
-#: as ValueError / TypeError, missing objects as KeyError.
-READ_ERRORS: tuple[type[Exception], ...] = (TakeError, OSError, ValueError, KeyError, TypeError)
+#: as ValueError / TypeError, missing objects as KeyError; a worker (rigd.take.isolated) reports
+#: any other error it met as RuntimeError.
+READ_ERRORS: tuple[type[Exception], ...] = (TakeError, OSError, ValueError, KeyError, TypeError, RuntimeError)
 
 #: Where the daemon moves files it cannot read, under its take directory.
 UNREADABLE_DIR = "unreadable"

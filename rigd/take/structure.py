@@ -99,7 +99,7 @@ def check_structure(f: h5py.File, path: Path, size: int | None = None) -> None:
     file_size = size if size is not None else os.stat(path).st_size
     try:
         _Walk(f, path, file_size).run()
-    except (OSError, RuntimeError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
         # HDF5 refusing an object header or link table is damage too, named like the rest
         why = describe(exc)
         if "addr overflow" in why:  # a header recording an end before what it points to
@@ -152,6 +152,8 @@ class _Walk:
             if not isinstance(link, h5py.HardLink):
                 raise self.fail(child, f"is a link of unknown kind ({type(link).__name__})")
             node = g.get(name)
+            if node is None:  # listed, but its object cannot be opened
+                raise self.fail(child, "is listed but cannot be opened (a damaged object header)")
             if not self.visit(node, child):
                 continue
             self.attrs(node, child)

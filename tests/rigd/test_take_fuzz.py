@@ -241,6 +241,7 @@ def test_mutated_takes_read_cleanly(tmp_path: Path, data: st.DataObject) -> None
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # the long budget: minutes, beyond the suite's 300 s per test
 @settings(max_examples=400, **_COMMON)  # type: ignore[arg-type]
 @given(data=st.data())
 def test_mutated_takes_read_cleanly_long(tmp_path: Path, data: st.DataObject) -> None:

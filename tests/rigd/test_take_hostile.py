@@ -327,3 +327,16 @@ def test_malformed_metadata_is_one_take_format_error(
     r = CliRunner().invoke(app, ["inspect", str(p)])
     assert "Traceback" not in r.output
     assert r.exit_code in (1, 2), r.output
+
+
+def test_replay_of_a_take_pointing_outside_is_refused(good: Path, tmp_path: Path) -> None:
+    p = _copy(good, tmp_path)
+    _external_storage(p, tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    r = CliRunner().invoke(app, ["capture", "--replay", str(p), "--out", str(out)])
+    assert r.exit_code == 2, r.output
+    assert "/frames/cam0/images" in r.output
+    assert "external" in r.output
+    assert "Traceback" not in r.output
+    assert not list(out.iterdir())
