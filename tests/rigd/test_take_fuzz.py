@@ -246,3 +246,47 @@ def test_mutated_takes_read_cleanly(tmp_path: Path, data: st.DataObject) -> None
 @given(data=st.data())
 def test_mutated_takes_read_cleanly_long(tmp_path: Path, data: st.DataObject) -> None:
     _fuzz_one(tmp_path, data)
+
+
+def _words_fmt(f: h5py.File) -> None:
+    f["events/ev0"].attrs["evt_format"] = "evt9"
+
+
+def _words_index_1d(f: h5py.File) -> None:
+    d = f["events/ev0/evt_index"][...]
+    del f["events/ev0/evt_index"]
+    f["events/ev0/evt_index"] = d.reshape(-1)
+
+
+def _words_index_3_columns(f: h5py.File) -> None:
+    d = f["events/ev0/evt_index"][...]
+    del f["events/ev0/evt_index"]
+    f["events/ev0/evt_index"] = d[:, :3]
+
+
+def _words_as_text(f: h5py.File) -> None:
+    del f["events/ev0/evt_words"]
+    f["events/ev0/evt_words"] = "words"
+
+
+def _words_count_overflow(f: h5py.File) -> None:
+    f["events/ev0/evt_index"][0, 2] = 2**62
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [_words_fmt, _words_index_1d, _words_index_3_columns, _words_as_text, _words_count_overflow],
+    ids=lambda e: e.__name__,
+)
+def test_damaged_evt_words_metadata_is_one_take_error(
+    tmp_path: Path, edit: Callable[[h5py.File], None]
+) -> None:
+    """The evt_words variants of the issue's list (an unknown format, a 1-D or 3-column index,
+    text for words, an event count that overflows): one TakeFormatError naming the file."""
+    p = tmp_path / "words.h5"
+    shutil.copy(_base("words"), p)
+    with h5py.File(p, "r+") as f:
+        edit(f)
+    outcome, _ = _read_measured(p)
+    assert outcome.startswith("TakeError TakeFormatError"), outcome
+    assert str(p) in outcome
