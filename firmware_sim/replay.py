@@ -64,6 +64,7 @@ from rigd.core.schema import DeviceSync, SyncReport
 from rigd.core.settings import CameraSettings
 from rigd.core.timebase import ClockMap
 from rigd.take import Take
+from rigd.take.h5file import open_checked
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +182,7 @@ class Recording:
                 check_clock_map(path, fit, lo - margin, hi + margin)
             self.config: dict[str, Any] = take.config
             self.sensors: dict[str, SensorTrack] = {}
-            with h5py.File(path, "r") as f:
+            with open_checked(path, "r") as f:  # the structure check again: no file is trusted twice
                 self.cameras = {name: self._camera(f, name, report) for name in take.cameras}
                 for name in take.event_sensors:
                     sync = report.devices.get(name)
@@ -425,7 +426,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
 
     def _do_start(self) -> None:
         if self._file is None:
-            self._file = h5py.File(self._rec.path, "r")
+            self._file = open_checked(self._rec.path, "r")
         if self._preload and self._images is None:  # once: the frames a real driver hands over
             self._images = np.asarray(
                 self._file[f"{frame_group(self._name)}/{Frames.IMAGES}"][: self._preload]

@@ -47,7 +47,7 @@ def shoot(login_url: str, url: str, out: Path) -> None:
         )
         page = browser.new_page(viewport={"width": 1280, "height": 860})
         page.set_default_timeout(120_000)
-        page.goto(login_url)  # sets the login cookie, lands on the dashboard
+        page.goto(login_url)  # hands the secret to the tab, lands on the dashboard
         page.get_by_test_id("take-name").fill("walk-1")
         page.get_by_test_id("take-notes").fill("operator walks through the scene")
         page.get_by_test_id("start").click()

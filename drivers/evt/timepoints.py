@@ -8,7 +8,10 @@ TIME_HIGH), follows the counter's roll-over, and keeps a point per `grain` micro
 stream time: (offset of the first word whose time reaches a new grain, grain start). Every
 word before a point's offset has a time below that point's time, so bytes cut at a point are
 never ahead of it. Time that falls (a jump back in time, a corrupt word) holds the running
-maximum until the stream passes it again: such bytes are paced as if they had no time.
+maximum until the stream passes it again: such bytes are paced as if they had no time. An EVT 3.0
+TIME_HIGH the decoder judges corrupt (a large step the next TIME_HIGH refutes, `evt3._refuted`)
+is skipped here as there: taken, its step forward would have held every later byte back until
+the host clock caught up with it (and a step past half the counter counted as a roll-over).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from drivers.evt.evt3 import TH_JUMP, _refuted
 from rigd.core.errors import EventDataError
 
 #: Point spacing (us): one EVT 2.0 TIME_HIGH period; 64 of them make an EVT 3.0 TIME_HIGH period.
@@ -68,6 +72,8 @@ def _evt3_points(
         typ = w >> 12
         if typ == 0x8:
             v = w & 0xFFF
+            if started and ((v - th) & 0xFFF) > TH_JUMP and _refuted(words, i, th, v):
+                continue  # a corrupt TIME_HIGH, as the decoder judges it: it drops the word too
             if started and v < th and th - v >= 2048:
                 loop += 1
             th = v

@@ -105,6 +105,9 @@ app.command("stop")(stop)
 
 
 def main() -> None:
+    from rigd.app.numba_cache import ensure_numba_cache
+
+    ensure_numba_cache()  # before numba is imported: it reads its cache settings then
     try:
         app()
     except KeyboardInterrupt:

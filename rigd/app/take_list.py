@@ -12,7 +12,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field
 
-from rigd.core.errors import RigdError, TakeError
+from rigd.core.errors import RigdError, TakeError, TakeFormatError
+from rigd.take.isolated import READ_TIMEOUT_S, run_isolated
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +57,10 @@ def take_row(path: Path) -> TakeRow:
     try:
         with Take(path) as take:
             summary = take.summary()
-    except (OSError, RigdError) as exc:  # held by a live writer, damaged, not a take
+    except TakeFormatError as exc:  # breaks the format's rules: damaged, never read further
+        log.debug("takes: %s damaged: %s", path, exc)
+        return TakeRow(**base, verdict="damaged", reason=str(exc), error=str(exc))
+    except (OSError, RigdError) as exc:  # held by a live writer, not a take
         log.debug("takes: %s unreadable: %s", path, exc)
         return TakeRow(**base, error=str(exc))
     spans = [(c.t_first_us, c.t_last_us) for c in summary.cameras.values()]
@@ -75,6 +79,18 @@ def take_row(path: Path) -> TakeRow:
     )
 
 
-def list_takes(directory: Path) -> list[TakeRow]:
-    """Every take in `directory`, oldest first."""
-    return [take_row(p) for p in take_files(directory)]
+def isolated_row(path: Path, timeout_s: float = READ_TIMEOUT_S) -> TakeRow:
+    """`take_row` in a worker process (rigd.take.isolated): a take whose read hangs or crashes
+    is a row with `error`, after `timeout_s` at most."""
+    try:
+        return run_isolated(take_row, path, timeout_s=timeout_s, what=str(path))
+    except (OSError, RigdError) as exc:
+        st = path.stat()
+        return TakeRow(
+            path=str(path), name=path.stem, size_bytes=st.st_size, modified_utc=st.st_mtime, error=str(exc)
+        )
+
+
+def list_takes(directory: Path, timeout_s: float = READ_TIMEOUT_S) -> list[TakeRow]:
+    """Every take in `directory`, oldest first; each read in a worker with a deadline."""
+    return [isolated_row(p, timeout_s) for p in take_files(directory)]

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 from numpy.typing import NDArray
 
 from rigd.core.errors import TakeError
 from rigd.take.calibration import read_ground_truth
+from rigd.take.h5file import open_checked
 
 F64 = NDArray[np.float64]
 
@@ -51,7 +51,7 @@ class TruthError:
 def ground_truth_of(take: Path) -> dict[str, dict[str, Any]]:
     """The truth a take carries ({} for a real rig's take)."""
     try:
-        with h5py.File(take, "r") as f:
+        with open_checked(take, "r") as f:
             return read_ground_truth(f)
     except OSError as exc:
         raise TakeError(f"cannot open take {take} to read its ground truth: {exc}") from exc

@@ -89,6 +89,9 @@ def summarize(path: str | Path) -> InspectedSummary:
             "what can be read and says what it cannot"
         ) from exc
     summary.problems = problems
+    if problems:  # what the file says it holds is not to be trusted: damaged, before anything else
+        summary.verdict = "damaged"
+        summary.verdict_reasons = [*problems, *summary.verdict_reasons]
     return summary
 
 
@@ -138,6 +141,7 @@ _VERDICT_STYLE = {
     "degraded": "bold yellow",
     "failed": "bold red",
     "unfinished": "bold red",
+    "damaged": "bold red",
 }
 
 

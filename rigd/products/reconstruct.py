@@ -38,7 +38,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import h5py
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -65,6 +64,7 @@ from rigd.products.reconstruct_tasks import (
     scan_block,
     snapshot,
 )
+from rigd.take.h5file import open_checked
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -238,7 +238,7 @@ class _Runner:
 
 def _mid_exposures(path: Path, camera: str) -> NDArray[np.int64]:
     """Mid-exposure rig times of a camera's frames (exposure start + half the exposure)."""
-    with h5py.File(path, "r") as f:
+    with open_checked(path, "r") as f:
         g = f[FRAMES_GROUP][camera]
         n = int(g[Frames.IMAGES].shape[0])
         start = np.asarray(g[Frames.T_EXPOSURE_START][:n], np.int64)

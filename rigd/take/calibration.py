@@ -21,8 +21,9 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rigd.core.errors import TakeError
+from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.layout import CALIBRATION_GROUP
+from rigd.take.h5file import open_checked
 
 log = logging.getLogger(__name__)
 
@@ -125,8 +126,8 @@ def store_calibration(
     if intrinsics is None and pose is None:
         raise TakeError(f"{path}: nothing to store for {device!r}")
     try:
-        f = h5py.File(path, "r+")
-    except OSError as exc:
+        f = open_checked(path, "r+")
+    except (OSError, TakeFormatError) as exc:
         raise TakeError(f"cannot open take {path} to store calibration: {exc}") from exc
     with f:
         known = set(f.get("frames", {})) | set(f.get("events", {}))

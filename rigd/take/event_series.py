@@ -36,6 +36,7 @@ from rigd.core.layout import (
 from rigd.core.timebase import ClockMap
 from rigd.take.evt_read import EvtWordsEvents
 from rigd.take.evt_sink import is_evt_words
+from rigd.take.guard import format_errors
 from rigd.take.h5file import attr_text
 from rigd.take.tails import tail_rows
 
@@ -76,6 +77,7 @@ def _ms_bracket(ms_to_idx: h5py.Dataset, rel: int, n: int) -> tuple[int, int]:
     return lo, max(lo, hi)
 
 
+@format_errors
 class EventSeries:
     """The events of one event sensor; read on request, by time window or by position.
 
@@ -94,6 +96,9 @@ class EventSeries:
         self._evt: EvtWordsEvents | None = None
         self._evt_read = False
         self._until: int | None = None
+
+    def _where_file(self) -> str:
+        return f"{self._take.path}: {self._where}"
 
     def __repr__(self) -> str:
         return f"EventSeries({str(self._take.path)!r}, {self.name!r})"

@@ -15,11 +15,13 @@ from rigd.core.errors import TakeError
 from rigd.core.frames import Frame
 from rigd.core.layout import FRAMES_GROUP, Frames
 from rigd.core.pixels import BAYER_PATTERNS, is_bayer, stored_pixel_format, to_gray, to_rgb
+from rigd.take.guard import OutOfRangeError, format_errors
 
 if TYPE_CHECKING:
     from rigd.take.reader import Take
 
 
+@format_errors
 class FrameSeries(Sequence[Frame]):
     """The frames of one camera; images are read one at a time on indexing.
 
@@ -39,6 +41,9 @@ class FrameSeries(Sequence[Frame]):
         """As stored: mono8, rgb8 or bayer_rg8 (older takes: mono8 / rgb8 by the shape)."""
         self.demosaic = demosaic and is_bayer(self.pixel_format)
         """Whether indexing demosaics the stored frames."""
+
+    def _where_file(self) -> str:
+        return f"{self._take.path}: {self._g.name}"
 
     def __len__(self) -> int:
         return self._n
@@ -62,7 +67,7 @@ class FrameSeries(Sequence[Frame]):
     def _index(self, i: int) -> int:
         k = int(i) + self._n if int(i) < 0 else int(i)
         if not 0 <= k < self._n:
-            raise IndexError(f"frame {i} out of range for {self._n} frames of camera {self.name!r}")
+            raise OutOfRangeError(f"frame {i} out of range for {self._n} frames of camera {self.name!r}")
         return k
 
     def raw(self, i: int) -> NDArray[np.generic]:

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from rigd.core.errors import TakeError, TakeFormatError, TakeInUseError, TakeTruncatedError
 from rigd.core.layout import Root
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION
+from rigd.take.structure import check_regular_file, check_structure
 
 log = logging.getLogger(__name__)
 
@@ -158,10 +159,11 @@ def open_h5(path: Path, mode: str, *, rdcc_nbytes: int | None = None) -> h5py.Fi
     """Open with HDF5 file locking on, so a take a live writer holds is never opened
     (best-effort: file systems without locks open anyway). `rdcc_nbytes`: each dataset's raw
     chunk cache (None: HDF5's default)."""
-    if not path.is_file():
+    if not path.exists():
         raise TakeError(f"{path}: no such take file")
+    check_regular_file(path)
     try:
-        return h5py.File(path, mode, locking="best-effort", rdcc_nbytes=rdcc_nbytes)
+        return checked(path, h5py.File(path, mode, locking="best-effort", rdcc_nbytes=rdcc_nbytes))
     except OSError as exc:
         if is_lock_error(exc):
             raise TakeInUseError(
@@ -177,6 +179,32 @@ def open_h5(path: Path, mode: str, *, rdcc_nbytes: int | None = None) -> h5py.Fi
                 stored,
             ) from exc
         raise TakeFormatError(describe_open_error(path, exc)) from exc
+
+
+def checked(path: Path, f: h5py.File, size: int | None = None) -> h5py.File:
+    """`f` once its structure passed `check_structure` (rigd/take/structure.py); closed and a
+    TakeFormatError otherwise, before anything read a dataset of it. `size`: see there."""
+    try:
+        check_structure(f, path, size)
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def open_checked(path: Path, mode: str = "r", **kwargs: Any) -> h5py.File:
+    """`h5py.File(path, mode)` for a take a reader is about to trust: a regular file whose
+    structure passed `check_structure`; any failure to open it is one TakeFormatError."""
+    check_regular_file(path)
+    try:
+        f = h5py.File(path, mode, **kwargs)
+    except (OSError, ValueError) as exc:
+        if isinstance(exc, OSError) and is_lock_error(exc):
+            raise TakeInUseError(
+                f"{path}: in use: another process has it open for writing (HDF5 file lock)"
+            ) from exc
+        raise TakeFormatError(describe_open_error(path, exc)) from exc
+    return checked(path, f)
 
 
 def open_extended(path: Path, exc: TakeTruncatedError) -> h5py.File:

@@ -31,6 +31,7 @@ from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.layout import (
     EVENT_DTYPES,
     EVENTS_GROUP,
+    EVT_INDEX_COLUMNS,
     FRAME_SERIES,
     FRAMES_GROUP,
     PULSE_SERIES,
@@ -41,6 +42,7 @@ from rigd.core.layout import (
     TRIGGER_GROUP,
     Device,
     Events,
+    Frames,
     Pulses,
     Root,
     TimeDomain,
@@ -50,7 +52,8 @@ from rigd.take.calibration import read_board_pose, read_calibration
 from rigd.take.event_series import EventSeries
 from rigd.take.evt_sink import is_evt_words
 from rigd.take.frame_series import FrameSeries
-from rigd.take.h5file import attr_text, describe_open_error
+from rigd.take.guard import DAMAGE_ERRORS, as_format_error, format_errors
+from rigd.take.h5file import attr_text, open_checked
 from rigd.take.summary import CameraSummary, EventSensorSummary, TakeSummary
 from rigd.take.verdict import take_verdict
 
@@ -65,30 +68,52 @@ _CHUNK_CACHE_BYTES = 4 << 20
 def _deprecated(old: str, new: str) -> None:
     """Warn that a `Take` event method taking a sensor name is deprecated, naming its
     replacement on `take.sensor(name)`; attributed to the forward's caller (stacklevel 2 from
-    the forward)."""
-    warnings.warn(f"Take.{old} is deprecated: use take.sensor(name).{new}", DeprecationWarning, stacklevel=3)
+    the forward, under its format_errors guard)."""
+    warnings.warn(f"Take.{old} is deprecated: use take.sensor(name).{new}", DeprecationWarning, stacklevel=4)
 
 
 def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
     return attr_text(obj.attrs.get(key, default))
 
 
+#: Largest sensor side a take may declare (event coordinates are uint16).
+_MAX_SIDE = 65535
+
+
+def _schema_dtype(hpath: str) -> str | None:
+    """The dtype the schema gives the dataset at `hpath` (None: checked apart or free)."""
+    parts = hpath.split("/")
+    name = parts[-1]
+    if parts[0] == EVENTS_GROUP and len(parts) == 4 and parts[2] == Events.TRIGGER:
+        return TRIGGER_DTYPES.get(name)
+    if parts[0] == EVENTS_GROUP:
+        other = {Events.MS_TO_IDX: "uint64", Events.T_OFFSET: "int64", Events.EVT_INDEX: "int64"}
+        return EVENT_DTYPES.get(name) or other.get(name)
+    if name in FRAME_SERIES or name in PULSE_SERIES:
+        return "int64"
+    return None
+
+
 def _finite(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
 
 
+@format_errors
 class Take:
     """An open take file (read-only). Use as a context manager or call close()."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        try:
-            self._f = h5py.File(self.path, "r", rdcc_nbytes=_CHUNK_CACHE_BYTES, rdcc_nslots=10007)
-        except (OSError, ValueError) as exc:
-            raise TakeFormatError(describe_open_error(self.path, exc)) from exc
+        self._f = open_checked(self.path, "r", rdcc_nbytes=_CHUNK_CACHE_BYTES, rdcc_nslots=10007)
         try:
             self._check_header()
             self._check_layout()
+        except TakeError:
+            self._f.close()
+            raise
+        except DAMAGE_ERRORS as exc:
+            self._f.close()
+            raise as_format_error(self.path, "its layout", exc) from exc
         except BaseException:
             self._f.close()
             raise
@@ -135,9 +160,64 @@ class Take:
             node = self._f.get(name)
             if node is not None and not isinstance(node, h5py.Group):
                 raise TakeFormatError(f"{self.path}: /{name} is not a group")
+        lengths: dict[str, dict[str, int]] = {}
         for hpath in self._required():
-            if not isinstance(self._f.get(hpath), h5py.Dataset):
+            ds = self._f.get(hpath)
+            if not isinstance(ds, h5py.Dataset):
                 raise TakeFormatError(f"{self.path}: /{hpath}: required dataset is missing (damaged take)")
+            self._check_dataset(hpath, ds)
+            parent, _, name = hpath.rpartition("/")
+            if ds.ndim and name not in (Events.EVT_WORDS, Events.EVT_INDEX, Events.MS_TO_IDX):
+                lengths.setdefault(parent, {})[name] = int(ds.shape[0])
+        for parent, sizes in lengths.items():  # one row per event, frame, edge or pulse in each
+            if len(set(sizes.values())) > 1:
+                desc = ", ".join(f"{k}={n:,}" for k, n in sizes.items())
+                raise TakeFormatError(f"{self.path}: /{parent}: datasets have unequal lengths ({desc})")
+        for group, names in ((EVENTS_GROUP, self.event_sensors), (FRAMES_GROUP, self.cameras)):
+            for name in names:
+                self._check_geometry(f"/{group}/{name}", self._f[f"{group}/{name}"])
+
+    def _check_dataset(self, hpath: str, ds: h5py.Dataset) -> None:
+        """A required dataset's dtype and dimensions are the schema's (a float image or a 2-D
+        pulse series would otherwise read as something it is not)."""
+        want = _schema_dtype(hpath)
+        name = hpath.rsplit("/", 1)[-1]
+        ndim = {Frames.IMAGES: (3, 4), Events.EVT_INDEX: (2,), Events.T_OFFSET: (0,)}.get(name, (1,))
+        where = f"{self.path}: /{hpath}"
+        if ds.ndim not in ndim:
+            raise TakeFormatError(
+                f"{where}: has {ds.ndim} dimensions, expected {' or '.join(map(str, ndim))}"
+            )
+        if want is not None and ds.dtype != np.dtype(want):
+            raise TakeFormatError(f"{where}: dtype {ds.dtype}, expected {np.dtype(want)}")
+        if name == Frames.IMAGES and ds.dtype.kind != "u":
+            raise TakeFormatError(f"{where}: dtype {ds.dtype}, expected unsigned integer pixels")
+        if name == Events.EVT_INDEX and ds.shape[1] < len(EVT_INDEX_COLUMNS):
+            raise TakeFormatError(
+                f"{where}: has {ds.shape[1]} columns, expected at least {len(EVT_INDEX_COLUMNS)}"
+            )
+
+    def _check_geometry(self, where: str, g: h5py.Group) -> None:
+        """width and height: integers a sensor can have (events store uint16 coordinates)."""
+        for key in (Device.WIDTH, Device.HEIGHT):
+            value = g.attrs.get(key)
+            if value is None and where.startswith(f"/{FRAMES_GROUP}"):
+                continue  # older cameras: the image shape says it
+            if not isinstance(value, (int, np.integer)) or not 0 < int(value) <= _MAX_SIDE:
+                raise TakeFormatError(
+                    f"{self.path}: {where}: attribute {key} is {value!r}, expected an integer 1..{_MAX_SIDE}"
+                )
+        images = g.get(Frames.IMAGES)
+        if isinstance(images, h5py.Dataset) and Device.WIDTH in g.attrs and Device.HEIGHT in g.attrs:
+            hw = (int(g.attrs[Device.HEIGHT]), int(g.attrs[Device.WIDTH]))
+            if tuple(images.shape[1:3]) != hw:
+                raise TakeFormatError(
+                    f"{self.path}: {where}/images: frames are {tuple(images.shape[1:3])} (H, W) but the "
+                    f"camera's attributes say {hw}"
+                )
+
+    def _where_file(self) -> str:
+        return str(self.path)
 
     # -- lifecycle ---------------------------------------------------------------------
     def close(self) -> None:

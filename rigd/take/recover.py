@@ -40,6 +40,7 @@ from rigd.take.h5file import (
     ZeroPadded,
     attr_text,
     check_header,
+    checked,
     open_h5,
     utc_now,
 )
@@ -163,7 +164,7 @@ def open_view(path: Path) -> tuple[h5py.File, TakeTruncatedError | None]:
         return open_h5(path, "r"), None
     except TakeTruncatedError as exc:
         try:
-            return h5py.File(ZeroPadded(path, exc.stored_eof), "r"), exc
+            return checked(path, h5py.File(ZeroPadded(path, exc.stored_eof), "r"), exc.stored_eof), exc
         except OSError as exc2:
             raise TakeFormatError(f"{path}: truncated and unreadable even padded: {exc2}") from exc2
 

@@ -19,14 +19,16 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field
 
 from rigd.core.errors import NotATakeError, TakeError
+from rigd.take.isolated import READ_TIMEOUT_S, recovery_timeout_s, run_isolated
 from rigd.take.recover import RecoveryReport, needs_recovery, recover_take
 
 log = logging.getLogger(__name__)
 
 #: What reading a damaged file can raise besides TakeError: h5py reports HDF5 library
 #: failures (bad superblock, heap or chunk) as OSError, malformed attributes and datatypes
-#: as ValueError / TypeError, missing objects as KeyError.
-READ_ERRORS: tuple[type[Exception], ...] = (TakeError, OSError, ValueError, KeyError, TypeError)
+#: as ValueError / TypeError, missing objects as KeyError; a worker (rigd.take.isolated) reports
+#: any other error it met as RuntimeError.
+READ_ERRORS: tuple[type[Exception], ...] = (TakeError, OSError, ValueError, KeyError, TypeError, RuntimeError)
 
 #: Where the daemon moves files it cannot read, under its take directory.
 UNREADABLE_DIR = "unreadable"
@@ -72,13 +74,18 @@ def _candidates(d: Path) -> Iterator[Path]:
             yield p
 
 
-def _needs(p: Path) -> bool | None:
-    """True: unfinished (or held by a live writer); False: nothing to do; None: not a rigd
-    take. Raises one of READ_ERRORS for a file that cannot be read."""
+def _needs_here(p: Path) -> bool | None:
     try:
         return needs_recovery(p)
     except NotATakeError:
         return None
+
+
+def _needs(p: Path) -> bool | None:
+    """True: unfinished (or held by a live writer); False: nothing to do; None: not a rigd
+    take. Raises one of READ_ERRORS for a file that cannot be read, or whose read hangs or
+    crashes its worker (rigd.take.isolated)."""
+    return run_isolated(_needs_here, p, timeout_s=READ_TIMEOUT_S, what=str(p))
 
 
 def scan_dir(directory: str | Path) -> DirScan:
@@ -134,10 +141,16 @@ def move_aside(path: Path, take_dir: Path) -> Path:
         return dest
 
 
+def _recover_here(path: Path, dry_run: bool) -> RecoveryReport:
+    return recover_take(path, dry_run=dry_run)
+
+
 def recover_one(path: Path, *, dry_run: bool = False) -> RecoveryReport | RecoveryProblem:
-    """`recover_take`, with a file it cannot read or seal reported instead of raised."""
+    """`recover_take` in a worker process with a deadline (rigd.take.isolated), with a file it
+    cannot read or seal, or whose recovery hangs or crashes, reported instead of raised."""
     try:
-        return recover_take(path, dry_run=dry_run)
+        timeout = recovery_timeout_s(path.stat().st_size)
+        return run_isolated(_recover_here, path, dry_run, timeout_s=timeout, what=str(path))
     except READ_ERRORS as exc:
         log.info("recovering %s failed: %s", path, _why(exc, path))  # the caller reports it
         return RecoveryProblem(path=str(path), error=_why(exc, path))

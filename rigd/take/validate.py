@@ -41,7 +41,7 @@ from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, decode_journal, has_item
 from rigd.take.evt_sink import is_evt_words
 from rigd.take.evt_validate import check_evt_words
-from rigd.take.h5file import attr_text
+from rigd.take.h5file import attr_text, open_checked
 
 log = logging.getLogger(__name__)
 
@@ -341,9 +341,9 @@ def validate_take(path: str | Path) -> list[str]:
     """Problems found in a take file, each naming the file and HDF5 path; [] if it is valid."""
     p = Path(path)
     try:
-        f = h5py.File(p, "r")
-    except (OSError, ValueError) as exc:
-        return [f"{p}: cannot be opened as an HDF5 file: {exc}"]
+        f = open_checked(p, "r")
+    except TakeFormatError as exc:
+        return [str(exc)]
     with f:
         v = _Validator(p, f)
         with v.reading("/"):

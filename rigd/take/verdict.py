@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from rigd.core.schema import LossRecord, SyncReport
 
-Verdict = Literal["complete", "degraded", "failed", "unfinished"]
+Verdict = Literal["complete", "degraded", "failed", "unfinished", "damaged"]
 
 #: Reasons a one-line display shows before it says how many more there are.
 LINE_REASONS = 4
@@ -30,7 +30,8 @@ class TakeVerdict(BaseModel):
 
     verdict: Verdict = Field(
         description="complete: sealed and nothing lost; degraded: sealed, but it lost data (reasons); "
-        "failed: it failed and cannot be used as a take; unfinished: `rigd recover` must seal it first."
+        "failed: it failed and cannot be used as a take; unfinished: `rigd recover` must seal it first; "
+        "damaged: the file breaks the take format's rules (docs/take-format.md) and is not read."
     )
     reasons: list[str] = Field(default_factory=list)
 
@@ -129,3 +130,9 @@ def take_verdict(
         return TakeVerdict(verdict="failed", reasons=[why if status == "failed" else f"status {status!r}"])
     reasons = loss_reasons(report, frames, events, recovered_utc=recovered_utc, failure_reason=failure_reason)
     return TakeVerdict(verdict="degraded" if reasons else "complete", reasons=reasons)
+
+
+def damaged_verdict(problems: list[str]) -> TakeVerdict:
+    """The verdict on a file that breaks the take format's rules (a `TakeFormatError`, or
+    problems `validate_take` found): whatever else it says is not to be trusted."""
+    return TakeVerdict(verdict="damaged", reasons=problems or ["breaks the take format (no detail)"])

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import uuid
 from collections.abc import Callable
@@ -183,3 +184,28 @@ def test_a_writer_the_full_disk_refuses_leaves_the_take_as_last_flushed_and_clos
     rec = CliRunner().invoke(app, ["recover", str(path)])
     assert rec.exit_code == 0, rec.output
     assert "SEALED" in rec.stdout, rec.stdout
+
+
+def test_a_disk_full_before_the_first_flush_says_so_in_one_line(
+    mount_tmpfs: Callable[[str], Path], tmp_path: Path
+) -> None:
+    """No disk reserve, a disk that fills before the first flush: the error is one line (HDF5's
+    message spans several), and it says the take holds no recorded data rather than sending the
+    operator to `rigd recover`, which would find nothing to seal."""
+    disk = mount_tmpfs("48m")
+    rig = _rig_file(tmp_path, _default_rig_minimum_mb())
+    res = CliRunner().invoke(app, ["capture", "--local", "-c", str(rig), "-o", str(disk), "-d", "20"])
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    # Each log record and the error are one line each: no continuation of a multi-line message.
+    assert all(re.match(r"\d{4}-\d\d-\d\dT|error: ", ln) for ln in lines), res.stderr
+    [line] = [ln for ln in lines if ln.startswith("error: ")]
+    assert "disk full" in line
+    if "before its first flush" in line:  # the case of the issue: nothing reached the disk whole
+        assert "holds no recorded data" in line
+        assert "MB were written" in line
+        assert "cannot bring any back" in line
+        assert "run `rigd recover` to seal it" not in line
+    else:  # a flush made it first: what it wrote is there, and recovery seals it
+        assert "run `rigd recover` to seal it" in line

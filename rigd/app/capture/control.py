@@ -42,7 +42,7 @@ class RunControl:
         (a signal): the stop's waits end at their wall-clock bound, never later."""
         with self._lock:
             if self.stop_reason is None:
-                self.stop_reason = reason
+                self.stop_reason = " ".join(reason.split())  # HDF5's messages span lines
                 self.stop_by_fault = fault
             if self.stopping or hurry:
                 self.hurry.set()

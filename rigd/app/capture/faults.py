@@ -39,6 +39,7 @@ class FaultBoard:
         self._history: list[str] = []
 
     def set(self, code: FaultCode, device: str | None, message: str) -> None:
+        message = " ".join(message.split())  # one line: HDF5's messages span several
         with self._lock:
             if (code, device) in self._active:
                 self._active[(code, device)].message = message

@@ -547,6 +547,13 @@ class CaptureSession:
         if (error := self._control.first_error) is not None:
             raise error
         if writer.error is not None:
+            if writer.last_flush_utc is None:  # nothing ever reached the disk for good
+                written = self.path.stat().st_size if self.path.exists() else 0
+                raise TakeError(
+                    f"take {self.path} stopped, {self._control.stop_reason}; it stopped before its first "
+                    f"flush, so it holds no recorded data ({written / 1e6:.1f} MB were written but never "
+                    "made whole) and `rigd recover` cannot bring any back: free space, and delete it"
+                )
             raise TakeError(
                 f"take {self.path} stopped, {self._control.stop_reason}; everything up to the last flush "
                 f"({writer.last_flush_utc}) is in the file; free space and run `rigd recover` to seal it"
@@ -713,7 +720,7 @@ class CaptureSession:
             # Everything written so far stays in the file, marked failed with the reason
             # (after a full disk, in the room the released ballast made).
             try:
-                self._take.fail(f"{type(exc).__name__}: {exc}")
+                self._take.fail(" ".join(f"{type(exc).__name__}: {exc}".split()))  # one line
             except (OSError, TakeError) as fail_exc:
                 log.error("could not mark take %s failed: %s", self.path, fail_exc)
         if self._control_thread is None or threading.current_thread() is not self._control_thread:

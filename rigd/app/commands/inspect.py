@@ -6,11 +6,12 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from rigd.app.commands.consoles import fail, stderr_console, stdout_console
 from rigd.app.commands.progress import StageProgress
 from rigd.app.commands.summaries import StrictOpt, check_strict, print_summary
-from rigd.core.errors import RigdError
+from rigd.core.errors import RigdError, TakeFormatError, TakeInUseError
 
 console = stderr_console()
 out = stdout_console()
@@ -34,6 +35,15 @@ def inspect(
         hint = status_hint(summary)
         if thumbnails is not None:
             write_thumbnails(take, thumbnails)
+    except TakeInUseError as exc:
+        raise fail(exc) from exc
+    except TakeFormatError as exc:  # the verdict first, as for any take; then the error (exit 2)
+        from rigd.take.verdict import damaged_verdict
+
+        line = damaged_verdict([str(exc)]).line()
+        head, sep, rest = line.partition(" — ")
+        out.print(f"[bold red]verdict: {escape(head)}[/]{sep}{escape(rest)}", soft_wrap=True, highlight=False)
+        raise fail(exc) from exc
     except RigdError as exc:
         raise fail(exc) from exc
     if json_out:

@@ -59,11 +59,26 @@ def _require_daemon(connect: str | None, hint: str) -> DaemonClient:
     from rigd.app.service.client import find_daemon
 
     endpoint = control_endpoint(connect)
-    client = find_daemon(endpoint)
+    try:
+        client = find_daemon(endpoint)
+    except RigdError as exc:  # another user's daemon, or one that refused the ping
+        raise fail(exc) from exc
     if client is None:
         _err.print(f"no rigd daemon at {endpoint}{hint}")
         raise typer.Exit(code=3)
     return client
+
+
+def read_token_file(path: Path) -> str:
+    """The console token kept in `path` (surrounding whitespace dropped); ConfigError naming the
+    file when it cannot be read or is empty."""
+    try:
+        token = path.read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"--http-token-file {path}: cannot be read: {exc}") from exc
+    if not token:
+        raise ConfigError(f"--http-token-file {path}: is empty")
+    return token
 
 
 def serve(
@@ -80,17 +95,28 @@ def serve(
         str, typer.Option("--http", help="Web console address HOST:PORT (beyond loopback: needs a token).")
     ] = "127.0.0.1:8750",
     no_http: Annotated[bool, typer.Option("--no-http", help="No web console.")] = False,
-    http_token: Annotated[
-        str | None,
+    http_token_file: Annotated[
+        Path | None,
         typer.Option(
-            "--http-token", envvar="RIGD_HTTP_TOKEN", help="Console token (required beyond loopback)."
+            "--http-token-file",
+            help="File holding the console token (required beyond loopback; or RIGD_HTTP_TOKEN). "
+            "Never on the command line: every user's `ps` shows a process's arguments.",
         ),
+    ] = None,
+    http_token: Annotated[
+        str | None, typer.Option("--http-token", hidden=True, help="Refused: use --http-token-file.")
     ] = None,
 ) -> None:
     """Run the capture daemon: control socket, telemetry, metrics, web console; Ctrl-C/SIGTERM to stop."""
     from rigd.app.service.daemon import Attachment, ControlPlaneError, run_daemon
 
+    if http_token is not None:  # already in this process's arguments for all to see: refused
+        raise fail(
+            "--http-token puts the console's secret where every user's `ps` shows it; give it in a "
+            "file only its owner reads (--http-token-file) or in RIGD_HTTP_TOKEN"
+        )
     try:
+        token = read_token_file(http_token_file) if http_token_file is not None else None
         rig = RigConfig.load(config) if config else default_sim_rig()
         overrides: dict[str, Any] = {}
         if take_dir is not None:
@@ -113,7 +139,7 @@ def serve(
             from rigd.app.console.server import ConsoleServer
 
             host, port = parse_bind(http)
-            console = ConsoleServer(host, port, token=http_token)  # refuses remote without a token
+            console = ConsoleServer(host, port, token=token)  # refuses remote without a token
             attachments.append(console)
         attachments.append(Announcer(console))
         run_daemon(rig, attachments)
@@ -401,7 +427,10 @@ def find_for_command(connect: str | None, local: bool) -> DaemonClient | None:
     from rigd.app.service.client import find_daemon
 
     endpoint = control_endpoint(connect)
-    client = find_daemon(endpoint, timeout_s=2.0)
+    try:
+        client = find_daemon(endpoint, timeout_s=2.0)
+    except RigdError as exc:  # another user's daemon: say so rather than capture beside it
+        raise fail(exc) from exc
     if client is None and connect:
         raise fail(ConfigError(f"--connect: no rigd daemon answers at {connect}"), code=3)
     return client

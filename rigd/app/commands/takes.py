@@ -21,7 +21,13 @@ if TYPE_CHECKING:
     from rigd.app.take_list import TakeRow
 
 _err = stderr_console()
-_VERDICT_STYLE = {"complete": "green", "degraded": "yellow", "failed": "bold red", "unfinished": "bold red"}
+_VERDICT_STYLE = {
+    "complete": "green",
+    "degraded": "yellow",
+    "failed": "bold red",
+    "unfinished": "bold red",
+    "damaged": "bold red",
+}
 
 
 def _size(n: int) -> str:
@@ -68,9 +74,8 @@ def takes(
     table.columns[0].no_wrap = True
     for r in rows:
         if r.error is not None:
-            table.add_row(
-                escape(r.name), "[bold red]unreadable[/]", "-", escape(r.error), _size(r.size_bytes)
-            )
+            what = "[bold red]damaged[/]" if r.verdict == "damaged" else "[bold red]unreadable[/]"
+            table.add_row(escape(r.name), what, "-", escape(r.error), _size(r.size_bytes))
             continue
         verdict = r.verdict or r.status or "?"
         style = _VERDICT_STYLE.get(verdict, "")

@@ -181,8 +181,8 @@ def control_call(ctx: ConsoleContext, cmd: str, args: dict[str, Any]) -> JSONRes
 
 
 def _page(ctx: ConsoleContext, name: str) -> str:
-    html = (STATIC / name).read_text(encoding="utf-8")
-    return html.replace("{{TOKEN}}", ctx.security.token)
+    """A page as stored: it holds no secret (the script reads it from the tab's sessionStorage)."""
+    return (STATIC / name).read_text(encoding="utf-8")
 
 
 def build_app(ctx: ConsoleContext) -> Starlette:
@@ -200,7 +200,7 @@ def _live_routes(ctx: ConsoleContext) -> list[Route]:
     """The pages, the daemon's status (polled and streamed), live previews, the event window."""
 
     async def page(request: Request) -> Response:
-        # The login (`?token=` traded for a cookie) is the security middleware's.
+        # The login (`?token=` kept by the tab, never a cookie) is the security middleware's.
         name = "calibrate.html" if request.url.path.startswith("/calibrate") else "dashboard.html"
         return HTMLResponse(_page(ctx, name), headers=_NO_STORE)
 

@@ -4,16 +4,21 @@ The console can start takes and write calibration files, so it is at least as pr
 control socket (an owner-only IPC socket): loopback is not authentication, since every local
 user can connect to 127.0.0.1.
 
-* Every request needs the console's secret, on loopback too: the `X-Rigd-Token` header, or the
-  cookie (HttpOnly, SameSite=Strict, named per port) that opening the login URL
-  (`/?token=...`, or any page with `?token=`) sets before redirecting to the clean address.
-  Without it every route, static files included, answers 401. The secret is made at start
-  (or given: `--http-token`, `RIGD_HTTP_TOKEN`) and kept for the operator in a 0600 file in the
-  daemon's owner-only runtime directory (`login.py`); tokens are compared in constant time.
+* Every request for data or action (`/api/...`) needs the console's secret in the
+  `X-Rigd-Token` header, on loopback too; without it they answer 401. No cookie carries it:
+  browsers send a cookie for 127.0.0.1 to every port of 127.0.0.1, so another local user's
+  listener on any loopback port would receive it (cookies are not port-scoped). The pages
+  (`/`, `/calibrate`) and their static code are the same for everyone, hold neither the secret
+  nor data, and are served to anyone who can reach the console.
+* The login URL (`/?token=...`, or any page with `?token=`) answers a small page that keeps
+  the secret in the tab's sessionStorage, which is per origin (scheme, host and port), and
+  replaces the address with the clean one; the console's script sends it as the header on
+  every request: JSON, previews (fetched, shown as blob URLs) and the live stream (read
+  through fetch, not EventSource, which cannot send a header). The secret is made at start (or
+  given: `RIGD_HTTP_TOKEN`, `--http-token-file`) and kept for the operator in a 0600 file in
+  the daemon's owner-only runtime directory (`login.py`); tokens are compared in constant time.
 * It listens on loopback unless told otherwise; any other address needs an explicit token and
   the server refuses to start without one.
-* A state-changing request (POST) also carries the token in the header (the page embeds it; the
-  page is served only to a logged-in browser), so a cookie alone never changes anything.
 * Cross-site requests are refused: a POST must be JSON (a cross-site HTML form can only send
   form encodings or text/plain without a CORS preflight, which the console never grants), its
   Origin, when present, must be the console's own, and `Sec-Fetch-Site: cross-site` is refused.
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import hmac
 import html
+import json
 import logging
 import os
 import secrets
@@ -32,7 +38,7 @@ from dataclasses import dataclass
 from urllib.parse import urlencode, urlsplit
 
 from starlette.requests import HTTPConnection
-from starlette.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
+from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from rigd.app.service.hosts import is_loopback
@@ -98,7 +104,7 @@ class ConsoleSecurity:
         if not is_loopback(host) and token is None:
             raise ConfigError(
                 f"--http {host}: the console listens beyond loopback; that needs a token "
-                f"(--http-token or {TOKEN_ENV}) or a loopback address"
+                f"(--http-token-file or {TOKEN_ENV}) or a loopback address"
             )
         return cls(host, token or secrets.token_urlsafe(32))
 
@@ -116,15 +122,15 @@ class ConsoleSecurity:
         return name in _LOOPBACK_NAMES or is_loopback(name)
 
     def authenticated(self, conn: HTTPConnection) -> bool:
-        """The request carries the secret: the header, or the login cookie of this port."""
-        return self.token_ok(conn.headers.get(TOKEN_HEADER)) or self.token_ok(
-            conn.cookies.get(cookie_name(_port(conn)))
-        )
+        """The request carries the secret in the header (never a cookie: see the module doc)."""
+        return self.token_ok(conn.headers.get(TOKEN_HEADER))
 
     def refusal(self, conn: HTTPConnection) -> tuple[int, str] | None:
         """Why this request is refused (status, message), or None when it may go on."""
         if not self.host_ok(conn.headers.get("host")):
             return 421, "unknown Host for this console"
+        if is_public(conn):
+            return None
         if not self.authenticated(conn):
             return 401, _LOGIN_HELP
         method = conn.scope.get("method", "GET")
@@ -143,9 +149,10 @@ class ConsoleSecurity:
         return None
 
     def login(self, conn: HTTPConnection) -> Response | None:
-        """A GET with `?token=`: with the right one, the cookie and a redirect to the same address
-        without the token (out of the address bar and history); with a wrong one, 401. None for
-        any other request."""
+        """A GET with `?token=`: with the right one, a page that keeps the secret in the tab's
+        sessionStorage and replaces the address with the same one without the token (out of the
+        address bar and history); with a wrong one, 401. None for any other request. A login
+        cookie an older console set for this port is deleted."""
         if conn.scope["type"] != "http" or conn.scope.get("method") not in ("GET", "HEAD"):
             return None
         candidate = conn.query_params.get("token")
@@ -155,14 +162,42 @@ class ConsoleSecurity:
             return _refused(conn, 401, "wrong console token in the login URL; `rigd console-url` prints it")
         rest = urlencode([(k, v) for k, v in conn.query_params.multi_items() if k != "token"])
         path = "/" + conn.url.path.lstrip("/")  # "//host/x" would leave the console
-        resp = RedirectResponse(path + (f"?{rest}" if rest else ""), 303, headers=_NO_STORE)
-        resp.set_cookie(cookie_name(_port(conn)), self.token, httponly=True, samesite="strict", path="/")
+        target = path + (f"?{rest}" if rest else "")
+        page = _LOGIN_PAGE.format(
+            token=_js_string(self.token), key=_js_string(TOKEN_STORAGE_KEY), target=_js_string(target)
+        )
+        headers = {**_NO_STORE, "Referrer-Policy": "no-referrer"}
+        resp = HTMLResponse(page, 200, headers=headers)
+        resp.delete_cookie(cookie_name(_port(conn)), path="/")
         return resp
 
     @staticmethod
     def _same_origin(origin: str, conn: HTTPConnection) -> bool:
         parts = urlsplit(origin)
         return parts.scheme in ("http", "https") and parts.netloc == conn.headers.get("host")
+
+
+#: Pages and their code: the same for everyone, no secret, no data (served without the token).
+_PUBLIC_PAGES = frozenset({"/", "/calibrate"})
+#: Where the console's script keeps the secret (the tab's sessionStorage, per origin).
+TOKEN_STORAGE_KEY = "rigd-token"
+_LOGIN_PAGE = (
+    "<!doctype html><title>rigd console</title><p>logging in…</p>"
+    "<script>sessionStorage.setItem({key}, {token}); location.replace({target});</script>"
+)
+
+
+def is_public(conn: HTTPConnection) -> bool:
+    """A page or static file (GET/HEAD): served to anyone, since it holds nothing private."""
+    if conn.scope["type"] != "http" or conn.scope.get("method") not in ("GET", "HEAD"):
+        return False
+    path = conn.url.path
+    return path in _PUBLIC_PAGES or path.startswith("/static/")
+
+
+def _js_string(text: str) -> str:
+    """`text` as a JavaScript string literal safe inside a <script> element."""
+    return json.dumps(text).replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
 
 
 def _port(conn: HTTPConnection) -> int:

@@ -23,7 +23,8 @@ from pydantic import BaseModel, Field
 
 from rigd.app.service.requests import printable
 from rigd.app.service.thumbnails import frame_thumbnail
-from rigd.core.errors import RigdError
+from rigd.core.errors import RigdError, TakeError, TakeFormatError
+from rigd.take.isolated import READ_TIMEOUT_S, run_isolated
 from rigd.take.reader import open_take
 
 log = logging.getLogger(__name__)
@@ -141,9 +142,14 @@ class TakeEntry(BaseModel):
 class TakeList:
     """Lists `take_dir` and reads takes on demand (cached, thread-safe)."""
 
-    def __init__(self, take_dir: Path, thumbnail_width: int = 320) -> None:
+    def __init__(
+        self, take_dir: Path, thumbnail_width: int = 320, read_timeout_s: float = READ_TIMEOUT_S
+    ) -> None:
         self.take_dir = take_dir
         self.width = thumbnail_width
+        #: Each take is read in a worker process with this deadline (rigd.take.isolated): a
+        #: take whose read hangs costs that take, never a thread of the daemon.
+        self.read_timeout_s = read_timeout_s
         self._lock = threading.Lock()
         self._cache: dict[tuple[str, int, float], TakeEntry] = {}
         self._skipped: set[str] = set()
@@ -204,42 +210,67 @@ class TakeList:
             hit = self._cache.get(key)
         if hit is not None:
             return hit
-        entry = _read_entry(path, st.st_size, st.st_mtime)
+        try:
+            entry = run_isolated(
+                _read_entry, path, st.st_size, st.st_mtime, timeout_s=self.read_timeout_s, what=str(path)
+            )
+        except TakeError as exc:  # the worker hung (killed) or died: listed as unreadable
+            entry = TakeEntry(
+                name=path.name,
+                path=str(path),
+                size_bytes=st.st_size,
+                mtime=st.st_mtime,
+                status="unreadable",
+                error=str(exc),
+                action="reading this file hangs or crashes its reader: move it out of the take directory",
+            )
         with self._lock:
             self._cache = {k: v for k, v in self._cache.items() if k[0] != key[0]}
             self._cache[key] = entry
         return entry
 
     def preview(self, name: str, camera: str) -> bytes:
-        """JPEG of the middle frame of one camera of a take."""
-        with open_take(self.path_of(name)) as take:
-            if camera not in take.cameras:
-                raise RigdError(f"take {name} has no camera {camera!r}")
-            frames = take.frames(camera)
-            if len(frames) == 0:
-                raise RigdError(f"take {name}: camera {camera} has no frames")
-            jpeg, _, _ = frame_thumbnail(frames[len(frames) // 2], self.width)
-            return jpeg
+        """JPEG of the middle frame of one camera of a take (read in a worker with a deadline)."""
+        path = self.path_of(name)
+        return run_isolated(
+            _preview, path, name, camera, self.width, timeout_s=self.read_timeout_s, what=str(path)
+        )
 
     def event_rates(self, name: str) -> dict[str, Any]:
         """Per sensor: events per second in RATE_BINS bins over its span (from ms_to_idx-backed
-        index lookups, so no event is read)."""
-        out: dict[str, Any] = {}
-        with open_take(self.path_of(name)) as take:
-            for sensor in take.event_sensors:
-                series = take.sensor(sensor)
-                span = series.span
-                if span is None or span[1] <= span[0]:
-                    out[sensor] = {"t_s": [], "rate_hz": []}
-                    continue
-                edges = np.linspace(span[0], span[1] + 1, RATE_BINS + 1).astype(np.int64)
-                idx = np.array([series.index(int(t)) for t in edges], np.int64)
-                dt_s = np.diff(edges) / 1e6
-                out[sensor] = {
-                    "t_s": ((edges[:-1] - edges[0]) / 1e6).round(4).tolist(),
-                    "rate_hz": (np.diff(idx) / dt_s).round(1).tolist(),
-                }
-        return out
+        index lookups, so no event is read); read in a worker with a deadline."""
+        path = self.path_of(name)
+        return run_isolated(_event_rates, path, timeout_s=self.read_timeout_s, what=str(path))
+
+
+def _preview(path: Path, name: str, camera: str, width: int) -> bytes:
+    with open_take(path) as take:
+        if camera not in take.cameras:
+            raise RigdError(f"take {name} has no camera {camera!r}")
+        frames = take.frames(camera)
+        if len(frames) == 0:
+            raise RigdError(f"take {name}: camera {camera} has no frames")
+        jpeg, _, _ = frame_thumbnail(frames[len(frames) // 2], width)
+        return jpeg
+
+
+def _event_rates(path: Path) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    with open_take(path) as take:
+        for sensor in take.event_sensors:
+            series = take.sensor(sensor)
+            span = series.span
+            if span is None or span[1] <= span[0]:
+                out[sensor] = {"t_s": [], "rate_hz": []}
+                continue
+            edges = np.linspace(span[0], span[1] + 1, RATE_BINS + 1).astype(np.int64)
+            idx = np.array([series.index(int(t)) for t in edges], np.int64)
+            dt_s = np.diff(edges) / 1e6
+            out[sensor] = {
+                "t_s": ((edges[:-1] - edges[0]) / 1e6).round(4).tolist(),
+                "rate_hz": (np.diff(idx) / dt_s).round(1).tolist(),
+            }
+    return out
 
 
 def _read_entry(path: Path, size: int, mtime: float) -> TakeEntry:
@@ -247,6 +278,17 @@ def _read_entry(path: Path, size: int, mtime: float) -> TakeEntry:
     try:
         with open_take(path) as take:
             s = take.summary()
+    except TakeFormatError as exc:  # breaks the format's rules: listed as damaged, nothing trusted
+        log.info("console: take %s damaged: %s", path, exc)
+        return TakeEntry(
+            **base,
+            status="unreadable",
+            verdict="damaged",
+            verdict_reasons=[str(exc)],
+            error=str(exc),
+            action="the file breaks the take format (docs/take-format.md): it is not read; "
+            f"`rigd recover {path}` says whether anything in it can be saved",
+        )
     except (RigdError, OSError) as exc:
         log.info("console: take %s not readable: %s", path, exc)
         return TakeEntry(

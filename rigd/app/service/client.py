@@ -122,6 +122,10 @@ class DaemonClient:
         self.close()
 
 
+class DaemonAccessError(RigdError):
+    """The daemon's control socket exists but this user may not connect to it."""
+
+
 def find_daemon(endpoint: str, timeout_s: float = 1.0, call_timeout_s: float = 5.0) -> DaemonClient | None:
     """A client for the daemon at `endpoint` if one answers a ping, else None. The client's
     later calls wait up to `call_timeout_s`: a daemon busy finalizing a take may take more than
@@ -157,6 +161,11 @@ def _ipc_listening(path: Path) -> bool:
             probe.connect(str(path))
         except (FileNotFoundError, ConnectionRefusedError, NotADirectoryError):
             return False
+        except PermissionError as exc:  # the socket, or its 0700 directory, is another user's
+            raise DaemonAccessError(
+                f"the daemon's control socket {path} is not open to this user (permission denied): "
+                "run the command as the daemon's user (e.g. `sudo -u rigd rigd ...`)"
+            ) from exc
         except OSError as exc:
             if exc.errno in (errno.ENOTSOCK, errno.ECONNREFUSED, errno.ENOENT):
                 return False

@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Literal, Protocol
 
 import cv2
-import h5py
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -39,6 +38,7 @@ from rigd.core.errors import ConfigError, TakeError
 from rigd.core.layout import Frames, frame_group
 from rigd.core.progress import ProgressCallback, ProgressUpdate
 from rigd.products.export.outputs import write_image
+from rigd.take.h5file import open_checked
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -326,7 +326,7 @@ def _frame_series(
 ) -> dict[str, tuple[NDArray[np.int64], NDArray[np.int64]]]:
     """(pulse_index, exposure_us) per camera, each read whole with plain h5py (the documented
     `/frames/<cam>` series): indexing frames one by one would read every image too."""
-    with h5py.File(path, "r") as f:
+    with open_checked(path, "r") as f:
         return {
             c: (
                 np.asarray(f[f"{frame_group(c)}/{Frames.PULSE_INDEX}"][()], np.int64),

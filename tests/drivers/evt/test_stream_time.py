@@ -41,3 +41,23 @@ def test_a_mark_behind_the_stream_moves_nothing() -> None:
 
 def test_other_formats_do_not_say() -> None:
     assert StreamDecoder("evt2", width=64, height=8).time_us is None
+
+
+def test_a_corrupt_time_high_does_not_move_the_paced_time() -> None:
+    """One corrupt TIME_HIGH word in a recording: the decoder drops the word, and the time points
+    a paced replay cuts the stream by agree with it (before: the word's step forward, taken as
+    time, held every later byte back; its fall back read as a roll-over of the 24-bit counter)."""
+    from drivers.evt.timepoints import time_points
+
+    t = list(range(0, 60_000, 50))
+    raw = bytearray(Evt3Encoder().encode(_events(t)))
+    words = np.frombuffer(raw, "<u2").copy()
+    highs = np.flatnonzero((words >> 12) == 0x8)
+    k = int(highs[len(highs) // 2])
+    th = int(words[k]) & 0xFFF
+    words[k] = 0x8000 | ((th + 1800) & 0xFFF)  # a corrupt word: far ahead of its neighbours
+    got = StreamDecoder("evt3", width=2048, height=8).feed(words.tobytes())
+    assert got.events.t.max() == t[-1]  # the decoder dropped only the word
+    _, tp, last = time_points(words, "evt3")
+    assert last <= t[-1]
+    assert int(tp.max()) <= t[-1]

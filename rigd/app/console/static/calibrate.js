@@ -4,8 +4,19 @@
 const ABBREV = { "facing": "F", "right-away": "R", "left-away": "L", "bottom-away": "B", "top-away": "T" };
 let imgLoading = false, imgShown = 0, running = false;
 
+// A result file: fetched with the header when clicked (a plain link would carry no secret).
+function fileLink(kind, name) {
+  const url = `/api/guided/files/${encodeURIComponent(name)}`;
+  const a = el("a", { href: "#", "data-url": url, "data-testid": `guided-file-${kind}`, style: "margin-right:1em", text: `${kind}: ${name}` });
+  a.addEventListener("click", (e) => {
+    e.preventDefault();
+    downloadFile(url, name).catch((err) => { document.getElementById("gmsg").textContent = err.message; });
+  });
+  return a;
+}
+
 async function loadDevices() {
-  const r = await fetch("/api/guided", { credentials: "same-origin" });
+  const r = await apiFetch("/api/guided");
   const info = await r.json();
   const sel = document.getElementById("gdevice");
   sel.replaceChildren(
@@ -14,7 +25,7 @@ async function loadDevices() {
   );
   document.getElementById("gboard").value = info.devices.board;
   if (info.status) render(info.status);
-  const tr = await fetch("/api/takes", { credentials: "same-origin" });
+  const tr = await apiFetch("/api/takes");
   if (tr.ok) {
     const { takes } = await tr.json();
     document.getElementById("gtake").append(...takes.filter((t) => t.status === "complete")
@@ -64,7 +75,7 @@ function render(doc) {
       img.hidden = false; document.getElementById("gnoimg").hidden = true;
     };
     img.onerror = () => { imgLoading = false; };
-    img.src = `/api/guided/image.jpg?v=${doc.image}`;
+    loadImage(img, `/api/guided/image.jpg?v=${doc.image}`).catch(() => { imgLoading = false; });
   }
   if (running && doc.seconds_left !== undefined) document.getElementById("gleft").textContent = `${doc.seconds_left.toFixed(0)} s left`;
   if (doc.feedback) {
@@ -91,7 +102,7 @@ function render(doc) {
     const res = document.getElementById("gresult");
     const links = Object.entries(doc.files).map(([kind, name]) => kind === "take"
       ? el("span", { "data-testid": "guided-file-take", style: "margin-right:1em", text: `stored in take ${name}` })
-      : el("a", { href: `/api/guided/files/${encodeURIComponent(name)}`, target: "_blank", "data-testid": `guided-file-${kind}`, style: "margin-right:1em", text: `${kind}: ${name}` }));
+      : fileLink(kind, name));
     const sig = Object.entries(doc.sigmas).map(([k, v]) => `${k} ${v.toFixed(3)}`).join(", ");
     const views = doc.views_text || `${doc.n_views} views`;
     // The report's warnings, as the report shows them: a result is judged by the same words here.
@@ -124,6 +135,5 @@ document.getElementById("gfinish").addEventListener("click", () => {
 });
 document.getElementById("gcancel").addEventListener("click", () => postJSON("/api/guided/cancel").catch((e) => { document.getElementById("gmsg").textContent = e.message; }));
 
-const es = new EventSource("/api/live");
-es.addEventListener("guided", (e) => render(JSON.parse(e.data)));
+liveStream("/api/live", { guided: (data) => render(JSON.parse(data)) });
 loadDevices();

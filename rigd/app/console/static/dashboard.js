@@ -39,7 +39,7 @@ function showPreview(t, name, version) {
   // Latest value only: a browser still loading the previous image skips versions.
   if (t._loading || version === t._shown) return;
   t._loading = true; t._shown = version;
-  t._img.src = `/api/preview/${encodeURIComponent(name)}.jpg?v=${version}`;
+  loadImage(t._img, `/api/preview/${encodeURIComponent(name)}.jpg?v=${version}`).catch(() => { t._loading = false; });
 }
 
 // A camera delivering less than this share of the trigger rate during a take is losing frames.
@@ -140,7 +140,7 @@ function drawRates(canvas, series) {
 }
 
 async function loadTakes() {
-  const resp = await fetch("/api/takes", { credentials: "same-origin" });
+  const resp = await apiFetch("/api/takes");
   if (!resp.ok) return;
   const { takes } = await resp.json();
   const body = document.getElementById("takes");
@@ -162,7 +162,11 @@ async function loadTakes() {
     const thumbs = el("td", { class: "thumbs" });
     const rates = el("td", {});
     if (t.status === "complete") {
-      for (const cam of t.cameras) thumbs.append(el("img", { src: `/api/takes/${encodeURIComponent(t.name)}/preview/${cam}.jpg`, alt: cam, title: cam }));
+      for (const cam of t.cameras) {
+        const im = el("img", { alt: cam, title: cam });
+        thumbs.append(im);
+        loadImage(im, `/api/takes/${encodeURIComponent(t.name)}/preview/${cam}.jpg`).catch(() => {});
+      }
       const draw = (series) => {
         for (const [sensor, s] of Object.entries(series)) {
           const c = el("canvas", { class: "rate", width: "180", height: "44", title: sensor });
@@ -170,7 +174,7 @@ async function loadTakes() {
         }
       };
       if (rateCache[t.name]) draw(rateCache[t.name]);
-      else fetch(`/api/takes/${encodeURIComponent(t.name)}/rates`, { credentials: "same-origin" })
+      else apiFetch(`/api/takes/${encodeURIComponent(t.name)}/rates`)
         .then((r) => r.ok ? r.json() : null).then((series) => {
           if (series) { rateCache[t.name] = series; draw(series); }
         });
@@ -181,9 +185,8 @@ async function loadTakes() {
 }
 
 function connect() {
-  const es = new EventSource("/api/live");
-  es.addEventListener("status", (e) => render(JSON.parse(e.data)));
-  es.onerror = () => { document.getElementById("state").textContent = "reconnecting"; };
+  liveStream("/api/live", { status: (data) => render(JSON.parse(data)) },
+    () => { document.getElementById("state").textContent = "reconnecting"; });
 }
 
 document.getElementById("take-form").addEventListener("submit", async (e) => {

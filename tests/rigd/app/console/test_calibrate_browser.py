@@ -98,7 +98,7 @@ def test_guided_session_from_the_page_to_the_written_calibration(
         expect(page.get_by_test_id("guided-file-report")).to_be_visible()
         expect(page.get_by_test_id("guided-file-json")).to_be_visible()
         expect(page.get_by_test_id("guided-file-take")).to_contain_text(take.name)
-        href = yaml_link.get_attribute("href")
+        href = yaml_link.get_attribute("data-url")  # fetched with the header on a click
         assert href is not None
         # Links readable on the dark panel: the accent colour, not the browser's dark blue.
         colour = yaml_link.evaluate("a => getComputedStyle(a).color")

@@ -91,12 +91,11 @@ def test_state_change_without_token_is_refused() -> None:
 def test_cross_origin_and_form_posts_are_refused() -> None:
     client = _app(ConsoleSecurity.for_bind("127.0.0.1", TOKEN))
     ok = {TOKEN_HEADER: TOKEN}
-    # A cross-site HTML form: form-encoded, foreign Origin, no token header. The browser does not
-    # send the SameSite=Strict cookie with it (401); were it sent, the form is still refused.
+    # A cross-site HTML form: form-encoded, foreign Origin, no token header: 401, a cookie or not.
     form = {"duration_s": "5"}
     assert client.post("/api/x", data=form, headers={"Origin": "http://evil.example"}).status_code == 401
-    client.cookies.set(cookie_name(8750), TOKEN)
-    assert client.post("/api/x", data=form, headers={"Origin": "http://evil.example"}).status_code == 403
+    client.cookies.set(cookie_name(8750), TOKEN)  # a cookie never authenticates (not port-scoped)
+    assert client.post("/api/x", data=form, headers={"Origin": "http://evil.example"}).status_code == 401
     client.cookies.clear()
     # Even with the token, a foreign origin or a form encoding is refused.
     assert client.post("/api/x", json={}, headers={**ok, "Origin": "http://evil.example"}).status_code == 403
@@ -120,10 +119,10 @@ def test_remote_console_needs_the_token_to_read() -> None:
     client = _app(ConsoleSecurity.for_bind("0.0.0.0", TOKEN))
     assert client.get("/api/x").status_code == 401
     assert client.get("/api/x", headers={TOKEN_HEADER: TOKEN}).status_code == 200
+    # A cookie is sent to every port of the host: it never authenticates, not even a read.
     client.cookies.set(cookie_name(8750), TOKEN)
-    assert client.get("/api/x").status_code == 200
-    # The cookie alone does not make a POST: the header is required (no CSRF through cookies).
-    assert client.post("/api/x", json={}).status_code == 403
+    assert client.get("/api/x").status_code == 401
+    assert client.post("/api/x", json={}).status_code == 401
 
 
 def test_console_of_a_daemon(console_daemon: Callable[..., ConsoleDaemon]) -> None:
@@ -135,7 +134,7 @@ def test_console_of_a_daemon(console_daemon: Callable[..., ConsoleDaemon]) -> No
         assert status["state"] == "idle"
         assert {d["name"] for d in status["devices"]} == {"trigger", "cam0", "cam1", "cam2", "ev0", "ev1"}
         page = http.get("/").text
-        assert cd.console.security.token in page  # for the page's POSTs; served only logged in
+        assert cd.console.security.token not in page  # the tab keeps it; the page is public
         r = http.post("/api/takes/start", json={"duration_s": 1}, headers={TOKEN_HEADER: ""})
         assert r.status_code == 401
         r = http.post(

@@ -72,10 +72,11 @@ def test_serve_prints_its_endpoints_serves_the_console_and_stops_cleanly(
             timeout=120,
         )
         assert (again.returncode, again.stdout.strip()) == (0, login), again.stderr
-        # A browser-like client: the login URL sets the cookie and redirects to the clean address.
-        with httpx.Client(timeout=10, follow_redirects=True) as browser:
+        # The login URL hands the secret to the tab's script (no cookie), which sends the header.
+        with httpx.Client(timeout=10, headers={"x-rigd-token": query}) as browser:
             landed = browser.get(login)
-            assert (landed.status_code, str(landed.url)) == (200, url)
+            assert landed.status_code == 200
+            assert "sessionStorage.setItem" in landed.text
             assert browser.get(url + "api/status").json()["state"] == "idle"
             # An open live stream must not hold the shutdown up.
             with browser.stream("GET", url + "api/live") as live:

@@ -71,6 +71,7 @@ def test_camera_without_frames_is_one_line(takes: tuple[Path, Path], tmp_path: P
         for name in (
             "images",
             "t_exposure_start_us",
+            "t_exposure_start_device_us",
             "exposure_us",
             "frame_counter",
             "host_time_ns",
