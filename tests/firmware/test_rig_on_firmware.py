@@ -67,4 +67,4 @@ def test_the_default_rig_on_the_firmware_is_complete_in_sync_and_the_same_twice(
             assert len(ea) > 10_000
             for col in ("t", "x", "y", "p"):
                 assert np.array_equal(getattr(ea, col), getattr(eb, col)), (sensor, col)
-            assert np.array_equal(ta.triggers(sensor).t, tb.triggers(sensor).t)
+            assert np.array_equal(ta.sensor(sensor).triggers.t, tb.sensor(sensor).triggers.t)
