@@ -108,6 +108,14 @@ def status_hint(summary: TakeSummary) -> str | None:
         )
     if status == "failed":
         why = summary.failure_reason or "no reason recorded"
+        recorded = (
+            summary.pulses
+            or any(c.frames for c in summary.cameras.values())
+            or any(s.events or s.triggers for s in summary.event_sensors.values())
+        )
+        if not recorded:
+            # Stopped before its first flush: `rigd recover` has nothing to bring back.
+            return f"{path}: take failed ({why}) before anything was recorded in it: nothing to recover"
         if needs_recovery(path):
             return (
                 f"{path}: take failed ({why}) and was never sealed: free space and run `rigd recover {path}`"

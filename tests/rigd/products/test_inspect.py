@@ -164,3 +164,22 @@ def test_event_tiles_keep_sparse_events_visible() -> None:
     assert pooled[1, 1, 2] == img[7, 5, 2]
     tile = _tile(img, 160, 90, "ev0", events=True)
     assert (tile[18:, :, 2] >= 127).sum() >= 2  # both ON pixels survive the shrink
+
+
+def test_a_take_that_failed_before_recording_anything_is_not_sent_to_recover() -> None:
+    from rigd.products.inspect import status_hint
+    from rigd.take.summary import CameraSummary, TakeSummary
+
+    empty = TakeSummary.model_construct(
+        path="/takes/t.h5",
+        status="failed",
+        failure_reason="disk full",
+        pulses=0,
+        cameras={"cam0": CameraSummary.model_construct(frames=0)},
+        event_sensors={},
+    )
+    hint = status_hint(empty)
+    assert (
+        hint == "/takes/t.h5: take failed (disk full) before anything was recorded in it: nothing to recover"
+    )
+    assert "rigd recover" not in hint
