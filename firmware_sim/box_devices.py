@@ -33,6 +33,10 @@ class OneBoxPerWorld(Protocol):
     def closed(self) -> bool: ...
 
 
+class ClosableBox(OneBoxPerWorld, Protocol):
+    def close(self) -> None: ...
+
+
 class BoxSlot:
     """Per-world holder of the world's one trigger box, so a closed box can be replaced by a
     fresh one and no world gets two (their clocks would both claim to be the rig's)."""
@@ -106,20 +110,34 @@ def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTrigg
             garbage_after=spec.int_param("garbage_after", 0),
         )
         slot.box = box
+    if transport != "hid":
+        return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s)
     try:
-        if transport == "hid":
-            from drivers.trigger_link import HidTransport
+        from drivers.trigger_link import HidTransport
 
-            attach(box)
-            name = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/{box_serial(box)}"
-            link = HidTransport(FakeHidDevice(box), name)
-            return SerialTrigger(
-                transport=link,
-                spec=spec.raw,
-                on_close=box.close,
-                reply_timeout_s=reply_timeout_s,
-                boot_timeout_s=boot_timeout_s,
-            )
+        attach(box)
+        name = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/{box_serial(box)}"
+        link = HidTransport(FakeHidDevice(box), name)
+        return SerialTrigger(
+            transport=link,
+            spec=spec.raw,
+            on_close=box.close,
+            reply_timeout_s=reply_timeout_s,
+            boot_timeout_s=boot_timeout_s,
+        )
+    except BaseException:
+        box.close()
+        raise
+
+
+def driver_on_pty(
+    spec: DeviceSpec, box: ClosableBox, reply_timeout_s: float, boot_timeout_s: float
+) -> SerialTrigger:
+    """The real host driver on a simulated box's pty; the box closes with it, or at once if the
+    driver cannot open it."""
+    from drivers.serial_trigger import SerialTrigger
+
+    try:
         return SerialTrigger(
             box.port_path,
             spec=spec.raw,

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from pydantic import Field
 
 from firmware_sim.avr.box import AvrTriggerBox
-from firmware_sim.box_devices import box_slot
+from firmware_sim.box_devices import box_slot, driver_on_pty
 from firmware_sim.spec_params import Clock, Seed, SpecParams, check_params
 from firmware_sim.world import SimWorld, spec_world
 from rigd.core.errors import ConfigError
@@ -60,8 +60,6 @@ def find_avr_box(world: SimWorld) -> AvrTriggerBox | None:
 
 def open_avr_trigger(spec: DeviceSpec) -> SerialTrigger:
     """Start the firmware for the spec's world and open it with the real driver."""
-    from drivers.serial_trigger import SerialTrigger
-
     params = check_params(spec, AvrTriggerParams, "AVR trigger box")
     elf, mcu = resolve_elf(spec, params)
     reply_timeout_s = params.reply_timeout_s or 1.0
@@ -72,14 +70,4 @@ def open_avr_trigger(spec: DeviceSpec) -> SerialTrigger:
         slot.check_free(spec, world)
         box = AvrTriggerBox(world, elf, mcu=mcu)
         slot.box = box
-    try:
-        return SerialTrigger(
-            box.port_path,
-            spec=spec.raw,
-            on_close=box.close,
-            reply_timeout_s=reply_timeout_s,
-            boot_timeout_s=boot_timeout_s,
-        )
-    except BaseException:
-        box.close()
-        raise
+    return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s)

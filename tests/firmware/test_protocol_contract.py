@@ -12,24 +12,12 @@ from drivers.testing.trigger_protocol import RawPort, TriggerProtocolContract
 from firmware_sim.testing.avr_box import FirmwareProcess
 
 
-class TestAvr328pProtocol(TriggerProtocolContract):
+class TestAvrProtocol(TriggerProtocolContract):
     min_width_us = 16
 
-    @pytest.fixture
-    def port(self, serve: type[FirmwareProcess]) -> Iterator[RawPort]:
-        box = serve("atmega328p")
-        port = RawPort(box.port, baudrate=1_000_000)
-        port.sync()
-        yield port
-        port.close()
-
-
-class TestAvr2560Protocol(TriggerProtocolContract):
-    min_width_us = 16
-
-    @pytest.fixture
-    def port(self, serve: type[FirmwareProcess]) -> Iterator[RawPort]:
-        box = serve("atmega2560")
+    @pytest.fixture(params=["atmega328p", "atmega2560"])
+    def port(self, request: pytest.FixtureRequest, serve: type[FirmwareProcess]) -> Iterator[RawPort]:
+        box = serve(request.param)
         port = RawPort(box.port, baudrate=1_000_000)
         port.sync()
         yield port
