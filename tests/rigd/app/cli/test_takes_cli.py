@@ -43,7 +43,7 @@ def test_lists_each_take_with_verdict_devices_and_size(tmp_path: Path) -> None:
     row_a = next(line for line in lines if line.strip("│ ").startswith("a "))
     assert "cam0, ev0" in row_a
     assert " MB" in row_a
-    assert any("junk" in line and "unreadable" in line for line in lines)
+    assert any("junk" in line and "damaged" in line for line in lines)  # not a take: damaged
 
 
 def test_empty_and_missing_directories(tmp_path: Path) -> None:
