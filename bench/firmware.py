@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.testing.trigger_protocol import RawPort, checksum, collect_run, pulses
+from drivers.testing.trigger_protocol import RawPort, collect_run, host_line, pulses
 from firmware_sim.testing.avr_box import CYCLES_PER_US, FirmwareProcess, build_firmware, build_harness
 
 FLASH = {"atmega328p": (32256, 32768), "atmega2560": (253952, 262144)}
@@ -124,10 +124,7 @@ def placement(build: Path, tmp: Path, n: int) -> None:
             port.cmd("ARM")
             t0 = int(port.cmd(f"START {n}")[0].split()[2])
             if flood:
-                lines = b"".join(
-                    (b"PING #%d" % i) + b"*%02X\n" % checksum(b"PING #%d" % i) + b"X" * 80 + b"\n"
-                    for i in range(n * 4)
-                )
+                lines = b"".join(host_line(b"PING #%d" % i) + b"X" * 80 + b"\n" for i in range(n * 4))
                 port.send(lines)
             got: list[str] = []
             while f"END {n}" not in got:

@@ -18,8 +18,11 @@ from firmware_sim.world import SimWorld, spec_world
 from rigd.core.errors import ConfigError
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from drivers.registry import DeviceSpec
     from drivers.serial_trigger import SerialTrigger
+    from drivers.trigger_link import Transport
 
 _BOX_KEY = "trigger_box"
 
@@ -81,8 +84,6 @@ def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTrigg
     `drop_pulses`, `garbage_every` and `jitter_us`; `reply_timeout_s` / `boot_timeout_s` go to
     the host driver.
     """
-    from drivers.serial_trigger import SerialTrigger
-
     transport = spec.param("transport", "serial")
     if transport not in ("serial", "hid"):
         raise ConfigError(f"device spec {spec.raw!r}: transport={transport!r}; use serial or hid")
@@ -112,34 +113,34 @@ def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTrigg
         slot.box = box
     if transport != "hid":
         return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s)
-    try:
+
+    def hid_link() -> Transport:
         from drivers.trigger_link import HidTransport
 
         attach(box)
         name = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/{box_serial(box)}"
-        link = HidTransport(FakeHidDevice(box), name)
-        return SerialTrigger(
-            transport=link,
-            spec=spec.raw,
-            on_close=box.close,
-            reply_timeout_s=reply_timeout_s,
-            boot_timeout_s=boot_timeout_s,
-        )
-    except BaseException:
-        box.close()
-        raise
+        return HidTransport(FakeHidDevice(box), name)
+
+    return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s, link=hid_link)
 
 
 def driver_on_pty(
-    spec: DeviceSpec, box: ClosableBox, reply_timeout_s: float, boot_timeout_s: float
+    spec: DeviceSpec,
+    box: ClosableBox,
+    reply_timeout_s: float,
+    boot_timeout_s: float,
+    *,
+    link: Callable[[], Transport] | None = None,
 ) -> SerialTrigger:
-    """The real host driver on a simulated box's pty; the box closes with it, or at once if the
-    driver cannot open it."""
+    """The real host driver on a simulated box's pty (or on the transport `link` makes); the
+    box closes with it, or at once if the driver cannot open it."""
     from drivers.serial_trigger import SerialTrigger
 
     try:
+        port, transport = (None, link()) if link is not None else (box.port_path, None)
         return SerialTrigger(
-            box.port_path,
+            port,
+            transport=transport,
             spec=spec.raw,
             on_close=box.close,
             reply_timeout_s=reply_timeout_s,

@@ -29,6 +29,11 @@ def checksum(payload: bytes) -> int:
     return x
 
 
+def host_line(payload: bytes) -> bytes:
+    """A host -> box line with its `*HH` checksum, as the driver frames it."""
+    return payload + b"*%02X\n" % checksum(payload)
+
+
 class RawPort:
     """Minimal host side: framed lines in, checksummed lines out, no driver logic."""
 

@@ -57,19 +57,26 @@ static void send_record(const pulse_record_t *rec)
     line_end(-1);
 }
 
+/* END, once a counted run is over and its last record is out; 1 if it was sent. */
+static uint8_t send_end_if_over(void)
+{
+    if (!pulse_take_end())
+        return 0;
+    state = IDLE;
+    line_begin();
+    line_str_P(PSTR("END "));
+    line_u32(pulse_count());
+    line_end(-1);
+    return 1;
+}
+
 /* Every queued pulse record, then END if a counted run is over. */
 static void flush_pulse_lines(void)
 {
     pulse_record_t rec;
     while (pulse_record_pop(&rec))
         send_record(&rec);
-    if (pulse_take_end()) {
-        state = IDLE;
-        line_begin();
-        line_str_P(PSTR("END "));
-        line_u32(pulse_count());
-        line_end(-1);
-    }
+    send_end_if_over();
 }
 
 static void err_begin(PGM_P code)
@@ -634,14 +641,8 @@ uint8_t proto_service(void)
         send_record(&rec);
         did = 1;
     }
-    if (!pulse_records_pending() && pulse_take_end()) {
-        state = IDLE;
-        line_begin();
-        line_str_P(PSTR("END "));
-        line_u32(pulse_count());
-        line_end(-1);
+    if (send_end_if_over())
         did = 1;
-    }
     int16_t c;
     while ((c = serial_getc()) >= 0) {
         did = 1;

@@ -194,16 +194,28 @@ static void finish_locked(void)
     LED_PORT &= (uint8_t)~_BV(LED_BIT);
 }
 
-/* Pulse k+1's time from pulse k's accumulators: no division, no drift. */
+/* b_k from pulse k's accumulators (k*q + floor(k*r/rate), (k*r) mod rate): halves round up. */
+static inline uint64_t schedule_time(uint64_t t0, uint64_t acc_q_k, uint64_t acc_m_k, uint64_t rate)
+{
+    return t0 + acc_q_k + ((acc_m_k << 1) >= rate ? 1u : 0u);
+}
+
+/* Accumulators of pulse k -> pulse k+1: no division, no drift. */
+static inline void schedule_step(uint64_t *q_acc, uint64_t *m_acc, uint64_t q, uint64_t r, uint64_t rate)
+{
+    *q_acc += q;
+    *m_acc += r;
+    if (*m_acc >= rate) {
+        *m_acc -= rate;
+        (*q_acc)++;
+    }
+}
+
+/* Pulse k+1's time, from the interrupt of pulse k. */
 static void advance_schedule(void)
 {
-    acc_q += per_q;
-    acc_m += per_r;
-    if (acc_m >= run_rate) {
-        acc_m -= run_rate;
-        acc_q++;
-    }
-    next_b = run_t0 + acc_q + ((acc_m << 1) >= run_rate ? 1u : 0u);
+    schedule_step(&acc_q, &acc_m, per_q, per_r, run_rate);
+    next_b = schedule_time(run_t0, acc_q, acc_m, run_rate);
     rise_tick = next_b << 1;
 }
 
@@ -406,13 +418,8 @@ void pulse_iter_init(pulse_iter_t *it, uint32_t k)
 
 uint64_t pulse_iter_next(pulse_iter_t *it)
 {
-    uint64_t b = it->t0 + it->acc_q + ((it->acc_m << 1) >= it->rate ? 1u : 0u);
-    it->acc_q += it->q;
-    it->acc_m += it->r;
-    if (it->acc_m >= it->rate) {
-        it->acc_m -= it->rate;
-        it->acc_q++;
-    }
+    uint64_t b = schedule_time(it->t0, it->acc_q, it->acc_m, it->rate);
+    schedule_step(&it->acc_q, &it->acc_m, it->q, it->r, it->rate);
     return b;
 }
 

@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from drivers.testing.trigger_protocol import RawPort, checksum, schedule
+from drivers.testing.trigger_protocol import RawPort, host_line, schedule
 from firmware_sim.testing.avr_box import CYCLES_PER_US, FirmwareProcess
 
 ERR_CODES = {"UNKNOWN", "BADARG", "STATE", "TOOLONG", "BADCHAR", "CHECKSUM", "OVERRUN"}
@@ -31,8 +31,7 @@ def _flood(n: int) -> bytes:
     """Hostile lines between valid checksummed PINGs, garbage between lines."""
     parts = []
     for i in range(n):
-        payload = b"PING #%d" % (i % 60000)
-        parts.append(payload + b"*%02X\n" % checksum(payload))
+        parts.append(host_line(b"PING #%d" % (i % 60000)))
         parts.append(HOSTILE[i % len(HOSTILE)] + b"\n")
         if i % 7 == 0:
             parts.append(b"\x80\x81 noise \r\r")  # glued onto the next line: one BADCHAR

@@ -12,6 +12,7 @@ from drivers.serial_trigger import SerialTrigger
 from drivers.testing.trigger import collect
 from drivers.testing.trigger_protocol import schedule
 from firmware_sim.testing.avr_box import CYCLES_PER_US, FirmwareProcess, PinChange
+from rigd.core.devices import PulseBatch
 from rigd.core.settings import TriggerSettings
 
 TICK_CYCLES = 8  # Timer1 at 16 MHz / 8
@@ -42,15 +43,22 @@ def _check_edges(rises: np.ndarray, falls: np.ndarray, b: np.ndarray, width_us: 
     assert np.abs(widths - width_us * CYCLES_PER_US).max() < TICK_CYCLES
 
 
+def _run(
+    trig: SerialTrigger, rate_hz: float, width_us: int, n: int, timeout_s: float
+) -> tuple[int, PulseBatch]:
+    """Configure, arm, `START n` and collect the records: the run's t0 and what arrived."""
+    trig.configure(TriggerSettings(rate_hz=rate_hz, pulse_width_us=width_us))
+    trig.arm()
+    t0 = trig.start(n)
+    return t0, collect(trig, n, timeout_s=timeout_s)
+
+
 @pytest.mark.slow
 def test_1khz_5000_pulses_each_at_its_reported_time(serve: type[FirmwareProcess]) -> None:
     box = serve("atmega328p")
     trig = _open(box)
     try:
-        trig.configure(TriggerSettings(rate_hz=1000.0, pulse_width_us=100))
-        trig.arm()
-        t0 = trig.start(5000)
-        batch = collect(trig, 5000, timeout_s=60.0)
+        t0, batch = _run(trig, 1000.0, 100, 5000, timeout_s=60.0)
         assert trig.stop() == 5000
         assert batch.index.tolist() == list(range(5000))
         expected = np.array([schedule(t0, 1_000_000_000, k) for k in range(5000)])
@@ -69,10 +77,7 @@ def test_30hz_for_ten_minutes_of_firmware_time_no_drift_no_lost_record(serve: ty
     box = serve("atmega328p", clock="max")
     trig = _open(box)
     try:
-        trig.configure(TriggerSettings(rate_hz=30.0, pulse_width_us=1000))
-        trig.arm()
-        t0 = trig.start(18000)
-        batch = collect(trig, 18000, timeout_s=300.0)
+        t0, batch = _run(trig, 30.0, 1000, 18000, timeout_s=300.0)
         assert batch.index.tolist() == list(range(18000))
         expected = np.array([schedule(t0, 30_000_000, k) for k in range(18000)])
         assert np.array_equal(batch.t_us, expected)
@@ -89,10 +94,7 @@ def test_10khz_records_the_line_cannot_carry_arrive_through_ts(serve: type[Firmw
     box = serve("atmega328p", clock="max")
     trig = _open(box)
     try:
-        trig.configure(TriggerSettings(rate_hz=10_000.0, pulse_width_us=20))
-        trig.arm()
-        t0 = trig.start(5000)
-        batch = collect(trig, 5000, timeout_s=120.0)
+        t0, batch = _run(trig, 10_000.0, 20, 5000, timeout_s=120.0)
         trig.stop()
         assert batch.index.tolist() == list(range(5000)), "a pulse record is missing"
         assert np.array_equal(batch.t_us, t0 + 100 * np.arange(5000))
