@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 
 from firmware_sim.avr.harness import AvrHarness
@@ -131,9 +132,9 @@ class AvrTriggerBox:
         return trig
 
     # ------------------------------------------------------------------ threads
-    def _guard(self, body: object) -> None:
+    def _guard(self, body: Callable[[], None]) -> None:
         try:
-            body()  # type: ignore[operator]
+            body()
         except BaseException as exc:
             if self._stop.is_set():
                 log.debug("AVR trigger box %s: %s ends on close: %s", self.port_path, body, exc)
