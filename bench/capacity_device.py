@@ -59,7 +59,6 @@ import h5py
 import numpy as np
 from pydantic import ValidationError
 
-from drivers.evt import parse_raw_header, read_raw
 from drivers.evt_file_stream import EvtFileStream
 from firmware_sim.world import reset_world
 from rigd.app.capture import CaptureResult
@@ -67,6 +66,7 @@ from rigd.app.capture.session import CaptureSession
 from rigd.app.config import EventSensorConfig, default_sim_rig
 from rigd.app.replay import replay_config
 from rigd.core.settings import CameraSettings, EventSensorSettings
+from rigd.evt import parse_raw_header, read_raw
 
 log = logging.getLogger(__name__)
 

@@ -21,12 +21,12 @@ from typing import Any, cast
 import h5py
 import numpy as np
 
-from drivers.evt import Evt3Encoder, StreamDecoder
 from firmware_sim.event_sensor import SLICE_US
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
 from rigd.core.layout import EVENT_DTYPES
 from rigd.core.settings import WriterConfig
+from rigd.evt import Evt3Encoder, StreamDecoder
 from rigd.take import Take
 from rigd.take.h5file import compression_options
 from rigd.take.sinks import CameraSink, EventSink

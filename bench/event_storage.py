@@ -31,12 +31,12 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from drivers.evt import StreamDecoder, parse_raw_header, warm_up_decoder
 from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventPacket, TriggerEvents
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
+from rigd.evt import StreamDecoder, parse_raw_header, warm_up_decoder
 from rigd.take import TakeWriter
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "events" / "evt3_gen41_sample.raw"

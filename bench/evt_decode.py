@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.evt import RawHeader, RawReader, StreamDecoder, encode_evt2, encode_evt3, read_raw, write_raw
-from drivers.evt import raw as raw_mod
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt import RawHeader, RawReader, StreamDecoder, encode_evt2, encode_evt3, read_raw, write_raw
+from rigd.evt import raw as raw_mod
 
 log = logging.getLogger(__name__)
 

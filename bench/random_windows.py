@@ -32,12 +32,12 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt import StreamDecoder, encode
 from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
+from rigd.evt import StreamDecoder, encode
 from rigd.take import TakeWriter, open_take
 
 log = logging.getLogger(__name__)

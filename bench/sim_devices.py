@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from drivers.evt.evt3 import Evt3Encoder
 from drivers.registry import DeviceSpec
 from firmware_sim import event_kernels
 from firmware_sim.placement import place
@@ -32,6 +31,7 @@ from firmware_sim.scene import lin_log
 from rigd.app.config import default_sim_rig
 from rigd.core.events import TriggerEvents
 from rigd.core.pixels import mosaic_rggb
+from rigd.evt.evt3 import Evt3Encoder
 
 #: True time the sensors start at (the scene's sprites are all in view by then).
 T0_US = 1e6

@@ -3,7 +3,7 @@ an endless loop of whole TIME_HIGH periods, and the host-clock pace it is handed
 
 What a real sensor costs the host is its bytes arriving in memory, paced, and their decode.
 `EvtFileStream` holds the file's stream once (read at open), knows the stream time at byte
-offsets (`drivers.evt.timepoints`), and cuts it at word boundaries where everything before the
+offsets (`rigd.evt.timepoints`), and cuts it at word boundaries where everything before the
 cut is due. With `loop`, an EVT 3.0 stream repeats a whole number of TIME_HIGH periods (4096 us)
 that starts at the first TIME_HIGH word of a period; pass p adds the periods before it to every
 TIME_HIGH word of the pass (mod 4096, the decoder follows the 24-bit wrap), so the looped stream
@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt.timepoints import GRAIN_US, WORDS, time_points
 from rigd.core.errors import ConfigError
+from rigd.evt.timepoints import GRAIN_US, WORDS, time_points
 
 log = logging.getLogger(__name__)
 

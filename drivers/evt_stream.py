@@ -22,9 +22,9 @@ from typing import Generic
 from typing_extensions import TypeVar
 
 from drivers.base import EventSensor
-from drivers.evt import StreamDecoder, warm_up_decoder
 from rigd.core.events import EventPacket, EvtChunk
 from rigd.core.settings import EventSensorSettings
+from rigd.evt import StreamDecoder, warm_up_decoder
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,7 @@ class DecodingEventSensor(EventSensor[B], Generic[B]):
 
     @property
     def evt_format(self) -> str:
-        """One of drivers.evt.FORMATS: the encoding of the buffers `_grab` returns."""
+        """One of rigd.evt.FORMATS: the encoding of the buffers `_grab` returns."""
         return self._fmt
 
     @property

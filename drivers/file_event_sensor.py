@@ -35,13 +35,13 @@ from pathlib import Path
 import numpy as np
 
 from drivers.base import Capability, EventSensor
-from drivers.evt import JUMP_CONFIRM, Decoded, RawReader, Scanned, StreamDecoder, read_dat, warm_up_decoder
 from drivers.evt_file_stream import EvtFileStream, Pace
 from drivers.registry import DeviceSpec
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError, EventDataError
 from rigd.core.events import EventPacket, EvtChunk, TriggerEvents
 from rigd.core.settings import EventSensorSettings
+from rigd.evt import JUMP_CONFIRM, Decoded, RawReader, Scanned, StreamDecoder, read_dat, warm_up_decoder
 
 log = logging.getLogger(__name__)
 

@@ -34,7 +34,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.base import Capability
-from drivers.evt import Evt3Encoder
 from drivers.evt_stream import DecodingEventSensor, EvtBuffer
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
@@ -54,6 +53,7 @@ from firmware_sim.world import DeviceClock, Edge, Unpluggable, truth_journal, wa
 from rigd.core.devices import DeviceInfo
 from rigd.core.errors import ConfigError
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt import Evt3Encoder
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt import Evt3Encoder, RawHeader
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray
@@ -38,6 +37,7 @@ from rigd.core.frames import Frame
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
+from rigd.evt import Evt3Encoder, RawHeader
 from rigd.take.reader import Take
 from rigd.take.writer import TakeWriter
 

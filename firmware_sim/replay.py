@@ -35,7 +35,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.base import Capability, RgbCamera
-from drivers.evt import Evt3Encoder
 from drivers.evt_stream import DecodingEventSensor
 from drivers.lifecycle import END, Signal
 from drivers.registry import DeviceSpec
@@ -63,6 +62,7 @@ from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import DeviceSync, SyncReport
 from rigd.core.settings import CameraSettings
 from rigd.core.timebase import ClockMap
+from rigd.evt import Evt3Encoder
 from rigd.take import Take
 from rigd.take.h5file import open_checked
 

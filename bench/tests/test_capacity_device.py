@@ -16,7 +16,7 @@ from bench.capacity_device import (
     run_level,
     source_take,
 )
-from drivers.evt import read_raw
+from rigd.evt import read_raw
 
 RAW = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events" / "evt3_gen41_sample.raw"
 needs_data = pytest.mark.skipif(not RAW.is_file(), reason=f"shared test data not found at {RAW}")

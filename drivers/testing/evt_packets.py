@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from drivers.evt import Scanned, StreamDecoder, encode
 from rigd.core.events import EventArray, EventPacket
+from rigd.evt import Scanned, StreamDecoder, encode
 
 
 def packets_from_bytes(

@@ -14,11 +14,11 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 from drivers.base import Capability
-from drivers.evt import Decoded, Evt3Encoder, StreamDecoder, encode, parse_raw_header
 from drivers.evt_stream import DecodingEventSensor, EvtBuffer
 from drivers.lifecycle import END, Signal
 from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
+from rigd.evt import Decoded, Evt3Encoder, StreamDecoder, encode, parse_raw_header
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real Prophesee recordings not found at {DATA}")

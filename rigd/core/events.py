@@ -187,7 +187,7 @@ class EventSpan:
         return self if not self.n else EventSpan(self.n, self.t_first + us, self.t_last + us)
 
 
-#: Decodes a chunk's words on their own (its state, geometry and shift): `drivers.evt.decode_chunk`.
+#: Decodes a chunk's words on their own (its state, geometry and shift): `rigd.evt.decode_chunk`.
 ChunkDecoder = Callable[[EvtChunk], EventArray]
 
 

@@ -20,7 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.evt import (
+from rigd import __version__
+from rigd.core.devices import DeviceInfo
+from rigd.core.errors import EventDataError, RigdError
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.schema import LossRecord, SyncReport
+from rigd.core.settings import WriterConfig
+from rigd.core.timebase import ClockMap
+from rigd.evt import (
     DatHeader,
     Evt2Encoder,
     Evt3Encoder,
@@ -30,13 +37,6 @@ from drivers.evt import (
     read_dat,
     write_dat,
 )
-from rigd import __version__
-from rigd.core.devices import DeviceInfo
-from rigd.core.errors import EventDataError, RigdError
-from rigd.core.events import EventArray, TriggerEvents
-from rigd.core.schema import LossRecord, SyncReport
-from rigd.core.settings import WriterConfig
-from rigd.core.timebase import ClockMap
 from rigd.take.reader import Take
 from rigd.take.writer import TakeWriter
 

@@ -19,11 +19,11 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt import decode_from_state
 from rigd.core.errors import TakeFormatError
 from rigd.core.events import EventArray
 from rigd.core.layout import EVT_INDEX_COLUMNS, Device, Events
 from rigd.core.timebase import ClockMap
+from rigd.evt import decode_from_state
 
 #: Group attrs finalize writes on an evt_words sensor.
 _NHEAD = len(EVT_INDEX_COLUMNS)

@@ -30,7 +30,6 @@ import numpy as np
 import zstandard
 from numpy.typing import NDArray
 
-from drivers.evt import StreamDecoder
 from rigd.core.errors import TakeError, TakeFormatError, WriteDeferredError
 from rigd.core.events import EventPacket, EventSpan, EvtChunk, TriggerEvents
 from rigd.core.layout import (
@@ -42,6 +41,7 @@ from rigd.core.layout import (
     Storage,
     TriggerEdges,
 )
+from rigd.evt import StreamDecoder
 from rigd.take.h5file import append_rows, chunk_is_stored, require_dataset, require_group, write_chunk
 from rigd.take.sinks import DeviceWriteStats, TriggerIn, check_event_batch, new_series
 from rigd.take.tails import choose_tail_slot

@@ -33,7 +33,6 @@ import h5py
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
-from drivers.evt import FORMATS as EVT_FORMATS
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError, TakeTruncatedError, WriteDeferredError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
@@ -55,6 +54,7 @@ from rigd.core.layout import (
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, encode_journal
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
+from rigd.evt import FORMATS as EVT_FORMATS
 from rigd.take.calibration import write_board_pose, write_calibration_group
 from rigd.take.evt_sink import EvtWordsSink, is_evt_words
 from rigd.take.finalize import FinalizePlan, Finalizer

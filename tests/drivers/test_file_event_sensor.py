@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from drivers.base import Capability, EventSensor
-from drivers.evt import RawHeader, StreamDecoder, parse_raw_header, read_raw, write_dat, write_raw
 from drivers.evt_file_stream import Pace
 from drivers.file_event_sensor import FileEventSensor
 from drivers.registry import open_device
@@ -19,6 +18,7 @@ from drivers.testing.event_sensor import EventSensorLifecycleContract
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.settings import EventSensorSettings
+from rigd.evt import RawHeader, StreamDecoder, parse_raw_header, read_raw, write_dat, write_raw
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 
 from drivers.base import Capability, EventSensor
-from drivers.evt import Evt3Encoder, parse_raw_header, read_raw
 from drivers.registry import open_device
 from drivers.testing.event_sensor import EventSensorContract, drain
 from rigd.core.errors import BackendUnavailableError, ConfigError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import EventSensorSettings
+from rigd.evt import Evt3Encoder, parse_raw_header, read_raw
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "events"
 

@@ -123,7 +123,7 @@ def test_rigd_cli_has_simulate_events_through_the_plugin_entry_point(tmp_path: P
 
 @pytest.mark.slow
 def test_simulate_to_evt3_raw_decodes_to_the_take_events(tmp_path: Path) -> None:
-    from drivers.evt import read_raw
+    from rigd.evt import read_raw
 
     folder = make_folder(tmp_path)
     args = ["simulate-events", str(folder), "--fps", "30", "--seed", "2", "--out"]

@@ -18,7 +18,6 @@ import h5py
 import numpy as np
 import pytest
 
-from drivers.evt import StreamDecoder
 from rigd.app.testing.crash import (
     EV_PER_STEP,
     OFF_EV,
@@ -29,6 +28,7 @@ from rigd.app.testing.crash import (
     step_bytes,
 )
 from rigd.core.events import EventArray
+from rigd.evt import StreamDecoder
 from rigd.take import Take, recover_take, validate_take
 
 #: Steps (about 1.8 kB of words each, a 256 kB chunk per ~145) each flush of the relieved writer
@@ -50,7 +50,7 @@ def _script(path: Path, relieve: bool = False) -> str:
         f"""
         import time
         from pathlib import Path
-        from drivers.evt import StreamDecoder
+        from rigd.evt import StreamDecoder
         from rigd.app.testing.crash import append_words_step, journal, open_words_writer, W, H
         w = open_words_writer(Path({str(path)!r}))
         dec = StreamDecoder("evt3", width=W, height=H)

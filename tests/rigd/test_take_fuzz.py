@@ -45,7 +45,7 @@ def _base(kind: str) -> Path:
         elif kind == "unfinished":
             _BASES[kind] = unfinished(d / "unfinished.h5", n=6)
         else:
-            from drivers.evt import StreamDecoder
+            from rigd.evt import StreamDecoder
 
             w = open_words_writer(d / "words.h5")
             dec = StreamDecoder("evt3")

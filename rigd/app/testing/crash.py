@@ -17,7 +17,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from drivers.evt import StreamDecoder, encode
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, TriggerConfig
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
@@ -25,6 +24,7 @@ from rigd.core.frames import Frame
 from rigd.core.schema import LossRecord, SyncReport
 from rigd.core.settings import TriggerSettings, WriterConfig
 from rigd.core.timebase import ClockMap
+from rigd.evt import StreamDecoder, encode
 from rigd.take import Take, TakeWriter, validate_take
 
 W, H = 64, 48

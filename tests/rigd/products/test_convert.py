@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from drivers.evt import RawHeader, parse_raw_header, read_dat, read_raw, write_dat, write_raw
 from rigd.app.cli import app
+from rigd.evt import RawHeader, parse_raw_header, read_dat, read_raw, write_dat, write_raw
 from rigd.products.convert import ConvertError, convert
 from rigd.take.reader import Take
 

@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from drivers.evt import Evt3Encoder, StreamDecoder
 from rigd.app.capture import CaptureSession, run_capture
 from rigd.app.capture.channel import DeviceChannel, TriggerChannel
 from rigd.app.capture.session import STOP_LEAD_S
@@ -29,6 +28,7 @@ from rigd.core.devices import PulseBatch
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.settings import WriterConfig
+from rigd.evt import Evt3Encoder, StreamDecoder
 from rigd.take.reader import Take
 
 RATE = 1000.0  # 1 ms period: round numbers

@@ -11,11 +11,11 @@ import pytest
 from typer.testing import CliRunner
 
 import rigd.products.inspect as inspect_mod
-from drivers.evt.raw import RawHeader, write_raw
 from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.core.events import EventArray
 from rigd.core.schema import LossRecord, SyncReport
+from rigd.evt.raw import RawHeader, write_raw
 
 runner = CliRunner()
 

@@ -64,7 +64,7 @@ import sys
 if sys.argv[1] == "ensure":
     from rigd.app.numba_cache import ensure_numba_cache
     print(ensure_numba_cache())
-import drivers.evt.evt2  # compiles a cache=True kernel at import
+import rigd.evt.evt2  # compiles a cache=True kernel at import
 print("decoders ready")
 """
 

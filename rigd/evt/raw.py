@@ -20,8 +20,10 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt import evt2, evt3, evt3_fast, evt21
-from drivers.evt.errors import (
+from rigd.core.errors import EventDataError
+from rigd.core.events import EventArray, EventPacket, EventSpan, EvtChunk, TriggerEvents
+from rigd.evt import evt2, evt3, evt3_fast, evt21
+from rigd.evt.errors import (
     HOLD,
     JUMP_COUNT,
     KIND_NAMES,
@@ -32,11 +34,9 @@ from drivers.evt.errors import (
     TRUNCATED,
     EvtDecodeError,
 )
-from drivers.evt.evt3_scan import scan_kernel
-from drivers.evt.jumps import MAX_KEPT_JUMPS, TimeJump, jump_counters, take_jumps
-from drivers.evt.kernels import JUMP_CONFIRM, DecodeConfig, DecodeKernel, decode_config, decode_out
-from rigd.core.errors import EventDataError
-from rigd.core.events import EventArray, EventPacket, EventSpan, EvtChunk, TriggerEvents
+from rigd.evt.evt3_scan import scan_kernel
+from rigd.evt.jumps import MAX_KEPT_JUMPS, TimeJump, jump_counters, take_jumps
+from rigd.evt.kernels import JUMP_CONFIRM, DecodeConfig, DecodeKernel, decode_config, decode_out
 
 log = logging.getLogger(__name__)
 

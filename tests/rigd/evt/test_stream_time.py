@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.evt import Evt3Encoder, StreamDecoder
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt import Evt3Encoder, StreamDecoder
 
 
 def _events(t: list[int]) -> EventArray:
@@ -47,7 +47,7 @@ def test_a_corrupt_time_high_does_not_move_the_paced_time() -> None:
     """One corrupt TIME_HIGH word in a recording: the decoder drops the word, and the time points
     a paced replay cuts the stream by agree with it (before: the word's step forward, taken as
     time, held every later byte back; its fall back read as a roll-over of the 24-bit counter)."""
-    from drivers.evt.timepoints import time_points
+    from rigd.evt.timepoints import time_points
 
     t = list(range(0, 60_000, 50))
     raw = bytearray(Evt3Encoder().encode(_events(t)))

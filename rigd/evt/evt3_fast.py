@@ -35,9 +35,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from drivers.evt.evt3 import NOBASE, ST_SHIFT, ST_TEV, ST_TTR, TH_JUMP
-from drivers.evt.evt3 import decode_kernel as reference_kernel
-from drivers.evt.kernels import (
+from rigd.evt.evt3 import NOBASE, ST_SHIFT, ST_TEV, ST_TTR, TH_JUMP
+from rigd.evt.evt3 import decode_kernel as reference_kernel
+from rigd.evt.kernels import (
     I64,
     TRIG_T,
     U16,

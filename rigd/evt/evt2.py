@@ -21,8 +21,9 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from drivers.evt.encoder import EncodeKernel, StreamEncoder
-from drivers.evt.errors import (
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt.encoder import EncodeKernel, StreamEncoder
+from rigd.evt.errors import (
     BEFORE_TIME_HIGH,
     HOLD,
     JUMP_COUNT,
@@ -34,7 +35,7 @@ from drivers.evt.errors import (
     TIME_HIGH_JUMP,
     UNKNOWN_TYPE,
 )
-from drivers.evt.kernels import (
+from rigd.evt.kernels import (
     I8,
     I64,
     JUMP_ACCEPT,
@@ -59,7 +60,6 @@ from drivers.evt.kernels import (
     skipped,
     violation,
 )
-from rigd.core.events import EventArray, TriggerEvents
 
 WORD_BYTES = 4
 MAX_EVENTS_PER_WORD = 1

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt.errors import JUMP_COUNT, JUMP_FIELDS, JUMP_REC
+from rigd.evt.errors import JUMP_COUNT, JUMP_FIELDS, JUMP_REC
 
 # accepted jumps a decoder keeps in full (all are counted); like its first skipped offsets
 MAX_KEPT_JUMPS = 16

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.evt import evt2
-from drivers.evt.encoder import StreamEncoder
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt import evt2
+from rigd.evt.encoder import StreamEncoder
 
 WORD_BYTES = 8
 MAX_EVENTS_PER_WORD = 32

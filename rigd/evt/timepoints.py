@@ -22,8 +22,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from drivers.evt.evt3 import TH_JUMP, _refuted
 from rigd.core.errors import EventDataError
+from rigd.evt.evt3 import TH_JUMP, _refuted
 
 #: Point spacing (us): one EVT 2.0 TIME_HIGH period; 64 of them make an EVT 3.0 TIME_HIGH period.
 GRAIN_US = 64

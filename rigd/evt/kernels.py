@@ -17,7 +17,7 @@ from numba import njit, types
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
-from drivers.evt.errors import (
+from rigd.evt.errors import (
     JUMP_COUNT,
     JUMP_FIELDS,
     JUMP_REC,

@@ -4,14 +4,14 @@ Imports only numpy, numba and rigd.core, so the daemon, the simulator and the to
 decoder and one encoder.
 """
 
-from drivers.evt.dat import DatHeader, read_dat, write_dat
-from drivers.evt.errors import KIND_NAMES, EvtDecodeError
-from drivers.evt.evt2 import Evt2Encoder, encode_evt2
-from drivers.evt.evt3 import Evt3Encoder, encode_evt3
-from drivers.evt.evt21 import Evt21Encoder, encode_evt21
-from drivers.evt.jumps import TimeJump
-from drivers.evt.kernels import JUMP_CONFIRM
-from drivers.evt.raw import (
+from rigd.evt.dat import DatHeader, read_dat, write_dat
+from rigd.evt.errors import KIND_NAMES, EvtDecodeError
+from rigd.evt.evt2 import Evt2Encoder, encode_evt2
+from rigd.evt.evt3 import Evt3Encoder, encode_evt3
+from rigd.evt.evt21 import Evt21Encoder, encode_evt21
+from rigd.evt.jumps import TimeJump
+from rigd.evt.kernels import JUMP_CONFIRM
+from rigd.evt.raw import (
     FORMATS,
     Decoded,
     RawHeader,

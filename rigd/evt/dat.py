@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.evt.errors import KIND_NAMES, MAX_SKIP_OFFSETS, NON_MONOTONIC_TIME, TRUNCATED, EvtDecodeError
-from drivers.evt.raw import read_header_lines
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray
+from rigd.evt.errors import KIND_NAMES, MAX_SKIP_OFFSETS, NON_MONOTONIC_TIME, TRUNCATED, EvtDecodeError
+from rigd.evt.raw import read_header_lines
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.evt import (
+from drivers.testing.evt_streams import DATA, FixedStream, assert_same, feed_chunks, real_body
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt import (
     EvtDecodeError,
     StreamDecoder,
     decode_bytes,
@@ -23,8 +25,6 @@ from drivers.evt import (
     read_dat,
     write_dat,
 )
-from drivers.testing.evt_streams import DATA, FixedStream, assert_same, feed_chunks, real_body
-from rigd.core.events import EventArray, TriggerEvents
 
 WORD = {"evt3": 2, "evt2": 4, "evt21": 8, "evt21_le": 8}
 

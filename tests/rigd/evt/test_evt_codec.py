@@ -10,7 +10,17 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.evt import (
+from drivers.testing.evt_streams import (
+    DATA,
+    SETTINGS,
+    assert_matches_pypi_evt3,
+    assert_same,
+    feed_chunks,
+    needs_data,
+    real_body,
+)
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt import (
     Decoded,
     Evt3Encoder,
     EvtDecodeError,
@@ -26,16 +36,6 @@ from drivers.evt import (
     write_dat,
     write_raw,
 )
-from drivers.testing.evt_streams import (
-    DATA,
-    SETTINGS,
-    assert_matches_pypi_evt3,
-    assert_same,
-    feed_chunks,
-    needs_data,
-    real_body,
-)
-from rigd.core.events import EventArray, TriggerEvents
 
 # file, events, first t, last t (../shared/data/README.md, OpenEB semantics)
 REAL = [

@@ -15,16 +15,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.evt import (
-    JUMP_CONFIRM,
-    Decoded,
-    EvtDecodeError,
-    RawHeader,
-    RawReader,
-    StreamDecoder,
-    decode_bytes,
-)
-from drivers.evt.jumps import MAX_KEPT_JUMPS
 from drivers.file_event_sensor import FileEventSensor
 from drivers.testing.evt_streams import (
     FORMATS,
@@ -42,6 +32,16 @@ from drivers.testing.evt_streams import segment as _segment
 from drivers.testing.evt_streams import time_highs as _time_highs
 from rigd.core.errors import EventDataError
 from rigd.core.events import TriggerEvents
+from rigd.evt import (
+    JUMP_CONFIRM,
+    Decoded,
+    EvtDecodeError,
+    RawHeader,
+    RawReader,
+    StreamDecoder,
+    decode_bytes,
+)
+from rigd.evt.jumps import MAX_KEPT_JUMPS
 from rigd.products.convert import convert
 from rigd.take.reader import Take
 

@@ -22,8 +22,9 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from drivers.evt.encoder import StreamEncoder
-from drivers.evt.errors import (
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt.encoder import StreamEncoder
+from rigd.evt.errors import (
     BEFORE_TIME_HIGH,
     EVENT_WITHOUT_Y,
     HOLD,
@@ -37,7 +38,7 @@ from drivers.evt.errors import (
     UNKNOWN_TYPE,
     VECTOR_WITHOUT_BASE,
 )
-from drivers.evt.kernels import (
+from rigd.evt.kernels import (
     I8,
     I64,
     JUMP_ACCEPT,
@@ -61,7 +62,6 @@ from drivers.evt.kernels import (
     skipped,
     violation,
 )
-from rigd.core.events import EventArray, TriggerEvents
 
 log = logging.getLogger(__name__)
 

@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from drivers.evt.evt3 import NOBASE, ST_TEV, ST_TTR, TH_JUMP, load_state, store_state
-from drivers.evt.kernels import I64, U8, U16, ctpop
+from rigd.evt.evt3 import NOBASE, ST_TEV, ST_TTR, TH_JUMP, load_state, store_state
+from rigd.evt.kernels import I64, U8, U16, ctpop
 
 _U64 = np.uint64
 

@@ -7,8 +7,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.evt import Scanned, StreamDecoder, decode_chunk
-from drivers.evt.raw import decode_bytes
 from drivers.testing.evt_streams import (
     DIRTY,
     SETTINGS,
@@ -20,6 +18,8 @@ from drivers.testing.evt_streams import (
 )
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray, EventPacket, EventSpan, EvtChunk, TriggerEvents
+from rigd.evt import Scanned, StreamDecoder, decode_chunk
+from rigd.evt.raw import decode_bytes
 
 
 def _both(data: bytes, sizes: list[int], w: int = 1280, h: int = 720) -> list[tuple[Scanned, EvtChunk]]:

@@ -10,10 +10,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.evt import Decoded, EvtDecodeError, StreamDecoder, evt3, evt3_fast, raw
-from drivers.evt.errors import STATS_SIZE
-from drivers.evt.kernels import decode_config
-from drivers.evt.raw import _Out
 from drivers.testing.evt_streams import (
     DIRTY,
     SETTINGS,
@@ -26,6 +22,10 @@ from drivers.testing.evt_streams import (
     real_body,
 )
 from rigd.core.events import EventArray, TriggerEvents
+from rigd.evt import Decoded, EvtDecodeError, StreamDecoder, evt3, evt3_fast, raw
+from rigd.evt.errors import STATS_SIZE
+from rigd.evt.kernels import decode_config
+from rigd.evt.raw import _Out
 
 KERNELS = {"ref": evt3.decode_kernel, "fast": evt3_fast.decode_kernel}
 

@@ -15,11 +15,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.evt import Decoded, StreamDecoder
 from drivers.testing.evt_streams import FORMATS, SETTINGS, assert_same, needs_data, real_body
 from drivers.testing.evt_streams import joined as _joined
 from rigd.core.errors import EventDataError
 from rigd.core.events import EvtChunk
+from rigd.evt import Decoded, StreamDecoder
 
 _REAL = "evt3_gen41_sample.raw"
 
