@@ -436,6 +436,11 @@ class EventSensor(AcquiringDevice[EventPacket, EventSensorSettings, E]):
     delivers_evt_words: bool = False
 
     @property
+    def evt_format(self) -> str | None:
+        """The EVT format of the words its packets carry (None: decoded events only)."""
+        return None
+
+    @property
     @abc.abstractmethod
     def geometry(self) -> tuple[int, int]:
         """(width, height) in pixels."""
@@ -541,6 +546,11 @@ class Trigger(Device):
     def link_stats(self) -> dict[str, int]:
         """Counters of the link to the trigger source (corrupt lines, retries, recovered
         pulses); written into the take so a noisy cable is visible afterwards."""
+        return {}
+
+    def diag(self) -> dict[str, int]:
+        """The box's own counters (records it could not send live, input it lost, edges it
+        armed late), asked of the box; empty for a trigger that keeps none."""
         return {}
 
     def _stop_for_close(self) -> None:

@@ -299,7 +299,6 @@ def check_trigger_box(rig: RigConfig) -> list[Check]:
 
     The cameras and sensors on the trigger line see TRIGGER_TEST_PULSES pulses."""
     from drivers.registry import open_device
-    from drivers.serial_trigger import SerialTrigger
     from rigd.core.errors import DeviceError, ProtocolError
     from rigd.core.timebase import pulse_offset_us
 
@@ -335,14 +334,15 @@ def check_trigger_box(rig: RigConfig) -> list[Check]:
                 )
             ]
         counters = ""
-        if isinstance(trig, SerialTrigger):
-            link = trig.stats
-            counters = f"; link: {link['corrupt_lines']} corrupt lines, {link['retries']} retries"
-            try:
-                diag = trig.diag()
+        if link := trig.link_stats():
+            counters = (
+                f"; link: {link.get('corrupt_lines', 0)} corrupt lines, {link.get('retries', 0)} retries"
+            )
+        try:
+            if diag := trig.diag():
                 counters += "; box: " + ", ".join(f"{k}={v}" for k, v in diag.items())
-            except ProtocolError as exc:  # a v1 box has no DIAG?
-                log.debug("trigger box %s has no DIAG?: %s", spec, exc)
+        except ProtocolError as exc:  # a v1 box has no DIAG?
+            log.debug("trigger box %s has no DIAG?: %s", spec, exc)
         return [
             Check(
                 name,

@@ -9,7 +9,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-DeviceKind = Literal["rgb_camera", "event_sensor", "trigger"]
+#: A device that delivers data (frames or events), as opposed to the trigger box.
+DataKind = Literal["rgb_camera", "event_sensor"]
+DeviceKind = Literal[DataKind, "trigger"]
 
 #: `DeviceInfo.facts` entry of a device that knows its own calibration exactly (a simulated
 #: camera or event sensor): JSON of `GroundTruth`. The capture stores it in the take.

@@ -14,28 +14,30 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Generic
 
 import numpy as np
 
-from drivers.base import Capability, EventSensor, RgbCamera, Trigger
+from drivers.base import Capability, Trigger
 from drivers.registry import open_device
 from rigd.app.capture.clock_reset import MAX_HOLD_S, MAX_OBSERVATIONS, ClockReset, estimate_offset
 from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import FaultBoard
-from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem, WriterQueue, first_time
+from rigd.app.capture.gate import WindowGate
+from rigd.app.capture.items import PulsesItem, WriterQueue
 from rigd.app.capture.ledger import LossLedger
-from rigd.app.capture.live import Gap, HostAnchors, LiveStats
-from rigd.app.capture.overload import SliceShedder
-from rigd.app.capture.streams import device_stream
-from rigd.app.capture.window import TakeWindow, WindowGate
+from rigd.app.capture.live import Gap, LiveStats
+from rigd.app.capture.overload import Shedding
+from rigd.app.capture.reading import DevT, ItemT, Reading
+from rigd.app.capture.streams import DeviceStream
+from rigd.app.capture.window import TakeWindow
 from rigd.core.devices import PulseBatch
-from rigd.core.errors import ConfigError, DeviceError, RigdError
-from rigd.core.events import EventPacket
-from rigd.core.frames import Frame
+from rigd.core.errors import DeviceError, RigdError
+from rigd.core.events import EventArray
 from rigd.core.schema import LossKind
-from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
+from rigd.core.settings import TriggerSettings
 from rigd.sync import PulseLog
+from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
 
@@ -159,71 +161,70 @@ class ChannelContext:
     reconnect_interval_s: float
 
 
-class DeviceChannel:
-    """A camera or event sensor, from opening to the end of the take."""
+class DeviceChannel(Generic[DevT, ItemT]):
+    """A camera or event sensor, from opening to the end of the take: one loop for every kind,
+    composed from its kind's parts (`kinds.device_channels` picks them): `reading` (open,
+    configure, read, what an item says about time), `gate` (the take window, set once the
+    window can be placed: `open_gate`), `shedding` (what goes to the writer under overload)
+    and `stream` (how the writer thread writes and observes its items)."""
 
     def __init__(
         self,
         name: str,
-        kind: Literal["rgb_camera", "event_sensor"],
         spec: str,
-        settings: CameraSettings | EventSensorSettings,
+        settings_json: str,
+        reading: Reading[DevT, ItemT],
+        stream: DeviceStream[Any],
+        shedding: Shedding[ItemT],
         ctx: ChannelContext,
     ) -> None:
         self.name = name
-        self.kind = kind
         self.spec = spec
-        self.settings = settings
+        self.settings_json = settings_json
+        """The config entry's settings, as the take stores them."""
+        self.reading: Reading[DevT, ItemT] = reading
+        self.stream = stream
+        """How the device's items are written and observed; the writer thread records there
+        what reached the file."""
+        self.shedding: Shedding[ItemT] = shedding
         self.ctx = ctx
-        self.trigger_in = settings.trigger_in_channel if isinstance(settings, EventSensorSettings) else 0
-        self.live = LiveStats(kind)
-        self.stream = device_stream(kind, name, self.live, self.trigger_in)
-        """How the device is opened and its items written and observed; the writer thread
-        records there what reached the file."""
-        self.what: LossKind = self.stream.what
-        self.read_interval_s = 0.0
-        """An event sensor is read at most once per this (what came in between: one packet)."""
-        self.anchors: HostAnchors | None = (
-            HostAnchors()
-            if isinstance(settings, EventSensorSettings) and not settings.enable_trigger_in
-            else None
-        )
-        """Where the sensor's clock can only be placed by when its data arrived (no trigger-in)."""
-        self.clock_reset: ClockReset | None = None
-        self.gate: WindowGate | None = None
+        self.live = stream.live
+        self.what: LossKind = reading.what
+        self.clock_reset: ClockReset[ItemT] | None = None
+        self.gate: WindowGate[ItemT] | None = None
         """Keeps what lies outside the take's trigger window out of the file (counted)."""
-        self.shedder: SliceShedder | None = None
-        """Sheds event slices while the writer cannot keep up (event sensors)."""
         self.read_deadline: float | None = None
         """Monotonic time after which, once acquisition is done, the channel stops reading
         what the stopped device still holds (`writer.stop_backlog_s`)."""
         self.left_unread = False
         """The device still had data when `read_deadline` passed."""
-        self.device: RgbCamera | EventSensor = self._open()
+        self.device: DevT = reading.open(spec)
 
     # -- lifecycle ------------------------------------------------------------------------
-    def _open(self) -> RgbCamera | EventSensor:
-        return self.stream.open(self.spec)
-
     def required_capabilities(self) -> frozenset[Capability]:
         """What the device must be able to do for its settings (checked by the preflight)."""
-        dev, settings = self.device, self.settings
-        if isinstance(dev, RgbCamera) and isinstance(settings, CameraSettings):
-            return dev.required_capabilities(settings)
-        if isinstance(dev, EventSensor) and isinstance(settings, EventSensorSettings):
-            return dev.required_capabilities(settings)
-        raise ConfigError(f"{self.name}: its settings are not those of a {self.kind}")
+        return self.reading.required_capabilities(self.device)
 
-    def configure(self, dev: RgbCamera | EventSensor | None = None) -> None:
-        """Apply the config entry's settings (to a reopened device when given)."""
-        dev, settings = (self.device if dev is None else dev), self.settings
-        if isinstance(dev, RgbCamera) and isinstance(settings, CameraSettings):
-            dev.configure(settings)
-            return
-        if isinstance(dev, EventSensor) and isinstance(settings, EventSensorSettings):
-            dev.configure(settings)
-            return
-        raise ConfigError(f"{self.name}: its settings are not those of a {self.kind}")
+    def configure(self) -> None:
+        """Apply the config entry's settings."""
+        self.reading.configure(self.device)
+
+    def open_gate(self, window: TakeWindow, hold_s: float) -> None:
+        """Place the device's data in the take window from here on."""
+        self.gate = self.reading.gate(self.device, window, hold_s)
+
+    def add_to_take(self, take: TakeWriter) -> None:
+        self.reading.add_to_take(take, self.device, self.settings_json)
+
+    def software_synced(self) -> bool:
+        return self.reading.software_synced(self.device)
+
+    def ballast_bytes(self) -> int:
+        return self.reading.ballast_bytes(self.device)
+
+    def event_view(self) -> tuple[EventArray, tuple[int, int]] | None:
+        """The newest events written and the sensor's geometry (None: no events to show)."""
+        return self.reading.event_view(self.device, self.stream)
 
     def stop(self) -> None:
         """Stop acquiring at the end of the take; a device away or written off is left to
@@ -329,8 +330,7 @@ class DeviceChannel:
             if self.gate is not None:
                 for part in self.gate.finish():
                     self._enqueue(part)
-            if self.shedder is not None:
-                self.shedder.close()
+            self.shedding.close()
 
     def _read_until_done(self, done: threading.Event) -> None:
         while True:
@@ -338,13 +338,9 @@ class DeviceChannel:
             if done.is_set() and self.read_deadline is not None and asked > self.read_deadline:
                 self._stop_reading()
                 return
+            reading, dev = self.reading, self.device  # a reconnect replaces the device
             try:
-                dev = self.device  # a reconnect replaces it
-                item = (
-                    dev.read_frame(READ_TIMEOUT_S)
-                    if isinstance(dev, RgbCamera)
-                    else dev.read_events(READ_TIMEOUT_S)
-                )
+                item = reading.read(dev, READ_TIMEOUT_S)
             except DeviceError as exc:
                 if done.is_set():
                     raise
@@ -352,22 +348,19 @@ class DeviceChannel:
                 continue
             if item is not None:
                 self._deliver(item)
-            if isinstance(dev, EventSensor):
-                self._note_stream_time(dev)
-                if item is not None and self.read_interval_s and not done.is_set():
-                    rest = self.read_interval_s - (time.monotonic() - asked)
-                    if rest > 0:
-                        done.wait(rest)  # the device buffers meanwhile: one read, one packet
+            self._note_stream_time(reading.stream_time_us(dev))
+            if item is not None:
+                reading.pace(done, asked, time.monotonic())
             if item is None:
                 if done.is_set():
                     self._drop_held("the take ended before its restarted clock could be tied")
                     return
                 pace(done, asked)
 
-    def _note_stream_time(self, dev: EventSensor) -> None:
+    def _note_stream_time(self, t: int | None) -> None:
         """How far a sensor's stream has got, events or not, for its window gate (on the old
         clock of a sensor that came back restarted; not before that clock is tied again)."""
-        gate, t = self.gate, dev.stream_time_us
+        gate = self.gate
         if gate is None or t is None:
             return
         reset = self.clock_reset
@@ -383,7 +376,7 @@ class DeviceChannel:
         self._drop_held("the take ended before its restarted clock could be tied")
         dev = self.device
         try:
-            more = dev.read_frame(0.0) if isinstance(dev, RgbCamera) else dev.read_events(0.0)
+            more = self.reading.read(dev, 0.0)
         except DeviceError as exc:
             log.warning("%s: last read at the stop bound failed: %s", self.name, exc)
             return
@@ -420,9 +413,9 @@ class DeviceChannel:
             raise exc
         while not self.ctx.control.acquiring_done.wait(self.ctx.reconnect_interval_s):
             try:
-                dev = self._open()
+                dev = self.reading.open(self.spec)
                 try:
-                    self.configure(dev)
+                    self.reading.configure(dev)
                     dev.start()
                 except BaseException:
                     dev.close()
@@ -441,36 +434,35 @@ class DeviceChannel:
         raise DeviceError(f"{self.name} did not come back before the end of the take (lost: {exc})") from exc
 
     # -- delivery -------------------------------------------------------------------------
-    def _deliver(self, item: Frame | EventPacket) -> None:
+    def _deliver(self, item: ItemT) -> None:
         """One frame or event packet on its way to the writer; a device that came back with
         its clock restarted is re-tied onto its old clock first."""
-        item_kind = "frame" if isinstance(item, Frame) else "events"
         reset = self.clock_reset
         if (t_before := self._restarted(item, reset)) is not None:
-            reset = self.clock_reset = ClockReset(self.name, self.kind, t_before, self.trigger_in)
+            reset = self.clock_reset = ClockReset(self.name, self.reading, t_before)
             log.warning("%s came back with its clock restarted; tying it to its old clock", self.name)
         if reset is None:
             self._pass(item)
             return
         if reset.offset is not None:
-            self._pass(reset.shift(item_kind, item))
+            self._pass(reset.shift(item))
             return
         seen = len(reset.post_t)
-        reset.hold(item_kind, item)
+        reset.hold(item)
         if len(reset.post_t) == seen and reset.held_for_s() <= MAX_HOLD_S:
             return  # nothing new to tie with (an event packet without trigger edges)
         if not self._tie(reset):
             return
-        for _, held in reset.release():
+        for held in reset.release():
             self._pass(held)
 
-    def _restarted(self, item: Frame | EventPacket, reset: ClockReset | None) -> int | None:
+    def _restarted(self, item: ItemT, reset: ClockReset[ItemT] | None) -> int | None:
         """For a first delivery after a reconnect whose time lies before the last one before
         the gap: that last time (the device's clock restarted); else None. A device already
         re-tied is compared on its old clock (it may restart again); one still being tied is
         not asked (its gap stays open until it is)."""
         gap = self.live.gap
-        t = first_time(item)
+        t = self.reading.times(item)[0]
         if reset is not None:
             if reset.offset is None:
                 return None
@@ -479,7 +471,7 @@ class DeviceChannel:
             return None
         return gap.t_before
 
-    def _tie(self, reset: ClockReset) -> bool:
+    def _tie(self, reset: ClockReset[ItemT]) -> bool:
         """Try to place the restarted clock on the old one; True once done. A device that does
         not tie within MAX_OBSERVATIONS is written off (what was held is counted lost)."""
         pre_t, pre_host, _ = self.stream.obs.arrays()
@@ -521,29 +513,21 @@ class DeviceChannel:
         reset.held.clear()
         self.ctx.ledger.add(self.name, self.what, count, f"held back and not written: {why}")
 
-    def _pass(self, item: Frame | EventPacket) -> None:
-        if isinstance(item, Frame):
-            self._arrived(item.t_exposure_start_us, None, item.host_time_ns)
-        else:
-            span = item.span
-            self._arrived(first_time(item), span.t_last if span.n else None, item.host_time_ns)
-            if self.anchors is not None and span.n:
-                self.anchors.note(span.t_last, item.host_time_ns)
+    def _pass(self, item: ItemT) -> None:
+        t_first, t_last = self.reading.times(item)
+        self._arrived(t_first, t_last, item.host_time_ns)
+        anchors = self.reading.anchors
+        if anchors is not None and t_last is not None:
+            anchors.note(t_last, item.host_time_ns)
         gate = self.gate
         for part in [item] if gate is None else gate.admit(item):
             self._enqueue(part)
 
-    def _enqueue(self, item: Frame | EventPacket) -> None:
+    def _enqueue(self, item: ItemT) -> None:
         queue = self.ctx.queue
-        if isinstance(item, Frame):
-            queue.put(FrameItem(self.name, item), self.live)
-            return
-        if self.shedder is not None:
-            kept = self.shedder.admit(item, queue.fill(), time.monotonic_ns())
-            if kept is None:
-                return
-            item = kept
-        queue.put(EventsItem(self.name, item), self.live)
+        kept = self.shedding.admit(item, queue.fill(), time.monotonic_ns())
+        if kept is not None:
+            queue.put(self.reading.queue_item(kept), self.live)
 
     def _arrived(self, t_device: int | None, t_last: int | None, host_ns: int) -> None:
         """Bookkeeping for one delivery; closes a reconnect gap with its loss record."""

@@ -14,18 +14,20 @@ before and what was held is counted as lost.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 
+from rigd.core.devices import DataKind
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.sync import DeviceObservations, PulseLog, host_to_rig_map, match_device
 
 log = logging.getLogger(__name__)
+
+ItemT = TypeVar("ItemT", Frame, EventPacket)
 
 #: Trigger observations after the replug needed to place the new counter on the old clock.
 MIN_OBSERVATIONS = 5
@@ -46,56 +48,58 @@ class Offset:
     """Largest disagreement among them (jitter plus drift extrapolation over the gap)."""
 
 
+class HeldItems(Protocol[ItemT]):
+    """What re-tying asks of a device kind's items (`reading.Reading` is one)."""
+
+    kind: ClassVar[DataKind]
+
+    def count(self, item: ItemT) -> int: ...
+    def observations(self, item: ItemT) -> list[int]: ...
+    def shifted(self, item: ItemT, us: int) -> ItemT: ...
+
+
 @dataclass(slots=True)
-class ClockReset:
+class ClockReset(Generic[ItemT]):
     """One device between its return with a restarted clock and the end of the take."""
 
     name: str
-    kind: Literal["rgb_camera", "event_sensor"]
+    items: HeldItems[ItemT]
+    """How the device's items are counted, observed and shifted (its kind's reading part)."""
     t_before: int
     """The last device time before the gap, on the old clock."""
-    trigger_channel: int = 0
     offset: Offset | None = None
-    held: list[tuple[str, Any]] = field(default_factory=list)
-    """Items (kind, frame or packet) delivered before the offset was known, in order."""
+    held: list[ItemT] = field(default_factory=list)
+    """Frames or packets delivered before the offset was known, in order."""
     post_t: list[int] = field(default_factory=list)
     post_host: list[int] = field(default_factory=list)
 
-    def hold(self, kind: str, item: Any) -> None:
-        self.held.append((kind, item))
-        if kind == "frame":
-            self.post_t.append(item.t_exposure_start_us)
-            self.post_host.append(item.host_time_ns)
-        elif len(item.triggers):
-            rising = item.triggers.rising(self.trigger_channel)
-            self.post_t.extend(rising.t.tolist())
-            self.post_host.extend([item.host_time_ns] * len(rising))
+    @property
+    def kind(self) -> DataKind:
+        return self.items.kind
+
+    def hold(self, item: ItemT) -> None:
+        self.held.append(item)
+        seen = self.items.observations(item)
+        self.post_t.extend(seen)
+        self.post_host.extend([item.host_time_ns] * len(seen))
 
     def held_for_s(self) -> float:
         """Host time from the first held item to the last."""
         if len(self.held) < 2:
             return 0.0
-        return (self.held[-1][1].host_time_ns - self.held[0][1].host_time_ns) / 1e9
+        return (self.held[-1].host_time_ns - self.held[0].host_time_ns) / 1e9
 
     def held_count(self) -> int:
         """Frames or events held back (what is lost if the device cannot be tied)."""
-        return sum(1 if kind == "frame" else item.n_events for kind, item in self.held)
+        return sum(self.items.count(item) for item in self.held)
 
-    def shift(self, kind: str, item: Any) -> Any:
+    def shift(self, item: ItemT) -> ItemT:
         assert self.offset is not None
-        k = self.offset.us
-        if kind == "frame":
-            frame: Frame = item
-            return dataclasses.replace(frame, t_exposure_start_us=frame.t_exposure_start_us + k)
-        packet: EventPacket = item
-        raw = packet.raw  # its words are not rewritten: the chunk says what was added
-        return packet.with_shift(
-            k, None if raw is None else dataclasses.replace(raw, shift_us=raw.shift_us + k)
-        )
+        return self.items.shifted(item, self.offset.us)
 
-    def release(self) -> list[tuple[str, Any]]:
+    def release(self) -> list[ItemT]:
         """The held items, shifted onto the old clock; the hold is emptied."""
-        out = [(kind, self.shift(kind, item)) for kind, item in self.held]
+        out = [self.shift(item) for item in self.held]
         self.held.clear()
         return out
 

@@ -5,30 +5,18 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
+from typing import Any
 
-from drivers.base import Capability, RgbCamera
 from rigd.app.capture.channel import DeviceChannel, TriggerChannel
 from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.config import RigConfig
 from rigd.core.schema import SyncReport
-from rigd.core.settings import CameraSettings
 from rigd.take.seal import Bookkeeping, Seal, TakeEnd, fit_take, seal_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
-
-
-def software_synced(channel: DeviceChannel) -> bool:
-    """A camera whose frames are matched to pulses by host time: it has no trigger input, or
-    it was told to run free."""
-    if not isinstance(channel.device, RgbCamera):
-        return False
-    hardware = Capability.HARDWARE_TRIGGER in channel.device.capabilities
-    return not hardware or (
-        isinstance(channel.settings, CameraSettings) and channel.settings.trigger_mode != "hardware"
-    )
 
 
 def end_reason(control: RunControl, emitted: int) -> str:
@@ -43,7 +31,7 @@ def finalize_take(
     config: RigConfig,
     writer: TakeWriter,
     trigger: TriggerChannel,
-    channels: dict[str, DeviceChannel],
+    channels: Mapping[str, DeviceChannel[Any, Any]],
     ledger: LossLedger,
     faults: FaultBoard,
     control: RunControl,
@@ -54,7 +42,7 @@ def finalize_take(
     steps `rigd recover` seals a crashed take with); returns the sync report and why the take
     ended. `window`: the trigger window and what arrived outside it."""
     observations = [
-        ch.stream.sync_observations(None if ch.anchors is None else ch.anchors.arrays())
+        ch.stream.sync_observations(None if (anchors := ch.reading.anchors) is None else anchors.arrays())
         for ch in channels.values()
     ]
     end = TakeEnd(
@@ -62,13 +50,13 @@ def finalize_take(
         observations,
         config.trigger.settings.rate_hz,
         ledger.records(),
-        [name for name, ch in channels.items() if ch.kind == "rgb_camera"],
+        [cam.name for cam in config.cameras],
         shares_clock_with={
             s.name: s.settings.sync_master
             for s in config.event_sensors
             if s.settings.sync_mode == "slave" and s.settings.sync_master is not None
         },
-        software_synced={name for name, ch in channels.items() if software_synced(ch)},
+        software_synced={name for name, ch in channels.items() if ch.software_synced()},
     )
     result = fit_take(end)
     book = Bookkeeping(
@@ -85,6 +73,6 @@ def finalize_take(
     log.info(
         "take %s finalized: %s",
         writer.path,
-        json.dumps({name: ch.stream.written for name, ch in channels.items() if ch.kind == "rgb_camera"}),
+        json.dumps({cam.name: channels[cam.name].stream.written for cam in config.cameras}),
     )
     return result.report, reason

@@ -12,6 +12,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
+from enum import Enum
 from typing import ClassVar
 
 from rigd.app.capture.faults import FaultBoard
@@ -92,20 +93,13 @@ class PulsesItem:
         return (None, None)
 
 
-class StopItem:
+class Stop(Enum):
     """The last item: the writer flushes and ends."""
+
+    STOP = "stop"
 
 
 QueueItem = FrameItem | EventsItem | PulsesItem
-
-
-def first_time(item: Frame | EventPacket) -> int | None:
-    """Device time of the first thing in a frame or event packet."""
-    if isinstance(item, Frame):
-        return int(item.t_exposure_start_us)
-    if item.n_events:
-        return item.span.t_first
-    return int(item.triggers.t[0]) if len(item.triggers) else None
 
 
 class WriterQueue:
@@ -123,7 +117,7 @@ class WriterQueue:
         faults: FaultBoard,
         max_bytes: int = 1 << 62,
     ) -> None:
-        self._queue: queue.Queue[QueueItem | StopItem] = queue.Queue(maxsize=maxsize)
+        self._queue: queue.Queue[QueueItem | Stop] = queue.Queue(maxsize=maxsize)
         self.maxsize = maxsize
         self.max_bytes = max_bytes
         self._put_timeout_s = put_timeout_s
@@ -172,14 +166,14 @@ class WriterQueue:
         return True
 
     def put_stop(self) -> None:
-        self._queue.put(StopItem())
+        self._queue.put(Stop.STOP)
 
-    def get(self, timeout_s: float) -> QueueItem | StopItem | None:
+    def get(self, timeout_s: float) -> QueueItem | Stop | None:
         try:
             item = self._queue.get(timeout=timeout_s)
         except queue.Empty:
             return None
-        if not isinstance(item, StopItem):
+        if item is not Stop.STOP:
             self._release(item)
         return item
 

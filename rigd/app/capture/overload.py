@@ -22,10 +22,12 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Generic, Protocol, TypeVar
 
 from rigd.app.capture.faults import FaultBoard
 from rigd.app.capture.ledger import LossLedger
 from rigd.core.events import EventArray, EventPacket, EventSpan
+from rigd.core.frames import Frame
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +39,9 @@ SHED_REASON = (
 SPAN_CLOSE_S = 0.5
 #: Window of the writer's busy fraction (s).
 LOAD_WINDOW_S = 2.0
+
+
+ItemT = TypeVar("ItemT", Frame, EventPacket)
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,6 +63,28 @@ class _Span:
     t_last: int | None
     packets: int
     last_shed_mono: float
+
+
+class Shedding(Protocol[ItemT]):
+    """A channel's load-shedding part: what of an item goes to the writer while it falls behind."""
+
+    shed_events: int
+
+    def admit(self, item: ItemT, fill: Fill, now_ns: int) -> ItemT | None: ...
+    def close(self) -> None: ...
+
+
+class KeepAll(Generic[ItemT]):
+    """No shedding: every item goes to the queue, whose bound counts what it cannot take
+    (cameras: a frame is one item, there is no slice of it to shed)."""
+
+    shed_events = 0
+
+    def admit(self, item: ItemT, fill: Fill, now_ns: int) -> ItemT | None:
+        return item
+
+    def close(self) -> None:
+        return None
 
 
 class SliceShedder:

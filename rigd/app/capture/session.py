@@ -20,29 +20,27 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from drivers.base import Capability, RgbCamera
 from rigd import __version__
 from rigd.app.capture.ballast import Ballast, check_ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
 from rigd.app.capture.control import BoundedCalls, RunControl
 from rigd.app.capture.faults import DiskUsage, DiskWatch, FaultBoard, FlushWatch, TriggerWatchdog
-from rigd.app.capture.finalize import finalize_take, software_synced
+from rigd.app.capture.finalize import finalize_take
 from rigd.app.capture.items import WriterQueue
+from rigd.app.capture.kinds import device_channels
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
-from rigd.app.capture.overload import SliceShedder
 from rigd.app.capture.preflight import check_rig, warm_up
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.streams import writer_streams
 from rigd.app.capture.truth import store_ground_truth
-from rigd.app.capture.window import GateMode, TakeWindow, WindowGate
+from rigd.app.capture.window import TakeWindow
 from rigd.app.capture.writer_loop import WriterLoop
 from rigd.app.config import RigConfig
 from rigd.core.errors import RigdError, TakeError
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
-from rigd.core.settings import EventSensorSettings
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -258,7 +256,7 @@ class CaptureSession:
         devices = [self._trigger_live.snapshot("trigger", lost.get("trigger", 0), None)]
         for name, ch in list(self._channels.items()):
             ch.live.update_rate(now)
-            shed = 0 if ch.shedder is None else ch.shedder.shed_events
+            shed = ch.shedding.shed_events
             jitter = ch.stream.obs.interval_jitter_us(period_us)
             devices.append(ch.live.snapshot(name, lost.get(name, 0), jitter, shed))
         try:
@@ -290,11 +288,8 @@ class CaptureSession:
         return {name: frame for name, frame in frames.items() if frame is not None}
 
     def latest_events(self) -> dict[str, tuple[EventArray, tuple[int, int]]]:
-        out = {}
-        for name, ch in list(self._channels.items()):
-            if ch.kind == "event_sensor" and ch.stream.recent_packets:
-                out[name] = (ch.stream.recent_events(), ch.device.geometry)  # type: ignore[union-attr]
-        return out
+        views = {name: ch.event_view() for name, ch in list(self._channels.items())}
+        return {name: view for name, view in views.items() if view is not None}
 
     # -- opening -------------------------------------------------------------------------
     def _trigger_link(self) -> dict[str, int]:
@@ -319,25 +314,11 @@ class CaptureSession:
             1e6 / self.rate,
             self._reconnect_interval_s,
         )
-        for cam in config.cameras:
-            self._channels[cam.name] = DeviceChannel(cam.name, "rgb_camera", cam.spec, cam.settings, ctx)
-        for sen in config.event_sensors:
-            ch = self._channels[sen.name] = DeviceChannel(
-                sen.name, "event_sensor", sen.spec, sen.settings, ctx
-            )
-            ch.read_interval_s = sen.read_interval_ms / 1000
-            ch.shedder = SliceShedder(
-                sen.name, self._ledger, self._faults, max_lag_s=config.writer.overload_max_lag_s
-            )
+        for name, ch in device_channels(config, ctx):
+            self._channels[name] = ch  # kept as opened: an abort closes it
         self._preflight(trigger)
         for ch in self._channels.values():
-            ch.gate = WindowGate(
-                ch.name,
-                self._gate_mode(ch),
-                self._window,
-                trigger_channel=ch.trigger_in,
-                hold_s=config.writer.window_hold_s,
-            )
+            ch.open_gate(self._window, config.writer.window_hold_s)
         self._take = self._create_take(trigger)
         writer = self._writer = WriterLoop(
             self._take,
@@ -364,20 +345,6 @@ class CaptureSession:
         for live in [self._trigger_live, *(ch.live for ch in self._channels.values())]:
             live.samples.clear()
 
-    @staticmethod
-    def _gate_mode(ch: DeviceChannel) -> GateMode:
-        """How a device's data is placed in the take window: by its trigger edges or frames in
-        its own clock where it has them, else by host arrival time."""
-        caps = ch.device.capabilities
-        if ch.kind == "rgb_camera":
-            if software_synced(ch) or Capability.DEVICE_TIMESTAMPS not in caps:
-                return "host"
-            return "pulse_frames"
-        settings = ch.settings
-        if isinstance(settings, EventSensorSettings) and settings.enable_trigger_in:
-            return "trigger_in"
-        return "host"
-
     def _preflight(self, trigger: TriggerChannel) -> None:
         """Refuse a rig whose devices cannot do what the config asks, all named in one line;
         then configure them."""
@@ -391,11 +358,10 @@ class CaptureSession:
                 ),
             ]
         )
-        cameras = [ch.device for ch in self._channels.values() if isinstance(ch.device, RgbCamera)]
         check_ballast(
             self.config.writer,
-            (math.prod(cam.frame_shape) * cam.frame_dtype.itemsize for cam in cameras),
-            len(self._channels) - len(cameras),
+            (self._channels[cam.name].ballast_bytes() for cam in self.config.cameras),
+            len(self.config.event_sensors),
         )
         trigger.configure()
         for ch in self._channels.values():
@@ -414,27 +380,9 @@ class CaptureSession:
         )
         try:
             take.add_trigger(trigger.device.info)
-            for cam_cfg in config.cameras:
-                ch = self._channels[cam_cfg.name]
-                cam = ch.device
-                # The take says how each camera was synchronized (recovery reads it back).
-                sync = "software" if software_synced(ch) else "hardware"
-                info = cam.info.model_copy(update={"facts": {**cam.info.facts, "sync": sync}})
-                take.add_camera(
-                    cam_cfg.name,
-                    info,
-                    cam.frame_shape,  # type: ignore[union-attr]
-                    cam.frame_dtype,  # type: ignore[union-attr]
-                    cam_cfg.settings.model_dump_json(),
-                    pixel_format=cam.pixel_format,  # type: ignore[union-attr]
-                )
-            for sen_cfg in config.event_sensors:
-                sen = self._channels[sen_cfg.name].device
-                w, h = sen.geometry  # type: ignore[union-attr]
-                fmt = sen.evt_format if sen.delivers_evt_words else None  # type: ignore[union-attr]
-                take.add_event_sensor(sen_cfg.name, sen.info, w, h, sen_cfg.settings.model_dump_json(), fmt)
-            names = [c.name for c in config.cameras] + [s.name for s in config.event_sensors]
-            store_ground_truth(take, {n: self._channels[n].device.info for n in names})
+            for ch in self._channels.values():
+                ch.add_to_take(take)
+            store_ground_truth(take, {name: ch.device.info for name, ch in self._channels.items()})
         except BaseException:
             self._take = take  # marked failed and closed by the abort
             raise
@@ -513,7 +461,7 @@ class CaptureSession:
         behind = self._wait_for_window(backlog_s)
         t_waited = time.monotonic()
         self._enter("draining")
-        for ch in sorted(self._channels.values(), key=lambda c: c.kind != "event_sensor"):
+        for ch in sorted(self._channels.values(), key=lambda c: c.reading.stop_order):
             if ch.name not in self._stops:
                 self._stops.start(ch.name, ch.stop)
         stuck = self._stops.join(t_waited + backlog_s)

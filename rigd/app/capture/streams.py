@@ -12,15 +12,14 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
-from typing import Any, ClassVar, Generic, Literal, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import EventSensor, RgbCamera
-from drivers.registry import open_device
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem
 from rigd.app.capture.live import LiveStats, Observations
+from rigd.core.devices import DataKind
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
@@ -64,9 +63,9 @@ class TriggerStream(Stream[PulsesItem]):
 
 
 class DeviceStream(Stream[ItemT]):
-    """A camera or an event sensor: opened by spec, observed for the sync engine."""
+    """A camera or an event sensor: observed for the sync engine."""
 
-    kind: ClassVar[Literal["rgb_camera", "event_sensor"]]
+    kind: ClassVar[DataKind]
     #: After the last pulse, how many trigger periods of data past it the device owes before
     #: it counts as drained.
     drain_periods: ClassVar[int]
@@ -96,10 +95,6 @@ class DeviceStream(Stream[ItemT]):
             n += packet.n_events
         return EventArray.concatenate(parts[::-1])
 
-    @abstractmethod
-    def open(self, spec: str) -> RgbCamera | EventSensor:
-        """The device behind `spec`, of this stream's kind."""
-
     def sync_observations(
         self, anchors: tuple[NDArray[np.int64], NDArray[np.int64]] | None
     ) -> DeviceObservations:
@@ -115,12 +110,9 @@ class CameraStream(DeviceStream[FrameItem]):
     """An RGB camera: one frame per item, one trigger observation (its exposure) per frame."""
 
     what: ClassVar[LossKind] = "frames"
-    kind: ClassVar[Literal["rgb_camera", "event_sensor"]] = "rgb_camera"
+    kind: ClassVar[DataKind] = "rgb_camera"
     drain_periods: ClassVar[int] = 0
     frame_counters: ClassVar[bool] = True
-
-    def open(self, spec: str) -> RgbCamera:
-        return open_device("rgb_camera", spec)
 
     def write(self, writer: TakeWriter, item: FrameItem) -> None:
         writer.append_frame(item.device, item.frame)
@@ -140,11 +132,8 @@ class EventStream(DeviceStream[EventsItem]):
     trigger-in channel are its trigger observations."""
 
     what: ClassVar[LossKind] = "events"
-    kind: ClassVar[Literal["rgb_camera", "event_sensor"]] = "event_sensor"
+    kind: ClassVar[DataKind] = "event_sensor"
     drain_periods: ClassVar[int] = 2
-
-    def open(self, spec: str) -> EventSensor:
-        return open_device("event_sensor", spec)
 
     def write(self, writer: TakeWriter, item: EventsItem) -> None:
         writer.append_packet(item.device, item.packet)
@@ -160,15 +149,6 @@ class EventStream(DeviceStream[EventsItem]):
             self.obs.host.extend([packet.host_time_ns] * len(rising))
         self.written += packet.n_events
         self.live.total += packet.n_events
-
-
-def device_stream(
-    kind: Literal["rgb_camera", "event_sensor"], name: str, live: LiveStats, trigger_in: int = 0
-) -> CameraStream | EventStream:
-    """The stream of a device of `kind` (the one place that maps a kind to its stream)."""
-    if kind == "rgb_camera":
-        return CameraStream(name, live, trigger_in)
-    return EventStream(name, live, trigger_in)
 
 
 def writer_streams(devices: Iterable[DeviceStream[Any]], trigger_live: LiveStats) -> dict[str, Stream[Any]]:

@@ -17,7 +17,7 @@ from typing import Any
 from rigd.app.capture.ballast import Ballast
 from rigd.app.capture.control import RunControl, utc_now
 from rigd.app.capture.faults import FaultBoard
-from rigd.app.capture.items import QueueItem, StopItem, WriterQueue
+from rigd.app.capture.items import QueueItem, Stop, WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.overload import WriterLoad
 from rigd.app.capture.streams import Stream
@@ -67,7 +67,7 @@ class WriterLoop:
         last_flush = time.monotonic()
         while True:
             item = self._queue.get(min(0.2, self._interval / 2))
-            if isinstance(item, StopItem):
+            if item is Stop.STOP:
                 if self.error is None:
                     self._flush()
                 self._note_relief()

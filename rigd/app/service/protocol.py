@@ -13,6 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from rigd.core.devices import DataKind
 from rigd.core.fault_codes import FaultCode
 from rigd.core.schema import LossRecord
 
@@ -199,7 +200,7 @@ class ThumbnailHeader(_Strict):
 
     v: int = PROTOCOL_VERSION
     device: str
-    kind: Literal["rgb_camera", "event_sensor"]
+    kind: DataKind
     width: int
     height: int
     time_utc: str

@@ -12,10 +12,10 @@ import pytest
 from rigd.app.capture.channel import DeviceChannel, pulse_log
 from rigd.app.capture.control import RunControl
 from rigd.app.capture.faults import DiskWatch, FaultBoard, FlushWatch
-from rigd.app.capture.items import EventsItem, FrameItem, StopItem, WriterQueue
+from rigd.app.capture.items import EventsItem, FrameItem, Stop, WriterQueue
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats, Observations
-from rigd.app.capture.streams import device_stream
+from rigd.app.capture.streams import CameraStream, EventStream
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
@@ -65,7 +65,7 @@ def test_stop_item_and_empty_queue() -> None:
     q = WriterQueue(2, 0.01, LossLedger(faults, dict), faults)
     assert q.get(0.0) is None
     q.put_stop()
-    assert isinstance(q.get(0.1), StopItem)
+    assert q.get(0.1) is Stop.STOP
 
 
 def test_ledger_journal_holds_losses_write_offs_counters_and_faults() -> None:
@@ -145,7 +145,7 @@ def test_observations_interval_jitter() -> None:
 def test_drain_rule_per_device(kind: str, newest: int | None, expected: bool) -> None:
     ch = DeviceChannel.__new__(DeviceChannel)  # the rule reads only its stream and live counters
     ch.live = LiveStats(kind)  # type: ignore[arg-type]
-    ch.stream = device_stream(kind, "dev", ch.live)  # type: ignore[arg-type]
+    ch.stream = CameraStream("dev", ch.live) if kind == "rgb_camera" else EventStream("dev", ch.live)
     ch.live.last_host_ns = newest
     assert ch.drained(1_000, 33_333_333) is expected
     ch.live.state = "reconnecting"

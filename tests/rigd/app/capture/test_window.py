@@ -21,8 +21,9 @@ from pydantic import ValidationError
 
 from rigd.app.capture import CaptureSession, run_capture
 from rigd.app.capture.channel import DeviceChannel, TriggerChannel
+from rigd.app.capture.gate import EventGate, FrameGate
 from rigd.app.capture.session import STOP_LEAD_S
-from rigd.app.capture.window import TakeWindow, WindowGate
+from rigd.app.capture.window import TakeWindow
 from rigd.app.config import default_sim_rig
 from rigd.core.devices import PulseBatch
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
@@ -60,7 +61,7 @@ class Clock:
 
 def test_events_before_the_first_edge_are_held_then_cut_at_the_margin() -> None:
     window = TakeWindow(RATE, margin_us=500, last_index=9)
-    gate = WindowGate("ev", "trigger_in", window)
+    gate = EventGate("ev", "trigger_in", window)
     d0 = 100_000
     # Before pulse 0: held (the gate cannot place them yet).
     assert gate.admit(_packet(np.arange(d0 - 3000, d0 - 1000, 10))) == []
@@ -76,7 +77,7 @@ def test_events_before_the_first_edge_are_held_then_cut_at_the_margin() -> None:
 
 def test_packets_are_split_at_the_window_end_and_the_gate_closes() -> None:
     window = TakeWindow(RATE, margin_us=0, last_index=4)  # end = pulse 4 + 1 period = d0 + 5000
-    gate = WindowGate("ev", "trigger_in", window)
+    gate = EventGate("ev", "trigger_in", window)
     d0 = 7_000
     kept = []
     for k in range(8):
@@ -97,7 +98,7 @@ def test_dropped_pulses_and_drift_keep_the_end_in_place() -> None:
     # 60 s at 30 Hz with a device clock 100 ppm fast: 6 ms of drift, a fifth of a period.
     rate, ppm = 30.0, 100.0
     window = TakeWindow(rate, margin_us=0, last_index=1799)
-    gate = WindowGate("ev", "trigger_in", window)
+    gate = EventGate("ev", "trigger_in", window)
     d0 = 5_000_000
     k = np.arange(0, 1810)
     k = k[(k % 97 != 5) & ((k < 400) | (k > 460))]  # scattered drops and a 2 s gap
@@ -117,7 +118,7 @@ def test_without_a_trigger_edge_the_window_falls_back_to_host_time() -> None:
     clock = Clock()
     window = TakeWindow(RATE, margin_us=0, last_index=9)
     window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
-    gate = WindowGate("ev", "trigger_in", window, hold_s=1.0, clock_ns=clock)
+    gate = EventGate("ev", "trigger_in", window, hold_s=1.0, clock_ns=clock)
     # Host ns of the window: [10.000 s, 10.010 s); the sensor's clock reads host us - 7 s.
     first = 2_000_000 + np.arange(10)
     assert gate.admit(_packet(first, host_ns=9_000_010_000)) == []
@@ -139,7 +140,7 @@ def test_host_mode_judges_a_late_packet_by_when_its_events_happened() -> None:
     outside though it is read inside it. Placed by the lower envelope of arrival - device time."""
     window = TakeWindow(RATE, margin_us=0, last_index=9)  # host ns [10.000 s, 10.010 s)
     window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
-    gate = WindowGate("ev", "host", window)
+    gate = EventGate("ev", "host", window)
     # On time: device us = host us - 7 s (+ 10 us of transport).
     assert gate.admit(_packet(2_990_000 + np.arange(10), host_ns=9_990_019_000)) == []
     assert gate.counts.before == 10
@@ -162,7 +163,7 @@ def test_a_sensor_clock_that_jumps_back_is_judged_by_arrival() -> None:
     """Device times far behind the arrival envelope (a clock reset) are no backlog: by arrival."""
     window = TakeWindow(RATE, margin_us=0, last_index=9)
     window.note_pulses(np.array([0]), np.array([1_000_000]), np.array([10_000_000_000]))
-    gate = WindowGate("ev", "host", window)
+    gate = EventGate("ev", "host", window)
     hour = 3_600_000_000
     assert gate.admit(_packet(hour + 2_990_000 + np.arange(10), host_ns=9_990_010_000)) == []
     # The clock restarted near 0 (an hour behind): the packet is placed by its arrival, inside.
@@ -173,7 +174,7 @@ def test_a_sensor_clock_that_jumps_back_is_judged_by_arrival() -> None:
 def test_held_packets_are_placed_by_host_time_at_the_end() -> None:
     """A sensor whose trigger edges never came: what it held is placed by host time."""
     window = TakeWindow(RATE, margin_us=0, last_index=9)
-    gate = WindowGate("ev", "trigger_in", window, hold_s=60.0)
+    gate = EventGate("ev", "trigger_in", window, hold_s=60.0)
     assert gate.admit(_packet(2_000_000 + np.arange(10), host_ns=9_000_010_000)) == []
     inside = 3_005_000 + np.arange(10)
     assert gate.admit(_packet(inside, host_ns=10_005_010_000)) == []
@@ -196,7 +197,7 @@ def test_pulse_records_after_the_last_pulse_are_counted_not_kept() -> None:
 
 def test_frames_of_pulses_after_the_last_are_outside() -> None:
     window = TakeWindow(RATE, margin_us=0, last_index=2)
-    gate = WindowGate("cam", "pulse_frames", window)
+    gate = FrameGate("cam", "pulse_frames", window)
     image = np.zeros((2, 2), np.uint8)
     kept = []
     for k in (0, 1, 3, 4):  # frame of pulse 2 lost: the gate is not closed before pulse 3's
@@ -208,7 +209,7 @@ def test_frames_of_pulses_after_the_last_are_outside() -> None:
 
 def test_host_mode_frames_against_the_pulse_records() -> None:
     window = TakeWindow(RATE, margin_us=1000, last_index=1)
-    gate = WindowGate("cam", "host", window)
+    gate = FrameGate("cam", "host", window)
     image = np.zeros((2, 2), np.uint8)
     assert gate.admit(Frame(image, 0, 500, 0, 5_000_000)) == []  # no pulse record yet: held
     window.note_pulses(np.array([0, 1]), np.array([2_000, 3_000]), np.array([6_000_000, 7_000_000]))
@@ -388,7 +389,7 @@ def test_packets_with_words_are_judged_by_their_span_as_by_their_events(
     for scan in (True, False):
         packets = _word_packets(np.concatenate(ts), [d0], cuts, scan=scan)
         assert all(p.from_scan is scan for p in packets[1:])  # the first: before a time base
-        gate = WindowGate("ev", "trigger_in", TakeWindow(RATE, margin_us=0, last_index=4))
+        gate = EventGate("ev", "trigger_in", TakeWindow(RATE, margin_us=0, last_index=4))
         out = [part for p in packets for part in gate.admit(p)] + gate.finish()
         results.append(([(p.span, len(p.triggers)) for p in out if isinstance(p, EventPacket)], gate.counts))
     assert results[0] == results[1]
