@@ -13,11 +13,9 @@ outside the window is counted, not written.
 from __future__ import annotations
 
 import logging
-import math
 import shutil
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 from rigd import __version__
@@ -33,6 +31,7 @@ from rigd.app.capture.live import LiveStats
 from rigd.app.capture.preflight import check_rig, warm_up
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
+from rigd.app.capture.stop import CLOSE_BOUND_S, AcquisitionStop, StopWait
 from rigd.app.capture.streams import writer_streams
 from rigd.app.capture.truth import store_ground_truth
 from rigd.app.capture.window import TakeWindow
@@ -44,25 +43,6 @@ from rigd.core.frames import Frame
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
-
-#: A stop picks the take's last pulse at most this far ahead of the pulses seen, so the
-#: window's end is known before the devices deliver data past it (the box is stopped at once;
-#: the window ends at the earlier of its last pulse and this one).
-STOP_LEAD_S = 0.1
-#: What closing the devices may take at the very end, beyond the stop's own bound.
-CLOSE_BOUND_S = 5.0
-
-
-@dataclass(frozen=True, slots=True)
-class StopWait:
-    """How the stop's wait for the devices ended: `all_delivered` (every device delivered up to
-    the end of the take window), else the bound (`writer.stop_backlog_s`) ran out with `behind`
-    not there; `stuck`: devices whose stop did not return within the bound."""
-
-    all_delivered: bool
-    behind: tuple[str, ...]
-    waited_s: float
-    stuck: tuple[str, ...] = ()
 
 
 class CaptureSession:
@@ -136,7 +116,6 @@ class CaptureSession:
         self._result: CaptureResult | None = None
         self._error: BaseException | None = None
         self._done = threading.Event()
-        self._stops = BoundedCalls("device stop")
         self.stop_wait: StopWait | None = None
         """How the stop's wait for the devices ended (None until the take has stopped)."""
 
@@ -455,38 +434,25 @@ class CaptureSession:
         assert self._t_start is not None
         t_stop = time.monotonic()
         self._control.enter_stop()
-        emitted = self._stop_trigger(trigger)
-        backlog_s = self.config.writer.stop_backlog_s
-        self._enter("waiting for devices")
-        behind = self._wait_for_window(backlog_s)
-        t_waited = time.monotonic()
-        self._enter("draining")
-        for ch in sorted(self._channels.values(), key=lambda c: c.reading.stop_order):
-            if ch.name not in self._stops:
-                self._stops.start(ch.name, ch.stop)
-        stuck = self._stops.join(t_waited + backlog_s)
-        t_stopped = time.monotonic()
-        delivered = not behind and self._control.first_error is None
-        self.stop_wait = StopWait(delivered, tuple(behind), t_waited - t_stop, tuple(stuck))
-        read_deadline = t_stopped + backlog_s
-        for ch in self._channels.values():
-            ch.read_deadline = read_deadline
-        self._control.acquiring_done.set()
-        for th in self._threads:  # each ends at the read deadline (its reads time out)
-            th.join(max(0.0, read_deadline - time.monotonic()) + CLOSE_BOUND_S)
-            if th.is_alive():
-                log.error("take %s: %s still reading past the stop bound; left behind", self.path, th.name)
-        log.info(
-            "take %s stop: %.2f s waiting for the window end (stopping each device that reached it), "
-            "%.2f s stopping the others, %.2f s reading what they still held",
+        stop = AcquisitionStop(
             self.path,
-            t_waited - t_stop,
-            t_stopped - t_waited,
-            time.monotonic() - t_stopped,
+            self.config.writer.stop_backlog_s,
+            self._virtual,
+            self._window,
+            trigger,
+            self._channels,
+            self._control,
+            self._ledger,
+            self._faults,
         )
+        emitted = stop.stop_trigger()
+        self._enter("waiting for devices")
+        behind = stop.wait_for_window()
+        self._enter("draining")
+        self.stop_wait = stop.stop_devices(t_stop, behind, self._threads)
         for ch in self._channels.values():
             ch.collect_counters()
-        outside = self._record_window()
+        outside = stop.record_window(self.stop_wait)
         self._queue.put_stop()
         self._writer_thread.join()
         self._writer_thread = None
@@ -526,131 +492,6 @@ class CaptureSession:
             window_end_us=self._window.end_us,
             outside_window=take.window_outside() or outside,
         )
-
-    def _stop_trigger(self, trigger: TriggerChannel) -> int:
-        """Fix the take's last pulse and stop the box; the number of pulses of the take (those
-        the box emitted, up to the last).
-
-        The last pulse is chosen before STOP is sent, at most `STOP_LEAD_S` ahead of the
-        pulses seen, so the devices' gates cut at a known end while the STOP round trip runs;
-        the window then ends one period after the earlier of that pulse and the box's last."""
-        window = self._window
-        lead = max(1, math.ceil(STOP_LEAD_S * self.rate))
-        ahead = max(window.seen_index, trigger.n_pulses - 1) + lead
-        last = window.last_index
-        window.set_last_index(ahead if last is None else min(last, ahead))
-        emitted = trigger.stop_box()
-        if emitted > 0:
-            window.set_last_index(min(emitted - 1, window.last_index or 0))
-        kept = emitted if window.last_index is None else min(emitted, window.last_index + 1)
-        if kept < emitted:
-            line = (
-                f"the trigger box emitted {emitted - kept} pulse(s) after the take's last "
-                f"(pulse {kept - 1}, fixed when the stop came); they are outside the take window"
-            )
-            log.info("take %s: %s", self.path, line)
-            self._faults.note(line)
-        log.info(
-            "take %s: window %s..%s us (last pulse %s of %d emitted)",
-            self.path,
-            window.start_us,
-            window.end_us,
-            window.last_index,
-            emitted,
-        )
-        return kept
-
-    def _wait_for_window(self, backlog_s: float) -> list[str]:
-        """Until every device has delivered up to the end of the window (or is away), for at
-        most `backlog_s`; the devices still behind then. A device that has is stopped at once
-        (it makes nothing more for the take, and a loaded host gets its CPU back for the
-        others), on its own thread (`BoundedCalls`). On virtual time the devices cannot fall
-        behind, only the simulation be slow: the bound then counts from the last progress one
-        of those still behind made, unless a signal asked for the stop (or a stop came while
-        the take was stopping): then the wait ends at the bound."""
-        control = self._control
-        deadline = time.monotonic() + backlog_s
-        progress: dict[str, int | None] = {}
-        behind: list[str] = []
-        while control.first_error is None:
-            behind = []
-            for name, ch in self._channels.items():
-                if not ch.window_reached():
-                    behind.append(name)
-                elif name not in self._stops:
-                    self._stops.start(name, ch.stop)
-            if not behind:
-                break
-            if self._virtual and not control.hurry.is_set():
-                now_progress = {
-                    name: (gate.reached_us if (gate := self._channels[name].gate) is not None else None)
-                    for name in behind
-                }
-                if any(progress.get(name) != reached for name, reached in now_progress.items()):
-                    deadline = time.monotonic() + backlog_s
-                progress = now_progress
-            if time.monotonic() >= deadline:
-                log.warning(
-                    "take %s: %s not delivered up to the window end within writer.stop_backlog_s = %g s; "
-                    "stopping anyway",
-                    self.path,
-                    ", ".join(behind),
-                    backlog_s,
-                )
-                break
-            time.sleep(0.02)
-        return behind
-
-    def _record_window(self) -> dict[str, dict[str, int]]:
-        """Per device, what it delivered outside the window (into the ledger's journal); a
-        device that never delivered up to the window end gets a loss record for the span."""
-        outside: dict[str, dict[str, int]] = {}
-        backlog_s = self.config.writer.stop_backlog_s
-        if self._trigger is not None:
-            outside["trigger"] = {"before": 0, "after": self._trigger.pulses_after_window}
-            self._ledger.set_outside("trigger", outside["trigger"])
-        for name, ch in self._channels.items():
-            gate = ch.gate
-            if gate is None:
-                continue
-            outside[name] = gate.counts.as_dict()
-            self._ledger.set_outside(name, outside[name])
-            if gate.counts.total:
-                log.info(
-                    "%s: %d %s before and %d after the take window not written",
-                    name,
-                    gate.counts.before,
-                    ch.what,
-                    gate.counts.after,
-                )
-            if not ch.window_reached():
-                reached, end = gate.still_to_come()
-                clock = "host ns" if gate.mode == "host" else "device us"
-                self._ledger.add(
-                    name,
-                    ch.what,
-                    0,
-                    f"did not deliver up to the end of the take window ({clock} {reached} of {end}) "
-                    f"before it was stopped (writer.stop_backlog_s = {backlog_s:g} s); "
-                    "the rest of its window is not in the take",
-                    (reached, end) if gate.mode != "host" else (None, None),
-                )
-        for name in () if self.stop_wait is None else self.stop_wait.stuck:
-            ch = self._channels[name]
-            line = (
-                f"{name}: its stop did not return within writer.stop_backlog_s = {backlog_s:g} s; what it "
-                "had not delivered by the read deadline is not in the take"
-            )
-            self._faults.note(line)
-            self._ledger.add(
-                name,
-                ch.what,
-                0,
-                "stop did not return within writer.stop_backlog_s; the device was left running and "
-                "what it had not delivered by then is not in the take (count unknown)",
-                (None if ch.gate is None else ch.gate.reached_us, None),
-            )
-        return outside
 
     def _abort(self, exc: BaseException) -> None:
         self._control.acquiring_done.set()

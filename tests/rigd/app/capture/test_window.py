@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from rigd.app.capture import CaptureSession, run_capture
 from rigd.app.capture.channel import DeviceChannel, TriggerChannel
 from rigd.app.capture.gate import EventGate, FrameGate
-from rigd.app.capture.session import STOP_LEAD_S
+from rigd.app.capture.stop import STOP_LEAD_S
 from rigd.app.capture.window import TakeWindow
 from rigd.app.config import default_sim_rig
 from rigd.core.devices import PulseBatch
