@@ -9,11 +9,11 @@ calibration is written with `calibration.io.write_result` whenever enough views 
 from __future__ import annotations
 
 import logging
-import math
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
@@ -27,13 +27,7 @@ from calibration.intrinsics import RECOMMENDED_VIEWS, IntrinsicsResult
 from calibration.io import write_result
 from calibration.report import write_report
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig, default_sim_rig
-from rigd.app.workflows.guided_feeds import (
-    CameraFeed,
-    ImageFeed,
-    open_event_feed,
-    open_with_trigger,
-    shutdown,
-)
+from rigd.app.workflows.guided_feeds import ImageFeed, open_camera_feed, open_event_feed
 from rigd.core.errors import RigdError
 from rigd.products.calibrate import Board
 
@@ -203,7 +197,7 @@ class GuidedRun:
             else:
                 rig = guided_sim_rig(o.resolution or SIM_RESOLUTION, o.sim_clock)
         self.rig = rig
-        self.device_cfg = _device_config(rig, o.camera)
+        self.device_cfg, self._open_feed = _device_config(rig, o.camera)
         self.virtual_time = rig.on_virtual_time()
         self.budget = SessionBudget(o.max_seconds, device_time=self.virtual_time)
         self._feed: ImageFeed | None = None
@@ -222,30 +216,14 @@ class GuidedRun:
 
     def open(self) -> GuidedStarted:
         """Open and start the trigger and the device; make the session."""
-        dev = self.device_cfg
-        feed: ImageFeed
-        if isinstance(dev, CameraConfig):
-            trigger, cam = open_with_trigger(self.rig, dev)
-            try:
-                self._session = _session(self.options, cam.frame_shape, dev.settings.exposure_us)
-                cam.start()
-                trigger.arm()
-                trigger.start()
-            except BaseException:
-                shutdown(trigger, cam)
-                raise
-            # On virtual time nothing goes stale (time waits while the camera's buffer is full):
-            # every frame is looked at, the same ones however loaded the host.
-            feed = CameraFeed(trigger, cam, newest_only=not self.virtual_time)
-        else:
-            feed = open_event_feed(self.rig, dev)
-            try:
-                w, h = feed.size
-                # Events need the board to move: a reconstruction has no exposure to smear in.
-                self._session = _session(self.options, (h, w), None, still_px=math.inf)
-            except BaseException:
-                feed.close()
-                raise
+        dev, open_feed = self.device_cfg, self._open_feed
+        feed = open_feed(self.rig, not self.virtual_time)
+        try:
+            w, h = feed.size
+            self._session = _session(self.options, (h, w), feed.exposure_us, feed.still_px)
+        except BaseException:
+            feed.close()
+            raise
         self._feed = feed
         return GuidedStarted(self.options.camera, dev.spec, feed.size, self.session.hint_text())
 
@@ -356,14 +334,29 @@ def _with_board_scene(spec: str) -> str:
     return spec + ("&" if "?" in spec else "?") + "scene=board"
 
 
-def _device_config(cfg: RigConfig, name: str) -> CameraConfig | EventSensorConfig:
-    """The camera or event sensor called `name`, watching the board scene on the sim."""
+#: Opens a device's live feed: (rig, newest frame only) -> the started feed.
+FeedOpener = Callable[[RigConfig, bool], ImageFeed]
+
+
+def _camera_feed(cam: CameraConfig, rig: RigConfig, newest_only: bool) -> ImageFeed:
+    return open_camera_feed(rig, cam, newest_only=newest_only)
+
+
+def _event_feed(sensor: EventSensorConfig, rig: RigConfig, newest_only: bool) -> ImageFeed:
+    return open_event_feed(rig, sensor)  # every event counts: there is no newer image to skip to
+
+
+def _device_config(cfg: RigConfig, name: str) -> tuple[CameraConfig | EventSensorConfig, FeedOpener]:
+    """The camera or event sensor called `name`, watching the board scene on the sim, and how
+    its live feed opens (a camera's frames, or images reconstructed from a sensor's events)."""
     for cam in cfg.cameras:
         if cam.name == name:
-            return cam.model_copy(update={"spec": _with_board_scene(cam.spec)})
+            on_board = cam.model_copy(update={"spec": _with_board_scene(cam.spec)})
+            return on_board, partial(_camera_feed, on_board)
     for sensor in cfg.event_sensors:
         if sensor.name == name:
-            return sensor.model_copy(update={"spec": _with_board_scene(sensor.spec)})
+            on_board_ev = sensor.model_copy(update={"spec": _with_board_scene(sensor.spec)})
+            return on_board_ev, partial(_event_feed, on_board_ev)
     names = ", ".join(c.name for c in cfg.cameras) or "none"
     sensors = ", ".join(c.name for c in cfg.event_sensors) or "none"
     raise RigdError(

@@ -13,8 +13,9 @@ the same image as the whole stream would, at a cost bounded by that window. The 
 from __future__ import annotations
 
 import logging
+import math
 import time
-from typing import Protocol, overload
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,6 +42,10 @@ class ImageFeed(Protocol):
 
     size: tuple[int, int]
     skipped: int
+    exposure_us: float | None
+    """What smears a moving board (None: no exposure, events)."""
+    still_px: float | None
+    """How still the board must be for a view (None: the session's option)."""
 
     def read(self, timeout_s: float) -> tuple[NDArray[np.uint8], int] | None: ...
 
@@ -60,8 +65,12 @@ class CameraFeed:
     """The newest frame of a started camera: older ones are skipped, a live feed must not lag
     (`newest_only=False`: every frame, in order, for a sim on virtual time)."""
 
-    def __init__(self, trigger: Trigger, cam: RgbCamera, *, newest_only: bool = True) -> None:
+    def __init__(
+        self, trigger: Trigger, cam: RgbCamera, *, newest_only: bool = True, exposure_us: float | None = None
+    ) -> None:
         self.trigger, self.cam = trigger, cam
+        self.exposure_us = exposure_us
+        self.still_px: float | None = None
         shape = cam.frame_shape
         self.size = (int(shape[1]), int(shape[0]))
         self.skipped = 0
@@ -87,6 +96,9 @@ class EventFeed:
     def __init__(self, trigger: Trigger, sensor: EventSensor) -> None:
         self.trigger, self.sensor = trigger, sensor
         self.size = sensor.geometry
+        self.exposure_us: float | None = None
+        # Events need the board to move: a reconstruction has no exposure to smear in.
+        self.still_px: float | None = math.inf
         self.skipped = 0
         self.params = ReconstructionParams()
         self._parts: list[EventArray] = []
@@ -122,43 +134,58 @@ class EventFeed:
         shutdown(self.trigger, self.sensor)
 
 
-@overload
-def open_with_trigger(rig: RigConfig, dev: CameraConfig) -> tuple[Trigger, RgbCamera]: ...
-@overload
-def open_with_trigger(rig: RigConfig, dev: EventSensorConfig) -> tuple[Trigger, EventSensor]: ...
-def open_with_trigger(
-    rig: RigConfig, dev: CameraConfig | EventSensorConfig
-) -> tuple[Trigger, RgbCamera | EventSensor]:
-    """Open and configure the trigger, then the device (rigd.app.capture's order); what opened is
-    closed again when a later step fails."""
+def _open_trigger(rig: RigConfig) -> Trigger:
     trigger = open_device("trigger", rig.trigger.spec)
     try:
         trigger.configure(rig.trigger.settings)
-        device: RgbCamera | EventSensor = (
-            open_device("rgb_camera", dev.spec)
-            if isinstance(dev, CameraConfig)
-            else open_device("event_sensor", dev.spec)
-        )
     except BaseException:
         trigger.close()
         raise
-    try:
-        device.configure(dev.settings)  # type: ignore[arg-type]  # kind of dev = kind of device, above
-    except BaseException:
-        device.close()
-        trigger.close()
-        raise
-    return trigger, device
+    return trigger
 
 
-def open_event_feed(rig: RigConfig, sensor_cfg: EventSensorConfig) -> EventFeed:
-    """Open, configure and start the trigger and the event sensor."""
-    trigger, sensor = open_with_trigger(rig, sensor_cfg)
+def _start(trigger: Trigger, device: RgbCamera | EventSensor) -> None:
+    """Start the device, then the pulses (rigd.app.capture's order); both stopped and closed
+    when a step fails."""
     try:
-        sensor.start()
+        device.start()
         trigger.arm()
         trigger.start()
     except BaseException:
+        shutdown(trigger, device)
+        raise
+
+
+def open_camera_feed(rig: RigConfig, cam_cfg: CameraConfig, *, newest_only: bool = True) -> CameraFeed:
+    """Open and configure the trigger, then the camera; start both; what opened is closed again
+    when a later step fails."""
+    trigger = _open_trigger(rig)
+    try:
+        cam = open_device("rgb_camera", cam_cfg.spec)
+    except BaseException:
+        trigger.close()
+        raise
+    try:
+        cam.configure(cam_cfg.settings)
+    except BaseException:
+        shutdown(trigger, cam)
+        raise
+    _start(trigger, cam)
+    return CameraFeed(trigger, cam, newest_only=newest_only, exposure_us=cam_cfg.settings.exposure_us)
+
+
+def open_event_feed(rig: RigConfig, sensor_cfg: EventSensorConfig) -> EventFeed:
+    """Open, configure and start the trigger and the event sensor (as `open_camera_feed`)."""
+    trigger = _open_trigger(rig)
+    try:
+        sensor = open_device("event_sensor", sensor_cfg.spec)
+    except BaseException:
+        trigger.close()
+        raise
+    try:
+        sensor.configure(sensor_cfg.settings)
+    except BaseException:
         shutdown(trigger, sensor)
         raise
+    _start(trigger, sensor)
     return EventFeed(trigger, sensor)
