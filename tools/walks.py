@@ -1,0 +1,186 @@
+"""Walk three parameters through the code and count how often the walk comes back to a module
+it already left (a "return"): the rig config from `run_capture` to the devices, an event packet
+from the driver to the HDF5 file, and a take to a trainer export.
+
+    python tools/walks.py [--list] [--out DIR]
+
+A walk is traced, not read: the functions of rigd, drivers, calibration and reconstruction that
+run, in the order of their first call (a loop's second pass adds nothing), grouped into stays
+(consecutive calls in one module). A return is a stay in a module visited before. The three
+walks run on the default sim rig, 1 s on the virtual clock (deterministic call order):
+
+- config: the rig config and its parts (any pydantic model), from `run_capture` on the calling
+  thread: opening, checking and configuring the devices, creating the take, starting;
+- packet: event packets and their queue items, on `ev0`'s acquisition thread then the writer
+  thread, from the driver to the sinks;
+- export: the take and its series (`Take`, `EventSeries`, `FrameSeries`), through
+  `rigd export --format nerfstudio` of that take.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+PACKAGES = ("rigd", "drivers", "calibration", "reconstruction")
+#: Leaf layers a walk passes through without it being a detour: the ground types and the codec.
+LEAVES = ("rigd.core", "rigd.evt")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _held(value: Any) -> list[Any]:
+    """What an object holds one level down (its attributes, or a sequence's items)."""
+    if isinstance(value, list | tuple):
+        return list(value)
+    if isinstance(value, dict):
+        return list(value.values())
+    try:
+        return list(vars(value).values())
+    except TypeError:
+        return [getattr(value, n, None) for n in getattr(type(value), "__slots__", ())]
+
+
+class Tracer:
+    """First calls of project functions, per thread, while `on`, that are handed the walked
+    parameter: an argument other than `self` of one of the `walked` types, or holding one."""
+
+    def __init__(self, walked: tuple[type, ...]) -> None:
+        self.calls: dict[str, list[tuple[str, str]]] = {}
+        self.on = False
+        self.walked = walked
+        self._seen: dict[str, set[tuple[str, str]]] = {}
+
+    def _handed(self, frame: FrameType) -> bool:
+        code = frame.f_code
+        names = code.co_varnames[: code.co_argcount + code.co_kwonlyargcount]
+        for name in names:
+            if name in ("self", "cls"):
+                continue
+            value = frame.f_locals.get(name)
+            if isinstance(value, self.walked) or any(isinstance(v, self.walked) for v in _held(value)):
+                return True
+        return False
+
+    def _module(self, frame: FrameType) -> str | None:
+        name = frame.f_globals.get("__name__", "")
+        if name.split(".")[0] not in PACKAGES or name.startswith(LEAVES):
+            return None
+        return str(name)
+
+    def __call__(self, frame: FrameType, event: str, arg: Any) -> Callable[..., Any] | None:
+        if event != "call" or not self.on:
+            return None
+        module = self._module(frame)
+        if module is None:
+            return None
+        if not self._handed(frame):
+            return None
+        thread = threading.current_thread().name
+        key = (module, frame.f_code.co_qualname)
+        seen = self._seen.setdefault(thread, set())
+        if key not in seen:
+            seen.add(key)
+            self.calls.setdefault(thread, []).append(key)
+        return None
+
+
+def stays(calls: list[tuple[str, str]]) -> list[str]:
+    out: list[str] = []
+    for module, _ in calls:
+        if not out or out[-1] != module:
+            out.append(module)
+    return out
+
+
+def count(modules: list[str]) -> tuple[int, int, int]:
+    """(stays, distinct modules, returns)."""
+    seen: set[str] = set()
+    returns = 0
+    for m in modules:
+        if m in seen:
+            returns += 1
+        seen.add(m)
+    return len(modules), len(seen), returns
+
+
+def _config_and_packet_walks(out: Path) -> tuple[list[str], list[str], Path]:
+    from pydantic import BaseModel
+
+    from rigd.app.capture import run_capture
+    from rigd.app.capture.items import EventsItem
+    from rigd.app.config import default_sim_rig
+    from rigd.core.events import EventPacket
+
+    cfg = default_sim_rig(world="walks", clock="virtual", resolution=(320, 180))
+    # The config walk: the rig config and every part of it (its device entries, their settings).
+    config_tracer = Tracer((BaseModel,))
+    packet_tracer = Tracer((EventPacket, EventsItem))
+
+    def both(frame: FrameType, event: str, arg: Any) -> None:
+        thread = threading.current_thread().name
+        if thread == "MainThread":
+            config_tracer(frame, event, arg)
+        elif thread in ("acq-ev0", "writer"):
+            packet_tracer(frame, event, arg)
+
+    threading.setprofile(both)
+    sys.setprofile(both)
+    config_tracer.on = packet_tracer.on = True
+    try:
+        result = run_capture(cfg, out, 1.0)
+    finally:
+        config_tracer.on = packet_tracer.on = False
+        sys.setprofile(None)
+        threading.setprofile(None)
+    config_walk = stays(config_tracer.calls.get("MainThread", []))
+    packet_walk = stays(packet_tracer.calls.get("acq-ev0", []) + packet_tracer.calls.get("writer", []))
+    return config_walk, packet_walk, result.path
+
+
+def _export_walk(take: Path, out: Path) -> list[str]:
+    from rigd.products.export import run_export
+    from rigd.products.export.common import ExportOptions
+    from rigd.take import reader
+
+    walked = tuple(getattr(reader, n) for n in ("Take", "EventSeries", "FrameSeries") if hasattr(reader, n))
+    tracer = Tracer(walked)
+    sys.setprofile(tracer)
+    tracer.on = True
+    try:
+        run_export(ExportOptions(take=take, format="nerfstudio", out=out / "ns"))
+    finally:
+        tracer.on = False
+        sys.setprofile(None)
+    return stays(tracer.calls.get("MainThread", []))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--list", action="store_true", help="print each walk's stays")
+    ap.add_argument("--out", type=Path, help="where the take and export go (default: a temp dir)")
+    args = ap.parse_args()
+    out = args.out or Path(tempfile.mkdtemp(prefix="rigd-walks-"))
+    config_walk, packet_walk, take = _config_and_packet_walks(out)
+    export_walk = _export_walk(take, out)
+    print("| walk | stays | modules | returns |")
+    print("|---|---:|---:|---:|")
+    for name, walk in (
+        ("config to devices", config_walk),
+        ("packet to HDF5", packet_walk),
+        ("take to export", export_walk),
+    ):
+        s, m, r = count(walk)
+        print(f"| {name} | {s} | {m} | {r} |")
+        if args.list:
+            print("  " + " > ".join(w.removeprefix("rigd.") for w in walk))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
