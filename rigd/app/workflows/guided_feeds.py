@@ -15,7 +15,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Protocol
+from collections.abc import Callable
+from typing import Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +29,8 @@ from rigd.core.events import EventArray
 from rigd.core.pixels import to_rgb
 
 log = logging.getLogger(__name__)
+
+DevT = TypeVar("DevT", RgbCamera, EventSensor)
 
 #: Events kept for the live reconstruction (the hpf history decays within ~1/(2 pi 1 Hz)).
 EVENT_HISTORY_US = 2_000_000
@@ -144,48 +147,39 @@ def _open_trigger(rig: RigConfig) -> Trigger:
     return trigger
 
 
-def _start(trigger: Trigger, device: RgbCamera | EventSensor) -> None:
-    """Start the device, then the pulses (rigd.app.capture's order); both stopped and closed
-    when a step fails."""
+def _open_started(
+    rig: RigConfig, open_dev: Callable[[], DevT], configure: Callable[[DevT], None]
+) -> tuple[Trigger, DevT]:
+    """Open and configure the trigger, then the device; start the device, then the pulses
+    (rigd.app.capture's order). What opened is stopped and closed again when a step fails."""
+    trigger = _open_trigger(rig)
     try:
+        device = open_dev()
+    except BaseException:
+        trigger.close()
+        raise
+    try:
+        configure(device)
         device.start()
         trigger.arm()
         trigger.start()
     except BaseException:
         shutdown(trigger, device)
         raise
+    return trigger, device
 
 
 def open_camera_feed(rig: RigConfig, cam_cfg: CameraConfig, *, newest_only: bool = True) -> CameraFeed:
-    """Open and configure the trigger, then the camera; start both; what opened is closed again
-    when a later step fails."""
-    trigger = _open_trigger(rig)
-    try:
-        cam = open_device("rgb_camera", cam_cfg.spec)
-    except BaseException:
-        trigger.close()
-        raise
-    try:
-        cam.configure(cam_cfg.settings)
-    except BaseException:
-        shutdown(trigger, cam)
-        raise
-    _start(trigger, cam)
+    """The started trigger and camera's feed."""
+    trigger, cam = _open_started(
+        rig, lambda: open_device("rgb_camera", cam_cfg.spec), lambda c: c.configure(cam_cfg.settings)
+    )
     return CameraFeed(trigger, cam, newest_only=newest_only, exposure_us=cam_cfg.settings.exposure_us)
 
 
 def open_event_feed(rig: RigConfig, sensor_cfg: EventSensorConfig) -> EventFeed:
-    """Open, configure and start the trigger and the event sensor (as `open_camera_feed`)."""
-    trigger = _open_trigger(rig)
-    try:
-        sensor = open_device("event_sensor", sensor_cfg.spec)
-    except BaseException:
-        trigger.close()
-        raise
-    try:
-        sensor.configure(sensor_cfg.settings)
-    except BaseException:
-        shutdown(trigger, sensor)
-        raise
-    _start(trigger, sensor)
+    """The started trigger and event sensor's feed."""
+    trigger, sensor = _open_started(
+        rig, lambda: open_device("event_sensor", sensor_cfg.spec), lambda s: s.configure(sensor_cfg.settings)
+    )
     return EventFeed(trigger, sensor)
