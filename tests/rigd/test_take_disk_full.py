@@ -30,6 +30,7 @@ from rigd.app.config import RigConfig, default_sim_rig
 from rigd.core.devices import DeviceInfo
 from rigd.core.frames import Frame
 from rigd.core.settings import WriterConfig
+from rigd.take.seal import fail_take
 from rigd.take.writer import TakeWriter
 
 pytestmark = pytest.mark.slow
@@ -174,7 +175,7 @@ def test_a_writer_the_full_disk_refuses_leaves_the_take_as_last_flushed_and_clos
         for i in range(1, 1000):
             w.append_frame("cam0", Frame(img, 1000 * i, 100, i, i))
     with pytest.raises(OSError, match="No space left"):
-        w.fail("disk full")
+        fail_take(w, "disk full")
     with pytest.raises(OSError, match="No space left"):
         w.close()
     assert "could not be closed" not in caplog.text  # closed, its lock released

@@ -26,6 +26,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take
+from rigd.take.seal import fail_take, finalize_take, set_window
 
 CMAP = ClockMap(device_ref_us=400_000, rig_ref_us=5_000_000, rate=0.999905, frac_us=-0.4)
 REPORT = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
@@ -52,9 +53,9 @@ def write(
         if i % flush_every == flush_every - 1:
             w.flush()
     if window != (None, None):
-        w.set_window(window[0], window[1], 0, {})
+        set_window(w, window[0], window[1], 0, {})
     if finalize:
-        w.finalize({"ev0": CMAP}, {}, REPORT)
+        finalize_take(w, {"ev0": CMAP}, {}, REPORT)
     w.close()
 
 
@@ -160,7 +161,7 @@ def test_words_stored_uncompressed_while_behind_read_the_same(tmp_path: Path) ->
         w.append_packet("ev0", p)
         if i % 5 == 4:
             w.flush()
-    w.finalize({"ev0": CMAP}, {}, REPORT)
+    finalize_take(w, {"ev0": CMAP}, {}, REPORT)
     w.close()
     with open_take(tmp_path / "u.h5") as take:
         assert_same(take.sensor("ev0").events(), rig(whole))
@@ -221,7 +222,7 @@ def test_refused_batch_mid_stream_leaves_no_bytes(
         w.append_packet("ev0", packets[2])
     for p in packets[6:]:
         w.append_packet("ev0", p)
-    w.finalize({"ev0": CMAP}, {}, REPORT)
+    finalize_take(w, {"ev0": CMAP}, {}, REPORT)
     w.close()
     with open_take(path) as take, h5py.File(path) as f:
         index = f["events/ev0/evt_index"][...]
@@ -338,7 +339,7 @@ def test_what_a_full_disk_refused_is_stored_and_indexed_once_there_is_room(
     assert failed.value.errno == errno.ENOSPC
     assert isinstance(failed.value, WriteDeferredError) == (storage == "evt_words")
     ballast.unlink()
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     with open_take(path) as take:
         assert take.status == "failed"
@@ -380,7 +381,7 @@ def test_columns_a_full_disk_stopped_mid_flush_read_back_whole(
             if i % 3 == 2:
                 w.flush()
     ballast.unlink()
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     with open_take(path) as take:
         got = take.sensor("ev0").events()
@@ -421,7 +422,7 @@ def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(
     monkeypatch.setattr(EvtWordsSink, "_write_chunk", written)
     assert kept.value.__traceback__ is not None  # held, as the capture holds its error
     assert 1 < appended < len(packets)
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     with open_take(path) as take:
         assert take.status == "failed"
