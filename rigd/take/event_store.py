@@ -34,7 +34,8 @@ class EventStore(Protocol):
     name: str
     group: h5py.Group
     n_written: int
-    """Events stored (written or buffered)."""
+    """Events stored: all of them once the buffers had their final write (finalize, fail,
+    close); while recording, a store may count only those in its main datasets."""
     trig: dict[str, h5py.Dataset]
     """The trigger-in edge datasets (`<sensor>/trigger`)."""
     appendable: bool
@@ -62,7 +63,8 @@ class EventStore(Protocol):
         """Whether later chunks are compressed by the writer thread (while it is behind, not)."""
 
     def first_time(self) -> int | None:
-        """Device time of the first stored event (None: none stored)."""
+        """Device time of the first event, buffered or stored (None: none yet); before
+        finalize, which rewrites the stored times."""
 
     def events_in_take(self) -> int:
         """Events a reader of the take sees."""

@@ -336,21 +336,24 @@ class EvtWordsSink(TriggerIn):
 
     def _write_chunk(self, data: bytes, offset: int) -> None:
         """One whole chunk (the last one zero-padded): compressed here (Zstd releases the GIL),
-        or stored as it is while the writer is behind."""
+        or stored as it is while the writer is behind. The padded last chunk is compressed
+        always: trimming evt_words to the bytes stored makes HDF5 read that edge chunk through
+        its filter, which fails on a chunk stored without it (the take would not close)."""
         if offset + WORDS_CHUNK > self.alloc:
             self.alloc = offset + _GROW_CHUNKS * WORDS_CHUNK
             self.words.resize((self.alloc,))
+        compress = self.compress or len(data) < WORDS_CHUNK
         if len(data) < WORDS_CHUNK:
             data = bytes(data) + bytes(WORDS_CHUNK - len(data))
         try:
-            if self.compress:
+            if compress:
                 write_chunk(self.words, (offset,), self._zstd.compress(data))
             else:
                 write_chunk(self.words, (offset,), data, _SKIP_ZSTD)
         except Exception:
             self.write_failed = True
             raise
-        if not self.compress:
+        if not compress:
             self.stats.uncompressed_chunks += 1
         if self.write_failed and not chunk_is_stored(self.words, (offset,)):
             raise TakeError(

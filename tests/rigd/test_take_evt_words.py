@@ -250,6 +250,41 @@ def test_sensor_without_words_falls_back_to_columns(
         assert g["t"].shape == (1000,)
 
 
+def test_both_stores_answer_the_writer_alike(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """The writer asks a sensor's store, never its class: the same packets give the same
+    first time, counts and events in the take through either store, whichever class
+    `event_store` chose."""
+    ev, packets = synthetic
+    seen = {}
+    for storage in ("evt_words", "columns"):
+        cfg = WriterConfig(event_storage=storage, fsync=False)  # type: ignore[arg-type]
+        path = tmp_path / f"{storage}.h5"
+        w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+        w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 480, "{}", "evt3")
+        store = w.state.stores["ev0"]
+        assert store.first_time() is None
+        assert store.n_written == 0
+        for i, p in enumerate(packets):
+            # words: stored as they are while "behind", the last chunk too; columns: nothing to switch
+            w.compress_events(i < 5)
+            w.append_packet("ev0", p)
+        w.flush()
+        first = store.first_time()
+        if storage == "evt_words":
+            with pytest.raises(TakeError, match="'ev0' stores EVT words: use append_packet"):
+                w.append_events("ev0", ev[:10])
+        finalize_take(w, {"ev0": CMAP}, {}, REPORT)
+        seen[storage] = (type(store).__name__, first, store.n_written, w.events_in_take())
+        w.close()
+    assert seen["evt_words"][0] == "EvtWordsSink"
+    assert seen["columns"][0] == "EventSink"
+    assert seen["evt_words"][1:] == seen["columns"][1:] == (int(ev.t[0]), len(ev), {"ev0": len(ev)})
+    with open_take(tmp_path / "evt_words.h5") as words, open_take(tmp_path / "columns.h5") as cols:
+        assert_same(words.sensor("ev0").events(), cols.sensor("ev0").events())
+
+
 def test_re_tied_clock_shift_is_applied_on_read(
     tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
 ) -> None:
