@@ -6,6 +6,8 @@ most one `CaptureSession` runs in the background. Opening the devices for a take
 seconds on real hardware, enumerating cameras too, and sealing big takes minutes, so those
 run on worker threads whose replies are sent when they are done: meanwhile the control loop
 keeps answering (`status` says `starting`, `stop` is queued) and feeding the systemd watchdog.
+What each command does is `rigd.app.service.handlers`'; who has the rig (the take, a recovery,
+a holder) and what the last take left is `rigd.app.service.rig_slot`'s. This module serves.
 
 Every request gets a reply: malformed input is answered with a structured error, and a bug
 in a handler is logged and answered as `internal` while the daemon goes on serving.
