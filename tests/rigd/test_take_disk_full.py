@@ -124,10 +124,10 @@ def _damaged_take(disk: Path) -> Path:
                 w.append_frame(f"cam{c}", Frame(img, 1000 * i, 100, i, i))
     # What an older writer's `fail` did: write its buffers, then flush, onto the full disk.
     with pytest.raises(OSError, match="No space left"):
-        w._write_all()
-    w._f.attrs["status"] = "failed"
+        w.state.write_all()
+    w.state.f.attrs["status"] = "failed"
     with pytest.raises(RuntimeError, match="Unable to flush"):
-        w._f.flush()
+        w.state.f.flush()
     with pytest.raises(OSError, match="No space left"):
         w.close()  # HDF5 cannot close it any more ("slist already enabled"): kept until exit
     return path

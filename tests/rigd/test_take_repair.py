@@ -187,6 +187,7 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
         import os, resource, signal, sys
         from pathlib import Path
         from rigd.app.testing.crash import append_step, journal, open_writer
+        from rigd.take.seal import fail_take
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes past the limit fail with EFBIG
         w = open_writer(Path({str(path)!r}))
         resource.setrlimit(resource.RLIMIT_FSIZE, (2_000_000, 2_000_000))
