@@ -38,6 +38,7 @@ from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.evt import StreamDecoder, parse_raw_header, warm_up_decoder
 from rigd.take import TakeWriter
+from rigd.take.seal import finalize_take
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "events" / "evt3_gen41_sample.raw"
 #: Bytes per driver buffer (OpenEB's default HAL buffers are of this order).
@@ -142,7 +143,7 @@ def write(path: Path, src: Source, storage: str, reps: int, *, finalize: bool) -
         cpu += time.thread_time() - c
         report = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
         f0 = time.perf_counter()
-        w.finalize({SENSOR: ClockMap(0, 1_000, 1.00001, 0.25)}, {}, report)
+        finalize_take(w, {SENSOR: ClockMap(0, 1_000, 1.00001, 0.25)}, {}, report)
         fin = time.perf_counter() - f0
         a, c = time.perf_counter(), time.thread_time()
     w.close()

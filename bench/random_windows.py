@@ -39,6 +39,7 @@ from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.evt import StreamDecoder, encode
 from rigd.take import TakeWriter, open_take
+from rigd.take.seal import finalize_take
 
 log = logging.getLogger(__name__)
 
@@ -184,7 +185,7 @@ def write_take(
     wall, cpu = wall + time.perf_counter() - w0, cpu + time.thread_time() - c0
     stored = w.stats[SENSOR].stored_bytes
     report = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
-    w.finalize({SENSOR: ClockMap(0, 0, 1.0)}, {}, report)
+    finalize_take(w, {SENSOR: ClockMap(0, 0, 1.0)}, {}, report)
     w.close()
     return n, n / wall / 1e6, n / cpu / 1e6, stored / n
 

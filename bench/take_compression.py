@@ -29,6 +29,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take
+from rigd.take.seal import finalize_take
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,7 @@ def run_codec(codec: str, ev: EventArray, frames: list[NDArray[np.uint8]], out_d
     ev_bytes, cam_bytes = st["ev0"].stored_bytes, st["cam0"].stored_bytes
     report = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
     t0 = time.perf_counter()
-    w.finalize({"ev0": ClockMap(0, 0, 1.00001), "cam0": ClockMap.identity()}, {}, report)
+    finalize_take(w, {"ev0": ClockMap(0, 0, 1.00001), "cam0": ClockMap.identity()}, {}, report)
     t_fin = time.perf_counter() - t0
     w.close()
     t0 = time.perf_counter()

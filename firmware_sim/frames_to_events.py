@@ -39,6 +39,7 @@ from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.evt import Evt3Encoder, RawHeader
 from rigd.take.reader import Take
+from rigd.take.seal import fail_take, finalize_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -624,7 +625,7 @@ def _write_take(
                 t_last_pulse_us=None,
                 warnings=["simulated take: times are simulation time (identity clock maps), no trigger"],
             )
-            writer.finalize(maps, {}, report)
+            finalize_take(writer, maps, {}, report)
         except BaseException as exc:
-            writer.fail(f"simulate-events failed: {exc!r}")
+            fail_take(writer, f"simulate-events failed: {exc!r}")
             raise

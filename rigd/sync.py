@@ -19,7 +19,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from rigd.core.devices import DataKind
+from rigd.core.devices import SensorKind
 from rigd.core.errors import SyncError
 from rigd.core.schema import DeviceSync, LossRecord, SyncReport
 from rigd.core.timebase import ClockFit, ClockMap, fit_clock_map
@@ -65,7 +65,7 @@ class DeviceObservations:
     """Trigger observations of one device, in the order they were delivered."""
 
     name: str
-    kind: DataKind
+    kind: SensorKind
     t_device_us: NDArray[np.int64]
     host_time_ns: NDArray[np.int64]
     frame_counter: NDArray[np.int64] | None = None

@@ -17,6 +17,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter
+from rigd.take.seal import finalize_take
 
 BOARD = "chessboard:9x6:0.03"
 SIZE = (320, 240)
@@ -56,6 +57,6 @@ def stereo_board_take(path: Path, n_views: int = 12) -> Path:
     )
     identity = ClockMap(device_ref_us=0, rig_ref_us=0, rate=1.0, frac_us=0.0)
     index = np.arange(n_views, dtype=np.int64)
-    w.finalize({"cam0": identity, "cam1": identity}, {"cam0": index, "cam1": index}, report)
+    finalize_take(w, {"cam0": identity, "cam1": identity}, {"cam0": index, "cam1": index}, report)
     w.close()
     return path

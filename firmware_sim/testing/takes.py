@@ -20,6 +20,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter
+from rigd.take.seal import finalize_take
 
 W, H = 64, 48
 CAM_SHAPE = (12, 16, 3)
@@ -83,6 +84,6 @@ def make_take(
         report = SyncReport(
             rate_hz=30.0, n_pulses=10, t_first_pulse_us=FIRST_PULSE, t_last_pulse_us=int(pulses_t[-1])
         )
-        w.finalize(MAPS, {"cam0": np.arange(n_frames, dtype=np.int64) + 100}, report)
+        finalize_take(w, MAPS, {"cam0": np.arange(n_frames, dtype=np.int64) + 100}, report)
     w.close()
     return Written(path, ev.t.copy(), ev, frame_t, trig_t, pulses_t)

@@ -14,6 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, ValidationError, model_validator
 
+from rigd.core.devices import DeviceKind
 from rigd.core.errors import ConfigError
 from rigd.core.settings import STRICT, CameraSettings, EventSensorSettings, TriggerSettings, WriterConfig
 
@@ -198,9 +199,7 @@ class RigConfig(BaseModel):
         the error names the config field."""
         from drivers.registry import check_spec
 
-        fields: list[tuple[str, Literal["rgb_camera", "event_sensor", "trigger"], str]] = [
-            ("trigger.spec", "trigger", self.trigger.spec)
-        ]
+        fields: list[tuple[str, DeviceKind, str]] = [("trigger.spec", "trigger", self.trigger.spec)]
         fields += [(f"cameras.{i}.spec", "rgb_camera", c.spec) for i, c in enumerate(self.cameras)]
         fields += [
             (f"event_sensors.{i}.spec", "event_sensor", s.spec) for i, s in enumerate(self.event_sensors)

@@ -9,9 +9,10 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-#: A device that delivers data (frames or events), as opposed to the trigger box.
-DataKind = Literal["rgb_camera", "event_sensor"]
-DeviceKind = Literal[DataKind, "trigger"]
+#: The kinds of device that record data into a take (cameras, event sensors).
+SensorKind = Literal["rgb_camera", "event_sensor"]
+#: Every kind of rig device: the recording ones and the trigger box.
+DeviceKind = Literal[SensorKind, "trigger"]
 
 #: `DeviceInfo.facts` entry of a device that knows its own calibration exactly (a simulated
 #: camera or event sensor): JSON of `GroundTruth`. The capture stores it in the take.

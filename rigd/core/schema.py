@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from rigd.core.devices import DataKind
+from rigd.core.devices import SensorKind
 from rigd.core.layout import Events, TriggerEdges
 
 if TYPE_CHECKING:
@@ -77,7 +77,7 @@ class DeviceSync(BaseModel):
     model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
 
     device: str
-    kind: DataKind
+    kind: SensorKind
     device_ref_us: int
     rig_ref_us: int
     rate: float

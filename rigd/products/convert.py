@@ -38,6 +38,7 @@ from rigd.evt import (
     write_dat,
 )
 from rigd.take.reader import Take
+from rigd.take.seal import fail_take, finalize_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -223,9 +224,9 @@ def _write_take(
                 warnings=warnings,
                 losses=losses,
             )
-            writer.finalize({sensor: ClockMap.identity()}, {}, report)
+            finalize_take(writer, {sensor: ClockMap.identity()}, {}, report)
         except BaseException as exc:
-            writer.fail(f"convert failed: {exc!r}")
+            fail_take(writer, f"convert failed: {exc!r}")
             raise
     return n
 

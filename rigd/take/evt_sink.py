@@ -22,7 +22,7 @@ from __future__ import annotations
 import errno
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 import h5py
 import hdf5plugin
@@ -45,6 +45,11 @@ from rigd.evt import StreamDecoder
 from rigd.take.h5file import append_rows, chunk_is_stored, require_dataset, require_group, write_chunk
 from rigd.take.sinks import DeviceWriteStats, TriggerIn, check_event_batch, new_series
 from rigd.take.tails import choose_tail_slot
+
+if TYPE_CHECKING:
+    from rigd.core.events import EventArray
+    from rigd.core.timebase import ClockMap
+    from rigd.take.finalize import Finalizer
 
 #: Bytes per chunk of evt_words: the unit compressed and written at once, and what a read
 #: decompresses beyond its bytes. 256 KiB stores as small as 1 MiB (2.37 B/ev on the real Gen4.1
@@ -331,21 +336,24 @@ class EvtWordsSink(TriggerIn):
 
     def _write_chunk(self, data: bytes, offset: int) -> None:
         """One whole chunk (the last one zero-padded): compressed here (Zstd releases the GIL),
-        or stored as it is while the writer is behind."""
+        or stored as it is while the writer is behind. The padded last chunk is compressed
+        always: trimming evt_words to the bytes stored makes HDF5 read that edge chunk through
+        its filter, which fails on a chunk stored without it (the take would not close)."""
         if offset + WORDS_CHUNK > self.alloc:
             self.alloc = offset + _GROW_CHUNKS * WORDS_CHUNK
             self.words.resize((self.alloc,))
+        compress = self.compress or len(data) < WORDS_CHUNK
         if len(data) < WORDS_CHUNK:
             data = bytes(data) + bytes(WORDS_CHUNK - len(data))
         try:
-            if self.compress:
+            if compress:
                 write_chunk(self.words, (offset,), self._zstd.compress(data))
             else:
                 write_chunk(self.words, (offset,), data, _SKIP_ZSTD)
         except Exception:
             self.write_failed = True
             raise
-        if not self.compress:
+        if not compress:
             self.stats.uncompressed_chunks += 1
         if self.write_failed and not chunk_is_stored(self.words, (offset,)):
             raise TakeError(
@@ -397,6 +405,39 @@ class EvtWordsSink(TriggerIn):
         drop_words_tail(self.group)
         self.tail = None
         self.tail_meta[:] = 0
+
+    # -- the EventStore interface (rigd.take.event_store) -------------------------------
+    def append_packet(self, packet: EventPacket, path: Path) -> None:
+        """Store a packet's words and its trigger edges; a chunk write that fails after the
+        packet was taken (WriteDeferredError) still keeps its edges: the packet is the take's."""
+        try:
+            self.add_packet(packet, path)
+        except WriteDeferredError:
+            self.add_triggers(packet.triggers, packet.host_time_ns)
+            raise
+        self.add_triggers(packet.triggers, packet.host_time_ns)
+
+    def add_events(self, events: EventArray, path: Path) -> None:
+        raise TakeError(f"{path}: event sensor {self.name!r} stores EVT words: use append_packet")
+
+    def write_buffers(self, *, final: bool) -> None:
+        self.write(final=final)
+        self.write_triggers()
+
+    def set_compress(self, on: bool) -> None:
+        self.compress = on
+
+    def first_time(self) -> int | None:
+        return self.first_t
+
+    def events_in_take(self) -> int:
+        """Once finalized, those inside the take window (a packet across its edge is stored
+        whole and clipped on read); before, every stored one."""
+        inside = self.group.attrs.get(Events.EVENTS_IN_WINDOW)
+        return self.n_written if inside is None else int(inside)
+
+    def finalize_times(self, finalizer: Finalizer, cmap: ClockMap, t_offset: int) -> None:
+        finalizer.finalize_words(self, cmap, t_offset)
 
 
 def drop_words_tail(g: h5py.Group) -> None:

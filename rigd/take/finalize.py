@@ -14,7 +14,7 @@ import logging
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import h5py
 import numpy as np
@@ -25,9 +25,12 @@ from rigd.core.layout import SYNC_GROUP, Events, Frames, Root, Status, Sync, Tim
 from rigd.core.schema import SyncReport
 from rigd.core.timebase import ClockMap
 from rigd.take.evt_read import EvtWordsEvents, clock_map_json
-from rigd.take.evt_sink import EvtWordsSink
 from rigd.take.h5file import utc_now
-from rigd.take.sinks import CameraSink, EventSink
+
+if TYPE_CHECKING:
+    from rigd.take.event_store import EventStore
+    from rigd.take.evt_sink import EvtWordsSink
+    from rigd.take.sinks import CameraSink, EventSink
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +88,7 @@ class Finalizer:
         self,
         f: h5py.File,
         path: Path,
-        events: Mapping[str, EventSink | EvtWordsSink],
+        events: Mapping[str, EventStore],
         cameras: Mapping[str, CameraSink],
         *,
         event_opts: Mapping[str, Any],
@@ -125,9 +128,9 @@ class Finalizer:
         if report.t_first_pulse_us is not None:
             return int(report.t_first_pulse_us), "first_pulse"
         firsts = [
-            int(maps[name].to_rig(_first_time(sink))[0])
+            int(maps[name].to_rig(np.asarray([t], np.int64))[0])
             for name, sink in self._events.items()
-            if sink.n_written
+            if sink.n_written and (t := sink.first_time()) is not None
         ]
         return (min(firsts), "first_event") if firsts else (0, "none")
 
@@ -135,7 +138,7 @@ class Finalizer:
         self, plan: FinalizePlan, frame_pulse_index: Mapping[str, NDArray[np.int64]], report: SyncReport
     ) -> None:
         """Write what does not touch a device time, then store the plan: from here on a crash
-        leaves a take `TakeWriter.resume` continues with `run`."""
+        leaves a take `rigd.take.resume.resume_take` continues with `run`."""
         f = self._f
         for name, idx in frame_pulse_index.items():
             self._cameras[name].series[Frames.PULSE_INDEX][...] = np.asarray(idx, dtype=np.int64)
@@ -170,10 +173,7 @@ class Finalizer:
         """Map every time with `plan` and mark the take complete (also after a crash)."""
         f = self._f
         for name, sink in self._events.items():
-            if isinstance(sink, EvtWordsSink):
-                self._finalize_evt_words(sink, plan.maps[name], plan.t_offset)
-            else:
-                self._finalize_events(sink, plan.maps[name], plan.t_offset)
+            sink.finalize_times(self, plan.maps[name], plan.t_offset)
             sink.group.attrs[Events.T_OFFSET_SOURCE] = plan.source
         for name, cam in self._cameras.items():
             dev = cam.series[Frames.T_EXPOSURE_START_DEVICE][...]
@@ -224,7 +224,7 @@ class Finalizer:
                 g.create_dataset(Sync.DROPPED_FRAMES, data=np.asarray(dev.dropped_frames, dtype=np.int64))
 
     # -- event times -------------------------------------------------------------------
-    def _finalize_evt_words(self, sink: EvtWordsSink, cmap: ClockMap, t_offset: int) -> None:
+    def finalize_words(self, sink: EvtWordsSink, cmap: ClockMap, t_offset: int) -> None:
         """Store the clock map and the take window beside the words (their times are not
         rewritten: readers apply them) and the exact count of events inside the window, for
         which only the blocks across the window's edges are decoded. Idempotent."""
@@ -254,7 +254,7 @@ class Finalizer:
         entry["stored_before"], entry["stored_after"] = int(before), int(after)
         attrs[Root.WINDOW_OUTSIDE] = json.dumps(outside, sort_keys=True)
 
-    def _finalize_events(self, sink: EventSink, cmap: ClockMap, t_offset: int) -> None:
+    def finalize_columns(self, sink: EventSink, cmap: ClockMap, t_offset: int) -> None:
         """Rewrite t as rig time - t_offset block by block and build ms_to_idx on the way.
 
         Events [0, t_rig_upto) are already rewritten (a resumed finalize): they are only read
@@ -376,13 +376,6 @@ class Finalizer:
         g.attrs.modify(Events.FINALIZE_UPTO, np.int64(hi))
         self._f.flush()
         return hi
-
-
-def _first_time(sink: EventSink | EvtWordsSink) -> NDArray[np.int64]:
-    """The first stored event's device time, as a one-element array."""
-    if isinstance(sink, EvtWordsSink):
-        return np.asarray([sink.first_t if sink.first_t is not None else 0], np.int64)
-    return np.asarray(sink.ds[Events.T][0:1], np.int64)
 
 
 def _ms_count(sink: EventSink, cmap: ClockMap, t_offset: int, upto: int) -> int:

@@ -46,7 +46,8 @@ from rigd.take.h5file import (
 )
 from rigd.take.recover_read import TakeData, read_take
 from rigd.take.repair import Trim, check_repair
-from rigd.take.seal import Bookkeeping, Seal, TakeEnd, fit_take, journal_losses, seal_take
+from rigd.take.resume import resume_take
+from rigd.take.seal import Bookkeeping, Seal, TakeEnd, fit_take, journal_losses, mark_recovered, seal_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -376,9 +377,9 @@ def _stamped(rr: RecoveryReport, status: str) -> str:
 def _resumed(path: Path, config: WriterConfig, trims: list[Trim] | None = None) -> Iterator[TakeWriter]:
     """The take reopened for sealing (closed afterwards); with `trims`, the repair it applies
     must be the one that was checked, else the take changed meanwhile."""
-    w = TakeWriter.resume(path, config, extend_truncated=True)
+    w = resume_take(path, config, extend_truncated=True)
     try:
-        if trims is not None and w.repairs != trims:
+        if trims is not None and w.state.repairs != trims:
             raise TakeError(f"{path}: the take changed while it was being recovered; run recovery again")
         yield w
     finally:
@@ -431,14 +432,11 @@ def _repair_only(path: Path, rr: RecoveryReport, trims: list[Trim], *, dry_run: 
         return rr
     with _resumed(path, WriterConfig(), trims) as w:
         rr.status_after = "failed"
-        for name, st in w.stats.items():
-            if st.kind == "rgb_camera":
-                rr.frames[name] = st.items
-            elif st.kind == "event_sensor":
-                rr.events[name] = st.items
-            else:
-                rr.pulses = st.items
-        w.mark_recovered(rr.model_dump_json())
+        state = w.state
+        rr.frames.update((name, cam.stats.items) for name, cam in state.cameras.items())
+        rr.events.update((name, store.stats.items) for name, store in state.stores.items())
+        rr.pulses = state.pulses.stats.items
+        mark_recovered(w, rr.model_dump_json())
     log.warning("%s", rr.line())
     return rr
 

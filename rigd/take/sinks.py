@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 import h5py
 import numpy as np
@@ -20,7 +20,7 @@ from numpy.typing import DTypeLike, NDArray
 
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
-from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.layout import (
     EVENT_DTYPES,
@@ -38,6 +38,10 @@ from rigd.core.layout import (
 from rigd.core.pixels import BAYER_PATTERNS, PIXEL_FORMATS, is_bayer, stored_pixel_format
 from rigd.take.h5file import append_rows, require_dataset, require_group, write_chunk
 from rigd.take.tails import choose_tail_slot, create_tail_slots, drop_tail_slots
+
+if TYPE_CHECKING:
+    from rigd.core.timebase import ClockMap
+    from rigd.take.finalize import Finalizer
 
 #: Frames are allocated in blocks of this many, so the images dataset is not resized per frame.
 _FRAME_BLOCK = 64
@@ -304,6 +308,34 @@ class EventSink(TriggerIn):
         drop_tail_slots(self.group)
         self.tail_ds = {}
         self.tail_meta[:] = 0
+
+    # -- the EventStore interface (rigd.take.event_store) -------------------------------
+    def append_packet(self, packet: EventPacket, path: Path) -> None:
+        """Store a packet's decoded events as columns, and its trigger edges."""
+        if packet.n_events:
+            self.add_events(packet.events, path)
+        self.add_triggers(packet.triggers, packet.host_time_ns)
+
+    def write_buffers(self, *, final: bool) -> None:
+        self.write_events(whole_chunks_only=not final)
+        if not final:
+            self.write_tail()
+        self.write_triggers()
+
+    def set_compress(self, on: bool) -> None:
+        """Columns are compressed by HDF5's filter on every chunk; there is nothing to switch."""
+
+    def first_time(self) -> int | None:
+        written = self.ds[Events.T].shape[0]
+        if written:
+            return int(self.ds[Events.T][0])
+        return int(self.parts[0].t[0]) if self.parts else None
+
+    def events_in_take(self) -> int:
+        return self.n_written
+
+    def finalize_times(self, finalizer: Finalizer, cmap: ClockMap, t_offset: int) -> None:
+        finalizer.finalize_columns(self, cmap, t_offset)
 
 
 @dataclass(slots=True)

@@ -29,6 +29,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take, validate_take
+from rigd.take.seal import finalize_take
 
 W, H = 96, 64
 
@@ -171,7 +172,7 @@ def write_rgb_take(path: Path, frames: list[np.ndarray], dt_us: int) -> None:
     for i, f in enumerate(frames):
         w.append_frame("cam1", Frame(np.dstack([f, f, f]), 1_000 + i * dt_us, 100, i, 0))
     report = SyncReport(rate_hz=0.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
-    w.finalize({"cam1": ClockMap.identity()}, {}, report)
+    finalize_take(w, {"cam1": ClockMap.identity()}, {}, report)
     w.close()
 
 

@@ -17,6 +17,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take
+from rigd.take.seal import finalize_take
 
 W, H = 32, 24
 T0, MID, T1 = 1_000_000, 1_500_000, 2_000_000
@@ -37,7 +38,7 @@ def write_take(path: Path) -> None:
     first = T0 + 3_500  # events before it: negative stored t, histogram bins before t_offset
     w.append_pulses(PulseBatch(np.zeros(1, np.int64), np.array([first]), np.zeros(1, np.int64)))
     report = SyncReport(rate_hz=30.0, n_pulses=1, t_first_pulse_us=first, t_last_pulse_us=first)
-    w.finalize({"ev0": ClockMap.identity()}, {}, report)
+    finalize_take(w, {"ev0": ClockMap.identity()}, {}, report)
     w.close()
 
 

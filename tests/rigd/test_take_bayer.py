@@ -18,6 +18,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take, validate_take
+from rigd.take.seal import finalize_take
 
 H, W, N = 24, 32, 4
 #: Left half orange, right half teal: flat colours a demosaic must restore away from the edge.
@@ -47,7 +48,7 @@ def _bayer_take(path: Path) -> Path:
     report = SyncReport(rate_hz=30.0, n_pulses=N, t_first_pulse_us=int(t[0]), t_last_pulse_us=int(t[-1]))
     identity = ClockMap(device_ref_us=0, rig_ref_us=0, rate=1.0, frac_us=0.0)
     index = np.arange(N, dtype=np.int64)
-    w.finalize({"cam0": identity, "mono": identity}, {"cam0": index, "mono": index}, report)
+    finalize_take(w, {"cam0": identity, "mono": identity}, {"cam0": index, "mono": index}, report)
     w.close()
     return path
 

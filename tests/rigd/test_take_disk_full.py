@@ -30,6 +30,7 @@ from rigd.app.config import RigConfig, default_sim_rig
 from rigd.core.devices import DeviceInfo
 from rigd.core.frames import Frame
 from rigd.core.settings import WriterConfig
+from rigd.take.seal import fail_take
 from rigd.take.writer import TakeWriter
 
 pytestmark = pytest.mark.slow
@@ -123,10 +124,10 @@ def _damaged_take(disk: Path) -> Path:
                 w.append_frame(f"cam{c}", Frame(img, 1000 * i, 100, i, i))
     # What an older writer's `fail` did: write its buffers, then flush, onto the full disk.
     with pytest.raises(OSError, match="No space left"):
-        w._write_all()
-    w._f.attrs["status"] = "failed"
+        w.state.write_all()
+    w.state.f.attrs["status"] = "failed"
     with pytest.raises(RuntimeError, match="Unable to flush"):
-        w._f.flush()
+        w.state.f.flush()
     with pytest.raises(OSError, match="No space left"):
         w.close()  # HDF5 cannot close it any more ("slist already enabled"): kept until exit
     return path
@@ -174,7 +175,7 @@ def test_a_writer_the_full_disk_refuses_leaves_the_take_as_last_flushed_and_clos
         for i in range(1, 1000):
             w.append_frame("cam0", Frame(img, 1000 * i, 100, i, i))
     with pytest.raises(OSError, match="No space left"):
-        w.fail("disk full")
+        fail_take(w, "disk full")
     with pytest.raises(OSError, match="No space left"):
         w.close()
     assert "could not be closed" not in caplog.text  # closed, its lock released

@@ -16,6 +16,7 @@ from rigd.app.testing.crash import OFF_CAM, OFF_EV, PERIOD, RIG0, open_writer, s
 from rigd.core.schema import SyncReport
 from rigd.core.timebase import ClockMap
 from rigd.take import Take, TakeWriter, find_unfinished, recover_take, validate_take
+from rigd.take.seal import finalize_take
 
 pytestmark = pytest.mark.slow
 
@@ -77,7 +78,7 @@ def test_finalize_with_empty_devices(
     report = SyncReport(
         rate_hz=1e6 / PERIOD, n_pulses=N if pulses else 0, t_first_pulse_us=first, t_last_pulse_us=last
     )
-    w.finalize(MAPS, {"cam0": np.arange(N if frames else 0, dtype=np.int64)}, report)
+    finalize_take(w, MAPS, {"cam0": np.arange(N if frames else 0, dtype=np.int64)}, report)
     w.close()
     _check_readable(path, frames, events)
     with Take(path) as take:

@@ -26,6 +26,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import EventSeries, Take, TakeWriter, open_take
+from rigd.take.seal import finalize_take
 
 W, H = 64, 48
 N = 30_000
@@ -77,7 +78,7 @@ def write(path: Path, storage: str = "columns", *, finalize: bool = True) -> Wri
         report = SyncReport(
             rate_hz=30.0, n_pulses=4, t_first_pulse_us=FIRST_PULSE, t_last_pulse_us=int(pulses[-1])
         )
-        w.finalize({"ev0": MAP, "ev1": MAP}, {}, report)
+        finalize_take(w, {"ev0": MAP, "ev1": MAP}, {}, report)
     w.close()
     return Written(path, MAP.to_rig(ev.t) if finalize else ev.t)
 

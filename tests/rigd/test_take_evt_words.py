@@ -26,6 +26,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take
+from rigd.take.seal import fail_take, finalize_take, set_window
 
 CMAP = ClockMap(device_ref_us=400_000, rig_ref_us=5_000_000, rate=0.999905, frac_us=-0.4)
 REPORT = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
@@ -52,9 +53,9 @@ def write(
         if i % flush_every == flush_every - 1:
             w.flush()
     if window != (None, None):
-        w.set_window(window[0], window[1], 0, {})
+        set_window(w, window[0], window[1], 0, {})
     if finalize:
-        w.finalize({"ev0": CMAP}, {}, REPORT)
+        finalize_take(w, {"ev0": CMAP}, {}, REPORT)
     w.close()
 
 
@@ -160,7 +161,7 @@ def test_words_stored_uncompressed_while_behind_read_the_same(tmp_path: Path) ->
         w.append_packet("ev0", p)
         if i % 5 == 4:
             w.flush()
-    w.finalize({"ev0": CMAP}, {}, REPORT)
+    finalize_take(w, {"ev0": CMAP}, {}, REPORT)
     w.close()
     with open_take(tmp_path / "u.h5") as take:
         assert_same(take.sensor("ev0").events(), rig(whole))
@@ -221,7 +222,7 @@ def test_refused_batch_mid_stream_leaves_no_bytes(
         w.append_packet("ev0", packets[2])
     for p in packets[6:]:
         w.append_packet("ev0", p)
-    w.finalize({"ev0": CMAP}, {}, REPORT)
+    finalize_take(w, {"ev0": CMAP}, {}, REPORT)
     w.close()
     with open_take(path) as take, h5py.File(path) as f:
         index = f["events/ev0/evt_index"][...]
@@ -247,6 +248,41 @@ def test_sensor_without_words_falls_back_to_columns(
         assert g.attrs["storage"] == "columns"
         assert "EVT words" in g.attrs["storage_note"]
         assert g["t"].shape == (1000,)
+
+
+def test_both_stores_answer_the_writer_alike(
+    tmp_path: Path, synthetic: tuple[EventArray, list[EventPacket]]
+) -> None:
+    """The writer asks a sensor's store, never its class: the same packets give the same
+    first time, counts and events in the take through either store, whichever class
+    `event_store` chose."""
+    ev, packets = synthetic
+    seen = {}
+    for storage in ("evt_words", "columns"):
+        cfg = WriterConfig(event_storage=storage, fsync=False)  # type: ignore[arg-type]
+        path = tmp_path / f"{storage}.h5"
+        w = TakeWriter(path, rig_config_json="{}", take_id="t", config=cfg, rigd_version="t")
+        w.add_event_sensor("ev0", DeviceInfo(kind="event_sensor", spec="s"), 640, 480, "{}", "evt3")
+        store = w.state.stores["ev0"]
+        assert store.first_time() is None
+        assert store.n_written == 0
+        for i, p in enumerate(packets):
+            # words: stored as they are while "behind", the last chunk too; columns: nothing to switch
+            w.compress_events(i < 5)
+            w.append_packet("ev0", p)
+        w.flush()
+        first = store.first_time()
+        if storage == "evt_words":
+            with pytest.raises(TakeError, match="'ev0' stores EVT words: use append_packet"):
+                w.append_events("ev0", ev[:10])
+        finalize_take(w, {"ev0": CMAP}, {}, REPORT)
+        seen[storage] = (type(store).__name__, first, store.n_written, w.events_in_take())
+        w.close()
+    assert seen["evt_words"][0] == "EvtWordsSink"
+    assert seen["columns"][0] == "EventSink"
+    assert seen["evt_words"][1:] == seen["columns"][1:] == (int(ev.t[0]), len(ev), {"ev0": len(ev)})
+    with open_take(tmp_path / "evt_words.h5") as words, open_take(tmp_path / "columns.h5") as cols:
+        assert_same(words.sensor("ev0").events(), cols.sensor("ev0").events())
 
 
 def test_re_tied_clock_shift_is_applied_on_read(
@@ -338,7 +374,7 @@ def test_what_a_full_disk_refused_is_stored_and_indexed_once_there_is_room(
     assert failed.value.errno == errno.ENOSPC
     assert isinstance(failed.value, WriteDeferredError) == (storage == "evt_words")
     ballast.unlink()
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     with open_take(path) as take:
         assert take.status == "failed"
@@ -380,7 +416,7 @@ def test_columns_a_full_disk_stopped_mid_flush_read_back_whole(
             if i % 3 == 2:
                 w.flush()
     ballast.unlink()
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     with open_take(path) as take:
         got = take.sensor("ev0").events()
@@ -421,7 +457,7 @@ def test_a_chunk_write_that_fails_leaves_the_take_to_be_marked_failed(
     monkeypatch.setattr(EvtWordsSink, "_write_chunk", written)
     assert kept.value.__traceback__ is not None  # held, as the capture holds its error
     assert 1 < appended < len(packets)
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     with open_take(path) as take:
         assert take.status == "failed"

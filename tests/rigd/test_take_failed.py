@@ -22,6 +22,7 @@ from rigd.app.testing.crash import (
 from rigd.core.errors import TakeFormatError
 from rigd.take import Take, find_unfinished, recover_take, validate_take
 from rigd.take.recover import needs_recovery
+from rigd.take.seal import fail_take
 
 
 def _failed(path: Path, n: int = 30, *, pulses: bool = True, events: bool = True) -> Path:
@@ -36,7 +37,7 @@ def _failed(path: Path, n: int = 30, *, pulses: bool = True, events: bool = True
                 w.append_pulses(s.pulse)
         if k % 10 == 9:
             w.flush(journal=journal(k))
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     return path
 

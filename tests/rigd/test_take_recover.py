@@ -50,6 +50,8 @@ from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import TriggerEvents
 from rigd.core.layout import Root
 from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
+from rigd.take.resume import resume_take
+from rigd.take.seal import continue_finalize, finalize_take
 
 ROOT = Path(__file__).parents[2]
 
@@ -222,8 +224,8 @@ def test_crash_mid_finalize_resumes_exactly(
     ref = _unfinished(tmp_path / "ref.h5")
     crash = tmp_path / "crash.h5"
     shutil.copy(ref, crash)
-    with TakeWriter.resume(ref, WRITER_CFG) as w:
-        w.finalize(MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
+    with resume_take(ref, WRITER_CFG) as w:
+        finalize_take(w, MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
     want = _finalized_arrays(ref)
 
     calls = {"n": 0}
@@ -235,21 +237,21 @@ def test_crash_mid_finalize_resumes_exactly(
                 raise SimulatedCrashError(f"{s} at {start}")
 
     monkeypatch.setattr(finalize_mod, "_crash_point", crash_at)
-    w = TakeWriter.resume(crash, WRITER_CFG)
+    w = resume_take(crash, WRITER_CFG)
     with pytest.raises(SimulatedCrashError):
-        w.finalize(MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
+        finalize_take(w, MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
     with pytest.raises(TakeError, match="no more data"):
         append_step(w, N_STEPS)
     w.close()  # flushes whatever was in memory: the worst case for double mapping
     monkeypatch.setattr(finalize_mod, "_crash_point", lambda *a: None)
     assert find_unfinished(tmp_path) == [crash]
     assert any("finalize was interrupted" in p for p in validate_take(crash))
-    with TakeWriter.resume(crash, WRITER_CFG) as w:
-        assert w.finalize_pending
-        assert w.repairs == []
+    with resume_take(crash, WRITER_CFG) as w:
+        assert w.state.finalize_pending
+        assert w.state.repairs == []
         with pytest.raises(TakeError, match="continue_finalize"):
-            w.finalize(MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
-        w.continue_finalize()
+            finalize_take(w, MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
+        continue_finalize(w)
         assert w.status == "complete"
     got = _finalized_arrays(crash)
     for key, arr in want.items():
@@ -264,8 +266,8 @@ def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
     ref = _unfinished(tmp_path / "ref.h5")
     crash = tmp_path / "crash.h5"
     shutil.copy(ref, crash)
-    with TakeWriter.resume(ref, WRITER_CFG) as w:
-        w.finalize(MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
+    with resume_take(ref, WRITER_CFG) as w:
+        finalize_take(w, MAPS, {"cam0": np.arange(N_STEPS)}, _report(N_STEPS))
     want = _finalized_arrays(ref)
     script = textwrap.dedent(
         f"""
@@ -273,7 +275,8 @@ def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
         import numpy as np
         from pathlib import Path
         import rigd.take.finalize as fm
-        import rigd.take.writer as wm
+        from rigd.take.resume import resume_take
+        from rigd.take.seal import finalize_take
         from rigd.app.testing.crash import MAPS, N_STEPS, WRITER_CFG, CHUNK, report as _report
         fm._FINALIZE_BLOCK = 2 * CHUNK
         seen = []
@@ -283,8 +286,8 @@ def test_sigkill_mid_finalize_then_recover(tmp_path: Path) -> None:
                 if len(seen) == 5:
                     os.kill(os.getpid(), signal.SIGKILL)
         fm._crash_point = kill
-        w = wm.TakeWriter.resume(Path({str(crash)!r}), WRITER_CFG)
-        w.finalize(MAPS, {{"cam0": np.arange(N_STEPS)}}, _report(N_STEPS))
+        w = resume_take(Path({str(crash)!r}), WRITER_CFG)
+        finalize_take(w, MAPS, {{"cam0": np.arange(N_STEPS)}}, _report(N_STEPS))
         """
     )
     proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, check=False)
@@ -322,8 +325,8 @@ def _as_schema_1_0(path: Path) -> None:
 
 def test_schema_1_0_takes_still_read_validate_and_recover(tmp_path: Path) -> None:
     done = _unfinished(tmp_path / "done.h5", n=30)
-    with TakeWriter.resume(done, WRITER_CFG) as w:
-        w.finalize(MAPS, {"cam0": np.arange(30)}, _report(30))
+    with resume_take(done, WRITER_CFG) as w:
+        finalize_take(w, MAPS, {"cam0": np.arange(30)}, _report(30))
     _as_schema_1_0(done)
     assert validate_take(done) == []
     with open_take(done) as take:
@@ -420,7 +423,7 @@ def test_locked_take_is_in_use_and_untouched(live_writer: Path) -> None:
     assert live_writer.read_bytes() == before
     assert find_unfinished(live_writer.parent) == [live_writer]
     with pytest.raises(TakeError, match="in use"):
-        TakeWriter.resume(live_writer, WRITER_CFG)
+        resume_take(live_writer, WRITER_CFG)
 
 
 def test_damaged_files_give_clear_errors(tmp_path: Path) -> None:

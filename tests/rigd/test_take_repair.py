@@ -33,7 +33,8 @@ from rigd.app.testing.crash import (
 )
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.frames import Frame
-from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
+from rigd.take import Take, find_unfinished, open_take, recover_take, validate_take
+from rigd.take.resume import resume_take
 
 ROOT = Path(__file__).parents[2]
 
@@ -109,8 +110,8 @@ def test_non_monotonic_tail_is_dropped(tmp_path: Path) -> None:
     with h5py.File(path, "r+") as f:
         t = f["events/ev0/t"]
         t[-50:] = 0  # a zero-filled tail chunk the flush did not finish
-    with TakeWriter.resume(path, WRITER_CFG) as w:
-        (trim,) = w.repairs
+    with resume_take(path, WRITER_CFG) as w:
+        (trim,) = w.state.repairs
         assert trim.hpath == "/events/ev0"
         assert trim.after == 20 * EV_PER_STEP - 50
         assert "decreases at index" in trim.reason
@@ -186,6 +187,7 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
         import os, resource, signal, sys
         from pathlib import Path
         from rigd.app.testing.crash import append_step, journal, open_writer
+        from rigd.take.seal import fail_take
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes past the limit fail with EFBIG
         w = open_writer(Path({str(path)!r}))
         resource.setrlimit(resource.RLIMIT_FSIZE, (2_000_000, 2_000_000))
@@ -200,7 +202,7 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
         except OSError as exc:
             print("E", exc.errno, flush=True)
         if {then!r} == "fail_and_close":
-            for call in (lambda: w.fail("disk full"), w.close):
+            for call in (lambda: fail_take(w, "disk full"), w.close):
                 try:
                     call()
                 except OSError as exc:
@@ -242,7 +244,7 @@ def test_disk_full_truncated_take_is_extended_and_sealed(tmp_path: Path, then: s
         # The header ran ahead of the data (a flush whose data writes failed after it): HDF5
         # refuses the file until recovery extends it.
         with pytest.raises(TakeFormatError, match=r"truncated by a failed write"):
-            TakeWriter.resume(path, WRITER_CFG)
+            resume_take(path, WRITER_CFG)
     # Else the failing write was the data's own (the writer keeps no chunk cache, so data goes
     # out at the call, before any flush refers to it): the file is as last flushed, whole.
     rr = recover_take(path)
@@ -273,8 +275,8 @@ def test_stale_chunk_tails_are_trimmed(tmp_path: Path) -> None:
         pulses = f["trigger/pulses"]
         for k in pulses:
             pulses[k].resize((32,))
-    with TakeWriter.resume(path, WRITER_CFG) as w:
-        by_path = {t.hpath: t for t in w.repairs}
+    with resume_take(path, WRITER_CFG) as w:
+        by_path = {t.hpath: t for t in w.state.repairs}
     assert {k: (t.after, t.lost) for k, t in by_path.items()} == {
         "/events/ev0/trigger": (60, 6),
         "/frames/cam0": (30, 3),
@@ -289,5 +291,5 @@ def test_stale_chunk_tails_are_trimmed(tmp_path: Path) -> None:
         w2.append_frame("cam0", Frame(s.frame.image, s.frame.t_exposure_start_us, 5000, k, 0))
         w2.append_pulses(s.pulse)
     w2.close()
-    with TakeWriter.resume(p2, WRITER_CFG) as w:
-        assert w.repairs == []
+    with resume_take(p2, WRITER_CFG) as w:
+        assert w.state.repairs == []

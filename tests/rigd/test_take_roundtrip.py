@@ -21,6 +21,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import TakeWriter, open_take, validate_take
+from rigd.take.seal import fail_take, finalize_take
 
 
 @pytest.fixture(scope="module")
@@ -248,7 +249,7 @@ def test_fail_marks_take_failed_and_keeps_data(tmp_path: Path) -> None:
     w = _writer(tmp_path / "f.h5")
     ev = make_events(500, 1000)
     w.append_events("ev0", ev)
-    w.fail("disk on fire")
+    fail_take(w, "disk on fire")
     w.close()
     with open_take(tmp_path / "f.h5") as take:
         assert take.status == "failed"
@@ -261,8 +262,8 @@ def test_finalize_needs_every_clock_map(tmp_path: Path) -> None:
     w.append_events("ev0", make_events(10, 1000))
     report = SyncReport(rate_hz=30.0, n_pulses=0, t_first_pulse_us=None, t_last_pulse_us=None)
     with pytest.raises(TakeError, match="no clock map for device 'ev0'"):
-        w.finalize({}, {}, report)
-    w.finalize({"ev0": ClockMap(0, 7, 1.0)}, {}, report)  # nothing was changed by the refusal
+        finalize_take(w, {}, {}, report)
+    finalize_take(w, {"ev0": ClockMap(0, 7, 1.0)}, {}, report)  # nothing was changed by the refusal
     w.close()
     with open_take(tmp_path / "m.h5") as take:
         # No pulse in the report: t_offset is the first event.

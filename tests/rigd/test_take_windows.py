@@ -18,6 +18,7 @@ from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.take import Take, TakeWriter, open_take
+from rigd.take.seal import finalize_take
 
 W, H = 96, 64
 N_EVENTS = 600_000
@@ -56,7 +57,7 @@ def write(path: Path, chunk: int) -> Written:
     first_pulse = int(rig[N_EVENTS // 3])  # events before it get negative stored t
     w.append_pulses(PulseBatch(np.zeros(1, np.int64), np.array([first_pulse]), np.zeros(1, np.int64)))
     report = SyncReport(rate_hz=30.0, n_pulses=1, t_first_pulse_us=first_pulse, t_last_pulse_us=first_pulse)
-    w.finalize({"ev0": MAP}, {}, report)
+    finalize_take(w, {"ev0": MAP}, {}, report)
     w.close()
     return Written(path, chunk, rig)
 

@@ -20,7 +20,7 @@ from typing import ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 
-from rigd.core.devices import DataKind
+from rigd.core.devices import SensorKind
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
 from rigd.sync import DeviceObservations, PulseLog, host_to_rig_map, match_device
@@ -51,7 +51,7 @@ class Offset:
 class HeldItems(Protocol[ItemT]):
     """What re-tying asks of a device kind's items (`reading.Reading` is one)."""
 
-    kind: ClassVar[DataKind]
+    kind: ClassVar[SensorKind]
 
     def count(self, item: ItemT) -> int: ...
     def observations(self, item: ItemT) -> list[int]: ...
@@ -74,7 +74,7 @@ class ClockReset(Generic[ItemT]):
     post_host: list[int] = field(default_factory=list)
 
     @property
-    def kind(self) -> DataKind:
+    def kind(self) -> SensorKind:
         return self.items.kind
 
     def hold(self, item: ItemT) -> None:

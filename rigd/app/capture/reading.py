@@ -23,7 +23,7 @@ from rigd.app.capture.items import EventsItem, FrameItem
 from rigd.app.capture.live import HostAnchors
 from rigd.app.capture.streams import DeviceStream
 from rigd.app.capture.window import TakeWindow
-from rigd.core.devices import DataKind
+from rigd.core.devices import SensorKind
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
@@ -37,7 +37,7 @@ ItemT = TypeVar("ItemT", Frame, EventPacket)
 class Reading(ABC, Generic[DevT, ItemT]):
     """One device kind's side of the acquisition loop (its settings are the config entry's)."""
 
-    kind: ClassVar[DataKind]
+    kind: ClassVar[SensorKind]
     what: ClassVar[LossKind]
     #: Where the device stops at the end of a take relative to the others (lower first): event
     #: sensors first, whose backlog is the longest to read.
@@ -122,7 +122,7 @@ class Reading(ABC, Generic[DevT, ItemT]):
 class CameraReading(Reading[RgbCamera, Frame]):
     """An RGB camera: one frame per read, its exposure start the trigger observation."""
 
-    kind: ClassVar[DataKind] = "rgb_camera"
+    kind: ClassVar[SensorKind] = "rgb_camera"
     what: ClassVar[LossKind] = "frames"
     stop_order: ClassVar[int] = 1
 
@@ -182,7 +182,7 @@ class EventReading(Reading[EventSensor, EventPacket]):
     """An event sensor: packets of events and trigger-in edges, read at most once per
     `read_interval_ms`; its rising edges on its trigger input are its trigger observations."""
 
-    kind: ClassVar[DataKind] = "event_sensor"
+    kind: ClassVar[SensorKind] = "event_sensor"
     what: ClassVar[LossKind] = "events"
     stop_order: ClassVar[int] = 0
 

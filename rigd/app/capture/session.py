@@ -40,6 +40,7 @@ from rigd.app.config import RigConfig
 from rigd.core.errors import RigdError, TakeError
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame
+from rigd.take.seal import fail_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -509,7 +510,7 @@ class CaptureSession:
             # Everything written so far stays in the file, marked failed with the reason
             # (after a full disk, in the room the released ballast made).
             try:
-                self._take.fail(" ".join(f"{type(exc).__name__}: {exc}".split()))  # one line
+                fail_take(self._take, " ".join(f"{type(exc).__name__}: {exc}".split()))  # one line
             except (OSError, TakeError) as fail_exc:
                 log.error("could not mark take %s failed: %s", self.path, fail_exc)
         if self._control_thread is None or threading.current_thread() is not self._control_thread:

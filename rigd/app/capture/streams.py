@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem
 from rigd.app.capture.live import LiveStats, Observations
-from rigd.core.devices import DataKind
+from rigd.core.devices import SensorKind
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
 from rigd.core.schema import LossKind
@@ -65,7 +65,7 @@ class TriggerStream(Stream[PulsesItem]):
 class DeviceStream(Stream[ItemT]):
     """A camera or an event sensor: observed for the sync engine."""
 
-    kind: ClassVar[DataKind]
+    kind: ClassVar[SensorKind]
     #: After the last pulse, how many trigger periods of data past it the device owes before
     #: it counts as drained.
     drain_periods: ClassVar[int]
@@ -110,7 +110,7 @@ class CameraStream(DeviceStream[FrameItem]):
     """An RGB camera: one frame per item, one trigger observation (its exposure) per frame."""
 
     what: ClassVar[LossKind] = "frames"
-    kind: ClassVar[DataKind] = "rgb_camera"
+    kind: ClassVar[SensorKind] = "rgb_camera"
     drain_periods: ClassVar[int] = 0
     frame_counters: ClassVar[bool] = True
 
@@ -132,7 +132,7 @@ class EventStream(DeviceStream[EventsItem]):
     trigger-in channel are its trigger observations."""
 
     what: ClassVar[LossKind] = "events"
-    kind: ClassVar[DataKind] = "event_sensor"
+    kind: ClassVar[SensorKind] = "event_sensor"
     drain_periods: ClassVar[int] = 2
 
     def write(self, writer: TakeWriter, item: EventsItem) -> None:

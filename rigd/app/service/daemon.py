@@ -6,6 +6,8 @@ most one `CaptureSession` runs in the background. Opening the devices for a take
 seconds on real hardware, enumerating cameras too, and sealing big takes minutes, so those
 run on worker threads whose replies are sent when they are done: meanwhile the control loop
 keeps answering (`status` says `starting`, `stop` is queued) and feeding the systemd watchdog.
+What each command does is `rigd.app.service.handlers`'; who has the rig (the take, a recovery,
+a holder) and what the last take left is `rigd.app.service.rig_slot`'s. This module serves.
 
 Every request gets a reply: malformed input is answered with a structured error, and a bug
 in a handler is logged and answered as `internal` while the daemon goes on serving.
@@ -17,9 +19,7 @@ exits non-zero, and systemd restarts it).
 
 from __future__ import annotations
 
-import ctypes
 import functools
-import gc
 import logging
 import os
 import shutil
@@ -31,10 +31,9 @@ from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
 import zmq
-from pydantic import BaseModel
 
 from rigd import __version__
 from rigd.app.capture import CaptureSession, SessionSnapshot, remove_stale_ballast
@@ -42,17 +41,11 @@ from rigd.app.config import RigConfig
 from rigd.app.service import sdnotify
 from rigd.app.service.client import find_daemon
 from rigd.app.service.endpoints import DaemonRunningError, apply_server_curve, bind, start_authenticator
+from rigd.app.service.handlers import Handlers
 from rigd.app.service.metrics import MetricsExporter
 from rigd.app.service.protocol import (
-    PROTOCOL_VERSION,
-    CaptureArgs,
-    DaemonState,
     DeviceTelemetry,
-    Fault,
     Reply,
-    ShutdownArgs,
-    StopArgs,
-    TakeSummary,
     Telemetry,
     ThumbnailHeader,
 )
@@ -64,10 +57,11 @@ from rigd.app.service.requests import (
     split_envelope,
     validate_request,
 )
+from rigd.app.service.rig_slot import RigSlot, by_kind, fault
 from rigd.app.service.thumbnails import events_thumbnail, frame_thumbnail
 from rigd.app.service.workers import WorkerPool
-from rigd.core.errors import ConfigError, RigdError, TakeError
-from rigd.take.verdict import take_verdict
+from rigd.core.devices import DeviceKind
+from rigd.core.errors import ConfigError, RigdError
 
 log = logging.getLogger(__name__)
 
@@ -131,13 +125,11 @@ class Daemon:
         self.config = config
         self._attachments = list(attachments)
         self.svc = config.service
-        self._lock = threading.RLock()
-        self._session: CaptureSession | None = None
-        self._state: DaemonState = "idle"
-        self._last_take: TakeSummary | None = None
-        self._takes_completed = 0
+        self.rig = RigSlot(config)
+        """Who has the rig (a take, a recovery, a holder) and what the last take left."""
         self._seq = 0
         self._stop = threading.Event()
+        self._handlers = Handlers(config, self.rig, telemetry=self.telemetry, stop=self._stop)
         self._ready = threading.Event()
         self._ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
         self._auth: Any = None
@@ -146,14 +138,10 @@ class Daemon:
             if (metrics and self.svc.metrics_port is not None)
             else None
         )
-        self.recovered: list[dict[str, Any]] = []
         self._loop_beat = time.monotonic()
-        self._idle_faults: list[Fault] = []
         self._workers: list[threading.Thread] = []
         self._pool = WorkerPool(POOL_WORKERS, POOL_QUEUE, _POOL_THREAD)
         self._refused = 0  # requests refused busy since the pool last took one
-        self._recovering = False
-        self._holder: str | None = None  # who holds the devices outside a take (see hold_devices)
         self._disk_error: str | None = None
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -171,7 +159,7 @@ class Daemon:
         if n := remove_stale_ballast(self.svc.take_dir):
             log.warning("removed %d disk ballast file(s) a killed daemon left in %s", n, self.svc.take_dir)
         if self.svc.recover_on_start:
-            self._recover()
+            self.rig.recover()
         rep = self._ctx.socket(zmq.ROUTER)
         pub = self._ctx.socket(zmq.PUB)
         for sock in (rep, pub):
@@ -208,10 +196,10 @@ class Daemon:
                 # exit non-zero (the cause is logged with its traceback).
                 log.critical("control loop failed; finalizing the running take and exiting", exc_info=exc)
                 sdnotify.notify("STOPPING=1", "STATUS=control loop failed; finalizing the take")
-                self._finish_session(f"control loop failed: {type(exc).__name__}")
+                self.rig.finish(f"control loop failed: {type(exc).__name__}")
                 raise ControlPlaneError(f"the control loop failed ({type(exc).__name__}: {exc})") from exc
             sdnotify.notify("STOPPING=1", "STATUS=stopping")
-            self._finish_session("daemon shutting down")
+            self.rig.finish("daemon shutting down")
         finally:
             # Also when a bind or an attachment failed: the telemetry thread must not outlive its
             # socket (it would log a failed tick every second for the rest of the process).
@@ -236,25 +224,22 @@ class Daemon:
     def metrics_url(self) -> str | None:
         return None if self._metrics is None else self._metrics.url
 
+    @property
+    def recovered(self) -> list[dict[str, Any]]:
+        """What recovery sealed or could not read (at start and on `recover`), oldest first."""
+        return self.rig.recovered
+
     def current_session(self) -> CaptureSession | None:
         """The running take's session (for live previews), or None."""
-        with self._lock:
-            return self._session
+        return self.rig.current_session()
 
     def hold_devices(self, holder: str) -> None:
         """Keep takes from starting while something else (a guided calibration) uses the devices;
         `busy` when a take runs or another holder has them. `release_devices` gives them back."""
-        self._reap()
-        with self._lock:
-            if self._session is not None:
-                raise RequestError("busy", f"a take is running: {self._session.path}")
-            if self._holder is not None:
-                raise RequestError("busy", f"the devices are held by {self._holder}")
-            self._holder = holder
+        self.rig.hold_devices(holder)
 
     def release_devices(self) -> None:
-        with self._lock:
-            self._holder = None
+        self.rig.release_devices()
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         return self._ready.wait(timeout)
@@ -269,40 +254,6 @@ class Daemon:
 
         signal.signal(signal.SIGTERM, handler)
         signal.signal(signal.SIGINT, handler)
-
-    def _recover(self) -> None:
-        """Seal unfinished takes in take_dir. A file that cannot be read is reported and moved
-        to take_dir/unreadable/ (kept); it never stops the daemon from starting and serving."""
-        from rigd.take.recover_dir import log_problems, recover_dir
-
-        def sealing(path: Path) -> None:
-            log.warning("take %s was left unfinished; checking and sealing it", path)
-            sdnotify.notify(f"STATUS=sealing {path.name}", "EXTEND_TIMEOUT_USEC=120000000")
-
-        try:
-            results = recover_dir(self.svc.take_dir, move_unreadable=True, before_each=sealing)
-        except TakeError as exc:  # the directory itself cannot be listed
-            log.error("recovery skipped: %s", exc)
-            self.recovered.append({"path": str(self.svc.take_dir), "error": str(exc)})
-            return
-        log_problems(results)
-        self.recovered.extend(r.model_dump(mode="json") for r in results)
-
-    def _finish_session(self, reason: str) -> None:
-        with self._lock:
-            session = self._session
-        if session is None:
-            return
-        if not session.done:
-            sdnotify.notify("STATUS=finalizing the running take", "EXTEND_TIMEOUT_USEC=120000000")
-            # The daemon is going away (a signal, a shutdown, a dead control loop): the stop's waits
-            # end at writer.stop_backlog_s of wall-clock time, on virtual time too.
-            session.request_stop(reason, hurry=True)
-        try:
-            session.wait()
-        except BaseException as exc:  # noqa: BLE001 - summarized into last_take
-            log.error("take %s ended with an error: %s", session.path, exc)
-        self._reap()
 
     # -- control socket ------------------------------------------------------------------
     def _serve_loop(self, sock: zmq.Socket[bytes]) -> None:
@@ -405,13 +356,13 @@ class Daemon:
             req_id = rid if isinstance(rid, str) and len(rid) <= 64 else None
             cmd, args = validate_request(data)
             if defer is not None and cmd in _SLOW_COMMANDS:
-                job = self._claim(cmd, args)  # quick checks here; `busy` is answered at once
+                job = self._handlers.claim(cmd, args)  # quick checks here; `busy` is answered at once
                 deferred_id = req_id
                 defer(cmd, lambda: self._answer(deferred_id, job))  # capture/recover: never busy here
                 return None
         except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
             return reply_bytes(Reply(id=req_id, ok=False, error=error_info(exc)))
-        return self._answer(req_id, lambda: getattr(self, f"_cmd_{cmd}")(args))
+        return self._answer(req_id, functools.partial(self._handlers.run, cmd, args))
 
     @staticmethod
     def _answer(req_id: str | None, fn: Callable[[], dict[str, Any]]) -> bytes:
@@ -422,167 +373,16 @@ class Daemon:
             out = Reply(id=req_id, ok=False, error=error_info(exc))
         return reply_bytes(out)
 
-    # -- commands ------------------------------------------------------------------------
-    def _cmd_ping(self, _: BaseModel) -> dict[str, Any]:
-        return {"rigd": __version__, "protocol": PROTOCOL_VERSION, "pid": os.getpid(), "state": self._state}
-
-    def _cmd_status(self, _: BaseModel) -> dict[str, Any]:
-        return self.telemetry().model_dump(mode="json")
-
-    def _cmd_config(self, _: BaseModel) -> dict[str, Any]:
-        return self.config.model_dump(mode="json")
-
-    def _cmd_capture(self, args: BaseModel) -> dict[str, Any]:
-        assert isinstance(args, CaptureArgs)
-        return self._start_capture(self._begin_capture(args), args)
-
-    def _begin_capture(self, args: CaptureArgs) -> CaptureSession:
-        """Claim the rig for a new take (quick; `busy` if one runs)."""
-        self._reap()
-        with self._lock:
-            if self._session is not None:
-                raise RequestError("busy", f"a take is already running: {self._session.path}")
-            if self._recovering:
-                raise RequestError("busy", "unfinished takes are being recovered; try again when done")
-            if self._holder is not None:
-                raise RequestError("busy", f"the devices are held by {self._holder}; try again when done")
-            session = CaptureSession(
-                self.config,
-                self.svc.take_dir,
-                duration_s=args.duration_s,
-                label=args.label,
-                reconnect_interval_s=self.svc.reconnect_interval_s,
-            )
-            self._session = session
-            self._state = "starting"
-        return session
-
-    def _start_capture(self, session: CaptureSession, args: CaptureArgs) -> dict[str, Any]:
-        """Open the devices and start the trigger (slow on real hardware)."""
-        try:
-            path = session.start()
-        except BaseException:
-            self._reap()
-            raise
-        with self._lock:
-            if self._state == "starting":
-                self._state = "capturing"
-        log.info("take %s started (%s)", path, f"{args.duration_s} s" if args.duration_s else "until stopped")
-        return {"take": str(path), "pulses_total": session.n_pulses}
-
-    def _cmd_stop(self, args: BaseModel) -> dict[str, Any]:
-        assert isinstance(args, StopArgs)
-        self._reap()
-        with self._lock:
-            session = self._session
-            if session is None:
-                raise RequestError("not_capturing", "no take is running")
-            self._state = "stopping"
-        session.request_stop(args.reason)
-        return {"take": str(session.path), "stopping": True}
-
-    def _cmd_devices(self, _: BaseModel) -> dict[str, Any]:
-        from drivers.discovery import discover
-
-        return discover().to_dict()
-
-    def _cmd_recover(self, args: BaseModel) -> dict[str, Any]:
-        return self._claim("recover", args)()
-
-    def _claim(self, cmd: str, args: BaseModel) -> Callable[[], dict[str, Any]]:
-        """For a slow command: what must be decided before the next request (who owns the rig),
-        and the rest as a job for a worker thread."""
-        if cmd == "capture":
-            assert isinstance(args, CaptureArgs)
-            session = self._begin_capture(args)
-            return functools.partial(self._start_capture, session, args)
-        if cmd == "recover":
-            with self._lock:
-                if self._session is not None:
-                    raise RequestError("busy", "not while a take is running")
-                if self._recovering:
-                    raise RequestError("busy", "a recovery is already running")
-                self._recovering = True
-            return self._run_recover
-        return functools.partial(getattr(self, f"_cmd_{cmd}"), args)
-
-    def _run_recover(self) -> dict[str, Any]:
-        try:
-            before = len(self.recovered)
-            self._recover()
-            return {"recovered": self.recovered[before:]}
-        finally:
-            with self._lock:
-                self._recovering = False
-
-    def _cmd_shutdown(self, args: BaseModel) -> dict[str, Any]:
-        assert isinstance(args, ShutdownArgs)
-        with self._lock:
-            running = self._session is not None and not self._session.done
-        if running and not args.force:
-            raise RequestError(
-                "busy", "a take is running; stop it first or pass force=true (it is finalized)"
-            )
-        self._stop.set()
-        return {"shutting_down": True}
-
-    # -- session bookkeeping ---------------------------------------------------------------
-    def _reap(self) -> None:
-        """Turn a finished session into `last_take` and go back to idle."""
-        with self._lock:
-            session = self._session
-            if session is None or not session.done:
-                return
-            self._session = None
-            self._state = "idle"
-            self._takes_completed += 1
-            snap = session.snapshot()
-            err = session.error
-            res = session.result
-            if res is not None:
-                rep = res.report
-                verdict = take_verdict("complete", rep, res.frames, res.events)
-                self._last_take = TakeSummary(
-                    path=str(res.path),
-                    status="complete",
-                    verdict=verdict.verdict,
-                    verdict_reasons=verdict.reasons,
-                    frames=res.frames,
-                    events=res.events,
-                    bytes_written=res.bytes_written,
-                    losses=rep.losses,
-                    warnings=rep.warnings,
-                    residual_rms_us={k: d.residual_rms_us for k, d in rep.devices.items()},
-                    end_reason=res.end_reason or None,
-                )
-            else:
-                self._last_take = TakeSummary(
-                    path=str(session.path),
-                    status="failed",
-                    verdict="failed",
-                    verdict_reasons=[f"{type(err).__name__}: {err}" if err else "unknown"],
-                    frames={d.name: d.total for d in snap.devices if d.kind == "rgb_camera"},
-                    events={d.name: d.total for d in snap.devices if d.kind == "event_sensor"},
-                    bytes_written=snap.bytes_written,
-                    losses=[],
-                    warnings=[],
-                    residual_rms_us={},
-                    error=f"{type(err).__name__}: {err}" if err else "unknown",
-                )
-            # Faults that outlive the take (a full disk) stay visible until the next one.
-            self._idle_faults = [_fault(f) for f in snap.faults if f.code in ("disk_full", "disk_low")]
-        log.info("take %s: %s", self._last_take.path, self._last_take.status)
-        _release_memory()
-
     # -- telemetry -------------------------------------------------------------------------
     def telemetry(self) -> Telemetry:
-        self._reap()
-        with self._lock:
-            session = self._session
+        rig = self.rig
+        rig.reap()
+        with rig.lock:
+            session = rig.session
             self._seq += 1
             seq = self._seq
-            state = self._state
-            last, completed, idle_faults = self._last_take, self._takes_completed, list(self._idle_faults)
+            state = rig.state
+            last, completed, idle_faults = rig.last_take, rig.takes_completed, list(rig.idle_faults)
         try:
             usage = shutil.disk_usage(self.svc.take_dir)
             free, total = usage.free, usage.total
@@ -611,7 +411,7 @@ class Daemon:
         return self._with_session(t, snap)
 
     def _idle_devices(self) -> list[DeviceTelemetry]:
-        kinds: list[tuple[str, Literal["rgb_camera", "event_sensor", "trigger"]]] = [("trigger", "trigger")]
+        kinds: list[tuple[str, DeviceKind]] = [("trigger", "trigger")]
         kinds += [(c.name, "rgb_camera") for c in self.config.cameras]
         kinds += [(s.name, "event_sensor") for s in self.config.event_sensors]
         return [
@@ -628,7 +428,7 @@ class Daemon:
         t.queue_bytes = snap.queue_bytes
         t.queue_max_bytes = snap.queue_max_bytes
         t.writer_busy = snap.writer_busy
-        events_hz = sum(d.rate_hz for d in snap.devices if d.kind == "event_sensor")
+        events_hz = sum(by_kind(snap.devices, lambda d: d.rate_hz).get("event_sensor", {}).values())
         t.event_capacity_hz = (
             events_hz / snap.writer_busy if snap.writer_busy >= MIN_BUSY_FOR_CAPACITY else None
         )
@@ -636,7 +436,7 @@ class Daemon:
         t.last_flush_age_s = snap.last_flush_age_s
         t.flush_max_s = snap.flush_max_s
         t.devices = [DeviceTelemetry.model_validate(asdict(d)) for d in snap.devices]
-        t.faults = [_fault(f) for f in snap.faults]
+        t.faults = [fault(f) for f in snap.faults]
         return t
 
     def _telemetry_loop(self, pub: zmq.Socket[bytes]) -> None:
@@ -649,7 +449,7 @@ class Daemon:
             now = time.monotonic()
             if watchdog is not None and self._control_alive(now, watchdog):
                 # Pinged only while the control loop turns: a hung daemon gets restarted.
-                sdnotify.notify("WATCHDOG=1", f"STATUS={self._state}")
+                sdnotify.notify("WATCHDOG=1", f"STATUS={self.rig.state}")
             if now < next_status:
                 continue
             next_status = now + interval
@@ -676,8 +476,7 @@ class Daemon:
         return now - self._loop_beat < 2 * watchdog_s
 
     def _publish_thumbnails(self, pub: zmq.Socket[bytes]) -> None:
-        with self._lock:
-            session = self._session
+        session = self.rig.current_session()
         if session is None:
             return
         width = self.svc.thumbnail_width
@@ -689,25 +488,6 @@ class Daemon:
             jpeg, w, h = events_thumbnail(events, geometry, width)
             head = ThumbnailHeader(device=name, kind="event_sensor", width=w, height=h, time_utc=_utc())
             pub.send_multipart([f"thumb.{name}".encode(), head.model_dump_json().encode(), jpeg])
-
-
-def _release_memory() -> None:
-    """Give the heap a take's buffers used back to the OS between takes.
-
-    Frames and event batches are allocated on several acquisition threads; glibc keeps
-    freed memory in per-thread arenas, so without this the daemon's resident size ratchets
-    up with every take although nothing is alive (measured with bench/soak.py)."""
-    gc.collect()
-    try:
-        libc = ctypes.CDLL(None)
-        trim = libc.malloc_trim
-    except (OSError, AttributeError):  # not glibc: nothing to do
-        return
-    trim(0)
-
-
-def _fault(f: Any) -> Fault:
-    return Fault(code=f.code, device=f.device, message=f.message, since_utc=f.since_utc)
 
 
 def run_daemon(config: RigConfig, attachments: Sequence[Attachment] = ()) -> None:

@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from rigd.core.devices import DataKind
+from rigd.core.devices import DeviceKind, SensorKind
 from rigd.core.fault_codes import FaultCode
 from rigd.core.schema import LossRecord
 
@@ -127,7 +127,7 @@ class Fault(_Strict):
 
 class DeviceTelemetry(_Strict):
     name: str
-    kind: Literal["rgb_camera", "event_sensor", "trigger"]
+    kind: DeviceKind
     state: Literal["ok", "failed", "reconnecting", "idle"]
     total: int = Field(description="Frames, events or pulse records written this take.")
     rate_hz: float = Field(description="Frames, events or pulses per second over the last interval.")
@@ -200,7 +200,7 @@ class ThumbnailHeader(_Strict):
 
     v: int = PROTOCOL_VERSION
     device: str
-    kind: DataKind
+    kind: SensorKind
     width: int
     height: int
     time_utc: str

@@ -17,6 +17,7 @@ from rigd.app.testing.crash import append_step, open_writer, step
 from rigd.core.errors import TakeFormatError
 from rigd.products.inspect import event_image, summarize, write_thumbnails
 from rigd.take import Take, recover_take
+from rigd.take.seal import fail_take
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +102,7 @@ def test_inspect_exit_codes_by_status(take_path: Path, tmp_path: Path) -> None:
     w = open_writer(failed)
     for k in range(5):
         append_step(w, k)
-    w.fail("disk full")
+    fail_take(w, "disk full")
     w.close()
     code, text = _inspect(failed)
     assert code == 1
@@ -109,7 +110,7 @@ def test_inspect_exit_codes_by_status(take_path: Path, tmp_path: Path) -> None:
     sealed_failed = tmp_path / "nopulse.h5"
     w = open_writer(sealed_failed)
     w.append_frame("cam0", step(0).frame)
-    w.fail("camera fault")
+    fail_take(w, "camera fault")
     w.close()
     assert recover_take(sealed_failed).outcome == "sealed_failed"
     code, text = _inspect(sealed_failed)

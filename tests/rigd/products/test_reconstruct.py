@@ -39,6 +39,7 @@ from rigd.products.reconstruct import (
 from rigd.products.reconstruct_tasks import FilterKnobs
 from rigd.take import TakeWriter
 from rigd.take.reader import Take
+from rigd.take.seal import finalize_take
 
 pytestmark = pytest.mark.slow
 
@@ -90,7 +91,7 @@ def write_take(path: Path, events: dict[str, EventArray], span_us: int, *, block
     w.append_pulses(PulseBatch(np.arange(n, dtype=np.int64), frame_t, np.arange(n, dtype=np.int64)))
     maps = {d: ClockMap(0, 0) for d in ["cam0", *events]}
     report = SyncReport(rate_hz=30.0, n_pulses=n, t_first_pulse_us=0, t_last_pulse_us=int(frame_t[-1]))
-    w.finalize(maps, {"cam0": np.arange(n, dtype=np.int64)}, report)
+    finalize_take(w, maps, {"cam0": np.arange(n, dtype=np.int64)}, report)
     w.close()
     return path
 

@@ -404,7 +404,7 @@ def test_recover_runs_off_the_control_loop(start_daemon: Any, monkeypatch: pytes
         time.sleep(1.5)
         rd.daemon.recovered.append({"path": "sealed.h5"})
 
-    monkeypatch.setattr(rd.daemon, "_recover", slow_recover)
+    monkeypatch.setattr(rd.daemon.rig, "recover", slow_recover)
     result: dict[str, Any] = {}
 
     def recover() -> None:

@@ -9,7 +9,7 @@ import re
 from pathlib import Path
 
 from rigd.app.capture.faults import FaultBoard
-from rigd.app.service.daemon import _fault
+from rigd.app.service.rig_slot import fault
 from rigd.core.fault_codes import FAULT_CODES
 
 DASHBOARD = Path(__file__).resolve().parents[4] / "rigd" / "app" / "console" / "static" / "dashboard.js"
@@ -19,7 +19,7 @@ def test_every_fault_code_goes_through_the_protocol() -> None:
     board = FaultBoard()
     for code in FAULT_CODES:
         board.set(code, "ev0", f"{code} now")  # type: ignore[arg-type]
-    faults = [_fault(f) for f in board.active()]
+    faults = [fault(f) for f in board.active()]
     assert sorted(f.code for f in faults) == sorted(FAULT_CODES)
     assert "overload" in FAULT_CODES
 
