@@ -34,8 +34,7 @@ from rigd.core.layout import (
     TriggerEdges,
 )
 from rigd.core.timebase import ClockMap
-from rigd.take.evt_read import EvtWordsEvents
-from rigd.take.evt_sink import is_evt_words
+from rigd.take.evt_read import EvtWordsEvents, is_evt_words
 from rigd.take.guard import format_errors
 from rigd.take.h5file import attr_text
 from rigd.take.tails import tail_rows

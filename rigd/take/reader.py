@@ -50,7 +50,7 @@ from rigd.core.layout import (
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, decode_journal, has_item
 from rigd.take.calibration import read_board_pose, read_calibration
 from rigd.take.event_series import EventSeries
-from rigd.take.evt_sink import is_evt_words
+from rigd.take.evt_read import is_evt_words
 from rigd.take.frame_series import FrameSeries
 from rigd.take.guard import DAMAGE_ERRORS, as_format_error, format_errors
 from rigd.take.h5file import attr_text, open_checked
