@@ -95,7 +95,7 @@ def test_repair_trims_and_reports_everything(tmp_path: Path) -> None:
     with Take(path) as take:
         assert take.sensor("ev0").count == 40 * EV_PER_STEP
         assert len(take.sensor("ev0").triggers) == 77
-        assert len(take.frames("cam0")) == 40
+        assert len(take.camera("cam0")) == 40
         report = take.sync_report
         assert report is not None
         assert (
