@@ -35,7 +35,7 @@ from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.frames import Frame
 from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
 
-ROOT = Path(__file__).parents[2]
+ROOT = Path(__file__).parents[3]
 
 
 # -- repair ----------------------------------------------------------------------------------

@@ -51,7 +51,7 @@ from rigd.core.events import TriggerEvents
 from rigd.core.layout import Root
 from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take, validate_take
 
-ROOT = Path(__file__).parents[2]
+ROOT = Path(__file__).parents[3]
 
 
 def _kill_script(path: Path, kill_at_append: int | None = None) -> str:
