@@ -109,9 +109,9 @@ def take_counts(path: Path) -> tuple[dict[str, int], dict[str, int], int]:
     every camera together."""
     with Take(path) as take:
         return (
-            {c: len(take.frames(c)) for c in take.cameras},
+            {c: len(take.camera(c)) for c in take.cameras},
             {s: take.sensor(s).count for s in take.event_sensors},
-            sum(int(np.prod(take.frames(c, demosaic=False).stored_shape)) for c in take.cameras),
+            sum(int(np.prod(take.camera(c, demosaic=False).stored_shape)) for c in take.cameras),
         )
 
 

@@ -251,7 +251,7 @@ def micro_benchmarks(
         n = min(n_events, take.sensor(sensor).count)
         read_times = timed(lambda: take.sensor(sensor).by_index(0, n), repeat)
         events = take.sensor(sensor).by_index(0, n)
-        cam = take.frames(take.cameras[0], demosaic=False)  # frames as stored: the writer's input
+        cam = take.camera(take.cameras[0], demosaic=False)  # frames as stored: the writer's input
         k = min(30, len(cam))
         frame_read = timed(lambda: [cam[i] for i in range(k)], repeat)
         frames = [cam[i] for i in range(k)]

@@ -62,7 +62,7 @@ def main() -> None:
                     counters = f[f"frames/{cam}/frame_counter"][:]
                     true_by_counter = {c: t for c, t, _ in truth.frames[cam]}
                     expected = np.array([box.at(true_by_counter[int(c)]) for c in counters])
-                    err = take.frames(cam).timestamps_us - expected
+                    err = take.camera(cam).timestamps_us - expected
                     _row(jitter, cam, res.report.devices[cam], err)
                 for sensor in take.event_sensors:
                     d = res.report.devices[sensor]

@@ -407,7 +407,7 @@ def take_source(path: str | Path, *, camera: str | None = None) -> FrameSource:
         cam = camera if camera is not None else cams[0]
         if cam not in cams:
             raise ValueError(f"{p}: no camera {cam!r} in the take (cameras: {', '.join(cams)})")
-        series = take.frames(cam)
+        series = take.camera(cam)
         ts = series.timestamps_us
     except BaseException:
         stack.close()

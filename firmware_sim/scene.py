@@ -397,10 +397,6 @@ class Scene:
         p = np.einsum("...nij,nkj->...nki", hs, corners)
         return p[..., :2] / p[..., 2:3]
 
-    def object_boxes(self, view: View | str, true_us: F64) -> NDArray[np.int64]:
-        """(T, n, 4) integer image boxes (x0, y0, x1, y1) of each object, 2 px margin, unclipped."""
-        return self._object_boxes(self._as_view(view), np.asarray(true_us, np.float64))
-
     def _object_boxes(self, v: View, true_us: F64) -> NDArray[np.int64]:
         """(T, n, 4) integer image boxes of each object at each time, 2 px margin, unclipped."""
         xy = self.object_corners(v, true_us)
@@ -547,10 +543,6 @@ class Scene:
             dst *= 1.0 - warped[..., 1]
             dst += warped[..., 0]
         return out
-
-    def render_log(self, view: View | str, true_us: float, roi: Box | None = None) -> F32:
-        """float32 log intensity (`lin_log` of `render_intensity`)."""
-        return lin_log(self.render_intensity(view, true_us, roi))
 
 
 def _merge_boxes(boxes: list[Box]) -> list[Box]:

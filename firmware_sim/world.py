@@ -148,11 +148,6 @@ class GroundTruth:
         with self.lock:
             self.ignored_triggers.setdefault(camera, []).append((pulse_index, true_us))
 
-    def device_to_rig(self, device: str, device_us: float) -> float:
-        """Exact rig (trigger box) time of a device timestamp."""
-        true_us = self.clocks[device].true_at(device_us)
-        return self.clocks["trigger"].at(true_us)
-
 
 class SimWorld:
     """Shared state of one simulated rig."""

@@ -3,7 +3,7 @@
 The layering rule keeps this package free of rigd.take, so the reader works on any object with
 the `TakeLike` shape (rigd.take.reader.Take has it): `sensor(name)` giving one sensor's events
 (`SensorLike`, as rigd.take's EventSeries: `events(t0, t1)`, `geometry`, `span`),
-`frames(camera)` (with `timestamps_us` and indexing giving an object with `.image` or an
+`camera(name)` (with `timestamps_us` and indexing giving an object with `.image` or an
 array), and optionally `calibration` (a dict). Each sample holds the voxel grid of
 the window, the camera frames inside it with their timestamps, the window bounds, and the
 calibration when the take carries one.
@@ -43,7 +43,7 @@ class SensorLike(Protocol):
 
 class TakeLike(Protocol):
     def sensor(self, name: str) -> SensorLike: ...
-    def frames(self, camera: str) -> Any: ...
+    def camera(self, name: str) -> Any: ...
 
 
 @dataclass
@@ -134,7 +134,7 @@ class WindowSampler:
         frames: NDArray[Any] = np.zeros((0,), np.uint8)
         ftimes = np.zeros(0, np.int64)
         if self.camera is not None:
-            series = self.take.frames(self.camera)
+            series = self.take.camera(self.camera)
             ts = np.asarray(series.timestamps_us, np.int64)
             idx = np.nonzero((ts >= t0) & (ts < t1))[0]
             ftimes = ts[idx]

@@ -87,11 +87,6 @@ def backward_warp(
     )
 
 
-def scale_flow(flow_field: NDArray[np.generic], s: float) -> F32:
-    """Flow of a fraction s of the interval under a constant-velocity assumption."""
-    return (np.asarray(flow_field, np.float32) * np.float32(s)).astype(np.float32)
-
-
 def endpoint_error(
     pred: NDArray[np.generic], gt: NDArray[np.generic], mask: NDArray[np.bool_] | None = None
 ) -> float:

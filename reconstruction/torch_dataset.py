@@ -123,7 +123,7 @@ class WindowDataset:
         """The camera's frames with t0 <= t < t1 (stacked) and their times."""
         if self.camera is None:
             return np.zeros((0,), np.uint8), np.zeros(0, np.int64)
-        series = take.frames(self.camera)
+        series = take.camera(self.camera)
         if self._frame_times is None:
             self._frame_times = np.asarray(series.timestamps_us, np.int64)
         ts = self._frame_times

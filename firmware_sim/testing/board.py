@@ -53,7 +53,7 @@ def sensor_results(
     spec = parse_board(board)
     out: dict[str, E2CalibResult] = {}
     with open_take(take_path) as take:
-        cam = take.frames(take.cameras[0])
+        cam = take.camera(take.cameras[0])
         times = cam.timestamps_us + cam[0].exposure_us // 2
         for sensor in take.event_sensors:
             out[sensor] = calibrate_events(
@@ -78,7 +78,7 @@ def true_mid_exposures(take: Path, world: str) -> dict[str, dict[int, float]]:
             start = {int(c): t for c, t, ok in rows[cam] if ok}
             counters = f[f"frames/{cam}/frame_counter"][()]
             exp = f[f"frames/{cam}/exposure_us"][()]
-            mid = tk.frames(cam).timestamps_us + exp // 2
+            mid = tk.camera(cam).timestamps_us + exp // 2
             out[cam] = {
                 int(m): start[int(c)] + float(e) / 2 for m, c, e in zip(mid, counters, exp, strict=True)
             }

@@ -291,7 +291,7 @@ def _camera_views(
     take: Take, cam: str, board: BoardSpec, model: str, progress: ProgressCallback = no_progress
 ) -> tuple[dict[str, Detection], IntrinsicsResult | None]:
     """The board in every frame of one camera, keyed by pulse; None when it is in none of them."""
-    series = take.frames(cam, demosaic=False)
+    series = take.camera(cam, demosaic=False)
     bayer = is_bayer(series.pixel_format)
     dets: list[Detection] = []
     found: dict[str, Detection] = {}
@@ -317,12 +317,12 @@ def _camera_views(
 
 def _pulse_instants(take: Take) -> tuple[list[str], NDArray[np.int64]]:
     """View keys and mid-exposure times (take clock, us) of the first camera's frames."""
-    if not take.cameras or not len(take.frames(take.cameras[0])):
+    if not take.cameras or not len(take.camera(take.cameras[0])):
         raise RigdError(
             f"{take.path}: --events needs RGB frames: their trigger pulses are the instants "
             "the event views are reconstructed at"
         )
-    series = take.frames(take.cameras[0])
+    series = take.camera(take.cameras[0])
     frames = [series[i] for i in range(len(series))]
     keys = [_pulse_key(f.pulse_index, i) for i, f in enumerate(frames)]
     half = np.asarray([f.exposure_us // 2 for f in frames], np.int64)
@@ -393,7 +393,7 @@ def event_times(take_path: Path, sensor: str, rate_hz: float | None = None) -> N
                 raise RigdError(f"{take_path}: event sensor {sensor!r} has no events")
             return np.arange(span[0], span[1], 1e6 / rate_hz).astype(np.int64)
         if take.cameras:
-            cam = take.frames(take.cameras[0])
+            cam = take.camera(take.cameras[0])
             if len(cam):
                 return np.asarray(cam.timestamps_us + cam[0].exposure_us // 2, np.int64)
         trig = take.sensor(sensor).triggers

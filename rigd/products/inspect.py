@@ -353,7 +353,7 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
         domain = "rig" if rig and pulses else "own clock" if rig else "device"
         cam_spans: list[Span] = []
         for cam in take.cameras:
-            ts = take.frames(cam).timestamps_us
+            ts = take.camera(cam).timestamps_us
             if ts.size:
                 cam_spans.append((int(ts[0]), int(ts[-1])))
         ev_spans = [span for sen in take.event_sensors if (span := take.sensor(sen).span)]
@@ -363,14 +363,14 @@ def write_thumbnails(path: str | Path, out_png: str | Path, n_frames: int = 4) -
         # n times evenly inside the span, away from the ragged start and end.
         times = np.linspace(t0, t1, n_frames + 2)[1:-1].astype(np.int64)
         tile_w = max(32, _MAX_SHEET_WIDTH // n_frames)
-        shapes = [take.frames(c).shape for c in take.cameras] + [
+        shapes = [take.camera(c).shape for c in take.cameras] + [
             take.sensor(s).geometry[::-1] for s in take.event_sensors
         ]
         aspect = max(sh[0] / sh[1] for sh in shapes)
         tile_h = max(24, min(_MAX_TILE_HEIGHT, round(tile_w * aspect)))
         rows: list[NDArray[np.uint8]] = []
         for cam in take.cameras:
-            fs = take.frames(cam)
+            fs = take.camera(cam)
             tiles = []
             for t in times:
                 if len(fs) == 0:

@@ -258,7 +258,7 @@ def _plan(path: Path, o: ReconstructOptions) -> _Plan:
             span = take.sensor(s).span if n else None
             if span is not None:
                 spans.append(span)
-        cameras = [c for c in take.cameras if len(take.frames(c))]
+        cameras = [c for c in take.cameras if len(take.camera(c))]
         take_id = take.take_id or path.stem
     t0 = min((a for a, _ in spans), default=0)
     t1 = max((b for _, b in spans), default=0) + 1

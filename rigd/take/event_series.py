@@ -1,12 +1,13 @@
 """One event sensor's events in a take: `Take.sensor` returns an EventSeries.
 
-The counterpart of `FrameSeries` for a camera, and of DSEC's `EventSlicer` (`get_events`).
-Nothing here loads a whole event dataset unless asked for all of it: a time window is narrowed
-with the DSEC `ms_to_idx` index to the events of the milliseconds it touches, whose `t` is read
-once and searched for both edges; `x, y, p` are then read for exactly the window. The series
-holds its datasets open for the Take's life (the Take gives out one EventSeries per sensor), so
-a read costs no lookups and HDF5 decodes only the chunks the window overlaps (random training
-windows: docs/take-format.md). A sensor stored as EVT words (schema 1.2) is decoded on read
+The counterpart of `FrameSeries` for a camera, with one window reader, `events(t0, t1)` (what
+DSEC's `EventSlicer.get_events` answers from an exported file). Nothing here loads a whole
+event dataset unless asked for all of it: a time window is narrowed with the DSEC `ms_to_idx`
+index to the events of the milliseconds it touches, whose `t` is read once and searched for
+both edges; `x, y, p` are then read for exactly the window. The series holds its datasets open
+for the Take's life (the Take gives out one EventSeries per sensor), so a read costs no lookups
+and HDF5 decodes only the chunks the window overlaps (random training windows:
+docs/take-format.md). A sensor stored as EVT words (schema 1.2) is decoded on read
 (`EvtWordsEvents`); every method answers the same for either storage.
 """
 
@@ -15,7 +16,6 @@ from __future__ import annotations
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
 
 import h5py
 import numpy as np
@@ -34,14 +34,10 @@ from rigd.core.layout import (
     TriggerEdges,
 )
 from rigd.core.timebase import ClockMap
-from rigd.take.evt_read import EvtWordsEvents
-from rigd.take.evt_sink import is_evt_words
-from rigd.take.guard import format_errors
+from rigd.take.evt_read import EvtWordsEvents, is_evt_words
+from rigd.take.guard import OpenTake, format_errors
 from rigd.take.h5file import attr_text
 from rigd.take.tails import tail_rows
-
-if TYPE_CHECKING:
-    from rigd.take.reader import Take
 
 #: Events read per step by `EventSeries.iter` (bounded memory, few HDF5 calls).
 _READ_BLOCK = 1 << 20
@@ -86,7 +82,7 @@ class EventSeries:
     and refuses the others. Valid while its Take is open, like a `FrameSeries`.
     """
 
-    def __init__(self, take: Take, name: str, group: h5py.Group) -> None:
+    def __init__(self, take: OpenTake, name: str, group: h5py.Group) -> None:
         self._take = take
         self.name = name
         self._g = group
@@ -95,7 +91,6 @@ class EventSeries:
         self._columns: _EventColumns | None = None
         self._evt: EvtWordsEvents | None = None
         self._evt_read = False
-        self._until: int | None = None
 
     def _where_file(self) -> str:
         return f"{self._take.path}: {self._where}"
@@ -105,17 +100,9 @@ class EventSeries:
 
     # -- what the sensor is ------------------------------------------------------------
     @property
-    def width(self) -> int:
-        return int(self._g.attrs[Device.WIDTH])
-
-    @property
-    def height(self) -> int:
-        return int(self._g.attrs[Device.HEIGHT])
-
-    @property
     def geometry(self) -> tuple[int, int]:
         """(width, height) of the sensor."""
-        return self.width, self.height
+        return int(self._g.attrs[Device.WIDTH]), int(self._g.attrs[Device.HEIGHT])
 
     @property
     def storage(self) -> str:
@@ -127,11 +114,6 @@ class EventSeries:
         """The EVT format the sensor sent (e.g. `evt3`), when it sent EVT words; else None."""
         value = self._g.attrs.get(Events.EVT_FORMAT)
         return None if value is None else attr_text(value)
-
-    @property
-    def calibration(self) -> dict[str, Any] | None:
-        """This sensor's stored calibration (`Take.calibration[name]`), or None."""
-        return (self._take.calibration or {}).get(self.name)
 
     @property
     def t_offset(self) -> int:
@@ -183,21 +165,6 @@ class EventSeries:
             return self._window(t_start_us, t_end_us)
         lo, hi = self._index_range(t_start_us, t_end_us)
         return self._read_events(lo, hi)
-
-    def get_events(self, t_start_us: int, t_end_us: int) -> dict[str, NDArray[Any]] | None:
-        """DSEC `EventSlicer.get_events`: the events with t_start_us <= t < t_end_us as a dict
-        of arrays `p` (uint8, 1 ON / 0 OFF, the DSEC convention), `x`, `y` (uint16) and `t`
-        (int64 rig us), or None where the window ends past the millisecond of the last event
-        (past the ms index, as the slicer answers). Needs t_start_us < t_end_us and rig time.
-        """
-        if int(t_start_us) >= int(t_end_us):
-            raise TakeError(f"{self._take.path}: {self._where}: t_start_us must be < t_end_us")
-        self._take._require_rig(self._where)
-        end = self._indexed_until()
-        if end is None or int(t_end_us) > end:
-            return None
-        ev = self.events(int(t_start_us), int(t_end_us))
-        return {"p": (ev.p > 0).astype(np.uint8), "x": ev.x, "y": ev.y, "t": ev.t}
 
     def by_index(self, start: int, stop: int) -> EventArray:
         """Events [start, stop) by position; works in either time domain."""
@@ -252,7 +219,7 @@ class EventSeries:
         """
         if window_us <= 0:
             raise TakeError(f"{self._take.path}: window_us must be positive, got {window_us}")
-        self._take._require_rig(self._where)
+        self._take.require_rig(self._where)
         span = self.span
         if span is None:
             return
@@ -323,7 +290,7 @@ class EventSeries:
             self._evt_read = True
         words = self._evt
         if words is not None and rig and words.cmap is None:
-            self._take._require_rig(self._where)
+            self._take.require_rig(self._where)
         return words
 
     def _tail(self) -> tuple[int, int, int]:
@@ -347,22 +314,11 @@ class EventSeries:
 
     def _rig_columns(self) -> tuple[_EventColumns, h5py.Dataset]:
         """The column handles and the ms index, for a time query (which needs rig time)."""
-        self._take._require_rig(self._where)
+        self._take.require_rig(self._where)
         c = self._cols()
         if c.ms_to_idx is None:
             raise TakeFormatError(f"{self._take.path}: {self._where}/{Events.MS_TO_IDX} is missing")
         return c, c.ms_to_idx
-
-    def _indexed_until(self) -> int | None:
-        """The latest window end EventSlicer answers (rig us): the end of the last event's
-        millisecond, counted from t_offset (the slicer rounds a window's end up to the next ms
-        and needs that entry; `rigd export --format dsec` writes it). None without events."""
-        if self._until is None:  # asked after `_require_rig`: a finalized take, which never changes
-            span = self.span
-            if span is None:
-                return None
-            self._until = self.t_offset + 1000 * ((span[1] - self.t_offset) // 1000 + 1)
-        return self._until
 
     def _read_events(self, lo: int, hi: int) -> EventArray:
         n, slot, m = self._tail()

@@ -19,7 +19,8 @@ from rigd.core.layout import Events, Storage
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.evt import FORMATS as EVT_FORMATS
-from rigd.take.evt_sink import EvtWordsSink, is_evt_words
+from rigd.take.evt_read import is_evt_words
+from rigd.take.evt_sink import EvtWordsSink
 from rigd.take.sinks import DeviceWriteStats, EventSink
 
 if TYPE_CHECKING:

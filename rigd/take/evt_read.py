@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from rigd.core.errors import TakeFormatError
 from rigd.core.events import EventArray
-from rigd.core.layout import EVT_INDEX_COLUMNS, Device, Events
+from rigd.core.layout import EVT_INDEX_COLUMNS, Device, Events, Storage
 from rigd.core.timebase import ClockMap
 from rigd.evt import decode_from_state
 
@@ -30,6 +30,12 @@ _NHEAD = len(EVT_INDEX_COLUMNS)
 #: Device us searched beyond a window's edges mapped back to the device clock (to_device
 #: rounds, and the rate is within a few hundred ppm of 1), before the exact search in rig time.
 _MAP_SLACK_US = 4
+
+
+def is_evt_words(g: h5py.Group) -> bool:
+    """Whether an event sensor group stores EVT words (schema 1.2) rather than x/y/p/t."""
+    value = g.attrs.get(Events.STORAGE, Storage.COLUMNS)
+    return (value.decode() if isinstance(value, bytes) else str(value)) == Storage.EVT_WORDS
 
 
 def clock_map_json(cmap: ClockMap) -> str:

@@ -42,6 +42,7 @@ from rigd.core.layout import (
     TriggerEdges,
 )
 from rigd.evt import StreamDecoder
+from rigd.take.evt_read import is_evt_words as is_evt_words
 from rigd.take.h5file import append_rows, chunk_is_stored, require_dataset, require_group, write_chunk
 from rigd.take.sinks import DeviceWriteStats, TriggerIn, check_event_batch, new_series
 from rigd.take.tails import choose_tail_slot
@@ -78,12 +79,6 @@ _COL = {name: i for i, name in enumerate(EVT_INDEX_COLUMNS)}
 def state_size(fmt: str) -> int:
     """Length of a `fmt` decoder's state array (the index columns after `EVT_INDEX_COLUMNS`)."""
     return int(StreamDecoder(fmt).state_copy().shape[0])
-
-
-def is_evt_words(g: h5py.Group) -> bool:
-    """Whether an event sensor group stores EVT words (schema 1.2) rather than x/y/p/t."""
-    value = g.attrs.get(Events.STORAGE, Storage.COLUMNS)
-    return (value.decode() if isinstance(value, bytes) else str(value)) == Storage.EVT_WORDS
 
 
 @dataclass(slots=True)

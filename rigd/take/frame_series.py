@@ -1,11 +1,11 @@
-"""One camera's frames in a take, read one at a time: `Take.frames` returns a FrameSeries.
+"""One camera's frames in a take, read one at a time: `Take.camera` returns a FrameSeries.
 
 Bayer cameras are demosaiced here, on read, so the writer's hot path stores frames as sent."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, overload
+from typing import overload
 
 import h5py
 import numpy as np
@@ -15,10 +15,7 @@ from rigd.core.errors import TakeError
 from rigd.core.frames import Frame
 from rigd.core.layout import FRAMES_GROUP, Frames
 from rigd.core.pixels import BAYER_PATTERNS, is_bayer, stored_pixel_format, to_gray, to_rgb
-from rigd.take.guard import OutOfRangeError, format_errors
-
-if TYPE_CHECKING:
-    from rigd.take.reader import Take
+from rigd.take.guard import OpenTake, OutOfRangeError, format_errors
 
 
 @format_errors
@@ -30,7 +27,7 @@ class FrameSeries(Sequence[Frame]):
     and training need not know the format. `demosaic=False` gives what is stored, as `raw()` does.
     """
 
-    def __init__(self, take: Take, name: str, group: h5py.Group, demosaic: bool = True) -> None:
+    def __init__(self, take: OpenTake, name: str, group: h5py.Group, demosaic: bool = True) -> None:
         self._take = take
         self.name = name
         self._g = group
@@ -112,12 +109,12 @@ class FrameSeries(Sequence[Frame]):
 
     def index_at(self, t_us: int) -> int:
         """Index of the last frame whose exposure started at or before t_us; -1 if none."""
-        self._take._require_rig(f"/{FRAMES_GROUP}/{self.name}")
+        self._take.require_rig(f"/{FRAMES_GROUP}/{self.name}")
         return int(np.searchsorted(self.timestamps_us, int(t_us), side="right")) - 1
 
     def nearest(self, t_us: int) -> int:
         """Index of the frame whose exposure start is closest to t_us (earlier one on ties)."""
-        self._take._require_rig(f"/{FRAMES_GROUP}/{self.name}")
+        self._take.require_rig(f"/{FRAMES_GROUP}/{self.name}")
         ts = self.timestamps_us
         if ts.size == 0:
             raise TakeError(f"{self._take.path}: camera {self.name!r} has no frames")

@@ -6,6 +6,9 @@ ways no list of checks anticipates: an attribute of the wrong type, a count that
 JSON document nested past the interpreter's recursion limit. The reader's public methods run
 under `format_errors`, so any such failure reaches the caller as one TakeFormatError (the
 original chained as its cause), never as the IndexError of whichever line met it first.
+
+`OpenTake` is what a series needs of its take (path, status, time domain): the Take hands it
+to each FrameSeries and EventSeries it gives out, so no series reaches into the Take.
 """
 
 from __future__ import annotations
@@ -13,10 +16,12 @@ from __future__ import annotations
 import functools
 import inspect
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
 from rigd.core.errors import EventDataError, TakeError, TakeFormatError
+from rigd.core.layout import TimeDomain
 
 #: What reading damaged metadata raises (h5py: OSError/RuntimeError for unreadable data).
 DAMAGE_ERRORS: tuple[type[BaseException], ...] = (
@@ -76,3 +81,21 @@ def format_errors(cls: C) -> C:
         elif inspect.isfunction(member) and not inspect.isgeneratorfunction(member):
             setattr(cls, name, _wrap(member, what))
     return cls
+
+
+@dataclass(frozen=True, slots=True)
+class OpenTake:
+    """What a series reads of its open take: the file, its status and its time domain (fixed
+    while the take is open read-only)."""
+
+    path: Path
+    status: str
+    time_domain: str
+
+    def require_rig(self, where: str) -> None:
+        """Refuse a time query on a take never finalized (its times are in each device's clock)."""
+        if self.time_domain != TimeDomain.RIG:
+            raise TakeError(
+                f"{self.path}: {where}: time queries need rig time, but this take was never finalized "
+                f"(status {self.status!r}, times are still in each device's own clock)"
+            )

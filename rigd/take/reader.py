@@ -1,11 +1,11 @@
 """Read-only access to take files for training jobs.
 
 `Take` holds the file open and answers what is take-wide (metadata, sync report, pulses,
-summary); each device's data is a series of its own: `take.frames(camera)` a `FrameSeries`,
-`take.sensor(name)` an `EventSeries` (time windows through the DSEC `ms_to_idx` index, with
-the sensor's datasets held open for the Take's life: rigd/take/event_series.py). The event
-methods that took a sensor name (`take.events(name, ...)`, ...) forward to the EventSeries and
-warn that they are deprecated.
+summary); each device's data is a series of its own, asked for by the device's name:
+`take.camera(name)` a `FrameSeries`, `take.sensor(name)` an `EventSeries` (time windows through
+the DSEC `ms_to_idx` index, with the sensor's datasets held open for the Take's life:
+rigd/take/event_series.py). A series gets what it needs of the take (`OpenTake`) when made,
+and never calls back into the Take.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
@@ -27,7 +26,6 @@ from pydantic import ValidationError
 
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import TakeError, TakeFormatError
-from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.layout import (
     EVENT_DTYPES,
     EVENTS_GROUP,
@@ -50,9 +48,9 @@ from rigd.core.layout import (
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, decode_journal, has_item
 from rigd.take.calibration import read_board_pose, read_calibration
 from rigd.take.event_series import EventSeries
-from rigd.take.evt_sink import is_evt_words
+from rigd.take.evt_read import is_evt_words
 from rigd.take.frame_series import FrameSeries
-from rigd.take.guard import DAMAGE_ERRORS, as_format_error, format_errors
+from rigd.take.guard import DAMAGE_ERRORS, OpenTake, as_format_error, format_errors
 from rigd.take.h5file import attr_text, open_checked
 from rigd.take.summary import CameraSummary, EventSensorSummary, TakeSummary
 from rigd.take.verdict import take_verdict
@@ -63,13 +61,6 @@ log = logging.getLogger(__name__)
 #: keeps the chunk a sequential read shares with the next block decoded; random windows rarely
 #: share one, and 16 MiB read them no faster (bench.random_windows' takes).
 _CHUNK_CACHE_BYTES = 4 << 20
-
-
-def _deprecated(old: str, new: str) -> None:
-    """Warn that a `Take` event method taking a sensor name is deprecated, naming its
-    replacement on `take.sensor(name)`; attributed to the forward's caller (stacklevel 2 from
-    the forward, under its format_errors guard)."""
-    warnings.warn(f"Take.{old} is deprecated: use take.sensor(name).{new}", DeprecationWarning, stacklevel=4)
 
 
 def _attr_str(obj: h5py.HLObject, key: str, default: str = "") -> str:
@@ -332,12 +323,9 @@ class Take:
         if not self._f:
             raise TakeError(f"{self.path}: the take is closed")
 
-    def _require_rig(self, hpath: str) -> None:
-        if self.time_domain != TimeDomain.RIG:
-            raise TakeError(
-                f"{self.path}: {hpath}: time queries need rig time, but this take was never finalized "
-                f"(status {self.status!r}, times are still in each device's own clock)"
-            )
+    def _open_take(self) -> OpenTake:
+        """What a series reads of this take (fixed while it is open read-only)."""
+        return OpenTake(self.path, self.status, self.time_domain)
 
     def pulses(self) -> PulseBatch:
         g = self._f.get(PULSES_PATH)
@@ -349,13 +337,13 @@ class Take:
             np.asarray(g[Pulses.HOST_TIME_NS][...], dtype=np.int64),
         )
 
-    def frames(self, camera: str, demosaic: bool = True) -> FrameSeries:
+    def camera(self, name: str, demosaic: bool = True) -> FrameSeries:
         """One camera's frames; a Bayer camera's demosaiced to RGB unless `demosaic=False`."""
         self._check_open()
-        g = self._f.get(f"{FRAMES_GROUP}/{camera}")
+        g = self._f.get(f"{FRAMES_GROUP}/{name}")
         if not isinstance(g, h5py.Group):
-            raise TakeError(f"{self.path}: no camera {camera!r} (has {self.cameras})")
-        return FrameSeries(self, camera, g, demosaic)
+            raise TakeError(f"{self.path}: no camera {name!r} (has {self.cameras})")
+        return FrameSeries(self._open_take(), name, g, demosaic)
 
     def sensor(self, name: str) -> EventSeries:
         """One event sensor's events. The same EventSeries for the Take's life (it keeps the
@@ -366,51 +354,8 @@ class Take:
             g = self._f.get(f"{EVENTS_GROUP}/{name}")
             if not isinstance(g, h5py.Group):
                 raise TakeError(f"{self.path}: no event sensor {name!r} (has {self.event_sensors})")
-            series = self._series[name] = EventSeries(self, name, g)
+            series = self._series[name] = EventSeries(self._open_take(), name, g)
         return series
-
-    # -- deprecated: event reads by sensor name (use `take.sensor(name)`) ----------------
-    def event_count(self, sensor: str) -> int:
-        _deprecated("event_count(name)", "count")
-        return self.sensor(sensor).count
-
-    def geometry(self, sensor: str) -> tuple[int, int]:
-        _deprecated("geometry(name)", "geometry")
-        return self.sensor(sensor).geometry
-
-    def events_by_index(self, sensor: str, start: int, stop: int) -> EventArray:
-        _deprecated("events_by_index(name, ...)", "by_index(...)")
-        return self.sensor(sensor).by_index(start, stop)
-
-    def events(self, sensor: str, t_start_us: int | None = None, t_end_us: int | None = None) -> EventArray:
-        _deprecated("events(name, ...)", "events(...)")
-        return self.sensor(sensor).events(t_start_us, t_end_us)
-
-    def event_index(self, sensor: str, t_us: int) -> int:
-        _deprecated("event_index(name, t_us)", "index(t_us)")
-        return self.sensor(sensor).index(t_us)
-
-    def event_histogram(self, sensor: str, bin_us: int = 10_000) -> tuple[int, NDArray[np.int64]]:
-        _deprecated("event_histogram(name, ...)", "histogram(...)")
-        return self.sensor(sensor).histogram(bin_us)
-
-    def iter_events(
-        self, sensor: str, window_us: int, t_start_us: int | None = None, t_end_us: int | None = None
-    ) -> Iterator[EventArray]:
-        _deprecated("iter_events(name, ...)", "iter(...)")
-        return self.sensor(sensor).iter(window_us, t_start_us, t_end_us)
-
-    def triggers(self, sensor: str) -> TriggerEvents:
-        _deprecated("triggers(name)", "triggers")
-        return self.sensor(sensor).triggers
-
-    def trigger_host_times(self, sensor: str) -> NDArray[np.int64]:
-        _deprecated("trigger_host_times(name)", "trigger_host_times")
-        return self.sensor(sensor).trigger_host_times
-
-    def event_span(self, sensor: str) -> tuple[int, int] | None:
-        _deprecated("event_span(name)", "span")
-        return self.sensor(sensor).span
 
     # -- summary -----------------------------------------------------------------------
     def summary(self) -> TakeSummary:
@@ -419,7 +364,7 @@ class Take:
         devs = report.devices if report else {}
         cams: dict[str, CameraSummary] = {}
         for name in self.cameras:
-            fs = self.frames(name, demosaic=False)
+            fs = self.camera(name, demosaic=False)
             ts = fs.timestamps_us
             fps = (
                 (ts.size - 1) / ((int(ts[-1]) - int(ts[0])) / 1e6) if ts.size > 1 and ts[-1] > ts[0] else None

@@ -34,8 +34,8 @@ from rigd.core.layout import (
 from rigd.core.schema import SyncReport, decode_journal
 from rigd.core.settings import EventSensorSettings, WriterConfig
 from rigd.sync import DeviceObservations, PulseLog
+from rigd.take.evt_read import is_evt_words
 from rigd.take.evt_repair import kept_rows
-from rigd.take.evt_sink import is_evt_words
 from rigd.take.h5file import attr_text, require_dataset, require_group
 from rigd.take.tails import tail_rows
 

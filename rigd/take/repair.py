@@ -35,8 +35,8 @@ from rigd.core.layout import (
     TriggerEdges,
 )
 from rigd.core.schema import SCHEMA_VERSION, LossKind, has_item
+from rigd.take.evt_read import is_evt_words
 from rigd.take.evt_repair import apply_evt_cut, plan_evt_cut
-from rigd.take.evt_sink import is_evt_words
 from rigd.take.h5file import TRUNCATED_EOF_ATTR, append_rows, attr_text, require_dataset, require_group
 from rigd.take.tails import tail_end, tail_rows
 

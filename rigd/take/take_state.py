@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 #: cached chunk goes before writing it and indexes it only after: when that write fails (disk
 #: full), the retry a fail makes in the ballast's room writes the chunk but never indexes it, and
 #: it reads back as zeros (columns storage: a whole chunk of event times, silently). Uncached,
-#: a write fails at the call that made it, and its retry is indexed (tests/rigd/test_take_evt_words).
+#: a write fails at the call that made it, and its retry is indexed (tests/rigd/take/test_evt_words.py).
 WRITE_CHUNK_CACHE_BYTES = 0
 
 

@@ -39,7 +39,7 @@ from rigd.core.layout import (
 )
 from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, decode_journal, has_item
-from rigd.take.evt_sink import is_evt_words
+from rigd.take.evt_read import is_evt_words
 from rigd.take.evt_validate import check_evt_words
 from rigd.take.h5file import attr_text, open_checked
 

@@ -47,7 +47,7 @@ def test_board_scene_ground_truth_matches_detections() -> None:
 
 def test_reconstruction_shows_the_board(board_take: Path) -> None:
     with open_take(board_take) as take:
-        cam = take.frames("cam1")
+        cam = take.camera("cam1")
         t = int(cam.timestamps_us[40] + cam[40].exposure_us // 2)
         events, size = take.sensor("ev0").events(), take.sensor("ev0").geometry
     p = ReconstructionParams()

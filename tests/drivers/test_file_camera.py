@@ -450,6 +450,6 @@ def test_a_replayed_camera_in_a_sim_rig_is_synchronized_by_host_time(tmp_path: P
     assert res.report.devices["replay"].sync == "software"
     assert res.frames["replay"] > 0
     with Take(res.path) as take:
-        frames = take.frames("replay")
+        frames = take.camera("replay")
         assert len(frames) == res.frames["replay"]
         assert (np.diff(frames.timestamps_us) > 0).all()

@@ -168,7 +168,7 @@ def test_free_running_camera_in_a_capture_is_synchronized_by_host_time(tmp_path:
     assert dev.residual_max_us <= 1e6 / 30 / 2  # nearest pulse, within half a period
     assert res.report.devices["cam0"].sync == "hardware"
     with Take(res.path) as take:
-        uvc = take.frames("uvc")
+        uvc = take.camera("uvc")
         assert len(uvc) > 20
         first, last = take.pulses().t_us[[0, -1]]
         t = uvc.timestamps_us

@@ -57,7 +57,7 @@ def test_the_default_rig_on_the_firmware_is_complete_in_sync_and_the_same_twice(
             # same), under half a microsecond.
             assert dev.residual_max_us < 0.5, (name, dev.residual_max_us)
         for cam in ("cam0", "cam1", "cam2"):
-            fa, fb = ta.frames(cam, demosaic=False), tb.frames(cam, demosaic=False)
+            fa, fb = ta.camera(cam, demosaic=False), tb.camera(cam, demosaic=False)
             assert len(fa) == len(fb) == n
             assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
             for i in (0, n // 2, n - 1):

@@ -237,7 +237,7 @@ def test_simulate_to_take_roundtrip(tmp_path: Path) -> None:
         np.testing.assert_array_equal(ev.t, expected.t)
         np.testing.assert_array_equal(ev.x, expected.x)
         np.testing.assert_array_equal(ev.p, expected.p)
-        assert len(take.frames("cam0")) == 6
-        assert take.frames("cam0").timestamps_us[1] == 20_000
+        assert len(take.camera("cam0")) == 6
+        assert take.camera("cam0").timestamps_us[1] == 20_000
         assert take.config["simulator"]["pixel_model"]["sigma"] == 0.02
     assert validate_take(out) == []

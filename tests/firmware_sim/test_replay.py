@@ -39,7 +39,7 @@ def _recapture(recorded: Path, out: Path, **kw: object) -> Take:
 
 def _same_take(a: Take, b: Take) -> None:
     for cam in a.cameras:
-        fa, fb = a.frames(cam), b.frames(cam)
+        fa, fb = a.camera(cam), b.camera(cam)
         assert len(fa) == len(fb) > 0
         assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
         for i in range(len(fa)):
@@ -74,9 +74,9 @@ def test_replay_fault_switches_reach_the_take(recorded: Path, tmp_path: Path) ->
     """drop_frames on a replayed camera: the frame is missing and the take says so."""
     with _recapture(recorded, tmp_path, clock="virtual", faults={"cam1": {"drop_frames": "4"}}) as b:
         with Take(recorded) as a:
-            counters = [f.frame_counter for f in b.frames("cam1")]
+            counters = [f.frame_counter for f in b.camera("cam1")]
             assert 4 not in counters
-            assert len(counters) == len(a.frames("cam1")) - 1
+            assert len(counters) == len(a.camera("cam1")) - 1
         report = b.sync_report
         assert report is not None
         assert 4 in report.devices["cam1"].dropped_frames
@@ -121,7 +121,7 @@ def test_replay_unplug_and_clock_reset(recorded: Path, tmp_path: Path) -> None:
     result = run_capture(config, tmp_path, duration, reconnect_interval_s=0.02)
     reset_world(f"replay:{recorded.resolve()}")
     with Take(recorded) as a, Take(result.path) as b:
-        ta, tb = a.frames("cam2").timestamps_us, b.frames("cam2").timestamps_us
+        ta, tb = a.camera("cam2").timestamps_us, b.camera("cam2").timestamps_us
         assert 0 < len(tb) < len(ta)
         # Every kept frame at its recorded rig time, to the microseconds the camera's fit moves
         # by when its restarted clock is re-tied: the drift behind the tie is fitted over the
@@ -143,7 +143,7 @@ def test_preloaded_cameras_cycle_frames_held_in_memory(recorded: Path, tmp_path:
     reset_world(f"replay:{recorded.resolve()}")
     with Take(recorded) as a, Take(result.path) as b:
         for cam in a.cameras:
-            fa, fb = a.frames(cam), b.frames(cam)
+            fa, fb = a.camera(cam), b.camera(cam)
             assert len(fa) == len(fb) > 2
             assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
             assert not np.array_equal(fa[2].image, fa[0].image)  # the scene moves: a replay differs

@@ -53,7 +53,7 @@ def test_simulate_folder_to_take(tmp_path: Path) -> None:
     with open_take(out) as take:
         assert take.sensor("ev0").geometry == (30, 20)
         assert take.sensor("ev0").count > 0
-        assert len(take.frames("cam0")) == 5
+        assert len(take.camera("cam0")) == 5
         model = take.config["simulator"]["pixel_model"]
         assert (model["threshold"], model["sigma"], model["seed"]) == (0.2, 0.02, 4)
         assert model["leak_rate_hz"] == 0.5

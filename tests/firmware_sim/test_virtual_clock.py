@@ -125,7 +125,7 @@ def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -
     a = _capture(tmp_path / "a", "det-a")
     b = _capture(tmp_path / "b", "det-b")
     for cam in ("cam0", "cam1", "cam2"):
-        fa, fb = a.frames(cam), b.frames(cam)
+        fa, fb = a.camera(cam), b.camera(cam)
         assert len(fa) == len(fb) == 15
         assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
         for i in (0, 7, 14):

@@ -45,7 +45,7 @@ class FakeTake:
     def span(self) -> tuple[int, int] | None:
         return int(self._ev.t[0]), int(self._ev.t[-1])
 
-    def frames(self, camera: str) -> FakeSeries:
+    def camera(self, name: str) -> FakeSeries:
         return FakeSeries()
 
 

@@ -62,7 +62,7 @@ class DenseTake:
     def span(self) -> tuple[int, int] | None:
         return int(self.ev.t[0]), int(self.ev.t[-1])
 
-    def frames(self, camera: str) -> FrameSeries:
+    def camera(self, name: str) -> FrameSeries:
         return FrameSeries()
 
 
@@ -211,7 +211,7 @@ def test_sim_take_through_device_workers(tmp_path: Path) -> None:
                 ev = take.sensor("ev0").events(t0, t1)
                 total += len(ev)
                 assert_voxel_parity(b["voxels"][i].numpy(), voxel_grid_bincount(ev, 160, 90, 5, t0, t1 - 1))
-                times = take.frames("cam0").timestamps_us
+                times = take.camera("cam0").timestamps_us
                 assert int(b["frame_counts"][i]) == int(((times >= t0) & (times < t1)).sum())
         assert total > 0
         assert int(sum(int(b["events"].counts.sum()) for b in batches)) == total

@@ -13,6 +13,7 @@ Register with `calibrate_app.command("guided")(guided)`.
 from __future__ import annotations
 
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -139,7 +140,12 @@ def guided(
     ],
     out: Annotated[
         Path | None,
-        typer.Option("--out", "-o", help="Output: .yaml/.yml/.xml (OpenCV) or .json; default CAMERA.yaml."),
+        typer.Option(
+            "--out",
+            "-o",
+            help="Output: .yaml/.yml/.xml (OpenCV) or .json; default "
+            "TAKE_DIR/calibration/CAMERA-<UTC time>.yaml (TAKE_DIR: the config's service.take_dir, takes).",
+        ),
     ] = None,
     report: Annotated[Path | None, typer.Option("--report", help="Also write an HTML report here.")] = None,
     config: Annotated[
@@ -207,7 +213,7 @@ def guided(
         # One keyword per flag; alike in shape to the other commands' option models, nothing shared.
         options = GuidedOptions(
             camera=camera,
-            out=out,
+            out=out if out is not None else default_out(camera, config),
             report=report,
             config=config,
             board=board,
@@ -226,6 +232,22 @@ def guided(
         if live is not None:
             live.stop()
     _report(outcome, options, json_out)
+
+
+def default_out(camera: str, config: Path | None) -> Path:
+    """Where a session writes without `--out`: beside the takes, in the calibration directory
+    the web console uses too (`<take_dir>/calibration`), under a name no earlier session has,
+    so neither the working directory nor an earlier calibration is written over unasked."""
+    from rigd.app.config import RigConfig, ServiceConfig
+
+    take_dir = RigConfig.load(config).service.take_dir if config is not None else ServiceConfig().take_dir
+    base = f"{camera}-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}"
+    out, n = take_dir / "calibration" / f"{base}.yaml", 1
+    while out.exists():
+        n += 1
+        out = out.with_name(f"{base}-{n}.yaml")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return out
 
 
 def _report(outcome: GuidedOutcome, options: GuidedOptions, json_out: bool) -> None:

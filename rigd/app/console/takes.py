@@ -247,7 +247,7 @@ def _preview(path: Path, name: str, camera: str, width: int) -> bytes:
     with open_take(path) as take:
         if camera not in take.cameras:
             raise RigdError(f"take {name} has no camera {camera!r}")
-        frames = take.frames(camera)
+        frames = take.camera(camera)
         if len(frames) == 0:
             raise RigdError(f"take {name}: camera {camera} has no frames")
         jpeg, _, _ = frame_thumbnail(frames[len(frames) // 2], width)

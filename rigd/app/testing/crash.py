@@ -243,7 +243,7 @@ def check_recovered(path: Path, n_flushed: int) -> None:
         rep = take.recovery_report
         assert rep is not None
         assert rep["outcome"] == "sealed"
-        n_frames = len(take.frames("cam0"))
+        n_frames = len(take.camera("cam0"))
         n_ev = take.sensor("ev0").count
         n_pulses = len(take.pulses())
         assert n_frames >= n_flushed
@@ -254,7 +254,7 @@ def check_recovered(path: Path, n_flushed: int) -> None:
         np.testing.assert_array_equal(ev.t, exp.ev.t[:n_ev] - OFF_EV)
         np.testing.assert_array_equal(ev.x, exp.ev.x[:n_ev])
         np.testing.assert_array_equal(ev.p, exp.ev.p[:n_ev])
-        fs = take.frames("cam0")
+        fs = take.camera("cam0")
         np.testing.assert_array_equal(fs.timestamps_us, exp.frame_t[:n_frames] - OFF_CAM)
         assert [fs[i].pulse_index for i in (0, n_frames - 1)] == [0, n_frames - 1]
         tr = take.sensor("ev0").triggers

@@ -256,7 +256,7 @@ def cameras_of(take: Take, resize: tuple[int, int] | None) -> list[Camera]:
     out = []
     for name in take.cameras:
         c = calib[name]
-        shape = take.frames(name).shape
+        shape = take.camera(name).shape
         size_src = (int(shape[1]), int(shape[0]))
         if tuple(int(v) for v in c["image_size"]) != size_src:
             raise TakeError(
@@ -342,7 +342,7 @@ def frame_table(take: Take, cameras: Sequence[str]) -> FrameTable:
     per: dict[str, tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = {}
     series = _frame_series(take.path, cameras)
     for cam in cameras:
-        fs = take.frames(cam)
+        fs = take.camera(cam)
         if len(fs) == 0:
             raise TakeError(f"{take.path}: camera {cam!r} has no frames")
         p, exp = (a[: len(fs)] for a in series[cam])
@@ -445,7 +445,7 @@ class ExportPlan:
 
         with ThreadPoolExecutor(max_workers=IMAGE_THREADS) as pool:
             for j, cam in enumerate(self.cameras):
-                fs = self.take.frames(cam.name)
+                fs = self.take.camera(cam.name)
                 for k in range(self.frames.pulses.size):
                     dest = self.out / path_of(k, j)
                     dest.parent.mkdir(parents=True, exist_ok=True)
@@ -465,4 +465,4 @@ class ExportPlan:
     def image(self, k: int, j: int) -> U8:
         """Exported (undistorted, resized) RGB image of timestep k, camera j."""
         cam = self.cameras[j]
-        return cam.process(self.take.frames(cam.name)[int(self.frames.index[k, j])].image)
+        return cam.process(self.take.camera(cam.name)[int(self.frames.index[k, j])].image)

@@ -52,15 +52,15 @@ def test_take_has_every_frame_and_events(faulty_capture: tuple[CaptureResult, Gr
     with Take(res.path) as take:
         assert take.status == "complete"
         for cam in ("cam0", "cam2"):
-            assert abs(len(take.frames(cam)) - 58) <= 1  # 60 pulses, 2 dropped by the box
-        assert len(take.frames("cam1")) == 56  # and 2 frames lost in transport
+            assert abs(len(take.camera(cam)) - 58) <= 1  # 60 pulses, 2 dropped by the box
+        assert len(take.camera("cam1")) == 56  # and 2 frames lost in transport
         for sensor in ("ev0", "ev1"):
             ev = take.sensor(sensor).events()
             assert len(ev) > 1000
             assert ev.t.dtype == np.int64
             assert (np.diff(ev.t) >= 0).all()
         for cam in take.cameras:
-            assert (np.diff(take.frames(cam).timestamps_us) > 0).all()
+            assert (np.diff(take.camera(cam).timestamps_us) > 0).all()
 
 
 def test_injected_faults_are_reported(faulty_capture: tuple[CaptureResult, GroundTruth]) -> None:
@@ -85,7 +85,7 @@ def test_sync_accuracy_against_ground_truth(faulty_capture: tuple[CaptureResult,
     res, truth = faulty_capture
     with Take(res.path) as take:
         for cam in take.cameras:
-            fr = take.frames(cam)
+            fr = take.camera(cam)
             with h5py.File(res.path, "r") as f:
                 counters = f[f"frames/{cam}/frame_counter"][:]
             true_by_counter = {c: t for c, t, _ in truth.frames[cam]}

@@ -157,7 +157,7 @@ def test_rig_needs_two_calibrated_devices(tmp_path: Path) -> None:
 def test_event_times_at_pulses_or_at_a_rate(tmp_path: Path) -> None:
     path = make_take(tmp_path / "t.h5").path
     with open_take(path) as take:
-        frames = take.frames("cam0")
+        frames = take.camera("cam0")
         mid = frames.timestamps_us + frames[0].exposure_us // 2
         span = take.sensor("ev0").span
     np.testing.assert_array_equal(event_times(path, "ev0"), mid)

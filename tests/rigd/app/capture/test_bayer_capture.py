@@ -49,7 +49,7 @@ def test_take_stores_the_mosaics_with_what_they_are(bayer_take: Path) -> None:
 
 def test_take_reads_back_as_rgb(bayer_take: Path) -> None:
     with open_take(bayer_take) as take:
-        fs = take.frames("cam0")
+        fs = take.camera("cam0")
         assert fs.pixel_format == "bayer_rg8"
         assert fs.bayer_pattern == "RGGB"
         assert fs.stored_shape == (H, W)
@@ -62,7 +62,7 @@ def test_take_reads_back_as_rgb(bayer_take: Path) -> None:
         np.testing.assert_array_equal(frame.image, demosaic(raw))
         np.testing.assert_array_equal(fs.rgb(0), fs[0].image)
         assert fs.gray(0).shape == (H, W)
-        as_stored = take.frames("cam0", demosaic=False)
+        as_stored = take.camera("cam0", demosaic=False)
         assert as_stored.shape == (H, W)
         np.testing.assert_array_equal(as_stored[1].image, fs.raw(1))
         assert as_stored[1].pixel_format == "bayer_rg8"
@@ -95,7 +95,7 @@ def test_replay_delivers_the_recorded_mosaics(bayer_take: Path, tmp_path: Path) 
     finally:
         reset_world(f"replay:{bayer_take.resolve()}")
     with open_take(bayer_take) as a, open_take(result.path) as b:
-        fa, fb = a.frames("cam1", demosaic=False), b.frames("cam1", demosaic=False)
+        fa, fb = a.camera("cam1", demosaic=False), b.camera("cam1", demosaic=False)
         assert fb.pixel_format == "bayer_rg8"
         assert len(fa) == len(fb) > 0
         for i in range(len(fa)):

@@ -69,7 +69,7 @@ def test_whatever_the_disk_does_what_was_flushed_is_recovered(small_disk: Path, 
     report = recover_take(take)
     with Take(take) as t:
         assert t.status == "complete", report
-        frames = {name: len(t.frames(name)) for name in ("cam0", "cam1", "cam2")}
+        frames = {name: len(t.camera(name)) for name in ("cam0", "cam1", "cam2")}
         events = {name: len(t.sensor(name).events().t) for name in ("ev0", "ev1")}
     assert min(frames.values()) > 0, frames  # what was flushed is there
     assert min(events.values()) > 0, events

@@ -268,7 +268,7 @@ def _check_take_is_in_its_window(path: Path, tol_us: int) -> tuple[int, int, dic
             trig = take.sensor(sensor).triggers.t
             assert trig.size == 0 or (trig.min() >= start - tol_us and trig.max() < end + tol_us)
         for cam in take.cameras:
-            ts = take.frames(cam).timestamps_us
+            ts = take.camera(cam).timestamps_us
             assert ts.size > 0, cam
             assert ts.min() >= start - tol_us, cam
             assert ts.max() < end + tol_us, cam

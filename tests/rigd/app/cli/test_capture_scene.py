@@ -51,7 +51,7 @@ def test_a_board_take_shows_the_board_to_every_camera(small_rig: Path, tmp_path:
     board = parse_board("chessboard:9x6:0.08")
     with Take(take_path) as take:
         for cam in take.cameras:
-            frames = take.frames(cam)
+            frames = take.camera(cam)
             seen = sum(
                 detect(frames[i].image, board, f"{cam}-{i}") is not None for i in range(0, len(frames), 5)
             )

@@ -111,7 +111,8 @@ def test_cli_on_the_sim_board_reaches_the_target_the_same_way_on_any_machine(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """`rigd calibrate guided --camera cam0 --sim-clock virtual` (the README's command on virtual
-    time): writes cam0.yaml in the working directory and reaches the target on the sim board (its
+    time): writes takes/calibration/cam0-<UTC time>.yaml (a new file each run, nothing in the
+    working directory itself) and reaches the target on the sim board (its
     default still_px judges the smear). On virtual time every frame is looked at and the limit is
     the camera's time, so two runs agree to the digit however loaded the host is; in real time
     (the default) the host's load decides which frames the session sees."""
@@ -121,6 +122,7 @@ def test_cli_on_the_sim_board_reaches_the_target_the_same_way_on_any_machine(
 
     monkeypatch.chdir(tmp_path)
     lasts = []
+    seen: set[Path] = set()
     for _ in range(2):
         r = CliRunner().invoke(
             app, ["calibrate", "guided", "--camera", "cam0", "--max-seconds", "90", "--sim-clock", "virtual"]
@@ -131,9 +133,14 @@ def test_cli_on_the_sim_board_reaches_the_target_the_same_way_on_any_machine(
         # off a terminal: no line per frame, a line per capture and a status line every few seconds
         assert len(r.output.splitlines()) < 80, r.output
         assert "-0 s" not in r.output
-        _, _, size = read_opencv_yaml(tmp_path / "cam0.yaml")
+        now = set((tmp_path / "takes" / "calibration").glob("cam0-*.yaml"))
+        (new,) = now - seen  # each run its own file, named in the verdict line
+        seen = now
+        assert f"-> {new.relative_to(tmp_path)}" in r.stderr, r.stderr
+        _, _, size = read_opencv_yaml(new)
         assert size == (640, 360)
-        lasts.append(r.stderr.strip().splitlines()[-1])
+        assert [p.name for p in tmp_path.iterdir()] == ["takes"]
+        lasts.append(r.stderr.strip().splitlines()[-1].rsplit(" -> ", 1)[0])  # each its own file
     assert lasts[0] == lasts[1], lasts
 
 

@@ -89,7 +89,7 @@ def test_export_with_segments(takes: tuple[Path, Path], tmp_path: Path) -> None:
     _, take = takes
     with open_take(take) as tk:
         take_id = tk.take_id
-        t_mid = int(np.median(tk.frames("cam0").timestamps_us))
+        t_mid = int(np.median(tk.camera("cam0").timestamps_us))
     recon = tmp_path / "recon"
     (recon / take_id / "ev0").mkdir(parents=True)
     seg = {

@@ -393,7 +393,7 @@ def test_nonzero_dist_round_trip(exported: Fixture, tmp_path: Path) -> None:
     checked = []
     with open_take(take) as tk:
         K = tk.calibration["cam1"]["K"]  # type: ignore[index]
-        fs = tk.frames("cam1")
+        fs = tk.camera("cam1")
         mids = fs.timestamps_us + np.array([fs[i].exposure_us // 2 for i in range(len(fs))])
         for v in (v for v in views["train"] if v.camera == "cam1"):
             K_cv = v.K.copy()  # back to OpenCV's pixel centres

@@ -65,7 +65,7 @@ def test_failed_take_is_sealed_with_its_reason(tmp_path: Path) -> None:
         assert s.recovered_utc is not None
         assert any("marked failed by its writer (disk full)" in w for w in s.warnings)
         np.testing.assert_array_equal(take.sensor("ev0").events().t, expected(30).ev.t - OFF_EV)
-        np.testing.assert_array_equal(take.frames("cam0").timestamps_us, expected(30).frame_t - OFF_CAM)
+        np.testing.assert_array_equal(take.camera("cam0").timestamps_us, expected(30).frame_t - OFF_CAM)
     assert not needs_recovery(path)
     assert find_unfinished(tmp_path) == []
     assert recover_take(path).outcome == "not_needed"

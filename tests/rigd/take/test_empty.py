@@ -53,7 +53,7 @@ def _check_readable(path: Path, frames: int, events: int) -> None:
     assert res.exit_code in (0, 1), res.output
     with Take(path) as take:
         assert len(take.sensor("ev0").events().t) == (N * 300 if events else 0)
-        fs = take.frames("cam0")
+        fs = take.camera("cam0")
         assert len(fs) == (N if frames else 0)
         assert len(fs.timestamps_us) == len(fs)
         take.summary()

@@ -63,13 +63,13 @@ def test_mosaic_is_stored_as_given_and_read_as_rgb(tmp_path: Path) -> None:
         assert "bayer_pattern" not in f["frames/mono"].attrs
         np.testing.assert_array_equal(f["frames/cam0/images"][2], mosaic_rggb(RGB))
     with open_take(path) as take:
-        rgb = take.frames("cam0")[2].image
+        rgb = take.camera("cam0")[2].image
         assert rgb.shape == (H, W, 3)
         inner = np.abs(rgb.astype(np.int16) - RGB.astype(np.int16))[
             2:-2, np.r_[2 : W // 2 - 2, W // 2 + 2 : W - 2]
         ]
         assert inner.max() <= 1
-        mono = take.frames("mono")  # the same bytes declared mono8 stay as they are
+        mono = take.camera("mono")  # the same bytes declared mono8 stay as they are
         assert mono.pixel_format == "mono8"
         assert mono[0].image.shape == (H, W)
         assert mono.rgb(0).shape == (H, W, 3)
@@ -84,7 +84,7 @@ def test_older_takes_without_the_attr_read_by_their_shape(tmp_path: Path) -> Non
                 if key in f[f"frames/{cam}"].attrs:
                     del f[f"frames/{cam}"].attrs[key]
     with open_take(path) as take:
-        fs = take.frames("cam0")
+        fs = take.camera("cam0")
         assert fs.pixel_format == "mono8"
         assert fs[0].image.shape == (H, W)
         assert take.summary().cameras["cam0"].pixel_format == "mono8"
@@ -100,7 +100,7 @@ def test_a_bad_pixel_format_attr_is_named(tmp_path: Path) -> None:
         open_take(path) as take,
         pytest.raises(TakeFormatError, match=r"/frames/cam0: pixel_format 'bayer_rg8'"),
     ):
-        take.frames("cam0")
+        take.camera("cam0")
 
 
 def test_writer_refuses_what_a_format_cannot_hold(tmp_path: Path) -> None:

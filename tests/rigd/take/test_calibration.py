@@ -20,7 +20,7 @@ from rigd.take.validate import validate_take
 
 pytestmark = pytest.mark.slow
 
-BOARD_IMAGES = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "chessboard-stereo"
+BOARD_IMAGES = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "chessboard-stereo"
 
 
 @pytest.fixture(scope="module")

@@ -1,18 +1,16 @@
 """`take.sensor(name)`: one event sensor's EventSeries, on takes written by the real writer.
 
-Parity with the take's deprecated event methods (each forward warns and answers the same),
-unknown names, window edges and empty windows, a sensor without events, a take never
-finalized, and `get_events` against DSEC's EventSlicer algorithm on the same file.
+Unknown names, window edges and empty windows, a sensor without events, a take never
+finalized, and the window reader `events(t0, t1)` against DSEC's EventSlicer algorithm on the
+same file.
 """
 
 from __future__ import annotations
 
 import itertools
 import re
-from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import h5py
 import numpy as np
@@ -99,17 +97,6 @@ def brute(take: Take, t0: int, t1: int) -> EventArray:
     return ev[np.flatnonzero((ev.t >= t0) & (ev.t < t1))]
 
 
-def same(a: Any, b: Any) -> bool:
-    """Equal answers of the old and the new call (arrays, EventArrays, tuples, lists of them)."""
-    if isinstance(a, EventArray | TriggerEvents):
-        return type(a) is type(b) and all(same(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
-    if isinstance(a, tuple | list):
-        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
-    if isinstance(a, np.ndarray):
-        return a.dtype == b.dtype and np.array_equal(a, b)
-    return bool(a == b)
-
-
 def test_one_series_per_sensor(written: Written) -> None:
     with open_take(written.path) as take:
         es = take.sensor("ev0")
@@ -117,10 +104,9 @@ def test_one_series_per_sensor(written: Written) -> None:
         assert take.sensor("ev0") is es  # the datasets stay open for the take's life
         assert es.name == "ev0"
         assert repr(es) == f"EventSeries({str(written.path)!r}, 'ev0')"
-        assert (es.width, es.height) == es.geometry == (W, H)
+        assert es.geometry == (W, H)
         assert es.storage == written.path.stem
         assert es.evt_format == ("evt3" if es.storage == "evt_words" else None)
-        assert es.calibration is None
         assert es.count == len(es) == N
         assert es.span == (int(written.t[0]), int(written.t[-1]))
         assert es.t_offset == FIRST_PULSE
@@ -134,43 +120,9 @@ def test_unknown_sensor_names_what_exists(written: Written) -> None:
         with pytest.raises(TakeError, match=re.escape("no event sensor 'ev9' (has ['ev0', 'ev1'])")):
             take.sensor("ev9")
         with pytest.raises(TakeError, match=re.escape("no camera 'ev9' (has [])")):
-            take.frames("ev9")  # the camera accessor says it the same way
+            take.camera("ev9")  # the camera accessor says it the same way
     with pytest.raises(TakeError, match="the take is closed"):
         take.sensor("ev0")
-
-
-def test_deprecated_forwards_warn_and_answer_the_same(written: Written) -> None:
-    """The one place the old, string-keyed calls stay: each warns, naming its replacement, is
-    attributed to its caller, and answers what the EventSeries answers."""
-    t = written.t
-    mid = int(t[N // 3])
-    with open_take(written.path) as take:
-        es = take.sensor("ev0")
-        cases: list[tuple[str, Callable[[], Any], Any]] = [
-            ("events(name, ...)", lambda: take.events("ev0"), es.events()),
-            ("events(name, ...)", lambda: take.events("ev0", mid, mid + 5_000), es.events(mid, mid + 5_000)),
-            ("events(name, ...)", lambda: take.events("ev0", t_end_us=mid), es.events(t_end_us=mid)),
-            ("event_count(name)", lambda: take.event_count("ev0"), es.count),
-            ("geometry(name)", lambda: take.geometry("ev0"), es.geometry),
-            ("event_span(name)", lambda: take.event_span("ev0"), es.span),
-            (
-                "events_by_index(name, ...)",
-                lambda: take.events_by_index("ev0", 100, 2_000),
-                es.by_index(100, 2_000),
-            ),
-            ("event_index(name, t_us)", lambda: take.event_index("ev0", mid), es.index(mid)),
-            ("event_histogram(name, ...)", lambda: take.event_histogram("ev0", 5_000), es.histogram(5_000)),
-            ("iter_events(name, ...)", lambda: list(take.iter_events("ev0", 20_000)), list(es.iter(20_000))),
-            ("triggers(name)", lambda: take.triggers("ev0"), es.triggers),
-            ("trigger_host_times(name)", lambda: take.trigger_host_times("ev0"), es.trigger_host_times),
-        ]
-        for old, call, want in cases:
-            with pytest.warns(
-                DeprecationWarning, match=re.escape(f"Take.{old} is deprecated: use take.sensor(name).")
-            ) as rec:
-                got = call()
-            assert rec[0].filename == __file__, old  # stacklevel: the caller's line, not the forward's
-            assert same(got, want), old
 
 
 def test_window_edges(written: Written) -> None:
@@ -216,7 +168,6 @@ def test_empty_windows(written: Written) -> None:
         assert len(empty.events()) == len(empty.events(int(t[0]), int(t[-1]))) == 0
         assert list(empty.iter(1000)) == []
         assert empty.histogram(1000)[1].size == 0
-        assert empty.get_events(int(t[0]), int(t[0]) + 1000) is None
         assert empty.trigger_count == 0
 
 
@@ -227,8 +178,6 @@ def test_bad_arguments(written: Written) -> None:
             es.histogram(1500)
         with pytest.raises(TakeError, match="window_us must be positive"):
             next(iter(es.iter(0)))
-        with pytest.raises(TakeError, match="t_start_us must be < t_end_us"):
-            es.get_events(FIRST_PULSE, FIRST_PULSE)
 
 
 def test_never_finalized_take(tmp_path: Path) -> None:
@@ -243,7 +192,6 @@ def test_never_finalized_take(tmp_path: Path) -> None:
             lambda: es.events(0, 10),
             lambda: es.index(0),
             lambda: es.histogram(),
-            lambda: es.get_events(0, 10),
             lambda: next(iter(es.iter(1000))),
         ):
             with pytest.raises(TakeError, match="rig time"):
@@ -276,8 +224,9 @@ class DsecSlicer:
         return out
 
 
-def test_get_events_is_dsec_event_slicer(tmp_path: Path, written: Written) -> None:
-    """The columns take is read by the slicer directly; an EVT-words take answers the same."""
+def test_window_is_dsec_event_slicer(tmp_path: Path, written: Written) -> None:
+    """`events(t0, t1)` answers what the slicer reads from the columns take directly (its 1/0
+    polarity as +1/-1), for either storage."""
     cols = write(tmp_path / "columns.h5") if written.path.stem != "columns" else written
     t = written.t
     rng = np.random.default_rng(4)
@@ -289,19 +238,11 @@ def test_get_events_is_dsec_event_slicer(tmp_path: Path, written: Written) -> No
         starts = [off, off + 1, off + 999, off + 1000, *rng.integers(off, int(t[-1]) + 2_000, 40).tolist()]
         lengths = [1, 999, 1000, 1001, 20_000, 100_000]
         for t0, length in itertools.product(starts, lengths):
-            want, got = ref.get_events(int(t0), int(t0) + length), es.get_events(int(t0), int(t0) + length)
-            assert (got is None) == (want is None), (t0, length)
-            if got is None or want is None:
+            want = ref.get_events(int(t0), int(t0) + length)
+            if want is None:  # past the slicer's index: the series still answers, up to the end
                 continue
-            assert set(got) == {"p", "x", "y", "t"}
-            for k in "pxyt":
-                np.testing.assert_array_equal(got[k], want[k], err_msg=k)
-                assert got[k].dtype == (np.int64 if k == "t" else want[k].dtype), k
             ev = es.events(int(t0), int(t0) + length)
-            np.testing.assert_array_equal(2 * got["p"].astype(np.int8) - 1, ev.p)
-        last = int(t[-1])
-        edge = off + 1000 * ((last - off) // 1000 + 1)  # the end of the last event's millisecond
-        got = es.get_events(last - 10, edge)
-        assert got is not None
-        assert int(got["t"][-1]) == last
-        assert es.get_events(last - 10, edge + 1) is None
+            for k in "xyt":
+                np.testing.assert_array_equal(getattr(ev, k), want[k], err_msg=k)
+            np.testing.assert_array_equal(ev.p, 2 * want["p"].astype(np.int8) - 1)
+            assert ev.t.dtype == np.int64

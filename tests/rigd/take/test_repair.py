@@ -36,7 +36,7 @@ from rigd.core.frames import Frame
 from rigd.take import Take, find_unfinished, open_take, recover_take, validate_take
 from rigd.take.resume import resume_take
 
-ROOT = Path(__file__).parents[2]
+ROOT = Path(__file__).parents[3]
 
 
 # -- repair ----------------------------------------------------------------------------------
@@ -96,7 +96,7 @@ def test_repair_trims_and_reports_everything(tmp_path: Path) -> None:
     with Take(path) as take:
         assert take.sensor("ev0").count == 40 * EV_PER_STEP
         assert len(take.sensor("ev0").triggers) == 77
-        assert len(take.frames("cam0")) == 40
+        assert len(take.camera("cam0")) == 40
         report = take.sync_report
         assert report is not None
         assert (

@@ -53,7 +53,7 @@ from rigd.take import Take, TakeWriter, find_unfinished, open_take, recover_take
 from rigd.take.resume import resume_take
 from rigd.take.seal import continue_finalize, finalize_take
 
-ROOT = Path(__file__).parents[2]
+ROOT = Path(__file__).parents[3]
 
 
 def _kill_script(path: Path, kill_at_append: int | None = None) -> str:

@@ -49,7 +49,7 @@ def read_everything(p: Path) -> None:
         take.summary()
         _ = take.calibration, take.config, take.journal, take.sync_report, take.pulses
         for c in take.cameras:
-            fr = take.frames(c)
+            fr = take.camera(c)
             _ = fr.timestamps_us
             if len(fr):
                 fr.raw(0)

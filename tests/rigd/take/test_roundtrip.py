@@ -70,7 +70,7 @@ def test_dsec_layout(written: Written) -> None:
 
 def test_frames_triggers_pulses(written: Written) -> None:
     with open_take(written.path) as take:
-        fs = take.frames("cam0")
+        fs = take.camera("cam0")
         assert len(fs) == 9
         want = MAPS["cam0"].to_rig(written.frame_t_device)
         np.testing.assert_array_equal(fs.timestamps_us, want)
@@ -180,11 +180,11 @@ def test_unfinalized_take_opens_and_refuses_time_queries(tmp_path: Path) -> None
         assert take.status == "recording"
         assert take.sync_report is None
         np.testing.assert_array_equal(take.sensor("ev0").events().t, wr.ev_t_device)  # device time, all of it
-        assert len(take.frames("cam0")) == 9
+        assert len(take.camera("cam0")) == 9
         with pytest.raises(TakeError, match="never finalized"):
             take.sensor("ev0").events(0, 10)
         with pytest.raises(TakeError, match="never finalized"):
-            take.frames("cam0").index_at(0)
+            take.camera("cam0").index_at(0)
         with pytest.raises(TakeError, match="never finalized"):
             next(iter(take.sensor("ev0").iter(1000)))
 

@@ -41,11 +41,11 @@ with open_take(sys.argv[1]) as take:
     out["status"] = take.status
     out["events"] = {s: int(len(take.sensor(s).events())) for s in take.event_sensors}
     out["triggers"] = {s: int(len(take.sensor(s).triggers.t)) for s in take.event_sensors}
-    out["mosaics"] = {c: list(take.frames(c, demosaic=False).raw(0).shape) for c in take.cameras}
+    out["mosaics"] = {c: list(take.camera(c, demosaic=False).raw(0).shape) for c in take.cameras}
     out["calibrated"] = sorted(take.calibration or {})
     out["verdict"] = take.summary().verdict
     try:
-        take.frames(take.cameras[0]).rgb(0)
+        take.camera(take.cameras[0]).rgb(0)
     except MissingExtraError as exc:
         out["demosaic"] = str(exc)
 out["loaded"] = sorted(m for m in BLOCKED if m in sys.modules)

@@ -26,7 +26,7 @@ from firmware_sim.testing.takes import make_take
 from rigd.app.testing.crash import append_words_step, open_words_writer, unfinished
 from rigd.core.errors import TakeError
 from rigd.take.isolated import run_isolated
-from tests.rigd.test_take_hostile import read_everything
+from tests.rigd.take.test_hostile import read_everything
 
 #: What one read may allocate (tracemalloc peak) in a take of a few MB, whatever it declares.
 MEMORY_BOUND = 256 << 20

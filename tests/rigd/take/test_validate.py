@@ -162,7 +162,7 @@ def test_crash_after_flush_leaves_a_readable_take(tmp_path: Path) -> None:
         os._exit(3)
         """
     )
-    proc = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).parents[2], check=False)
+    proc = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).parents[3], check=False)
     assert proc.returncode == 3
     assert validate_take(path) == []
     with open_take(path) as take:

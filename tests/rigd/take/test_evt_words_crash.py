@@ -37,7 +37,7 @@ from rigd.take import Take, recover_take, validate_take
 _RELIEVED_STEPS_PER_FLUSH = 130
 pytestmark = pytest.mark.slow
 
-ROOT = Path(__file__).parents[2]
+ROOT = Path(__file__).parents[3]
 
 
 def expected_events(n: int) -> EventArray:
