@@ -9,9 +9,9 @@ run, in the order of their first call (a loop's second pass adds nothing), group
 (consecutive calls in one module). A return is a stay in a module visited before. The three
 walks run on the default sim rig, 1 s on the virtual clock (deterministic call order):
 
-- config: the rig config and its parts (any pydantic model), from `run_capture` on the calling
+- config: the rig config and its parts (device entries, settings), from `run_capture` on the calling
   thread: opening, checking and configuring the devices, creating the take, starting;
-- packet: event packets and their queue items, on `ev0`'s acquisition thread then the writer
+- packet: event packets and the queue items that carry them, on `ev0`'s acquisition thread then the writer
   thread, from the driver to the sinks;
 - export: the take and its series (`Take`, `EventSeries`, `FrameSeries`), through
   `rigd export --format nerfstudio` of that take.
@@ -28,32 +28,24 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from pydantic import BaseModel
+
 PACKAGES = ("rigd", "drivers", "calibration", "reconstruction")
 #: Leaf layers a walk passes through without it being a detour: the ground types and the codec.
 LEAVES = ("rigd.core", "rigd.evt")
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _held(value: Any) -> list[Any]:
-    """What an object holds one level down (its attributes, or a sequence's items)."""
-    if isinstance(value, list | tuple):
-        return list(value)
-    if isinstance(value, dict):
-        return list(value.values())
-    try:
-        return list(vars(value).values())
-    except TypeError:
-        return [getattr(value, n, None) for n in getattr(type(value), "__slots__", ())]
-
-
 class Tracer:
     """First calls of project functions, per thread, while `on`, that are handed the walked
-    parameter: an argument other than `self` of one of the `walked` types, or holding one."""
+    parameter: an argument other than `self` that is one of the `objects` (by identity), or
+    of one of the `walked` types."""
 
-    def __init__(self, walked: tuple[type, ...]) -> None:
+    def __init__(self, walked: tuple[type, ...] = (), objects: set[int] | None = None) -> None:
         self.calls: dict[str, list[tuple[str, str]]] = {}
         self.on = False
         self.walked = walked
+        self.objects = objects or set()
         self._seen: dict[str, set[tuple[str, str]]] = {}
 
     def _handed(self, frame: FrameType) -> bool:
@@ -63,7 +55,7 @@ class Tracer:
             if name in ("self", "cls"):
                 continue
             value = frame.f_locals.get(name)
-            if isinstance(value, self.walked) or any(isinstance(v, self.walked) for v in _held(value)):
+            if id(value) in self.objects or isinstance(value, self.walked):
                 return True
         return False
 
@@ -109,17 +101,34 @@ def count(modules: list[str]) -> tuple[int, int, int]:
     return len(modules), len(seen), returns
 
 
-def _config_and_packet_walks(out: Path) -> tuple[list[str], list[str], Path]:
-    from pydantic import BaseModel
+def _parts(model: BaseModel) -> set[int]:
+    """Ids of a pydantic model and of every model inside it (fields, lists, dicts)."""
+    found: set[int] = set()
+    todo: list[Any] = [model]
+    while todo:
+        value = todo.pop()
+        if isinstance(value, BaseModel):
+            if id(value) in found:
+                continue
+            found.add(id(value))
+            todo.extend(getattr(value, name) for name in type(value).model_fields)
+        elif isinstance(value, list | tuple):
+            todo.extend(value)
+        elif isinstance(value, dict):
+            todo.extend(value.values())
+    return found
 
+
+def _config_and_packet_walks(out: Path) -> tuple[list[str], list[str], Path]:
     from rigd.app.capture import run_capture
     from rigd.app.capture.items import EventsItem
     from rigd.app.config import default_sim_rig
     from rigd.core.events import EventPacket
 
     cfg = default_sim_rig(world="walks", clock="virtual", resolution=(320, 180))
-    # The config walk: the rig config and every part of it (its device entries, their settings).
-    config_tracer = Tracer((BaseModel,))
+    # The config walk: the rig config and every part of it (its device entries, their settings),
+    # by identity: a device's own default settings are not the rig's config.
+    config_tracer = Tracer(objects=_parts(cfg))
     packet_tracer = Tracer((EventPacket, EventsItem))
 
     def both(frame: FrameType, event: str, arg: Any) -> None:
@@ -146,10 +155,11 @@ def _config_and_packet_walks(out: Path) -> tuple[list[str], list[str], Path]:
 def _export_walk(take: Path, out: Path) -> list[str]:
     from rigd.products.export import run_export
     from rigd.products.export.common import ExportOptions
-    from rigd.take import reader
+    from rigd.take.event_series import EventSeries
+    from rigd.take.frame_series import FrameSeries
+    from rigd.take.reader import Take
 
-    walked = tuple(getattr(reader, n) for n in ("Take", "EventSeries", "FrameSeries") if hasattr(reader, n))
-    tracer = Tracer(walked)
+    tracer = Tracer((Take, EventSeries, FrameSeries))
     sys.setprofile(tracer)
     tracer.on = True
     try:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from rigd.app.capture.clock_reset import MAX_HOLD_S, MIN_OBSERVATIONS, ClockReset, Offset, estimate_offset
-from rigd.app.capture.reading import CameraReading, EventReading
+from rigd.app.capture.kinds import CameraReading, EventReading
 from rigd.core.events import EventArray, EventPacket, TriggerEvents
 from rigd.core.frames import Frame
 from rigd.core.settings import CameraSettings, EventSensorSettings
