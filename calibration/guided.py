@@ -65,14 +65,8 @@ from pydantic import BaseModel, Field
 
 from calibration.boards import DEFAULT_MAX_EDGE_WIDTH_PX, BoardSpec, Detection, detect
 from calibration.errors import CalibrationError
-from calibration.intrinsics import (
-    DIST_NAMES,
-    MODELS_BY_NAME,
-    RECOMMENDED_VIEWS,
-    IntrinsicsResult,
-    calibrate_intrinsics,
-    fit_model,
-)
+from calibration.intrinsics import RECOMMENDED_VIEWS, IntrinsicsResult, calibrate_intrinsics
+from calibration.lens_models import DIST_NAMES, MODELS_BY_NAME, fit_model
 
 log = logging.getLogger(__name__)
 
