@@ -25,7 +25,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from drivers.discovery import Discovery, SourceReport, discover
+from drivers.discovery import discover
+from drivers.found_devices import Discovery, SourceReport
 from drivers.registry import DeviceSpec
 from rigd.app.config import RigConfig
 from rigd.core.errors import ConfigError

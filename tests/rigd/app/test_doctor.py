@@ -9,7 +9,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from drivers.discovery import Discovery, FoundDevice, SourceReport
+from drivers.found_devices import Discovery, FoundDevice, SourceReport
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
 from rigd.app.config import RigConfig, default_sim_rig
