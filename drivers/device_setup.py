@@ -9,10 +9,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from drivers.found_devices import (
-    Discovery,
-    FoundDevice,
-)
+from drivers.found_devices import Discovery, FoundDevice
 
 
 def config_skeleton(found: Discovery) -> tuple[dict[str, Any], list[str]]:

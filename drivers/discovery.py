@@ -20,12 +20,7 @@ from drivers.discovery_sources import (
     find_usb_devices,
     find_v4l2_nodes,
 )
-from drivers.found_devices import (
-    Discovery,
-    FoundDevice,
-    SourceReport,
-    SourceUnavailable,
-)
+from drivers.found_devices import Discovery, FoundDevice, SourceReport, SourceUnavailable
 
 log = logging.getLogger(__name__)
 

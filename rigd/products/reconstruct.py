@@ -41,12 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from reconstruction.partition import (
-    Segment,
-    canonical_keyframe,
-    map_shape,
-    segment_starts,
-)
+from reconstruction.partition import Segment, canonical_keyframe, map_shape, segment_starts
 from rigd.core.errors import ConfigError, RigdError
 from rigd.core.layout import FRAMES_GROUP, Frames
 from rigd.core.progress import ProgressCallback, ProgressUpdate, no_progress
