@@ -20,7 +20,8 @@ import select
 import threading
 from typing import Any
 
-from firmware_sim.trigger_box import MODEL, VENDOR, SimTriggerBox
+from firmware_sim.trigger_box import SimTriggerBox
+from firmware_sim.trigger_commands import MODEL, VENDOR
 
 log = logging.getLogger(__name__)
 
