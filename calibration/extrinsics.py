@@ -35,7 +35,8 @@ from scipy.sparse import lil_matrix
 
 from calibration.boards import BoardSpec, Detection
 from calibration.errors import CalibrationError
-from calibration.intrinsics import DIST_NAMES, IntrinsicsResult
+from calibration.intrinsics import IntrinsicsResult
+from calibration.lens_models import DIST_NAMES
 
 log = logging.getLogger(__name__)
 

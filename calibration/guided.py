@@ -1,4 +1,3 @@
-# ruff: noqa: N806  (K, R, J follow the notation of the calibration literature)
 """Guided calibration session: live frames in, capture decisions and "show me this next" out.
 
 Why: a technician waving a board in front of a camera cannot judge which views are still missing.
@@ -22,8 +21,7 @@ Per frame (`GuidedSession.offer`):
    *Sharp*: the board's edge width is below `max_edge_width_px` (the sharpness measure of boards.py).
 3. *Novel*: the view is not a near-duplicate of a kept one (mean corner distance < `dup_px` and
    tilt within `dup_deg` of it), and its coverage bin holds fewer than `max_per_bin` views.
-   Coverage is counted in bins = (image grid cell of the board centre) x (tilt bin: facing the
-   camera, or turned about the vertical / horizontal axis with one edge away from the camera).
+   Coverage is counted in bins (`calibration.view_planning`).
 4. A still, sharp, novel view is captured. Once `min_views` are kept, every capture re-runs the
    calibration (fast model, k1k2 by default, `cv2.calibrateCameraExtended`) for the poses the hint
    needs. Once `done_views` are kept, every capture also runs the calibration that `result()`
@@ -35,15 +33,7 @@ Per frame (`GuidedSession.offer`):
    session running until time ran out while the file it wrote had met the target long before.
    The sigmas shown are those of the written fit once there is one.
 
-Next hint (what to show next): the *information-matrix* method, not a heuristic. For every bin
-(all cells x tilt bins) a board pose is synthesised there (at the median depth of the kept views,
-tilted ~30 deg for a tilt bin, pushed inside the image) with the current intrinsics; the Jacobian
-of its reprojection w.r.t. intrinsics and its own pose (cv2.projectPoints) gives its information
-on the intrinsics after eliminating the pose (Schur complement). Kept views contribute the same way
-at their estimated poses, plus a weak prior so the matrix is invertible before any view. The hint
-is the bin whose addition minimises trace(Cov[fx, fy, cx, cy]). About 45 candidates of ~50
-corners cost a few ms, and it runs only after a capture, so no heuristic fallback is needed;
-`hint_method="emptiest"` (fewest views, corners of the image first) is kept for comparison.
+Next hint (what to show next): `calibration.view_planning` (the information-matrix method).
 A pose hinted for `hint_patience_s` in all (frame time with the board in view, summed over every
 time it was the hint) without a capture there is a pose this board
 does not reach (a mount, a robot arm, the sim's scripted motion): its bin is no longer hinted and
@@ -54,7 +44,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, NamedTuple
 
@@ -65,21 +54,22 @@ from pydantic import BaseModel, Field
 
 from calibration.boards import DEFAULT_MAX_EDGE_WIDTH_PX, BoardSpec, Detection, detect
 from calibration.errors import CalibrationError
-from calibration.intrinsics import (
-    DIST_NAMES,
-    MODELS_BY_NAME,
-    RECOMMENDED_VIEWS,
-    IntrinsicsResult,
-    calibrate_intrinsics,
-    fit_model,
+from calibration.intrinsics import RECOMMENDED_VIEWS, IntrinsicsResult, calibrate_intrinsics
+from calibration.lens_models import MODELS_BY_NAME, fit_model
+from calibration.view_planning import (
+    FLAT_DEG,
+    TILT_BINS,
+    TILT_DEG,
+    Candidate,
+    ViewPlanner,
+    tilt_angles,
+    tilt_bin,
 )
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-#: Tilt bins: facing the camera, or turned ~TILT_DEG about an image axis with one edge away.
-TILT_BINS: tuple[str, ...] = ("facing", "right-away", "left-away", "bottom-away", "top-away")
 _TILT_TEXT = {
     "facing": "hold it facing the camera (tilt under {flat:.0f} deg)",
     "right-away": "turn it ~{deg:.0f} deg about the vertical axis, right edge away from the camera",
@@ -89,12 +79,6 @@ _TILT_TEXT = {
 }
 #: The intrinsics whose uncertainty the session drives down (and reports).
 SIGMA_NAMES: tuple[str, ...] = ("fx", "fy", "cx", "cy")
-#: Tilt (deg) of the synthesised candidate views of the tilt bins.
-TILT_DEG = 30.0
-#: Boards tilted less than this (about both axes) count as facing the camera.
-FLAT_DEG = 15.0
-#: Pixel noise assumed for the hint's information matrix before a calibration measured it.
-_DEFAULT_NOISE_PX = 0.3
 
 
 class Feedback(BaseModel):
@@ -150,45 +134,6 @@ class _FrameState(NamedTuple):
 
 
 @dataclass
-class _Candidate:
-    cell: int
-    tilt: int
-    score: float
-
-
-def cell_name(row: int, col: int, rows: int, cols: int) -> str:
-    """Human name of a grid cell ("top-left", "centre", ...) from where its centre falls in thirds
-    of the image, so that any grid size reads naturally."""
-    v = ("top", "", "bottom")[min(2, int(3 * (row + 0.5) / rows))]
-    h = ("left", "", "right")[min(2, int(3 * (col + 0.5) / cols))]
-    return "-".join(p for p in (v, h) if p) or "centre"
-
-
-def tilt_angles(rvec: F64) -> tuple[float, float]:
-    """(about vertical, about horizontal) tilt in degrees from the board plane's depth gradient:
-    positive when the right (resp. bottom) side is farther from the camera."""
-    n = cv2.Rodrigues(np.asarray(rvec, np.float64))[0][:, 2]
-    nz = n[2] if abs(n[2]) > 1e-9 else 1e-9
-    return math.degrees(math.atan(-n[0] / nz)), math.degrees(math.atan(-n[1] / nz))
-
-
-def tilt_bin(angles: tuple[float, float], flat_deg: float = FLAT_DEG) -> int:
-    """Index in TILT_BINS of a tilt (see tilt_angles)."""
-    yaw, pitch = angles
-    if max(abs(yaw), abs(pitch)) < flat_deg:
-        return 0
-    if abs(yaw) >= abs(pitch):
-        return 1 if yaw > 0 else 2
-    return 3 if pitch > 0 else 4
-
-
-def _intrinsic_columns(model_params: Sequence[str]) -> list[int]:
-    """Columns of cv2.projectPoints' Jacobian for fx fy cx cy and the model's distortion terms
-    (layout: rvec 3, tvec 3, f 2, c 2, then the distortion vector)."""
-    return [6, 7, 8, 9, *(10 + DIST_NAMES.index(p) for p in model_params)]
-
-
-@dataclass
 class GuidedSession:
     """Live guided calibration of one camera (see the module docstring for the method).
 
@@ -219,7 +164,8 @@ class GuidedSession:
     _dist: F64 = field(init=False, repr=False)
     _sigmas: dict[str, float] = field(default_factory=dict, init=False)
     _rms: float | None = field(default=None, init=False)
-    _hint: _Candidate | None = field(default=None, init=False, repr=False)
+    _hint: Candidate | None = field(default=None, init=False, repr=False)
+    _planner: ViewPlanner = field(init=False, repr=False)
     _waited_us: dict[tuple[int, int], int] = field(default_factory=dict, init=False, repr=False)
     _unreachable: set[tuple[int, int]] = field(default_factory=set, init=False, repr=False)
     _final: IntrinsicsResult | None = field(default=None, init=False, repr=False)
@@ -240,13 +186,14 @@ class GuidedSession:
         self._dist = np.zeros(MODELS_BY_NAME[self.model].n_coeffs)
         if self.dup_px is None:
             self.dup_px = 0.05 * math.hypot(w, h)
+        self._planner = ViewPlanner(self.board, self.image_size, self.grid, MODELS_BY_NAME[self.model])
         self._hint = self._choose_hint()
 
     # --- public ----------------------------------------------------------------------------
 
     @property
     def n_cells(self) -> int:
-        return self.grid[0] * self.grid[1]
+        return self._planner.n_cells
 
     @property
     def camera_matrix(self) -> F64:
@@ -385,16 +332,11 @@ class GuidedSession:
         outline to draw), or None when there is no hint or the session is done."""
         if self._hint is None or self.done:
             return None
-        depths = [float(np.linalg.norm(v.tvec)) for v in self.views]
-        bc, br = self.board.inner_corners
-        sq = self.board.square_m
-        depth = (
-            float(np.median(depths)) if depths else self._K[0, 0] * (bc + 1) * sq / (0.4 * self.image_size[0])
-        )
+        depth = self._planner.depth(self._K, [v.tvec for v in self.views])
         pose = self._synthetic_pose(self._hint.cell, self._hint.tilt, depth)
         if pose is None:
             return None
-        outline = np.array([[-sq, -sq, 0], [bc * sq, -sq, 0], [bc * sq, br * sq, 0], [-sq, br * sq, 0]])
+        outline = self._planner.outline()
         p = cv2.projectPoints(outline, pose[0], pose[1], self._K, self._dist)[0].reshape(-1, 2)
         return [[round(float(x), 1), round(float(y), 1)] for x, y in p]
 
@@ -458,20 +400,10 @@ class GuidedSession:
         return np.asarray(rvec, np.float64).ravel(), np.asarray(tvec, np.float64).ravel()
 
     def _cell_of(self, det: Detection) -> int:
-        return self._cell_of_points(det.image_points)
-
-    def _cell_of_points(self, points: F64) -> int:
-        """Grid cell of the centroid of image points."""
-        cols, rows = self.grid
-        w, h = self.image_size
-        cx, cy = points.mean(axis=0)
-        c = int(np.clip(cx / w * cols, 0, cols - 1))
-        r = int(np.clip(cy / h * rows, 0, rows - 1))
-        return r * cols + c
+        return self._planner.cell_of_points(det.image_points)
 
     def _cell_name(self, cell: int) -> str:
-        cols, rows = self.grid
-        return cell_name(cell // cols, cell % cols, rows, cols)
+        return self._planner.cell_name(cell)
 
     def _make_view(self, det: Detection, t_us: int) -> _View:
         rvec, tvec = self._pose(det)
@@ -537,74 +469,6 @@ class GuidedSession:
             {k: round(s, 3) for k, s in self._sigmas.items()},
         )
 
-    def _view_information(self, obj: F64, rvec: F64, tvec: F64) -> tuple[F64, int]:
-        """Information on the intrinsics of one view with its pose eliminated (Schur complement
-        of J^T J), unscaled by the noise; and how many of its corners land inside the image."""
-        cols = _intrinsic_columns(MODELS_BY_NAME[self.model].params)
-        proj, jac = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, self._K, self._dist)
-        p = proj.reshape(-1, 2)
-        w, h = self.image_size
-        inside = (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)
-        rows = np.repeat(inside, 2)
-        J = np.asarray(jac, np.float64)[rows]
-        Ji, Jp = J[:, cols], J[:, :6]
-        A, B, C = Ji.T @ Ji, Ji.T @ Jp, Jp.T @ Jp
-        try:
-            S = A - B @ np.linalg.solve(C, B.T)
-        except np.linalg.LinAlgError:
-            S = np.zeros_like(A)
-        return S, int(inside.sum())
-
-    def _prior(self, n: int) -> F64:
-        """Weak prior (information) on [fx fy cx cy dist...]: sigma = image width for f, a quarter
-        of it for c, 1 for distortion terms; only keeps the matrix invertible early on."""
-        w = float(self.image_size[0])
-        sig = np.array([w, w, w / 4, w / 4, *([1.0] * (n - 4))])
-        return np.diag(1.0 / sig**2)
-
-    def _synthetic_pose(self, cell: int, tilt: int, depth: float) -> tuple[F64, F64] | None:
-        """Board pose whose corners' centroid lies in the cell, tilted as the bin says, with the
-        whole board (margin included) in the image: aimed at the cell's centre, pushed inside the
-        image, and moved farther (up to 2.4x `depth`) while pushing would leave the cell; None
-        when no such pose is found."""
-        cols, rows = self.grid
-        w, h = self.image_size
-        angle = math.radians(TILT_DEG)
-        axis = {
-            0: np.zeros(3),
-            1: np.array([0.0, -angle, 0.0]),  # right edge away
-            2: np.array([0.0, angle, 0.0]),
-            3: np.array([angle, 0.0, 0.0]),  # bottom edge away
-            4: np.array([-angle, 0.0, 0.0]),
-        }[tilt]
-        R = cv2.Rodrigues(axis)[0]
-        rvec = cv2.Rodrigues(R)[0].ravel()
-        bc, br = self.board.inner_corners
-        sq = self.board.square_m
-        mid = np.array([(bc - 1) * sq / 2, (br - 1) * sq / 2, 0.0])
-        outline = np.array([[-sq, -sq, 0], [bc * sq, -sq, 0], [bc * sq, br * sq, 0], [-sq, br * sq, 0]])
-        obj = self.board.object_points()
-        Kinv = np.linalg.inv(self._K)
-        size = np.array([w - 1.0, h - 1.0])
-        for k in range(5):
-            z = depth * 1.25**k
-            target = np.array([((cell % cols) + 0.5) * w / cols, ((cell // cols) + 0.5) * h / rows])
-            for _ in range(4):
-                ray = Kinv @ np.array([target[0], target[1], 1.0])
-                tvec = ray / ray[2] * z - R @ mid
-                p = cv2.projectPoints(outline, rvec, tvec, self._K, self._dist)[0].reshape(-1, 2)
-                lo, hi = p.min(axis=0), p.max(axis=0)
-                if (hi - lo >= size).any():
-                    break  # larger than the image at this depth
-                shift = np.maximum(0, -lo) - np.maximum(0, hi - size)
-                if not shift.any():
-                    proj = cv2.projectPoints(obj, rvec, tvec, self._K, self._dist)[0]
-                    if self._cell_of_points(np.asarray(proj, np.float64).reshape(-1, 2)) == cell:
-                        return np.asarray(rvec, np.float64), np.asarray(tvec, np.float64)
-                    break
-                target = target + shift
-        return None
-
     def _set_hint(self) -> None:
         """Choose the next hint; a pose just captured starts its patience again."""
         if self.views:
@@ -631,63 +495,17 @@ class GuidedSession:
             self._unreachable.clear()  # every pose given up on: start over rather than hint nothing
         self._set_hint()
 
-    def _choose_hint(self) -> _Candidate | None:
-        """The bin to show next (module docstring); None before anything can be said."""
+    def _synthetic_pose(self, cell: int, tilt: int, depth: float) -> tuple[F64, F64] | None:
+        """A board pose in the bin at the current intrinsics (ViewPlanner.synthetic_pose)."""
+        return self._planner.synthetic_pose(self._K, self._dist, cell, tilt, depth)
+
+    def _choose_hint(self) -> Candidate | None:
+        """The bin to show next (`calibration.view_planning`); None before anything can be said."""
         cov = self.coverage()
         if self.hint_method == "emptiest":
-            return self._emptiest(cov)
-        lens = MODELS_BY_NAME[self.model]
-        n = 4 + len(lens.params)
-        noise = self._rms if self._rms else _DEFAULT_NOISE_PX
-        info = self._prior(n)
-        for v in self.views:
-            info += self._view_information(v.det.object_points, v.rvec, v.tvec)[0] / noise**2
-        depths = [float(np.linalg.norm(v.tvec)) for v in self.views]
-        bc = self.board.inner_corners[0]
-        # Without views: the distance at which the board spans ~40 % of the image width.
-        depth = (
-            float(np.median(depths))
-            if depths
-            else self._K[0, 0] * (bc + 1) * self.board.square_m / (0.4 * self.image_size[0])
-        )
-        obj = self.board.object_points()
-        best: _Candidate | None = None
-        for cell in range(self.n_cells):
-            for tilt in range(len(TILT_BINS)):
-                if (cell, tilt) in self._unreachable:
-                    continue
-                pose = self._synthetic_pose(cell, tilt, depth)
-                if pose is None:
-                    continue
-                S, n_in = self._view_information(obj, *pose)
-                if n_in < max(6, obj.shape[0] // 2):
-                    continue
-                try:
-                    cov_c = np.linalg.inv(info + S / noise**2)
-                except np.linalg.LinAlgError:
-                    continue
-                score = float(np.trace(cov_c[:4, :4]))
-                # ties (e.g. before any view) go to the emptier bin, then to the first one
-                if (
-                    best is None
-                    or score < best.score * (1 - 1e-9)
-                    or (score <= best.score * (1 + 1e-9) and cov[cell, tilt] < cov[best.cell, best.tilt])
-                ):
-                    best = _Candidate(cell, tilt, score)
-        return best or self._emptiest(cov)
-
-    def _emptiest(self, cov: NDArray[np.int64]) -> _Candidate:
-        """Heuristic: the bin with the fewest views; image corners and tilted views first (they
-        constrain distortion and focal length most), then the rest in grid order."""
-        cols, rows = self.grid
-        corners = {0, cols - 1, (rows - 1) * cols, rows * cols - 1}
-        bins = [(c, t) for c in range(self.n_cells) for t in range(len(TILT_BINS))]
-        order = sorted(
-            [b for b in bins if b not in self._unreachable] or bins,
-            key=lambda ct: (cov[ct], ct[0] not in corners, ct[1] == 0, ct),
-        )
-        c, t = order[0]
-        return _Candidate(c, t, float(cov[c, t]))
+            return self._planner.emptiest(cov, self._unreachable)
+        views = [(v.det.object_points, v.rvec, v.tvec) for v in self.views]
+        return self._planner.best_information(self._K, self._dist, views, self._rms, cov, self._unreachable)
 
     # --- feedback ----------------------------------------------------------------------------
 

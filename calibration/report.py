@@ -22,7 +22,8 @@ from numpy.typing import NDArray
 
 from calibration.errors import CalibrationError
 from calibration.extrinsics import RigResult
-from calibration.intrinsics import CV_MARGIN, IntrinsicsResult, undistort
+from calibration.intrinsics import IntrinsicsResult, undistort
+from calibration.lens_models import CV_MARGIN
 
 log = logging.getLogger(__name__)
 

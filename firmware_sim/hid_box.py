@@ -4,7 +4,7 @@ Some trigger boxes enumerate as HID instead of CDC serial (no driver on Windows,
 ModemManager probing on Linux). They carry the same line protocol in 64-byte reports
 (framing in docs/trigger-protocol.md, *HID transport*). This module bridges such reports
 to the unchanged sim firmware (`SimTriggerBox(link="socket")`), so the real
-`drivers.serial_trigger.HidTransport` is what the tests exercise.
+`drivers.trigger_link.HidTransport` is what the tests exercise.
 
 `FakeHidApi` mimics the parts of hidapi's module the driver uses (`enumerate`, `device`),
 listing every open socket-linked sim box; tests install it in place of `hid` to open
@@ -20,7 +20,8 @@ import select
 import threading
 from typing import Any
 
-from firmware_sim.trigger_box import MODEL, VENDOR, SimTriggerBox
+from firmware_sim.trigger_box import SimTriggerBox
+from firmware_sim.trigger_commands import MODEL, VENDOR
 
 log = logging.getLogger(__name__)
 

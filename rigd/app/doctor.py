@@ -1,46 +1,31 @@
 """`rigd doctor`: what on this machine will stop a take, each as OK / WARN / FAIL with the fix.
 
 Every reading (usbfs limit, free disk, write speed, clock source, groups, ...) comes from a
-`Readings` object of provider functions, so tests simulate a too-small usbfs limit or a slow
-disk without touching the machine; `Readings.system()` reads the real one. Checks never
-raise: a reading that fails becomes a WARN saying it could not be read.
-
-Sizes are estimates from the rig config: a frame is width x height x (1 for mono8 and
-bayer_rg8, 3 otherwise) bytes (width/height from the spec's query, else `DEFAULT_FRAME`), an event is
-`EVENT_BYTES` in the take at `DEFAULT_EVENT_RATE` unless the sensor's ERC caps it lower.
+`Readings` object of provider functions (`rigd.app.doctor_readings`), so tests simulate a
+too-small usbfs limit or a slow disk without touching the machine; `Readings()` reads the real
+one. Checks never raise: a reading that fails becomes a WARN saying it could not be read. The
+rig's data rates the checks compare against come from `rigd.app.rig_plan`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import grp
-import importlib.util
 import logging
-import os
-import pwd
-import shutil
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
-from drivers.discovery import Discovery, SourceReport, discover
-from drivers.registry import DeviceSpec
+from drivers.found_devices import Discovery, SourceReport
 from rigd.app.config import RigConfig
+from rigd.app.doctor_readings import Readings
+from rigd.app.rig_plan import Plan, plan_rig, spec_or_none
 from rigd.core.errors import ConfigError
-from rigd.core.pixels import BYTES_PER_PIXEL
 
 log = logging.getLogger(__name__)
 
 Status = Literal["OK", "WARN", "FAIL"]
 
-#: Frame size assumed when a camera spec does not say (a common 2.3 MP machine-vision sensor).
-DEFAULT_FRAME = (1920, 1200)
-#: Event rate assumed per sensor when its ERC does not cap it (busy scene, events/s).
-DEFAULT_EVENT_RATE = 10e6
-#: Bytes per event in a take: x, y uint16, p uint8, t int64 (before compression).
-EVENT_BYTES = 13
 #: Buffers a userspace USB camera driver (Aravis U3V, libusb) keeps queued per camera.
 USB_BUFFERS_PER_CAMERA = 16
 #: usbfs memory a Prophesee EVK's libusb transfers take (bulk transfer ring).
@@ -62,186 +47,6 @@ class Check:
     def line(self) -> str:
         text = f"{self.status:<4} {self.name}: {self.message}"
         return f"{text}\n     -> {self.fix}" if self.fix and self.status != "OK" else text
-
-
-@dataclass(frozen=True, slots=True)
-class NodeAccess:
-    exists: bool
-    readable: bool
-    writable: bool
-
-
-def _read_int(path: str) -> int | None:
-    try:
-        return int(Path(path).read_text().strip())
-    except (OSError, ValueError):
-        return None
-
-
-def _clocksource() -> tuple[str, list[str]] | None:
-    base = Path("/sys/devices/system/clocksource/clocksource0")
-    try:
-        current = (base / "current_clocksource").read_text().strip()
-        available = (base / "available_clocksource").read_text().split()
-    except OSError:
-        return None
-    return current, available
-
-
-def _user_groups() -> set[str]:
-    names = set()
-    for gid in os.getgroups():
-        try:
-            names.add(grp.getgrgid(gid).gr_name)
-        except KeyError:
-            continue
-    try:  # membership granted since login only shows in the group database
-        user = pwd.getpwuid(os.getuid()).pw_name
-        names |= {g.gr_name for g in grp.getgrall() if user in g.gr_mem}
-    except KeyError:
-        pass
-    return names
-
-
-def _node_access(path: str) -> NodeAccess:
-    exists = os.path.exists(path)
-    return NodeAccess(exists, exists and os.access(path, os.R_OK), exists and os.access(path, os.W_OK))
-
-
-def _udev_rules() -> list[str]:
-    found: list[str] = []
-    for d in ("/etc/udev/rules.d", "/lib/udev/rules.d", "/usr/lib/udev/rules.d"):
-        try:
-            found += [os.path.join(d, f) for f in os.listdir(d) if "rigd" in f]
-        except OSError:
-            continue
-    return found
-
-
-def _free_disk(path: Path) -> int:
-    p = path
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    return shutil.disk_usage(p).free
-
-
-def measure_write_mb_s(path: Path, size_mb: int = 64) -> float:
-    """Sequential write of `size_mb` MiB with fsync, the way the take writer hits the disk."""
-    p = path
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    target = p / f".rigd-doctor-{os.getpid()}.tmp"
-    block = os.urandom(1 << 20)  # incompressible, so a compressing filesystem cannot cheat
-    t = time.perf_counter()
-    try:
-        with open(target, "wb", buffering=0) as f:
-            for _ in range(size_mb):
-                f.write(block)
-            os.fsync(f.fileno())
-        elapsed = time.perf_counter() - t
-    finally:
-        target.unlink(missing_ok=True)
-    return size_mb / max(elapsed, 1e-9)
-
-
-def _module_reason(name: str) -> str | None:
-    """None when `name` is importable, else why not (without importing heavy modules twice)."""
-    if name == "Aravis":
-        try:
-            import gi
-
-            gi.require_version("Aravis", "0.8")
-            from gi.repository import Aravis  # noqa: F401
-        except (ImportError, ValueError) as exc:
-            return str(exc)
-        return None
-    try:
-        return None if importlib.util.find_spec(name) is not None else f"module {name} not found"
-    except (ImportError, ValueError) as exc:
-        return str(exc)
-
-
-def _hdf5_filters() -> dict[str, bool]:
-    import h5py
-
-    with contextlib.suppress(ImportError):
-        import hdf5plugin  # noqa: F401 - registers the filters with HDF5
-    ids = {"lz4": 32004, "zstd": 32015, "gzip": 1}
-    return {name: bool(h5py.h5z.filter_avail(fid)) for name, fid in ids.items()}
-
-
-@dataclass(slots=True)
-class Readings:
-    """Where each check gets its facts; replace any provider to simulate a machine."""
-
-    usbfs_memory_mb: Callable[[], int | None] = field(
-        default=lambda: _read_int("/sys/module/usbcore/parameters/usbfs_memory_mb")
-    )
-    free_disk_bytes: Callable[[Path], int] = _free_disk
-    disk_write_mb_s: Callable[[Path], float] = measure_write_mb_s
-    clocksource: Callable[[], tuple[str, list[str]] | None] = _clocksource
-    rmem_max: Callable[[], int | None] = field(default=lambda: _read_int("/proc/sys/net/core/rmem_max"))
-    user_groups: Callable[[], set[str]] = _user_groups
-    is_root: Callable[[], bool] = field(default=lambda: os.geteuid() == 0)
-    node_access: Callable[[str], NodeAccess] = _node_access
-    udev_rules: Callable[[], list[str]] = _udev_rules
-    discovery: Callable[[], Discovery] = discover
-    module_reason: Callable[[str], str | None] = _module_reason
-    hdf5_filters: Callable[[], dict[str, bool]] = _hdf5_filters
-
-
-@dataclass(frozen=True, slots=True)
-class Plan:
-    """Data rates the configured rig will produce."""
-
-    bytes_per_s: float
-    usb_cameras: list[tuple[str, int]]  # (name, bytes per frame) through userspace USB
-    event_sensors_usb: int
-    gige_cameras: list[str]
-    node_paths: list[str]
-
-
-def plan_rig(rig: RigConfig) -> Plan:
-    """Bytes per second and the USB/GigE load of a rig config (see the module docstring)."""
-    rate_hz = rig.trigger.settings.rate_hz
-    total = 0.0
-    usb: list[tuple[str, int]] = []
-    gige: list[str] = []
-    nodes: list[str] = []
-    trig = _safe_parse(rig.trigger.spec)
-    if trig is not None and trig.scheme == "serial":
-        nodes.append(trig.path or trig.location)
-    for cam in rig.cameras:
-        spec = _safe_parse(cam.spec)
-        params = spec.params if spec else {}
-        width = int(params.get("width", DEFAULT_FRAME[0]))
-        height = int(params.get("height", DEFAULT_FRAME[1]))
-        fmt = cam.settings.pixel_format or params.get("format", "rgb8")
-        frame_bytes = width * height * BYTES_PER_PIXEL.get(fmt, 3)
-        fps = rate_hz if cam.settings.trigger_mode == "hardware" else cam.settings.free_run_fps
-        total += frame_bytes * fps
-        if spec is None:
-            continue
-        if spec.scheme == "genicam":
-            # GigE or USB3 Vision: unknown until opened; count it for both limits.
-            usb.append((cam.name, frame_bytes))
-            gige.append(cam.name)
-        elif spec.scheme == "v4l2":
-            nodes.append(spec.path)
-    n_ev_usb = 0
-    for sen in rig.event_sensors:
-        total += (sen.settings.erc_rate_ev_s or DEFAULT_EVENT_RATE) * EVENT_BYTES
-        spec = _safe_parse(sen.spec)
-        if spec is not None and spec.scheme == "prophesee":
-            n_ev_usb += 1
-    return Plan(total, usb, n_ev_usb, gige, nodes)
-
-
-def _safe_parse(spec: str) -> DeviceSpec | None:
-    try:
-        return DeviceSpec.parse(spec)
-    except ConfigError:
-        return None
 
 
 def _guard(name: str, fn: Callable[[], list[Check]]) -> list[Check]:
@@ -631,7 +436,7 @@ def _check_backends(r: Readings, rig: RigConfig | None, found: Discovery | None 
             *(c.spec for c in rig.cameras),
             *(s.spec for s in rig.event_sensors),
         ]:
-            spec = _safe_parse(spec_text)
+            spec = spec_or_none(spec_text)
             if spec is not None:
                 used.add(spec.scheme)
     out: list[Check] = []

@@ -20,7 +20,8 @@ what the filter kept per sensor, the options), `<out>/<take_id>/<sensor>/snapsho
 snapshots per sensor: `reconstruct_picture`).
 
 Scheduling: the same Dask graph runs on local threads (default), local processes, the
-synchronous scheduler, or a `dask.distributed` cluster (`scheduler="tcp://host:8786"`). A take
+synchronous scheduler, or a `dask.distributed` cluster (`reconstruct_scheduler`); the options and
+results are in `reconstruct_options`. A take
 that cannot be read fails alone: its result carries `error` (one line naming the take).
 """
 
@@ -30,33 +31,26 @@ import itertools
 import json
 import logging
 import os
-import re
 import time
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from reconstruction.partition import (
-    PartitionConfig,
-    Segment,
-    canonical_keyframe,
-    map_shape,
-    segment_starts,
-)
+from reconstruction.partition import Segment, canonical_keyframe, map_shape, segment_starts
 from rigd.core.errors import ConfigError, RigdError
 from rigd.core.layout import FRAMES_GROUP, Frames
 from rigd.core.progress import ProgressCallback, ProgressUpdate, no_progress
+from rigd.products.reconstruct_options import ReconstructOptions, SensorReconstruction, TakeReconstruction
 from rigd.products.reconstruct_picture import picks, write_overview
+from rigd.products.reconstruct_scheduler import DaskRunner
 from rigd.products.reconstruct_tasks import (
     BlockMaps,
     BlockScan,
-    FilterKnobs,
     Grid,
     Snapshot,
     highpass_warmup_us,
@@ -69,85 +63,8 @@ from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
 
-LOCAL_SCHEDULERS = ("threads", "processes", "sync")
-#: A dask.distributed address: PROTOCOL://HOST:PORT (HOST a name, IPv4 or [IPv6]), HOST:PORT
-#: (tcp), or an in-process scheduler's inproc://... address.
-_ADDRESS = re.compile(
-    r"((?:tcp|tls|ucx|ws|wss)://)?(?P<host>[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\])"
-    r":(?P<port>[0-9]{1,5})|inproc://\S+"
-)
-SCHEDULER_FORMS = f"{', '.join(LOCAL_SCHEDULERS)}, or a dask.distributed address tcp://HOST:PORT"
-#: Seconds to wait for a distributed scheduler to answer (dask's default is 30).
-CONNECT_TIMEOUT_S = 5
 #: The progress stages, each counted in its own unit (events, events, snapshots).
 STAGE_FILTER, STAGE_MAPS, STAGE_SNAPSHOTS = "filter + activity", "keyframe maps", "snapshots"
-
-
-class ReconstructOptions(BaseModel):
-    """Takes to reconstruct, where to, on which scheduler, and every knob (paper values as defaults)."""
-
-    model_config = ConfigDict(frozen=True)
-
-    takes: list[Path]
-    out: Path
-    scheduler: str | None = None
-    """None or "threads": local threads; "processes"; "sync" (one thread); else a distributed address."""
-
-    @field_validator("scheduler")
-    @classmethod
-    def _known_scheduler(cls, v: str | None) -> str | None:
-        """A typo (`thread`) or a malformed address fails here, before any take is read."""
-        if v is None or v in LOCAL_SCHEDULERS:
-            return v
-        m = _ADDRESS.fullmatch(v)
-        if m is None or (m["port"] is not None and not 1 <= int(m["port"]) <= 65535):
-            shown = repr(v if len(v) <= 60 else v[:57] + "...")
-            raise ValueError(f"{shown}: expected {SCHEDULER_FORMS} (port 1-65535)")
-        return v
-
-    workers: int | None = Field(None, ge=1)
-    filter: FilterKnobs = FilterKnobs()
-    partition_window_us: int = Field(5_000, ge=100)
-    threshold: float = Field(2.0, gt=0)
-    """Activity budget per segment, kept events per pixel of all sensors."""
-    instant_weight: float = Field(1.0, ge=0)
-    min_segment_us: int = Field(10_000, ge=0)
-    map_scale: float = Field(0.25, gt=0, le=1)
-    max_candidates: int = Field(256, ge=0)
-    """Keyframe candidates per segment at most (evenly spaced); 0: all of them."""
-    keyframe_camera: str | None = None
-    candidate_interval_us: int = Field(33_333, ge=1)
-    """Candidate spacing in takes without cameras."""
-    e2i: Literal["highpass", "direct"] = "highpass"
-    contrast: float = Field(0.3, gt=0)
-    cutoff_hz: float = Field(5.0, gt=0)
-    block_events: int = Field(1 << 20, ge=1024)
-
-    def partition_config(self) -> PartitionConfig:
-        return PartitionConfig(
-            window_us=self.partition_window_us,
-            threshold=self.threshold,
-            instant_weight=self.instant_weight,
-            min_segment_us=self.min_segment_us,
-            map_scale=self.map_scale,
-        )
-
-
-class SensorReconstruction(BaseModel):
-    """What denoising kept of one sensor's events."""
-
-    events_in: int
-    events_kept: int
-
-
-class TakeReconstruction(BaseModel):
-    """One take's outcome; `take` is the path as given, `error` one line when it failed."""
-
-    take: str
-    segments: int = 0
-    sensors: dict[str, SensorReconstruction] = {}
-    seconds: float = 0.0
-    error: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,71 +83,6 @@ class _Plan:
     @property
     def n_events(self) -> int:
         return sum(hi - lo for b in self.blocks.values() for lo, hi in b)
-
-
-# --- scheduling ---------------------------------------------------------------------------------
-
-
-class _Runner:
-    """Computes lists of Dask tasks on one scheduler, calling `on_result` per finished task."""
-
-    def __init__(self, scheduler: str | None, workers: int | None) -> None:
-        try:
-            import dask  # noqa: F401
-        except ImportError as exc:  # pragma: no cover - depends on the environment
-            raise RigdError(
-                "rigd reconstruct needs dask: pip install dask (distributed for --scheduler)"
-            ) from exc
-        self.name = scheduler or "threads"
-        self.workers = workers
-        self._client: Any = None
-        if self.name not in LOCAL_SCHEDULERS:
-            try:
-                from dask.distributed import Client
-            except ImportError as exc:  # pragma: no cover - depends on the environment
-                raise RigdError(
-                    f"--scheduler {self.name}: a distributed scheduler needs dask.distributed "
-                    "(pip install distributed)"
-                ) from exc
-            try:
-                self._client = Client(self.name, timeout=CONNECT_TIMEOUT_S)
-            except (OSError, TimeoutError) as exc:
-                raise ConfigError(
-                    f"--scheduler {self.name}: no dask.distributed scheduler answered within "
-                    f"{CONNECT_TIMEOUT_S} s ({' '.join(str(exc).split())}); start one with "
-                    f"`dask scheduler` or use {', '.join(LOCAL_SCHEDULERS)}"
-                ) from exc
-            except ValueError as exc:  # an address dask cannot parse
-                raise ConfigError(
-                    f"--scheduler {self.name}: not a usable dask.distributed address "
-                    f"({' '.join(str(exc).split())}); expected {SCHEDULER_FORMS}"
-                ) from exc
-
-    def close(self) -> None:
-        if self._client is not None:
-            self._client.close()
-
-    def compute(self, tasks: Sequence[Any], on_result: Callable[[Any], None]) -> list[Any]:
-        if not tasks:
-            return []
-        if self._client is not None:
-            from dask.distributed import as_completed
-
-            futures = self._client.compute(list(tasks))
-            for fut in as_completed(futures):
-                on_result(fut.result())
-            return [f.result() for f in futures]
-        import dask
-        from dask.callbacks import Callback
-
-        def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
-            on_result(result)
-
-        kwargs: dict[str, Any] = {"scheduler": self.name}
-        if self.workers is not None and self.name != "sync":
-            kwargs["num_workers"] = self.workers
-        with Callback(posttask=posttask):
-            return list(dask.compute(*tasks, **kwargs))
 
 
 # --- planning -----------------------------------------------------------------------------------
@@ -326,12 +178,12 @@ def reconstruct_take(
     path: Path,
     options: ReconstructOptions,
     progress: ProgressCallback = no_progress,
-    runner: _Runner | None = None,
+    runner: DaskRunner | None = None,
 ) -> TakeReconstruction:
     """The three phases on one take; writes its outputs. Raises RigdError / OSError on a bad take."""
     o = options
     own = runner is None
-    run = runner or _Runner(o.scheduler, o.workers)
+    run = runner or DaskRunner(o.scheduler, o.workers)
     started = time.perf_counter()
     try:
         plan = _plan(path, o)
@@ -343,7 +195,7 @@ def reconstruct_take(
 
 
 def _phases(
-    plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback
+    plan: _Plan, o: ReconstructOptions, run: DaskRunner, progress: ProgressCallback
 ) -> TakeReconstruction:
     name = str(plan.path)
     sensors = list(plan.blocks)
@@ -414,9 +266,9 @@ class _Activity:
     """Rig times the segments start at, then the take's end."""
 
 
-def _scan(plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback) -> _Activity:
+def _scan(plan: _Plan, o: ReconstructOptions, run: DaskRunner, progress: ProgressCallback) -> _Activity:
     """Phase 1: filter every block, count what it kept per window, and segment the take."""
-    from dask import delayed  # dask is checked by _Runner, with its own message
+    from dask import delayed  # dask is checked by DaskRunner, with its own message
 
     cfg, name, total = o.partition_config(), str(plan.path), plan.n_events
     grid = Grid(plan.t0_us, cfg.window_us, max(1, -(-(plan.t1_us - plan.t0_us) // cfg.window_us)))
@@ -439,7 +291,7 @@ def _scan(plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCa
 
 
 def _keyframes(
-    plan: _Plan, o: ReconstructOptions, run: _Runner, progress: ProgressCallback, act: _Activity
+    plan: _Plan, o: ReconstructOptions, run: DaskRunner, progress: ProgressCallback, act: _Activity
 ) -> tuple[list[NDArray[np.int64]], list[int]]:
     """Phase 2: interval maps between the chosen candidates, canonical keyframe per segment.
     Returns the candidates chosen per segment and the keyframes."""
@@ -477,7 +329,7 @@ def _keyframes(
 def _snapshots(
     plan: _Plan,
     o: ReconstructOptions,
-    run: _Runner,
+    run: DaskRunner,
     progress: ProgressCallback,
     keys: list[int],
     edges: NDArray[np.int64],
@@ -612,7 +464,7 @@ def run_reconstruct(
     A take failing with a RigdError or OSError (h5py's read errors) gets `error` set; the others run.
     """
     o = options
-    runner = _Runner(o.scheduler, o.workers)  # first: an unreachable scheduler leaves nothing behind
+    runner = DaskRunner(o.scheduler, o.workers)  # first: an unreachable scheduler leaves nothing behind
     try:
         o.out.mkdir(parents=True, exist_ok=True)
     except BaseException:

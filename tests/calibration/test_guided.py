@@ -16,8 +16,9 @@ import typer
 from typer.testing import CliRunner
 
 from calibration.boards import BoardSpec, Detection, detect, parse_board
-from calibration.guided import TILT_BINS, GuidedSession, cell_name, tilt_angles, tilt_bin
+from calibration.guided import GuidedSession
 from calibration.io import read_opencv_yaml
+from calibration.view_planning import TILT_BINS, cell_name, tilt_angles, tilt_bin
 from firmware_sim.testing.board_views import SynthCamera, look_at, render, view_poses
 
 SIZE = (480, 360)

@@ -8,17 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from drivers.discovery import (
-    DEFAULT_SOURCES,
-    FoundDevice,
-    SourceUnavailable,
-    config_skeleton,
-    discover,
-    find_v4l2_nodes,
-    lookup_usb,
-    udev_rules,
-    write_config_skeleton,
-)
+from drivers.device_setup import config_skeleton, udev_rules, write_config_skeleton
+from drivers.discovery import DEFAULT_SOURCES, discover
+from drivers.discovery_sources import find_v4l2_nodes
+from drivers.found_devices import FoundDevice, SourceUnavailable, lookup_usb
 from rigd.app.config import RigConfig
 
 

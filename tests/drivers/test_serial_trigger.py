@@ -19,7 +19,8 @@ import pytest
 from drivers import trigger_link
 from drivers.base import Capability
 from drivers.registry import DeviceSpec, open_device
-from drivers.serial_trigger import SerialTrigger, TriggerBoxError, open_serial_trigger
+from drivers.serial_trigger import SerialTrigger, open_serial_trigger
+from drivers.trigger_lines import TriggerBoxError
 from drivers.trigger_link import HidTransport, TransportError, hid_payload, hid_report, parse_hid_address
 from firmware_sim.box_devices import find_trigger_box, open_sim_trigger
 from firmware_sim.hid_box import SIM_HID_PID, SIM_HID_VID, FakeHidApi, attach

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from drivers.registry import DeviceSpec, open_device
-from firmware_sim.replay import Recording, rig_to_device
+from firmware_sim.replay_recording import Recording, rig_to_device
 from firmware_sim.world import reset_world
 from rigd.app.capture import run_capture
 from rigd.app.config import default_sim_rig

@@ -19,7 +19,8 @@ from drivers.testing.trigger_protocol import (
     collect_run,
     pulses,
 )
-from firmware_sim.trigger_box import RING_SIZE, SimTriggerBox
+from firmware_sim.trigger_box import SimTriggerBox
+from firmware_sim.trigger_commands import RING_SIZE
 from firmware_sim.world import Edge, SimWorld, get_world, reset_world
 
 

@@ -176,7 +176,8 @@ def test_reconstruct_on_a_distributed_scheduler(tmp_path: Path) -> None:
     distributed = pytest.importorskip("distributed")
     from rigd.app.capture import run_capture
     from rigd.app.config import default_sim_rig
-    from rigd.products.reconstruct import ReconstructOptions, run_reconstruct
+    from rigd.products.reconstruct import run_reconstruct
+    from rigd.products.reconstruct_options import ReconstructOptions
 
     cfg = default_sim_rig(world=f"rd-{uuid.uuid4().hex[:8]}", resolution=(160, 90), pixel_format="mono8")
     cfg.cameras = cfg.cameras[:1]

@@ -18,14 +18,14 @@ from rich.table import Table
 from rigd.app.commands.consoles import fail, stderr_console, stdout_console
 
 if TYPE_CHECKING:  # the driver layer (numpy) loads when the command runs
-    from drivers.discovery import Discovery
+    from drivers.found_devices import Discovery
 
 log = logging.getLogger(__name__)
 _err = stderr_console()
 
 
 def _print_table(found: Discovery, out: Console) -> None:
-    from drivers.discovery import usb_speed_label
+    from drivers.found_devices import usb_speed_label
 
     table = Table("source", "role", "name", "spec", "usb id", "serial", "link")
     for d in found.devices:
@@ -63,7 +63,9 @@ def devices(
     """List serial ports, USB and HID devices, V4L2 nodes and GenICam cameras rigd can use.
 
     With a daemon running, the daemon looks (it is the process with the device permissions)."""
-    from drivers.discovery import Discovery, discover, udev_rules, write_config_skeleton
+    from drivers.device_setup import udev_rules, write_config_skeleton
+    from drivers.discovery import discover
+    from drivers.found_devices import Discovery
     from rigd.app.commands.service import find_for_command
 
     client = find_for_command(connect, local)

@@ -85,7 +85,7 @@ class _Lines:
 
 def _panel(fb: Feedback, camera: str, session: GuidedSession, target: float, left_s: float) -> Group:
     """The live view: status, sigmas vs target, coverage grid (views per cell; tilt bins seen)."""
-    from calibration.guided import TILT_BINS
+    from calibration.view_planning import TILT_BINS
 
     head = Text.assemble(
         (f"{camera}  ", "bold"),

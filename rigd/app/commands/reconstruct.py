@@ -21,9 +21,9 @@ from rigd.app.commands.progress import StageProgress
 from rigd.core.errors import RigdError
 
 if TYPE_CHECKING:  # the pipeline (dask, numba, h5py) loads when the command runs
-    from rigd.products.reconstruct import ReconstructOptions, TakeReconstruction
+    from rigd.products.reconstruct_options import ReconstructOptions, TakeReconstruction
 
-#: rigd.products.reconstruct.LOCAL_SCHEDULERS, spelled out so that `--help` need not import
+#: rigd.products.reconstruct_scheduler.LOCAL_SCHEDULERS, spelled out so that `--help` need not import
 #: the pipeline; tests/app/commands/test_lazy_imports.py holds the two equal.
 LOCAL_SCHEDULER_NAMES = ("threads", "processes", "sync")
 
@@ -105,7 +105,7 @@ def reconstruct(
     ] = 5.0,
 ) -> None:
     """Denoise, segment the rig's sequence by motion, choose keyframes and reconstruct snapshots per take."""
-    from rigd.products.reconstruct import ReconstructOptions
+    from rigd.products.reconstruct_options import ReconstructOptions
     from rigd.products.reconstruct_tasks import FilterKnobs
 
     try:

@@ -37,8 +37,9 @@ from starlette.routing import Route
 
 from calibration.boards import parse_board
 from calibration.errors import CalibrationError
-from calibration.guided import SIGMA_NAMES, TILT_BINS
+from calibration.guided import SIGMA_NAMES
 from calibration.io import write_json
+from calibration.view_planning import TILT_BINS
 from rigd.app.console.app import read_body
 from rigd.app.console.live import LatestSlot, LivePublisher
 from rigd.app.console.takes import TakeList, check_name, file_in, plain_dir

@@ -9,11 +9,13 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from drivers.discovery import Discovery, FoundDevice, SourceReport
+from drivers.found_devices import Discovery, FoundDevice, SourceReport
 from rigd.app.commands.devices import devices
 from rigd.app.commands.doctor import doctor
 from rigd.app.config import RigConfig, default_sim_rig
-from rigd.app.doctor import Check, NodeAccess, Readings, plan_rig, run_checks, summary_status
+from rigd.app.doctor import Check, run_checks, summary_status
+from rigd.app.doctor_readings import NodeAccess, Readings
+from rigd.app.rig_plan import plan_rig
 
 RIG = {
     "trigger": {"spec": "/dev/rigd-trigger", "settings": {"rate_hz": 60.0, "pulse_width_us": 500}},

@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
-from rigd.products.reconstruct import ReconstructOptions, run_reconstruct
+from rigd.products.reconstruct import run_reconstruct
+from rigd.products.reconstruct_options import ReconstructOptions
 
 
 def _good(d: Path, name: str = "good.h5") -> Path:

@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
-from rigd.products import reconstruct
-from rigd.products.reconstruct import ReconstructOptions
+from rigd.products import reconstruct_scheduler
+from rigd.products.reconstruct_options import ReconstructOptions
 
 runner = CliRunner()
 
@@ -112,7 +112,7 @@ def test_unreachable_scheduler_fails_after_the_connect_timeout(
     """Port 1 on the loopback: nothing listens. The client gives up after CONNECT_TIMEOUT_S
     (made 1 s here) and says so in one line; no output directory is created."""
     pytest.importorskip("distributed")
-    monkeypatch.setattr(reconstruct, "CONNECT_TIMEOUT_S", 1)
+    monkeypatch.setattr(reconstruct_scheduler, "CONNECT_TIMEOUT_S", 1)
     out = tmp_path / "rec"
     r = runner.invoke(app, ["reconstruct", str(take), "--out", str(out), "--scheduler", "tcp://127.0.0.1:1"])
     assert r.exit_code == 2, r.output

@@ -32,10 +32,10 @@ from rigd.products.reconstruct import (
     STAGE_FILTER,
     STAGE_MAPS,
     STAGE_SNAPSHOTS,
-    ReconstructOptions,
     reconstruct_take,
     run_reconstruct,
 )
+from rigd.products.reconstruct_options import ReconstructOptions
 from rigd.products.reconstruct_tasks import FilterKnobs
 from rigd.take import TakeWriter
 from rigd.take.reader import Take

@@ -8,6 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 import drivers.discovery as discovery
+from drivers.found_devices import FoundDevice, SourceUnavailable
 from rigd.app.cli import app
 
 REASON = "pyusb has no libusb backend (No backend available); apt-get install libusb-1.0-0"
@@ -15,8 +16,8 @@ REASON = "pyusb has no libusb backend (No backend available); apt-get install li
 
 @pytest.fixture
 def no_libusb(monkeypatch: pytest.MonkeyPatch) -> None:
-    def find_usb() -> list[discovery.FoundDevice]:
-        raise discovery.SourceUnavailable(REASON)
+    def find_usb() -> list[FoundDevice]:
+        raise SourceUnavailable(REASON)
 
     monkeypatch.setitem(discovery.DEFAULT_SOURCES, "usb", find_usb)
 

@@ -48,7 +48,7 @@ def test_spelled_out_choices_match_the_libraries() -> None:
     from rigd.app.commands.export import EXPORT_FORMATS, EXPORT_SPLITS, EXPORT_WORLDS
     from rigd.app.commands.reconstruct import LOCAL_SCHEDULER_NAMES
     from rigd.products.export import FORMATS, SPLITS, WORLDS
-    from rigd.products.reconstruct import LOCAL_SCHEDULERS
+    from rigd.products.reconstruct_scheduler import LOCAL_SCHEDULERS
 
     assert E2CALIB_METHODS == METHODS
     assert EXPORT_FORMATS == FORMATS
