@@ -1,4 +1,5 @@
-"""`rigd convert`: RAW/DAT recordings to takes and back, streaming in constant memory.
+"""`rigd convert`: RAW/DAT recordings to takes and back, streaming in constant memory (rosbag2
+bags to takes: rigd.products.ros.bag_convert).
 
 A recording converted to a take keeps the sensor's own clock (there is no trigger box to tie
 it to): the take's clock map is the identity and its report says so. What the decoder skipped
@@ -59,13 +60,21 @@ def convert(
     strict: bool = False,
     on_progress: Progress | None = None,
 ) -> int:
-    """Convert by extension (.raw/.dat <-> .h5); returns the number of events written."""
+    """Convert by extension (.raw/.dat <-> .h5, rosbag2 .db3/.mcap or bag directory -> .h5);
+    returns the number of events written."""
     s, d = src.suffix.lower(), dst.suffix.lower()
+    if (s in (".db3", ".mcap") or src.is_dir()) and d in (".h5", ".hdf5"):
+        from rigd.products.ros.bag_convert import bag_to_take
+
+        return bag_to_take(src, dst, on_progress=on_progress)
     if s in (".raw", ".dat") and d in (".h5", ".hdf5"):
         return recording_to_take(src, dst, sensor=sensor or "ev0", strict=strict, on_progress=on_progress)
     if s in (".h5", ".hdf5") and d in (".raw", ".dat"):
         return take_to_recording(src, dst, sensor=sensor, fmt=fmt, on_progress=on_progress)
-    raise ConvertError(f"cannot convert {src.name} to {dst.name}: use .raw/.dat -> .h5 or .h5 -> .raw/.dat")
+    raise ConvertError(
+        f"cannot convert {src.name} to {dst.name}: use .raw/.dat -> .h5, .h5 -> .raw/.dat "
+        "or a rosbag2 bag (.db3, .mcap or its directory) -> .h5"
+    )
 
 
 def _skip_text(skipped: dict[str, int], offsets: list[int]) -> str:

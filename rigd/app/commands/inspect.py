@@ -61,7 +61,12 @@ def inspect(
 
 
 def convert_cmd(
-    src: Annotated[Path, typer.Argument(help="Input: .raw/.dat recording or .h5 take.")],
+    src: Annotated[
+        Path,
+        typer.Argument(
+            help="Input: .raw/.dat recording, rosbag2 bag (.db3, .mcap, bag directory) or .h5 take."
+        ),
+    ],
     dst: Annotated[Path, typer.Argument(help="Output: .h5 take or .raw/.dat recording.")],
     sensor: Annotated[str | None, typer.Option("--sensor", help="Event sensor name in the take.")] = None,
     fmt: Annotated[
@@ -69,7 +74,7 @@ def convert_cmd(
     ] = "evt3",
     strict: Annotated[bool, typer.Option("--strict", help="Stop at the first invalid word.")] = False,
 ) -> None:
-    """Convert a RAW/DAT recording to a take, or a take's event sensor to RAW/DAT."""
+    """Convert a RAW/DAT recording or a rosbag2 bag to a take, or a take's event sensor to RAW/DAT."""
     from rigd.products.convert import convert
 
     if not src.exists():

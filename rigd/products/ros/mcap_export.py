@@ -106,13 +106,17 @@ def write_mcap(
                 )
             seq = seqs.get(msg.topic, 0)
             seqs[msg.topic] = seq + 1
-            w.add_message(channels[msg.topic], log_time=msg.log_ns, data=msg.data, publish_time=msg.log_ns, sequence=seq)
+            w.add_message(
+                channels[msg.topic], log_time=msg.log_ns, data=msg.data, publish_time=msg.log_ns, sequence=seq
+            )
             stats.messages[msg.topic] = seq + 1
             stats.bytes_by_topic[msg.topic] = stats.bytes_by_topic.get(msg.topic, 0) + len(msg.data)
             now_ms = (msg.log_ns - stats.epoch_ns) // 1_000_000 - streams.t_start_us // 1000
             if now_ms > done_ms:
                 done_ms = now_ms
-                progress(ProgressUpdate("mcap", f"{done_ms}/{total_ms} ms", min(done_ms, total_ms), total_ms, "ms"))
+                progress(
+                    ProgressUpdate("mcap", f"{done_ms}/{total_ms} ms", min(done_ms, total_ms), total_ms, "ms")
+                )
         w.add_metadata(
             "rigd",
             {

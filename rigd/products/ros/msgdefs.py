@@ -26,7 +26,10 @@ CLOCK_MAP = "rigd_msgs/msg/ClockMap"
 
 _FIELD_TYPE = re.compile(r"^\s*([A-Za-z_][\w/]*)(\[[^\]]*\])?\s+\w+")
 _PRIMITIVES = frozenset(
-    "bool byte char float32 float64 int8 uint8 int16 uint16 int32 uint32 int64 uint64 string wstring".split()
+    {
+        *("bool", "byte", "char", "string", "wstring", "float32", "float64"),
+        *(f"{s}int{n}" for s in ("", "u") for n in (8, 16, 32, 64)),
+    }
 )
 
 

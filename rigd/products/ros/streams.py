@@ -7,7 +7,7 @@ Event packets carry the sensor's stored EVT words as sent, one message per store
 EVT 3.0 per slice. `/rigd/<sensor>/clock_map` says how a decoder's times map to rig time.
 """
 
-# ruff: noqa: N806  (R, K follow the calibration literature)
+# ruff: noqa: N803, N806  (R, K follow the calibration literature)
 from __future__ import annotations
 
 import json
@@ -169,7 +169,12 @@ class TakeStreams:
             binning_x=0,
             binning_y=0,
             roi=m.new(
-                "sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+                "sensor_msgs/msg/RegionOfInterest",
+                x_offset=0,
+                y_offset=0,
+                height=0,
+                width=0,
+                do_rectify=False,
             ),
         )
 
@@ -243,7 +248,9 @@ class TakeStreams:
         if not ok:
             raise ValueError(f"{cam}: PNG encoding failed")
         msg = m.new(m.COMPRESSED_IMAGE, header=m.header(ns, cam), format="png", data=buf.reshape(-1))
-        return Msg(ns, f"/{cam}/image_raw/compressed", m.COMPRESSED_IMAGE, m.serialize(msg, m.COMPRESSED_IMAGE))
+        return Msg(
+            ns, f"/{cam}/image_raw/compressed", m.COMPRESSED_IMAGE, m.serialize(msg, m.COMPRESSED_IMAGE)
+        )
 
     # -- events ----------------------------------------------------------------------------
     def words(self, name: str) -> EvtWordsEvents | None:
@@ -322,7 +329,9 @@ class TakeStreams:
         while r < rows:
             e = r + 1
             while (
-                e < rows and words.follows[e] and words.shift[e] == words.shift[r]
+                e < rows
+                and words.follows[e]
+                and words.shift[e] == words.shift[r]
                 and words.last[e] - words.first[r] < self.slice_us
             ):
                 e += 1

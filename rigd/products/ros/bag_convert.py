@@ -1,0 +1,405 @@
+"""`rigd convert BAG TAKE.h5`: a rosbag2 recording (`.db3` / `.mcap`) as a take, streaming.
+
+Each `event_camera_msgs/EventPacket` topic becomes an event sensor: its packets decoded in `seq`
+order by rigd's EVT decoder (`evt3`, `evt2`, `evt21`) or unpacked (`mono`), EXT_TRIGGER words
+kept as trigger edges. Each `sensor_msgs/Image` topic becomes a camera. Packets missing (a gap in
+`seq`), out of order (a `seq` at or before one already decoded) or that cannot be decoded (an
+unknown or changed encoding, geometry or a payload the type does not read) are counted in loss
+records and named in the report's warnings; never skipped silently.
+
+Times: a bag written by `rigd export --format mcap` carries each sensor's clock map
+(`rigd_msgs/ClockMap`) and the stamp epoch, so events, edges and frames come back in rig time,
+the trigger pulses with them, and only the events inside the exported take window are written
+(the others counted in the take's `window_outside`). Any other bag keeps each sensor's own clock
+(decoded times, microseconds) and frames their header stamps (microseconds since the ROS epoch),
+and its report says that the two are not tied.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigd import __version__
+from rigd.core.devices import DeviceInfo, PulseBatch
+from rigd.core.errors import EventDataError, RigdError
+from rigd.core.events import EventArray, TriggerEvents
+from rigd.core.frames import Frame
+from rigd.core.schema import LossRecord, SyncReport
+from rigd.core.settings import WriterConfig
+from rigd.core.timebase import ClockMap
+from rigd.evt import FORMATS, StreamDecoder
+from rigd.products.ros import bag_read
+from rigd.products.ros import msgdefs as m
+from rigd.take.writer import TakeWriter
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[int], None]
+#: Image encodings a take stores as they are, and the pixel format they are stored as.
+IMAGE_FORMATS = {"mono8": "mono8", "rgb8": "rgb8", "bgr8": "rgb8", "bayer_rggb8": "bayer_rg8"}
+
+
+class BagConvertError(RigdError):
+    """A bag that cannot become a take (nothing to convert, unreadable)."""
+
+
+def sensor_name(topic: str) -> str:
+    """`/prophesee/event_camera/events` -> `prophesee_event_camera` (the device a topic is)."""
+    parts = [p for p in topic.strip("/").split("/") if p]
+    if len(parts) > 1 and parts[-1] in ("events", "image_raw", "image", "image_mono", "image_color"):
+        parts = parts[:-1]
+    return "_".join(parts) or "device"
+
+
+@dataclass
+class _Sensor:
+    name: str
+    width: int
+    height: int
+    encoding: str
+    decoder: StreamDecoder | None = None
+    last_seq: int | None = None
+    missing: int = 0
+    out_of_order: int = 0
+    bad: int = 0
+    bad_why: list[str] = field(default_factory=list)
+    outside: int = 0
+    events: int = 0
+    clock: Any = None
+    """The rigd_msgs/ClockMap of an exported take (None: keep the sensor's clock)."""
+
+    def note_bad(self, why: str) -> None:
+        self.bad += 1
+        if len(self.bad_why) < 3:
+            self.bad_why.append(why)
+
+
+@dataclass
+class _Camera:
+    name: str
+    shape: tuple[int, ...]
+    fmt: str
+    frames: int = 0
+    bad: int = 0
+    bad_why: list[str] = field(default_factory=list)
+
+
+class BagConverter:
+    """One conversion: the writer, and per topic what it became and what was lost."""
+
+    def __init__(self, src: Path, writer: TakeWriter, on_progress: Progress | None) -> None:
+        self.src = src
+        self.w = writer
+        self.on_progress = on_progress
+        self.sensors: dict[str, _Sensor] = {}
+        self.cameras: dict[str, _Camera] = {}
+        self.clocks: dict[str, Any] = {}
+        self.epoch_ns: int | None = None
+        self.window: tuple[int, int] | None = None
+        self.pulses = 0
+        self.skipped_topics: dict[str, str] = {}
+        self.undecodable: dict[str, tuple[str, int, str]] = {}
+
+    def note_undecodable(self, topic: str, typename: str, exc: Exception) -> None:
+        """A payload the topic's type does not read: counted per topic."""
+        _, n, first = self.undecodable.get(topic, (typename, 0, f"{type(exc).__name__}: {exc}"))
+        self.undecodable[topic] = (typename, n + 1, first)
+
+    # -- times ---------------------------------------------------------------------------
+    def to_rig(self, s: _Sensor, decoded_us: np.ndarray[Any, Any], seq: int) -> np.ndarray[Any, Any]:
+        c = s.clock
+        if c is None:
+            return decoded_us
+        starts = np.asarray(c.offset_from_seq, np.int64)
+        k = int(np.searchsorted(starts, seq, side="right")) - 1
+        off = int(np.asarray(c.offset_us, np.int64)[k]) if k >= 0 else 0
+        cmap = ClockMap(int(c.device_ref_us), int(c.rig_ref_us), float(c.rate), float(c.frac_us))
+        return cmap.to_rig(decoded_us + off)
+
+    def stamp_us(self, ns: int) -> int:
+        """A header stamp as the take's time: rig us when the epoch is known."""
+        if self.epoch_ns is not None:
+            return (ns - self.epoch_ns) // 1000
+        return ns // 1000
+
+    # -- messages --------------------------------------------------------------------------
+    def clock_map(self, msg: Any) -> None:
+        self.clocks[msg.device] = msg
+        self.epoch_ns = int(msg.epoch_ns)
+        if msg.device in self.sensors:
+            self.sensors[msg.device].clock = msg
+
+    def pulse(self, msg: Any) -> None:
+        self.w.append_pulses(
+            PulseBatch(
+                np.array([msg.index], np.int64),
+                np.array([msg.t_us], np.int64),
+                np.array([msg.host_time_ns], np.int64),
+            )
+        )
+        self.pulses += 1
+
+    def packet(self, topic: str, msg: Any) -> None:
+        name = sensor_name(topic)
+        s = self.sensors.get(name)
+        if s is None:
+            s = self._add_sensor(name, msg)
+        seq = int(msg.seq)
+        if s.last_seq is not None and seq <= s.last_seq:
+            s.out_of_order += 1
+            return
+        if s.last_seq is not None and seq > s.last_seq + 1:
+            s.missing += seq - s.last_seq - 1
+        s.last_seq = seq
+        if msg.encoding != s.encoding or (int(msg.width), int(msg.height)) != (s.width, s.height):
+            s.note_bad(
+                f"seq {seq}: {msg.encoding} {msg.width}x{msg.height}, the topic began as "
+                f"{s.encoding} {s.width}x{s.height}"
+            )
+            return
+        if s.clock is not None and seq in {int(v) for v in s.clock.restart_seq} and s.decoder is not None:
+            s.decoder = StreamDecoder(s.encoding, width=s.width, height=s.height)
+        try:
+            ev, tr = self._decode(s, msg)
+        except (EventDataError, ValueError) as exc:
+            s.note_bad(f"seq {seq}: {exc}")
+            return
+        if len(ev):
+            t = self.to_rig(s, ev.t, seq)
+            keep = np.ones(len(t), bool)
+            if s.clock is not None:
+                keep = (t >= s.clock.window_start_us) & (t < s.clock.window_end_us)
+                s.outside += int((~keep).sum())
+            ev = ev.with_time(t)[keep] if not keep.all() else ev.with_time(t)
+            if len(ev):
+                self.w.append_events(s.name, ev)
+                s.events += len(ev)
+        if len(tr):
+            self.w.append_triggers(s.name, TriggerEvents(self.to_rig(s, tr.t, seq), tr.p, tr.channel))
+        if self.on_progress:
+            self.on_progress(sum(x.events for x in self.sensors.values()))
+
+    def _add_sensor(self, name: str, msg: Any) -> _Sensor:
+        enc = str(msg.encoding)
+        s = _Sensor(name, int(msg.width), int(msg.height), enc, clock=self.clocks.get(name))
+        info = DeviceInfo(
+            kind="event_sensor",
+            spec=f"rosbag2://{self.src.resolve()}",
+            vendor="rosbag2",
+            serial=name,
+            firmware=f"encoding={enc}",
+        )
+        self.w.add_event_sensor(name, info, s.width, s.height, json.dumps({"encoding": enc}))
+        if enc in FORMATS:
+            s.decoder = StreamDecoder(enc, width=s.width, height=s.height)
+        self.sensors[name] = s
+        return s
+
+    def _decode(self, s: _Sensor, msg: Any) -> tuple[EventArray, TriggerEvents]:
+        data = np.asarray(msg.events, np.uint8)
+        if s.encoding == "mono":
+            if data.size % 8:
+                raise ValueError(f"mono payload of {data.size} bytes is not whole 8-byte events")
+            p = data.view("<u8")
+            t_ns = int(msg.time_base) + (p & 0xFFFFFFFF).astype(np.int64)
+            x = ((p >> np.uint64(32)) & np.uint64(0xFFFF)).astype(np.uint16)
+            y = ((p >> np.uint64(48)) & np.uint64(0x7FFF)).astype(np.uint16)
+            pol = (p >> np.uint64(63)).astype(np.int8)
+            return EventArray(x=x, y=y, p=pol, t=t_ns // 1000), TriggerEvents.empty()
+        if s.decoder is None:
+            raise ValueError(
+                f"encoding {s.encoding!r} is not one rigd decodes ({', '.join([*FORMATS, 'mono'])})"
+            )
+        d = s.decoder.feed(data)
+        return d.events, d.triggers
+
+    def image(self, topic: str, msg: Any) -> None:
+        name = sensor_name(topic)
+        enc = str(msg.encoding)
+        cam = self.cameras.get(name)
+        h, w = int(msg.height), int(msg.width)
+        if cam is None:
+            if enc not in IMAGE_FORMATS:
+                self.skipped_topics[topic] = (
+                    f"image encoding {enc!r} (a take stores {', '.join(IMAGE_FORMATS)})"
+                )
+                return
+            shape = (h, w, 3) if IMAGE_FORMATS[enc] == "rgb8" else (h, w)
+            cam = _Camera(name, shape, IMAGE_FORMATS[enc])
+            info = DeviceInfo(
+                kind="rgb_camera",
+                spec=f"rosbag2://{self.src.resolve()}",
+                vendor="rosbag2",
+                serial=name,
+                firmware=f"encoding={enc}",
+            )
+            self.w.add_camera(name, info, shape, np.uint8, json.dumps({"encoding": enc}), cam.fmt)
+            self.cameras[name] = cam
+        data = np.asarray(msg.data, np.uint8)
+        row = cam.shape[1] * (3 if len(cam.shape) == 3 else 1)
+        if (
+            IMAGE_FORMATS.get(enc) != cam.fmt
+            or (h, w) != cam.shape[:2]
+            or int(msg.step) < row
+            or data.size < int(msg.step) * h
+        ):
+            cam.bad += 1
+            if len(cam.bad_why) < 3:
+                cam.bad_why.append(
+                    f"frame {cam.frames + cam.bad}: {enc} {w}x{h} step {msg.step}, {data.size} bytes"
+                )
+            return
+        img = data[: int(msg.step) * h].reshape(h, int(msg.step))[:, :row].reshape(cam.shape)
+        if enc == "bgr8":
+            img = img[..., ::-1]
+        ns = m.stamp_ns(msg.header)
+        frame = Frame(np.ascontiguousarray(img), self.stamp_us(ns), 0, cam.frames, ns, pixel_format=cam.fmt)
+        self.w.append_frame(name, frame)
+        cam.frames += 1
+
+    # -- end -------------------------------------------------------------------------------
+    def report(self) -> tuple[SyncReport, dict[str, dict[str, int]]]:
+        warnings: list[str] = []
+        losses: list[LossRecord] = []
+        if self.epoch_ns is None:
+            warnings.append(
+                "converted rosbag2: event times are each sensor's own clock (identity map), frame "
+                "times their header stamps; the two are not tied (no trigger box)"
+            )
+        else:
+            warnings.append(
+                f"converted rosbag2 written by rigd: rig times from its clock maps "
+                f"(stamp epoch {self.epoch_ns} ns)"
+            )
+        outside: dict[str, dict[str, int]] = {}
+        for s in self.sensors.values():
+            for what, n, why in (
+                (
+                    "events",
+                    s.missing,
+                    f"{s.missing} EventPacket(s) missing on {s.name}'s topic (gaps in seq)",
+                ),
+                (
+                    "events",
+                    s.out_of_order,
+                    f"{s.out_of_order} EventPacket(s) out of order on {s.name}'s topic "
+                    "(seq at or before one already decoded), not decoded",
+                ),
+                (
+                    "events",
+                    s.bad,
+                    f"{s.bad} EventPacket(s) on {s.name}'s topic could not be decoded: "
+                    + "; ".join(s.bad_why),
+                ),
+            ):
+                if n:
+                    losses.append(LossRecord(device=s.name, what=what, count=n, reason=why))
+                    warnings.append(why)
+            if s.decoder is not None:
+                skipped = {k: v for k, v in s.decoder.stats.items() if v}
+                if skipped:
+                    why = f"{s.encoding} decoder skipped invalid data on {s.name}'s topic: {skipped}"
+                    losses.append(
+                        LossRecord(device=s.name, what="events", count=sum(skipped.values()), reason=why)
+                    )
+                    warnings.append(why)
+            if s.outside:
+                outside[s.name] = {"events": s.outside}
+        for c in self.cameras.values():
+            if c.bad:
+                why = f"{c.bad} Image(s) on {c.name}'s topic could not be stored: " + "; ".join(c.bad_why)
+                losses.append(LossRecord(device=c.name, what="frames", count=c.bad, reason=why))
+                warnings.append(why)
+        for topic, (typename, n, first) in self.undecodable.items():
+            why = f"{n} message(s) on {topic} are not {typename} CDR (first: {first})"
+            what = "events" if typename == m.EVENT_PACKET else "frames"
+            losses.append(LossRecord(device=sensor_name(topic), what=what, count=n, reason=why))
+            warnings.append(why)
+        for topic, why in self.skipped_topics.items():
+            warnings.append(f"topic {topic} not converted: {why}")
+        report = SyncReport(
+            rate_hz=0.0,
+            n_pulses=self.pulses,
+            t_first_pulse_us=None,
+            t_last_pulse_us=None,
+            warnings=warnings,
+            losses=losses,
+        )
+        return report, outside
+
+
+def bag_to_take(src: Path, dst: Path, *, on_progress: Progress | None = None) -> int:
+    """Write a rosbag2 recording as a take; returns the events written."""
+    if dst.exists():
+        raise BagConvertError(f"{dst} exists; not overwriting a take")
+    types = bag_read.topics(src)
+    wanted = {m.EVENT_PACKET, m.IMAGE}
+    if not any(t in wanted for t, _ in types.values()):
+        found = ", ".join(f"{k} ({t})" for k, (t, _) in sorted(types.items())) or "no topics"
+        raise BagConvertError(f"{src}: no event_camera_msgs/EventPacket or sensor_msgs/Image topic ({found})")
+    try:
+        n = _write(src, dst, on_progress)
+    except BaseException:
+        if dst.exists():
+            log.warning("convert %s failed; removing the unfinished take %s", src, dst)
+            dst.unlink()
+        raise
+    log.info("converted %s -> %s: %d events", src, dst, n)
+    return n
+
+
+_HANDLERS = {
+    m.EVENT_PACKET: "packet",
+    m.IMAGE: "image",
+}
+
+
+def _write(src: Path, dst: Path, on_progress: Progress | None) -> int:
+    config = {"converted_from": str(src), "format": "rosbag2"}
+    with TakeWriter(
+        dst,
+        rig_config_json=json.dumps(config),
+        take_id=dst.stem,
+        config=WriterConfig(),
+        rigd_version=__version__,
+    ) as writer:
+        conv = BagConverter(src, writer, on_progress)
+        try:
+            for bm in bag_read.messages(src):
+                if bm.typename not in (*_HANDLERS, m.CLOCK_MAP, m.TRIGGER_PULSE):
+                    continue
+                if bm.encoding != "cdr":
+                    conv.skipped_topics[bm.topic] = f"serialization {bm.encoding!r}, not cdr"
+                    continue
+                try:
+                    msg = m.deserialize(bm.data, bm.typename)
+                except Exception as exc:  # noqa: BLE001  (rosbags raises plain errors on a bad payload)
+                    conv.note_undecodable(bm.topic, bm.typename, exc)
+                    continue
+                if bm.typename == m.CLOCK_MAP:
+                    conv.clock_map(msg)
+                elif bm.typename == m.TRIGGER_PULSE:
+                    conv.pulse(msg)
+                else:
+                    getattr(conv, _HANDLERS[bm.typename])(bm.topic, msg)
+            if not conv.sensors and not conv.cameras:
+                raise BagConvertError(f"{src}: no message of its event or image topics could be converted")
+            report, outside = conv.report()
+            if conv.window is not None or outside:
+                starts = [int(c.window_start_us) for c in conv.clocks.values()]
+                ends = [int(c.window_end_us) for c in conv.clocks.values()]
+                writer.set_window(min(starts), max(ends), 0, outside)
+            maps = {name: ClockMap.identity() for name in [*conv.sensors, *conv.cameras]}
+            frame_pulse = {c: np.full(cam.frames, -1, np.int64) for c, cam in conv.cameras.items()}
+            writer.finalize(maps, frame_pulse, report)
+        except BaseException as exc:
+            writer.fail(f"convert failed: {exc!r}")
+            raise
+    return sum(s.events for s in conv.sensors.values())
