@@ -209,10 +209,10 @@ class BagConverter:
                 raise ValueError(f"mono payload of {data.size} bytes is not whole 8-byte events")
             p = data.view("<u8")
             t_ns = int(msg.time_base) + (p & 0xFFFFFFFF).astype(np.int64)
-            x = ((p >> np.uint64(32)) & np.uint64(0xFFFF)).astype(np.uint16)
-            y = ((p >> np.uint64(48)) & np.uint64(0x7FFF)).astype(np.uint16)
-            pol = (p >> np.uint64(63)).astype(np.int8)
-            return EventArray(x=x, y=y, p=pol, t=t_ns // 1000), TriggerEvents.empty()
+            x = (p >> np.uint64(32)) & np.uint64(0xFFFF)
+            y = (p >> np.uint64(48)) & np.uint64(0x7FFF)
+            pol = (p >> np.uint64(63)).astype(np.int64)
+            return EventArray.from_arrays(x, y, pol, t_ns // 1000), TriggerEvents.empty()
         if s.decoder is None:
             raise ValueError(
                 f"encoding {s.encoding!r} is not one rigd decodes ({', '.join([*FORMATS, 'mono'])})"
