@@ -104,7 +104,8 @@ def main() -> None:
         dur = sum(len(t.frames(c)) for c in t.cameras)
     meta = json.loads((out / "export.json").read_text())
     print(
-        f"take {take.name}: {take_mb:.1f} MB, {dur} frames; MCAP {mcap_mb:.1f} MB ({len(meta['messages'])} topics)"
+        f"take {take.name}: {take_mb:.1f} MB, {dur} frames; "
+        f"MCAP {mcap_mb:.1f} MB ({len(meta['messages'])} topics)"
     )
     print(f"{'step':<28}{'wall s':>8}{'MB/s':>10}{'disk MB/s':>11}{'peak RSS MB':>13}")
     print(f"{'disk write (dd, fdatasync)':<28}{'':>8}{disk:>10.0f}{disk:>11.0f}{'':>13}")
