@@ -7,10 +7,11 @@ kept as trigger edges. Each `sensor_msgs/Image` topic becomes a camera. Packets 
 unknown or changed encoding, geometry or a payload the type does not read) are counted in loss
 records and named in the report's warnings; never skipped silently.
 
-Times: a bag written by `rigd export --format mcap` carries each sensor's clock map
-(`rigd_msgs/ClockMap`) and the stamp epoch, so events, edges and frames come back in rig time,
-the trigger pulses with them, and only the events inside the exported take window are written
-(the others counted in the take's `window_outside`). Any other bag keeps each sensor's own clock
+Times: a bag written by `rigd export --format mcap` carries the take's rig config and device
+identities (`rigd_msgs/TakeInfo`), each sensor's clock map (`rigd_msgs/ClockMap`) and the stamp
+epoch, so events, edges and frames come back in rig time, the trigger pulses with them, tied by
+identity maps (a take `rigd capture --replay` plays), and only the events inside the exported take
+window are written (the others counted in the take's `window_outside`). Any other bag keeps each sensor's own clock
 (decoded times, microseconds) and frames their header stamps (microseconds since the ROS epoch),
 and its report says that the two are not tied.
 """
@@ -31,7 +32,7 @@ from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import EventDataError, RigdError
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.frames import Frame
-from rigd.core.schema import LossRecord, SyncReport
+from rigd.core.schema import DeviceSync, LossRecord, SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.evt import FORMATS, StreamDecoder
@@ -94,8 +95,16 @@ class _Camera:
 class BagConverter:
     """One conversion: the writer, and per topic what it became and what was lost."""
 
-    def __init__(self, src: Path, writer: TakeWriter, on_progress: Progress | None) -> None:
+    def __init__(
+        self,
+        src: Path,
+        writer: TakeWriter,
+        on_progress: Progress | None,
+        devices: dict[str, Any] | None = None,
+    ) -> None:
         self.src = src
+        self.devices = devices or {}
+        """{device: {"info", "settings"}} of the take a rigd export came from (rigd_msgs/TakeInfo)."""
         self.w = writer
         self.on_progress = on_progress
         self.sensors: dict[str, _Sensor] = {}
@@ -104,6 +113,7 @@ class BagConverter:
         self.epoch_ns: int | None = None
         self.window: tuple[int, int] | None = None
         self.pulses = 0
+        self.pulse_span = (0, 0)
         self.skipped_topics: dict[str, str] = {}
         self.undecodable: dict[str, tuple[str, int, str]] = {}
 
@@ -145,6 +155,8 @@ class BagConverter:
             )
         )
         self.pulses += 1
+        t = int(msg.t_us)
+        self.pulse_span = (t if self.pulses == 1 else self.pulse_span[0], t)
 
     def packet(self, topic: str, msg: Any) -> None:
         name = sensor_name(topic)
@@ -189,18 +201,26 @@ class BagConverter:
     def _add_sensor(self, name: str, msg: Any) -> _Sensor:
         enc = str(msg.encoding)
         s = _Sensor(name, int(msg.width), int(msg.height), enc, clock=self.clocks.get(name))
+        info, settings = self._identity(name, "event_sensor", enc)
+        self.w.add_event_sensor(name, info, s.width, s.height, settings)
+        if enc in FORMATS:
+            s.decoder = StreamDecoder(enc, width=s.width, height=s.height)
+        self.sensors[name] = s
+        return s
+
+    def _identity(self, name: str, kind: str, enc: str) -> tuple[DeviceInfo, str]:
+        """The device's identity and settings: the exported take's, else the bag's topic."""
+        known = self.devices.get(name)
+        if known is not None:
+            return DeviceInfo.model_validate_json(known["info"]), str(known["settings"])
         info = DeviceInfo(
-            kind="event_sensor",
+            kind=kind,
             spec=f"rosbag2://{self.src.resolve()}",
             vendor="rosbag2",
             serial=name,
             firmware=f"encoding={enc}",
         )
-        self.w.add_event_sensor(name, info, s.width, s.height, json.dumps({"encoding": enc}))
-        if enc in FORMATS:
-            s.decoder = StreamDecoder(enc, width=s.width, height=s.height)
-        self.sensors[name] = s
-        return s
+        return info, json.dumps({"encoding": enc})
 
     def _decode(self, s: _Sensor, msg: Any) -> tuple[EventArray, TriggerEvents]:
         data = np.asarray(msg.events, np.uint8)
@@ -233,14 +253,8 @@ class BagConverter:
                 return
             shape = (h, w, 3) if IMAGE_FORMATS[enc] == "rgb8" else (h, w)
             cam = _Camera(name, shape, IMAGE_FORMATS[enc])
-            info = DeviceInfo(
-                kind="rgb_camera",
-                spec=f"rosbag2://{self.src.resolve()}",
-                vendor="rosbag2",
-                serial=name,
-                firmware=f"encoding={enc}",
-            )
-            self.w.add_camera(name, info, shape, np.uint8, json.dumps({"encoding": enc}), cam.fmt)
+            info, settings = self._identity(name, "rgb_camera", enc)
+            self.w.add_camera(name, info, shape, np.uint8, settings, cam.fmt)
             self.cameras[name] = cam
         data = np.asarray(msg.data, np.uint8)
         row = cam.shape[1] * (3 if len(cam.shape) == 3 else 1)
@@ -324,11 +338,31 @@ class BagConverter:
             warnings.append(why)
         for topic, why in self.skipped_topics.items():
             warnings.append(f"topic {topic} not converted: {why}")
+        p0, p1 = self.pulse_span
+        rate = (self.pulses - 1) * 1e6 / (p1 - p0) if self.pulses > 1 and p1 > p0 else 0.0
+        devices = {}
+        if "trigger" in self.devices:  # a rigd export: every time is rig time, tied by identity maps
+            kinds = [(n, "event_sensor") for n in self.sensors] + [(n, "rgb_camera") for n in self.cameras]
+            devices = {
+                n: DeviceSync(
+                    device=n,
+                    kind=k,
+                    device_ref_us=0,
+                    rig_ref_us=0,
+                    rate=1.0,
+                    drift_ppm=0.0,
+                    n_matched=0,
+                    residual_rms_us=0.0,
+                    residual_max_us=0.0,
+                )
+                for n, k in kinds
+            }
         report = SyncReport(
-            rate_hz=0.0,
+            devices=devices,
+            rate_hz=rate,
             n_pulses=self.pulses,
-            t_first_pulse_us=None,
-            t_last_pulse_us=None,
+            t_first_pulse_us=p0 if self.pulses else None,
+            t_last_pulse_us=p1 if self.pulses else None,
             warnings=warnings,
             losses=losses,
         )
@@ -362,16 +396,23 @@ _HANDLERS = {
 
 
 def _write(src: Path, dst: Path, on_progress: Progress | None) -> int:
-    config = {"converted_from": str(src), "format": "rosbag2"}
+    config_json = json.dumps({"converted_from": str(src), "format": "rosbag2"})
+    devices: dict[str, Any] = {}
+    first = bag_read.first_of_type(src, m.TAKE_INFO)
+    if first is not None and first.encoding == "cdr":
+        info = m.deserialize(first.data, m.TAKE_INFO)
+        config_json, devices = info.rig_config_json, json.loads(info.devices_json)
     with TakeWriter(
         dst,
-        rig_config_json=json.dumps(config),
+        rig_config_json=config_json,
         take_id=dst.stem,
         config=WriterConfig(),
         rigd_version=__version__,
     ) as writer:
-        conv = BagConverter(src, writer, on_progress)
+        conv = BagConverter(src, writer, on_progress, devices)
         try:
+            if "trigger" in devices:
+                writer.add_trigger(DeviceInfo.model_validate_json(devices["trigger"]["info"]))
             for bm in bag_read.messages(src):
                 if bm.typename not in (*_HANDLERS, m.CLOCK_MAP, m.TRIGGER_PULSE):
                     continue

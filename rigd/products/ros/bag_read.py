@@ -63,6 +63,37 @@ def messages(path: Path) -> Iterator[BagMessage]:
         yield from _mcap_messages(f) if f.suffix.lower() == ".mcap" else _db3_messages(f)
 
 
+def first_of_type(path: Path, typename: str) -> BagMessage | None:
+    """The first message of `typename` (None: the bag has none), read through the index."""
+    for f in storage_files(path):
+        if f.suffix.lower() == ".mcap":
+            names = [t for t, (typ, _) in _mcap_topics(f).items() if typ == typename]
+            if names:
+                with f.open("rb") as fh:
+                    reader = _mcap_reader(fh, f)
+                    for schema, channel, msg in reader.iter_messages(topics=names):  # type: ignore[attr-defined]
+                        return BagMessage(
+                            channel.topic,
+                            schema.name,
+                            int(msg.log_time),
+                            bytes(msg.data),
+                            channel.message_encoding,
+                        )
+            continue
+        con = _connect(f)
+        try:
+            row = con.execute(
+                "SELECT t.name, t.serialization_format, m.timestamp, m.data FROM messages m "
+                "JOIN topics t ON m.topic_id = t.id WHERE t.type = ? ORDER BY m.timestamp LIMIT 1",
+                (typename,),
+            ).fetchone()
+        finally:
+            con.close()
+        if row is not None:
+            return BagMessage(row[0], typename, int(row[2]), bytes(row[3]), row[1])
+    return None
+
+
 def _connect(f: Path) -> sqlite3.Connection:
     if not f.is_file():
         raise BagError(f"{f}: no such file")

@@ -58,7 +58,7 @@ def epoch_of(h5: h5py.File, which: str) -> int:
 
 
 def _streams(s: TakeStreams) -> list[Iterator[Msg]]:
-    out: list[Iterator[Msg]] = [s.tf_static(), s.pulses()]
+    out: list[Iterator[Msg]] = [s.take_info(), s.tf_static(), s.pulses()]
     for name in s.take.event_sensors:
         out += [s.events(name), s.trigger_edges(name)]
     out += [s.frames(cam) for cam in s.take.cameras]

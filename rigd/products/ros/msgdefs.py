@@ -23,6 +23,7 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TRIGGER_PULSE = "rigd_msgs/msg/TriggerPulse"
 TRIGGER_EDGE = "rigd_msgs/msg/TriggerEdge"
 CLOCK_MAP = "rigd_msgs/msg/ClockMap"
+TAKE_INFO = "rigd_msgs/msg/TakeInfo"
 
 _FIELD_TYPE = re.compile(r"^\s*([A-Za-z_][\w/]*)(\[[^\]]*\])?\s+\w+")
 _PRIMITIVES = frozenset(

@@ -116,6 +116,29 @@ class TakeStreams:
         return min(starts) if starts else 0
 
     # -- static ----------------------------------------------------------------------------
+    def take_info(self) -> Iterator[Msg]:
+        devices: dict[str, dict[str, str]] = {}
+        groups = [("trigger", "trigger")]
+        groups += [(f"{EVENTS_GROUP}/{n}", n) for n in self.take.event_sensors]
+        groups += [(f"frames/{c}", c) for c in self.take.cameras]
+        for path, name in groups:
+            g = self.h5.get(path)
+            if g is not None and "info_json" in g.attrs:
+                devices[name] = {
+                    "info": attr_text(g.attrs["info_json"]),
+                    "settings": attr_text(g.attrs.get("settings_json", "{}")),
+                }
+        ns = self.stamp(self.t_start_us)
+        msg = m.new(
+            m.TAKE_INFO,
+            header=m.header(ns, "rig"),
+            take_id=self.take.take_id,
+            epoch_ns=self.epoch_ns,
+            rig_config_json=json.dumps(self.take.config),
+            devices_json=json.dumps(devices),
+        )
+        yield Msg(ns, "/rigd/take", m.TAKE_INFO, m.serialize(msg, m.TAKE_INFO))
+
     def tf_static(self) -> Iterator[Msg]:
         transforms = []
         for dev, cal in sorted(self.calib.items()):

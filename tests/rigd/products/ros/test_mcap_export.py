@@ -127,6 +127,35 @@ def test_the_export_converts_back_to_the_same_take(ros_take: Path, exported: Pat
 
 
 @pytest.mark.slow
+def test_the_converted_export_replays_as_the_rig(ros_take: Path, exported: Path, tmp_path: Path) -> None:
+    """The take back from the bag plays with `rigd capture --replay`; the replay captures the
+    original's events, edges, frames and pulses."""
+    from firmware_sim.world import reset_world
+    from rigd.app.capture import run_capture
+    from rigd.app.replay import replay_config
+    from rigd.products.convert import convert
+
+    back = tmp_path / "back.h5"
+    convert(exported, back)
+    config, duration = replay_config(back, clock="virtual")
+    try:
+        result = run_capture(config, tmp_path / "replay", duration)
+    finally:
+        reset_world(f"replay:{back.resolve()}")
+    with open_take(ros_take) as a, open_take(result.path) as b:
+        for name in a.event_sensors:
+            ea, eb = a.sensor(name).events(), b.sensor(name).events()
+            for k in "xypt":
+                np.testing.assert_array_equal(getattr(ea, k), getattr(eb, k))
+            np.testing.assert_array_equal(a.sensor(name).triggers.t, b.sensor(name).triggers.t)
+        for cam in a.cameras:
+            fa, fb = a.frames(cam, demosaic=False), b.frames(cam, demosaic=False)
+            np.testing.assert_array_equal(fa.timestamps_us, fb.timestamps_us)
+            np.testing.assert_array_equal(fa.raw(len(fa) - 1), fb.raw(len(fb) - 1))
+        np.testing.assert_array_equal(a.pulses().t_us, b.pulses().t_us)
+
+
+@pytest.mark.slow
 def test_slices_png_and_rig_epoch(ros_take: Path, tmp_path: Path) -> None:
     out = tmp_path / "o"
     args = [
