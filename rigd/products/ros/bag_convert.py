@@ -11,9 +11,9 @@ Times: a bag written by `rigd export --format mcap` carries the take's rig confi
 identities (`rigd_msgs/TakeInfo`), each sensor's clock map (`rigd_msgs/ClockMap`) and the stamp
 epoch, so events, edges and frames come back in rig time, the trigger pulses with them, tied by
 identity maps (a take `rigd capture --replay` plays), and only the events inside the exported take
-window are written (the others counted in the take's `window_outside`). Any other bag keeps each sensor's own clock
-(decoded times, microseconds) and frames their header stamps (microseconds since the ROS epoch),
-and its report says that the two are not tied.
+window are written (the others counted in the take's `window_outside`). Any other bag keeps each
+sensor's own clock (decoded times, microseconds) and frames their header stamps (microseconds since
+the ROS epoch), and its report says that the two are not tied.
 """
 
 from __future__ import annotations
