@@ -78,6 +78,7 @@ from rigd.take.refused import discard_pending_writes, no_room_to_flush
 from rigd.take.repair import Trim, check_repair, stored_prefix
 from rigd.take.sinks import CameraSink, DeviceWriteStats, EventSink, PulseSink
 from rigd.take.tails import tail_rows
+from rigd.take.units import label_tree
 
 __all__ = [
     "TRUNCATED_EOF_ATTR",
@@ -533,6 +534,7 @@ class TakeWriter:
         self._check_writable()
         self._write_all()
         self._drop_tails()
+        label_tree(self._f)  # units and compression filters named for plain HDF5 users
         self._f.flush()
         finalizer = self._finalizer()
         plan = finalizer.plan(maps, frame_pulse_index, report)
