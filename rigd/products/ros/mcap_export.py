@@ -81,6 +81,11 @@ def write_mcap(
     with h5py.File(take.path, "r") as h5, out.open("wb") as f:
         stats = McapStats(out, epoch_of(h5, epoch))
         streams = TakeStreams(take, h5, stats.epoch_ns, slice_us, compressed)
+        if streams.stamp(streams.t_start_us) < 0:
+            raise TakeError(
+                f"{take.path}: --ros-epoch {epoch}: the take has data at rig time {streams.t_start_us} us, "
+                "before the epoch; MCAP log times cannot be negative (use --ros-epoch take)"
+            )
         t_end = streams.t_start_us
         for cam in take.cameras:
             ts = take.frames(cam).timestamps_us
