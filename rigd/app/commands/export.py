@@ -102,6 +102,9 @@ def export(
     compressed: Annotated[
         bool, typer.Option("--compressed", help="mcap: frames as lossless PNG sensor_msgs/CompressedImage.")
     ] = False,
+    ros_compression: Annotated[
+        str, typer.Option("--ros-compression", help="mcap: chunk compression zstd, lz4 or none.")
+    ] = "zstd",
 ) -> None:
     """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap),
     for event loaders (dsec), or any take as ROS 2 messages in MCAP (mcap); see docs/export.md."""
@@ -138,6 +141,7 @@ def export(
             ros_epoch=ros_epoch,
             ros_slice_us=_slice_us(ros_slice_ms),
             compressed=compressed,
+            ros_compression=ros_compression,
         )
     except ValidationError as exc:
         err = exc.errors()[0]

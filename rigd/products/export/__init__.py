@@ -174,6 +174,7 @@ def _run_mcap(
                 epoch=options.ros_epoch,
                 slice_us=options.ros_slice_us,
                 compressed=options.compressed,
+                compression=options.ros_compression,
                 progress=progress,
             )
             pulses = take.pulses()

@@ -121,6 +121,9 @@ class ExportOptions(BaseModel):
         0, ge=0, description="mcap: merge stored event blocks into packets of this span (0: one per block)."
     )
     compressed: bool = Field(False, description="mcap: frames as PNG sensor_msgs/CompressedImage.")
+    ros_compression: Literal["zstd", "lz4", "none"] = Field(
+        "zstd", description="mcap: chunk compression (lz4: faster, larger; none: fastest)."
+    )
 
     @field_validator("format", mode="before")
     @classmethod

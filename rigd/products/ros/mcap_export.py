@@ -72,9 +72,10 @@ def write_mcap(
     epoch: str = "take",
     slice_us: int = 0,
     compressed: bool = False,
+    compression: str = "zstd",
     progress: ProgressCallback = no_progress,
 ) -> McapStats:
-    """Write `take` as one MCAP file at `out` (zstd chunks, full index)."""
+    """Write `take` as one MCAP file at `out` (`compression` chunks: zstd, lz4 or none; full index)."""
     writer_mod = require("mcap.writer", "--format mcap")
     if take.time_domain != "rig":
         raise TakeError(f"{take.path}: not on the rig timebase (time domain {take.time_domain})")
@@ -94,7 +95,12 @@ def write_mcap(
             span = take.sensor(name).span
             t_end = max(t_end, span[1]) if span else t_end
         total_ms = max(1, (t_end - streams.t_start_us) // 1000)
-        w = writer_mod.Writer(f, chunk_size=CHUNK_BYTES, compression=writer_mod.CompressionType.ZSTD)
+        kind = {"zstd": "ZSTD", "lz4": "LZ4", "none": "NONE"}.get(compression)
+        if kind is None:
+            raise TakeError(f"--ros-compression {compression!r}: one of zstd, lz4, none")
+        w = writer_mod.Writer(
+            f, chunk_size=CHUNK_BYTES, compression=getattr(writer_mod.CompressionType, kind)
+        )
         w.start(profile="ros2", library="rigd")
         schemas: dict[str, int] = {}
         channels: dict[str, int] = {}
