@@ -156,7 +156,7 @@ def test_the_converted_export_replays_as_the_rig(ros_take: Path, exported: Path,
 
 
 @pytest.mark.slow
-def test_slices_png_and_rig_epoch(ros_take: Path, tmp_path: Path) -> None:
+def test_slices_png_rig_epoch_and_lz4(ros_take: Path, tmp_path: Path) -> None:
     out = tmp_path / "o"
     args = [
         "export",
@@ -170,6 +170,8 @@ def test_slices_png_and_rig_epoch(ros_take: Path, tmp_path: Path) -> None:
         "rig",
         "--ros-slice-ms",
         "200",
+        "--ros-compression",
+        "lz4",
     ]
     r = runner.invoke(app, args)
     assert r.exit_code == 0, r.output
