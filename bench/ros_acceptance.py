@@ -7,8 +7,8 @@ that is not rigd's) live in a scratch venv outside the project (created under --
 --python is not given). event_camera_codecs is C++ built against ROS message headers, which
 this machine lacks; evt3 (OpenEB semantics) stands in as the independent decoder.
 
-1. A sim take like the README's (`rigd capture`: 3 Bayer cameras, 2 EVT 3.0 sensors, the
-   board scene, virtual clock) exported with `rigd export --format mcap`; the consumer side
+1. A sim take (3 Bayer cameras, 2 EVT 3.0 sensors, the board scene at 640x360, virtual clock;
+   `--readme`: the README's `rigd capture --duration 5` take, the built-in rig at 1280x720) exported with `rigd export --format mcap`; the consumer side
    (bench/consumer_checks/ros_check.py) reads every message, decodes the events with evt3 and
    compares counts, 50 ms windows and images with the take (references written here).
 2. rosbags-convert's sqlite3 bag of that export converted back with `rigd convert`: identical
@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rigd.app.capture import run_capture
+from rigd.app.config import default_sim_rig
 from rigd.app.testing.board import capture_board_take
 from rigd.products.convert import convert
 from rigd.products.export import ExportOptions, run_export
@@ -107,19 +109,28 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/rigd-ros-acceptance"))
     ap.add_argument("--python", help="the scratch venv's python (default: a venv made under --work)")
     ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument(
+        "--readme",
+        action="store_true",
+        help="the README's take: the built-in sim rig (1280x720), not the board",
+    )
     args = ap.parse_args()
     work: Path = args.work
     work.mkdir(parents=True, exist_ok=True)
     py = scratch_python(work, args.python)
 
-    take = capture_board_take(
-        work / "take",
-        args.seconds,
-        (640, 360),
-        world="ros-acceptance",
-        clock="virtual",
-        pixel_format="bayer_rg8",
-    ).path
+    if args.readme:  # `rigd capture --duration 5 --out takes`: the built-in rig, on virtual time
+        rig = default_sim_rig(world="ros-acceptance-readme", clock="virtual")
+        take = run_capture(rig, work / "take", args.seconds).path
+    else:
+        take = capture_board_take(
+            work / "take",
+            args.seconds,
+            (640, 360),
+            world="ros-acceptance",
+            clock="virtual",
+            pixel_format="bayer_rg8",
+        ).path
     out = work / "mcap"
     run_export(ExportOptions(take=take, format="mcap", out=out, force=True))
     (mcap,) = out.glob("*.mcap")
