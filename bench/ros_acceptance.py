@@ -1,6 +1,6 @@
 """The ROS 2 acceptance: rigd's MCAP export and bag conversion checked by the ROS consumers' own code.
 
-    python -m bench.ros_acceptance [--work DIR] [--python SCRATCH_PY] [--seconds 2]
+    python -m bench.ros_acceptance [--work DIR] [--python SCRATCH_PY] [--seconds 2] [--readme]
 
 The consumers (mcap, mcap-ros2-support, rosbags, and the evt3 package as the EVT 3.0 decoder
 that is not rigd's) live in a scratch venv outside the project (created under --work when
@@ -8,9 +8,10 @@ that is not rigd's) live in a scratch venv outside the project (created under --
 this machine lacks; evt3 (OpenEB semantics) stands in as the independent decoder.
 
 1. A sim take (3 Bayer cameras, 2 EVT 3.0 sensors, the board scene at 640x360, virtual clock;
-   `--readme`: the README's `rigd capture --duration 5` take, the built-in rig at 1280x720) exported with `rigd export --format mcap`; the consumer side
-   (bench/consumer_checks/ros_check.py) reads every message, decodes the events with evt3 and
-   compares counts, 50 ms windows and images with the take (references written here).
+   `--readme`: the README's `rigd capture --duration 5` take, the built-in rig at 1280x720)
+   exported with `rigd export --format mcap`; the consumer side (bench/consumer_checks/
+   ros_check.py) reads every message, decodes the events with evt3 and compares counts, 50 ms
+   windows and images with the take (references written here).
 2. rosbags-convert's sqlite3 bag of that export converted back with `rigd convert`: identical
    events, trigger edges, frames and pulses.
 3. For each EVT 3.0 RAW file in ../shared/data/events: a .db3 bag written by rosbags' Writer
