@@ -71,7 +71,8 @@ class _Sensor:
     out_of_order: int = 0
     bad: int = 0
     bad_why: list[str] = field(default_factory=list)
-    outside: int = 0
+    outside_before: int = 0
+    outside_after: int = 0
     events: int = 0
     clock: Any = None
     """The rigd_msgs/ClockMap of an exported take (None: keep the sensor's clock)."""
@@ -111,7 +112,6 @@ class BagConverter:
         self.cameras: dict[str, _Camera] = {}
         self.clocks: dict[str, Any] = {}
         self.epoch_ns: int | None = None
-        self.window: tuple[int, int] | None = None
         self.pulses = 0
         self.pulse_span = (0, 0)
         self.skipped_topics: dict[str, str] = {}
@@ -187,8 +187,10 @@ class BagConverter:
             t = self.to_rig(s, ev.t, seq)
             keep = np.ones(len(t), bool)
             if s.clock is not None:
-                keep = (t >= s.clock.window_start_us) & (t < s.clock.window_end_us)
-                s.outside += int((~keep).sum())
+                before, after = t < s.clock.window_start_us, t >= s.clock.window_end_us
+                keep = ~(before | after)
+                s.outside_before += int(before.sum())
+                s.outside_after += int(after.sum())
             ev = ev.with_time(t)[keep] if not keep.all() else ev.with_time(t)
             if len(ev):
                 self.w.append_events(s.name, ev)
@@ -324,8 +326,8 @@ class BagConverter:
                         LossRecord(device=s.name, what="events", count=sum(skipped.values()), reason=why)
                     )
                     warnings.append(why)
-            if s.outside:
-                outside[s.name] = {"events": s.outside}
+            if s.clock is not None:  # stored words outside the exported take window, as its take counted them
+                outside[s.name] = {"stored_before": s.outside_before, "stored_after": s.outside_after}
         for c in self.cameras.values():
             if c.bad:
                 why = f"{c.bad} Image(s) on {c.name}'s topic could not be stored: " + "; ".join(c.bad_why)
@@ -433,7 +435,7 @@ def _write(src: Path, dst: Path, on_progress: Progress | None) -> int:
             if not conv.sensors and not conv.cameras:
                 raise BagConvertError(f"{src}: no message of its event or image topics could be converted")
             report, outside = conv.report()
-            if conv.window is not None or outside:
+            if conv.clocks:  # a rigd export: the take window it was cut to, and what fell outside
                 starts = [int(c.window_start_us) for c in conv.clocks.values()]
                 ends = [int(c.window_end_us) for c in conv.clocks.values()]
                 writer.set_window(min(starts), max(ends), 0, outside)

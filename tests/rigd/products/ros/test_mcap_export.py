@@ -198,3 +198,19 @@ def test_bad_slice_is_one_line() -> None:
     r = runner.invoke(app, ["export", "x.h5", "-f", "mcap", "-o", "o", "--ros-slice-ms", "abc"])
     assert r.exit_code == 2
     assert "--ros-slice-ms 'abc'" in r.output
+
+
+@pytest.mark.slow
+def test_words_outside_the_window_are_counted_as_the_take_counted_them(
+    ros_take: Path, exported: Path, tmp_path: Path
+) -> None:
+    import h5py
+
+    back = tmp_path / "back.h5"
+    runner.invoke(app, ["convert", str(exported), str(back)])
+    with h5py.File(ros_take, "r") as a, h5py.File(back, "r") as b:
+        was = json.loads(a.attrs["window_outside_json"])
+        now = json.loads(b.attrs["window_outside_json"])
+        assert int(b.attrs["window_start_us"]) == int(a.attrs["window_start_us"])
+        for name in ("ev0", "ev1"):
+            assert now[name] == {k: was[name][k] for k in ("stored_before", "stored_after")}
