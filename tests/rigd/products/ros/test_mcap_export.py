@@ -214,3 +214,42 @@ def test_words_outside_the_window_are_counted_as_the_take_counted_them(
         assert int(b.attrs["window_start_us"]) == int(a.attrs["window_start_us"])
         for name in ("ev0", "ev1"):
             assert now[name] == {k: was[name][k] for k in ("stored_before", "stored_after")}
+
+
+DATA = Path(__file__).resolve().parents[4].parent / "shared" / "data" / "events"
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason=f"shared test data not found at {DATA}")
+def test_a_columns_take_exports_as_evt3_slices(tmp_path: Path) -> None:
+    """A take stored as x/y/p/t columns (here: `rigd convert` of a RAW file, no cameras, no
+    pulses) is encoded to EVT 3.0 per slice and decodes back to its events and edges."""
+    from rigd.products.convert import convert
+
+    take_path = tmp_path / "t.h5"
+    convert(DATA / "evt3_gen41_sample.raw", take_path)
+    out = tmp_path / "o"
+    args = [
+        "export",
+        str(take_path),
+        "-f",
+        "mcap",
+        "-o",
+        str(out),
+        "--ros-epoch",
+        "rig",
+        "--ros-slice-ms",
+        "1",
+    ]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    (path,) = out.glob("*.mcap")
+    topics = _messages(path)
+    assert "/tf_static" not in topics  # no calibration, no transforms
+    ((_, _, clock),) = topics["/rigd/ev0/clock_map"]
+    packets = [p for _, _, p in topics["/ev0/events"]]
+    assert len(packets) == 9  # 8.8 ms of events in 1 ms slices
+    x, y, p, t = _decode_topic(packets, clock)
+    with open_take(take_path) as take:
+        ev = take.sensor("ev0").events()
+        for a, b in ((x, ev.x), (y, ev.y), (p, ev.p), (t, ev.t)):
+            np.testing.assert_array_equal(a, b)
