@@ -19,6 +19,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from rigd.core.errors import TakeError
 from rigd.core.layout import EVENTS_GROUP, Events, TimeDomain
 from rigd.core.timebase import ClockMap
 from rigd.evt import Evt3Encoder, StreamDecoder, decode_from_state
@@ -48,7 +49,7 @@ def image_encoding(shape: tuple[int, ...], dtype: np.dtype[Any], bayer: str | No
     """The `sensor_msgs/Image` encoding of a stored frame (mosaics keep their Bayer name)."""
     bits = 8 * dtype.itemsize
     if dtype.kind != "u" or bits not in (8, 16):
-        raise ValueError(f"frames of dtype {dtype} have no sensor_msgs encoding")
+        raise TakeError(f"frames of dtype {dtype} have no sensor_msgs encoding")
     if len(shape) == 2:
         if bayer:
             return f"bayer_{_BAYER[bayer.upper()]}{bits}"
@@ -57,7 +58,7 @@ def image_encoding(shape: tuple[int, ...], dtype: np.dtype[Any], bayer: str | No
         return f"rgb{bits}"
     if shape[2] == 1:
         return f"mono{bits}"
-    raise ValueError(f"frames of shape {shape} have no sensor_msgs encoding")
+    raise TakeError(f"frames of shape {shape} have no sensor_msgs encoding")
 
 
 def rotation_quaternion(R: NDArray[np.float64]) -> tuple[float, float, float, float]:
@@ -170,12 +171,15 @@ class TakeStreams:
             return None
         K = np.asarray(cal["K"], np.float64).reshape(3, 3)
         dist = np.asarray(cal.get("dist", np.zeros(5)), np.float64).ravel()
-        model = {5: "plumb_bob", 4: "plumb_bob", 8: "rational_polynomial", 14: "rational_polynomial"}
-        if dist.size not in model:
-            raise ValueError(f"calibration of {dev}: {dist.size} distortion coefficients have no ROS model")
+        if dist.size in (12, 14) and not dist[8:].any():
+            dist = dist[:8]  # OpenCV's thin-prism / tilt terms, all zero: the rational model holds it
+        models = {4: "plumb_bob", 5: "plumb_bob", 8: "rational_polynomial"}
+        if dist.size not in models:
+            raise TakeError(
+                f"calibration of {dev}: {dist.size} distortion coefficients ({dist.tolist()}) have no "
+                "sensor_msgs/CameraInfo model (plumb_bob: 5, rational_polynomial: 8)"
+            )
         d = np.concatenate([dist, np.zeros(1)]) if dist.size == 4 else dist
-        if dist.size == 14:
-            d = dist[:8]
         P = np.zeros((3, 4))
         P[:, :3] = K
         h, w = shape[:2]
@@ -184,7 +188,7 @@ class TakeStreams:
             header=m.header(stamp_ns, dev),
             height=h,
             width=w,
-            distortion_model=model[dist.size],
+            distortion_model=models[dist.size],
             d=d.astype(np.float64),
             k=K.ravel(),
             r=np.eye(3).ravel(),
@@ -269,7 +273,7 @@ class TakeStreams:
         rgb = img.ndim == 3 and img.shape[2] == 3
         ok, buf = cv2.imencode(".png", img[..., ::-1] if rgb else img)
         if not ok:
-            raise ValueError(f"{cam}: PNG encoding failed")
+            raise TakeError(f"{cam}: PNG encoding failed")
         msg = m.new(m.COMPRESSED_IMAGE, header=m.header(ns, cam), format="png", data=buf.reshape(-1))
         return Msg(
             ns, f"/{cam}/image_raw/compressed", m.COMPRESSED_IMAGE, m.serialize(msg, m.COMPRESSED_IMAGE)

@@ -46,3 +46,26 @@ def test_schema_text_lists_every_dependency_once() -> None:
 def test_stamp_round_trip_before_and_after_the_epoch() -> None:
     for ns in (0, 1, 1_795_923_132_000_964_000, -1_500):
         assert m.stamp_ns(m.header(ns, "x")) == ns
+
+
+def test_camera_info_models_and_refusal() -> None:
+    import numpy as np
+
+    from rigd.core.errors import TakeError
+    from rigd.products.ros.streams import TakeStreams
+
+    streams = TakeStreams.__new__(TakeStreams)
+    kmat = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    for dist, model, n in (
+        (np.zeros(5), "plumb_bob", 5),
+        (np.arange(8) * 0.01, "rational_polynomial", 8),
+        (np.r_[np.arange(8) * 0.01, np.zeros(6)], "rational_polynomial", 8),
+    ):
+        streams.calib = {"cam0": {"K": kmat, "dist": dist}}
+        info = streams.camera_info("cam0", 5, (480, 640))
+        assert info.distortion_model == model
+        assert len(info.d) == n
+        np.testing.assert_array_equal(np.reshape(info.p, (3, 4))[:, :3], kmat)
+    streams.calib = {"cam0": {"K": kmat, "dist": np.r_[np.zeros(8), 0.1, np.zeros(5)]}}
+    with pytest.raises(TakeError, match="14 distortion coefficients"):
+        streams.camera_info("cam0", 5, (480, 640))
