@@ -391,19 +391,37 @@ def bag_to_take(src: Path, dst: Path, *, on_progress: Progress | None = None) ->
     return n
 
 
+#: What a rigd export holds beside events, images, clock maps and pulses: the take rebuilds it
+#: (camera info and poses from the calibration TakeInfo carries, edges from the EVT words).
+_CARRIED = (m.CAMERA_INFO, m.TF_MESSAGE, m.TRIGGER_EDGE, m.TAKE_INFO)
+
 _HANDLERS = {
     m.EVENT_PACKET: "packet",
     m.IMAGE: "image",
 }
 
 
+def _store_calibration(writer: TakeWriter, conv: BagConverter, doc: dict[str, Any]) -> None:
+    """The exported take's calibration, for the devices the bag gave back (a device whose topic
+    carried no message has no group to hang it on: said in the report)."""
+    board = doc.get("board")
+    board_pose = None if board is None else (np.asarray(board[0]), np.asarray(board[1]))
+    for dev, cal in (doc.get("devices") or {}).items():
+        if dev not in conv.sensors and dev not in conv.cameras:
+            conv.skipped_topics.setdefault(f"calibration of {dev}", "the bag holds no data of that device")
+            continue
+        writer.add_calibration(dev, cal["intrinsics"], cal["pose"], str(cal["source"]), board_pose)
+
+
 def _write(src: Path, dst: Path, on_progress: Progress | None) -> int:
     config_json = json.dumps({"converted_from": str(src), "format": "rosbag2"})
     devices: dict[str, Any] = {}
+    calibration: dict[str, Any] = {}
     first = bag_read.first_of_type(src, m.TAKE_INFO)
     if first is not None and first.encoding == "cdr":
         info = m.deserialize(first.data, m.TAKE_INFO)
         config_json, devices = info.rig_config_json, json.loads(info.devices_json)
+        calibration = json.loads(info.calibration_json or "{}")
     with TakeWriter(
         dst,
         rig_config_json=config_json,
@@ -417,6 +435,8 @@ def _write(src: Path, dst: Path, on_progress: Progress | None) -> int:
                 writer.add_trigger(DeviceInfo.model_validate_json(devices["trigger"]["info"]))
             for bm in bag_read.messages(src):
                 if bm.typename not in (*_HANDLERS, m.CLOCK_MAP, m.TRIGGER_PULSE):
+                    if bm.typename not in _CARRIED:  # what a rigd export also holds is rebuilt, not lost
+                        conv.skipped_topics.setdefault(bm.topic, f"{bm.typename} is not converted")
                     continue
                 if bm.encoding != "cdr":
                     conv.skipped_topics[bm.topic] = f"serialization {bm.encoding!r}, not cdr"
@@ -434,6 +454,7 @@ def _write(src: Path, dst: Path, on_progress: Progress | None) -> int:
                     getattr(conv, _HANDLERS[bm.typename])(bm.topic, msg)
             if not conv.sensors and not conv.cameras:
                 raise BagConvertError(f"{src}: no message of its event or image topics could be converted")
+            _store_calibration(writer, conv, calibration)
             report, outside = conv.report()
             if conv.clocks:  # a rigd export: the take window it was cut to, and what fell outside
                 starts = [int(c.window_start_us) for c in conv.clocks.values()]

@@ -137,8 +137,21 @@ class TakeStreams:
             epoch_ns=self.epoch_ns,
             rig_config_json=json.dumps(self.take.config),
             devices_json=json.dumps(devices),
+            calibration_json=json.dumps(self._calibration_doc()),
         )
         yield Msg(ns, "/rigd/take", m.TAKE_INFO, m.serialize(msg, m.TAKE_INFO))
+
+    def _calibration_doc(self) -> dict[str, Any]:
+        """The stored calibration as `rigd.take.calibration` keeps it (result payloads, board)."""
+        devices = {}
+        for dev, cal in self.calib.items():
+            result = cal.get("result") or {}
+            devices[dev] = {k: result.get(k) for k in ("intrinsics", "pose", "source")}
+        board = self.take.board_pose
+        return {
+            "devices": devices,
+            "board": None if board is None else [board[0].tolist(), board[1].tolist()],
+        }
 
     def tf_static(self) -> Iterator[Msg]:
         transforms = []

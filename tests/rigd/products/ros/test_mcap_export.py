@@ -124,6 +124,17 @@ def test_the_export_converts_back_to_the_same_take(ros_take: Path, exported: Pat
             for i in range(len(fa)):
                 np.testing.assert_array_equal(fa.raw(i), fb.raw(i))
         np.testing.assert_array_equal(a.pulses().t_us, b.pulses().t_us)
+        ca, cb = a.calibration, b.calibration
+        assert ca is not None
+        assert cb is not None
+        assert sorted(ca) == sorted(cb)
+        for dev in ca:
+            for k in ("K", "dist", "image_size", "R", "t"):
+                np.testing.assert_array_equal(ca[dev][k], cb[dev][k])
+        board_a, board_b = a.board_pose, b.board_pose
+        assert board_a is not None
+        assert board_b is not None
+        np.testing.assert_array_equal(board_a[0], board_b[0])
 
 
 @pytest.mark.slow
