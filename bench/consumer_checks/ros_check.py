@@ -143,6 +143,9 @@ def check_export(mcap: Path, ref_path: Path, work: Path) -> None:
         sum(counts.values()) == n,
         f"{sum(counts.values())} messages deserialized: {dict(counts)}",
     )
+    with AnyReader([mcap.parent]) as reader:  # the export directory as a rosbag2 bag (metadata.yaml)
+        n_dir = sum(1 for _ in reader.messages())
+    check("rosbags AnyReader on the directory", n_dir == n, f"{n_dir} messages through its metadata.yaml")
     dst = work / "db3"
     conv = Path(sys.executable).with_name("rosbags-convert")
     r = subprocess.run(

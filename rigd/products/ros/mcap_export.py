@@ -10,6 +10,7 @@ memory stays bounded by one message per topic plus the MCAP chunk being compress
 from __future__ import annotations
 
 import heapq
+import json
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -42,6 +43,7 @@ class McapStats:
     path: Path
     epoch_ns: int
     messages: dict[str, int] = field(default_factory=dict)
+    types: dict[str, str] = field(default_factory=dict)
     bytes_by_topic: dict[str, int] = field(default_factory=dict)
 
 
@@ -55,6 +57,47 @@ def epoch_of(h5: h5py.File, which: str) -> int:
     if not created:
         return 0
     return int(datetime.fromisoformat(created).timestamp()) * 1_000_000_000
+
+
+def write_metadata(mcap: Path, stats: McapStats, starts: dict[str, int], ends: dict[str, int]) -> None:
+    """`metadata.yaml` beside the file, so its directory is a rosbag2 bag (`ros2 bag info DIR`,
+    `ros2 bag play DIR`, rosbags' readers), in rosbag2's version 9 layout."""
+    t0 = min(starts.values(), default=0)
+    t1 = max(ends.values(), default=0)
+    total = sum(stats.messages.values())
+    lines = [
+        "rosbag2_bagfile_information:",
+        "  version: 9",
+        "  storage_identifier: mcap",
+        f"  duration:\n    nanoseconds: {t1 - t0}",
+        f"  starting_time:\n    nanoseconds_since_epoch: {t0}",
+        f"  message_count: {total}",
+        "  topics_with_message_count:",
+    ]
+    for topic, n in stats.messages.items():
+        typ = stats.types[topic]
+        lines += [
+            f"  - message_count: {n}",
+            "    topic_metadata:",
+            f"      name: {json.dumps(topic)}",
+            f"      type: {json.dumps(typ)}",
+            "      serialization_format: cdr",
+            "      offered_qos_profiles: []",
+            f"      type_description_hash: {json.dumps(m.typestore().hash_rihs01(typ))}",
+        ]
+    lines += [
+        "  compression_format: ''",
+        "  compression_mode: ''",
+        f"  relative_file_paths:\n  - {json.dumps(mcap.name)}",
+        "  files:",
+        f"  - path: {json.dumps(mcap.name)}",
+        f"    starting_time:\n      nanoseconds_since_epoch: {t0}",
+        f"    duration:\n      nanoseconds: {t1 - t0}",
+        f"    message_count: {total}",
+        "  custom_data: {}",
+        "  ros_distro: ''",
+    ]
+    (mcap.parent / "metadata.yaml").write_text("\n".join(lines) + "\n")
 
 
 def _streams(s: TakeStreams) -> list[Iterator[Msg]]:
@@ -105,6 +148,8 @@ def write_mcap(
         schemas: dict[str, int] = {}
         channels: dict[str, int] = {}
         seqs: dict[str, int] = {}
+        starts: dict[str, int] = {}
+        ends: dict[str, int] = {}
         done_ms = -1
         for msg in heapq.merge(*_streams(streams), key=lambda x: x.log_ns):
             if msg.typename not in schemas:
@@ -121,6 +166,9 @@ def write_mcap(
                 channels[msg.topic], log_time=msg.log_ns, data=msg.data, publish_time=msg.log_ns, sequence=seq
             )
             stats.messages[msg.topic] = seq + 1
+            stats.types[msg.topic] = msg.typename
+            starts.setdefault(msg.topic, msg.log_ns)
+            ends[msg.topic] = max(ends.get(msg.topic, msg.log_ns), msg.log_ns)
             stats.bytes_by_topic[msg.topic] = stats.bytes_by_topic.get(msg.topic, 0) + len(msg.data)
             now_ms = (msg.log_ns - stats.epoch_ns) // 1_000_000 - streams.t_start_us // 1000
             if now_ms > done_ms:
@@ -139,5 +187,6 @@ def write_mcap(
             },
         )
         w.finish()
+    write_metadata(out, stats, starts, ends)
     log.info("wrote %s: %d messages on %d topics", out, sum(stats.messages.values()), len(stats.messages))
     return stats

@@ -104,6 +104,16 @@ def test_every_topic_reads_back_as_the_take(ros_take: Path, exported: Path) -> N
 
 
 @pytest.mark.slow
+def test_the_export_directory_is_a_rosbag2_bag(exported: Path) -> None:
+    from rosbags.rosbag2 import Reader
+
+    meta = json.loads((exported.parent / "export.json").read_text())
+    with Reader(exported.parent) as bag:
+        assert bag.message_count == sum(meta["messages"].values())
+        assert {c.topic: c.msgcount for c in bag.connections} == meta["messages"]
+
+
+@pytest.mark.slow
 def test_the_export_converts_back_to_the_same_take(ros_take: Path, exported: Path, tmp_path: Path) -> None:
     back = tmp_path / "back.h5"
     r = runner.invoke(app, ["convert", str(exported), str(back)])
