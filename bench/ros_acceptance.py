@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import venv
@@ -139,6 +140,7 @@ def main() -> int:
     references(take, work / "ref.npz", sum(meta["messages"].values()))
     n_msgs = sum(meta["messages"].values())
     print(f"INFO take {take.name}: exported {mcap.stat().st_size / 1e6:.1f} MB, {n_msgs} messages")
+    shutil.rmtree(work / "db3", ignore_errors=True)  # rosbags-convert writes a new bag only
     consumer(py, "export", str(mcap), str(work / "ref.npz"), str(work))
 
     db3_dir = work / "db3"
@@ -151,8 +153,7 @@ def main() -> int:
 
     for raw in sorted(DATA.glob("evt3*.raw")) if DATA.is_dir() else []:
         bag = work / f"{raw.stem}-bag"
-        if bag.exists():
-            subprocess.run(["rm", "-r", str(bag)], check=True)
+        shutil.rmtree(bag, ignore_errors=True)
         ref = work / f"{raw.stem}-evt3.npz"
         consumer(py, "rawbag", str(raw), str(bag), str(ref))
         t_path = work / f"{raw.stem}.h5"
