@@ -67,6 +67,9 @@ class RigResult(BaseModel):
     per_view_rms_px: dict[str, float]
     n_views: int
     warnings: list[str] = []
+    overlaps: dict[str, list[str]] = {}
+    """Per camera, the cameras it saw the board together with in a view the solve used (Kalibr's
+    `cam_overlaps`)."""
 
     def pose(self, camera: str) -> tuple[F64, F64]:
         """(R, t) of `camera`; CalibrationError when it is not in the rig."""
@@ -212,6 +215,7 @@ def calibrate_rig(
         },
         n_views=len(problem.vids),
         warnings=warnings,
+        overlaps={c: sorted({o for v in used.values() if c in v for o in v if o != c}) for c in cams},
     )
 
 

@@ -99,7 +99,9 @@ def kalibr_camchain(
     rig: RigResult | None = None,
     topics: dict[str, str] | None = None,
 ) -> dict[str, object]:
-    """The camchain as a dict (cam0, cam1, ... in the order of `intrinsics`)."""
+    """The camchain as a dict (cam0, cam1, ... in the order of `intrinsics`), laid out as Kalibr's
+    own output: `cam_overlaps` lists the indices of the cameras each one saw the board with (its
+    validator's getCamOverlaps reads it; empty without a rig calibration)."""
     out: dict[str, object] = {}
     names = list(intrinsics)
     for i, name in enumerate(names):
@@ -113,6 +115,8 @@ def kalibr_camchain(
             "resolution": [int(intr.image_size[0]), int(intr.image_size[1])],
             "rostopic": (topics or {}).get(name, f"/{name}/image_raw"),
         }
+        overlaps = rig.overlaps.get(name, []) if rig is not None else []
+        entry["cam_overlaps"] = [names.index(o) for o in overlaps if o in names]
         if rig is not None and i > 0:
             Ra, ta = rig.pose(names[i - 1])
             Rb, tb = rig.pose(name)

@@ -29,6 +29,8 @@ OPTIONAL: Final[dict[str, tuple[str, str]]] = {
     "starlette": ("starlette", "console"),
     "uvicorn": ("uvicorn", "console"),
     "torch": ("torch", "torch"),
+    "mcap": ("mcap", "ros"),
+    "rosbags": ("rosbags", "ros"),
 }
 
 

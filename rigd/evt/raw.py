@@ -535,6 +535,8 @@ class RawHeader:
         fmt_line = f"{name};height={self.height};width={self.width}"
         if self.fmt == "evt21_le":
             fmt_line += ";endianness=little"
+        elif self.fmt == "evt21":  # IMX636's half-swapped words: the header OpenEB writes for them
+            fmt_line += ";endianness=legacy"
         lines = [f"% evt {version}", f"% format {fmt_line}", f"% geometry {self.width}x{self.height}"]
         skip = {"evt", "format", "geometry", "end"}
         lines += [f"% {k} {v}".rstrip() for k, v in self.fields.items() if k not in skip]

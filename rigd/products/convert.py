@@ -1,4 +1,5 @@
-"""`rigd convert`: RAW/DAT recordings to takes and back, streaming in constant memory.
+"""`rigd convert`: RAW/DAT recordings to takes and back, streaming in constant memory (rosbag2
+bags to takes: rigd.products.ros.bag_convert).
 
 A recording converted to a take keeps the sensor's own clock (there is no trigger box to tie
 it to): the take's clock map is the identity and its report says so. What the decoder skipped
@@ -58,15 +59,24 @@ def convert(
     sensor: str | None = None,
     fmt: str = "evt3",
     strict: bool = False,
+    triggers: bool = True,
     on_progress: Progress | None = None,
 ) -> int:
-    """Convert by extension (.raw/.dat <-> .h5); returns the number of events written."""
+    """Convert by extension (.raw/.dat <-> .h5, rosbag2 .db3/.mcap or bag directory -> .h5);
+    returns the number of events written."""
     s, d = src.suffix.lower(), dst.suffix.lower()
+    if (s in (".db3", ".mcap") or (src.is_dir() and s not in (".raw", ".dat"))) and d in (".h5", ".hdf5"):
+        from rigd.products.ros.bag_convert import bag_to_take
+
+        return bag_to_take(src, dst, on_progress=on_progress)
     if s in (".raw", ".dat") and d in (".h5", ".hdf5"):
         return recording_to_take(src, dst, sensor=sensor or "ev0", strict=strict, on_progress=on_progress)
     if s in (".h5", ".hdf5") and d in (".raw", ".dat"):
-        return take_to_recording(src, dst, sensor=sensor, fmt=fmt, on_progress=on_progress)
-    raise ConvertError(f"cannot convert {src.name} to {dst.name}: use .raw/.dat -> .h5 or .h5 -> .raw/.dat")
+        return take_to_recording(src, dst, sensor=sensor, fmt=fmt, triggers=triggers, on_progress=on_progress)
+    raise ConvertError(
+        f"cannot convert {src.name} to {dst.name}: use .raw/.dat -> .h5, .h5 -> .raw/.dat "
+        "or a rosbag2 bag (.db3, .mcap or its directory) -> .h5"
+    )
 
 
 def _skip_text(skipped: dict[str, int], offsets: list[int]) -> str:
@@ -232,8 +242,17 @@ def _write_take(
 
 
 def take_to_recording(
-    src: Path, dst: Path, *, sensor: str | None = None, fmt: str = "evt3", on_progress: Progress | None = None
+    src: Path,
+    dst: Path,
+    *,
+    sensor: str | None = None,
+    fmt: str = "evt3",
+    triggers: bool = True,
+    on_progress: Progress | None = None,
 ) -> int:
+    """Write one sensor's events (and, unless `triggers` is False, its trigger edges as EXT_TRIGGER
+    words: some readers stop at them) re-encoded in `fmt`: evt3, evt2, evt21 (IMX636's
+    half-swapped words, header `endianness=legacy`) or evt21_le (little-endian 64-bit words)."""
     if dst.exists():
         raise ConvertError(f"{dst} exists; not overwriting")
     with Take(src) as take:
@@ -246,7 +265,7 @@ def take_to_recording(
         series = take.sensor(sensor)
         width, height = series.geometry
         total = series.count
-        triggers = series.triggers
+        edges = series.triggers if triggers else TriggerEvents.empty()
         if dst.suffix.lower() == ".dat":
             ev = series.by_index(0, total)
             write_dat(dst, ev, width=width, height=height)
@@ -256,10 +275,10 @@ def take_to_recording(
             encoder = Evt3Encoder()
         elif fmt == "evt2":
             encoder = Evt2Encoder()
-        elif fmt == "evt21":
-            encoder = Evt21Encoder()
+        elif fmt in ("evt21", "evt21_le"):
+            encoder = Evt21Encoder(little_endian=fmt == "evt21_le")
         else:
-            raise ConvertError(f"unknown EVT format {fmt!r}; choose evt3, evt2 or evt21")
+            raise ConvertError(f"unknown EVT format {fmt!r}; choose evt3, evt2, evt21 or evt21_le")
         n_trig = 0
         with dst.open("wb") as f:
             f.write(
@@ -269,14 +288,12 @@ def take_to_recording(
                 ev = series.by_index(start, min(start + _CHUNK_EVENTS, total))
                 last = start + len(ev) >= total
                 t_hi = int(ev.t[-1]) if len(ev) else None
-                upto = (
-                    len(triggers) if last or t_hi is None else int(np.searchsorted(triggers.t, t_hi, "right"))
-                )
-                tr = triggers[n_trig:upto]
+                upto = len(edges) if last or t_hi is None else int(np.searchsorted(edges.t, t_hi, "right"))
+                tr = edges[n_trig:upto]
                 n_trig = upto
                 f.write(encoder.encode(ev, tr))
                 if on_progress:
                     on_progress(start + len(ev))
-        if not total and not len(triggers):
+        if not total and not len(edges):
             log.warning("%s: sensor %s has no events; wrote a header-only file", src, sensor)
     return total

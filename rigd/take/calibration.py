@@ -24,6 +24,7 @@ import numpy as np
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.layout import CALIBRATION_GROUP
 from rigd.take.h5file import open_checked
+from rigd.take.units import label_tree
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +135,7 @@ def store_calibration(
         if device not in known:
             raise TakeError(f"{path}: no camera or event sensor {device!r} (it has {sorted(known)})")
         write_calibration_group(f, device, intrinsics, pose, source)
+        label_tree(f[f"{CALIBRATION_GROUP}/{device}"])
     log.info("stored calibration of %s in %s", device, path)
 
 

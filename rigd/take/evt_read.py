@@ -99,7 +99,7 @@ class EvtWordsEvents:
         start, n = int(meta[slot, 0]), int(meta[slot, 1])
         return (start, np.asarray(ds[slot, :n], dtype=np.uint8)) if n else None
 
-    def _bytes(self, a: int, b: int) -> NDArray[np.uint8]:
+    def stored_bytes(self, a: int, b: int) -> NDArray[np.uint8]:
         tail = self._tail
         if tail is None or b <= tail[0]:
             return np.asarray(self.words[a:b], dtype=np.uint8)
@@ -118,7 +118,7 @@ class EvtWordsEvents:
         if r1 <= r0:
             return EventArray.empty()
         base = int(self.start[r0])
-        data = self._bytes(base, int(self.start[r1 - 1] + self.length[r1 - 1]))
+        data = self.stored_bytes(base, int(self.start[r1 - 1] + self.length[r1 - 1]))
         breaks = [r0, *(r0 + 1 + np.flatnonzero(self.follows[r0 + 1 : r1] == 0)).tolist(), r1]
         parts = []
         for a, b in itertools.pairwise(breaks):

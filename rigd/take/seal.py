@@ -35,6 +35,7 @@ from rigd.take.finalize import FinalizePlan, Finalizer
 from rigd.take.h5file import as_oserror, utc_now
 from rigd.take.refused import no_room_to_flush
 from rigd.take.take_state import TakeState
+from rigd.take.units import label_tree
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
@@ -260,6 +261,7 @@ def finalize_take(
     s.check_writable()
     s.write_all()
     s.drop_tails()
+    label_tree(s.f)  # units and compression filters named for plain HDF5 users
     s.f.flush()
     finalizer = s.finalizer()
     plan = finalizer.plan(maps, frame_pulse_index, report)

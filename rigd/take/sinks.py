@@ -38,6 +38,7 @@ from rigd.core.layout import (
 from rigd.core.pixels import BAYER_PATTERNS, PIXEL_FORMATS, is_bayer, stored_pixel_format
 from rigd.take.h5file import append_rows, require_dataset, require_group, write_chunk
 from rigd.take.tails import choose_tail_slot, create_tail_slots, drop_tail_slots
+from rigd.take.units import label
 
 if TYPE_CHECKING:
     from rigd.core.timebase import ClockMap
@@ -72,8 +73,10 @@ class DeviceWriteStats:
 def new_series(
     group: h5py.Group, name: str, dtype: DTypeLike, opts: Mapping[str, Any], chunk: int = SMALL_CHUNK
 ) -> h5py.Dataset:
-    """An empty, growable 1-D dataset."""
-    return group.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(chunk,), **opts)
+    """An empty, growable 1-D dataset (its units and compression filter named: rigd.take.units)."""
+    return label(
+        group.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(chunk,), **opts)
+    )
 
 
 def _write_slot(ds: h5py.Dataset, slot: int, start: int, data: NDArray[Any]) -> None:

@@ -40,6 +40,7 @@ def test_yaml_json_kalibr_and_report(real_detections, tmp_path: Path) -> None:
     assert len(data["views"][0]["residuals"]) == 54
     chain = kalibr_camchain({"left": res})
     assert chain["cam0"]["distortion_model"] == "radtan"  # type: ignore[index]
+    assert chain["cam0"]["cam_overlaps"] == []  # type: ignore[index]
     rich = calibrate_intrinsics(real_detections["left"][0], board, camera="left", model="rational")
     with pytest.raises(CalibrationError, match="radtan"):
         kalibr_camchain({"left": rich})
@@ -108,6 +109,9 @@ def test_cli_rig_from_image_sets(tmp_path: Path) -> None:
     assert 0.05 < abs(data["cameras"][1]["t"][0]) < 0.2
     chain = yaml.safe_load((tmp_path / "camchain.yaml").read_text())
     assert np.asarray(chain["cam1"]["T_cn_cnm1"]).shape == (4, 4)
+    # Kalibr's own layout: kalibr_camera_validator's getCamOverlaps reads cam_overlaps
+    assert chain["cam0"]["cam_overlaps"] == [1]
+    assert chain["cam1"]["cam_overlaps"] == [0]
 
 
 def test_cli_errors_exit_2(tmp_path: Path) -> None:

@@ -120,6 +120,7 @@ def test_rig_extrinsics_ground_truth() -> None:
     assert all(len(v) >= 12 for v in per_cam.values()), {c: len(v) for c, v in per_cam.items()}
     intr = {c: calibrate_intrinsics(per_cam[c], board, camera=c) for c in gt}
     rig = calibrate_rig(intr, views, board)
+    assert rig.overlaps == {"cam0": ["cam1", "cam2"], "cam1": ["cam0", "cam2"], "cam2": ["cam0", "cam1"]}
     for c in ("cam1", "cam2"):
         R, t = rig.pose(c)
         Rg, tg = gt[c]

@@ -23,12 +23,22 @@ from rigd.core.progress import ProgressUpdate
 
 #: rigd.products.export.FORMATS, spelled out so that `--help` need not import the exporters (h5py,
 #: OpenCV); tests/app/commands/test_lazy_imports.py holds the two equal.
-EXPORT_FORMATS = ("dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec")
+EXPORT_FORMATS = ("dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec", "mcap")
 #: rigd.products.export.WORLDS and SPLITS, spelled out for the same reason.
 EXPORT_WORLDS = ("board", "cam0", "floor")
 EXPORT_SPLITS = ("time", "camera")
 
 _err = stderr_console()
+
+
+def _slice_us(text: str) -> int:
+    try:
+        ms = int(text)
+    except ValueError:
+        raise ConfigError(f"--ros-slice-ms {text!r}: not an integer") from None
+    if ms < 0:
+        raise ConfigError(f"--ros-slice-ms {ms}: must be 0 or more")
+    return ms * 1000
 
 
 def export(
@@ -74,9 +84,30 @@ def export(
         bool,
         typer.Option("--force", help="Replace an earlier export at --out (or what an interrupted one left)."),
     ] = False,
+    ros_epoch: Annotated[
+        str,
+        typer.Option(
+            "--ros-epoch",
+            help="mcap: header stamps are rig time plus the take's creation second (take) or rig time (rig).",
+        ),
+    ] = "take",
+    ros_slice_ms: Annotated[
+        str,
+        typer.Option(
+            "--ros-slice-ms",
+            metavar="INT",
+            help="mcap: event packets of at least this span (0: one per block).",
+        ),
+    ] = "0",
+    compressed: Annotated[
+        bool, typer.Option("--compressed", help="mcap: frames as lossless PNG sensor_msgs/CompressedImage.")
+    ] = False,
+    ros_compression: Annotated[
+        str, typer.Option("--ros-compression", help="mcap: chunk compression zstd, lz4 or none.")
+    ] = "zstd",
 ) -> None:
-    """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap)
-    or for event loaders (dsec); see docs/export.md."""
+    """Export a calibrated take for a 4D reconstruction trainer (dynamic3dgs, nerfstudio, colmap),
+    for event loaders (dsec), or any take as ROS 2 messages in MCAP (mcap); see docs/export.md."""
     from rigd.products.export import (
         FORMATS,
         SPLITS,
@@ -107,6 +138,10 @@ def export(
             split=split,
             test_cameras=tuple(test_camera or ()),
             force=force,
+            ros_epoch=ros_epoch,
+            ros_slice_us=_slice_us(ros_slice_ms),
+            compressed=compressed,
+            ros_compression=ros_compression,
         )
     except ValidationError as exc:
         err = exc.errors()[0]
@@ -134,6 +169,15 @@ def export(
             raise fail(str(exc), code=1) from exc
         except RigdError as exc:
             raise fail(str(exc)) from exc
+    if result.format == "mcap":
+        _err.print(
+            f"{result.take_id} -> {result.out} (mcap): {len(result.cameras)} cameras, "
+            f"{len(result.event_sensors)} event sensors, {result.timesteps} pulses, "
+            f"{result.bytes / 1e6:.1f} MB in {result.wall_s:.1f} s",
+            soft_wrap=True,
+            highlight=False,
+        )
+        return
     _err.print(
         f"{result.take_id} -> {result.out} ({result.format}): {result.timesteps} timesteps x "
         f"{len(result.cameras)} cameras ({result.train} train / {result.test} test views, split by "

@@ -61,15 +61,32 @@ def inspect(
 
 
 def convert_cmd(
-    src: Annotated[Path, typer.Argument(help="Input: .raw/.dat recording or .h5 take.")],
+    src: Annotated[
+        Path,
+        typer.Argument(
+            help="Input: .raw/.dat recording, rosbag2 bag (.db3, .mcap, bag directory) or .h5 take."
+        ),
+    ],
     dst: Annotated[Path, typer.Argument(help="Output: .h5 take or .raw/.dat recording.")],
     sensor: Annotated[str | None, typer.Option("--sensor", help="Event sensor name in the take.")] = None,
     fmt: Annotated[
-        str, typer.Option("--format", help="EVT format of a .raw output: evt3, evt2, evt21.")
+        str,
+        typer.Option(
+            "--format",
+            help="EVT format of a .raw output: evt3, evt2, evt21 (IMX636 half-swapped words, "
+            "endianness=legacy) or evt21_le (little-endian words).",
+        ),
     ] = "evt3",
     strict: Annotated[bool, typer.Option("--strict", help="Stop at the first invalid word.")] = False,
+    no_triggers: Annotated[
+        bool,
+        typer.Option(
+            "--no-triggers",
+            help="A .raw/.dat output without the trigger edges (readers such as expelliarmus stop at them).",
+        ),
+    ] = False,
 ) -> None:
-    """Convert a RAW/DAT recording to a take, or a take's event sensor to RAW/DAT."""
+    """Convert a RAW/DAT recording or a rosbag2 bag to a take, or a take's event sensor to RAW/DAT."""
     from rigd.products.convert import convert
 
     if not src.exists():
@@ -77,7 +94,15 @@ def convert_cmd(
     with StageProgress(console, "convert") as bar:
         bar.stage("converting", _events_in(src, sensor), "events", f"{src.name} -> {dst.name}")
         try:
-            n = convert(src, dst, sensor=sensor, fmt=fmt, strict=strict, on_progress=bar.advance_to)
+            n = convert(
+                src,
+                dst,
+                sensor=sensor,
+                fmt=fmt,
+                strict=strict,
+                triggers=not no_triggers,
+                on_progress=bar.advance_to,
+            )
         except RigdError as exc:
             raise fail(exc) from exc
     out.print(f"{dst}: {n:,} events")

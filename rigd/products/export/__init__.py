@@ -12,6 +12,7 @@ import logging
 import time
 from pathlib import Path
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from rigd.core.errors import TakeError
@@ -21,6 +22,7 @@ from rigd.products.export.common import (
     FORMATS,
     IMAGE_THREADS,
     SPLITS,
+    UNCALIBRATED_FORMATS,
     WORLDS,
     Camera,
     ExportOptions,
@@ -131,6 +133,8 @@ def run_export(options: ExportOptions, progress: ProgressCallback = no_progress)
         raise TakeError(f"no such take: {options.take}")
     leftovers = check_target(options.out, options.force)
     start = time.perf_counter()
+    if options.format in UNCALIBRATED_FORMATS:
+        return _run_mcap(options, leftovers, progress, start)
     with open_take(options.take) as take:
         if take.time_domain != "rig":
             raise TakeError(f"{take.path}: not on the rig timebase (time domain {take.time_domain})")
@@ -150,6 +154,59 @@ def run_export(options: ExportOptions, progress: ProgressCallback = no_progress)
                 raise replaced from exc
             raise
     log.info("exported %s as %s to %s in %.1f s", options.take, options.format, options.out, result.wall_s)
+    return result
+
+
+def _run_mcap(
+    options: ExportOptions, leftovers: list[Path], progress: ProgressCallback, start: float
+) -> ExportResult:
+    """`--format mcap`: every stored stream of the take as ROS 2 messages in `<take_id>.mcap`."""
+    from rigd.products.ros.mcap_export import write_mcap
+
+    with open_take(options.take) as take:
+        if take.time_domain != "rig":
+            raise TakeError(f"{take.path}: not on the rig timebase (time domain {take.time_domain})")
+        staging = Staging(options.out, leftovers, {"take": str(take.path), "format": options.format})
+        try:
+            stats = write_mcap(
+                take,
+                staging.dir / f"{take.take_id}.mcap",
+                epoch=options.ros_epoch,
+                slice_us=options.ros_slice_us,
+                compressed=options.compressed,
+                compression=options.ros_compression,
+                progress=progress,
+            )
+            pulses = take.pulses()
+            spans = [s for s in (take.sensor(n).span for n in take.event_sensors) if s is not None]
+            result = ExportResult(
+                take=str(take.path),
+                take_id=take.take_id,
+                format=options.format,
+                out=str(options.out),
+                timesteps=len(pulses),
+                cameras=take.cameras,
+                train=0,
+                test=0,
+                split="none",
+                test_cameras=[],
+                world="rig",
+                rig_to_world=np.eye(4).tolist(),
+                event_sensors=take.event_sensors,
+                t0_us=min((s[0] for s in spans), default=0),
+                t1_us=max((s[1] for s in spans), default=0),
+                wall_s=round(time.perf_counter() - start, 3),
+                bytes=_disk_bytes(staging.dir),
+            )
+            doc = {**result.model_dump(), "epoch_ns": stats.epoch_ns, "messages": stats.messages}
+            (staging.dir / "export.json").write_text(json.dumps(doc, indent=2))
+            staging.commit()
+        except BaseException as exc:
+            replaced = _write_failed(options, staging, exc)
+            if replaced is not None:
+                raise replaced from exc
+            raise
+    log.info("exported %s as mcap to %s in %.1f s", options.take, options.out, result.wall_s)
     return result
 
 

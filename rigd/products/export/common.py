@@ -61,8 +61,10 @@ class PointCloudLike(Protocol):
 #: Relative output path of (timestep k, camera j).
 PathOf = Callable[[int, int], str]
 
-FORMATS = ("dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec")
-Format = Literal["dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec"]
+FORMATS = ("dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec", "mcap")
+Format = Literal["dynamic3dgs", "4dgaussians", "nerfstudio", "colmap", "dsec", "mcap"]
+#: Formats that need no calibration or RGB camera (every take's data, as it is stored).
+UNCALIBRATED_FORMATS = ("mcap",)
 WORLDS = ("board", "cam0", "floor")
 World = Literal["board", "cam0", "floor"]
 SPLITS = ("time", "camera")
@@ -112,6 +114,16 @@ class ExportOptions(BaseModel):
     )
     jpeg_quality: int = Field(95, ge=50, le=100, description="JPEG quality where a format needs JPEG.")
     force: bool = Field(False, description="Replace an earlier export (or its leftovers) at `out`.")
+    ros_epoch: Literal["take", "rig"] = Field(
+        "take", description="mcap: stamps are rig time + the take's creation second (take) or rig time (rig)."
+    )
+    ros_slice_us: int = Field(
+        0, ge=0, description="mcap: merge stored event blocks into packets of this span (0: one per block)."
+    )
+    compressed: bool = Field(False, description="mcap: frames as PNG sensor_msgs/CompressedImage.")
+    ros_compression: Literal["zstd", "lz4", "none"] = Field(
+        "zstd", description="mcap: chunk compression (lz4: faster, larger; none: fastest)."
+    )
 
     @field_validator("format", mode="before")
     @classmethod

@@ -1,0 +1,181 @@
+"""The ROS 2 acceptance: rigd's MCAP export and bag conversion checked by the ROS consumers' own code.
+
+    python -m bench.ros_acceptance [--work DIR] [--python SCRATCH_PY] [--seconds 2] [--readme]
+
+The consumers (mcap, mcap-ros2-support, rosbags, and the evt3 package as the EVT 3.0 decoder
+that is not rigd's) live in a scratch venv outside the project (created under --work when
+--python is not given). event_camera_codecs is C++ built against ROS message headers, which
+this machine lacks; evt3 (OpenEB semantics) stands in as the independent decoder.
+
+1. A sim take (3 Bayer cameras, 2 EVT 3.0 sensors, the board scene at 640x360, virtual clock;
+   `--readme`: the README's `rigd capture --duration 5` take, the built-in rig at 1280x720)
+   exported with `rigd export --format mcap`; the consumer side (bench/consumer_checks/
+   ros_check.py) reads every message, decodes the events with evt3 and compares counts, 50 ms
+   windows and images with the take (references written here).
+2. rosbags-convert's sqlite3 bag of that export converted back with `rigd convert`: identical
+   events, trigger edges, frames and pulses.
+3. For each EVT 3.0 RAW file in ../shared/data/events: a .db3 bag written by rosbags' Writer
+   the way metavision_driver records converts to exactly the events evt3 decodes from the file.
+One PASS/FAIL line per check; exit code 1 if any failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import numpy as np
+
+from rigd.app.capture import run_capture
+from rigd.app.config import default_sim_rig
+from rigd.app.testing.board import capture_board_take
+from rigd.products.convert import convert
+from rigd.products.export import ExportOptions, run_export
+from rigd.take.reader import open_take
+
+CHECK = Path(__file__).resolve().parent / "consumer_checks" / "ros_check.py"
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "events"
+PACKAGES = ["mcap", "mcap-ros2-support", "rosbags", "evt3", "numpy"]
+FAILED: list[str] = []
+
+
+def check(name: str, ok: bool, detail: str) -> None:
+    print(f"{'PASS' if ok else 'FAIL'} {name}: {detail}", flush=True)
+    if not ok:
+        FAILED.append(name)
+
+
+def scratch_python(work: Path, given: str | None) -> Path:
+    if given:
+        return Path(given)
+    env = work / "venv"
+    py = env / "bin" / "python"
+    if not py.exists():
+        venv.create(env, with_pip=True)
+        subprocess.run([str(py), "-m", "pip", "install", "-q", *PACKAGES], check=True)
+    return py
+
+
+def consumer(py: Path, *args: str) -> None:
+    r = subprocess.run([str(py), str(CHECK), *args], capture_output=True, text=True, check=False)
+    print(r.stdout, end="", flush=True)
+    if r.returncode:
+        FAILED.append(f"consumer {args[0]}")
+        if r.stderr:
+            print(r.stderr[-2000:], flush=True)
+
+
+def references(take_path: Path, out: Path, messages: int) -> None:
+    arrays: dict[str, np.ndarray] = {"messages": np.array(messages)}
+    with open_take(take_path) as take:
+        arrays["sensors"] = np.array(take.event_sensors)
+        arrays["cameras"] = np.array(take.cameras)
+        for name in take.event_sensors:
+            ev = take.sensor(name).events()
+            for k in "xypt":
+                arrays[f"{name}/{k}"] = getattr(ev, k)
+        for cam in take.cameras:
+            fs = take.camera(cam, demosaic=False)
+            arrays[f"{cam}/frames"] = np.stack([fs.raw(i) for i in range(len(fs))])
+    np.savez(out, **arrays)  # type: ignore[arg-type]
+
+
+def same_takes(a_path: Path, b_path: Path) -> tuple[bool, str]:
+    with open_take(a_path) as a, open_take(b_path) as b:
+        notes = []
+        ok = sorted(a.event_sensors) == sorted(b.event_sensors) and sorted(a.cameras) == sorted(b.cameras)
+        for name in a.event_sensors:
+            ea, eb = a.sensor(name).events(), b.sensor(name).events()
+            same = len(ea) == len(eb) and all(np.array_equal(getattr(ea, k), getattr(eb, k)) for k in "xypt")
+            same &= np.array_equal(a.sensor(name).triggers.t, b.sensor(name).triggers.t)
+            notes.append(f"{name} {len(eb)}/{len(ea)} events")
+            ok &= same
+        for cam in a.cameras:
+            fa, fb = a.camera(cam, demosaic=False), b.camera(cam, demosaic=False)
+            same = len(fa) == len(fb) and np.array_equal(fa.timestamps_us, fb.timestamps_us)
+            same &= all(np.array_equal(fa.raw(i), fb.raw(i)) for i in range(len(fa)))
+            notes.append(f"{cam} {len(fb)}/{len(fa)} frames")
+            ok &= same
+        ok &= np.array_equal(a.pulses().t_us, b.pulses().t_us)
+        losses = b.sync_report.losses if b.sync_report else []
+        return ok and not losses, ", ".join(notes) + f", {len(losses)} loss records"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/rigd-ros-acceptance"))
+    ap.add_argument("--python", help="the scratch venv's python (default: a venv made under --work)")
+    ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument(
+        "--readme",
+        action="store_true",
+        help="the README's take: the built-in sim rig (1280x720), not the board",
+    )
+    args = ap.parse_args()
+    work: Path = args.work
+    work.mkdir(parents=True, exist_ok=True)
+    py = scratch_python(work, args.python)
+
+    if args.readme:  # `rigd capture --duration 5 --out takes`: the built-in rig, on virtual time
+        rig = default_sim_rig(world="ros-acceptance-readme", clock="virtual")
+        take = run_capture(rig, work / "take", args.seconds).path
+    else:
+        take = capture_board_take(
+            work / "take",
+            args.seconds,
+            (640, 360),
+            world="ros-acceptance",
+            clock="virtual",
+            pixel_format="bayer_rg8",
+        ).path
+    out = work / "mcap"
+    run_export(ExportOptions(take=take, format="mcap", out=out, force=True))
+    (mcap,) = out.glob("*.mcap")
+    meta = json.loads((out / "export.json").read_text())
+    references(take, work / "ref.npz", sum(meta["messages"].values()))
+    n_msgs = sum(meta["messages"].values())
+    print(f"INFO take {take.name}: exported {mcap.stat().st_size / 1e6:.1f} MB, {n_msgs} messages")
+    shutil.rmtree(work / "db3", ignore_errors=True)  # rosbags-convert writes a new bag only
+    consumer(py, "export", str(mcap), str(work / "ref.npz"), str(work))
+
+    db3_dir = work / "db3"
+    back = work / "back.h5"
+    back.unlink(missing_ok=True)
+    if db3_dir.is_dir():
+        convert(db3_dir, back)
+        ok, detail = same_takes(take, back)
+        check("rigd convert of rosbags' sqlite3 bag", ok, detail)
+
+    for raw in sorted(DATA.glob("evt3*.raw")) if DATA.is_dir() else []:
+        bag = work / f"{raw.stem}-bag"
+        shutil.rmtree(bag, ignore_errors=True)
+        ref = work / f"{raw.stem}-evt3.npz"
+        consumer(py, "rawbag", str(raw), str(bag), str(ref))
+        t_path = work / f"{raw.stem}.h5"
+        t_path.unlink(missing_ok=True)
+        convert(bag, t_path)
+        want = np.load(ref)
+        with open_take(t_path) as t:
+            ev = t.sensor(t.event_sensors[0]).events()
+            losses = t.sync_report.losses if t.sync_report else []
+        same = len(ev) == want["t"].size and all(
+            np.array_equal(a.astype(np.int64), b.astype(np.int64))
+            for a, b in ((ev.x, want["x"]), (ev.y, want["y"]), (ev.t, want["t"]), (ev.p > 0, want["p"] > 0))
+        )
+        check(
+            f"{raw.name} driver bag",
+            same,
+            f"{len(ev)} events from the bag, evt3 decodes {want['t'].size} "
+            f"from the file; {len(losses)} loss records",
+        )
+    print("ALL PASS" if not FAILED else f"FAILED: {', '.join(FAILED)}")
+    return 1 if FAILED else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
