@@ -47,6 +47,9 @@ class Tracer:
         self.walked = walked
         self.objects = objects or set()
         self._seen: dict[str, set[tuple[str, str]]] = {}
+        self.back: dict[str, list[tuple[str, str]]] = {}
+        """The same walk with the way back: a recorded call's return to its caller's module."""
+        self._open: set[int] = set()
 
     def _handed(self, frame: FrameType) -> bool:
         code = frame.f_code
@@ -65,8 +68,24 @@ class Tracer:
             return None
         return str(name)
 
+    def _caller(self, frame: FrameType) -> str | None:
+        f = frame.f_back
+        while f is not None:
+            if (module := self._module(f)) is not None:
+                return module
+            f = f.f_back
+        return None
+
     def __call__(self, frame: FrameType, event: str, arg: Any) -> Callable[..., Any] | None:
-        if event != "call" or not self.on:
+        if not self.on:
+            return None
+        if event == "return" and id(frame) in self._open:
+            self._open.discard(id(frame))
+            caller = self._caller(frame)
+            if caller is not None:
+                self.back.setdefault(threading.current_thread().name, []).append((caller, "<back>"))
+            return None
+        if event != "call":
             return None
         module = self._module(frame)
         if module is None:
@@ -79,6 +98,8 @@ class Tracer:
         if key not in seen:
             seen.add(key)
             self.calls.setdefault(thread, []).append(key)
+            self.back.setdefault(thread, []).append(key)
+            self._open.add(id(frame))
         return None
 
 
@@ -119,7 +140,11 @@ def _parts(model: BaseModel) -> set[int]:
     return found
 
 
-def _config_and_packet_walks(out: Path) -> tuple[list[str], list[str], Path]:
+Walk = tuple[list[str], list[str]]
+"""A walk's stays: going in only, and with the way back."""
+
+
+def _config_and_packet_walks(out: Path) -> tuple[Walk, Walk, Path]:
     from rigd.app.capture import run_capture
     from rigd.app.capture.items import EventsItem
     from rigd.app.config import default_sim_rig
@@ -147,12 +172,19 @@ def _config_and_packet_walks(out: Path) -> tuple[list[str], list[str], Path]:
         config_tracer.on = packet_tracer.on = False
         sys.setprofile(None)
         threading.setprofile(None)
-    config_walk = stays(config_tracer.calls.get("MainThread", []))
-    packet_walk = stays(packet_tracer.calls.get("acq-ev0", []) + packet_tracer.calls.get("writer", []))
+    config_walk = (
+        stays(config_tracer.calls.get("MainThread", [])),
+        stays(config_tracer.back.get("MainThread", [])),
+    )
+    threads = ("acq-ev0", "writer")
+    packet_walk = (
+        stays([c for t in threads for c in packet_tracer.calls.get(t, [])]),
+        stays([c for t in threads for c in packet_tracer.back.get(t, [])]),
+    )
     return config_walk, packet_walk, result.path
 
 
-def _export_walk(take: Path, out: Path) -> list[str]:
+def _export_walk(take: Path, out: Path) -> Walk:
     from rigd.products.export import run_export
     from rigd.products.export.common import ExportOptions
     from rigd.take.event_series import EventSeries
@@ -167,7 +199,7 @@ def _export_walk(take: Path, out: Path) -> list[str]:
     finally:
         tracer.on = False
         sys.setprofile(None)
-    return stays(tracer.calls.get("MainThread", []))
+    return stays(tracer.calls.get("MainThread", [])), stays(tracer.back.get("MainThread", []))
 
 
 def main() -> int:
@@ -178,17 +210,19 @@ def main() -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix="rigd-walks-"))
     config_walk, packet_walk, take = _config_and_packet_walks(out)
     export_walk = _export_walk(take, out)
-    print("| walk | stays | modules | returns |")
-    print("|---|---:|---:|---:|")
-    for name, walk in (
+    print("| walk | stays | modules | returns | with the way back: stays | returns |")
+    print("|---|---:|---:|---:|---:|---:|")
+    walks = (
         ("config to devices", config_walk),
         ("packet to HDF5", packet_walk),
         ("take to export", export_walk),
-    ):
+    )
+    for name, (walk, back) in walks:
         s, m, r = count(walk)
-        print(f"| {name} | {s} | {m} | {r} |")
+        sb, _, rb = count(back)
+        print(f"| {name} | {s} | {m} | {r} | {sb} | {rb} |")
         if args.list:
-            print("  " + " > ".join(w.removeprefix("rigd.") for w in walk))
+            print("  " + " > ".join(w.removeprefix("rigd.") for w in back))
     return 0
 
 

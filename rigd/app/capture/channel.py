@@ -163,7 +163,7 @@ class ChannelContext:
 
 class DeviceChannel(Generic[DevT, ItemT]):
     """A camera or event sensor, from opening to the end of the take: one loop for every kind,
-    composed from its kind's parts (`kinds.device_channels` picks them): `reading` (open,
+    composed from its kind's parts (`kinds.open_channels` picks them): `reading` (open,
     configure, read, what an item says about time), `gate` (the take window, set once the
     window can be placed: `open_gate`), `shedding` (what goes to the writer under overload)
     and `stream` (how the writer thread writes and observes its items)."""

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterator
 from typing import Any, ClassVar
 
 from drivers.base import Capability, EventSensor, RgbCamera
@@ -180,10 +179,10 @@ def event_channel(
     return DeviceChannel(sen.name, sen.spec, sen.settings.model_dump_json(), reading, stream, shedding, ctx)
 
 
-def device_channels(config: RigConfig, ctx: ChannelContext) -> Iterator[tuple[str, DeviceChannel[Any, Any]]]:
-    """Each device of the rig as a channel, cameras first, in config order; opened one at a
-    time, so a caller keeps the ones already open when a later one fails to."""
+def open_channels(config: RigConfig, ctx: ChannelContext, opened: dict[str, DeviceChannel[Any, Any]]) -> None:
+    """Each device of the rig as a channel, cameras first, in config order, into `opened` as each
+    opens, so a caller keeps (and closes) the ones already open when a later one fails to."""
     for cam in config.cameras:
-        yield cam.name, camera_channel(cam, ctx)
+        opened[cam.name] = camera_channel(cam, ctx)
     for sen in config.event_sensors:
-        yield sen.name, event_channel(sen, ctx, config.writer.overload_max_lag_s)
+        opened[sen.name] = event_channel(sen, ctx, config.writer.overload_max_lag_s)

@@ -16,9 +16,13 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
+from typing import Any
 
 from drivers.base import Capability, Device, explain_missing, missing_capabilities
+from rigd.app.capture.ballast import check_ballast
+from rigd.app.capture.channel import DeviceChannel, TriggerChannel
+from rigd.app.config import RigConfig
 from rigd.core.errors import ConfigError, DeviceError, RigdError
 
 log = logging.getLogger(__name__)
@@ -60,3 +64,30 @@ def warm_up(devices: Iterable[tuple[str, Device]]) -> float:
         "compiled the capture path (numba kernels) in %.2f s before the trigger: %s", total, ", ".join(spent)
     )
     return total
+
+
+def prepare_rig(
+    config: RigConfig,
+    trigger: TriggerChannel,
+    channels: Mapping[str, DeviceChannel[Any, Any]],
+    n_pulses: int | None,
+) -> None:
+    """Everything between opening the rig's devices and creating the take: refuse a rig whose
+    devices cannot do what the config asks (all named in one line) or whose disk ballast is too
+    small for it, then configure every device and compile what acquiring runs."""
+    wanted = trigger.device.required_capabilities(trigger.settings, n_pulses)
+    check_rig(
+        [
+            ("trigger", config.trigger.spec, trigger.device, wanted),
+            *((name, ch.spec, ch.device, ch.required_capabilities()) for name, ch in channels.items()),
+        ]
+    )
+    check_ballast(
+        config.writer,
+        [channels[cam.name].ballast_bytes() for cam in config.cameras],
+        len(config.event_sensors),
+    )
+    trigger.configure()
+    for ch in channels.values():
+        ch.configure()
+    warm_up([("trigger", trigger.device), *((name, ch.device) for name, ch in channels.items())])

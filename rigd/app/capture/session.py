@@ -19,16 +19,16 @@ import time
 from pathlib import Path
 
 from rigd import __version__
-from rigd.app.capture.ballast import Ballast, check_ballast, remove_stale_ballast
+from rigd.app.capture.ballast import Ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
 from rigd.app.capture.control import BoundedCalls, RunControl
 from rigd.app.capture.faults import DiskUsage, DiskWatch, FaultBoard, FlushWatch, TriggerWatchdog
 from rigd.app.capture.finalize import finalize_take
 from rigd.app.capture.items import WriterQueue
-from rigd.app.capture.kinds import device_channels
+from rigd.app.capture.kinds import open_channels
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
-from rigd.app.capture.preflight import check_rig, warm_up
+from rigd.app.capture.preflight import prepare_rig
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.stop import CLOSE_BOUND_S, AcquisitionStop, StopWait
@@ -294,9 +294,8 @@ class CaptureSession:
             1e6 / self.rate,
             self._reconnect_interval_s,
         )
-        for name, ch in device_channels(config, ctx):
-            self._channels[name] = ch  # kept as opened: an abort closes it
-        self._preflight(trigger)
+        open_channels(config, ctx, self._channels)  # an abort closes those that opened
+        prepare_rig(config, trigger, self._channels, self.n_pulses)
         for ch in self._channels.values():
             ch.open_gate(self._window, config.writer.window_hold_s)
         self._take = self._create_take(trigger)
@@ -324,29 +323,6 @@ class CaptureSession:
         self._watchdog = TriggerWatchdog(trigger.device, self.rate, self._faults, probe_always=self._virtual)
         for live in [self._trigger_live, *(ch.live for ch in self._channels.values())]:
             live.samples.clear()
-
-    def _preflight(self, trigger: TriggerChannel) -> None:
-        """Refuse a rig whose devices cannot do what the config asks, all named in one line;
-        then configure them."""
-        wanted = trigger.device.required_capabilities(trigger.settings, self.n_pulses)
-        check_rig(
-            [
-                ("trigger", self.config.trigger.spec, trigger.device, wanted),
-                *(
-                    (name, ch.spec, ch.device, ch.required_capabilities())
-                    for name, ch in self._channels.items()
-                ),
-            ]
-        )
-        check_ballast(
-            self.config.writer,
-            (self._channels[cam.name].ballast_bytes() for cam in self.config.cameras),
-            len(self.config.event_sensors),
-        )
-        trigger.configure()
-        for ch in self._channels.values():
-            ch.configure()
-        warm_up([("trigger", trigger.device), *((name, ch.device) for name, ch in self._channels.items())])
 
     def _create_take(self, trigger: TriggerChannel) -> TakeWriter:
         config = self.config
