@@ -14,7 +14,8 @@ time, as the page does. `--load N` runs N busy processes at normal priority besi
 sends) and reports how long the stop took until the take was finalized.
 
 Prints per level: the host's load average, frames/s and events/s written, frames and events lost
-(loss records' counts), the take's verdict, the writer queue's peak, the telemetry latency a
+(loss records' counts), the take's verdict, the writer queue's peak, the writer's busy share as
+the console's header shows it (median and max of the telemetry while capturing), the telemetry latency a
 client sees (receipt time minus the document's sampling time: median and p95), the documents and
 JPEGs each client got, the daemon process's CPU seconds per take second (the clients and the load
 run in child processes, so their CPU is not counted there), the clients' process's own CPU
@@ -160,10 +161,13 @@ def run_level(
     cpu0, t0 = os.times(), time.monotonic()
     command(daemon, "capture", {"duration_s": duration_s})
     peak_queue = 0
+    busy: list[float] = []
     t_stop: float | None = None
     while True:
         t = daemon.telemetry()
         peak_queue = max(peak_queue, t.queue_depth)
+        if t.state == "capturing":
+            busy.append(t.writer_busy)
         if t.state == "idle":
             break
         if stop_after_s is not None and t_stop is None and time.monotonic() - t0 >= stop_after_s:
@@ -199,6 +203,8 @@ def run_level(
         "verdict": last.verdict,
         "stop_s": stop_s,
         "peak_queue": peak_queue,
+        "busy_med": statistics.median(busy) if busy else float("nan"),
+        "busy_max": max(busy, default=float("nan")),
         "lat_med_ms": 1e3 * statistics.median(lat) if lat else float("nan"),
         "lat_p95_ms": 1e3 * lat[int(0.95 * (len(lat) - 1))] if lat else float("nan"),
         "docs_per_client_s": sum(s.docs for s in stats) / max(n_clients, 1) / wall,
@@ -247,13 +253,15 @@ def main() -> None:
     )
     print(
         f"{'load':>4} {'loadavg':>7} {'clients':>7} {'frames/s':>9} {'events/s':>10} {'lost fr':>7} "
-        f"{'lost ev':>9} {'verdict':>9} {'queue':>6} {'lat med ms':>10} {'lat p95 ms':>10} "
+        f"{'lost ev':>9} {'verdict':>9} {'queue':>6} {'busy med':>8} {'busy max':>8} "
+        f"{'lat med ms':>10} {'lat p95 ms':>10} "
         f"{'docs/s/cl':>9} {'jpeg/s/cl':>9} {'CPU s/s':>7} {'cl CPU':>6} {'stop s':>6} {'errors':>6}"
     )
     for r in rows:
         print(
             f"{r['load']:>4} {r['loadavg']:>7.2f} {r['clients']:>7} {r['fps']:>9.1f} {r['eps']:>10,.0f} "
             f"{r['lost_frames']:>7} {r['lost_events']:>9,} {r['verdict']:>9} {r['peak_queue']:>6} "
+            f"{r['busy_med']:>8.0%} {r['busy_max']:>8.0%} "
             f"{r['lat_med_ms']:>10.1f} {r['lat_p95_ms']:>10.1f} {r['docs_per_client_s']:>9.2f} "
             f"{r['jpegs_per_client_s']:>9.1f} {r['cpu_per_s']:>7.2f} "
             f"{r['client_cpu_per_s']:>6.2f} {r['stop_s']:>6.2f} {r['errors']:>6}"
