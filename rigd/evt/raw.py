@@ -755,3 +755,7 @@ def warm_up_decoder(fmt: str, width: int = 1280, height: int = 720) -> None:
     data = bytes(64 * decoder._word + 1)
     decoder.feed(data[:33])
     decoder.feed(data[33:])
+    if fmt == "evt3":
+        # a capture that stores the words scans them (`scan`): its kernel compiles on the first
+        # packet otherwise, seconds in the acquisition thread with the trigger already running
+        StreamDecoder(fmt, width=width, height=height).scan(bytes(64 * decoder._word))
