@@ -86,7 +86,8 @@ class Peers:
         self.names: list[str] = json.loads(self.proc.stdout.readline())["names"]
 
     def run(self, name: str) -> tuple[float, int]:
-        assert self.proc.stdin is not None and self.proc.stdout is not None
+        assert self.proc.stdin is not None
+        assert self.proc.stdout is not None
         self.proc.stdin.write(name + "\n")
         self.proc.stdin.flush()
         answer = json.loads(self.proc.stdout.readline())
@@ -180,10 +181,16 @@ def main() -> None:
     _report(names, times, counts, n, len(body))
 
 
-def _report(names: list[str], times: dict[str, list[float]], counts: dict[str, int], n: int, nbytes: int) -> None:
+def _report(
+    names: list[str], times: dict[str, list[float]], counts: dict[str, int], n: int, nbytes: int
+) -> None:
     med = {k: float(np.median(v)) for k, v in times.items()}
-    print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} (1, 5 min); {len(next(iter(times.values())))} rounds")
-    print(f"\n{'decoder':46s} {'Mev/s med':>9s} {'Mev/s best':>10s} {'MB/s med':>9s} {'median s':>9s}  events")
+    rounds = len(next(iter(times.values())))
+    load1, load5, _ = os.getloadavg()
+    print(f"load: {load1:.2f} {load5:.2f} (1, 5 min averages, 2 cores shared); {rounds} rounds")
+    print(
+        f"\n{'decoder':46s} {'Mev/s med':>9s} {'Mev/s best':>10s} {'MB/s med':>9s} {'median s':>9s}  events"
+    )
     for k in names:
         best = min(times[k])
         mark = "" if counts[k] == n else f"  (!= {n})"
@@ -195,7 +202,10 @@ def _report(names: list[str], times: dict[str, list[float]], counts: dict[str, i
     print(f"\nmachine limit: memcpy {nbytes / memcpy / 1e9:.1f} GB/s on this core, this run")
     modes = {
         "whole file": ("rigd read_raw (whole file)", ("evt3 decode_file (", "expelliarmus Wizard.read")),
-        "streaming": ("rigd RawReader (1 MiB chunks)", ("evt3 decode_file_batches", "expelliarmus read_chunk")),
+        "streaming": (
+            "rigd RawReader (1 MiB chunks)",
+            ("evt3 decode_file_batches", "expelliarmus read_chunk"),
+        ),
     }
     for mode, (ours, prefixes) in modes.items():
         peers = {k: med[k] for k in names if k.startswith(prefixes)}

@@ -132,7 +132,7 @@ class _CompileListener:
         self._on_kernel = on_kernel
         outer = self
 
-        class Listener(event.Listener):  # type: ignore[misc]
+        class Listener(event.Listener):
             def on_start(self, ev: Any) -> None:
                 outer._started[id(ev.data["dispatcher"])] = time.monotonic()
 
@@ -187,14 +187,15 @@ def warm_up(on_kernel: Callable[[str, float], None] | None = None) -> WarmupResu
         if disp.overloads
     ]
     entries = [e for e in ran if e is not None]
-    path: Path | None = stamp_path()
+    target = stamp_path()
+    path: Path | None = target
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_suffix(".tmp")
         tmp.write_text(json.dumps({"version": STAMP_VERSION, "kernels": entries}, indent=1))
-        tmp.replace(path)
+        tmp.replace(target)
     except OSError as exc:  # the kernels are compiled and cached all the same
-        log.warning("cannot write the warm-up stamp %s (%s): the next capture warms up again", path, exc)
+        log.warning("cannot write the warm-up stamp %s (%s): the next capture warms up again", target, exc)
         path = None
     seconds = time.monotonic() - t0
     log.info(

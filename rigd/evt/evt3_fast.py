@@ -97,7 +97,7 @@ def decode_kernel(
                         bad = False
                         while True:
                             v = w & 0x7FF
-                            isx = typ >> 1
+                            isx = int(typ >> 1)
                             if v >= height + (width - height) * isx:
                                 bad = True  # outside the sensor: the reference counts it
                                 break
