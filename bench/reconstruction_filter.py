@@ -6,12 +6,18 @@ different rule (any polarity, 8-neighbourhood, support 1), so its kept fraction 
 compares throughput on identical input. The tonic-style baseline (per-event Python loop with numpy
 slices, as `tonic.functional.denoise`) implements the paper's rule and must keep exactly what rigd keeps.
 
-    python -m bench.reconstruction_filter [--seconds 1.0] [--noise-hz 2.0]
+    python -m bench.reconstruction_filter [--seconds 1.0] [--noise-hz 2.0] [--peer-site DIR]
+
+dv-processing runs its own code from its own venv: `--peer-site` (default
+/tmp/scratch-perf/lib/python3.11/site-packages where it exists) is appended to the module path
+after the project's, so only what the project lacks (dv_processing) comes from there.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 from collections.abc import Callable
 
@@ -66,7 +72,16 @@ def main() -> None:
     ap.add_argument("--noise-hz", type=float, default=2.0)
     ap.add_argument("--tonic-events", type=int, default=200_000, help="events given to the slow baseline")
     ap.add_argument("--repeats", type=int, default=7, help="timed runs per filter (median reported)")
+    ap.add_argument(
+        "--peer-site",
+        default="/tmp/scratch-perf/lib/python3.11/site-packages",
+        help="site-packages of a venv with dv-processing (appended to the module path)",
+    )
     args = ap.parse_args()
+    if os.path.isdir(args.peer_site) and args.peer_site not in sys.path:
+        sys.path.append(args.peer_site)
+    load1, load5, _ = os.getloadavg()
+    print(f"load: {load1:.2f} {load5:.2f} (1, 5 min averages) at start")
 
     t0 = time.perf_counter()
     ev = make_events(args.seconds, args.noise_hz)
@@ -133,7 +148,11 @@ def main() -> None:
     print(f"|{'-' * 60}|{'-' * 11}|{'-' * 10}|{'-' * 9}|{'-' * 8}|")
     for name, cnt, sec, kept in rows:
         print(f"| {name:58s} | {cnt:9d} | {sec:8.4f} | {cnt / sec / 1e6:7.1f} | {kept:6.1%} |")
-    print(f"\nmedian of {args.repeats} runs (tonic-style: 1 run)")
+    print(f"\nmedian of {args.repeats} runs (tonic-style: 1 run); load at the end {os.getloadavg()[0]:.2f}")
+    ours = next(sec for name, _, sec, _ in rows if name.startswith("rigd BAF (numba"))
+    for name, _, sec, _ in rows:
+        if name.startswith("dv-processing"):
+            print(f"rigd BAF vs {name}: {sec / ours:.2f}x (goal >= 2x at 30 us)")
     print(f"tonic-style keeps exactly what rigd keeps: {same}")
 
 

@@ -51,10 +51,14 @@ class WarmupResult:
 def stamp_path() -> Path:
     """Where the warm-up stamp lives: in `NUMBA_CACHE_DIR` when set (a new, empty one is cold),
     else in the user's cache directory, named after the numba and Python versions (an upgrade
-    of either invalidates numba's cache)."""
+    of either invalidates numba's cache) and the installed tree."""
     import numba
 
-    key = hashlib.sha1(f"{numba.__version__} {sys.version}".encode()).hexdigest()[:12]
+    import rigd
+
+    # one stamp per installed tree too: two checkouts (or venvs) cache different sources
+    tree = Path(rigd.__file__).resolve().parent
+    key = hashlib.sha1(f"{numba.__version__} {sys.version} {tree}".encode()).hexdigest()[:12]
     given = os.environ.get("NUMBA_CACHE_DIR")
     if given:
         base = Path(given)
