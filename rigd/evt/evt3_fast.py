@@ -98,12 +98,12 @@ def decode_kernel(
                         while True:
                             v = w & 0x7FF
                             isx = int(typ >> 1)
-                            if v >= height + (width - height) * isx:
+                            if v >= (width if isx else height):
                                 bad = True  # outside the sensor: the reference counts it
                                 break
                             put_event(out, n, v, y, ((w >> 10) & 2) - 1, tcur)
                             n += isx
-                            y += (v - y) * (1 - isx)
+                            y = y if isx else v  # a select: y is the loop's carried value
                             pos += 1
                             if pos >= bend:
                                 break
