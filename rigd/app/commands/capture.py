@@ -115,7 +115,9 @@ def _warm_up_if_cold() -> None:
     from rigd.app.warmup import is_warm
 
     if not is_warm():
-        run_warmup("numba's cache lacks the capture path's kernels; compiling them before the take")
+        run_warmup(
+            "numba's cache lacks the capture path's kernels; compiling them before the take", required=False
+        )
 
 
 def _refuse_bad_flags(

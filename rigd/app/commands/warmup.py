@@ -28,9 +28,11 @@ def warmup(
     run_warmup("compiling the capture path's kernels")
 
 
-def run_warmup(why: str) -> None:
+def run_warmup(why: str, *, required: bool = True) -> None:
     """The warm-up with its progress lines on stderr: one when it starts, one per kernel compiled
-    and a last one with the count and the seconds it took."""
+    and a last one with the count and the seconds it took. A warm-up that fails ends the command
+    when `required`; otherwise (before a capture, whose devices' preflight still compiles what
+    each runs) it is said on one line and the command goes on."""
     from rigd.app.warmup import warm_up
 
     console.print(f"warm-up: {why} (a take of the sim rig in virtual time, then thrown away)...")
@@ -44,7 +46,14 @@ def run_warmup(why: str) -> None:
     try:
         result = warm_up(on_kernel)
     except RigdError as exc:
-        raise fail(exc) from exc
+        if required:
+            raise fail(exc) from exc
+        console.print(
+            f"[yellow]warm-up failed, capturing without it:[/] {escape(str(exc))}",
+            soft_wrap=True,
+            highlight=False,
+        )
+        return
     where = f", listed in {result.stamp}" if result.stamp else ""
     console.print(
         f"warm-up: done in {result.seconds:.1f} s: {len(result.compiled)} kernels compiled, "
