@@ -12,7 +12,8 @@ bench/evt_peer_worker.py, so they never share rigd's imports), one decode per ro
 interleaved round-robin with rigd's so background load hits all alike. Every decoder and the
 worker run pinned to the same one CPU core. Whole-file calls and streaming readers (1 MiB
 chunks) are compared, each mode against the peers' same mode; memcpy GB/s of the file's size
-is measured in the same rounds as the machine's limit.
+is measured in the same rounds as the machine's limit. rigd's EVT 3.0 and 2.0 encoders are timed
+last, on the decoded events.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from rigd.evt import RawReader, StreamDecoder, parse_raw_header, read_raw
+from rigd.evt import RawReader, StreamDecoder, encode_evt2, encode_evt3, parse_raw_header, read_raw
 from rigd.evt import raw as raw_mod
 
 log = logging.getLogger(__name__)
@@ -179,6 +180,27 @@ def main() -> None:
         if peers is not None:
             peers.close()
     _report(names, times, counts, n, len(body))
+    _encoders(path, args.repeat)
+
+
+def _encoders(path: Path, repeat: int) -> None:
+    """rigd's encoders on the decoded events and triggers of the same file, interleaved."""
+    dec = read_raw(path)[1]
+    events, triggers = dec.events, dec.triggers
+    fns = {"rigd encode_evt3": encode_evt3, "rigd encode_evt2": encode_evt2}
+    for fn in fns.values():
+        fn(events[:1000], triggers[:1])  # compile (or load from the cache) outside the timing
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn(events, triggers)
+            times[name].append(time.perf_counter() - t0)
+    print(f"\n{'encoder':46s} {'Mev/s med':>9s} {'Mev/s best':>10s}")
+    for name, ts in times.items():
+        print(
+            f"{name:46s} {len(events) / float(np.median(ts)) / 1e6:9.1f} {len(events) / min(ts) / 1e6:10.1f}"
+        )
 
 
 def _report(
