@@ -13,20 +13,20 @@ EventSimulator`, both configured alike, in two settings:
   0.001 Hz, refractory period 0.5 ms.
 
 Times are wall seconds for the frames after the first (the first only sets the state, in
-both), best of --repeats runs, numba compilation excluded (warmed up first). Ours runs on
-1 and on 2 numba threads (`numba.set_num_threads`); v2e on torch's default thread count
+both), best of --repeats runs, numba compilation and v2e's first run excluded (warmed up
+first). Ours runs on 1 and on 2 numba threads (`numba.set_num_threads`); v2e on torch's default thread count
 (printed). The models differ in detail (v2e stamps a pixel's events on a shared time grid
 and gives its leak a per-pixel rate spread, ours interpolates each crossing), so event
 counts are close, not equal.
 
-v2e is optional (not on PyPI). Install it into the venv from its GitHub source, without
-its dependencies (they would replace the project's opencv with opencv-python), plus the few
-it imports:
+v2e is optional (not on PyPI) and runs in a venv of its own, in a process of its own
+(bench/v2e_peer_worker.py; rigd's numba threads and torch's never share a process), fed the
+same frames through a .npy file, given as `--peer-python` (default /tmp/scratch-perf/bin/python):
 
-    pip install torch --index-url https://download.pytorch.org/whl/cpu
-    pip install engineering-notation screeninfo easygui
-    git clone https://github.com/SensorsINI/v2e /tmp/v2e
-    pip install --no-deps /tmp/v2e
+    python3 -m venv /tmp/scratch-perf && /tmp/scratch-perf/bin/pip install torch numba \
+        engineering-notation screeninfo easygui opencv-python-headless scipy tqdm h5py
+    git clone https://github.com/SensorsINI/v2e /tmp/v2e-src
+    echo /tmp/v2e-src > /tmp/scratch-perf/lib/python3.11/site-packages/v2e-src.pth
 
 Without it the v2e columns are skipped (with a message).
 """
@@ -34,9 +34,13 @@ Without it the v2e columns are skipped (with a message).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import subprocess
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numba
@@ -47,6 +51,7 @@ from bench.event_sim import FPS, make_texture, render
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 
 log = logging.getLogger(__name__)
+WORKER = Path(__file__).resolve().with_name("v2e_peer_worker.py")
 
 MAX_THREADS: int = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
 
@@ -96,40 +101,39 @@ SETTINGS = [
 ]
 
 
-def load_v2e() -> tuple[type | None, str]:
-    """(EventEmulator class or None, a note on what runs it)."""
-    try:
-        import torch
-        from v2ecore.emulator import EventEmulator
-    except ImportError as e:  # pragma: no cover - depends on the environment
-        return None, f"v2e not importable ({e}); v2e columns skipped (install: see this module's docstring)"
-    logging.getLogger("v2ecore").setLevel(logging.ERROR)
-    return (
-        EventEmulator,
-        f"v2e {_v2e_version()} on torch {torch.__version__} CPU, {torch.get_num_threads()} threads",
-    )
+class V2eWorker:
+    """v2e's EventEmulator in its own process and venv (bench/v2e_peer_worker.py), fed the
+    parent's frames through a .npy file; one timed run per request."""
 
+    def __init__(self, python: Path, frames: list[NDArray[Any]]) -> None:
+        self._dir = tempfile.TemporaryDirectory(prefix="rigd-v2e-")
+        path = Path(self._dir.name) / "frames.npy"
+        np.save(path, np.stack(frames))
+        self.proc = subprocess.Popen(
+            [str(python), str(WORKER), str(path), str(FPS)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"v2e worker ({python}) did not start: is v2e on its path?")
+        self.note: str = json.loads(line)["note"]
 
-def _v2e_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
+    def run(self, kwargs: dict[str, Any]) -> tuple[float, int]:
+        assert self.proc.stdin is not None
+        assert self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps(kwargs) + "\n")
+        self.proc.stdin.flush()
+        answer = json.loads(self.proc.stdout.readline())
+        return float(answer["seconds"]), int(answer["events"])
 
-    try:
-        return version("v2e")
-    except PackageNotFoundError:  # pragma: no cover
-        return "(version unknown)"
-
-
-def time_v2e(cls: type, kwargs: dict[str, Any], frames: list[NDArray[Any]]) -> tuple[float, int]:
-    emu = cls(device="cpu", seed=0, **kwargs)
-    emu.generate_events(frames[0], 0.0)
-    n = 0
-    t0 = time.perf_counter()
-    for i, f in enumerate(frames[1:], start=1):
-        ev = emu.generate_events(f, i / FPS)
-        n += 0 if ev is None else len(ev)
-    wall = time.perf_counter() - t0
-    emu.cleanup()
-    return wall, n
+    def close(self) -> None:
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        self.proc.wait(timeout=60)
+        self._dir.cleanup()
 
 
 def time_ours(cfg: PixelModelConfig, frames: list[NDArray[Any]], threads: int) -> tuple[float, int]:
@@ -156,13 +160,20 @@ def warm_up(cfg: PixelModelConfig, dtype: str) -> None:
             sim.step(f, i * 33_333)
 
 
-def run(width: int, height: int, n_frames: int, speed: float, repeats: int, dtype: str) -> None:
-    emulator, note = load_v2e()
+def run(
+    width: int, height: int, n_frames: int, speed: float, repeats: int, dtype: str, peer_python: Path
+) -> None:
     two = min(2, MAX_THREADS)
     tex = make_texture(width, height, int(speed * n_frames) + 16)
     frames: list[NDArray[Any]] = [render(tex, -speed * i, width) for i in range(n_frames)]
     if dtype == "uint8":
         frames = [np.round(f).astype(np.uint8) for f in frames]
+    emulator: V2eWorker | None = None
+    if peer_python.exists():
+        emulator = V2eWorker(peer_python, frames)
+        note = emulator.note
+    else:
+        note = f"v2e: {peer_python} not found; v2e columns skipped (install: see this module's docstring)"
     mpix = width * height * (n_frames - 1) / 1e6
     print(
         f"scene: {width}x{height} {dtype} frames, {n_frames} frames at {FPS:.0f} FPS, "
@@ -181,9 +192,11 @@ def run(width: int, height: int, n_frames: int, speed: float, repeats: int, dtyp
         warm_up(s.ours, dtype)
         best_v2e = best_1 = best_2 = float("inf")
         ev_v2e = ev_ours = 0
+        if emulator is not None:
+            emulator.run(s.v2e)  # warm-up: torch's first calls, page cache
         for _ in range(repeats):  # interleaved, so both see the same load on a shared machine
             if emulator is not None:
-                wall, ev_v2e = time_v2e(emulator, s.v2e, frames)
+                wall, ev_v2e = emulator.run(s.v2e)
                 best_v2e = min(best_v2e, wall)
             wall, ev_ours = time_ours(s.ours, frames, 1)
             best_1 = min(best_1, wall)
@@ -203,6 +216,8 @@ def run(width: int, height: int, n_frames: int, speed: float, repeats: int, dtyp
             f"{v2e_rate}{mpix / best_1:>10.1f}{mpix / best_2:>10.1f}{v2e_ev}{ev_ours:>12,}{ratios}"
         )
     numba.set_num_threads(MAX_THREADS)
+    if emulator is not None:
+        emulator.close()
 
 
 def main() -> None:
@@ -213,10 +228,16 @@ def main() -> None:
     ap.add_argument("--speed", type=float, default=6.0, help="px per frame")
     ap.add_argument("--repeats", type=int, default=2, help="runs per setting; the best is shown")
     ap.add_argument("--dtype", choices=["uint8", "float32"], default="uint8", help="frame type fed to both")
+    ap.add_argument(
+        "--peer-python",
+        type=Path,
+        default=Path("/tmp/scratch-perf/bin/python"),
+        help="python of v2e's own venv (torch, numba, v2e's source on its path)",
+    )
     args = ap.parse_args()
     if args.frames < 2:
         ap.error("--frames must be at least 2")
-    run(args.width, args.height, args.frames, args.speed, args.repeats, args.dtype)
+    run(args.width, args.height, args.frames, args.speed, args.repeats, args.dtype, args.peer_python)
 
 
 if __name__ == "__main__":

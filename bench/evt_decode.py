@@ -1,170 +1,239 @@
-"""EVT decode/encode throughput of rigd side by side with the `evt3` package and expelliarmus.
+"""EVT 3.0 decode throughput of rigd beside evt3 and expelliarmus, on the bytes a camera sends.
 
-    python -m bench.evt_decode [--tiles 40] [--repeat 5] [--file OUT.raw]
+    python -m bench.evt_decode [--tiles 60] [--repeat 9] [--peer-python /tmp/peers/bin/python]
 
-Builds a multi-million-event EVT 3.0 RAW file by tiling the real Gen4.1 recording in
-../shared/data/events (shifted in time, re-encoded by rigd's encoder so the stream is continuous
-and vectorised like the camera's), or a synthetic stream when that file is missing. The process is
-pinned to one CPU core so all decoders are compared on one core. Reports the median of N runs
-(the machine is shared: medians are the comparable figure) and the best run; decoders are timed
-round-robin so background load hits them alike.
+The file decoded is the real Gen4.1 recording (../shared/data/events/evt3_gen41_sample.raw)
+tiled end to end: its words are copied as they are and only the TIME_HIGH words of each copy are
+shifted so time goes on from one copy to the next (never decoded and re-encoded: the vectors,
+ADDR_Y runs and repeated TIME_HIGHs are the sensor's). Bytes per event is reported, since a
+re-encoded stream packs differently. The peers run their own code, unmodified, in their own venv
+(`--peer-python`: a python with `pip install evt3 expelliarmus`; a worker process,
+bench/evt_peer_worker.py, so they never share rigd's imports), one decode per round,
+interleaved round-robin with rigd's so background load hits all alike. Every decoder and the
+worker run pinned to the same one CPU core. Whole-file calls and streaming readers (1 MiB
+chunks) are compared, each mode against the peers' same mode; memcpy GB/s of the file's size
+is measured in the same rounds as the machine's limit. rigd's EVT 3.0 and 2.0 encoders are timed
+last, on the decoded events.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from rigd.core.events import EventArray, TriggerEvents
-from rigd.evt import RawHeader, RawReader, StreamDecoder, encode_evt2, encode_evt3, read_raw, write_raw
+from rigd.evt import RawReader, StreamDecoder, encode_evt2, encode_evt3, parse_raw_header, read_raw
 from rigd.evt import raw as raw_mod
 
 log = logging.getLogger(__name__)
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "events" / "evt3_gen41_sample.raw"
+DEFAULT_PEERS = Path("/tmp/scratch-perf/bin/python")
+WORKER = Path(__file__).resolve().with_name("evt_peer_worker.py")
+#: TIME_HIGH: 4-bit type 0x8, 12 bits of time in units of 4096 us.
+_TIME_HIGH, _TH_UNIT_US = 0x8, 4096
 
 
-def build_events(tiles: int) -> tuple[EventArray, TriggerEvents]:
-    """Real readout structure repeated in time; synthetic rows of bursts if the file is absent."""
-    if REAL.exists():
-        _, dec = read_raw(REAL)
-        base = dec.events
-    else:
-        rng = np.random.default_rng(0)
-        n = 200_000
-        t = np.sort(rng.integers(0, 10_000, n))
-        base = EventArray.from_arrays(
-            rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n), t
+def tile_words(path: Path, tiles: int) -> tuple[bytes, NDArray[np.uint16]]:
+    """The file's header and its EVT 3.0 words from the first TIME_HIGH on, `tiles` times end to
+    end; copy k's TIME_HIGH values are raised by k spans (12-bit, wrapping as a sensor's do), so
+    the tiled stream is one continuous recording of k times the time."""
+    with path.open("rb") as f:
+        header = parse_raw_header(f)
+        if header.fmt != "evt3":
+            raise SystemExit(f"{path}: {header.fmt}, not EVT 3.0")
+        f.seek(0)
+        head = f.read(header.size)
+        body = f.read()
+    words = np.frombuffer(body[: len(body) // 2 * 2], np.uint16)
+    is_th = (words >> 12) == _TIME_HIGH
+    first = int(np.argmax(is_th))
+    if not is_th.any():
+        raise SystemExit(f"{path}: no TIME_HIGH word")
+    words = words[first:]
+    is_th = is_th[first:]
+    th = (words[is_th] & 0xFFF).astype(np.int64)
+    unwrapped = th + 4096 * np.concatenate([[0], np.cumsum(np.diff(th) < -2048)])
+    span = int(unwrapped[-1] - unwrapped[0]) + 1  # TIME_HIGH units one copy covers
+    out = np.tile(words, tiles)
+    th_pos = np.flatnonzero(np.tile(is_th, tiles))
+    shift = np.repeat(np.arange(tiles, dtype=np.int64) * span, int(is_th.sum()))
+    out[th_pos] = (_TIME_HIGH << 12) | ((out[th_pos].astype(np.int64) + shift) & 0xFFF)
+    return head, out
+
+
+class Peers:
+    """The worker process that runs the peers' decoders in their own venv."""
+
+    def __init__(self, python: Path, path: Path, cpu: int | None) -> None:
+        self.proc = subprocess.Popen(
+            [str(python), str(WORKER), str(path)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            preexec_fn=(lambda: os.sched_setaffinity(0, {cpu})) if cpu is not None else None,
         )
-    t0 = int(base.t[0])
-    span = int(base.t[-1]) - t0 + 1
-    parts = [base.with_time(base.t - t0 + k * span) for k in range(tiles)]
-    events = EventArray.concatenate(parts)
-    trig_t = np.arange(0, tiles * span, 1000, dtype=np.int64)
-    triggers = TriggerEvents(
-        trig_t, (np.arange(trig_t.size) % 2).astype(np.uint8), np.zeros(trig_t.size, np.uint8)
-    )
-    return events, triggers
+        assert self.proc.stdout is not None
+        self.names: list[str] = json.loads(self.proc.stdout.readline())["names"]
 
+    def run(self, name: str) -> tuple[float, int]:
+        assert self.proc.stdin is not None
+        assert self.proc.stdout is not None
+        self.proc.stdin.write(name + "\n")
+        self.proc.stdin.flush()
+        answer = json.loads(self.proc.stdout.readline())
+        return float(answer["seconds"]), int(answer["events"])
 
-def run_times(fns: list[Callable[[], Any]], repeat: int) -> list[list[float]]:
-    """Wall times of each function, interleaved round-robin over `repeat` rounds."""
-    times: list[list[float]] = [[] for _ in fns]
-    for _ in range(repeat):
-        for fn, ts in zip(fns, times, strict=True):
-            t0 = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t0)
-    return times
+    def close(self) -> None:
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        self.proc.wait(timeout=30)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tiles", type=int, default=40)
+    ap.add_argument("--tiles", type=int, default=60)
     ap.add_argument("--repeat", type=int, default=9)
-    ap.add_argument("--file", type=Path, default=None)
+    ap.add_argument("--file", type=Path, default=None, help="Where to write the tiled file.")
+    ap.add_argument("--source", type=Path, default=REAL, help="The EVT 3.0 recording to tile.")
+    ap.add_argument(
+        "--peer-python",
+        type=Path,
+        default=Path(os.environ.get("RIGD_BENCH_PEER_PYTHON", str(DEFAULT_PEERS))),
+        help="A python with evt3 and expelliarmus installed (their own venv).",
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    cpu = None
     if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    os.environ.setdefault("RAYON_NUM_THREADS", "1")
+        cpu = sorted(os.sched_getaffinity(0))[0]
+        os.sched_setaffinity(0, {cpu})
 
-    events, triggers = build_events(args.tiles)
-    n = len(events)
-    path = args.file or Path(tempfile.mkdtemp()) / "bench_evt3.raw"
-    # no triggers in the decode file: expelliarmus rejects EXT_TRIGGER words ("event type not recognised")
-    write_raw(path, RawHeader(fmt="evt3", width=1280, height=720), events)
+    head, words = tile_words(args.source, args.tiles)
+    path = args.file or Path(tempfile.mkdtemp()) / "bench_evt3_tiled.raw"
+    with path.open("wb") as f:
+        f.write(head)
+        f.write(words.tobytes())
     size = path.stat().st_size
-    payload = path.read_bytes()
-    hdr_size = len(RawHeader(fmt="evt3").to_bytes())
-    body = payload[hdr_size:]
-    print(f"file: {path}  {n / 1e6:.2f} M events, {size / 1e6:.1f} MB ({size / n:.2f} B/event), 1 core")
+    n = len(read_raw(path)[1].events)
+    body = path.read_bytes()[len(head) :]
+    print(
+        f"file: {path}: {args.source.name} tiled x{args.tiles} (TIME_HIGH shifted, not re-encoded): "
+        f"{n / 1e6:.2f} M events, {size / 1e6:.1f} MB, {len(body) / n:.2f} B/event; 1 core (cpu {cpu})"
+    )
 
-    def check(count: int, name: str) -> None:
-        if count != n:
-            log.warning("%s decoded %d events, expected %d", name, count, n)
+    src = np.frombuffer(body, np.uint8)
+    dst = np.empty_like(src)
 
-    def chunked() -> None:
-        total = 0
-        for d in RawReader(path, chunk_bytes=1 << 20):
-            total += len(d.events)
-        check(total, "rigd chunked")
+    def memcpy() -> int:
+        np.copyto(dst, src)
+        return n
 
-    def reference_kernel() -> None:
+    def chunked() -> int:
+        return sum(len(d.events) for d in RawReader(path, chunk_bytes=1 << 20))
+
+    def reference_kernel() -> int:
         # the branch-free state machine alone (evt3.decode_kernel), without evt3_fast's loop
         raw_mod.USE_EVT3_FAST = False
         try:
-            check(len(read_raw(path)[1].events), "rigd reference kernel")
+            return len(read_raw(path)[1].events)
         finally:
             raw_mod.USE_EVT3_FAST = True
 
-    decoders: list[tuple[str, Callable[[], Any] | None, str]] = [
-        ("rigd read_raw (whole file)", lambda: check(len(read_raw(path)[1].events), "rigd"), ""),
-        ("rigd read_raw, reference kernel only", reference_kernel, ""),
-        ("rigd RawReader (1 MiB chunks)", chunked, ""),
-        ("rigd StreamDecoder.feed (bytes in RAM)", lambda: StreamDecoder("evt3").feed(body), ""),
-    ]
+    ours: dict[str, Callable[[], int]] = {
+        "rigd read_raw (whole file)": lambda: len(read_raw(path)[1].events),
+        "rigd StreamDecoder.feed (whole body in RAM)": lambda: len(StreamDecoder("evt3").feed(body).events),
+        "rigd read_raw, reference kernel only": reference_kernel,
+        "rigd RawReader (1 MiB chunks)": chunked,
+        "memcpy of the body (np.copyto)": memcpy,
+    }
+    peers = Peers(args.peer_python, path, cpu) if args.peer_python.exists() else None
+    if peers is None:
+        print(f"peers: {args.peer_python} not found (pip install evt3 expelliarmus into a venv there)")
+    names = list(ours) + (peers.names if peers else [])
+    times: dict[str, list[float]] = {k: [] for k in names}
+    counts: dict[str, int] = {}
     try:
-        import evt3 as evt3_pkg
+        for rnd in range(args.repeat + 1):  # round 0 warms up: compilation, page cache
+            for name in names:
+                if name in ours:
+                    t0 = time.perf_counter()
+                    count = ours[name]()
+                    dt = time.perf_counter() - t0
+                else:
+                    assert peers is not None
+                    dt, count = peers.run(name)
+                counts[name] = count
+                if rnd:
+                    times[name].append(dt)
+    finally:
+        if peers is not None:
+            peers.close()
+    _report(names, times, counts, n, len(body))
+    _encoders(path, args.repeat)
 
-        decoders.append(
-            ("evt3 (PyPI) decode_file", lambda: check(len(evt3_pkg.decode_file(str(path))), "evt3"), "")
+
+def _encoders(path: Path, repeat: int) -> None:
+    """rigd's encoders on the decoded events and triggers of the same file, interleaved."""
+    dec = read_raw(path)[1]
+    events, triggers = dec.events, dec.triggers
+    fns = {"rigd encode_evt3": encode_evt3, "rigd encode_evt2": encode_evt2}
+    for fn in fns.values():
+        fn(events[:1000], triggers[:1])  # compile (or load from the cache) outside the timing
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn(events, triggers)
+            times[name].append(time.perf_counter() - t0)
+    print(f"\n{'encoder':46s} {'Mev/s med':>9s} {'Mev/s best':>10s}")
+    for name, ts in times.items():
+        print(
+            f"{name:46s} {len(events) / float(np.median(ts)) / 1e6:9.1f} {len(events) / min(ts) / 1e6:10.1f}"
         )
-    except ImportError:
-        decoders.append(("evt3 (PyPI)", None, "not installed"))
-    try:
-        from expelliarmus import Wizard
 
-        def expel() -> None:
-            arr = Wizard(encoding="evt3", fpath=str(path)).read()
-            check(len(arr), "expelliarmus")
 
-        decoders.append(("expelliarmus Wizard.read", expel, ""))
-    except ImportError:
-        decoders.append(("expelliarmus", None, "not installed"))
-
-    encode_evt3(events[:1000], triggers[:1])  # compile outside the timing (cache=True anyway)
-    timed = [(name, fn) for name, fn, _ in decoders if fn is not None]
-    for _, warm in timed:
-        warm()  # warm-up: compilation, page cache
-    all_times = run_times([fn for _, fn in timed], args.repeat)
-    dec_times = dict(zip([name for name, _ in timed], all_times, strict=True))
-    encoders: list[tuple[str, Callable[[], Any]]] = [
-        ("rigd encode_evt3", lambda: encode_evt3(events, triggers)),
-        ("rigd encode_evt2", lambda: encode_evt2(events, triggers)),
-    ]
-    enc_times = run_times([fn for _, fn in encoders], args.repeat)
-
-    def line(name: str, ts: list[float]) -> str:
-        med = float(np.median(ts))
-        best = min(ts)
-        return f"{name:42s} {n / med / 1e6:9.1f} {n / best / 1e6:9.1f} {med:9.4f}"
-
-    header = f"{'Mev/s median':>9s} {'Mev/s best':>9s} {'median (s)':>9s}"
-    print(f"\n{'decoder':42s} {header}   ({args.repeat} runs each)")
-    for name, maybe_fn, note in decoders:
-        if maybe_fn is None:
-            print(f"{name:42s} {'-':>9s} {'-':>9s} {'-':>9s}  {note}")
-        else:
-            print(line(name, dec_times[name]))
-    others = [float(np.median(dec_times[k])) for k in dec_times if not k.startswith("rigd")]
-    if others:
-        fastest = min(others)
-        for k in dec_times:
-            if k.startswith("rigd") and "reference" not in k:
-                ratio = fastest / float(np.median(dec_times[k]))
-                print(f"{k} vs fastest other decoder: {ratio:.2f}x (goal >= 1.5x)")
-    print(f"\n{'encoder':42s} {header}")
-    for (name, _), ts in zip(encoders, enc_times, strict=True):
-        print(line(name, ts))
+def _report(
+    names: list[str], times: dict[str, list[float]], counts: dict[str, int], n: int, nbytes: int
+) -> None:
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    rounds = len(next(iter(times.values())))
+    load1, load5, _ = os.getloadavg()
+    print(f"load: {load1:.2f} {load5:.2f} (1, 5 min averages, 2 cores shared); {rounds} rounds")
+    print(
+        f"\n{'decoder':46s} {'Mev/s med':>9s} {'Mev/s best':>10s} {'MB/s med':>9s} {'median s':>9s}  events"
+    )
+    for k in names:
+        best = min(times[k])
+        mark = "" if counts[k] == n else f"  (!= {n})"
+        print(
+            f"{k:46s} {n / med[k] / 1e6:9.1f} {n / best / 1e6:10.1f} {nbytes / med[k] / 1e6:9.0f} "
+            f"{med[k]:9.4f}  {counts[k]}{mark}"
+        )
+    memcpy = med["memcpy of the body (np.copyto)"]
+    print(f"\nmachine limit: memcpy {nbytes / memcpy / 1e9:.1f} GB/s on this core, this run")
+    modes = {
+        "whole file": ("rigd read_raw (whole file)", ("evt3 decode_file (", "expelliarmus Wizard.read")),
+        "streaming": (
+            "rigd RawReader (1 MiB chunks)",
+            ("evt3 decode_file_batches", "expelliarmus read_chunk"),
+        ),
+    }
+    for mode, (ours, prefixes) in modes.items():
+        peers = {k: med[k] for k in names if k.startswith(prefixes)}
+        for k, t in peers.items():
+            print(f"{mode}: {ours} vs {k}: {t / med[ours]:.2f}x (goal >= 2x)")
+    sys.stdout.flush()
 
 
 if __name__ == "__main__":

@@ -91,12 +91,8 @@ def simulate_events(
     """Simulate an event camera watching INPUT and write the events to a take."""
     # Here, not at the top: `rigd --help` loads this module and must not pay for numba and OpenCV.
     from firmware_sim.event_model import PixelModelConfig
-    from firmware_sim.frames_to_events import (
-        FramesToEvents,
-        open_source,
-        simulate_to_raw,
-        simulate_to_take,
-    )
+    from firmware_sim.frame_sources import open_source
+    from firmware_sim.frames_to_events import FramesToEvents, simulate_to_raw, simulate_to_take
 
     console = Console(stderr=True)
     if substeps is not None and max_px_per_step is not None:

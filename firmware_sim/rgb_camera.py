@@ -308,6 +308,17 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         with self._lock:
             return not self._started or self._dead(self._world.now_us())
 
+    def warm_up(self) -> None:
+        """Render one throwaway frame in the camera's pixel format before the take: it compiles
+        the sprite blending kernel the readout runs, which on a cold numba cache otherwise takes
+        the first exposure's readout (and the GIL) for a while with the trigger running."""
+        t_us = float(self._world.now_us())
+        if self.pixel_format == "bayer_rg8":
+            self._scene.render_bayer(self._view, t_us)
+        else:
+            self._scene.render(self._view, t_us, gray=self.pixel_format == "mono8")
+        super().warm_up()
+
     def _render(self, job: _Exposure) -> NDArray[np.uint8]:
         fmt, t_mid = self.pixel_format, job.true_us + job.exposure_us / 2.0
         if fmt == "bayer_rg8":

@@ -29,6 +29,7 @@ from rigd.app.commands.service import (
     stop,
 )
 from rigd.app.commands.takes import takes
+from rigd.app.commands.warmup import warmup
 from rigd.core.errors import ConfigError
 from rigd.core.extras import OPTIONAL, missing_extra
 
@@ -102,6 +103,7 @@ app.command("takes")(takes)
 app.command("status")(status)
 app.command("console-url")(console_url)
 app.command("stop")(stop)
+app.command("warmup")(warmup)
 
 
 def main() -> None:

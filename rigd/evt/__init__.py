@@ -14,19 +14,14 @@ from rigd.evt.kernels import JUMP_CONFIRM
 from rigd.evt.raw import (
     FORMATS,
     Decoded,
-    RawHeader,
-    RawReader,
     Scanned,
     StreamDecoder,
     decode_bytes,
     decode_chunk,
     decode_from_state,
-    encode,
-    parse_raw_header,
-    read_raw,
-    warm_up_decoder,
-    write_raw,
 )
+from rigd.evt.raw_file import RawReader, encode, read_raw, warm_up_decoder, write_raw
+from rigd.evt.raw_header import RawHeader, parse_raw_header
 
 __all__ = [
     "FORMATS",

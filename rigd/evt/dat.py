@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from rigd.core.errors import EventDataError
 from rigd.core.events import EventArray
 from rigd.evt.errors import KIND_NAMES, MAX_SKIP_OFFSETS, NON_MONOTONIC_TIME, TRUNCATED, EvtDecodeError
-from rigd.evt.raw import read_header_lines
+from rigd.evt.raw_header import read_header_lines
 
 log = logging.getLogger(__name__)
 

@@ -88,12 +88,32 @@ def decode_kernel(
                 while pos < bend:
                     w = np.int64(buf[_U64(pos)])
                     typ = w >> 12
-                    if typ == 0x2:
-                        x = w & 0x7FF
-                        if x >= width:
+                    if (typ & 0xD) == 0:
+                        # ADDR_Y / ADDR_X runs (a Gen4 sends mostly single ADDR_X events under an
+                        # ADDR_Y): one branch-free loop, where the pattern of Y and X words, which
+                        # no predictor learns, only selects values. Every word stores an event at n
+                        # (slot n exists: 12 per word are free); only an ADDR_X advances n, only an
+                        # ADDR_Y moves y.
+                        bad = False
+                        while True:
+                            v = w & 0x7FF
+                            isx = int(typ >> 1)
+                            if v >= (width if isx else height):
+                                bad = True  # outside the sensor: the reference counts it
+                                break
+                            put_event(out, n, v, y, ((w >> 10) & 2) - 1, tcur)
+                            n += isx
+                            y = y if isx else v  # a select: y is the loop's carried value
+                            pos += 1
+                            if pos >= bend:
+                                break
+                            w = np.int64(buf[_U64(pos)])
+                            typ = w >> 12
+                            if (typ & 0xD) != 0:
+                                break
+                        if bad:
                             break
-                        put_event(out, n, x, y, ((w >> 10) & 2) - 1, tcur)
-                        n += 1
+                        continue
                     elif typ == 0x3:
                         # the encoder's usual run: (VECT_BASE_X, vector) pairs, decoded here in a
                         # loop of their own so the type dispatch sees fewer, more predictable words
@@ -119,11 +139,6 @@ def decode_kernel(
                             break
                         n = put_run(out, n, bp >> 8, w & (0xFFF if typ == 0x4 else 0xFF), y, bp, tcur)
                         bp += (12 << 8) if typ == 0x4 else (8 << 8)
-                    elif typ == 0x0:
-                        v = w & 0x7FF
-                        if v >= height:
-                            break
-                        y = v
                     elif typ == 0x6:
                         tl = w & 0xFFF
                         if tl < (tcur & 0xFFF):

@@ -11,17 +11,8 @@ import numpy as np
 import pytest
 
 from firmware_sim.event_model import PixelModelConfig
-from firmware_sim.frames_to_events import (
-    EVENT_SENSOR_NAME,
-    FramesToEvents,
-    array_source,
-    folder_source,
-    open_source,
-    simulate_to_take,
-    take_source,
-    to_gray,
-    video_source,
-)
+from firmware_sim.frame_sources import array_source, folder_source, open_source, take_source, video_source
+from firmware_sim.frames_to_events import EVENT_SENSOR_NAME, FramesToEvents, simulate_to_take, to_gray
 from rigd.core.devices import DeviceInfo
 from rigd.core.events import EventArray
 from rigd.core.frames import Frame

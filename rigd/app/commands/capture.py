@@ -102,9 +102,22 @@ def capture(
         rig.check_devices()
     except RigdError as exc:
         raise fail(exc) from exc
+    _warm_up_if_cold()
     _capture_in_process(
         rig, out_dir or Path("takes"), 5.0 if duration is None else duration, label, json_out, strict
     )
+
+
+def _warm_up_if_cold() -> None:
+    """On a cold numba cache (a fresh install, a new NUMBA_CACHE_DIR), `rigd warmup` first: a
+    kernel compiled during the take holds the GIL for seconds while the sensors' data piles up."""
+    from rigd.app.commands.warmup import run_warmup
+    from rigd.app.warmup import is_warm
+
+    if not is_warm():
+        run_warmup(
+            "numba's cache lacks the capture path's kernels; compiling them before the take", required=False
+        )
 
 
 def _refuse_bad_flags(

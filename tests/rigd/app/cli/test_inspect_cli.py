@@ -15,7 +15,7 @@ from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.core.events import EventArray
 from rigd.core.schema import LossRecord, SyncReport
-from rigd.evt.raw import RawHeader, write_raw
+from rigd.evt import RawHeader, write_raw
 
 runner = CliRunner()
 
