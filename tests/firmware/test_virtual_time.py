@@ -21,7 +21,7 @@ def _start_cycle(elf: Path, chunks: list[bytes]) -> tuple[int, bytes]:
         out: list[Step] = []
         free = threading.Thread(target=lambda: out.append(harness.free()))
         free.start()
-        with serial.Serial(harness.port_path, baudrate=1_000_000, timeout=0.2) as port:
+        with serial.Serial(harness.port_path, baudrate=1_000_000, timeout=5) as port:
             for chunk in chunks:
                 port.write(chunk)
                 time.sleep(0.05)  # the host's own pace: it must not reach the firmware's clock
