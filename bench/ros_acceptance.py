@@ -16,6 +16,11 @@ this machine lacks; evt3 (OpenEB semantics) stands in as the independent decoder
    events, trigger edges, frames and pulses.
 3. For each EVT 3.0 RAW file in ../shared/data/events: a .db3 bag written by rosbags' Writer
    the way metavision_driver records converts to exactly the events evt3 decodes from the file.
+4. With `--codecs DIR --msgs DIR` (checkouts of ros-event-camera/event_camera_codecs and
+   event_camera_msgs): event_camera_codecs' own decoders, built here with g++ over a small driver
+   program (consumer_checks/event_camera_codecs/decode_packets.cpp), decode every EventPacket of
+   the bags the ROS driver recorded for that repository's tests and of the bags of step 3; each
+   bag's `rigd convert` take holds exactly those events and trigger edges (sensor time, us).
 One PASS/FAIL line per check; exit code 1 if any failed.
 """
 
@@ -36,6 +41,7 @@ from rigd.app.config import default_sim_rig
 from rigd.app.testing.board import capture_board_take
 from rigd.products.convert import convert
 from rigd.products.export import ExportOptions, run_export
+from rigd.products.ros.bag_convert import sensor_name
 from rigd.take.reader import open_take
 
 CHECK = Path(__file__).resolve().parent / "consumer_checks" / "ros_check.py"
@@ -106,6 +112,53 @@ def same_takes(a_path: Path, b_path: Path) -> tuple[bool, str]:
         return ok and not losses, ", ".join(notes) + f", {len(losses)} loss records"
 
 
+def check_with_codecs(codecs: Path, msgs: Path, py: Path, work: Path, bags: list[Path]) -> None:
+    """Step 4: event_camera_codecs decodes each bag's EventPackets; `rigd convert` must agree."""
+    source = Path(__file__).resolve().parent / "consumer_checks" / "event_camera_codecs"
+    decoder = work / "decode_packets"
+    cpp = source / "decode_packets.cpp"
+    flags = ["-std=c++17", "-O2", f"-I{source}", f"-I{codecs / 'include'}"]
+    subprocess.run(["g++", *flags, str(cpp), "-o", str(decoder)], check=True)
+    msg = msgs / "msg_ros2" / "EventPacket.msg"
+    for bag in bags:
+        with (bag / "metadata.yaml").open() as f:
+            if "event_camera_msgs/msg/EventPacket" not in f.read():
+                print(f"INFO {bag.name}: no event_camera_msgs/EventPacket topic; not a check for this step")
+                continue
+        ref = work / f"{bag.name}-codecs.npz"
+        consumer(py, "ecc", str(bag), str(decoder), str(msg), str(ref))
+        want = np.load(ref)
+        t_path = work / f"{bag.name}-codecs.h5"
+        t_path.unlink(missing_ok=True)
+        convert(bag, t_path)
+        with open_take(t_path) as t:
+            for key in sorted(k.removesuffix("|ev|t") for k in want.files if k.endswith("|ev|t")):
+                name = sensor_name(key)
+                series = t.sensor(name)
+                ev, trig = series.events(), series.triggers
+                e = {f: want[f"{key}|ev|{f}"] for f in ("t", "x", "y", "p")}
+                g = {f: want[f"{key}|trig|{f}"] for f in ("t", "x", "p")}
+                same_ev = len(ev) == e["t"].size and all(
+                    np.array_equal(a.astype(np.int64), b.astype(np.int64))
+                    for a, b in (
+                        (ev.x, e["x"]),
+                        (ev.y, e["y"]),
+                        (ev.t, e["t"] // 1000),
+                        (ev.p > 0, e["p"] > 0),
+                    )
+                )
+                same_trig = len(trig) == g["t"].size and all(
+                    np.array_equal(a.astype(np.int64), b.astype(np.int64))
+                    for a, b in ((trig.t, g["t"] // 1000), (trig.p, g["p"]), (trig.channel, g["x"]))
+                )
+                check(
+                    f"{bag.name} {key} by event_camera_codecs",
+                    same_ev and same_trig,
+                    f"{len(ev)} events and {len(trig)} trigger edges in the take; event_camera_codecs "
+                    f"decodes {e['t'].size} and {g['t'].size}",
+                )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, default=Path("/tmp/rigd-ros-acceptance"))
@@ -116,6 +169,8 @@ def main() -> int:
         action="store_true",
         help="the README's take: the built-in sim rig (1280x720), not the board",
     )
+    ap.add_argument("--codecs", type=Path, help="an event_camera_codecs checkout (step 4)")
+    ap.add_argument("--msgs", type=Path, help="an event_camera_msgs checkout (step 4)")
     args = ap.parse_args()
     work: Path = args.work
     work.mkdir(parents=True, exist_ok=True)

@@ -3,6 +3,7 @@ mcap-ros2-support, rosbags, evt3 from the registry; nothing of rigd is imported 
 
     python ros_check.py export MCAP REF.npz WORK   # read an export, compare with the take
     python ros_check.py rawbag RAW BAG_DIR REF.npz # a .db3 bag from a RAW file; evt3's events
+    python ros_check.py ecc BAG DECODER MSG OUT.npz  # event_camera_codecs' events of a bag
 
 `export`: the mcap reader with mcap-ros2-support's decoder reads every message; each sensor's
 EventPacket bytes are decoded by the evt3 package's stateful decoder (an EVT 3.0 decoder that is
@@ -11,7 +12,11 @@ counts, every 50 ms window and every image are compared with the take's, written
 the project side. Then rosbags' AnyReader opens the file and `rosbags-convert` writes a sqlite3
 bag (WORK/db3) for the project side to convert back. `rawbag`: rosbags' Writer records the RAW
 file's EVT words as metavision_driver does (4 KiB packets, encoding evt3, time_base 0), and evt3
-decodes the file for the reference. One PASS/FAIL line per check; exit code 1 if any failed.
+decodes the file for the reference. `ecc`: rosbags reads every event_camera_msgs/EventPacket of
+a bag (typed by the .msg text MSG of the event_camera_msgs repository) and DECODER (a small
+program over event_camera_codecs' own DecoderFactory, bench/consumer_checks/event_camera_codecs/)
+decodes them in bag order, one decoder per topic as a ROS node keeps it; the events and trigger
+edges go to OUT.npz per topic. One PASS/FAIL line per check; exit code 1 if any failed.
 """
 
 from __future__ import annotations
@@ -211,7 +216,51 @@ def check_rawbag(raw: Path, bag: Path, ref_out: Path) -> None:
     )
 
 
+def decode_with_codecs(bag: Path, decoder: Path, msg: Path, out: Path) -> None:
+    import struct
+
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(get_types_from_msg(msg.read_text(), "event_camera_msgs/msg/EventPacket"))
+    topics: dict[str, int] = {}
+    frames = bytearray()
+    with AnyReader([bag], default_typestore=store) as reader:
+        conns = [c for c in reader.connections if c.msgtype == "event_camera_msgs/msg/EventPacket"]
+        for conn, _ts, raw in reader.messages(connections=conns):
+            m = reader.deserialize(raw, conn.msgtype)
+            tid = topics.setdefault(conn.topic, len(topics))
+            enc = m.encoding.encode()
+            data = bytes(m.events)
+            frames += struct.pack("<BB", tid, len(enc)) + enc
+            frames += struct.pack("<IIQI", m.width, m.height, m.time_base, len(data)) + data
+    run = subprocess.run([str(decoder)], input=bytes(frames), capture_output=True, check=False)
+    if run.returncode:
+        raise SystemExit(f"{decoder} failed ({run.returncode}): {run.stderr.decode()}")
+    rows = np.frombuffer(
+        run.stdout,
+        dtype=np.dtype(
+            [("topic", "u1"), ("kind", "u1"), ("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")]
+        ),
+    )
+    arrays: dict[str, np.ndarray] = {}
+    for topic, tid in topics.items():
+        mine = rows[rows["topic"] == tid]
+        for kind, name in ((0, "ev"), (1, "trig")):
+            part = mine[mine["kind"] == kind]
+            for field in ("t", "x", "y", "p"):
+                arrays[f"{topic}|{name}|{field}"] = np.asarray(part[field])
+    np.savez(out, **arrays)
+    print(
+        f"INFO event_camera_codecs decoded {bag.name}: {len(topics)} topic(s), {rows.size} rows", flush=True
+    )
+
+
 def main() -> int:
+    if sys.argv[1] == "ecc":
+        decode_with_codecs(Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]), Path(sys.argv[5]))
+        return 0
     if sys.argv[1] == "export":
         check_export(Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]))
     else:

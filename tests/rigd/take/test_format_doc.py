@@ -1,7 +1,7 @@
 """The Python snippets of docs/take-format.md run, unchanged, on a default take (EVT words, as the
-sim rig captures it) and answer what `Take` answers: the `rigd.take` example, the plain-h5py
-window reader (on a take stored as columns too) and the DSEC slicer on `rigd export --format
-dsec`'s output. The slicer here is DSEC's `EventSlicer` algorithm rewritten (floor/ceil ms
+sim rig captures it) and answer what `Take` answers: the compression filters' registration, the
+`rigd.take` example, the plain-h5py window reader (on a take stored as columns too) and the DSEC
+slicer on `rigd export --format dsec`'s output. The slicer here is DSEC's `EventSlicer` algorithm rewritten (floor/ceil ms
 bracket, then the exact edges); bench/consumer_checks/dsec_check.py runs DSEC's own code."""
 
 from __future__ import annotations
@@ -98,7 +98,9 @@ def test_snippets_read_a_default_take(
     monkeypatch.chdir(work)
 
     blocks = python_blocks()
-    assert len(blocks) == 3, "a new snippet in docs/take-format.md: run it here too"
+    assert len(blocks) == 4, "a new snippet in docs/take-format.md: run it here too"
+    filters = run_block(blocks.pop(0))  # the plain-HDF5 user's filters: registered with h5py
+    assert "hdf5plugin" in filters
     with open_take(work / "take.h5") as take:
         assert {take.sensor(s).storage for s in take.event_sensors} == {"evt_words"}  # the default
         ev0 = take.sensor("ev0")

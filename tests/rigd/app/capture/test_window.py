@@ -310,9 +310,14 @@ def test_slow_sensors_do_not_hold_the_stop(tmp_path: Path, monkeypatch: pytest.M
     _check_take_is_in_its_window(res.path, tol_us=50)
     for sensor in ("ev0", "ev1"):
         reasons = [r.reason for r in res.report.losses if r.device == sensor]
+        counters = res.report.device_counters[sensor]
         # What it did not get to is on record (the rest of its window too, when that was
         # still in its buffers; what its full buffers lost is in the device counters' record).
-        assert any("left unread" in r for r in reasons), reasons
+        # Whether a sensor still held data at the read deadline depends on how big its last
+        # packets were (the host's pace): one that held none was read to its end.
+        unread = counters["events_generated"] - counters["delivered"] - counters["device_dropped"]
+        assert unread >= 0, counters
+        assert unread == 0 or any("left unread" in r for r in reasons), (unread, reasons)
 
 
 @pytest.mark.slow
