@@ -1,8 +1,9 @@
 """The Python snippets of docs/take-format.md run, unchanged, on a default take (EVT words, as the
 sim rig captures it) and answer what `Take` answers: the compression filters' registration, the
 `rigd.take` example, the plain-h5py window reader (on a take stored as columns too) and the DSEC
-slicer on `rigd export --format dsec`'s output. The slicer here is DSEC's `EventSlicer` algorithm rewritten (floor/ceil ms
-bracket, then the exact edges); bench/consumer_checks/dsec_check.py runs DSEC's own code."""
+slicer on `rigd export --format dsec`'s output. The slicer here is DSEC's `EventSlicer`
+algorithm rewritten (floor/ceil ms bracket, then the exact edges);
+bench/consumer_checks/dsec_check.py runs DSEC's own code."""
 
 from __future__ import annotations
 
