@@ -26,10 +26,11 @@ from pydantic import BaseModel
 from typing_extensions import TypeVar  # a type parameter's default (PEP 696) before 3.13
 
 from drivers.lifecycle import Acquisition, DeliveryQueue, Drop, Signal
-from rigd.core.devices import DeviceInfo, DeviceKind, PulseBatch
+from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
+from rigd.core.kinds import DeviceKind
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
 
 log = logging.getLogger(__name__)

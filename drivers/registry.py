@@ -20,8 +20,8 @@ from typing import Literal, TypeVar, cast, overload
 from urllib.parse import parse_qsl, urlsplit
 
 from drivers.base import Device, EventSensor, RgbCamera, Trigger
-from rigd.core.devices import DeviceKind
 from rigd.core.errors import BackendUnavailableError, ConfigError
+from rigd.core.kinds import DeviceKind
 
 log = logging.getLogger(__name__)
 

@@ -19,8 +19,8 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from rigd.core.devices import SensorKind
 from rigd.core.errors import SyncError
+from rigd.core.kinds import SensorKind
 from rigd.core.schema import DeviceSync, LossRecord, SyncReport
 from rigd.core.timebase import ClockFit, ClockMap, fit_clock_map
 

@@ -14,8 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, ValidationError, model_validator
 
-from rigd.core.devices import DeviceKind
 from rigd.core.errors import ConfigError
+from rigd.core.kinds import DeviceKind
 from rigd.core.settings import STRICT, CameraSettings, EventSensorSettings, TriggerSettings, WriterConfig
 
 _NAME = r"^[A-Za-z][A-Za-z0-9_-]{0,31}$"

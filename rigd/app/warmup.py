@@ -175,7 +175,10 @@ def warm_up(on_kernel: Callable[[str, float], None] | None = None) -> WarmupResu
     scratch = Path(tempfile.mkdtemp(prefix="rigd-warmup-"))
     try:
         with _CompileListener(on_kernel or (lambda _n, _s: None)) as listener:
-            result = run_capture(default_sim_rig(clock="virtual"), scratch, WARMUP_SECONDS)
+            # A world of its own: the capture that follows in this process (the sim rig's world
+            # is "default") starts from a world the warm-up never touched.
+            world = f"rigd-warmup-{os.getpid()}-{time.monotonic_ns()}"
+            result = run_capture(default_sim_rig(world=world, clock="virtual"), scratch, WARMUP_SECONDS)
             summary = summarize(result.path)
         if summary.verdict != "complete":
             log.warning(

@@ -10,7 +10,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from rigd.core.devices import DeviceInfo, DeviceKind, PulseBatch
+    from rigd.core.devices import DeviceInfo, PulseBatch
     from rigd.core.errors import (
         BackendUnavailableError,
         ConfigError,
@@ -25,13 +25,14 @@ if TYPE_CHECKING:
     )
     from rigd.core.events import EventArray, TriggerEvents
     from rigd.core.frames import Frame
+    from rigd.core.kinds import DeviceKind
     from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings, WriterConfig
     from rigd.core.timebase import ClockFit, ClockMap, fit_clock_map
 
 #: Each exported name -> the module that holds it.
 _WHERE = {
     "DeviceInfo": "rigd.core.devices",
-    "DeviceKind": "rigd.core.devices",
+    "DeviceKind": "rigd.core.kinds",
     "PulseBatch": "rigd.core.devices",
     "BackendUnavailableError": "rigd.core.errors",
     "ConfigError": "rigd.core.errors",

@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-#: The kinds of device that record data into a take (cameras, event sensors).
-SensorKind = Literal["rgb_camera", "event_sensor"]
-#: Every kind of rig device: the recording ones and the trigger box.
-DeviceKind = Literal[SensorKind, "trigger"]
+from rigd.core.kinds import DeviceKind
 
 #: `DeviceInfo.facts` entry of a device that knows its own calibration exactly (a simulated
 #: camera or event sensor): JSON of `GroundTruth`. The capture stores it in the take.

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from rigd.core.devices import SensorKind
+from rigd.core.kinds import SensorKind
 from rigd.core.layout import Events, TriggerEdges
 
 if TYPE_CHECKING:

@@ -20,9 +20,9 @@ from typing import ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 
-from rigd.core.devices import SensorKind
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
+from rigd.core.kinds import SensorKind
 from rigd.sync import DeviceObservations, PulseLog, host_to_rig_map, match_device
 
 log = logging.getLogger(__name__)

@@ -26,9 +26,9 @@ from rigd.app.capture.reading import Reading
 from rigd.app.capture.streams import CameraStream, DeviceStream, EventStream
 from rigd.app.capture.window import TakeWindow
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig
-from rigd.core.devices import SensorKind
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
+from rigd.core.kinds import SensorKind
 from rigd.core.schema import LossKind
 from rigd.core.settings import CameraSettings, EventSensorSettings
 from rigd.take.writer import TakeWriter

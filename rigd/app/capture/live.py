@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rigd.app.capture.results import DeviceSnapshot, DeviceState
-from rigd.core.devices import DeviceKind
+from rigd.core.kinds import DeviceKind
 
 #: Device rates in telemetry are averaged over this many seconds.
 RATE_WINDOW_S = 2.0

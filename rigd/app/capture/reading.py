@@ -21,9 +21,9 @@ from rigd.app.capture.items import EventsItem, FrameItem
 from rigd.app.capture.live import HostAnchors
 from rigd.app.capture.streams import DeviceStream
 from rigd.app.capture.window import TakeWindow
-from rigd.core.devices import SensorKind
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
+from rigd.core.kinds import SensorKind
 from rigd.core.schema import LossKind
 from rigd.take.writer import TakeWriter
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from rigd.core.devices import DeviceKind
+from rigd.core.kinds import DeviceKind
 from rigd.core.schema import SyncReport
 
 DeviceState = Literal["ok", "failed", "reconnecting", "idle"]

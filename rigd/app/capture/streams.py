@@ -19,9 +19,9 @@ from numpy.typing import NDArray
 
 from rigd.app.capture.items import EventsItem, FrameItem, PulsesItem
 from rigd.app.capture.live import LiveStats, Observations
-from rigd.core.devices import SensorKind
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
+from rigd.core.kinds import SensorKind
 from rigd.core.schema import LossKind
 from rigd.sync import DeviceObservations
 from rigd.take.writer import TakeWriter

@@ -145,7 +145,8 @@ def export(
         )
     except ValidationError as exc:
         err = exc.errors()[0]
-        raise fail(f"--{'-'.join(str(p) for p in err['loc']).replace('_', '-')}: {err['msg']}") from exc
+        where, why = "-".join(str(p) for p in err["loc"]).replace("_", "-"), str(err["msg"])
+        raise fail(f"--{where}: {why}" if where else why.removeprefix("Value error, ")) from exc
     except RigdError as exc:
         raise fail(str(exc)) from exc
     with Progress(

@@ -60,8 +60,8 @@ from rigd.app.service.requests import (
 from rigd.app.service.rig_slot import RigSlot, by_kind, fault
 from rigd.app.service.thumbnails import events_thumbnail, frame_thumbnail
 from rigd.app.service.workers import WorkerPool
-from rigd.core.devices import DeviceKind
 from rigd.core.errors import ConfigError, RigdError
+from rigd.core.kinds import DeviceKind
 
 log = logging.getLogger(__name__)
 

@@ -13,8 +13,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from rigd.core.devices import DeviceKind, SensorKind
 from rigd.core.fault_codes import FaultCode
+from rigd.core.kinds import DeviceKind, SensorKind
 from rigd.core.schema import LossRecord
 
 PROTOCOL_VERSION = 1

@@ -20,8 +20,8 @@ from rigd.app.config import RigConfig
 from rigd.app.service import sdnotify
 from rigd.app.service.protocol import CaptureArgs, DaemonState, Fault, TakeSummary
 from rigd.app.service.requests import RequestError
-from rigd.core.devices import DeviceKind
 from rigd.core.errors import TakeError
+from rigd.core.kinds import DeviceKind
 from rigd.take.verdict import take_verdict
 
 log = logging.getLogger(__name__)

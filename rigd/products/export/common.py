@@ -32,7 +32,7 @@ from typing import Literal, Protocol
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from rigd.core.errors import ConfigError, TakeError
 from rigd.core.layout import Frames, frame_group
@@ -131,6 +131,26 @@ class ExportOptions(BaseModel):
         if v not in FORMATS:
             raise ValueError(f"unknown format {v!r} (one of {', '.join(FORMATS)})")
         return v
+
+    @model_validator(mode="after")
+    def _mcap_takes_no_layout_knobs(self) -> ExportOptions:
+        """The trainer layouts' knobs mean nothing to `mcap` (it writes the take's streams as
+        stored): one given with it is refused, not ignored."""
+        if self.format not in UNCALIBRATED_FORMATS:
+            return self
+        defaults = type(self).model_fields
+        knobs = ("resize", "segments", "voxel_bins", "point_frames", "world", "split", "test_cameras")
+        given = [
+            f"--{k.replace('_', '-')}"
+            for k in (*knobs, "jpeg_quality")
+            if getattr(self, k) != defaults[k].default
+        ]
+        if given:
+            raise ValueError(
+                f"{', '.join(given)}: not an option of --format {self.format}, which writes the take's "
+                "streams as stored (frames as their mosaics, events as their words, no voxel grids)"
+            )
+        return self
 
     @property
     def world_frame(self) -> World:

@@ -97,7 +97,10 @@ def _del_attr(f: h5py.File, draw: Draw) -> None:
 
 def _retype(f: h5py.File, draw: Draw) -> None:
     name = draw(st.sampled_from(_datasets(f)))
-    data = f[name][()]
+    ds = f[name]
+    # A dataset an earlier mutation resized to a huge length is retyped as a stub: reading it
+    # whole would ask this test for terabytes.
+    data = ds[()] if ds.size <= 1 << 20 else np.zeros(3, ds.dtype)
     del f[name]
     dt = draw(DTYPES)
     f[name] = (

@@ -25,7 +25,7 @@ from typer.testing import CliRunner
 from rigd.app.cli import app
 from rigd.core.errors import ConfigError
 from rigd.products.export import bounds
-from rigd.products.export.common import FORMATS, parse_count, parse_size
+from rigd.products.export.common import FORMATS, UNCALIBRATED_FORMATS, parse_count, parse_size
 from rigd.take.reader import open_take
 
 runner = CliRunner()
@@ -64,13 +64,20 @@ BAD_RESIZE = [
     ("1000000x1000000", "at most"),
     ("65536x65536", "at most"),
 ]
+#: The trainer layouts (the knobs below are theirs; `mcap` writes the streams as stored).
+LAYOUTS = [f for f in FORMATS if f not in UNCALIBRATED_FORMATS]
 KNOB_CASES = [
-    *[("--voxel-bins", v, why, FORMATS[i % len(FORMATS)]) for i, (v, why) in enumerate(BAD_BINS)],
-    *[("--resize", v, why, FORMATS[i % len(FORMATS)]) for i, (v, why) in enumerate(BAD_RESIZE)],
-    # the bounds differ per format: every format refuses sizes over every bound
-    *[("--voxel-bins", "100000", "at most", f) for f in FORMATS],
-    *[("--resize", "65536x65536", "at most", f) for f in FORMATS],
+    *[("--voxel-bins", v, why, LAYOUTS[i % len(LAYOUTS)]) for i, (v, why) in enumerate(BAD_BINS)],
+    *[("--resize", v, why, LAYOUTS[i % len(LAYOUTS)]) for i, (v, why) in enumerate(BAD_RESIZE)],
+    # the bounds differ per format: every layout refuses sizes over every bound
+    *[("--voxel-bins", "100000", "at most", f) for f in LAYOUTS],
+    *[("--resize", "65536x65536", "at most", f) for f in LAYOUTS],
     *[("--resize", "70000x10", "JPEG", f) for f in bounds.JPEG_FORMATS],
+    # a layout's knob given to mcap is refused, not ignored
+    *[
+        (flag, value, "not an option of --format mcap", "mcap")
+        for flag, value in (("--voxel-bins", "3"), ("--resize", "64x36"))
+    ],
 ]
 
 
