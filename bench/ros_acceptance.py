@@ -4,8 +4,8 @@
 
 The consumers (mcap, mcap-ros2-support, rosbags, and the evt3 package as the EVT 3.0 decoder
 that is not rigd's) live in a scratch venv outside the project (created under --work when
---python is not given). event_camera_codecs is C++ built against ROS message headers, which
-this machine lacks; evt3 (OpenEB semantics) stands in as the independent decoder.
+--python is not given). event_camera_codecs (C++, header-only decoders) is built from a checkout
+in step 4, with the EventPacket struct a ROS build would generate standing in for ROS itself.
 
 1. A sim take (3 Bayer cameras, 2 EVT 3.0 sensors, the board scene at 640x360, virtual clock;
    `--readme`: the README's `rigd capture --duration 5` take, the built-in rig at 1280x720)
@@ -228,6 +228,9 @@ def main() -> int:
             f"{len(ev)} events from the bag, evt3 decodes {want['t'].size} "
             f"from the file; {len(losses)} loss records",
         )
+    if args.codecs is not None and args.msgs is not None:
+        driver_bags = sorted(p.parent for p in args.codecs.glob("test/*/*.db3"))
+        check_with_codecs(args.codecs, args.msgs, py, work, [*driver_bags, *sorted(work.glob("*-bag"))])
     print("ALL PASS" if not FAILED else f"FAILED: {', '.join(FAILED)}")
     return 1 if FAILED else 0
 
