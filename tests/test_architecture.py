@@ -1,7 +1,9 @@
-"""The layering drawn in docs/architecture.md is the code's, and no import runs up a layer."""
+"""The layering drawn in docs/architecture.md is the code's, no import runs up a layer, and no module
+or class outgrows the size the architecture steps set."""
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
 from pathlib import Path
@@ -34,3 +36,38 @@ def test_an_upward_import_is_caught() -> None:
         "rigd.core -> rigd.app: 1 import(s) run up a layer",
         "rigd.products -> firmware_sim: 2 import(s) between siblings that must be independent",
     ]
+
+
+#: Where the project's own code lives (tests and the generated build trees are not counted).
+PACKAGES = ("rigd", "drivers", "calibration", "reconstruction", "firmware_sim", "bench", "tools")
+#: The size bounds of the architecture steps: a module a reader can hold, a class with one job.
+MAX_MODULE_LINES = 600
+MAX_PUBLIC_METHODS = 25
+
+
+def _sources() -> list[Path]:
+    return sorted(p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py"))
+
+
+def test_no_module_is_over_its_size() -> None:
+    big = {
+        str(p.relative_to(ROOT)): n
+        for p in _sources()
+        if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES
+    }
+    assert big == {}, f"modules over {MAX_MODULE_LINES} lines: split them along what they hold"
+
+
+def test_no_class_has_more_public_methods_than_one_job_needs() -> None:
+    wide = {}
+    for path in _sources():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ClassDef):
+                public = [
+                    b.name
+                    for b in node.body
+                    if isinstance(b, ast.FunctionDef | ast.AsyncFunctionDef) and not b.name.startswith("_")
+                ]
+                if len(public) > MAX_PUBLIC_METHODS:
+                    wide[f"{path.relative_to(ROOT)}:{node.name}"] = len(public)
+    assert wide == {}, f"classes with over {MAX_PUBLIC_METHODS} public methods"
