@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import subprocess
 import tempfile
 import time
 from dataclasses import dataclass
@@ -48,6 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bench.event_sim import FPS, make_texture, render
+from bench.peer_process import PeerProcess
 from firmware_sim.event_model import EventSimulator, PixelModelConfig
 
 log = logging.getLogger(__name__)
@@ -109,30 +109,14 @@ class V2eWorker:
         self._dir = tempfile.TemporaryDirectory(prefix="rigd-v2e-")
         path = Path(self._dir.name) / "frames.npy"
         np.save(path, np.stack(frames))
-        self.proc = subprocess.Popen(
-            [str(python), str(WORKER), str(path), str(FPS)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"v2e worker ({python}) did not start: is v2e on its path?")
-        self.note: str = json.loads(line)["note"]
+        self._peer = PeerProcess([str(python), str(WORKER), str(path), str(FPS)])
+        self.note: str = self._peer.hello["note"]
 
     def run(self, kwargs: dict[str, Any]) -> tuple[float, int]:
-        assert self.proc.stdin is not None
-        assert self.proc.stdout is not None
-        self.proc.stdin.write(json.dumps(kwargs) + "\n")
-        self.proc.stdin.flush()
-        answer = json.loads(self.proc.stdout.readline())
-        return float(answer["seconds"]), int(answer["events"])
+        return self._peer.run(json.dumps(kwargs))
 
     def close(self) -> None:
-        if self.proc.stdin is not None:
-            self.proc.stdin.close()
-        self.proc.wait(timeout=60)
+        self._peer.close()
         self._dir.cleanup()
 
 

@@ -19,10 +19,8 @@ last, on the decoded events.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from bench.peer_process import PeerProcess
 from rigd.evt import RawReader, StreamDecoder, encode_evt2, encode_evt3, parse_raw_header, read_raw
 from rigd.evt import raw as raw_mod
 
@@ -72,32 +71,12 @@ def tile_words(path: Path, tiles: int) -> tuple[bytes, NDArray[np.uint16]]:
     return head, out
 
 
-class Peers:
+class Peers(PeerProcess):
     """The worker process that runs the peers' decoders in their own venv."""
 
     def __init__(self, python: Path, path: Path, cpu: int | None) -> None:
-        self.proc = subprocess.Popen(
-            [str(python), str(WORKER), str(path)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-            preexec_fn=(lambda: os.sched_setaffinity(0, {cpu})) if cpu is not None else None,
-        )
-        assert self.proc.stdout is not None
-        self.names: list[str] = json.loads(self.proc.stdout.readline())["names"]
-
-    def run(self, name: str) -> tuple[float, int]:
-        assert self.proc.stdin is not None
-        assert self.proc.stdout is not None
-        self.proc.stdin.write(name + "\n")
-        self.proc.stdin.flush()
-        answer = json.loads(self.proc.stdout.readline())
-        return float(answer["seconds"]), int(answer["events"])
-
-    def close(self) -> None:
-        if self.proc.stdin is not None:
-            self.proc.stdin.close()
-        self.proc.wait(timeout=30)
+        super().__init__([str(python), str(WORKER), str(path)], cpu=cpu, close_timeout_s=30.0)
+        self.names: list[str] = self.hello["names"]
 
 
 def main() -> None:

@@ -17,6 +17,7 @@ import itertools
 import json
 import logging
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,19 @@ from rigd.take.seal import fail_take, finalize_take
 from rigd.take.writer import TakeWriter
 
 log = logging.getLogger(__name__)
+
+
+@contextmanager
+def removed_if_unfinished(src: Path, dst: Path) -> Iterator[None]:
+    """A conversion that fails leaves no half-written take at `dst` (it was not there before)."""
+    try:
+        yield
+    except BaseException:
+        if dst.exists():
+            log.warning("convert %s failed; removing the unfinished take %s", src, dst)
+            dst.unlink()
+        raise
+
 
 _CHUNK_EVENTS = 1 << 20
 Progress = Callable[[int], None]
@@ -159,13 +173,8 @@ def recording_to_take(
         raise ConvertError(f"{dst} exists; not overwriting a take")
     chunks, width, height, fields, fmt, source = _open_recording(src, strict)
     chunks = _first_data(src, chunks, source)  # before the take exists: nothing to undo
-    try:
+    with removed_if_unfinished(src, dst):
         n = _write_take(src, dst, sensor, chunks, (width, height), fields, fmt, source, on_progress)
-    except BaseException:
-        if dst.exists():
-            log.warning("convert %s failed; removing the unfinished take %s", src, dst)
-            dst.unlink()
-        raise
     log.info("converted %s -> %s: %d events", src, dst, n)
     return n
 

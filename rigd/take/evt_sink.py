@@ -42,7 +42,6 @@ from rigd.core.layout import (
     TriggerEdges,
 )
 from rigd.evt import StreamDecoder
-from rigd.take.evt_read import is_evt_words as is_evt_words
 from rigd.take.h5file import append_rows, chunk_is_stored, require_dataset, require_group, write_chunk
 from rigd.take.sinks import DeviceWriteStats, TriggerIn, check_event_batch, new_series
 from rigd.take.tails import choose_tail_slot

@@ -72,7 +72,6 @@ from rigd.take.take_state import WRITE_CHUNK_CACHE_BYTES, TakeState
 
 __all__ = [
     "TRUNCATED_EOF_ATTR",
-    "WRITE_CHUNK_CACHE_BYTES",
     "DeviceWriteStats",
     "TakeWriter",
     "Trim",

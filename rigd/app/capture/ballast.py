@@ -15,7 +15,7 @@ from rigd.core.errors import ConfigError, TakeError
 from rigd.core.settings import WriterConfig
 from rigd.take.evt_sink import MAX_UNWRITTEN_BYTES, WORDS_CHUNK
 from rigd.take.sinks import EVENT_WRITE_BLOCK
-from rigd.take.writer import WRITE_CHUNK_CACHE_BYTES
+from rigd.take.take_state import WRITE_CHUNK_CACHE_BYTES
 
 log = logging.getLogger(__name__)
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +101,20 @@ def check_sizes(options: ExportOptions, take: Take, frames: FrameTable) -> None:
     bounds.check_voxel_bins(options.voxel_bins, geometry, voxel_windows(frames.step_times_us), budget)
 
 
+@contextmanager
+def _committed(options: ExportOptions, staging: Staging) -> Iterator[None]:
+    """The staged output is committed when the body finishes; a failure removes it and raises
+    the clearer error `_write_failed` makes of it."""
+    try:
+        yield
+        staging.commit()
+    except BaseException as exc:
+        replaced = _write_failed(options, staging, exc)
+        if replaced is not None:
+            raise replaced from exc
+        raise
+
+
 def _write_failed(options: ExportOptions, staging: Staging, exc: BaseException) -> ExportWriteError | None:
     """Remove the partial output after a failure; the error to raise instead of exc (None: exc)."""
     try:
@@ -145,14 +161,8 @@ def run_export(options: ExportOptions, progress: ProgressCallback = no_progress)
         check_sizes(options, take, frames)
         test_camera_positions(options, take.cameras)
         staging = Staging(options.out, leftovers, {"take": str(take.path), "format": options.format})
-        try:
+        with _committed(options, staging):
             result = _write(options, take, cameras, frames, staging.dir, progress, start)
-            staging.commit()
-        except BaseException as exc:
-            replaced = _write_failed(options, staging, exc)
-            if replaced is not None:
-                raise replaced from exc
-            raise
     log.info("exported %s as %s to %s in %.1f s", options.take, options.format, options.out, result.wall_s)
     return result
 
@@ -167,7 +177,7 @@ def _run_mcap(
         if take.time_domain != "rig":
             raise TakeError(f"{take.path}: not on the rig timebase (time domain {take.time_domain})")
         staging = Staging(options.out, leftovers, {"take": str(take.path), "format": options.format})
-        try:
+        with _committed(options, staging):
             stats = write_mcap(
                 take,
                 staging.dir / f"{take.take_id}.mcap",
@@ -200,12 +210,6 @@ def _run_mcap(
             )
             doc = {**result.model_dump(), "epoch_ns": stats.epoch_ns, "messages": stats.messages}
             (staging.dir / "export.json").write_text(json.dumps(doc, indent=2))
-            staging.commit()
-        except BaseException as exc:
-            replaced = _write_failed(options, staging, exc)
-            if replaced is not None:
-                raise replaced from exc
-            raise
     log.info("exported %s as mcap to %s in %.1f s", options.take, options.out, result.wall_s)
     return result
 

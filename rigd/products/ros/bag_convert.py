@@ -36,6 +36,7 @@ from rigd.core.schema import DeviceSync, LossRecord, SyncReport
 from rigd.core.settings import WriterConfig
 from rigd.core.timebase import ClockMap
 from rigd.evt import FORMATS, StreamDecoder
+from rigd.products.convert import removed_if_unfinished
 from rigd.products.ros import bag_read
 from rigd.products.ros import msgdefs as m
 from rigd.take.seal import fail_take, finalize_take, set_window
@@ -381,13 +382,8 @@ def bag_to_take(src: Path, dst: Path, *, on_progress: Progress | None = None) ->
     if not any(t in wanted for t, _ in types.values()):
         found = ", ".join(f"{k} ({t})" for k, (t, _) in sorted(types.items())) or "no topics"
         raise BagConvertError(f"{src}: no event_camera_msgs/EventPacket or sensor_msgs/Image topic ({found})")
-    try:
+    with removed_if_unfinished(src, dst):
         n = _write(src, dst, on_progress)
-    except BaseException:
-        if dst.exists():
-            log.warning("convert %s failed; removing the unfinished take %s", src, dst)
-            dst.unlink()
-        raise
     log.info("converted %s -> %s: %d events", src, dst, n)
     return n
 

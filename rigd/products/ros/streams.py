@@ -24,8 +24,7 @@ from rigd.core.layout import EVENTS_GROUP, Events, TimeDomain
 from rigd.core.timebase import ClockMap
 from rigd.evt import Evt3Encoder, StreamDecoder, decode_from_state
 from rigd.products.ros import msgdefs as m
-from rigd.take.evt_read import EvtWordsEvents
-from rigd.take.evt_sink import is_evt_words
+from rigd.take.evt_read import EvtWordsEvents, is_evt_words
 from rigd.take.h5file import attr_text
 from rigd.take.reader import Take
 
