@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 import tomllib
 from pathlib import Path
@@ -27,6 +28,9 @@ class CameraConfig(BaseModel):
     name: str = Field(pattern=_NAME, description="Name in the take (`frames/<name>`).")
     spec: str = Field(description="Backend spec, e.g. `sim://default/cam0` or `genicam://SERIAL`.")
     settings: CameraSettings = Field(default_factory=CameraSettings)
+    host: str | None = Field(
+        None, pattern=_NAME, description="Host (a key of `hosts`) whose daemon runs it; None: one host."
+    )
 
 
 class EventSensorConfig(BaseModel):
@@ -35,6 +39,9 @@ class EventSensorConfig(BaseModel):
     name: str = Field(pattern=_NAME, description="Name in the take (`events/<name>`).")
     spec: str = Field(description="Backend spec, e.g. `sim://default/ev0` or `file://rec.raw`.")
     settings: EventSensorSettings = Field(default_factory=EventSensorSettings)
+    host: str | None = Field(
+        None, pattern=_NAME, description="Host (a key of `hosts`) whose daemon runs it; None: one host."
+    )
     read_interval_ms: float = Field(
         5.0,
         ge=0.0,
@@ -50,6 +57,9 @@ class TriggerConfig(BaseModel):
 
     spec: str = Field(description="Trigger box port or spec, e.g. `/dev/ttyACM0`.")
     settings: TriggerSettings = Field(default_factory=TriggerSettings)
+    host: str | None = Field(
+        None, pattern=_NAME, description="Host owning the trigger box: it coordinates a multi-host rig."
+    )
 
 
 def runtime_dir() -> Path:
@@ -138,6 +148,20 @@ class ServiceConfig(BaseModel):
         return self.telemetry or default_telemetry_endpoint()
 
 
+class HostConfig(BaseModel):
+    """One capture host of a multi-host rig (docs/multi-host.md): how the others reach its daemon."""
+
+    model_config = STRICT
+
+    control: str = Field(description="The host's daemon control endpoint, e.g. `tcp://10.0.0.2:5601`.")
+    server_public_key: Path | None = Field(
+        None, strict=False, description="That daemon's public key file (CurveZMQ); needed beyond loopback."
+    )
+    client_secret_key: Path | None = Field(
+        None, strict=False, description="This side's secret key file to present to it (CurveZMQ)."
+    )
+
+
 class RigConfig(BaseModel):
     model_config = STRICT
 
@@ -147,6 +171,39 @@ class RigConfig(BaseModel):
     event_sensors: list[EventSensorConfig] = Field(default_factory=list)
     writer: WriterConfig = Field(default_factory=WriterConfig)
     service: ServiceConfig = Field(default_factory=ServiceConfig)
+    hosts: dict[str, HostConfig] = Field(
+        default_factory=dict, description="Capture hosts of a multi-host rig, by name; empty: one host."
+    )
+
+    @model_validator(mode="after")
+    def _hosts_known(self) -> RigConfig:
+        placed = [("trigger.host", self.trigger.host)]
+        placed += [(f"cameras.{i}.host", c.host) for i, c in enumerate(self.cameras)]
+        placed += [(f"event_sensors.{i}.host", s.host) for i, s in enumerate(self.event_sensors)]
+        for key in self.hosts:
+            if not re.fullmatch(_NAME, key):
+                raise ValueError(f"hosts.{key}: a host name is a letter, then letters, digits, _ or -")
+        for where, host in placed:
+            if self.hosts and host is None:
+                raise ValueError(f"{where}: a multi-host rig (hosts) places every device on a host")
+            if host is not None and host not in self.hosts:
+                known = ", ".join(sorted(self.hosts)) or "none"
+                raise ValueError(f"{where}: unknown host {host!r} (hosts: {known})")
+        return self
+
+    @property
+    def coordinator(self) -> str | None:
+        """The host that owns the trigger box (None on a one-host rig)."""
+        return self.trigger.host
+
+    def host_names(self) -> list[str]:
+        """Hosts with devices, the coordinator first."""
+        used = [self.trigger.host, *(c.host for c in self.cameras), *(s.host for s in self.event_sensors)]
+        return list(dict.fromkeys(h for h in used if h is not None))
+
+    def devices_on(self, host: str) -> list[str]:
+        """Names of the cameras and event sensors that `host` runs."""
+        return [d.name for d in (*self.cameras, *self.event_sensors) if d.host == host]
 
     @model_validator(mode="after")
     def _unique_names(self) -> RigConfig:
