@@ -54,6 +54,8 @@ from rigd.evt.kernels import (
 
 _U64 = np.uint64
 _WINDOW = 64  # words handed to the reference kernel per irregular stretch
+# the run loop's types: ADDR_Y, ADDR_X, TIME_LOW and VECT_BASE_X (with the vectors after it)
+_XYT = (1 << 0x0) | (1 << 0x2) | (1 << 0x3) | (1 << 0x6)
 
 
 # Kept apart from the reference `evt3.decode_kernel` on purpose: that branch-free state machine
@@ -88,62 +90,59 @@ def decode_kernel(
                 while pos < bend:
                     w = np.int64(buf[_U64(pos)])
                     typ = w >> 12
-                    if (typ & 0xD) == 0:
-                        # ADDR_Y / ADDR_X runs (a Gen4 sends mostly single ADDR_X events under an
-                        # ADDR_Y): one branch-free loop, where the pattern of Y and X words, which
-                        # no predictor learns, only selects values. Every word stores an event at n
-                        # (slot n exists: 12 per word are free); only an ADDR_X advances n, only an
-                        # ADDR_Y moves y.
+                    if (_XYT >> typ) & 1:
+                        # ADDR_Y / ADDR_X / TIME_LOW runs (a Gen4 sends mostly single ADDR_X
+                        # events under an ADDR_Y, a TIME_LOW every few dozen words): one loop
+                        # where the pattern of Y and X words, which no predictor learns, only
+                        # selects values, and a TIME_LOW is a rarely taken branch inside it (not
+                        # a way out and back in: that cost ~60 cycles a TIME_LOW). Every X or Y
+                        # word stores an event at n (slot n exists: 12 per word are free); only
+                        # an ADDR_X advances n, only an ADDR_Y moves y.
                         bad = False
                         while True:
-                            v = w & 0x7FF
-                            isx = int(typ >> 1)
-                            if v >= (width if isx else height):
-                                bad = True  # outside the sensor: the reference counts it
-                                break
-                            put_event(out, n, v, y, ((w >> 10) & 2) - 1, tcur)
-                            n += isx
-                            y = y if isx else v  # a select: y is the loop's carried value
+                            if typ == 0x6:
+                                tl = w & 0xFFF
+                                if tl < (tcur & 0xFFF):
+                                    bad = True  # time falls: the reference drops what would go back
+                                    break
+                                tcur = (tcur & ~0xFFF) | tl
+                            elif typ == 0x3:
+                                # VECT_BASE_X and the vectors after it (a Gen4 sends 12 + 12 + 8
+                                # pixels), in a loop of their own
+                                bp = ((w & 0x7FF) << 8) | (((w >> 10) & 2) + 0xFF) & 0xFF
+                                while pos + 1 < bend and bp <= bplim:
+                                    w2 = np.int64(buf[_U64(pos + 1)])
+                                    t2 = w2 >> 12
+                                    if t2 != 0x4 and t2 != 0x5:
+                                        break
+                                    m2 = w2 & (0xFFF if t2 == 0x4 else 0xFF)
+                                    n = put_run(out, n, bp >> 8, m2, y, bp, tcur)
+                                    bp += (12 << 8) if t2 == 0x4 else (8 << 8)
+                                    pos += 1  # at the vector word
+                            else:
+                                v = w & 0x7FF
+                                isx = typ >> 1
+                                if v >= (width if isx else height):
+                                    bad = True  # outside the sensor: the reference counts it
+                                    break
+                                put_event(out, n, v, y, ((w >> 10) & 2) - 1, tcur)
+                                n += isx
+                                y = y if isx else v  # a select: y is the loop's carried value
                             pos += 1
                             if pos >= bend:
                                 break
                             w = np.int64(buf[_U64(pos)])
                             typ = w >> 12
-                            if (typ & 0xD) != 0:
+                            if not (_XYT >> typ) & 1:
                                 break
                         if bad:
                             break
                         continue
-                    elif typ == 0x3:
-                        # the encoder's usual run: (VECT_BASE_X, vector) pairs, decoded here in a
-                        # loop of their own so the type dispatch sees fewer, more predictable words
-                        while True:
-                            bp = ((w & 0x7FF) << 8) | (((w >> 10) & 2) + 0xFF) & 0xFF
-                            if pos + 1 >= bend or bp > bplim:
-                                break
-                            w2 = np.int64(buf[_U64(pos + 1)])
-                            t2 = w2 >> 12
-                            if t2 != 0x4 and t2 != 0x5:
-                                break
-                            n = put_run(out, n, bp >> 8, w2 & (0xFFF if t2 == 0x4 else 0xFF), y, bp, tcur)
-                            bp += (12 << 8) if t2 == 0x4 else (8 << 8)
-                            pos += 1  # at the vector word
-                            if pos + 1 >= bend:
-                                break
-                            w = np.int64(buf[_U64(pos + 1)])
-                            if (w >> 12) != 0x3:
-                                break
-                            pos += 1  # at the next VECT_BASE_X
                     elif typ == 0x4 or typ == 0x5:
                         if bp > bplim:  # no base, or a span reaching past the width
                             break
                         n = put_run(out, n, bp >> 8, w & (0xFFF if typ == 0x4 else 0xFF), y, bp, tcur)
                         bp += (12 << 8) if typ == 0x4 else (8 << 8)
-                    elif typ == 0x6:
-                        tl = w & 0xFFF
-                        if tl < (tcur & 0xFFF):
-                            break  # time falls: the reference drops what would go back
-                        tcur = (tcur & ~0xFFF) | tl
                     elif typ == 0x8:
                         v12 = w & 0xFFF
                         traw = tcur - sh
