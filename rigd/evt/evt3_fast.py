@@ -121,7 +121,7 @@ def decode_kernel(
                                     pos += 1  # at the vector word
                             else:
                                 v = w & 0x7FF
-                                isx = typ >> 1
+                                isx = int(typ >> 1)
                                 if v >= (width if isx else height):
                                     bad = True  # outside the sensor: the reference counts it
                                     break
