@@ -1,4 +1,4 @@
-# mypy: disable-error-code="arg-type"
+# mypy: disable-error-code="arg-type,call-arg"
 """EVT 3.0 decode kernel for clean stretches of a stream, with `evt3.decode_kernel` as fallback.
 
 Same signature, state array and results as `evt3.decode_kernel` (events, order, triggers, stats,
@@ -45,6 +45,8 @@ from rigd.evt.kernels import (
     DecodeOut,
     T,
     X,
+    ctpop,
+    cttz,
     keep_last_times,
     last_time,
     put_event,
@@ -54,8 +56,35 @@ from rigd.evt.kernels import (
 
 _U64 = np.uint64
 _WINDOW = 64  # words handed to the reference kernel per irregular stretch
-# the run loop's types: ADDR_Y, ADDR_X, TIME_LOW and VECT_BASE_X (with the vectors after it)
-_XYT = (1 << 0x0) | (1 << 0x2) | (1 << 0x3) | (1 << 0x6)
+# the run loop's types: ADDR_Y, ADDR_X, TIME_LOW; it goes on through VECT_BASE_X too (a Gen4's
+# vector group)
+_RUN = (1 << 0x0) | (1 << 0x2) | (1 << 0x6)
+_XYT = _RUN | (1 << 0x3)
+
+
+@njit(inline="always")
+def _group(buf: U16, pos: int, out: DecodeOut, n: int, y: int, bp: int, t: int) -> int:  # pragma: no cover
+    """The events of a Gen4's usual vector group after the VECT_BASE_X at `pos`: VECT_12, VECT_12,
+    VECT_8 (32 pixels, all inside the sensor: the caller checked the base), or -1 when the next
+    three words are not that group. Its 32-bit mask has, nearly always, 2 pixels set: two stores
+    whatever the count (the slots exist), a loop only for more. Returns the new n."""
+    w1 = np.int64(buf[_U64(pos + 1)])
+    w2 = np.int64(buf[_U64(pos + 2)])
+    w3 = np.int64(buf[_U64(pos + 3)])
+    if ((w1 >> 4) & 0xF00) | ((w2 >> 8) & 0xF0) | (w3 >> 12) != 0x445:
+        return -1
+    m = (w1 & 0xFFF) | ((w2 & 0xFFF) << 12) | ((w3 & 0xFF) << 24)
+    x0 = bp >> 8
+    put_event(out, n, x0 + cttz(m), y, bp, t)
+    m &= m - 1
+    put_event(out, n + 1, x0 + cttz(m), y, bp, t)
+    m &= m - 1
+    k = n + 2
+    while m != 0:
+        put_event(out, k, x0 + cttz(m), y, bp, t)
+        k += 1
+        m &= m - 1
+    return n + ctpop(w1 & 0xFFF) + ctpop(w2 & 0xFFF) + ctpop(w3 & 0xFF)
 
 
 # Kept apart from the reference `evt3.decode_kernel` on purpose: that branch-free state machine
@@ -90,7 +119,7 @@ def decode_kernel(
                 while pos < bend:
                     w = np.int64(buf[_U64(pos)])
                     typ = w >> 12
-                    if (_XYT >> typ) & 1:
+                    if (_RUN >> typ) & 1:
                         # ADDR_Y / ADDR_X / TIME_LOW runs (a Gen4 sends mostly single ADDR_X
                         # events under an ADDR_Y, a TIME_LOW every few dozen words): one loop
                         # where the pattern of Y and X words, which no predictor learns, only
@@ -107,18 +136,18 @@ def decode_kernel(
                                     break
                                 tcur = (tcur & ~0xFFF) | tl
                             elif typ == 0x3:
-                                # VECT_BASE_X and the vectors after it (a Gen4 sends 12 + 12 + 8
-                                # pixels), in a loop of their own
-                                bp = ((w & 0x7FF) << 8) | (((w >> 10) & 2) + 0xFF) & 0xFF
-                                while pos + 1 < bend and bp <= bplim:
-                                    w2 = np.int64(buf[_U64(pos + 1)])
-                                    t2 = w2 >> 12
-                                    if t2 != 0x4 and t2 != 0x5:
-                                        break
-                                    m2 = w2 & (0xFFF if t2 == 0x4 else 0xFF)
-                                    n = put_run(out, n, bp >> 8, m2, y, bp, tcur)
-                                    bp += (12 << 8) if t2 == 0x4 else (8 << 8)
-                                    pos += 1  # at the vector word
+                                # VECT_BASE_X: the Gen4's group stays in this loop; any other
+                                # vectors are the dispatch's (the encoder's pairs)
+                                b = w & 0x7FF
+                                vp = (((w >> 10) & 2) + 0xFF) & 0xFF
+                                if pos + 3 >= bend or b > width - 32:
+                                    break
+                                k = _group(buf, pos, out, n, y, (b << 8) | vp, tcur)
+                                if k < 0:
+                                    break
+                                n = k
+                                bp = ((b + 32) << 8) | vp
+                                pos += 3
                             else:
                                 v = w & 0x7FF
                                 isx = int(typ >> 1)
@@ -138,6 +167,26 @@ def decode_kernel(
                         if bad:
                             break
                         continue
+                    elif typ == 0x3:
+                        # the encoder's usual run: (VECT_BASE_X, vector) pairs, decoded here in a
+                        # loop of their own so the type dispatch sees fewer, more predictable words
+                        while True:
+                            bp = ((w & 0x7FF) << 8) | (((w >> 10) & 2) + 0xFF) & 0xFF
+                            if pos + 1 >= bend or bp > bplim:
+                                break
+                            w2 = np.int64(buf[_U64(pos + 1)])
+                            t2 = w2 >> 12
+                            if t2 != 0x4 and t2 != 0x5:
+                                break
+                            n = put_run(out, n, bp >> 8, w2 & (0xFFF if t2 == 0x4 else 0xFF), y, bp, tcur)
+                            bp += (12 << 8) if t2 == 0x4 else (8 << 8)
+                            pos += 1  # at the vector word
+                            if pos + 1 >= bend:
+                                break
+                            w = np.int64(buf[_U64(pos + 1)])
+                            if (w >> 12) != 0x3:
+                                break
+                            pos += 1  # at the next VECT_BASE_X
                     elif typ == 0x4 or typ == 0x5:
                         if bp > bplim:  # no base, or a span reaching past the width
                             break
