@@ -115,11 +115,12 @@ class _Out:
             tt, tp, tc = (_grown(a, size, nt) for a in (tt, tp, tc))
         self.arrays = (x, y, p, t, tt, tp, tc)
 
-    def result(self) -> Decoded:
+    def result(self, compact: bool = False) -> Decoded:
+        """The outputs' filled part; `compact`: a sparse result gives its reserve back (`_cut`)."""
         (x, y, p, t, tt, tp, tc), n, nt = self.arrays, self.n, self.nt
         return Decoded(
-            EventArray(*(_cut(a, n) for a in (x, y, p, t))),
-            TriggerEvents(*(_cut(a, nt) for a in (tt, tp, tc))),
+            EventArray(*(_cut(a, n, compact) for a in (x, y, p, t))),
+            TriggerEvents(*(_cut(a, nt, compact) for a in (tt, tp, tc))),
         )
 
 
@@ -130,17 +131,17 @@ def _grown(old: NDArray[Any], size: int, keep: int) -> NDArray[Any]:
     return new
 
 
-def _cut(a: NDArray[Any], n: int) -> NDArray[Any]:
-    """`a`'s first n items. The outputs are sized for more than a stream usually holds: at least
-    half used (a sensor's stream: 0.71 of one event a word on the Gen4.1 recording), the slice
-    keeps the whole array, whose unused tail a fresh allocation never touched; less used (a
-    sparse stream), the events are copied out so the reserve goes back. Shrinking in place
-    (numpy's resize, a realloc) was measured and rejected: glibc then sizes its next map by the
-    shrunk block, so every chunk of a reader whose caller keeps the previous one faulted in fresh
-    pages (+40 % of a streaming decode)."""
-    if n == a.shape[0]:
-        return a
-    return a[:n] if 2 * n >= a.shape[0] else a[:n].copy()
+def _cut(a: NDArray[Any], n: int, compact: bool) -> NDArray[Any]:
+    """`a`'s first n items. EVT 3.0 outputs (`compact`) are sized for more than a stream usually
+    holds: at least half used (a sensor's stream: 0.71 of one event a word on the Gen4.1
+    recording), the slice keeps the whole array, whose unused tail a fresh allocation never
+    touched; less used (a sparse stream), the events are copied out so the reserve goes back.
+    Shrinking in place (numpy's resize, a realloc) was measured and rejected: glibc then sizes its
+    next map by the shrunk block, so every chunk of a reader whose caller keeps the previous one
+    faulted in fresh pages (+40 % of a streaming decode)."""
+    if n == a.shape[0] or not compact or 2 * n >= a.shape[0]:
+        return a[:n]
+    return a[:n].copy()
 
 
 class StreamDecoder:
@@ -223,8 +224,9 @@ class StreamDecoder:
             self.width, self.height, self.strict, final=True, confirm=self.jump_confirm
         )
         # events a word the outputs are first sized for (EVT 2.0: one; EVT 2.1 vectors: up to 32,
-        # sized by bytes as before)
+        # sized by bytes; EVT 3.0: its module's guess, and a sparse result is compacted)
         self._guess = int(getattr(mod, "OUTPUT_EVENTS_PER_WORD", min(self._max_per_word, self._word)))
+        self._compact = hasattr(mod, "OUTPUT_EVENTS_PER_WORD")
         self._stats = np.zeros(STATS_SIZE, np.int64)
         self.skipped_offsets: list[int] = []
         self.jumps: list[TimeJump] = []
@@ -415,7 +417,7 @@ class StreamDecoder:
             done = self._run(body, words, out, start, cfg)
         self._pending = arr[done * ws :].tobytes()
         self.bytes_consumed += done * ws
-        return out.result()
+        return out.result(self._compact)
 
     def flush(self) -> Decoded:
         """Decide held words now, with no more bytes to come (a live stream that stopped): a

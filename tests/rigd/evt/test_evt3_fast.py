@@ -291,3 +291,19 @@ def test_gen4_shaped_streams(seed: int) -> None:
     b = _run_small(valid, evt3_fast.decode_kernel)
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
+
+
+def test_output_sizing_dense_and_sparse() -> None:
+    """Outputs are first sized for one event a word: a stream of full vectors (12 events a word)
+    grows them and decodes as the reference does; a sparse one (time words, a few events) gets
+    its events copied out of the reserve rather than a slice that keeps it."""
+    dense = [0x8001, 0x6000, 0x0007] + [0x3000, 0x4FFF, 0x4FFF, 0x5FFF] * 2000
+    data = np.array(dense, "<u2").tobytes()
+    ref = _decode(data, "ref")
+    assert len(ref[0]) == 2000 * 32
+    for sizes in (None, [4096], [3, 5000]):
+        _assert_same(_decode(data, "fast", sizes), ref)
+    sparse = [0x8001] + [0x6000 | i for i in range(4000)] + [0x0007, 0x2005]
+    dec = StreamDecoder("evt3").feed(np.array(sparse, "<u2").tobytes())
+    assert len(dec.events) == 1
+    assert dec.events.t.base is None or dec.events.t.base.shape[0] < 100
