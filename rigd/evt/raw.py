@@ -303,7 +303,8 @@ class StreamDecoder:
                     f"{self.fmt}: {kind} at byte offset {off} (word 0x{word})", offset=off, kind=kind
                 )
             if pos < end:  # outputs full: room for the rest at the density so far, and a quarter
-                out.grow(self._max_per_word, ahead=(end - pos) * (5 * out.n // max(4 * pos, 1) + 1))
+                rate = min(self._max_per_word, 5 * out.n // max(4 * pos, 1) + 1)
+                out.grow(self._max_per_word, ahead=(end - pos) * rate)
         return end
 
     def _took(self, jumps: list[TimeJump]) -> None:
