@@ -255,11 +255,12 @@ def main() -> None:
         summary.append((nm, ours, dv30, mem))
     print(f"\nuptime at the end: {uptime()}")
     print(f"median of {args.repeats} interleaved rounds each\n")
-    print("| data | rigd Mev/s | dv-processing 30 us Mev/s | rigd / dv | memcpy Mev/s (limit) |")
+    print("| data | rigd Mev/s | dv-processing 30 us Mev/s | rigd / dv | memcpy of the events GB/s (limit) |")
     print("|---|---|---|---|---|")
     for nm, ours, dv30, mem in summary:
         ratio = f"{ours / dv30:.2f}x" if dv30 else "-"
-        print(f"| {nm} | {ours:.1f} | {dv30 or float('nan'):.1f} | {ratio} | {mem:.0f} |")
+        dv = f"{dv30:.1f}" if dv30 else "-"
+        print(f"| {nm} | {ours:.1f} | {dv} | {ratio} | {mem * BYTES_PER_EVENT / 1e3:.2f} |")
 
 
 if __name__ == "__main__":
