@@ -121,6 +121,23 @@ def _rebase(flat: NDArray[Any], shift: int, never: int) -> None:  # pragma: no c
         flat[k] = never if v < never else v
 
 
+@njit(nogil=True, cache=True)
+def _prepare(  # pragma: no cover - numba
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    s: NDArray[np.int64],
+    plane: int,
+    cols: int,
+) -> None:
+    """Per event of a block: the map index of its neighbourhood's first vector, or'ed with its row
+    phase (the index is a multiple of 4). A vectorized pass over a cache-sized block, so the serial
+    scan loads one int64 per event (and one for the event it prefetches) instead of x, y and p."""
+    for i in range(x.shape[0]):
+        yi = np.int64(y[i])
+        s[i] = (np.int64(p[i] > 0) * plane + ((yi >> 2) * cols + np.int64(x[i])) * 4) | (yi & 3)
+
+
 def _count_ge(typingctx: Any, arr: Any, start: Any, lim: Any, bits: Any) -> Any:
     """popcount(bits & (flat[start:start + 32] >= lim)) as one masked <32 x int> load (lanes outside
     `bits` are not read and read as "never"), one vector compare and one popcount: no gathers, no
@@ -204,6 +221,8 @@ def _prefetch_intrinsic() -> Callable[..., None]:
     return intrinsic(_prefetch)
 
 
+#: Events per block of the kernel (its index work space: 32 KiB, so it stays in L1/L2).
+BLOCK_EVENTS = 4096
 #: Events ahead whose neighbourhood lines the kernel prefetches: on a map larger than L2 (a
 #: 1280x720 sensor) the lines of scattered events otherwise arrive one miss at a time.
 PREFETCH_AHEAD = 32
@@ -238,6 +257,11 @@ class MapLayout:
                             bits |= 1 << lane
                     masks[phase, g, s] = bits
         self.masks = masks
+        # own pixel's index minus the first vector's, per phase
+        self.own_offset = np.array(
+            [((ph + radius) >> 2) * self.cols * 4 + radius * 4 + ((ph + radius) & 3) for ph in range(4)],
+            np.int64,
+        )
 
 
 @functools.lru_cache(maxsize=32)
@@ -265,12 +289,10 @@ def _make_kernel(
         for o in offsets
     )
     src = f"""
-def kernel(x, y, p, t, base_us, flat, masks, cols, plane, window_us, min_support, keep):
-    base = base_us
+def scan(s, t, base, flat, masks, own_off, cols, window_us, min_support, keep):
     n = t.shape[0]
     for i in range(n):
-        j = min(i + {PREFETCH_AHEAD}, n - 1)
-        ahead = np.int64(p[j] > 0) * plane + ((np.int64(y[j]) >> 2) * cols + np.int64(x[j])) * 4
+        ahead = s[min(i + {PREFETCH_AHEAD}, n - 1)] & -4
         {prefetches}
         rel = t[i] - base
         if rel > {info.max}:
@@ -279,16 +301,22 @@ def kernel(x, y, p, t, base_us, flat, masks, cols, plane, window_us, min_support
             rel = 0
         ti = np.{dtype}(rel)
         lim = np.{dtype}(rel - window_us)
-        yi = np.int64(y[i])
-        xi = np.int64(x[i])
-        pb = np.int64(p[i] > 0) * plane
-        phase = yi & 3
-        start = pb + ((yi >> 2) * cols + xi) * 4
+        phase = s[i] & 3
+        start = s[i] & -4
         ok = ({" + ".join(terms)}) >= min_support
         keep[i] = ok
-        yo = yi + {radius}
-        own = np.uint64(pb + ((yo >> 2) * cols + xi + {radius}) * 4 + (yo & 3))
+        own = np.uint64(start + own_off[phase])
         {store}
+    return base
+
+
+def kernel(x, y, p, t, base_us, flat, masks, own_off, cols, plane, window_us, min_support, keep, s):
+    base = base_us
+    n = t.shape[0]
+    for a in range(0, n, s.shape[0]):
+        e = min(n, a + s.shape[0])
+        prepare(x[a:e], y[a:e], p[a:e], s, plane, cols)
+        base = scan(s[: e - a], t[a:e], base, flat, masks, own_off, cols, window_us, min_support, keep[a:e])
     return base
 """
     env: dict[str, Any] = {
@@ -296,8 +324,10 @@ def kernel(x, y, p, t, base_us, flat, masks, cols, plane, window_us, min_support
         "cnt": _count_ge_intrinsic(),
         "prefetch": _prefetch_intrinsic(),
         "rebase": _rebase,
+        "prepare": _prepare,
     }
     exec(compile(src, f"<BAF kernel r={radius} update_on_drop={update_on_drop} {dtype}>", "exec"), env)
+    env["scan"] = njit(nogil=True, boundscheck=False)(env["scan"])
     kernel: Callable[..., int] = njit(nogil=True, boundscheck=False)(env["kernel"])
     return kernel
 
@@ -342,6 +372,7 @@ class BackgroundActivityFilter:
             r, self._layout.groups, self._layout.segments, self.update_on_drop, np.dtype(self._dtype).name
         )
         self._last = np.full(2 * self._layout.plane, self._never, self._dtype)
+        self._index = np.empty(BLOCK_EVENTS, np.int64)  # the scan's per-block work space
         self._base_us: int | None = None
         self._t_end: int | None = None
         self.n_in = 0
@@ -383,11 +414,13 @@ class BackgroundActivityFilter:
                 self._base_us,
                 self._last,
                 lay.masks,
+                lay.own_offset,
                 lay.cols,
                 lay.plane,
                 self.window_us,
                 self.min_support,
                 keep,
+                self._index,
             )
         )
         self._t_end = int(t[-1])

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
+from reconstruction import filters
 from reconstruction.filters import BackgroundActivityFilter, background_activity_filter
 from rigd.core.events import EventArray
 
@@ -165,9 +166,14 @@ def test_large_radius_matches_brute_force(radius: int, metric: str) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("window", [32_766, 32_767, 32_768, 1_000_000])
-def test_map_types_and_rebase_match_brute_force(window: int) -> None:
+@pytest.mark.parametrize("block", [filters.BLOCK_EVENTS, 7])
+def test_map_types_and_rebase_match_brute_force(
+    window: int, block: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # windows up to 32767 us keep int16 times (rebased every ~33 ms of stream), longer ones int32;
-    # gaps around the int16 range and the window exercise the rebase and its saturation
+    # gaps around the int16 range and the window exercise the rebase and its saturation; blocks of
+    # 7 events put the kernel's block edges (and rebases) everywhere in the stream
+    monkeypatch.setattr(filters, "BLOCK_EVENTS", block)
     rng = np.random.default_rng(window)
     n, w, h = 600, 9, 7
     gaps = rng.choice([0, 1, 3, window // 2, window - 1, window, window + 1, 2**15, 2**16, 2**31], n)
