@@ -1,40 +1,61 @@
-"""Background-activity filter throughput: rigd (numba) vs dv-processing (C++) vs a tonic-style numpy loop.
+"""Background-activity filter throughput: rigd (numba) vs dv-processing (C++, in its own process)
+vs a tonic-style numpy loop, on simulated and real event streams, in the same run.
 
-Same events for every filter, same run: a 640x480 simulated sequence (textured sprites at 300-600 px/s
-through the pixel model) plus shot noise. dv-processing's BackgroundActivityNoiseFilter implements a
-different rule (any polarity, 8-neighbourhood, support 1), so its kept fraction differs; the table
-compares throughput on identical input. The tonic-style baseline (per-event Python loop with numpy
-slices, as `tonic.functional.denoise`) implements the paper's rule and must keep exactly what rigd keeps.
-Every filter runs on the same one core, in interleaved rounds (round 0 untimed), median reported.
+Data sets (`--data`, all three by default):
 
-    python -m bench.reconstruction_filter [--seconds 1.0] [--noise-hz 2.0] [--peer-site DIR]
+* `sim`: 640x480, 1 s of textured sprites at 300-600 px/s through the pixel model plus 2 Hz/px
+  shot noise (4.9 M events).
+* `gen41`: the real Prophesee Gen4.1 recording (1280x720, 25 Mev/s for 8.8 ms) from
+  /work/shared/data/events, decoded by rigd and tiled end to end in time (each copy shifted by the
+  recording's span) to `--real-events`.
+* `gen3`: the real Gen3 recording (640x480, 10.8 Mev/s for 50 ms), tiled the same way.
 
-dv-processing runs its own code from its own venv: `--peer-site` (default
-/tmp/scratch-perf/lib/python3.11/site-packages where it exists) is appended to the module path
-after the project's, so only what the project lacks (dv_processing) comes from there.
+dv-processing's BackgroundActivityNoiseFilter implements a different rule (any polarity,
+8-neighbourhood, support 1), so its kept fraction differs; the table compares throughput on
+identical input. It runs unmodified in its own venv and process (`--peer-python`,
+bench/dv_peer_worker.py), pinned to the same core as rigd; its store is built once, untimed.
+The tonic-style baseline (per-event Python loop with numpy slices, as `tonic.functional.denoise`)
+implements the paper's rule and must keep exactly what rigd keeps. Every filter runs in
+interleaved rounds (round 0 untimed), median reported, next to the machine's limit measured in
+the same rounds: memcpy GB/s of the events' 13 bytes each (x, y, p, t) and the cores.
+
+    python -m bench.reconstruction_filter [--data sim,gen41,gen3] [--repeats 7] [--peer-python PY]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from bench.peer_process import PeerProcess
 from firmware_sim.testing.sprites import SpriteScene, linear_path, simulate
 from reconstruction.filters import BackgroundActivityFilter
 from rigd.core.events import EventArray
+from rigd.evt import read_raw
 
-W, H = 640, 480
+DATA_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "events"
+REAL = {"gen41": "evt3_gen41_sample.raw", "gen3": "evt2_gen3_sample.raw"}
+DEFAULT_PEER = Path("/tmp/scratch-perf/bin/python")
+WORKER = Path(__file__).with_name("dv_peer_worker.py")
+DV_DURATIONS_US = (30, 2000)
+BYTES_PER_EVENT = 13  # x, y uint16; p int8; t int64
 
 
-def tonic_style(ev: EventArray, radius: int = 3, window: int = 30, support: int = 2) -> NDArray[np.bool_]:
+def tonic_style(
+    ev: EventArray, width: int, height: int, radius: int = 3, window: int = 30, support: int = 2
+) -> NDArray[np.bool_]:
     """Per-event Python loop over a padded timestamp memory, numpy slice per event (tonic's approach)."""
-    mem = np.full((2, H + 2 * radius, W + 2 * radius), -(10**15), np.int64)
+    mem = np.full((2, height + 2 * radius, width + 2 * radius), -(10**15), np.int64)
     keep = np.zeros(len(ev), bool)
     xs, ys, ps, ts = ev.x.astype(np.int64), ev.y.astype(np.int64), (ev.p > 0).astype(np.int64), ev.t
     for i in range(len(ev)):
@@ -46,122 +67,200 @@ def tonic_style(ev: EventArray, radius: int = 3, window: int = 30, support: int 
     return keep
 
 
-def make_events(seconds: float, noise_hz: float) -> EventArray:
+def make_sim(seconds: float, noise_hz: float) -> EventArray:
     paths = [
         linear_path(20, 60, 300, 40),
         linear_path(600, 200, -450, 0),
         linear_path(100, 400, 400, -150),
         linear_path(300, 20, 100, 600),
     ]
-    scene = SpriteScene(W, H, paths, sprite_px=64, seed=3)
+    scene = SpriteScene(640, 480, paths, sprite_px=64, seed=3)
     return simulate(scene, 0.0, seconds, threshold=0.15, shot_noise_rate_hz=noise_hz, max_px_per_step=0.7)
 
 
-def median_time(fn: Callable[[], object], repeats: int) -> float:
-    """Median wall time of `repeats` calls (the machine is shared: medians, not best-of)."""
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+def tile_in_time(ev: EventArray, n_events: int) -> EventArray:
+    """The recording repeated end to end until it holds at least n_events, each copy shifted by its
+    span + 1 us (the bytes' events unchanged: same pixels, polarities and time differences)."""
+    copies = max(1, -(-n_events // len(ev)))
+    span = int(ev.t[-1] - ev.t[0]) + 1
+    shift = np.repeat(np.arange(copies, dtype=np.int64) * span, len(ev))
+    return EventArray(
+        np.tile(ev.x, copies), np.tile(ev.y, copies), np.tile(ev.p, copies), np.tile(ev.t, copies) + shift
+    )
+
+
+def load(name: str, args: argparse.Namespace) -> tuple[str, EventArray, int, int]:
+    """(description, events, width, height) of one data set."""
+    if name == "sim":
+        ev = make_sim(args.seconds, args.noise_hz)
+        return f"sim 640x480, {args.seconds:g} s sprites + {args.noise_hz:g} Hz/px noise", ev, 640, 480
+    path = DATA_DIR / REAL[name]
+    hdr, dec = read_raw(path)
+    ev = dec.events
+    rate = len(ev) / max(1, int(ev.t[-1] - ev.t[0])) if len(ev) else 0.0
+    desc = (
+        f"{path.name} {hdr.width}x{hdr.height} (real, {len(ev)} events at {rate:.1f} Mev/s), "
+        f"tiled x{-(-args.real_events // len(ev))} in time"
+    )
+    return desc, tile_in_time(ev, args.real_events), int(hdr.width), int(hdr.height)
+
+
+class DvPeer(PeerProcess):
+    """dv-processing's filter in its own venv and process (bench/dv_peer_worker.py)."""
+
+    def __init__(self, python: Path, events: Path, width: int, height: int, cpu: int | None) -> None:
+        super().__init__([str(python), str(WORKER), str(events), str(width), str(height)], cpu=cpu)
+
+    def filter(self, duration_us: int) -> tuple[float, float]:
+        """(seconds, kept fraction) of one run over the whole store."""
+        assert self.proc.stdin is not None
+        assert self.proc.stdout is not None
+        self.proc.stdin.write(f"{duration_us}\n")
+        self.proc.stdin.flush()
+        answer = json.loads(self.proc.stdout.readline())
+        return float(answer["seconds"]), int(answer["kept"]) / max(1, int(answer["events"]))
+
+
+def uptime() -> str:
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "load average: {:.2f}, {:.2f}, {:.2f}".format(*os.getloadavg())
+
+
+def bench_one(name: str, args: argparse.Namespace, cpu: int | None) -> dict[str, float]:
+    """Print one data set's table; returns Mev/s per row name."""
+    t0 = time.perf_counter()
+    desc, ev, w, h = load(name, args)
+    n = len(ev)
+    print(f"\n## {name}: {desc}: {n / 1e6:.2f} M events (ready in {time.perf_counter() - t0:.1f} s)")
+
+    # name -> a call returning the kept fraction; timed round-robin so load hits all alike
+    timed: dict[str, Callable[[], float]] = {}
+    timed["rigd BAF (r=3 Chebyshev, 30 us, >= 2), whole array"] = lambda: float(
+        BackgroundActivityFilter(w, h).mask(ev).mean()
+    )
+
+    def chunked() -> float:
+        baf = BackgroundActivityFilter(w, h)
+        return sum(int(np.count_nonzero(baf.mask(ev[a : a + 100_000]))) for a in range(0, n, 100_000)) / n
+
+    timed["rigd BAF, 100k-event chunks"] = chunked
+    src = [ev.x, ev.y, ev.p, ev.t]
+    dst = [np.empty_like(a) for a in src]
+
+    def memcpy() -> float:
+        for s, d in zip(src, dst, strict=True):
+            np.copyto(d, s)
+        return float("nan")
+
+    timed[f"memcpy of the events ({BYTES_PER_EVENT} B each), machine limit"] = memcpy
+    peer: DvPeer | None = None
+    # rows the peer times itself (in its process): name -> (worker, duration us)
+    peer_rows: dict[str, tuple[DvPeer, int]] = {}
+    tmp = tempfile.TemporaryDirectory()
+    if args.peer_python.exists():
+        npz = Path(tmp.name) / "events.npz"
+        np.savez(npz, x=ev.x, y=ev.y, p=ev.p, t=ev.t)
+        peer = DvPeer(args.peer_python, npz, w, h, cpu)
+        print(
+            f"{peer.hello['peer']} in its own process; store built in {peer.hello['store_s']:.1f} s (untimed)"
+        )
+        if peer.hello["events"] != n:
+            raise SystemExit(f"dv worker holds {peer.hello['events']} events, not {n}")
+        for d_us in DV_DURATIONS_US:
+            peer_rows[f"dv-processing BackgroundActivityNoiseFilter ({d_us} us)"] = (peer, d_us)
+    else:
+        print(f"dv-processing: {args.peer_python} not found (a venv with `pip install dv-processing`)")
+
+    rows = [*timed, *peer_rows]
+    times: dict[str, list[float]] = {k: [] for k in rows}
+    kept_of: dict[str, float] = {}
+    for rnd in range(args.repeats + 1):  # round 0 warms up (JIT, caches), not timed
+        for row in rows:
+            if row in peer_rows:
+                worker, d_us = peer_rows[row]
+                sec, kept_of[row] = worker.filter(d_us)
+            else:
+                t_start = time.perf_counter()
+                kept_of[row] = timed[row]()
+                sec = time.perf_counter() - t_start
+            if rnd:
+                times[row].append(sec)
+    if peer is not None:
+        peer.close()
+    tmp.cleanup()
+
+    m = min(args.tonic_events, n)
+    sub = ev[:m]
+    t_start = time.perf_counter()
+    keep_tonic = tonic_style(sub, w, h)
+    dt_tonic = time.perf_counter() - t_start
+    same = bool(np.array_equal(keep_tonic, BackgroundActivityFilter(w, h).mask(sub)))
+
+    print(f"\n| {'filter':58s} | {'time s':>8s} | {'Mev/s':>7s} | {'GB/s':>6s} | {'kept':>6s} |")
+    print(f"|{'-' * 60}|{'-' * 10}|{'-' * 9}|{'-' * 8}|{'-' * 8}|")
+    mev: dict[str, float] = {}
+    for row in rows:
+        sec = float(np.median(times[row]))
+        mev[row] = n / sec / 1e6
+        kept = "" if np.isnan(kept_of[row]) else f"{kept_of[row]:6.1%}"
+        gbs = n * BYTES_PER_EVENT / sec / 1e9
+        print(f"| {row:58s} | {sec:8.4f} | {mev[row]:7.1f} | {gbs:6.2f} | {kept:>6s} |")
+    tonic_row = f"tonic-style numpy loop (first {m} events, 1 run)"
+    tonic_mev = m / dt_tonic / 1e6
+    print(f"| {tonic_row:58s} | {dt_tonic:8.4f} | {tonic_mev:7.1f} | {'':6s} | {keep_tonic.mean():6.1%} |")
+    ours = mev["rigd BAF (r=3 Chebyshev, 30 us, >= 2), whole array"]
+    for row in peer_rows:
+        print(f"rigd BAF (whole array) vs {row}: {ours / mev[row]:.2f}x")
+    print(f"tonic-style keeps exactly what rigd keeps: {same}")
+    if not same:
+        raise SystemExit(f"{name}: rigd's kept set differs from the tonic-style reference")
+    return mev
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=1.0)
-    ap.add_argument("--noise-hz", type=float, default=2.0)
+    ap.add_argument("--data", default="sim,gen41,gen3", help="comma-separated: sim, gen41, gen3")
+    ap.add_argument("--seconds", type=float, default=1.0, help="sim: seconds of sprites")
+    ap.add_argument("--noise-hz", type=float, default=2.0, help="sim: shot noise per pixel")
+    ap.add_argument("--real-events", type=int, default=4_800_000, help="real recordings: tile to this many")
     ap.add_argument("--tonic-events", type=int, default=200_000, help="events given to the slow baseline")
-    ap.add_argument("--repeats", type=int, default=7, help="timed runs per filter (median reported)")
+    ap.add_argument("--repeats", type=int, default=7, help="timed rounds (median reported)")
     ap.add_argument(
-        "--peer-site",
-        default="/tmp/scratch-perf/lib/python3.11/site-packages",
-        help="site-packages of a venv with dv-processing (appended to the module path)",
+        "--peer-python",
+        type=Path,
+        default=Path(os.environ.get("RIGD_BENCH_PEER_PYTHON", str(DEFAULT_PEER))),
+        help="python of a venv with dv-processing installed (its own process)",
     )
     args = ap.parse_args()
-    if hasattr(os, "sched_setaffinity"):  # one core for every filter
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    if os.path.isdir(args.peer_site) and args.peer_site not in sys.path:
-        sys.path.append(args.peer_site)
-    load1, load5, _ = os.getloadavg()
-    print(f"load: {load1:.2f} {load5:.2f} (1, 5 min averages) at start")
-
-    t0 = time.perf_counter()
-    ev = make_events(args.seconds, args.noise_hz)
-    n = len(ev)
-    print(f"events: {n} ({n / 1e6:.2f} M) at {W}x{H}, made in {time.perf_counter() - t0:.1f} s")
-
-    rows: list[tuple[str, int, float, float]] = []
-    # name -> (the call, which returns the kept fraction); timed round-robin, so background load
-    # on the shared machine hits every filter alike
-    timed: dict[str, Callable[[], float]] = {}
-    keep_holder: list[NDArray[np.bool_]] = []
-
-    def run_rigd() -> float:
-        keep_holder[:] = [BackgroundActivityFilter(W, H).mask(ev)]
-        return float(keep_holder[0].mean())
-
-    def run_chunked() -> float:
-        baf = BackgroundActivityFilter(W, H)
-        kept = sum(int(np.count_nonzero(baf.mask(ev[a : a + 100_000]))) for a in range(0, n, 100_000))
-        return kept / n
-
-    timed["rigd BAF (numba, 1 core, r=3 Chebyshev, 30 us, >=2)"] = run_rigd
-    timed["rigd BAF, 1 core, 100k-event chunks"] = run_chunked
-    try:
-        import dv_processing as dv
-    except ImportError:
-        print("dv-processing: not installed (pip install dv-processing)")
-    else:
-        from datetime import timedelta
-
-        t_conv = time.perf_counter()
-        store = dv.EventStore()
-        for t, x, y, p in zip(ev.t.tolist(), ev.x.tolist(), ev.y.tolist(), (ev.p > 0).tolist(), strict=True):
-            store.push_back(t, x, y, p)
-        print(f"dv EventStore built in {time.perf_counter() - t_conv:.1f} s (not timed)")
-        for dur_us in (30, 2000):
-
-            def run_dv(d: int = dur_us) -> float:
-                f = dv.noise.BackgroundActivityNoiseFilter(
-                    (W, H), backgroundActivityDuration=timedelta(microseconds=d)
-                )
-                f.accept(store)
-                return float(f.generateEvents().size() / n)
-
-            timed[f"dv-processing BackgroundActivityNoiseFilter ({dur_us} us)"] = run_dv
-    times: dict[str, list[float]] = {k: [] for k in timed}
-    kept_of: dict[str, float] = {}
-    for rnd in range(args.repeats + 1):  # round 0 warms up (JIT, caches), not timed
-        for name, fn in timed.items():
-            t0 = time.perf_counter()
-            kept_of[name] = fn()
-            if rnd:
-                times[name].append(time.perf_counter() - t0)
-    for name in timed:
-        rows.append((name, n, float(np.median(times[name])), kept_of[name]))
-
-    m = min(args.tonic_events, n)
-    sub = ev[:m]
-    keep_tonic: list[NDArray[np.bool_]] = []
-    dt_t = median_time(lambda: keep_tonic.append(tonic_style(sub)), 1)
-    same = bool(np.array_equal(keep_tonic[0], BackgroundActivityFilter(W, H).mask(sub)))
-    rows.append((f"tonic-style numpy loop (first {m} events)", m, dt_t, float(keep_tonic[0].mean())))
-
-    print()
-    print(f"| {'filter':58s} | {'events':>9s} | {'time s':>8s} | {'Mev/s':>7s} | {'kept':>6s} |")
-    print(f"|{'-' * 60}|{'-' * 11}|{'-' * 10}|{'-' * 9}|{'-' * 8}|")
-    for name, cnt, sec, kept in rows:
-        print(f"| {name:58s} | {cnt:9d} | {sec:8.4f} | {cnt / sec / 1e6:7.1f} | {kept:6.1%} |")
-    load_end = os.getloadavg()[0]
+    names = [s.strip() for s in args.data.split(",") if s.strip()]
+    for nm in names:
+        if nm != "sim" and nm not in REAL:
+            raise SystemExit(f"--data: unknown data set {nm!r} (sim, {', '.join(REAL)})")
+    cpu = None
+    if hasattr(os, "sched_setaffinity"):  # one core for every filter, the peer's process included
+        cpu = sorted(os.sched_getaffinity(0))[0]
+        os.sched_setaffinity(0, {cpu})
     print(
-        f"\nmedian of {args.repeats} interleaved rounds (tonic-style: 1 run); load at the end {load_end:.2f}"
+        f"machine: {os.cpu_count()} cores, every filter pinned to cpu {cpu}; python {sys.version.split()[0]}"
     )
-    ours = next(sec for name, _, sec, _ in rows if name.startswith("rigd BAF (numba"))
-    for name, _, sec, _ in rows:
-        if name.startswith("dv-processing"):
-            print(f"rigd BAF vs {name}: {sec / ours:.2f}x (goal >= 2x at 30 us)")
-    print(f"tonic-style keeps exactly what rigd keeps: {same}")
+    print(f"uptime at start: {uptime()}")
+    summary = []
+    for nm in names:
+        mev = bench_one(nm, args, cpu)
+        dv30 = mev.get(f"dv-processing BackgroundActivityNoiseFilter ({DV_DURATIONS_US[0]} us)")
+        ours = mev["rigd BAF (r=3 Chebyshev, 30 us, >= 2), whole array"]
+        mem = next(v for k, v in mev.items() if k.startswith("memcpy"))
+        summary.append((nm, ours, dv30, mem))
+    print(f"\nuptime at the end: {uptime()}")
+    print(f"median of {args.repeats} interleaved rounds each\n")
+    print("| data | rigd Mev/s | dv-processing 30 us Mev/s | rigd / dv | memcpy of the events GB/s (limit) |")
+    print("|---|---|---|---|---|")
+    for nm, ours, dv30, mem in summary:
+        ratio = f"{ours / dv30:.2f}x" if dv30 else "-"
+        dv = f"{dv30:.1f}" if dv30 else "-"
+        print(f"| {nm} | {ours:.1f} | {dv} | {ratio} | {mem * BYTES_PER_EVENT / 1e3:.2f} |")
 
 
 if __name__ == "__main__":

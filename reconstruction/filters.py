@@ -20,9 +20,14 @@ Definitions (the brute-force reference in the tests follows them literally):
   makes only kept events update the state.
 
 Because the input is time-sorted, "some previous event within the window" is the same as "the
-latest previous event at that pixel is within the window", so the state is one int64 per pixel
+latest previous event at that pixel is within the window", so the state is one time per pixel
 and polarity, and the filter streams over chunks: filtering chunk by chunk gives exactly the
 result of filtering the concatenation.
+
+Speed (the cost is the map's memory traffic, not arithmetic): the times are int16 relative to a
+base that moves forward every ~33 ms of stream (int32 for windows over 32767 us), and the map
+interleaves 4 rows per group, so one masked 64-byte vector compare covers 8 columns x 4 rows and
+the 7 x 7 neighbourhood takes 2-3 of them (docs/reconstruction.md, "BAF definition").
 """
 
 from __future__ import annotations
@@ -65,15 +70,23 @@ def row_half_widths(radius: int, metric: Metric = "chebyshev") -> NDArray[np.int
     return np.array([int(np.abs(dx[dy == d]).max()) for d in range(-radius, radius + 1)], np.int64)
 
 
-#: Timestamps are stored as int32 relative to a base (half the memory traffic of int64); the base
-#: moves forward when a time gets this far past it.
-REBASE_AFTER_US = 1 << 30
-#: Longest supported window (keeps t - window inside int32 relative time).
+#: Rows of the map interleaved per group: the map is (polarity, row // 4, column, row % 4), so one
+#: 64-byte vector holds 8 columns x 4 rows and the 7 x 7 neighbourhood is 2-3 vector compares
+#: (the kernel's source writes the 4 as shifts and masks).
+ROWS_PER_GROUP = 4
+#: Columns one vector compare covers (32 lanes = 8 columns x 4 rows).
+COLS_PER_VECTOR = 8
+_LANES = ROWS_PER_GROUP * COLS_PER_VECTOR
+#: Longest window kept in int16 times (half the map, so a 640x480 map fits a 2 MB L2); longer
+#: windows use int32 times.
+INT16_MAX_WINDOW_US = int(np.iinfo(np.int16).max)
+#: Longest supported window.
 MAX_WINDOW_US = 1 << 29
-#: Stored value of "never fired" (and of anything that fell off the int32 range at a rebase).
-NEVER_REL = np.int32(-(1 << 31) + 1)
-#: Most lanes one SIMD compare covers (its lane mask is an int64).
-_MAX_LANES = 64
+
+
+def map_dtype(window_us: int) -> type[np.signedinteger[Any]]:
+    """Storage type of the time map: int16 for windows up to ~33 ms, int32 beyond."""
+    return np.int16 if window_us <= INT16_MAX_WINDOW_US else np.int32
 
 
 @njit(nogil=True, cache=True)
@@ -82,114 +95,240 @@ def _validate(  # pragma: no cover - numba
 ) -> int:
     """0 when the chunk is usable, 1 unsorted (or before t_prev), 2 coordinates off the sensor.
 
-    Branch-free reductions (no early exit) so LLVM vectorizes the pass; it reads the chunk once."""
+    Integer or- and max-reductions without early exit, so LLVM vectorizes both passes (a bool
+    `|=` reduction did not vectorize and took twice as long)."""
     n = t.shape[0]
-    unsorted = t_prev > t[0] if n > 0 else False
+    if n == 0:
+        return 0
+    unsorted = np.int64(t_prev > t[0])
     for i in range(1, n):
-        unsorted |= t[i - 1] > t[i]
+        unsorted |= np.int64(t[i - 1] > t[i])
     if unsorted:
         return 1
-    off = False
+    mx = np.uint16(0)
+    my = np.uint16(0)
     for i in range(n):
-        off |= (x[i] >= width) | (y[i] >= height)
-    return 2 if off else 0
+        mx = max(mx, x[i])
+        my = max(my, y[i])
+    return 2 if (mx >= width or my >= height) else 0
 
 
-@functools.lru_cache(maxsize=8)
-def _make_count_ge(lanes: int) -> Callable[..., int]:
-    """Numba intrinsic `count_ge(flat, start, lim, maskbits)`: popcount(maskbits & (flat[start:start+lanes]
-    >= lim)) as one unaligned <lanes x i32> load, one vector compare and one popcount (no gathers, no
-    branches; LLVM's own vectorizers do not find this in the unrolled 7 x 7 scan)."""
+@njit(nogil=True, cache=True)
+def _rebase(flat: NDArray[Any], shift: int, never: int) -> None:  # pragma: no cover - numba
+    """Move the time origin `shift` us forward: every stored time minus shift, saturating at `never`."""
+    for k in range(flat.shape[0]):
+        v = np.int64(flat[k]) - shift
+        flat[k] = never if v < never else v
+
+
+@njit(nogil=True, cache=True)
+def _prepare(  # pragma: no cover - numba
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    s: NDArray[np.int64],
+    plane: int,
+    cols: int,
+) -> None:
+    """Per event of a block: the map index of its neighbourhood's first vector, or'ed with its row
+    phase (the index is a multiple of 4). A vectorized pass over a cache-sized block, so the serial
+    scan loads one int64 per event (and one for the event it prefetches) instead of x, y and p."""
+    for i in range(x.shape[0]):
+        yi = np.int64(y[i])
+        s[i] = (np.int64(p[i] > 0) * plane + ((yi >> 2) * cols + np.int64(x[i])) * 4) | (yi & 3)
+
+
+def _count_ge(typingctx: Any, arr: Any, start: Any, lim: Any, bits: Any) -> Any:
+    """popcount(bits & (flat[start:start + 32] >= lim)) as one masked <32 x int> load (lanes outside
+    `bits` are not read and read as "never"), one vector compare and one popcount: no gathers, no
+    branches (LLVM's vectorizers do not find this in the unrolled neighbourhood scan)."""
     from llvmlite import ir as llir
     from numba import types as nbt
+
+    if not (isinstance(arr, nbt.Array) and arr.dtype in (nbt.int16, nbt.int32) and arr.ndim == 1):
+        return None
+    sig = nbt.int64(arr, start, lim, bits)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        a, st, lm, mb = args
+        elem = signature.args[0].dtype
+        ary = context.make_array(signature.args[0])(context, builder, a)
+        st = context.cast(builder, st, signature.args[1], nbt.int64)
+        lm = context.cast(builder, lm, signature.args[2], elem)
+        mb = context.cast(builder, mb, signature.args[3], nbt.int64)
+        ety = context.get_value_type(elem)
+        vty = llir.VectorType(ety, _LANES)
+        mty = llir.VectorType(llir.IntType(1), _LANES)
+        i32 = llir.IntType(32)
+        pty = vty.as_pointer()
+        suffix = "p0" if getattr(pty, "is_opaque", False) else f"p0v{_LANES}i{ety.width}"
+        name = f"llvm.masked.load.v{_LANES}i{ety.width}.{suffix}"
+        fn = builder.module.globals.get(name) or llir.Function(
+            builder.module, llir.FunctionType(vty, [pty, i32, mty, vty]), name
+        )
+        lane_mask = builder.bitcast(builder.trunc(mb, llir.IntType(_LANES)), mty)
+        never = llir.Constant(vty, [int(np.iinfo(np.dtype(str(elem))).min)] * _LANES)
+        ptr = builder.bitcast(builder.gep(ary.data, [st]), pty)
+        vec = builder.call(fn, [ptr, llir.Constant(i32, ety.width // 8), lane_mask, never])
+        undef = llir.Constant(vty, llir.Undefined)
+        splat = builder.insert_element(undef, lm, llir.Constant(i32, 0))
+        splat = builder.shuffle_vector(
+            splat, undef, llir.Constant(llir.VectorType(i32, _LANES), [0] * _LANES)
+        )
+        hit = builder.bitcast(builder.icmp_signed(">=", vec, splat), llir.IntType(_LANES))
+        return builder.zext(builder.ctpop(hit), llir.IntType(64))
+
+    return sig, codegen
+
+
+@functools.lru_cache(maxsize=1)
+def _count_ge_intrinsic() -> Callable[..., int]:
     from numba.extending import intrinsic
 
-    @intrinsic
-    def count_ge(typingctx: Any, arr: Any, start: Any, lim: Any, bits: Any) -> Any:
-        if not (isinstance(arr, nbt.Array) and arr.dtype == nbt.int32 and arr.ndim == 1):
-            return None
-        sig = nbt.int64(arr, start, lim, bits)
-
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            a, st, lm, mb = args
-            ary = context.make_array(signature.args[0])(context, builder, a)
-            st = context.cast(builder, st, signature.args[1], nbt.int64)
-            lm = context.cast(builder, lm, signature.args[2], nbt.int32)
-            mb = context.cast(builder, mb, signature.args[3], nbt.int64)
-            vty = llir.VectorType(llir.IntType(32), lanes)
-            vec = builder.load(builder.bitcast(builder.gep(ary.data, [st]), vty.as_pointer()), align=4)
-            undef = llir.Constant(vty, llir.Undefined)
-            splat = builder.insert_element(undef, lm, llir.Constant(llir.IntType(32), 0))
-            splat = builder.shuffle_vector(splat, undef, llir.Constant(vty, [0] * lanes))
-            hit = builder.bitcast(builder.icmp_signed(">=", vec, splat), llir.IntType(lanes))
-            hit = builder.and_(hit, builder.trunc(mb, llir.IntType(lanes)))
-            return builder.zext(builder.ctpop(hit), llir.IntType(64))
-
-        return sig, codegen
-
-    return count_ge
+    return intrinsic(_count_ge)
 
 
-def _row_segments(radius: int) -> list[tuple[int, int]]:
-    """(lane offset, lanes) of the SIMD compares covering one neighbourhood row of 2r + 1 pixels."""
-    diam = 2 * radius + 1
-    segs = []
-    off = 0
-    while off < diam:
-        lanes = min(_MAX_LANES, ((diam - off + 7) // 8) * 8)
-        segs.append((off, lanes))
-        off += lanes
-    return segs
+def _prefetch(typingctx: Any, arr: Any, start: Any) -> Any:
+    """Prefetch the cache line of flat[start] (llvm.prefetch: read, keep in all levels)."""
+    from llvmlite import ir as llir
+    from numba import types as nbt
+
+    if not (isinstance(arr, nbt.Array) and arr.ndim == 1):
+        return None
+    sig = nbt.void(arr, start)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        a, st = args
+        ary = context.make_array(signature.args[0])(context, builder, a)
+        st = context.cast(builder, st, signature.args[1], nbt.int64)
+        i8p = llir.IntType(8).as_pointer()
+        i32 = llir.IntType(32)
+        name = "llvm.prefetch.p0" if getattr(i8p, "is_opaque", False) else "llvm.prefetch.p0i8"
+        fn = builder.module.globals.get(name) or llir.Function(
+            builder.module, llir.FunctionType(llir.VoidType(), [i8p, i32, i32, i32]), name
+        )
+        ptr = builder.bitcast(builder.gep(ary.data, [st]), i8p)
+        builder.call(fn, [ptr, llir.Constant(i32, 0), llir.Constant(i32, 3), llir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
-def _right_pad(radius: int) -> int:
-    """Columns of padding right of the sensor: r, plus what the last SIMD compare of a row reads past it."""
-    off, lanes = _row_segments(radius)[-1]
-    return off + lanes - radius - 1
+@functools.lru_cache(maxsize=1)
+def _prefetch_intrinsic() -> Callable[..., None]:
+    from numba.extending import intrinsic
+
+    return intrinsic(_prefetch)
+
+
+#: Events per block of the kernel (its index work space: 32 KiB, so it stays in L1/L2).
+BLOCK_EVENTS = 4096
+#: Events ahead whose neighbourhood lines the kernel prefetches: on a map larger than L2 (a
+#: 1280x720 sensor) the lines of scattered events otherwise arrive one miss at a time.
+PREFETCH_AHEAD = 32
+
+
+class MapLayout:
+    """Geometry of the padded, row-interleaved time map for one sensor and neighbourhood.
+
+    Row y of the sensor is padded row y + r, stored in group (y + r) // 4 at lane (y + r) % 4; column
+    x is padded column x + r. The neighbourhood's rows y - r .. y + r start in group y // 4 at lane
+    y % 4 (the "phase"), span at most `groups` groups, and its columns x - r .. x + r are read as
+    `segments` vectors of 8 columns from column x; padding (never fired) makes every read in bounds."""
+
+    def __init__(self, width: int, height: int, radius: int, half: tuple[int, ...]) -> None:
+        diam = 2 * radius + 1
+        self.radius = radius
+        self.groups = -(-(diam + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP)
+        self.segments = -(-diam // COLS_PER_VECTOR)
+        self.cols = width + self.segments * COLS_PER_VECTOR - 1
+        self.n_groups = (height - 1) // ROWS_PER_GROUP + self.groups
+        self.plane = self.n_groups * self.cols * ROWS_PER_GROUP
+        # lane masks per phase, group and segment: in the neighbourhood's shape, own pixel excluded
+        masks = np.zeros((ROWS_PER_GROUP, self.groups, self.segments), np.uint32)
+        for phase in range(ROWS_PER_GROUP):
+            for g in range(self.groups):
+                for s in range(self.segments):
+                    bits = 0
+                    for lane in range(_LANES):
+                        row = g * ROWS_PER_GROUP + lane % ROWS_PER_GROUP - phase  # 0 .. 2r
+                        dx = s * COLS_PER_VECTOR + lane // ROWS_PER_GROUP - radius
+                        if 0 <= row < diam and abs(dx) <= half[row] and not (row == radius and dx == 0):
+                            bits |= 1 << lane
+                    masks[phase, g, s] = bits
+        self.masks = masks
+        # own pixel's index minus the first vector's, per phase
+        self.own_offset = np.array(
+            [((ph + radius) >> 2) * self.cols * 4 + radius * 4 + ((ph + radius) & 3) for ph in range(4)],
+            np.int64,
+        )
 
 
 @functools.lru_cache(maxsize=32)
-def _make_kernel(radius: int, half: tuple[int, ...], update_on_drop: bool) -> Callable[..., None]:
-    """Kernel specialised to one neighbourhood shape and update rule, generated as source: the scan is
-    2r + 1 rows of SIMD compares with constant lane masks (own pixel and off-shape lanes masked out),
-    summed branch-free; no per-event branch on options.
-
-    `last` is (2, H + 2r, W + r + _right_pad(r)) int32 times relative to base_us (index 0 OFF, 1 ON),
-    padded with NEVER so no read needs a bounds check; the padding lanes never count."""
-    rad = radius
-    terms = []
-    for rr in range(2 * rad + 1):
-        for off, lanes in _row_segments(rad):
-            bits = 0
-            for k in range(lanes):
-                dx = off + k - rad
-                if abs(dx) <= half[rr] and not (rr == rad and dx == 0):
-                    bits |= 1 << k
-            if bits:
-                name = f"cnt{lanes}"
-                terms.append(f"{name}(flat, start + {rr} * stride + {off}, lim, {bits})")
-    count_expr = " + ".join(terms) if terms else "0"
-    store = "flat[c0] = ti" if update_on_drop else "if ok:\n            flat[c0] = ti"
+def _make_kernel(
+    radius: int, groups: int, segments: int, update_on_drop: bool, dtype: str
+) -> Callable[..., int]:
+    """Kernel specialised to one neighbourhood size and update rule, generated as source: the scan is
+    groups x segments masked vector compares summed branch-free; no per-event branch on options.
+    `dtype` is the map's (int16 or int32); the kernel returns the time base, which it moves forward
+    (a rebase of the map, saturating old times to "never") when a time leaves the map's range."""
+    info = np.iinfo(dtype)
+    terms = [
+        f"cnt(flat, start + {g * ROWS_PER_GROUP} * cols + {s * _LANES}, lim, masks[phase, {g}, {s}])"
+        for g in range(groups)
+        for s in range(segments)
+    ]
+    store = "flat[own] = ti" if update_on_drop else "if ok:\n            flat[own] = ti"
+    # every cache line of the vectors the event PREFETCH_AHEAD later will read
+    step = 64 // np.dtype(dtype).itemsize
+    offsets = sorted({*range(0, _LANES, step), _LANES - 1})
+    prefetches = "\n        ".join(
+        f"prefetch(flat, ahead + {g * ROWS_PER_GROUP} * cols + {s * _LANES + o})"
+        for g in range(groups)
+        for s in range(segments)
+        for o in offsets
+    )
     src = f"""
-def kernel(x, y, p, t, base_us, last, window_us, min_support, keep):
-    stride = last.shape[2]
-    plane_size = last.shape[1] * stride
-    flat = last.ravel()
-    for i in range(t.shape[0]):
-        ti = np.int32(t[i] - base_us)
-        lim = np.int32(ti - window_us)
-        pi = np.int64(p[i] > 0)
-        c0 = pi * plane_size + (np.int64(y[i]) + {rad}) * stride + np.int64(x[i]) + {rad}
-        start = c0 - {rad} * stride - {rad}
-        ok = ({count_expr}) >= min_support
+def scan(s, t, base, flat, masks, own_off, cols, window_us, min_support, keep):
+    n = t.shape[0]
+    for i in range(n):
+        ahead = s[min(i + {PREFETCH_AHEAD}, n - 1)] & -4
+        {prefetches}
+        rel = t[i] - base
+        if rel > {info.max}:
+            rebase(flat, min(rel, {2 * info.max + 2}), {info.min})
+            base = t[i]
+            rel = 0
+        ti = np.{dtype}(rel)
+        lim = np.{dtype}(rel - window_us)
+        phase = s[i] & 3
+        start = s[i] & -4
+        ok = ({" + ".join(terms)}) >= min_support
         keep[i] = ok
+        own = np.uint64(start + own_off[phase])
         {store}
+    return base
+
+
+def kernel(x, y, p, t, base_us, flat, masks, own_off, cols, plane, window_us, min_support, keep, s):
+    base = base_us
+    n = t.shape[0]
+    for a in range(0, n, s.shape[0]):
+        e = min(n, a + s.shape[0])
+        prepare(x[a:e], y[a:e], p[a:e], s, plane, cols)
+        base = scan(s[: e - a], t[a:e], base, flat, masks, own_off, cols, window_us, min_support, keep[a:e])
+    return base
 """
-    env: dict[str, Any] = {"np": np}
-    for _, lanes in _row_segments(rad):
-        env[f"cnt{lanes}"] = _make_count_ge(lanes)
-    exec(compile(src, f"<BAF kernel r={rad} half={half} update_on_drop={update_on_drop}>", "exec"), env)
-    kernel: Callable[..., None] = njit(nogil=True, boundscheck=False)(env["kernel"])
+    env: dict[str, Any] = {
+        "np": np,
+        "cnt": _count_ge_intrinsic(),
+        "prefetch": _prefetch_intrinsic(),
+        "rebase": _rebase,
+        "prepare": _prepare,
+    }
+    exec(compile(src, f"<BAF kernel r={radius} update_on_drop={update_on_drop} {dtype}>", "exec"), env)
+    env["scan"] = njit(nogil=True, boundscheck=False)(env["scan"])
+    kernel: Callable[..., int] = njit(nogil=True, boundscheck=False)(env["kernel"])
     return kernel
 
 
@@ -226,8 +365,14 @@ class BackgroundActivityFilter:
         self.update_on_drop = bool(update_on_drop)
         r = self.radius_px
         half = tuple(int(h) for h in row_half_widths(r, metric))
-        self._kernel = _make_kernel(r, half, self.update_on_drop)
-        self._last = np.full((2, self.height + 2 * r, self.width + r + _right_pad(r)), NEVER_REL, np.int32)
+        self._layout = MapLayout(self.width, self.height, r, half)
+        self._dtype = map_dtype(self.window_us)
+        self._never = int(np.iinfo(self._dtype).min)
+        self._kernel = _make_kernel(
+            r, self._layout.groups, self._layout.segments, self.update_on_drop, np.dtype(self._dtype).name
+        )
+        self._last = np.full(2 * self._layout.plane, self._never, self._dtype)
+        self._index = np.empty(BLOCK_EVENTS, np.int64)  # the scan's per-block work space
         self._base_us: int | None = None
         self._t_end: int | None = None
         self.n_in = 0
@@ -235,17 +380,9 @@ class BackgroundActivityFilter:
 
     def reset(self) -> None:
         """Forget every pixel's history (e.g. at a discontinuity in the stream)."""
-        self._last.fill(NEVER_REL)
+        self._last.fill(self._never)
         self._t_end = None
         self._base_us = None
-
-    def _rebase(self, new_base: int) -> None:
-        """Move the int32 time origin forward; times older than the int32 range become NEVER."""
-        if self._base_us is not None:
-            shift = new_base - self._base_us
-            rel = self._last.astype(np.int64) - shift
-            self._last[...] = np.where(rel < int(NEVER_REL) + 1, int(NEVER_REL), rel).astype(np.int32)
-        self._base_us = new_base
 
     def mask(self, events: EventArray) -> NDArray[np.bool_]:
         """Keep mask of one chunk, advancing the state."""
@@ -265,26 +402,27 @@ class BackgroundActivityFilter:
             raise ValueError(
                 f"BackgroundActivityFilter: event coordinates outside the {self.width}x{self.height} sensor"
             )
-        # Cut the chunk where its time would leave the int32 range of the current base.
-        start = 0
-        while start < n:
-            if self._base_us is None or int(t[start]) - self._base_us >= REBASE_AFTER_US:
-                self._rebase(int(t[start]))
-            assert self._base_us is not None
-            stop = int(np.searchsorted(t, self._base_us + REBASE_AFTER_US, side="left"))
-            stop = max(stop, start + 1)
+        if self._base_us is None:
+            self._base_us = int(t[0])
+        lay = self._layout
+        self._base_us = int(
             self._kernel(
-                events.x[start:stop],
-                events.y[start:stop],
-                events.p[start:stop],
-                t[start:stop],
+                events.x,
+                events.y,
+                events.p,
+                t,
                 self._base_us,
                 self._last,
+                lay.masks,
+                lay.own_offset,
+                lay.cols,
+                lay.plane,
                 self.window_us,
                 self.min_support,
-                keep[start:stop],
+                keep,
+                self._index,
             )
-            start = stop
+        )
         self._t_end = int(t[-1])
         kept = int(np.count_nonzero(keep))
         self.n_in += n

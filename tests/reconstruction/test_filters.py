@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
+from reconstruction import filters
 from reconstruction.filters import BackgroundActivityFilter, background_activity_filter
 from rigd.core.events import EventArray
 
@@ -44,7 +45,11 @@ def event_streams(draw: st.DrawFn) -> tuple[EventArray, int, int]:
     y = draw(st.lists(st.integers(0, h - 1), min_size=n, max_size=n))
     p = draw(st.lists(st.sampled_from([-1, 1]), min_size=n, max_size=n))
     dt = draw(
-        st.lists(st.integers(0, 25) | st.sampled_from([2**30 - 1, 2**30, 5 * 10**9]), min_size=n, max_size=n)
+        st.lists(
+            st.integers(0, 25) | st.sampled_from([2**15 - 1, 2**15, 2**16, 2**30 - 1, 2**30, 5 * 10**9]),
+            min_size=n,
+            max_size=n,
+        )
     )
     t0 = draw(st.sampled_from([0, 10_000_000_000]))
     t = t0 + np.cumsum(np.asarray(dt, np.int64))
@@ -55,7 +60,7 @@ def event_streams(draw: st.DrawFn) -> tuple[EventArray, int, int]:
 @given(
     data=event_streams(),
     radius=st.integers(1, 3),
-    window=st.integers(0, 40),
+    window=st.integers(0, 40) | st.sampled_from([32_767, 32_768, 70_000]),
     support=st.integers(0, 3),
     metric=st.sampled_from(["chebyshev", "euclidean"]),
     update_on_drop=st.booleans(),
@@ -156,4 +161,26 @@ def test_large_radius_matches_brute_force(radius: int, metric: str) -> None:
         want = brute_force(ev, radius, window, support, metric, update_on_drop)
         if update_on_drop:  # update_on_drop=False with support >= 1 never bootstraps: nothing kept
             assert 0 < got.sum() < n
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("window", [32_766, 32_767, 32_768, 1_000_000])
+@pytest.mark.parametrize("block", [filters.BLOCK_EVENTS, 7])
+def test_map_types_and_rebase_match_brute_force(
+    window: int, block: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # windows up to 32767 us keep int16 times (rebased every ~33 ms of stream), longer ones int32;
+    # gaps around the int16 range and the window exercise the rebase and its saturation; blocks of
+    # 7 events put the kernel's block edges (and rebases) everywhere in the stream
+    monkeypatch.setattr(filters, "BLOCK_EVENTS", block)
+    rng = np.random.default_rng(window)
+    n, w, h = 600, 9, 7
+    gaps = rng.choice([0, 1, 3, window // 2, window - 1, window, window + 1, 2**15, 2**16, 2**31], n)
+    t = 7 + np.cumsum(gaps)
+    ev = EventArray.from_arrays(rng.integers(0, w, n), rng.integers(0, h, n), rng.choice([-1, 1], n), t)
+    for support in (1, 2):
+        got = BackgroundActivityFilter(w, h, window_us=window, min_support=support).mask(ev)
+        want = brute_force(ev, 3, window, support, "chebyshev", True)
+        assert 0 < got.sum() < n
         np.testing.assert_array_equal(got, want)
