@@ -7,7 +7,8 @@ is imported from a checkout of its repository, unmodified.
 Opens EVENTS_H5 (`rigd export --format dsec`: events/<sensor>/events.h5) once with
 `EventSlicer(h5py.File(...))`, as DSEC's loaders do, prints one JSON line (versions, events,
 t_offset), then answers each request line `T0 T1` (the export's us) with one JSON line:
-`{"seconds": ..., "events": ..., "digest": ...}`. Only `get_events` is timed; the digest
+`{"seconds": ..., "cpu": ..., "events": ..., "digest": ...}` (wall and this thread's CPU
+seconds). Only `get_events` is timed; the digest
 (sha1 of x, y as uint16, p as uint8 and t as int64, in that order) is computed after it.
 """
 
@@ -58,14 +59,15 @@ def main() -> None:
             if not line.strip():
                 continue
             a, b = (int(v) for v in line.split())
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             ev = slicer.get_events(a, b)
-            seconds = time.perf_counter() - t0
+            seconds, cpu = time.perf_counter() - t0, time.thread_time() - c0
             if ev is None:
-                print(json.dumps({"seconds": seconds, "events": -1, "digest": ""}), flush=True)
+                print(json.dumps({"seconds": seconds, "cpu": cpu, "events": -1, "digest": ""}), flush=True)
                 continue
             d = digest(ev["x"], ev["y"], ev["p"], ev["t"])
-            print(json.dumps({"seconds": seconds, "events": int(ev["t"].size), "digest": d}), flush=True)
+            answer = {"seconds": seconds, "cpu": cpu, "events": int(ev["t"].size), "digest": d}
+            print(json.dumps(answer), flush=True)
 
 
 if __name__ == "__main__":
