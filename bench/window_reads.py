@@ -226,7 +226,8 @@ def main(argv: list[str] | None = None) -> None:
         r_med = np.median(peers) / np.median(mine)
         r_p99 = np.percentile(peers, 99) / np.percentile(mine, 99)
         print(
-            f"rigd vs EventSlicer, {what}: {r_med:.2f}x median, {r_p99:.2f}x p99 (EventSlicer time / rigd time)"
+            f"rigd vs EventSlicer, {what}: {r_med:.2f}x median, {r_p99:.2f}x p99 "
+            "(EventSlicer time / rigd time)"
         )
     same = args.windows + WARMUP - len(mismatched)
     print(f"identical windows: {same} of {args.windows + WARMUP} (count and x/y/p/t)")

@@ -102,7 +102,7 @@ class WordBytes:
     def _inflate(self, raw: bytes, dst: NDArray[np.uint8], c0: int) -> None:
         """The first len(dst) bytes of the chunk stored as `raw`."""
         reader = self._dctx.stream_reader(raw)
-        view, got = memoryview(dst), 0
+        view, got = dst.data, 0
         while got < dst.shape[0]:
             k = reader.readinto(view[got:])
             if k <= 0:
@@ -209,7 +209,7 @@ class EvtWordsEvents:
         if stop > last:
             return start + length
         frac = max(stop - first, 0) / (last - first + 1)
-        return start + min(length, int(length * (frac + _CUT_MARGIN)) + 64)
+        return start + min(length, max(int(length * (frac + _CUT_MARGIN)) + 64, 0))
 
     def _decode_device(self, r0: int, r1: int, stop: int | None = None) -> EventArray:
         """Rows [r0, r1) decoded, times in the device clock (their shifts added): each run of
