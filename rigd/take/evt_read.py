@@ -103,14 +103,21 @@ class WordBytes:
         """The first len(dst) bytes of the chunk stored as `raw`."""
         reader = self._dctx.stream_reader(raw)
         view, got = dst.data, 0
-        while got < dst.shape[0]:
-            k = reader.readinto(view[got:])
-            if k <= 0:
-                raise TakeFormatError(
-                    f"{self.where}/{Events.EVT_WORDS}: the chunk at byte {c0} decompresses to {got} bytes, "
-                    f"{dst.shape[0]} needed (damaged chunk)"
-                )
-            got += k
+        try:
+            while got < dst.shape[0]:
+                k = reader.readinto(view[got:])
+                if k <= 0:
+                    break
+                got += k
+        except zstandard.ZstdError as exc:
+            raise TakeFormatError(
+                f"{self.where}/{Events.EVT_WORDS}: the chunk at byte {c0} does not decompress ({exc})"
+            ) from exc
+        if got < dst.shape[0]:
+            raise TakeFormatError(
+                f"{self.where}/{Events.EVT_WORDS}: the chunk at byte {c0} decompresses to {got} bytes, "
+                f"{dst.shape[0]} needed (damaged chunk)"
+            )
 
 
 def is_evt_words(g: h5py.Group) -> bool:

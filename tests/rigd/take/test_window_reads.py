@@ -11,10 +11,12 @@ import h5py
 import hdf5plugin
 import numpy as np
 import pytest
+import zstandard
 
 from drivers.testing.evt_packets import packets_of
 from drivers.testing.evt_streams import assert_same
 from rigd.core.devices import DeviceInfo
+from rigd.core.errors import TakeFormatError
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
@@ -178,3 +180,22 @@ def test_word_bytes_read_what_h5py_reads(tmp_path: Path) -> None:
                 np.testing.assert_array_equal(reader.read(a, b), f[name][a:b], err_msg=f"{name} [{a}, {b})")
         kept = readers["zstd"].read(100, 5000).copy()
         np.testing.assert_array_equal(kept, data[100:5000])
+
+
+@pytest.mark.parametrize("stored", [b"\x00" * 300, None])
+def test_a_damaged_words_chunk_is_a_format_error_naming_it(tmp_path: Path, stored: bytes | None) -> None:
+    """Garbage where a zstd frame should be, or a frame of the wrong chunk's length."""
+    chunk = 4096
+    data = np.arange(3 * chunk, dtype=np.uint32).astype(np.uint8)
+    with h5py.File(tmp_path / "d.h5", "w") as f:
+        z = f.create_dataset(
+            "zstd", shape=data.shape, dtype="u1", chunks=(chunk,), **hdf5plugin.Zstd(clevel=1)
+        )
+        z[...] = data
+        bad = stored if stored is not None else zstandard.ZstdCompressor().compress(data[:100].tobytes())
+        z.id.write_direct_chunk((chunk,), bad, filter_mask=0)
+    with h5py.File(tmp_path / "d.h5", "r") as f:
+        reader = WordBytes(f["zstd"], "d.h5")
+        np.testing.assert_array_equal(reader.read(0, chunk), data[:chunk])
+        with pytest.raises(TakeFormatError, match=f"d.h5/evt_words: the chunk at byte {chunk} "):
+            reader.read(10, chunk + 200)
