@@ -2,7 +2,7 @@
 DSEC export, same windows, same run.
 
     python -m bench.window_reads [--take TAKE.h5] [--export DIR] [--windows 500] [--sensor ev0]
-        [--peer-python /tmp/scratch-window/bin/python] [--dsec-repo DIR] [--cpu N]
+        [--peer-python /tmp/scratch-window/bin/python] [--dsec-repo DIR] [--cpu N] [--what-if]
 
 Without `--take` it captures one with `rigd capture --duration 5 --sim-clock virtual --local`
 (the README's default sim rig: events stored as the EVT words the sensor sent); without
@@ -14,28 +14,36 @@ interleaved window by window (alternating which goes first), so background load 
 alike; each answers a digest of the events it returned (x, y, p, t) and every window must be
 identical. Both files were just written or read, so the windows come from the page cache; the
 table gives the disk's read rate (O_DIRECT) and memcpy beside them, and the load average.
+`--what-if` adds rows for copies of the take whose words are stored again with 64 KiB Zstd
+chunks and without compression: what the writer's storage settings cost a window.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import logging
 import mmap
 import os
+import shutil
 import subprocess
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
+import h5py
+import hdf5plugin
 import numpy as np
 from numpy.typing import NDArray
 
 from bench.peer_process import PeerProcess
 from rigd.core.events import EventArray
 from rigd.take import open_take
+from rigd.take.event_series import EventSeries
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +108,56 @@ def memcpy_gb_s(nbytes: int = 256 << 20) -> float:
     return nbytes / best / 1e9
 
 
+#: `--what-if`: the take's EVT words stored again with another chunk size / codec (chunk bytes,
+#: codec): what the writer's settings would change for window reads (index, rows, all else kept).
+WHAT_IF = {"zstd, 64 KiB chunks": (1 << 16, "zstd"), "uncompressed, 256 KiB chunks": (1 << 18, "none")}
+
+
+def restore_words(take: Path, sensor: str, dest: Path, chunk: int, codec: str) -> Path:
+    """A copy of the take whose sensor's `evt_words` dataset is written again with `chunk`
+    bytes per chunk and `codec` (zstd level 1 as the writer uses, or none)."""
+    shutil.copyfile(take, dest)
+    with h5py.File(dest, "r+") as f:
+        g = f[f"events/{sensor}"]
+        old = g["evt_words"]
+        data, attrs = old[()], dict(old.attrs)
+        del g["evt_words"]
+        kw = dict(hdf5plugin.Zstd(clevel=1)) if codec == "zstd" else {}
+        new = g.create_dataset("evt_words", data=data, chunks=(chunk,), maxshape=(None,), **kw)
+        new.attrs.update(attrs)
+    return dest
+
+
+class Reader(Protocol):
+    def read(self, a: int, b: int) -> tuple[float, float, int, str]:
+        """(wall s, CPU s, events, digest) of the window [a, b) in rig us."""
+        ...
+
+
+@dataclass
+class Ours:
+    series: EventSeries
+    origin: int
+
+    def read(self, a: int, b: int) -> tuple[float, float, int, str]:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        ev = self.series.events(a, b)
+        dt, dc = time.perf_counter() - t0, time.thread_time() - c0
+        return dt, dc, len(ev), digest(ev, self.origin)
+
+
+@dataclass
+class Peer:
+    peer: PeerProcess
+    origin: int
+
+    def read(self, a: int, b: int) -> tuple[float, float, int, str]:
+        got = self.peer.ask(f"{a - self.origin} {b - self.origin}")
+        if got["events"] < 0:
+            raise RuntimeError(f"EventSlicer returned None for [{a - self.origin}, {b - self.origin})")
+        return float(got["seconds"]), float(got["cpu"]), int(got["events"]), str(got["digest"])
+
+
 @dataclass
 class Column:
     name: str
@@ -142,6 +200,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--peer-python", type=Path, default=DEFAULT_PEER)
     ap.add_argument("--dsec-repo", type=Path, default=None)
     ap.add_argument("--cpu", type=int, default=None, help="Pin both readers to this CPU.")
+    ap.add_argument(
+        "--what-if",
+        action="store_true",
+        help="Also read copies of the take with its words re-stored (zstd 64 KiB chunks; uncompressed).",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     args.work.mkdir(parents=True, exist_ok=True)
@@ -159,52 +222,48 @@ def main(argv: list[str] | None = None) -> None:
     argv_peer = [str(args.peer_python), str(WORKER), str(dsec_repo(args)), str(events_h5)]
     peer = PeerProcess(argv_peer + ([str(args.cpu)] if args.cpu is not None else []))
     w_us = int(args.window_ms * 1000)
-    try:
-        with open_take(take) as tk:
-            series = tk.sensor(args.sensor)
-            storage = series.storage
-            # inside the export's events and its ms index (EventSlicer answers None past it)
-            h = peer.hello
-            lo = origin + int(h["t_offset"]) + 1000
-            hi = origin + min(int(h["t_final"]), (int(h["ms_to_idx"]) - 2) * 1000) - w_us
-            if hi <= lo:
-                raise RuntimeError(f"{events_h5}: shorter than one {args.window_ms:g} ms window")
-            starts = np.random.default_rng(args.seed).integers(lo, hi, args.windows + WARMUP)
-            ours, theirs, n_ours, n_theirs, mismatched = [], [], [], [], []
-            cpu_ours, cpu_theirs = [], []
-            for i, s in enumerate(starts.tolist()):
-                a, b = int(s), int(s) + w_us
-                for who in ("rigd", "peer") if i % 2 == 0 else ("peer", "rigd"):
-                    if who == "rigd":
-                        t0, c0 = time.perf_counter(), time.thread_time()
-                        ev = series.events(a, b)
-                        dt, dc = time.perf_counter() - t0, time.thread_time() - c0
-                        mine = digest(ev, origin)
-                        if i >= WARMUP:
-                            ours.append(dt)
-                            cpu_ours.append(dc)
-                            n_ours.append(len(ev))
-                    else:
-                        got = peer.ask(f"{a - origin} {b - origin}")
-                        if got["events"] < 0:
-                            raise RuntimeError(f"EventSlicer returned None for [{a - origin}, {b - origin})")
-                        if i >= WARMUP:
-                            theirs.append(got["seconds"])
-                            cpu_theirs.append(got["cpu"])
-                            n_theirs.append(got["events"])
-                if got["digest"] != mine:
-                    mismatched.append((a, b, len(ev), got["events"]))
-    finally:
-        peer.close()
+    what_ifs = {
+        name: restore_words(take, args.sensor, args.work / f"what-if-{codec}-{chunk}.h5", chunk, codec)
+        for name, (chunk, codec) in (WHAT_IF.items() if args.what_if else ())
+    }
+    with contextlib.ExitStack() as stack:
+        stack.callback(peer.close)
+        series = stack.enter_context(open_take(take)).sensor(args.sensor)
+        storage = series.storage
+        readers: dict[str, Reader] = {"rigd `Take.sensor().events` (EVT words take)": Ours(series, origin)}
+        for name, path in what_ifs.items():
+            readers[f"rigd, words re-stored: {name} (what-if)"] = Ours(
+                stack.enter_context(open_take(path)).sensor(args.sensor), origin
+            )
+        readers["DSEC `EventSlicer.get_events` (DSEC export)"] = Peer(peer, origin)
+        # inside the export's events and its ms index (EventSlicer answers None past it)
+        h = peer.hello
+        lo = origin + int(h["t_offset"]) + 1000
+        hi = origin + min(int(h["t_final"]), (int(h["ms_to_idx"]) - 2) * 1000) - w_us
+        if hi <= lo:
+            raise RuntimeError(f"{events_h5}: shorter than one {args.window_ms:g} ms window")
+        starts = np.random.default_rng(args.seed).integers(lo, hi, args.windows + WARMUP)
+        timed: dict[str, list[tuple[float, float, int]]] = {name: [] for name in readers}
+        mismatched: list[str] = []
+        names = list(readers)
+        for i, s in enumerate(starts.tolist()):
+            a, b = int(s), int(s) + w_us
+            answers = {}
+            for k in range(len(names)):  # each window in a rotated order
+                name = names[(i + k) % len(names)]
+                answers[name] = readers[name].read(a, b)
+                if i >= WARMUP:
+                    timed[name].append(answers[name][:3])
+            if len({d for *_, d in answers.values()}) != 1:
+                counts = ", ".join(f"{n}: {ans[2]}" for n, ans in answers.items())
+                mismatched.append(f"[{a}, {b}) rig us: {counts}")
     load = os.getloadavg()
     uptime = subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
     disk = disk_read_mb_s(take)
     mem = memcpy_gb_s()
     cols = [
-        Column("rigd `Take.sensor().events` (EVT words take)", ms(ours), ms(cpu_ours), np.asarray(n_ours)),
-        Column(
-            "DSEC `EventSlicer.get_events` (DSEC export)", ms(theirs), ms(cpu_theirs), np.asarray(n_theirs)
-        ),
+        Column(name, ms([t[0] for t in v]), ms([t[1] for t in v]), np.asarray([t[2] for t in v]))
+        for name, v in timed.items()
     ]
     print(f"take {take} ({args.sensor} stored as {storage}), export {events_h5}")
     print(f"peer: {peer.hello['peer']}; {peer.hello['versions']}")
@@ -222,7 +281,7 @@ def main(argv: list[str] | None = None) -> None:
     print("|---|---|---|---|---|---|---|---|")
     for c in cols:
         print(c.row())
-    for what, mine, peers in (("wall", cols[0].ms, cols[1].ms), ("CPU", cols[0].cpu_ms, cols[1].cpu_ms)):
+    for what, mine, peers in (("wall", cols[0].ms, cols[-1].ms), ("CPU", cols[0].cpu_ms, cols[-1].cpu_ms)):
         r_med = np.median(peers) / np.median(mine)
         r_p99 = np.percentile(peers, 99) / np.percentile(mine, 99)
         print(
@@ -230,10 +289,10 @@ def main(argv: list[str] | None = None) -> None:
             "(EventSlicer time / rigd time)"
         )
     same = args.windows + WARMUP - len(mismatched)
-    print(f"identical windows: {same} of {args.windows + WARMUP} (count and x/y/p/t)")
+    print(f"identical windows: {same} of {args.windows + WARMUP} (count and x/y/p/t, every reader)")
     if mismatched:
-        for a, b, k_ours, k_theirs in mismatched[:5]:
-            print(f"  differs: [{a}, {b}) rig us: rigd {k_ours} events, EventSlicer {k_theirs}")
+        for line in mismatched[:5]:
+            print(f"  differs: {line}")
         raise SystemExit(1)
 
 
