@@ -16,7 +16,7 @@ import zstandard
 from drivers.testing.evt_packets import packets_of
 from drivers.testing.evt_streams import assert_same
 from rigd.core.devices import DeviceInfo
-from rigd.core.errors import TakeFormatError
+from rigd.core.errors import TakeError, TakeFormatError
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.schema import SyncReport
 from rigd.core.settings import WriterConfig
@@ -153,10 +153,12 @@ def test_compiled_rig_map_is_the_clock_maps_to_the_bit(cmap: ClockMap) -> None:
     assert _to_rig(t[:0], 0, 0, 1.0, 0.0).shape == (0,)
 
 
-def test_word_bytes_read_what_h5py_reads(tmp_path: Path) -> None:
+@pytest.mark.parametrize("mapped", [False, True])
+def test_word_bytes_read_what_h5py_reads(tmp_path: Path, mapped: bool) -> None:
     """Zstd chunks (one stored uncompressed, filter mask bit 0, one never written), a gzip and
-    a contiguous dataset: every range the same as h5py's slice, across chunk edges, and a
-    result stays valid until the next read only (the buffer is kept)."""
+    a contiguous dataset, through HDF5 or the mapped file: every range the same as h5py's
+    slice, across chunk edges, and a result stays valid until the next read only (the buffer
+    is kept)."""
     rng = np.random.default_rng(4)
     size, chunk = 10 * 4096, 4096
     data = (rng.integers(0, 16, size) * 3).astype(np.uint8)  # compressible
@@ -168,7 +170,10 @@ def test_word_bytes_read_what_h5py_reads(tmp_path: Path) -> None:
         f.create_dataset("gzip", data=data, chunks=(chunk,), compression="gzip")
         f.create_dataset("plain", data=data)
     with h5py.File(tmp_path / "w.h5", "r") as f:
-        readers = {name: WordBytes(f[name], f"w.h5/{name}") for name in ("zstd", "gzip", "plain")}
+        readers = {
+            name: WordBytes(f[name], f"w.h5/{name}", mapped=mapped) for name in ("zstd", "gzip", "plain")
+        }
+        assert (readers["zstd"]._map is not None) == mapped
         assert readers["zstd"].direct
         assert not readers["gzip"].direct
         assert not readers["plain"].direct
@@ -199,3 +204,24 @@ def test_a_damaged_words_chunk_is_a_format_error_naming_it(tmp_path: Path, store
         np.testing.assert_array_equal(reader.read(0, chunk), data[:chunk])
         with pytest.raises(TakeFormatError, match=f"d.h5/evt_words: the chunk at byte {chunk} "):
             reader.read(10, chunk + 200)
+
+
+def test_a_mapped_reader_of_a_closed_take_refuses_and_one_with_a_user_block_is_not_mapped(
+    takes: tuple[Path, Path, EventArray], tmp_path: Path
+) -> None:
+    words, _, rig = takes
+    t0 = int(rig.t[len(rig) // 2])
+    with open_take(words) as take:
+        series = take.sensor("ev0")
+        assert len(series.events(t0, t0 + 20_000)) > 0
+        reader = series._words()._bytes  # type: ignore[union-attr]
+        assert reader._map is not None
+    with pytest.raises(TakeError):
+        series.events(t0, t0 + 20_000)
+    data = np.arange(50_000, dtype=np.uint32).astype(np.uint8)
+    with h5py.File(tmp_path / "u.h5", "w", userblock_size=512) as f:
+        f.create_dataset("zstd", data=data, chunks=(4096,), **hdf5plugin.Zstd(clevel=1))
+    with h5py.File(tmp_path / "u.h5", "r") as f:
+        reader = WordBytes(f["zstd"], "u.h5", mapped=True)
+        assert reader._map is None
+        np.testing.assert_array_equal(reader.read(5, 40_000), data[5:40_000])
