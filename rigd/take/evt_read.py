@@ -357,15 +357,16 @@ class EvtWordsEvents:
             i = int(np.searchsorted(ev.t, t0, side="left"))
             return ev[i : max(i, int(np.searchsorted(ev.t, t1, side="left")))]
         # map only the events near the window: the map is monotonic, its inverse exact to 1 us
-        d0, d1 = (int(v) for v in self.cmap.to_device(np.array([t0, t1])))
+        # (`ClockMap.to_device` in Python floats: the same IEEE operations, no arrays for two)
+        c = self.cmap
+        d0, d1 = (round((float(t - c.rig_ref_us) - c.frac_us) / c.rate) + c.device_ref_us for t in (t0, t1))
         ev = self._decode_device(r0, max(r0, r1), stop=d1 + _MAP_SLACK_US)
-        a = int(np.searchsorted(ev.t, d0 - _MAP_SLACK_US, side="left"))
-        b = int(np.searchsorted(ev.t, d1 + _MAP_SLACK_US, side="left"))
+        a = int(ev.t.searchsorted(d0 - _MAP_SLACK_US, side="left"))
+        b = int(ev.t.searchsorted(d1 + _MAP_SLACK_US, side="left"))
         rig = self.to_rig(ev.t[a:b])
-        i = int(np.searchsorted(rig, t0, side="left"))
-        j = max(i, int(np.searchsorted(rig, t1, side="left")))
-        part = ev[a + i : a + j]
-        return part.with_time(rig[i:j])
+        i = int(rig.searchsorted(t0, side="left"))
+        j = max(i, int(rig.searchsorted(t1, side="left")))
+        return EventArray(ev.x[a + i : a + j], ev.y[a + i : a + j], ev.p[a + i : a + j], rig[i:j])
 
     def span(self) -> tuple[int, int] | None:
         n = len(self)
