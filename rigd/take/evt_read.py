@@ -39,6 +39,8 @@ _ZSTD_FILTER = 32015
 #: A window's last row is first decoded up to where its time interpolates to the window's end,
 #: plus this fraction of the row (rows are ~10 ms; events are about even in time within one).
 _CUT_MARGIN = 1 / 8
+#: Rows `histogram` decodes with one read at most (each at most 1 MiB of words).
+_HISTOGRAM_ROWS = 64
 #: The largest byte buffer a reader keeps for the next read (a 50 ms window of a 20 Mev/s
 #: sensor is ~2.5 MB); longer reads get their own.
 _KEEP_BUFFER = 16 << 20
@@ -390,10 +392,15 @@ class EvtWordsEvents:
         edge = (rows == r0) | (rows == r1 - 1)
         whole = (bf == bl) & ~edge & (bf >= 0) & (bf < counts.size)
         np.add.at(counts, bf[whole], self.count[rows[whole]])
-        for r in rows[~whole & (self.count[rows] > 0)]:
-            ev = self.decode_rows(int(r), int(r) + 1)
-            lo = max(self.i0 - int(self.cum[r]), 0)
-            hi = min(self.i1 - int(self.cum[r]), len(ev))
+        # the rows to decode, a run of neighbours with one read (a chunk is decompressed from
+        # its start, so row by row would decompress each chunk's first bytes again and again)
+        need = rows[~whole & (self.count[rows] > 0)]
+        cuts = np.flatnonzero((np.diff(need) != 1) | (np.arange(1, need.size) % _HISTOGRAM_ROWS == 0)) + 1
+        for run in np.split(need, cuts) if need.size else []:
+            a, b = int(run[0]), int(run[-1]) + 1
+            ev = self.decode_rows(a, b)
+            lo = max(self.i0 - int(self.cum[a]), 0)
+            hi = min(self.i1 - int(self.cum[a]), len(ev))
             k = (ev.t[lo:hi] - origin) // bin_us - k0
-            np.add.at(counts, k[(k >= 0) & (k < counts.size)], 1)
+            counts += np.bincount(k[(k >= 0) & (k < counts.size)], minlength=counts.size)
         return origin + k0 * bin_us, counts

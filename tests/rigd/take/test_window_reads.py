@@ -225,3 +225,17 @@ def test_a_mapped_reader_of_a_closed_take_refuses_and_one_with_a_user_block_is_n
         reader = WordBytes(f["zstd"], "u.h5", mapped=True)
         assert reader._map is None
         np.testing.assert_array_equal(reader.read(5, 40_000), data[5:40_000])
+
+
+@pytest.mark.parametrize("bin_us", [1_000, 7_000, 50_000, 1_000_000])
+def test_histogram_decoding_runs_of_rows_counts_every_event(
+    takes: tuple[Path, Path, EventArray], bin_us: int
+) -> None:
+    words, columns, rig = takes
+    with open_take(words) as w, open_take(columns) as c:
+        origin, counts = w.sensor("ev0").histogram(bin_us)
+        origin_columns, counts_columns = c.sensor("ev0").histogram(bin_us)
+    assert origin == origin_columns
+    np.testing.assert_array_equal(counts, counts_columns)
+    k = (rig.t - origin) // bin_us
+    np.testing.assert_array_equal(counts, np.bincount(k, minlength=counts.size))
