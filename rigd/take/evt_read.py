@@ -16,6 +16,7 @@ import json
 import mmap
 import os
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -73,6 +74,8 @@ class WordBytes:
         self.zstd = filters == [_ZSTD_FILTER]
         self._dctx = zstandard.ZstdDecompressor()
         self._buf = np.empty(0, np.uint8)
+        self._lo = self._hi = 0  # the dataset's bytes the buffer holds
+        self._live: tuple[int, int, Any] | None = None  # (chunk, byte, zstd stream) left inside a chunk
         self._where_chunk: dict[int, tuple[int, int, int]] = {}  # byte -> (offset, size, mask)
         self._map: mmap.mmap | None = None
         self._map = self._open_map() if mapped and self.direct else None
@@ -118,37 +121,76 @@ class WordBytes:
         return int(mask), raw
 
     def read(self, a: int, b: int) -> NDArray[np.uint8]:
-        """Bytes [a, b) of the dataset (b at most its length). Valid until the next call: a
-        window's bytes live in one buffer the reader keeps (no fresh pages per window)."""
+        """Bytes [a, b) of the dataset (b at most its length). Valid until the next call: the
+        bytes live in one buffer the reader keeps (no fresh pages per window), which holds the
+        dataset's bytes [lo, hi) from a chunk's start on. A read that starts in a chunk the
+        buffer already holds goes on from there (its zstd stream too, when the last read
+        stopped inside a chunk): windows read in order, or a read that finishes a row the
+        last one cut short, decompress nothing twice."""
         if not self.direct or b <= a or not self.ds.id.valid:  # a closed take: h5py says so
             return np.asarray(self.ds[a:b], dtype=np.uint8)
-        size = self.chunk
-        first = a - a % size  # the first chunk is decoded from its start, into the buffer too
-        if self._buf.shape[0] >= b - first:
-            buf = self._buf
-        else:
-            buf = np.empty(b - first, np.uint8)
-            if b - first <= _KEEP_BUFFER:
-                self._buf = buf
-        for c0 in range(first, b, size):
-            hi = min(c0 + size, b)
-            try:
-                mask, raw = self._stored(c0)
-            except RuntimeError:
-                if self.ds.id.get_chunk_info_by_coord((c0,)).byte_offset is not None:
-                    raise
-                # never written (a damaged take): what h5py reads there, the fill value
-                buf[c0 - first : hi - first] = self.ds[c0:hi]
-                continue
-            if not self.zstd or mask & 1:  # stored as it is (writer behind, decision 0021)
-                buf[c0 - first : hi - first] = np.frombuffer(raw, np.uint8, count=hi - c0)
+        first = a - a % self.chunk  # a chunk is decoded from its start, into the buffer too
+        if not self._lo <= first < self._hi:
+            self._lo = self._hi = first
+            self._live = None
+        elif b <= self._hi:
+            return self._buf[a - self._lo : b - self._lo]
+        if b - self._lo > self._buf.shape[0]:
+            kept = self._buf[first - self._lo : self._hi - self._lo]
+            if b - first > _KEEP_BUFFER:  # a long read: its own buffer, nothing kept after it
+                buf = np.empty(b - first, np.uint8)
+                buf[: kept.shape[0]] = kept
+                self._fill(buf, first, self._hi, b)
+                self._lo = self._hi = 0
+                self._live = None
+                return buf[a - first :]
+            if b - first > self._buf.shape[0]:
+                grown = np.empty(max(b - first, 2 * self._buf.shape[0]), np.uint8)
+                grown = grown[: min(grown.shape[0], _KEEP_BUFFER)]
+                grown[: kept.shape[0]] = kept
+                self._buf = grown
             else:
-                self._inflate(raw, buf[c0 - first : hi - first], c0)
-        return buf[a - first : b - first]
+                self._buf[: kept.shape[0]] = kept.copy()
+            self._lo = first
+        self._fill(self._buf, self._lo, self._hi, b)
+        self._hi = b
+        return self._buf[a - self._lo : b - self._lo]
 
-    def _inflate(self, raw: bytes | memoryview, dst: NDArray[np.uint8], c0: int) -> None:
-        """The first len(dst) bytes of the chunk stored as `raw`."""
-        reader = self._dctx.stream_reader(raw)
+    def _fill(self, buf: NDArray[np.uint8], base: int, pos: int, b: int) -> None:
+        """Bytes [pos, b) into buf (whose byte 0 is the dataset's byte `base`), chunk by chunk;
+        a chunk begun before `pos` goes on from the zstd stream left there."""
+        size = self.chunk
+        while pos < b:
+            c0 = pos - pos % size
+            hi = min(c0 + size, b)
+            dst = buf[pos - base : hi - base]
+            live, self._live = self._live, None
+            if live is not None and live[0] == c0 and live[1] == pos:
+                reader = live[2]
+            else:
+                try:
+                    mask, raw = self._stored(c0)
+                except RuntimeError:
+                    if self.ds.id.get_chunk_info_by_coord((c0,)).byte_offset is not None:
+                        raise
+                    # never written (a damaged take): what h5py reads there, the fill value
+                    dst[:] = self.ds[pos:hi]
+                    pos = hi
+                    continue
+                if not self.zstd or mask & 1:  # stored as it is (writer behind, decision 0021)
+                    dst[:] = np.frombuffer(raw, np.uint8, count=hi - c0)[pos - c0 :]
+                    pos = hi
+                    continue
+                reader = self._dctx.stream_reader(raw)
+                if pos > c0:  # begun, its stream not kept: again from the chunk's start
+                    dst = buf[c0 - base : hi - base]
+            self._inflate(reader, dst, c0)
+            if hi < c0 + size:
+                self._live = (c0, hi, reader)
+            pos = hi
+
+    def _inflate(self, reader: Any, dst: NDArray[np.uint8], c0: int) -> None:
+        """The next len(dst) bytes of the zstd stream of the chunk at byte c0."""
         view, got = dst.data, 0
         try:
             while got < dst.shape[0]:
@@ -162,8 +204,8 @@ class WordBytes:
             ) from exc
         if got < dst.shape[0]:
             raise TakeFormatError(
-                f"{self.where}/{Events.EVT_WORDS}: the chunk at byte {c0} decompresses to {got} bytes, "
-                f"{dst.shape[0]} needed (damaged chunk)"
+                f"{self.where}/{Events.EVT_WORDS}: the chunk at byte {c0} decompresses to fewer bytes "
+                f"than its share of the dataset (damaged chunk)"
             )
 
 

@@ -153,12 +153,16 @@ def test_compiled_rig_map_is_the_clock_maps_to_the_bit(cmap: ClockMap) -> None:
     assert _to_rig(t[:0], 0, 0, 1.0, 0.0).shape == (0,)
 
 
+@pytest.mark.parametrize("keep", [evt_read._KEEP_BUFFER, 9_000])
 @pytest.mark.parametrize("mapped", [False, True])
-def test_word_bytes_read_what_h5py_reads(tmp_path: Path, mapped: bool) -> None:
+def test_word_bytes_read_what_h5py_reads(
+    tmp_path: Path, mapped: bool, keep: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Zstd chunks (one stored uncompressed, filter mask bit 0, one never written), a gzip and
-    a contiguous dataset, through HDF5 or the mapped file: every range the same as h5py's
-    slice, across chunk edges, and a result stays valid until the next read only (the buffer
-    is kept)."""
+    a contiguous dataset, through HDF5 or the mapped file, with the kept buffer's bound as it is
+    and small (reads longer than it, a buffer that grows): every range the same as h5py's slice,
+    across chunk edges, in any order; a result stays valid until the next read only."""
+    monkeypatch.setattr(evt_read, "_KEEP_BUFFER", keep)
     rng = np.random.default_rng(4)
     size, chunk = 10 * 4096, 4096
     data = (rng.integers(0, 16, size) * 3).astype(np.uint8)  # compressible
@@ -183,6 +187,16 @@ def test_word_bytes_read_what_h5py_reads(tmp_path: Path, mapped: bool) -> None:
         for name, reader in readers.items():
             for a, b in ranges:
                 np.testing.assert_array_equal(reader.read(a, b), f[name][a:b], err_msg=f"{name} [{a}, {b})")
+        # in order, overlapping, going on inside a chunk, and back: what a run of windows asks
+        pos = 0
+        while pos < size:
+            a = max(0, pos - int(rng.integers(0, 6000)))
+            b = min(size, pos + int(rng.integers(1, 9000)))
+            for name, reader in readers.items():
+                np.testing.assert_array_equal(
+                    reader.read(a, b), data[a:b] if name != "zstd" else f[name][a:b]
+                )
+            pos = b
         kept = readers["zstd"].read(100, 5000).copy()
         np.testing.assert_array_equal(kept, data[100:5000])
 
