@@ -2,8 +2,10 @@
 
 `evt_index` says, per stored block, where its bytes are, how many events it decodes to, its
 first and last time and the decoder state to start from. A read finds the blocks a request
-overlaps (their times mapped through the sensor's clock map), reads their bytes in one h5py
-slice and decodes each block from its own state with the production decoder. Times are not
+overlaps (their times mapped through the sensor's clock map), reads their bytes (`WordBytes`:
+the Zstd chunks decompressed here, only as far as needed) and decodes each run of blocks from its
+first block's state with the production decoder; a time window stops decoding where the window
+ends (decision 0035). Times are not
 rewritten at finalize: the reader adds each block's shift and applies the clock map, and clips
 to the take window, whose stored events [first_in_window, first_in_window + events_in_window)
 finalize counted (`window_range`). Event indices count the events inside the window.
@@ -16,7 +18,6 @@ import json
 import mmap
 import os
 from pathlib import Path
-from typing import Any
 
 import h5py
 import numpy as np
@@ -75,7 +76,8 @@ class WordBytes:
         self._dctx = zstandard.ZstdDecompressor()
         self._buf = np.empty(0, np.uint8)
         self._lo = self._hi = 0  # the dataset's bytes the buffer holds
-        self._live: tuple[int, int, Any] | None = None  # (chunk, byte, zstd stream) left inside a chunk
+        # (chunk, byte, zstd stream) where the last read stopped inside a chunk
+        self._live: tuple[int, int, zstandard.ZstdDecompressionReader] | None = None
         self._where_chunk: dict[int, tuple[int, int, int]] = {}  # byte -> (offset, size, mask)
         self._map: mmap.mmap | None = None
         self._map = self._open_map() if mapped and self.direct else None
@@ -145,8 +147,7 @@ class WordBytes:
                 self._live = None
                 return buf[a - first :]
             if b - first > self._buf.shape[0]:
-                grown = np.empty(max(b - first, 2 * self._buf.shape[0]), np.uint8)
-                grown = grown[: min(grown.shape[0], _KEEP_BUFFER)]
+                grown = np.empty(min(max(b - first, 2 * self._buf.shape[0]), _KEEP_BUFFER), np.uint8)
                 grown[: kept.shape[0]] = kept
                 self._buf = grown
             else:
@@ -189,7 +190,7 @@ class WordBytes:
                 self._live = (c0, hi, reader)
             pos = hi
 
-    def _inflate(self, reader: Any, dst: NDArray[np.uint8], c0: int) -> None:
+    def _inflate(self, reader: zstandard.ZstdDecompressionReader, dst: NDArray[np.uint8], c0: int) -> None:
         """The next len(dst) bytes of the zstd stream of the chunk at byte c0."""
         view, got = dst.data, 0
         try:
