@@ -36,19 +36,22 @@ class PeerProcess:
             )
         self.hello: dict[str, Any] = json.loads(line)
 
-    def run(self, request: str) -> tuple[float, int]:
-        """(seconds, events) of one request, as the worker measured them."""
-        answer = self.ask(request)
-        return float(answer["seconds"]), int(answer["events"])
-
     def ask(self, request: str) -> dict[str, Any]:
-        """The worker's whole answer to one request (what it measured beyond seconds/events)."""
+        """The worker's whole answer to one request (a JSON object)."""
         assert self.proc.stdin is not None
         assert self.proc.stdout is not None
         self.proc.stdin.write(request + "\n")
         self.proc.stdin.flush()
-        answer: dict[str, Any] = json.loads(self.proc.stdout.readline())
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"peer worker exited (code {self.proc.poll()}) before answering {request!r}")
+        answer: dict[str, Any] = json.loads(line)
         return answer
+
+    def run(self, request: str) -> tuple[float, int]:
+        """(seconds, events) of one request, as the worker measured them."""
+        answer = self.ask(request)
+        return float(answer["seconds"]), int(answer["events"])
 
     def close(self) -> None:
         if self.proc.stdin is not None:
