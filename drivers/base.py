@@ -479,6 +479,9 @@ class Trigger(Device):
     """
 
     kind = "trigger"
+    follows: ClassVar[bool] = False
+    """A trigger that follows a box another host drives (a multi-host rig's follower): its stop
+    only learns how many pulses the box emitted, and the take's last pulse is that box's."""
 
     def __init__(self) -> None:
         super().__init__()

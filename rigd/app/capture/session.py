@@ -16,8 +16,12 @@ import logging
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
+from drivers.base import Trigger
 from rigd import __version__
 from rigd.app.capture.ballast import Ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
@@ -29,6 +33,7 @@ from rigd.app.capture.kinds import open_channels
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.app.capture.preflight import prepare_rig
+from rigd.app.capture.remote_trigger import FeedState
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.stop import CLOSE_BOUND_S, AcquisitionStop, StopWait
@@ -66,6 +71,7 @@ class CaptureSession:
         label: str | None = None,
         reconnect_interval_s: float | None = None,
         disk_usage: DiskUsage = shutil.disk_usage,
+        open_trigger: Callable[[], Trigger] | None = None,
     ) -> None:
         if duration_s is not None:
             check_duration(duration_s)
@@ -101,6 +107,10 @@ class CaptureSession:
         self._flush_watch = FlushWatch(config.writer.flush_interval_s, self._faults)
         self._trigger_live = LiveStats("trigger")
         self._trigger: TriggerChannel | None = None
+        self._pulses_of_take: int | None = None
+        """Pulses of the take, once the box has stopped (what a follower host's take ends at)."""
+        self._open_trigger = open_trigger
+        """Opens the trigger instead of `config.trigger.spec` (a follower host's remote trigger)."""
         self._watchdog: TriggerWatchdog | None = None
         self._channels: dict[str, DeviceChannel] = {}
         self._take: TakeWriter | None = None
@@ -180,6 +190,20 @@ class CaptureSession:
         if self._error is not None:
             raise self._error
         return self._result
+
+    def pulse_feed(self, since: int) -> FeedState:
+        """The pulse records from `since` on and where the box stands: what follower hosts of a
+        multi-host rig fetch (`RemoteTrigger`)."""
+        trigger = self._trigger
+        if trigger is None:
+            return FeedState(np.empty(0, np.int64), np.empty(0, np.int64), self._state == "starting", None, 0)
+        index, t_us = trigger.records_since(since)
+        emitted = self._pulses_of_take
+        if emitted is None and self._state in ("failed", "done"):
+            emitted = trigger.n_pulses
+        last = trigger.records_since(max(0, trigger.n_pulses - 1))[1]
+        clock = int(last[-1]) if len(last) else 0
+        return FeedState(index, t_us, emitted is None, emitted, clock)
 
     @property
     def done(self) -> bool:
@@ -284,6 +308,7 @@ class CaptureSession:
             self._faults,
             self._trigger_live,
             self._window,
+            device=None if self._open_trigger is None else self._open_trigger(),
         )
         ctx = ChannelContext(
             self._control,
@@ -423,6 +448,7 @@ class CaptureSession:
             self._faults,
         )
         emitted = stop.stop_trigger()
+        self._pulses_of_take = emitted
         self._enter("waiting for devices")
         behind = stop.wait_for_window()
         self._enter("draining")

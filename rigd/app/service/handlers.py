@@ -19,7 +19,15 @@ from pydantic import BaseModel
 
 from rigd import __version__
 from rigd.app.config import RigConfig
-from rigd.app.service.protocol import PROTOCOL_VERSION, CaptureArgs, ShutdownArgs, StopArgs, Telemetry
+from rigd.app.service.protocol import (
+    PROTOCOL_VERSION,
+    CaptureArgs,
+    CapturePartArgs,
+    PulsesArgs,
+    ShutdownArgs,
+    StopArgs,
+    Telemetry,
+)
 from rigd.app.service.requests import RequestError
 from rigd.app.service.rig_slot import RigSlot
 
@@ -57,6 +65,10 @@ class Handlers:
         session = self._slot.begin_capture(args)
         return functools.partial(self._slot.start_capture, session, args)
 
+    def claim_capture_part(self, args: CapturePartArgs) -> Callable[[], dict[str, Any]]:
+        session = self._slot.begin_part(args)
+        return functools.partial(self._slot.start_capture, session, args)
+
     def claim_recover(self, _: BaseModel) -> Callable[[], dict[str, Any]]:
         return self._slot.claim_recovery()
 
@@ -77,6 +89,12 @@ class Handlers:
 
     def cmd_capture(self, args: CaptureArgs) -> dict[str, Any]:
         return self.claim_capture(args)()
+
+    def cmd_capture_part(self, args: CapturePartArgs) -> dict[str, Any]:
+        return self.claim_capture_part(args)()
+
+    def cmd_pulses(self, args: PulsesArgs) -> dict[str, Any]:
+        return self._slot.pulses(args)
 
     def cmd_stop(self, args: StopArgs) -> dict[str, Any]:
         return self._slot.stop(args.reason)

@@ -21,7 +21,9 @@ PROTOCOL_VERSION = 1
 #: Largest control message the daemon reads; bigger ones are refused by ZeroMQ itself.
 MAX_MESSAGE_BYTES = 64 * 1024
 
-Command = Literal["ping", "status", "capture", "stop", "devices", "config", "recover", "shutdown"]
+Command = Literal[
+    "ping", "status", "capture", "stop", "devices", "config", "recover", "shutdown", "capture_part", "pulses"
+]
 COMMANDS: tuple[str, ...] = Command.__args__  # type: ignore[attr-defined]
 
 ErrorCode = Literal[
@@ -76,6 +78,25 @@ class CaptureArgs(_StrictRequest):
     )
 
 
+_STEM = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
+
+
+class CapturePartArgs(_StrictRequest):
+    """The coordinator of a multi-host rig arms this host: its devices record into the part
+    `<stem>.<host>.part.h5`, on the coordinator's pulses (docs/multi-host.md)."""
+
+    stem: Annotated[str, Field(pattern=_STEM)] = Field(description="The joined take's name, without .h5.")
+    duration_s: float | None = Field(None, gt=0, le=7 * 86400)
+    label: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] | None = None
+
+
+class PulsesArgs(_StrictRequest):
+    """A follower host asks the coordinator for the take's pulse records from `since` on."""
+
+    stem: Annotated[str, Field(pattern=_STEM)]
+    since: int = Field(ge=0, le=1 << 40)
+
+
 class StopArgs(_StrictRequest):
     reason: Annotated[str, Field(max_length=200)] = "stop requested"
 
@@ -93,6 +114,8 @@ ARGS_MODELS: dict[str, type[BaseModel]] = {
     "config": NoArgs,
     "recover": NoArgs,
     "shutdown": ShutdownArgs,
+    "capture_part": CapturePartArgs,
+    "pulses": PulsesArgs,
 }
 
 
@@ -162,6 +185,19 @@ class TakeSummary(_Strict):
     error: str | None = None
 
 
+class HostTelemetry(_Strict):
+    """Another host of a multi-host rig, as the coordinator last reached it."""
+
+    name: str
+    endpoint: str
+    reachable: bool
+    state: DaemonState | None = None
+    take: str | None = None
+    devices: list[str] = Field(default_factory=list)
+    pulses: int = 0
+    message: str | None = Field(None, description="Why it is unreachable, or its first fault.")
+
+
 class Telemetry(_Strict):
     v: int = PROTOCOL_VERSION
     seq: int
@@ -193,6 +229,10 @@ class Telemetry(_Strict):
     faults: list[Fault] = Field(default_factory=list)
     takes_completed: int = 0
     last_take: TakeSummary | None = None
+    host: str | None = Field(None, description="This daemon's host on a multi-host rig.")
+    hosts: list[HostTelemetry] = Field(
+        default_factory=list, description="The coordinator's view of the other hosts (multi-host rigs)."
+    )
 
 
 class ThumbnailHeader(_Strict):
