@@ -20,6 +20,7 @@ from rigd.app.commands.export import export
 from rigd.app.commands.guided import guided
 from rigd.app.commands.help import RigdTyper
 from rigd.app.commands.inspect import convert_cmd, inspect
+from rigd.app.commands.keys import keys
 from rigd.app.commands.reconstruct import reconstruct
 from rigd.app.commands.recover import recover_command
 from rigd.app.commands.service import (
@@ -103,6 +104,7 @@ app.command("takes")(takes)
 app.command("status")(status)
 app.command("console-url")(console_url)
 app.command("stop")(stop)
+app.command("keys")(keys)
 app.command("warmup")(warmup)
 
 
