@@ -552,6 +552,11 @@ class Trigger(Device):
         pulses); written into the take so a noisy cable is visible afterwards."""
         return {}
 
+    def link_lost(self) -> str | None:
+        """Why the pulse records can no longer come (a multi-host follower that lost its
+        coordinator), or None: the take then stops cleanly, keeping what it has, naming it."""
+        return None
+
     def diag(self) -> dict[str, int]:
         """The box's own counters (records it could not send live, input it lost, edges it
         armed late), asked of the box; empty for a trigger that keeps none."""

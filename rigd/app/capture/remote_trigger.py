@@ -86,6 +86,7 @@ class RemoteTrigger(Trigger):
         self._box_us = 0
         self._stats = {"lines": 0, "records": 0, "feed_errors": 0}
         self._failing_since: float | None = None
+        self._lost: str | None = None
 
     # -- what the session calls ------------------------------------------------------------
     def _do_configure(self, settings: TriggerSettings) -> None:
@@ -108,17 +109,17 @@ class RemoteTrigger(Trigger):
         with self._lock:
             if not self._running:
                 return self._emitted if self._emitted is not None else self._next
-        deadline = time.monotonic() + STOP_WAIT_S
+        deadline = time.monotonic() + (0.0 if self._lost else STOP_WAIT_S)
         while True:
             try:
                 state = self._fetch()
             except DeviceError as exc:
-                log.error("%s: cannot learn how many pulses the box emitted: %s", self.label, exc)
+                log.warning("%s: cannot learn how many pulses the box emitted yet: %s", self.label, exc)
                 state = None
             if state is not None and state.emitted is not None:
                 emitted = state.emitted
                 break
-            if time.monotonic() > deadline or state is None:
+            if time.monotonic() >= deadline:
                 emitted = self._next
                 log.error(
                     "%s: the box had not stopped %.0f s after this host's stop; the take keeps the "
@@ -144,9 +145,11 @@ class RemoteTrigger(Trigger):
             try:
                 with self._reading:
                     state = self._fetch(consume=True)
-            except FeedDownError:
-                if self._failing_since is not None and time.monotonic() - self._failing_since > FEED_LOST_S:
-                    raise
+            except FeedDownError as exc:
+                since = self._failing_since
+                if since is not None and time.monotonic() - since > FEED_LOST_S and self._lost is None:
+                    self._lost = f"{self._feed.name} has not answered for {FEED_LOST_S:g} s ({exc})"
+                    log.error("%s: %s", self.label, self._lost)
                 state = None
             if state is not None and len(state.index):
                 now = time.time_ns()  # this host's wall clock labels when the record arrived here
@@ -170,6 +173,9 @@ class RemoteTrigger(Trigger):
     def _stop_for_close(self) -> None:
         with self._lock:
             self._running = False
+
+    def link_lost(self) -> str | None:
+        return self._lost
 
     def link_stats(self) -> dict[str, int]:
         with self._lock:

@@ -405,6 +405,10 @@ class CaptureSession:
                 return
             if n_total is not None and trigger.n_pulses >= n_total:
                 return
+            if (lost := trigger.device.link_lost()) is not None:
+                log.error("stopping take %s: %s", self.path, lost)
+                control.request_stop(f"the pulse records stopped coming: {lost}", fault=True)
+                return
             now = time.monotonic()
             watchdog.check()
             if now >= next_disk:

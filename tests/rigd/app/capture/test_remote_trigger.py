@@ -113,10 +113,13 @@ def test_a_failing_feed_is_counted_then_lost(monkeypatch: pytest.MonkeyPatch) ->
     feed.fail = 2
     assert len(trig.read_pulses(0.0)) == 0  # one failure: not lost yet
     assert trig.link_stats()["feed_errors"] == 1
+    assert trig.link_lost() is None
     monkeypatch.setattr(remote_trigger, "FEED_LOST_S", -1.0)
-    with pytest.raises(DeviceError, match="no reply"):
-        trig.read_pulses(0.0)
-    assert read_all(trig, 2)[0] == [0, 1]  # the coordinator answers again: nothing was skipped
+    assert len(trig.read_pulses(0.0)) == 0
+    lost = trig.link_lost()
+    assert lost is not None and "host A (test) has not answered" in lost and "no reply" in lost
+    assert read_all(trig, 2)[0] == [0, 1]  # records that come after all: nothing was skipped
+    assert trig.stop() == 2  # lost: no wait for the box's count
 
 
 def test_stop_keeps_what_was_fetched_when_the_coordinator_never_says(monkeypatch: pytest.MonkeyPatch) -> None:
