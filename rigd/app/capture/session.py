@@ -410,6 +410,14 @@ class CaptureSession:
                 control.request_stop(f"the pulse records stopped coming: {lost}", fault=True)
                 return
             now = time.monotonic()
+            if (
+                deadline is not None
+                and n_total is not None
+                and trigger.device.follows
+                and not trigger.n_pulses
+            ):
+                # Another host starts the box once every host is armed: the pace counts from its first pulse.
+                deadline = now + n_total / self.rate * 1.5 + 5.0
             watchdog.check()
             if now >= next_disk:
                 self._disk.check()
