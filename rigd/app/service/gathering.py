@@ -15,7 +15,12 @@ def gather_part(link: HostLink, name: str, dest: Path) -> Path:
 
 
 def join_parts(config: RigConfig) -> Join:
-    def join(out: Path, coordinator: Path, hosts: dict[str, tuple[Path | None, tuple[str, ...]]], missing: dict[str, str]) -> None:
+    def join(
+        out: Path,
+        coordinator: Path,
+        hosts: dict[str, tuple[Path | None, tuple[str, ...]]],
+        missing: dict[str, str],
+    ) -> None:
         raise TakeError(f"joining {out} is not built yet")
 
     return join

@@ -19,14 +19,16 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+
+import numpy as np
 
 from rigd.app.capture import CaptureSession, SessionSnapshot
+from rigd.app.capture.remote_trigger import FeedState
 from rigd.app.capture.request import new_take_path
 from rigd.app.capture.results import CaptureResult
 from rigd.app.config import RigConfig
 from rigd.app.service.client import DaemonRequestError, DaemonUnavailableError
-from rigd.app.service.host_links import HostLink, part_name
+from rigd.app.service.host_links import REQUEST_TIMEOUT_S, HostLink, part_name
 from rigd.app.service.protocol import HostTelemetry
 from rigd.core.errors import RigdError, TakeError
 
@@ -128,7 +130,9 @@ class MultiHostSession:
             raise self._error
         return self._result
 
-    def pulse_feed(self, since: int) -> Any:
+    def pulse_feed(self, since: int) -> FeedState:
+        if self._state == "failed" and self.local.state == "new":  # the box never started
+            return FeedState(np.empty(0, np.int64), np.empty(0, np.int64), False, 0, 0)
         return self.local.pulse_feed(since)
 
     def start(self) -> Path:
@@ -145,14 +149,17 @@ class MultiHostSession:
                 except (DaemonUnavailableError, DaemonRequestError, RigdError) as exc:
                     failures.append(f"{self._links[h].name} did not arm: {exc}")
         if failures:
+            err = TakeError("; ".join(failures) + "; no pulse was sent")
+            self._failed(err)
             self._disarm(armed, "the take did not start: " + failures[0])
-            self._state = "failed"
-            raise TakeError("; ".join(failures) + "; no pulse was sent")
+            self._end()
+            raise err
         try:
             self.local.start()
-        except BaseException:
+        except BaseException as exc:
+            self._failed(exc)
             self._disarm(armed, "the coordinator could not start its devices or the box")
-            self._state = "failed"
+            self._end()
             raise
         self._state = "capturing"
         self._thread = threading.Thread(target=self._run, name="multihost", daemon=True)
@@ -160,8 +167,27 @@ class MultiHostSession:
         return self.path
 
     # -- internals -------------------------------------------------------------------------
+    def _failed(self, exc: BaseException) -> None:
+        """The take did not start: the hosts armed so far learn that the box sent no pulse."""
+        self._error = exc
+        self._state = "failed"
+
+    def _end(self) -> None:
+        for link in self._links.values():
+            link.close()
+        self._done.set()
+
     def _arm(self, host: str) -> None:
-        self._links[host].call(
+        link = self._links[host]
+        theirs = link.call("config", timeout_s=REQUEST_TIMEOUT_S)  # a host that is not there: fails here
+        ours = self.config.model_dump(mode="json")
+        differ = sorted(k for k in set(ours) | set(theirs) if k != "service" and ours.get(k) != theirs.get(k))
+        if differ:
+            raise TakeError(
+                f"its rig config differs from this host's in {', '.join(differ)} (every host runs the "
+                "same rig config; only [service] may differ)"
+            )
+        link.call(
             "capture_part",
             timeout_s=ARM_TIMEOUT_S,
             stem=self.stem,
@@ -189,9 +215,7 @@ class MultiHostSession:
             self._error = exc
             self._state = "failed"
         finally:
-            for link in self._links.values():
-                link.close()
-            self._done.set()
+            self._end()
 
     def _follow_local(self) -> None:
         """Watch the hosts while this host's take runs; tell them to stop once the box has."""

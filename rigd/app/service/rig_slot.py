@@ -12,10 +12,12 @@ import gc
 import logging
 import threading
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from rigd.app.capture import CaptureSession, SessionSnapshot
+from rigd.app.capture.remote_trigger import FeedState
 from rigd.app.config import RigConfig
 from rigd.app.service import sdnotify
 from rigd.app.service.host_links import this_host
@@ -91,6 +93,8 @@ class RigSlot:
         """What each recovery sealed or could not read, oldest first."""
         self.recovering = False
         self.holder: str | None = None
+        self.last_feed: tuple[str, FeedState] | None = None
+        """The last multi-host take's pulse records, for followers still fetching its tail."""
         """Who holds the devices outside a take (see `hold_devices`)."""
 
     # -- a take ------------------------------------------------------------------------
@@ -173,9 +177,15 @@ class RigSlot:
 
         with self.lock:
             session = self.session
-        if session is None or Path(session.path).stem != args.stem:
+            last = self.last_feed
+        if session is not None and Path(session.path).stem == args.stem:
+            state = session.pulse_feed(args.since)
+        elif last is not None and last[0] == args.stem:  # it ended: a follower fetches the tail
+            keep = last[1].index >= args.since
+            state = replace(last[1], index=last[1].index[keep], t_us=last[1].t_us[keep])
+        else:
             raise RequestError("not_capturing", f"take {args.stem} is not this daemon's running take")
-        return feed_reply(session.pulse_feed(args.since), PULSES_PER_REPLY)
+        return feed_reply(state, PULSES_PER_REPLY)
 
     def start_capture(self, session: Run, args: CaptureArgs | CapturePartArgs) -> dict[str, Any]:
         """Open the devices and start the trigger (slow on real hardware)."""
@@ -242,6 +252,8 @@ class RigSlot:
             self.session = None
             self.state = "idle"
             self.takes_completed += 1
+            if isinstance(session, MultiHostRun):
+                self.last_feed = (Path(session.path).stem, session.pulse_feed(0))
             snap = session.snapshot()
             self.last_take = _summary(session, snap)
             self.idle_faults = [fault(f) for f in snap.faults if f.code in ("disk_full", "disk_low")]

@@ -18,7 +18,7 @@ from rigd.app.capture.run import run_capture
 from rigd.app.config import RigConfig
 from rigd.app.service.client import DaemonRequestError
 from rigd.app.service.daemon import Daemon
-from rigd.app.testing.daemon import serve_in_thread, small_rig
+from rigd.app.testing.daemon import serve_in_thread, small_rig, wait_idle
 from rigd.app.testing.multihost import (
     DEFAULT_SPLIT,
     capture_through,
@@ -98,7 +98,8 @@ def test_a_host_that_does_not_answer_fails_the_start_before_any_pulse(
         assert client.call("status")["state"] == "idle"
     assert not list(dirs["A"].takes.glob("*.h5"))  # nothing opened on the coordinator
     with client_for(configs["B"]) as b:
-        assert b.call("status")["state"] == "idle"  # B was armed, then disarmed
+        t = wait_idle(b)  # B was armed, then disarmed: its part ends with no pulse
+    assert t["last_take"]["path"].endswith(".B.part.h5")
 
 
 def test_a_host_with_another_config_is_refused_naming_the_field(
