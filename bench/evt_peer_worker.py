@@ -6,6 +6,8 @@ expelliarmus, unmodified, installed from PyPI), never importing rigd.
 Reads one decoder name per line on stdin, decodes FILE.raw with it once, pinned to the CPU the
 parent gives it, and answers one JSON line: {"name", "seconds", "events"}. The parent interleaves
 these runs with its own decoders' (round-robin), so background load hits all of them alike.
+`cpu_seconds` is the process's CPU time for the call (all its threads; on the one core they are
+pinned to): what the decode cost where other processes share the core.
 """
 
 from __future__ import annotations
@@ -54,9 +56,10 @@ def main() -> None:
         name = line.strip()
         if not name:
             continue
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         n = fns[name]()
-        print(json.dumps({"name": name, "seconds": time.perf_counter() - t0, "events": n}), flush=True)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        print(json.dumps({"name": name, "seconds": wall, "cpu_seconds": cpu, "events": n}), flush=True)
 
 
 if __name__ == "__main__":

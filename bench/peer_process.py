@@ -38,12 +38,17 @@ class PeerProcess:
 
     def run(self, request: str) -> tuple[float, int]:
         """(seconds, events) of one request, as the worker measured them."""
+        answer = self.ask(request)
+        return float(answer["seconds"]), int(answer["events"])
+
+    def ask(self, request: str) -> dict[str, Any]:
+        """The worker's whole answer to one request (what it measured beyond seconds/events)."""
         assert self.proc.stdin is not None
         assert self.proc.stdout is not None
         self.proc.stdin.write(request + "\n")
         self.proc.stdin.flush()
-        answer = json.loads(self.proc.stdout.readline())
-        return float(answer["seconds"]), int(answer["events"])
+        answer: dict[str, Any] = json.loads(self.proc.stdout.readline())
+        return answer
 
     def close(self) -> None:
         if self.proc.stdin is not None:

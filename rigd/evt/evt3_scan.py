@@ -16,7 +16,7 @@ and on the real Gen4.1 recording).
 Measured on the real Gen4.1 words (one core, 28,000-word stretches, best of 15): 5.1-5.4 ns an
 event, against 5.7-5.8 for the same loop without the vector run and 13-18 for a version whose
 state updates were selects instead of branches (numba kept the branches and added the selects'
-work); `evt3_fast.decode_kernel` takes ~7.8 plus its sizing pass and output arrays.
+work); `evt3_fast.decode_kernel` took ~7.8 then, plus its output arrays.
 """
 
 from __future__ import annotations

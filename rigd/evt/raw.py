@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -96,28 +95,32 @@ _SCAN_TRIGGERS = 64
 
 
 class _Out:
-    """Growable output arrays handed to the kernels; grown (never per event) when nearly full."""
+    """Growable output arrays handed to the kernels; grown (never per event) when nearly full and
+    cut to their events (`_cut`) when done."""
 
     def __init__(self, n_events: int, n_triggers: int) -> None:
         self.arrays = decode_out(n_events, n_triggers)
         self.n = 0
         self.nt = 0
 
-    def grow(self, min_free: int) -> None:
+    def grow(self, min_free: int, ahead: int = 0) -> None:
+        """Room for at least `min_free` more events and one more trigger edge; `ahead`: the events
+        the rest of the input is expected to hold, so that one copy usually does."""
         (x, y, p, t, tt, tp, tc), n, nt = self.arrays, self.n, self.nt
         if x.shape[0] - n <= min_free:
-            size = max(2 * x.shape[0], n + 2 * min_free + 1024)
+            size = max(2 * x.shape[0], n + ahead + 2 * min_free + 1024)
             x, y, p, t = (_grown(a, size, n) for a in (x, y, p, t))
         if tt.shape[0] - nt <= 0:
             size = 2 * tt.shape[0] + 64
             tt, tp, tc = (_grown(a, size, nt) for a in (tt, tp, tc))
         self.arrays = (x, y, p, t, tt, tp, tc)
 
-    def result(self) -> Decoded:
+    def result(self, compact: bool = False) -> Decoded:
+        """The outputs' filled part; `compact`: a sparse result gives its reserve back (`_cut`)."""
         (x, y, p, t, tt, tp, tc), n, nt = self.arrays, self.n, self.nt
         return Decoded(
-            EventArray(x[:n], y[:n], p[:n], t[:n]),
-            TriggerEvents(tt[:nt], tp[:nt], tc[:nt]),
+            EventArray(*(_cut(a, n, compact) for a in (x, y, p, t))),
+            TriggerEvents(*(_cut(a, nt, compact) for a in (tt, tp, tc))),
         )
 
 
@@ -126,6 +129,19 @@ def _grown(old: NDArray[Any], size: int, keep: int) -> NDArray[Any]:
     new = np.empty(size, old.dtype)
     new[:keep] = old[:keep]
     return new
+
+
+def _cut(a: NDArray[Any], n: int, compact: bool) -> NDArray[Any]:
+    """`a`'s first n items. EVT 3.0 outputs (`compact`) are sized for more than a stream usually
+    holds: at least half used (a sensor's stream: 0.71 of one event a word on the Gen4.1
+    recording), the slice keeps the whole array, whose unused tail a fresh allocation never
+    touched; less used (a sparse stream), the events are copied out so the reserve goes back.
+    Shrinking in place (numpy's resize, a realloc) was measured and rejected: glibc then sizes its
+    next map by the shrunk block, so every chunk of a reader whose caller keeps the previous one
+    faulted in fresh pages (+40 % of a streaming decode)."""
+    if n == a.shape[0] or not compact or 2 * n >= a.shape[0]:
+        return a[:n]
+    return a[:n].copy()
 
 
 class StreamDecoder:
@@ -207,8 +223,10 @@ class StreamDecoder:
         self._final_cfg = decode_config(
             self.width, self.height, self.strict, final=True, confirm=self.jump_confirm
         )
-        # optional counting pass sizing the outputs exactly (EVT 3.0)
-        self._bound: Callable[[NDArray[Any]], tuple[int, int]] | None = getattr(mod, "output_bound", None)
+        # events a word the outputs are first sized for (EVT 2.0: one; EVT 2.1 vectors: up to 32,
+        # sized by bytes; EVT 3.0: its module's guess, and a sparse result is compacted)
+        self._guess = int(getattr(mod, "OUTPUT_EVENTS_PER_WORD", min(self._max_per_word, self._word)))
+        self._compact = hasattr(mod, "OUTPUT_EVENTS_PER_WORD")
         self._stats = np.zeros(STATS_SIZE, np.int64)
         self.skipped_offsets: list[int] = []
         self.jumps: list[TimeJump] = []
@@ -284,8 +302,9 @@ class StreamDecoder:
                 raise EvtDecodeError(
                     f"{self.fmt}: {kind} at byte offset {off} (word 0x{word})", offset=off, kind=kind
                 )
-            if pos < end:
-                out.grow(self._max_per_word)
+            if pos < end:  # outputs full: room for the rest at the density so far, and a quarter
+                rate = min(self._max_per_word, 5 * out.n // max(4 * pos, 1) + 1)
+                out.grow(self._max_per_word, ahead=(end - pos) * rate)
         return end
 
     def _took(self, jumps: list[TimeJump]) -> None:
@@ -382,13 +401,11 @@ class StreamDecoder:
             arr = arr[need:]
         whole = (arr.shape[0] // ws) * ws
         body, words = self._words(arr[:whole])
-        if self._bound is not None:
-            # exact-size outputs from a cheap counting pass: no growth, no over-allocation
-            ne, ntr = self._bound(words)
-            out = _Out(ne + 2 * self._max_per_word + 1, ntr + 2)
-        else:
-            cap_events = min(nwords * self._max_per_word, max(nwords * ws, 256)) + self._max_per_word + 1
-            out = _Out(cap_events, 16 + nwords // 64)
+        # outputs for one event a word: a sensor's EVT 3.0 stream stays below it (0.71 on the
+        # Gen4.1 recording), so a counting pass over the words (a tenth of the decode) is not
+        # worth its exact size; denser vectors grow the outputs once (`_run`)
+        cap_events = nwords * self._guess + 2 * self._max_per_word + 1
+        out = _Out(cap_events, 16 + nwords // 64)
         done = 0
         if head is not None:
             if not self._run(*self._words(head), out, start, cfg):
@@ -401,7 +418,7 @@ class StreamDecoder:
             done = self._run(body, words, out, start, cfg)
         self._pending = arr[done * ws :].tobytes()
         self.bytes_consumed += done * ws
-        return out.result()
+        return out.result(self._compact)
 
     def flush(self) -> Decoded:
         """Decide held words now, with no more bytes to come (a live stream that stopped): a

@@ -73,7 +73,8 @@ class RawReader:
 
     def __iter__(self) -> Iterator[Decoded]:
         try:
-            while True:
+            yield from self._mapped()
+            while True:  # what the map does not cover: a file that grew, or one that maps not
                 chunk = self._f.read(self.chunk_bytes)
                 if not chunk:
                     break
@@ -84,6 +85,25 @@ class RawReader:
             self.decoder.log_stats()
         finally:
             self.close()
+
+    def _mapped(self) -> Iterator[Decoded]:
+        """The file's chunks decoded in place from a read-only map of the page cache: no copy of
+        each chunk into a fresh bytes object (what `read` costs, ~7 % of a streaming decode),
+        and the words stay aligned. Leaves the file positioned after what it decoded."""
+        start = self._f.tell()
+        size = os.fstat(self._f.fileno()).st_size
+        if size <= start:
+            return
+        try:
+            mm = mmap.mmap(self._f.fileno(), size, access=mmap.ACCESS_READ)
+        except (OSError, ValueError):  # not a mappable file (a pipe, a special file): read it
+            return
+        # the map closes with its last array (an error's traceback may hold one: closing it
+        # here would replace that error with a BufferError)
+        step = self.chunk_bytes
+        for pos in range(start, size, step):
+            yield self.decoder.feed(np.frombuffer(mm, np.uint8, min(step, size - pos), pos))
+        self._f.seek(size)
 
     @property
     def stats(self) -> dict[str, int]:
