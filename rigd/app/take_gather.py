@@ -37,7 +37,7 @@ BLOCK = 4 << 20
 #: How long a host may take to checksum its part (a few GB at disk speed).
 HASH_WAIT_S = 900.0
 
-ClientFactory = Callable[[HostConfig], DaemonClient]
+ClientFactory = Callable[[HostConfig, float], DaemonClient]
 
 
 @dataclass(slots=True)
@@ -48,10 +48,10 @@ class GatherResult:
     join: JoinResult | None = None
 
 
-def default_client(host: HostConfig) -> DaemonClient:
+def default_client(host: HostConfig, timeout_s: float) -> DaemonClient:
     return DaemonClient(
         host.control,
-        timeout_s=30.0,
+        timeout_s=timeout_s,
         server_public_key=host.server_public_key,
         client_secret_key=host.client_secret_key,
     )
@@ -80,10 +80,15 @@ def hosts_of_take(joined: Path) -> dict[str, HostConfig]:
 
 
 def gather_take(
-    joined: Path, hosts: Mapping[str, HostConfig], *, client: ClientFactory = default_client
+    joined: Path,
+    hosts: Mapping[str, HostConfig],
+    *,
+    timeout_s: float = 30.0,
+    client: ClientFactory = default_client,
 ) -> GatherResult:
     """Fetch every part of `joined` that is missing here or differs from its host's, then join
-    the take again. A host that cannot give its part is reported, and its devices stay out."""
+    the take again. A host that cannot give its part is reported, and its devices stay out.
+    `timeout_s`: how long each request to a host may wait for its answer."""
     entries = read_parts(joined)
     result = GatherResult()
     missing: dict[str, str] = {}
@@ -100,7 +105,7 @@ def gather_take(
                 )
             continue
         try:
-            result.actions[entry.host] = _fetch(client(cfg), local)
+            result.actions[entry.host] = _fetch(client(cfg, timeout_s), local)
         except (RigdError, OSError) as exc:
             why = f"not gathered from {cfg.control}: {exc}"
             result.actions[entry.host] = why

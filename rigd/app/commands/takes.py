@@ -105,6 +105,9 @@ def gather(
     json_out: Annotated[
         bool, typer.Option("--json", help="What was done per host and the verdict, as JSON.")
     ] = False,
+    timeout: Annotated[
+        float, typer.Option("--timeout", min=0.1, help="Seconds each request to a host may take.")
+    ] = 30.0,
 ) -> None:
     """Copy a multi-host take's missing or changed parts from their hosts (resumable, checked
     by sha256), then join the take again. Exit 0 when every part is in, 1 when some are not."""
@@ -113,7 +116,7 @@ def gather(
 
     try:
         hosts = RigConfig.load(config).hosts if config is not None else hosts_of_take(take)
-        result = gather_take(take, hosts)
+        result = gather_take(take, hosts, timeout_s=timeout)
     except (RigdError, OSError) as exc:
         _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
         raise typer.Exit(code=2) from exc
