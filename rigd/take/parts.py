@@ -28,7 +28,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rigd.core.errors import TakeError, TakeFormatError
+from rigd.core.devices import DeviceInfo
+from rigd.core.errors import TakeError, TakeFormatError, TakeInUseError
 from rigd.core.layout import (
     CALIBRATION_GROUP,
     EVENTS_GROUP,
@@ -51,6 +52,7 @@ from rigd.take.parts_merge import (
     merge_reports,
     merge_window_outside,
 )
+from rigd.take.parts_truth import device_info, rebase_ground_truth
 from rigd.take.reader import Take
 from rigd.take.verdict import TakeVerdict
 
@@ -240,9 +242,10 @@ def _read_part(
                 raise TakeFormatError(f"{path}: complete but holds no sync report")
             window = take.window_outside or {}
             records = PartRecords(ref.host, ref.devices, report, take.config, window)
-    except TakeError as exc:
-        if not isinstance(exc, TakeFormatError):
-            raise
+    except TakeInUseError:
+        reason = f"part {path.name} is still being written (its HDF5 lock is held) ({fix})"
+        return _Part(ref, _entry(ref, "unfinished", reason, coordinator, **stat))
+    except TakeFormatError as exc:
         return _Part(ref, _entry(ref, "damaged", f"part {path.name} is damaged: {exc}", coordinator, **stat))
     if pulses is not None and not _pulses_follow(path, pulses):
         reason = (
@@ -333,6 +336,7 @@ def _write(
     sync.create_dataset(Sync.REPORT, data=report.model_dump_json(), dtype=h5py.string_dtype("utf-8"))
     devs = sync.create_group(Sync.DEVICES)
     calib = f.create_group(CALIBRATION_GROUP)
+    infos: dict[str, DeviceInfo | None] = {}
     if previous is not None:
         with open_checked(previous, "r") as src:
             _copy_calibration(src, calib, None, attrs=True)
@@ -342,12 +346,15 @@ def _write(
             for group, dest in ((EVENTS_GROUP, events), (FRAMES_GROUP, frames)):
                 for name in src.get(group, {}):
                     dest[name] = h5py.ExternalLink(p.path.name, f"/{group}/{name}")
+                    infos[name] = device_info(src[f"{group}/{name}"])
             src_devs = src.get(f"{SYNC_GROUP}/{Sync.DEVICES}", {})
             for name in src_devs:
                 if (name in p.ref.devices or p is coord) and name not in devs:
                     src.copy(src_devs[name], devs, name)
             keep = p is coord and previous is None
             _copy_calibration(src, calib, None if p is coord else p.ref.devices, attrs=keep)
+    order = [d.get("name") for key in ("cameras", "event_sensors") for d in config.get(key, [])]
+    rebase_ground_truth(f, {n: infos[n] for n in [*order, *infos] if n in infos})
     if not len(calib) and not len(calib.attrs):
         del f[CALIBRATION_GROUP]
 
