@@ -24,6 +24,7 @@ from firmware_sim.testing.takes import make_take
 from rigd.app.cli import app
 from rigd.core.errors import TakeError, TakeFormatError
 from rigd.take import Take
+from rigd.take.calibration import store_calibration
 from rigd.take.parts import PartRef, join_take, part_name
 from rigd.take.validate import validate_take
 
@@ -131,6 +132,41 @@ def test_an_unsealed_part_is_not_linked_and_says_to_recover_it(whole: Path, tmp_
     assert "rigd recover" in (entry.reason or "")
     assert res.verdict.verdict == "degraded"
     assert res.missing_devices == ["ev0"]
+
+
+def test_a_part_holding_the_first_pulses_only_is_linked(whole: Path, tmp_path: Path) -> None:
+    """A follower that died holds the pulses up to its last flush, a prefix of the
+    coordinator's; once `rigd recover` sealed it on its host, it is this take's part."""
+    refs = make_parts(whole, tmp_path / "takes")
+    with h5py.File(tmp_path / "takes" / part_name(STEM, "B"), "r+") as f:
+        for k in ("index", "t_us", "host_time_ns"):
+            f[f"trigger/pulses/{k}"].resize((7,))
+    out = tmp_path / "takes" / f"{STEM}.h5"
+    res = join_take(out, Path(part_name(STEM, "A")), refs)
+    assert res.parts[1].status == "complete"
+    assert res.missing_devices == []
+    with Take(out) as t:
+        assert t.sensor("ev0").count == 20_000
+        assert len(t.pulses().t_us) == 10
+    assert validate_take(out) == []
+
+
+def test_a_calibration_stored_into_the_joined_take_survives_joining_again(joined: Path) -> None:
+    intrinsics = {
+        "K": [[100.0, 0, 8], [0, 100.0, 6], [0, 0, 1]],
+        "dist": [0.1, 0, 0, 0, 0],
+        "image_size": [16, 12],
+    }
+    store_calibration(joined, "cam0", intrinsics, source="rigd calibrate intrinsics")
+    refs = [
+        PartRef("A", Path(part_name(STEM, "A")), ("cam0",)),
+        PartRef("B", Path(part_name(STEM, "B")), ("ev0",)),
+    ]
+    join_take(joined, Path(part_name(STEM, "A")), refs)
+    with Take(joined) as t:
+        cal = t.calibration
+        assert cal is not None
+        assert np.allclose(cal["cam0"]["K"], intrinsics["K"])
 
 
 def test_a_part_of_another_take_is_not_linked(whole: Path, tmp_path: Path) -> None:
