@@ -44,6 +44,12 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _new_version(path: Path) -> None:
+    """Bump the file's modification time (it must exist): to the daemon, a new version."""
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+
+
 def _median(fn: Callable[[], None], repeat: int) -> float:
     times = []
     for _ in range(repeat):
@@ -79,6 +85,7 @@ def main() -> int:
             take_dir=str(host_dir),
             control=ep["control"],
             telemetry=ep["telemetry"],
+            recover_on_start=False,  # the part is random bytes, not a take: not to be moved aside
         )
         daemon = Daemon(cfg, metrics=False)
         thread, _ = serve_in_thread(daemon, "bench-daemon")
@@ -88,7 +95,7 @@ def main() -> int:
             def gather() -> None:
                 for p in here.iterdir():
                     p.unlink()
-                (host_dir / NAME).touch()  # a new version: the host hashes it again
+                _new_version(host_dir / NAME)  # the host hashes it again
                 _fetch(default_client(host, 60.0), here / NAME)
 
             def reads_only() -> None:
@@ -101,10 +108,12 @@ def main() -> int:
                         )
 
             def host_sha() -> None:
-                (host_dir / NAME).touch()
+                _new_version(host_dir / NAME)
                 with DaemonClient(host.control, timeout_s=60) as c:
                     while c.call("take_stat", file=NAME)["sha256"] is None:
                         time.sleep(0.01)
+
+            assert (host_dir / NAME).stat().st_size == size
 
             def local_copy() -> None:
                 shutil.copyfile(host_dir / NAME, here / "copy")
