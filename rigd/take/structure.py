@@ -98,6 +98,11 @@ def check_link_target(path: Path, hpath: str, filename: str) -> Path:
         raise TakeFormatError(f"{path}: {hpath}: external link to {filename!r} leaves the take's directory")
     if resolved == path.resolve():
         raise TakeFormatError(f"{path}: {hpath}: external link to {filename!r} leads back to the take itself")
+    if not os.path.lexists(target):
+        raise TakeFormatError(
+            f"{path}: {hpath}: its part {filename} is not in the take's directory (a multi-host take moves "
+            "with its part files; `rigd takes gather` fetches a missing one)"
+        )
     check_regular_file(target)
     return target
 

@@ -276,6 +276,13 @@ def test_a_link_outside_the_device_groups_is_refused(joined: Path) -> None:
         Take(joined)
 
 
+def test_a_take_moved_without_its_parts_says_so(joined: Path) -> None:
+    (joined.parent / part_name(STEM, "B")).unlink()
+    _refused(
+        joined, rf"/events/ev0: its part {re.escape(part_name(STEM, 'B'))} is not in the take's directory"
+    )
+
+
 def test_a_link_to_the_take_itself_is_refused(joined: Path) -> None:
     loop = joined.parent / "loop.A.part.h5"
     shutil.copy(joined, loop)
