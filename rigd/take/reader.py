@@ -450,6 +450,7 @@ class Take:
             pulses_seen_by_no_device=list(report.pulses_seen_by_no_device) if report else [],
             losses=list(report.losses) if report else [],
             warnings=list(report.warnings) if report else [],
+            parts=self.parts,
         )
 
 

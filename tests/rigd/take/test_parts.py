@@ -94,6 +94,7 @@ def test_joined_take_reads_as_the_take_its_parts_came_from(whole: Path, joined: 
     assert validate_take(joined) == []
     r = CliRunner().invoke(app, ["inspect", str(joined)])
     assert r.exit_code == 0, r.output
+    assert f"part B (ev0): {part_name(STEM, 'B')} complete" in r.stdout
 
 
 def test_a_missing_part_costs_its_hosts_devices_only(whole: Path, tmp_path: Path) -> None:
