@@ -25,7 +25,8 @@ import h5py
 
 from rigd.app.config import HostConfig
 from rigd.app.service.client import DaemonClient, DaemonRequestError, DaemonUnavailableError
-from rigd.core.errors import RigdError, TakeError
+from rigd.core.errors import ConfigError, RigdError, TakeError
+from rigd.core.layout import Root
 from rigd.take.manifest import PartEntry, read_manifest
 from rigd.take.parts import JoinResult, PartRef, file_sha256, join_take, part_name
 from rigd.take.structure import check_regular_file
@@ -72,11 +73,18 @@ def read_parts(joined: Path) -> list[PartEntry]:
 
 def hosts_of_take(joined: Path) -> dict[str, HostConfig]:
     """The `hosts` table of the rig config the joined take stores (the coordinator's)."""
-    with h5py.File(joined, "r") as f:
-        raw = f.get("config_json")
-        text = raw[()] if isinstance(raw, h5py.Dataset) else b"{}"
-    data = json.loads(text.decode() if isinstance(text, bytes) else text)
-    return {name: HostConfig.model_validate(h) for name, h in (data.get("hosts") or {}).items()}
+    check_regular_file(joined)
+    try:
+        with h5py.File(joined, "r") as f:
+            raw = f.get(Root.CONFIG)
+            text = raw[()] if isinstance(raw, h5py.Dataset) else b"{}"
+        data = json.loads(text.decode() if isinstance(text, bytes) else text)
+        hosts = (data.get("hosts") if isinstance(data, dict) else None) or {}
+        return {name: HostConfig.model_validate(h) for name, h in hosts.items()}
+    except (OSError, ValueError, TypeError, AttributeError) as exc:  # ValidationError is a ValueError
+        raise ConfigError(
+            f"{joined}: the rig config it stores gives no usable `hosts` ({exc}); pass --config"
+        ) from exc
 
 
 def gather_take(

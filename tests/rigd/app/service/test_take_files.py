@@ -187,3 +187,33 @@ def test_gather_cli_says_what_it_did_and_exits_1_while_a_host_is_unreachable(
     assert r.exit_code == 1, r.output
     assert "B: not gathered from ipc://" in r.stdout
     assert "degraded" in r.stdout
+
+
+def test_gather_cli_refuses_a_take_that_is_not_joined(tmp_path: Path) -> None:
+    plain = make_take(tmp_path / "plain.h5").path
+    r = CliRunner().invoke(app, ["takes", "gather", str(plain)])
+    assert r.exit_code == 2, r.output
+    assert "is not a multi-host take (no parts manifest)" in r.stderr
+
+
+def test_gather_cli_json_reports_each_host_and_the_verdict(
+    host_b: tuple[DaemonClient, Path, str], split: tuple[Path, Path], tmp_path: Path
+) -> None:
+    _, _, ep = host_b
+    joined, _ = split
+    cfg = small_rig("gather-json").model_dump(mode="json")
+    cfg["hosts"] = {"A": {"control": f"ipc://{tmp_path}/a.sock"}, "B": {"control": ep}}
+    cfg["trigger"]["host"] = "A"
+    for dev in [*cfg["cameras"], *cfg["event_sensors"]]:
+        dev["host"] = "B"
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(cfg))
+    r = CliRunner().invoke(
+        app, ["takes", "gather", str(joined), "--config", str(path), "--json", "--timeout", "0.5"]
+    )
+    assert r.exit_code == 0, r.output
+    body = json.loads(r.stdout)
+    assert body["actions"]["A"].startswith("not gathered from ipc://")  # its file is here: kept
+    assert body["actions"]["B"].startswith("copied ")
+    assert body["verdict"]["verdict"] == "complete"
+    assert [p["status"] for p in body["parts"]] == ["complete", "complete"]
