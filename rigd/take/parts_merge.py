@@ -3,7 +3,8 @@
 Every part is a sealed take of its host's devices, fitted to the same trigger pulses, so each
 device's clock map and report row come from its own part unchanged; what is about the trigger
 (pulse counts, the box's log, the host-box link) comes from the coordinator, which owns the
-box. Losses and warnings are the union of the parts' (a record two parts both carry, such as a
+box (a follower's own trigger-link counters are kept as `<name>@<host>`). Losses and warnings
+are the union of the parts' (a record two parts both carry, such as a
 pulse the box failed to log, counts once). A host whose part is not there, not sealed or not
 this take's costs its devices: one loss record each, which the verdict names.
 """
@@ -60,6 +61,9 @@ def merge_reports(
             name = key if (p is coordinator or key in p.devices) else f"{key}@{p.host}"
             counters.setdefault(name, values)
     report.device_counters = counters
+    for p in others:  # a follower's own trigger link (its remote trigger), kept under its host
+        for key, value in p.report.trigger_link.items():
+            report.trigger_link.setdefault(f"{key}@{p.host}", value)
     report.warnings = _unique([w for p in parts for w in p.report.warnings])
     return report
 
