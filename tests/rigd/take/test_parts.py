@@ -305,3 +305,13 @@ def test_hdf5s_own_search_path_is_never_used(
     monkeypatch.chdir(evil)
     with Take(joined) as t:
         assert t.sensor("ev0").count == 20_000
+
+
+def test_validation_names_a_manifest_that_does_not_match_the_links(joined: Path) -> None:
+    with h5py.File(joined, "r+") as f:
+        entries = json.loads(f.attrs["parts_json"])
+        entries[0]["devices"] = ["cam0", "ev0"]
+        f.attrs["parts_json"] = json.dumps(entries)
+    problems = validate_take(joined)
+    assert any("device ev0 is in the parts of A and B" in p for p in problems), problems
+    assert any("/events/ev0: is not linked to its part" in p for p in problems), problems
