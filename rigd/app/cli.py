@@ -29,7 +29,7 @@ from rigd.app.commands.service import (
     status,
     stop,
 )
-from rigd.app.commands.takes import takes
+from rigd.app.commands.takes import takes_app
 from rigd.app.commands.warmup import warmup
 from rigd.core.errors import ConfigError
 from rigd.core.extras import OPTIONAL, missing_extra
@@ -100,7 +100,7 @@ app.command("devices")(devices)
 app.command("doctor")(doctor)
 app.command("serve")(serve)
 app.command("recover")(recover_command)
-app.command("takes")(takes)
+app.add_typer(takes_app, name="takes")
 app.command("status")(status)
 app.command("console-url")(console_url)
 app.command("stop")(stop)

@@ -22,7 +22,18 @@ PROTOCOL_VERSION = 1
 MAX_MESSAGE_BYTES = 64 * 1024
 
 Command = Literal[
-    "ping", "status", "capture", "stop", "devices", "config", "recover", "shutdown", "capture_part", "pulses"
+    "ping",
+    "status",
+    "capture",
+    "stop",
+    "devices",
+    "config",
+    "recover",
+    "shutdown",
+    "capture_part",
+    "pulses",
+    "take_read",
+    "take_stat",
 ]
 COMMANDS: tuple[str, ...] = Command.__args__  # type: ignore[attr-defined]
 
@@ -105,6 +116,22 @@ class ShutdownArgs(_StrictRequest):
     force: bool = Field(False, description="Stop a running take first (it is finalized, not lost).")
 
 
+#: The most bytes one `take_read` returns (base64 in the reply: 4/3 of it).
+TAKE_READ_MAX_BYTES = 4 << 20
+_TAKE_FILE = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,250}\.h5$"
+
+
+class TakeStatArgs(_StrictRequest):
+    file: Annotated[str, Field(max_length=255, pattern=_TAKE_FILE)] = Field(
+        description="A take file's name in the daemon's take directory (no path)."
+    )
+
+
+class TakeReadArgs(TakeStatArgs):
+    offset: int = Field(ge=0, description="First byte to read.")
+    length: int = Field(gt=0, le=TAKE_READ_MAX_BYTES, description="Bytes to read (fewer at the end).")
+
+
 ARGS_MODELS: dict[str, type[BaseModel]] = {
     "ping": NoArgs,
     "status": NoArgs,
@@ -116,6 +143,8 @@ ARGS_MODELS: dict[str, type[BaseModel]] = {
     "shutdown": ShutdownArgs,
     "capture_part": CapturePartArgs,
     "pulses": PulsesArgs,
+    "take_read": TakeReadArgs,
+    "take_stat": TakeStatArgs,
 }
 
 
