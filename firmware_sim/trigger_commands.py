@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rigd.core.errors import DeviceError
+
 if TYPE_CHECKING:
     from firmware_sim.world import SimWorld
 
@@ -189,6 +191,13 @@ class BoxCommands:
                     "BADARG", f"pulse count {_shown(args[0])!r} not an integer in 1..{MAX_PULSES}"
                 )
             target = int(args[0])
+        with self._lock:
+            if self._state != ARMED:
+                raise CommandError("STATE", f"START needs ARMED, box is {self._state}")
+        try:
+            self.world.await_cable()  # a cable lead's followers must hear the run from its start
+        except DeviceError as exc:
+            raise CommandError("STATE", str(exc)) from None
         with self._lock:
             if self._state != ARMED:
                 raise CommandError("STATE", f"START needs ARMED, box is {self._state}")
