@@ -188,6 +188,19 @@ class CableLead:
                 f"{self._label}: {self.connected} of {want} follower(s) connected after "
                 f"{self.params.wait:g} s (open the followers' devices, cable_role=follow, first)"
             )
+        if self._clock is not None:
+            # Ask every follower where it stands now: its devices may have started since its
+            # last report, and the first advance must not pass a deadline it has not sent yet.
+            self._clock.update(self._resync)
+
+    def _resync(self) -> None:
+        assert self._clock is not None
+        now = self._clock.now_us()
+        with self._lock:
+            for f in self._followers.values():
+                f.sent += 1
+                f.time_sent = now
+                f.sender.send(frame(ADVANCE, _ADVANCE.pack(f.sent, now)))
 
     def _change(self, fn: Any) -> None:
         """Apply a change to the follower table: under the clock's lock on the virtual clock
