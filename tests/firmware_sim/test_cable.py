@@ -78,7 +78,7 @@ def test_every_sim_device_kind_takes_the_cable_params(sock_dir: Path) -> None:
     """The spec models accept them, so the check happens in one place (`parse_cable`)."""
     query = cable_params(sock_dir / "c.sock", "follow", wait_s=0.05)
     for kind, device in (("event_sensor", "ev0"), ("rgb_camera", "cam0"), ("trigger", "trigger")):
-        with pytest.raises(DeviceError, match="no lead world after 0.05 s"):
+        with pytest.raises(DeviceError, match=r"no lead world after 0\.05 s"):
             open_device(kind, f"sim://{uuid4().hex}/{device}?{query}")  # type: ignore[call-overload]
 
 
@@ -196,7 +196,8 @@ def test_one_virtual_clock_over_the_cable(sock_dir: Path) -> None:
     try:
         for th in threads:
             th.start()
-        assert a.clock.wait_sleepers(2) and b.clock.wait_sleepers(1)  # type: ignore[union-attr]
+        assert a.clock.wait_sleepers(2)  # type: ignore[union-attr]
+        assert b.clock.wait_sleepers(1)  # type: ignore[union-attr]
         assert a.now_us() == b.now_us() == 0.0
         a.clock.start()
         for th in threads:
@@ -204,8 +205,12 @@ def test_one_virtual_clock_over_the_cable(sock_dir: Path) -> None:
             assert not th.is_alive()
         times = [t for _, t in order]
         assert times == sorted(times)
-        assert sorted(order) == sorted([("a", 3.0 * k) for k in range(1, 21)] + [("b", 5.0 * k) for k in range(1, 21)])
-        assert [(e.pulse_index, e.true_us, now) for e, now in seen] == [(k, 7.0 * (k + 1), 7.0 * (k + 1)) for k in range(5)]
+        assert sorted(order) == sorted(
+            [("a", 3.0 * k) for k in range(1, 21)] + [("b", 5.0 * k) for k in range(1, 21)]
+        )
+        assert [(e.pulse_index, e.true_us, now) for e, now in seen] == [
+            (k, 7.0 * (k + 1), 7.0 * (k + 1)) for k in range(5)
+        ]
         assert b.now_us() == 100.0
     finally:
         follower.close()
@@ -241,7 +246,7 @@ def test_a_follower_whose_lead_hangs_up_stops_and_its_world_is_replaced(sock_dir
         assert isinstance(b.cable, CableFollower)
         lead.close()
         wait_for(lambda: b.cable is not None and b.cable.dead, "the follower to see its lead gone")
-        with pytest.raises(DeviceError, match="no lead world after 0.1 s"):
+        with pytest.raises(DeviceError, match=r"no lead world after 0\.1 s"):
             spec_world(spec("clock=virtual&" + cable_params(path, "follow", wait_s=0.1), name))
     finally:
         reset_world(name)
@@ -256,7 +261,9 @@ def test_the_lead_clock_does_not_start_without_its_followers(sock_dir: Path) -> 
         with trig:
             trig.configure(TriggerSettings(rate_hz=100.0))
             trig.arm()
-            with pytest.raises(RigdError, match=r"trigger cable .*c\.sock: 0 of 1 follower\(s\) connected after 0.1 s"):
+            with pytest.raises(
+                RigdError, match=r"trigger cable .*c\.sock: 0 of 1 follower\(s\) connected after 0.1 s"
+            ):
                 trig.start(5)
             world = spec_world(DeviceSpec.parse(f"sim://{name}/trigger?clock=virtual&{query}"))
             assert world.now_us() == 0.0
