@@ -24,13 +24,14 @@ from drivers.base import EventSensor
 from drivers.registry import open_device
 from firmware_sim.cable import CableParams, cable_params
 from firmware_sim.cable_link import CableFollower, CableLead
-from firmware_sim.world import Edge, get_world, reset_world
+from firmware_sim.world import DeviceClock, Edge, get_world, reset_world
 from rigd.core.events import EventArray, TriggerEvents
 from rigd.core.settings import TriggerSettings
 
 SEED = 7
 SENSOR = f"clock=virtual&seed={SEED}&width=96&height=64&offset_us=1234&drift_ppm=30"
 BOX = f"clock=virtual&seed={SEED}&jitter_us=3"
+REAL_SENSOR = f"seed={SEED}&width=32&height=24&offset_us=1234&drift_ppm=30"
 #: Virtual seconds each run lasts; pulses the box fires in them.
 RUN_S = 0.4
 PULSES = 9
@@ -110,6 +111,29 @@ def follower_process(world: str, path: str, out: Any) -> None:
         out.put("ready")
 
     out.put(_run_sensor(sensor, world, ready))
+    sensor.close()
+    reset_world(world)
+
+
+def real_follower_process(world: str, path: str, out: Any) -> None:
+    """Real time: a sensor in a follower world reads until it has `2 * PULSES` trigger words
+    or counted the rest late (bounded in wall time)."""
+    spec = f"sim://{world}/ev0?{REAL_SENSOR}&{cable_params(path, 'follow')}"
+    sensor = open_device("event_sensor", spec)
+    sensor.start()
+    out.put("ready")
+    words = []
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        if (p := sensor.read_events(0.05)) is not None:
+            words.append(p.triggers)
+        if sum(len(w) for w in words) + sensor.stats().extra["triggers_late"] >= 2 * PULSES:
+            break
+    sensor.stop()
+    while (p := sensor.read_events(0.05)) is not None:
+        words.append(p.triggers)
+    trig = TriggerEvents.concatenate(words)
+    out.put({"tt": trig.t, "tp": trig.p, "late": sensor.stats().extra["triggers_late"]})
     sensor.close()
     reset_world(world)
 
@@ -236,3 +260,38 @@ def test_a_follower_whose_lead_process_dies_stops_and_closes(sock_dir: Path) -> 
         reset_world(world)
         if proc.is_alive():
             proc.kill()
+
+
+@pytest.mark.slow
+def test_a_real_clock_follower_stamps_the_leads_edges_at_their_true_times(sock_dir: Path) -> None:
+    """Real time: the follower counts from the lead's epoch, so its sensor stamps each edge at
+    the true time the lead's box fired it (or counts it late, never silently)."""
+    world = f"cable-{uuid4().hex[:8]}"
+    path = str(sock_dir / "c.sock")
+    trig = open_device(
+        "trigger", f"sim://{world}/trigger?seed={SEED}&{cable_params(path, 'lead', 1, wait_s=30)}"
+    )
+    q = _CTX.Queue()
+    proc = _CTX.Process(target=real_follower_process, args=(world, path, q), name="follower")
+    proc.start()
+    try:
+        assert _get(q, proc) == "ready"
+        _start_box(trig)
+        got = _get(q, proc)
+        proc.join(30)
+        assert proc.exitcode == 0
+        truth = get_world(world).truth.pulses
+    finally:
+        trig.close()
+        reset_world(world)
+        if proc.is_alive():
+            proc.kill()
+    assert len(truth) == PULSES
+    sensor_clock = DeviceClock(1234.0, 30.0)
+    expected = sorted(
+        [(sensor_clock.stamp(true_us), 1) for _, _, true_us, _ in truth]
+        + [(sensor_clock.stamp(true_us + 1000.0), 0) for _, _, true_us, _ in truth]
+    )
+    stamped = list(zip(got["tt"].tolist(), got["tp"].tolist(), strict=True))
+    assert len(stamped) + got["late"] == 2 * PULSES
+    assert set(stamped) <= set(expected)  # each edge it got, at the lead's true time
