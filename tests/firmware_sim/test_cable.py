@@ -217,6 +217,45 @@ def test_one_virtual_clock_over_the_cable(sock_dir: Path) -> None:
         lead.close()
 
 
+def test_the_lead_waits_until_a_follower_has_taken_in_an_edge(sock_dir: Path) -> None:
+    """A follower's device that is slow to latch an edge (here 20 ms of wall time) still sees
+    the lead's clock at the edge's instant: the lead moves on only once the edge is acknowledged."""
+    path = str(sock_dir / "c.sock")
+    a, b = SimWorld("w", 1, "virtual"), SimWorld("w", 1, "virtual")
+    lead = CableLead(a, CableParams(path, "lead", 1))
+    follower = CableFollower(b, CableParams(path, "follow"))
+    lead_time_at_latch: list[float] = []
+
+    def slow_latch(edge: Edge) -> None:
+        time.sleep(0.02)  # widens the window in which a lead that did not wait would move on
+        lead_time_at_latch.append(a.now_us())
+
+    b.wire.subscribe(slow_latch)
+    later = threading.Thread(
+        target=lambda: a.clock.sleep_until(1000.0), daemon=True
+    )  # a deadline after the edges
+    later.start()
+
+    def box() -> None:
+        hold = a.hold()
+        for k in range(5):
+            assert hold.sleep_until(10.0 * (k + 1))
+            a.wire.fire(Edge(True, 10.0 * (k + 1), k))
+        hold.release()
+
+    th = threading.Thread(target=box)
+    th.start()
+    try:
+        assert a.clock.wait_sleepers(2)  # type: ignore[union-attr]
+        a.clock.start()
+        th.join(20)
+        later.join(20)
+        assert lead_time_at_latch == [10.0, 20.0, 30.0, 40.0, 50.0]
+    finally:
+        follower.close()
+        lead.close()
+
+
 def test_a_follower_that_hangs_up_is_dropped_and_time_goes_on(sock_dir: Path) -> None:
     path = str(sock_dir / "c.sock")
     a, b = SimWorld("w", 1, "virtual"), SimWorld("w", 1, "virtual")

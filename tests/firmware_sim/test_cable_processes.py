@@ -31,6 +31,7 @@ from rigd.core.settings import TriggerSettings
 SEED = 7
 SENSOR = f"clock=virtual&seed={SEED}&width=96&height=64&offset_us=1234&drift_ppm=30"
 BOX = f"clock=virtual&seed={SEED}&jitter_us=3"
+CAMERA = f"clock=virtual&seed={SEED}&width=64&height=48&offset_us=-5000&drift_ppm=-20"
 REAL_SENSOR = f"seed={SEED}&width=32&height=24&offset_us=1234&drift_ppm=30"
 #: Virtual seconds each run lasts; pulses the box fires in them.
 RUN_S = 0.4
@@ -46,9 +47,11 @@ def sock_dir() -> Iterator[Path]:
     shutil.rmtree(d, ignore_errors=True)
 
 
-def _run_sensor(sensor: EventSensor, world_name: str, ready: Callable[[], None]) -> dict[str, Any]:
-    """Run a started sensor RUN_S of virtual time from 0 (holding time at the end while it
-    stops, so its last slice ends there) and return what it sent."""
+def _run_sensor(
+    sensor: EventSensor, world_name: str, ready: Callable[[], None], camera: Any
+) -> dict[str, Any]:
+    """Run a started sensor and camera RUN_S of virtual time from 0 (holding time at the end
+    while they stop, so the sensor's last slice ends there) and return what they sent."""
     world = get_world(world_name)
     hold = world.hold()
     reached = threading.Event()
@@ -60,17 +63,28 @@ def _run_sensor(sensor: EventSensor, world_name: str, ready: Callable[[], None])
     threading.Thread(target=sleeper, daemon=True).start()
     assert world.clock.wait_sleepers(2)  # type: ignore[union-attr]  # the sensor's and ours
     ready()
-    packets = []
-    while not reached.is_set():
-        if (p := sensor.read_events(0.05)) is not None:
+    packets, frames = [], []
+
+    def read(timeout_s: float) -> bool:
+        got = False
+        if (p := sensor.read_events(timeout_s)) is not None:
             packets.append(p)
+            got = True
+        if (f := camera.read_frame(timeout_s)) is not None:
+            frames.append(f)
+            got = True
+        return got
+
+    while not reached.is_set():
+        read(0.02)
     assert world.now_us() == RUN_S * 1e6
-    while (p := sensor.read_events(0.05)) is not None:
-        packets.append(p)
+    while read(0.05):
+        pass
     sensor.stop()
+    camera.stop()
     hold.release()
-    while (p := sensor.read_events(0.05)) is not None:
-        packets.append(p)
+    while read(0.05):
+        pass
     ev = EventArray.concatenate([p.events for p in packets])
     trig = TriggerEvents.concatenate([p.triggers for p in packets])
     extra = sensor.stats().extra
@@ -82,6 +96,7 @@ def _run_sensor(sensor: EventSensor, world_name: str, ready: Callable[[], None])
         "tt": trig.t,
         "tp": trig.p,
         "tc": trig.channel,
+        "frames": [(f.frame_counter, f.t_exposure_start_us, f.image.tobytes()) for f in frames],
         **{k: extra[k] for k in ("triggers_late", "triggers_dropped", "events_generated")},
     }
 
@@ -96,22 +111,29 @@ def one_process_world(world: str, out: Any) -> None:
     """The reference: the box and the sensor in one world, one process."""
     trig = open_device("trigger", f"sim://{world}/trigger?{BOX}")
     sensor = open_device("event_sensor", f"sim://{world}/ev0?{SENSOR}")
+    camera = open_device("rgb_camera", f"sim://{world}/cam0?{CAMERA}")
     sensor.start()
-    out.put(_run_sensor(sensor, world, lambda: _start_box(trig)))
+    camera.start()
+    out.put(_run_sensor(sensor, world, lambda: _start_box(trig), camera))
     sensor.close()
+    camera.close()
     trig.close()
 
 
 def follower_process(world: str, path: str, out: Any) -> None:
     """The sensor in a follower world; the lead (another process) starts the box once ready."""
-    sensor = open_device("event_sensor", f"sim://{world}/ev0?{SENSOR}&{cable_params(path, 'follow')}")
+    cable = cable_params(path, "follow")
+    sensor = open_device("event_sensor", f"sim://{world}/ev0?{SENSOR}&{cable}")
+    camera = open_device("rgb_camera", f"sim://{world}/cam0?{CAMERA}&{cable}")
     sensor.start()
+    camera.start()
 
     def ready() -> None:
         out.put("ready")
 
-    out.put(_run_sensor(sensor, world, ready))
+    out.put(_run_sensor(sensor, world, ready, camera))
     sensor.close()
+    camera.close()
     reset_world(world)
 
 
@@ -164,8 +186,9 @@ def _get(q: Any, proc: Any, timeout_s: float = 120.0) -> Any:
 
 
 @pytest.mark.slow
-def test_a_follower_sensor_makes_what_it_makes_in_one_process(sock_dir: Path) -> None:
-    """On the virtual clock, across processes: the same events and trigger words, bit for bit."""
+def test_a_follower_makes_what_it_makes_in_one_process(sock_dir: Path) -> None:
+    """On the virtual clock, across processes: a follower's event sensor makes the same events
+    and trigger words, its camera the same frames, bit for bit."""
     world = f"cable-{uuid4().hex[:8]}"
     q_ref = _CTX.Queue()
     ref_proc = _CTX.Process(target=one_process_world, args=(world, q_ref), name="one-process")
@@ -194,6 +217,8 @@ def test_a_follower_sensor_makes_what_it_makes_in_one_process(sock_dir: Path) ->
     assert len(ref["tt"]) == 2 * PULSES
     for key in ("t", "x", "y", "p", "tt", "tp", "tc"):
         assert np.array_equal(got[key], ref[key]), key
+    assert len(ref["frames"]) == PULSES
+    assert got["frames"] == ref["frames"]  # counters, exposure times and pixels
     assert got["triggers_late"] == ref["triggers_late"] == 0
     assert got["events_generated"] == ref["events_generated"]
 
