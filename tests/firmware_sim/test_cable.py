@@ -17,7 +17,7 @@ import pytest
 from drivers.registry import DeviceSpec, open_device
 from firmware_sim.cable import CableParams, cable_params, parse_cable
 from firmware_sim.cable_link import CableFollower, CableLead
-from firmware_sim.world import Edge, SimWorld, reset_world, spec_world
+from firmware_sim.world import Edge, SimWorld, get_world, reset_world, spec_world
 from rigd.core.errors import ConfigError, DeviceError, RigdError
 from rigd.core.settings import TriggerSettings
 
@@ -342,3 +342,37 @@ def test_a_real_clock_follower_counts_from_the_leads_epoch(sock_dir: Path) -> No
     finally:
         follower.close()
         lead.close()
+
+
+@pytest.mark.slow
+def test_the_avr_firmware_box_leads_a_cable_on_the_virtual_clock(sock_dir: Path) -> None:
+    """The trigger box as the real firmware under simavr drives the cable like the Python box:
+    each of its edges reaches the follower at its own instant of the one clock."""
+    from firmware_sim.testing.avr_box import build_firmware, build_harness
+
+    if shutil.which("avr-gcc") is None or not Path("/usr/include/simavr/sim_avr.h").exists():
+        pytest.skip("the AVR toolchain or simavr's headers are not installed (gcc-avr, libsimavr-dev)")
+    build_firmware()
+    build_harness()
+    name = f"avr-{uuid4().hex[:8]}"
+    path = str(sock_dir / "c.sock")
+    trig = open_device(
+        "trigger", f"avr://{name}/trigger?mcu=atmega328p&clock=virtual&{cable_params(path, 'lead', 1)}"
+    )
+    b = SimWorld(name, 0, "virtual")
+    follower = CableFollower(b, CableParams(path, "follow"))
+    seen: list[tuple[Edge, float]] = []
+    b.wire.subscribe(lambda e: seen.append((e, b.now_us())))
+    try:
+        trig.configure(TriggerSettings(rate_hz=100.0))
+        trig.arm()
+        trig.start(5)
+        wait_for(lambda: len(seen) == 10, "ten edges", timeout_s=60)
+        truth = get_world(name)
+        rising = [(e.pulse_index, e.true_us) for e, _ in seen if e.rising]
+        assert rising == [(k, true_us) for k, _, true_us, _ in truth.truth.pulses]
+        assert all(now == e.true_us for e, now in seen)
+    finally:
+        trig.close()
+        follower.close()
+        reset_world(name)
