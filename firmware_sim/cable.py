@@ -24,7 +24,9 @@ for the others; a follower whose lead hangs up stops advancing (its devices stil
 the next spec of that world opens a fresh world that connects again.
 
 Spec parameters (`cable_params` builds them): `cable=<absolute socket path>`,
-`cable_role=lead|follow`, on the lead `cable_followers=N`, optionally `cable_wait_s=`. The
+`cable_role=lead|follow`, on the lead `cable_followers=N` (and optionally `cable_stall_s=`: a
+virtual-clock follower that owes an acknowledgement that long is dropped), optionally
+`cable_wait_s=`. The
 socket's directory must be private to the user (owner-only, not group or other writable).
 The wire format and the two ends live in `firmware_sim.cable_link`.
 """
@@ -47,13 +49,17 @@ if TYPE_CHECKING:
 CableRole = Literal["lead", "follow"]
 CABLE_ROLES: tuple[CableRole, ...] = ("lead", "follow")
 #: The spec parameters of the cable (every `sim://` device kind takes them).
-CABLE_PARAMS = frozenset({"cable", "cable_role", "cable_followers", "cable_wait_s"})
+CABLE_PARAMS = frozenset({"cable", "cable_role", "cable_followers", "cable_wait_s", "cable_stall_s"})
 #: A follower waits this long (wall seconds) for the lead to listen, by default.
 FOLLOW_WAIT_S = 10.0
 #: The lead's START waits this long for missing followers, by default: below the host driver's
 #: default reply timeout (1 s), so a missing follower is the box's ERR, not a timeout.
 LEAD_WAIT_S = 0.5
+#: Virtual clock: a follower that owes the lead an acknowledgement this long (wall seconds) is
+#: hung (stopped, not dead) and is dropped, so it stalls the shared time no longer, by default.
+STALL_S = 30.0
 MAX_FOLLOWERS = 64
+MAX_STALL_S = 3600.0
 MAX_WAIT_S = 600.0
 #: sockaddr_un.sun_path holds 108 bytes with the terminating NUL.
 MAX_SOCKET_PATH = 107
@@ -69,6 +75,12 @@ class CableParams:
     """Lead: followers that must be connected before its clock starts."""
     wait_s: float | None = None
     """None: the role's default (`FOLLOW_WAIT_S`, `LEAD_WAIT_S`)."""
+    stall_s: float | None = None
+    """Lead: drop a follower that owes an acknowledgement this long (None: `STALL_S`; 0: never)."""
+
+    @property
+    def stall(self) -> float:
+        return STALL_S if self.stall_s is None else self.stall_s
 
     @property
     def wait(self) -> float:
@@ -85,6 +97,7 @@ class CableParams:
             ("cable_role", self.role, other.role),
             ("cable_followers", self.followers, other.followers),
             ("cable_wait_s", self.wait_s, other.wait_s),
+            ("cable_stall_s", self.stall_s, other.stall_s),
         ):
             if mine != theirs:
                 return name
@@ -92,7 +105,11 @@ class CableParams:
 
 
 def cable_params(
-    path: str | Path, role: CableRole, followers: int | None = None, wait_s: float | None = None
+    path: str | Path,
+    role: CableRole,
+    followers: int | None = None,
+    wait_s: float | None = None,
+    stall_s: float | None = None,
 ) -> str:
     """The spec query string of a cable end (`cable=...&cable_role=lead&cable_followers=2`), for
     configs, tests and benches to append to a `sim://` spec."""
@@ -101,6 +118,8 @@ def cable_params(
         pairs.append(("cable_followers", str(followers)))
     if wait_s is not None:
         pairs.append(("cable_wait_s", f"{wait_s:g}"))
+    if stall_s is not None:
+        pairs.append(("cable_stall_s", f"{stall_s:g}"))
     return urlencode(pairs, safe="/")
 
 
@@ -133,16 +152,24 @@ def parse_cable(spec: DeviceSpec) -> CableParams | None:
         followers = int(text)
     elif "cable_followers" in spec.params:
         raise ConfigError(f"{where}: cable_followers is the lead's (cable_role=lead), not a follower's")
-    wait_s: float | None = None
-    if "cable_wait_s" in spec.params:
-        text = spec.params["cable_wait_s"]
-        try:
-            wait_s = float(text)
-        except ValueError:
-            wait_s = math.nan
-        if not (0 <= wait_s <= MAX_WAIT_S):  # also refuses nan
-            raise ConfigError(f"{where}: cable_wait_s={text!r} out of range (allowed: 0..{MAX_WAIT_S:g} s)")
-    return CableParams(os.path.normpath(path), role, followers, wait_s)
+    wait_s = _seconds(spec, "cable_wait_s", MAX_WAIT_S)
+    stall_s = _seconds(spec, "cable_stall_s", MAX_STALL_S)
+    if stall_s is not None and role != "lead":
+        raise ConfigError(f"{where}: cable_stall_s is the lead's (cable_role=lead), not a follower's")
+    return CableParams(os.path.normpath(path), role, followers, wait_s, stall_s)
+
+
+def _seconds(spec: DeviceSpec, name: str, limit: float) -> float | None:
+    if name not in spec.params:
+        return None
+    text = spec.params[name]
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (0 <= value <= limit):  # also refuses nan
+        raise ConfigError(f"device spec {spec.raw!r}: {name}={text!r} out of range (allowed: 0..{limit:g} s)")
+    return value
 
 
 def check_private_dir(path: str, *, create: bool) -> None:

@@ -131,6 +131,7 @@ class _Follower:
 
     ident: int
     pid: int
+    sock: socket.socket
     sender: _Sender
     sent: int = 0
     """Sequence number of the last EDGE or ADVANCE sent."""
@@ -138,6 +139,15 @@ class _Follower:
     idle: bool = False
     deadline: float = math.inf
     time_sent: float = -math.inf
+    owed_since: float | None = None
+    """Wall time (monotonic) since which the follower owes an acknowledgement, if it does."""
+
+    def send_numbered(self, kind: int, record: struct.Struct, *fields: float) -> None:
+        """Send an EDGE or ADVANCE: the follower owes its acknowledgement from now on."""
+        self.sent += 1
+        if self.owed_since is None:
+            self.owed_since = time.monotonic()
+        self.sender.send(frame(kind, record.pack(self.sent, *fields)))
 
 
 class CableLead:
@@ -167,6 +177,9 @@ class CableLead:
             target=self._accept_loop, name=f"cable-lead-{world.name}", daemon=True
         )
         self._acceptor.start()
+        self._watch_stop = threading.Event()
+        if self._clock is not None and params.stall > 0:
+            threading.Thread(target=self._watch, name=f"cable-lead-{world.name}-watch", daemon=True).start()
         log.info("%s: lead world %r listening (%s clock)", self._label, world.name, world.clock.mode)
 
     # -- state -------------------------------------------------------------------------
@@ -198,9 +211,8 @@ class CableLead:
         now = self._clock.now_us()
         with self._lock:
             for f in self._followers.values():
-                f.sent += 1
                 f.time_sent = now
-                f.sender.send(frame(ADVANCE, _ADVANCE.pack(f.sent, now)))
+                f.send_numbered(ADVANCE, _ADVANCE, now)
 
     def _change(self, fn: Any) -> None:
         """Apply a change to the follower table: under the clock's lock on the virtual clock
@@ -223,9 +235,8 @@ class CableLead:
         with self._lock:
             for f in self._followers.values():
                 if now_us > f.time_sent or f.deadline <= now_us:
-                    f.sent += 1
                     f.time_sent = now_us
-                    f.sender.send(frame(ADVANCE, _ADVANCE.pack(f.sent, now_us)))
+                    f.send_numbered(ADVANCE, _ADVANCE, now_us)
 
     def settled(self, idle: bool, deadline_us: float) -> None:
         raise AssertionError("the lead's clock does not report to anyone")
@@ -237,9 +248,7 @@ class CableLead:
         def send() -> None:
             with self._lock:
                 for f in self._followers.values():
-                    f.sent += 1
-                    body = _EDGE.pack(f.sent, 1 if edge.rising else 0, edge.true_us, edge.pulse_index)
-                    f.sender.send(frame(EDGE, body))
+                    f.send_numbered(EDGE, _EDGE, 1 if edge.rising else 0, edge.true_us, edge.pulse_index)
 
         self._change(send)
 
@@ -309,7 +318,7 @@ class CableLead:
             with self._lock:
                 if self._closing:
                     return
-                follower = _Follower(self._next_ident, pid, sender)
+                follower = _Follower(self._next_ident, pid, conn, sender)
                 self._next_ident += 1
                 welcome: dict[str, Any] = {**mine, "epoch_ns": 0, "now_us": 0.0, "started": False}
                 if self._clock is None:
@@ -330,9 +339,34 @@ class CableLead:
         log.info("%s: follower %d (pid %d) connected", self._label, joined[0].ident, pid)
         return joined[0]
 
+    def _watch(self) -> None:
+        """Drop a follower that has owed an acknowledgement for `cable_stall_s`: a stopped
+        (not dead) process would otherwise stall the shared virtual time for good."""
+        stall = self.params.stall
+        while not self._watch_stop.wait(min(0.5, stall / 4)):
+            now = time.monotonic()
+            with self._lock:
+                hung = [
+                    f
+                    for f in self._followers.values()
+                    if f.owed_since is not None and now - f.owed_since > stall
+                ]
+            for f in hung:
+                log.warning(
+                    "%s: follower %d (pid %d) has not answered for %.1f s; dropping it so time goes on",
+                    self._label,
+                    f.ident,
+                    f.pid,
+                    stall,
+                )
+                with contextlib.suppress(OSError):  # its reader then sees the end and drops it
+                    f.sock.shutdown(socket.SHUT_RDWR)
+
     def _note_state(self, f: _Follower, acked: int, idle: int, deadline: float) -> None:
         with self._lock:
             f.acked, f.idle, f.deadline = acked, bool(idle), deadline
+            if acked == f.sent:
+                f.owed_since = None
 
     def _drop(self, f: _Follower, clean: bool) -> None:
         def drop() -> None:
@@ -356,6 +390,7 @@ class CableLead:
                 return
             self._closing = True
             followers = list(self._followers.values())
+        self._watch_stop.set()
         self._unsubscribe()
         with contextlib.suppress(OSError):  # wakes accept(); close() ends it where shutdown is refused
             self._listener.shutdown(socket.SHUT_RDWR)

@@ -16,7 +16,7 @@ from annotated_types import Ge, Gt, Le, Lt
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.registry import DeviceSpec
-from firmware_sim.cable import MAX_FOLLOWERS, MAX_SOCKET_PATH, MAX_WAIT_S
+from firmware_sim.cable import MAX_FOLLOWERS, MAX_SOCKET_PATH, MAX_STALL_S, MAX_WAIT_S
 from rigd.core.errors import ConfigError
 
 #: Device clocks count microseconds from 0; an offset within +-2^45 us (about 1.1 years of
@@ -70,6 +70,7 @@ class CableSpecParams(SpecParams):
     cable_role: Literal["lead", "follow"] | None = None
     cable_followers: Annotated[int, Field(ge=0, le=MAX_FOLLOWERS)] | None = None
     cable_wait_s: Annotated[float, Field(ge=0, le=MAX_WAIT_S)] | None = None
+    cable_stall_s: Annotated[float, Field(ge=0, le=MAX_STALL_S)] | None = None
 
 
 class _Placement(CableSpecParams):

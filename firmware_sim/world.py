@@ -475,7 +475,7 @@ def spec_world(spec: DeviceSpec) -> SimWorld:
         raise ConfigError(
             f"device spec {spec.raw!r}: sim world {name!r} was opened with "
             f"{_cable_text(theirs)}; this spec gives {_cable_text(cable)} (they differ in {param}; "
-            "give every device of a world the same cable, cable_role, cable_followers and cable_wait_s)"
+            "give every device of a world the same cable parameters)"
         )
     return world
 
@@ -488,6 +488,8 @@ def _cable_text(params: CableParams | None) -> str:
         text += f" cable_followers={params.followers}"
     if params.wait_s is not None:
         text += f" cable_wait_s={params.wait_s:g}"
+    if params.stall_s is not None:
+        text += f" cable_stall_s={params.stall_s:g}"
     return text
 
 

@@ -44,9 +44,10 @@ def wait_for(predicate: object, what: str, timeout_s: float = 10.0) -> None:
 
 def test_cable_params_build_a_query_that_parses_back(sock_dir: Path) -> None:
     path = sock_dir / "c.sock"
-    lead = parse_cable(spec(cable_params(path, "lead", 2, wait_s=1.5)))
-    assert lead == CableParams(str(path), "lead", 2, 1.5)
+    lead = parse_cable(spec(cable_params(path, "lead", 2, wait_s=1.5, stall_s=0)))
+    assert lead == CableParams(str(path), "lead", 2, 1.5, 0.0)
     assert lead.wait == 1.5
+    assert lead.stall == 0.0
     follow = parse_cable(spec(cable_params(path, "follow")))
     assert follow == CableParams(str(path), "follow", 0, None)
     assert follow.wait == 10.0
@@ -64,6 +65,11 @@ def test_cable_params_build_a_query_that_parses_back(sock_dir: Path) -> None:
         ("cable=/tmp/x.sock&cable_role=lead&cable_followers=-1", ["cable_followers='-1'", "0..64"]),
         ("cable=/tmp/x.sock&cable_role=follow&cable_followers=1", ["cable_followers", "lead"]),
         ("cable=/tmp/x.sock&cable_role=follow&cable_wait_s=nan", ["cable_wait_s='nan'", "0..600"]),
+        ("cable=/tmp/x.sock&cable_role=follow&cable_stall_s=5", ["cable_stall_s", "lead"]),
+        (
+            "cable=/tmp/x.sock&cable_role=lead&cable_followers=1&cable_stall_s=-1",
+            ["cable_stall_s='-1'", "0..3600"],
+        ),
         (f"cable=/{'a' * 120}&cable_role=follow", ["longer than a Unix socket path"]),
     ],
 )
@@ -273,6 +279,41 @@ def test_a_follower_that_hangs_up_is_dropped_and_time_goes_on(sock_dir: Path) ->
     assert b.now_us() == 0.0  # nothing moves a follower without its lead
     stuck.release()
     lead.close()
+
+
+def test_a_follower_that_stops_answering_is_dropped_after_the_stall_time(sock_dir: Path) -> None:
+    """A stopped (not dead) follower owes the lead an acknowledgement: after `cable_stall_s`
+    the lead drops it, so the shared time goes on, and the follower finds its lead gone."""
+    path = str(sock_dir / "c.sock")
+    a, b = SimWorld("w", 1, "virtual"), SimWorld("w", 1, "virtual")
+    lead = CableLead(a, CableParams(path, "lead", 1, stall_s=0.2))
+    follower = CableFollower(b, CableParams(path, "follow"))
+    unblock = threading.Event()
+    b.wire.subscribe(lambda e: unblock.wait(30))  # the follower's reader stops at the first edge
+    woke = threading.Event()
+
+    def box() -> None:
+        hold = a.hold()
+        assert hold.sleep_until(10.0)
+        a.wire.fire(Edge(True, 10.0, 0))
+        assert hold.sleep_until(500.0)  # held up until the follower is dropped
+        woke.set()
+        hold.release()
+
+    th = threading.Thread(target=box)
+    th.start()
+    try:
+        assert a.clock.wait_sleepers(1)  # type: ignore[union-attr]
+        a.clock.start()
+        assert woke.wait(20)
+        assert lead.connected == 0
+        unblock.set()
+        wait_for(lambda: follower.dead, "the follower to find its lead gone")
+    finally:
+        unblock.set()
+        th.join(10)
+        follower.close()
+        lead.close()
 
 
 def test_a_follower_whose_lead_hangs_up_stops_and_its_world_is_replaced(sock_dir: Path) -> None:
