@@ -27,6 +27,7 @@ import stat
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
 
@@ -214,7 +215,7 @@ class CableLead:
                 f.time_sent = now
                 f.send_numbered(ADVANCE, _ADVANCE, now)
 
-    def _change(self, fn: Any) -> None:
+    def _change(self, fn: Callable[[], None]) -> None:
         """Apply a change to the follower table: under the clock's lock on the virtual clock
         (then let it advance), under ours on the real one."""
         if self._clock is not None:
