@@ -71,8 +71,12 @@ def run(args: argparse.Namespace) -> int:
     data = base.model_dump(mode="json")
     data["writer"]["disk_reserve_mb"] = 0
     data["service"]["metrics_port"] = None
-    configs, dirs = split_rig(
-        base.model_validate(data), root / "split", split=split, tcp=True, spec_tail=tails if followers else None
+    configs, _dirs = split_rig(
+        base.model_validate(data),
+        root / "split",
+        split=split,
+        tcp=True,
+        spec_tail=tails if followers else None,
     )
     procs: dict[str, subprocess.Popen[bytes]] = {}
     rows: list[tuple[str, str, str]] = []
@@ -130,8 +134,14 @@ def run(args: argparse.Namespace) -> int:
         assert isinstance(ev, dict)
         return sum(int(v) for v in ev.values())
 
-    print(f"machine: {os.cpu_count()} cores; {args.hosts} host(s) on it; clock={clock}; {w}x{h}; {args.duration:g} s")
-    print(f"{'take':<8} {'verdict':<10} {'events':>12} {'frames':>7} {'wall s':>7} {'Mev/s':>7}  CPU s by daemon")
+    print(
+        f"machine: {os.cpu_count()} cores; {args.hosts} host(s) on it; clock={clock}; {w}x{h}; "
+        f"{args.duration:g} s"
+    )
+    print(
+        f"{'take':<8} {'verdict':<10} {'events':>12} {'frames':>7} {'wall s':>7} {'Mev/s':>7}  "
+        "CPU s by daemon"
+    )
     for name, last, wall, cpu in (
         ("split", split_last, split_wall, split_cpu),
         ("single", single_last, single_wall, {"single": single_cpu}),
@@ -163,7 +173,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hosts", type=int, choices=sorted(SPLITS), default=3)
     p.add_argument("--sim-clock", choices=("real", "virtual"), default="virtual")
     p.add_argument("--duration", type=float, default=3.0)
-    p.add_argument("--resolution", default="320x240", help="Cameras and sensors, WxH (default rig: 1280x720).")
+    p.add_argument(
+        "--resolution", default="320x240", help="Cameras and sensors, WxH (default rig: 1280x720)."
+    )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--keep", action="store_true", help="Keep the daemons' directories and logs.")
     return run(p.parse_args(argv))

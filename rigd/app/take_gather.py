@@ -113,7 +113,7 @@ def gather_take(
                 )
             continue
         try:
-            result.actions[entry.host] = _fetch(client(cfg, timeout_s), local)
+            result.actions[entry.host] = fetch_part(client(cfg, timeout_s), local)
         except (RigdError, OSError) as exc:
             why = f"not gathered from {cfg.control}: {exc}"
             result.actions[entry.host] = why
@@ -144,7 +144,7 @@ def _stat(c: DaemonClient, name: str) -> dict[str, Any]:
         time.sleep(0.2)
 
 
-def _fetch(c: DaemonClient, local: Path) -> str:
+def fetch_part(c: DaemonClient, local: Path) -> str:
     """Make `local` the host's copy of its name; says what it did."""
     with c:
         try:

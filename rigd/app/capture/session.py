@@ -110,6 +110,7 @@ class CaptureSession:
         self._pulses_of_take: int | None = None
         """Pulses of the take, once the box has stopped (what a follower host's take ends at)."""
         self._open_trigger = open_trigger
+        self._before_pulses: Callable[[], None] | None = None
         """Opens the trigger instead of `config.trigger.spec` (a follower host's remote trigger)."""
         self._watchdog: TriggerWatchdog | None = None
         self._channels: dict[str, DeviceChannel] = {}
@@ -135,8 +136,13 @@ class CaptureSession:
     def state(self) -> SessionState:
         return self._state
 
-    def start(self) -> Path:
-        """Open the devices, create the take and start the trigger; errors raise here."""
+    def start(self, before_pulses: Callable[[], None] | None = None) -> Path:
+        """Open the devices, create the take and start the trigger; errors raise here.
+
+        `before_pulses` runs once everything here is open and recording, just before the
+        trigger starts (a multi-host coordinator arms the other hosts there); what it raises
+        fails the start, before any pulse."""
+        self._before_pulses = before_pulses
         if self._state != "new":
             raise RigdError("a capture session can only be started once")
         self._state = "starting"
@@ -196,7 +202,8 @@ class CaptureSession:
         multi-host rig fetch (`RemoteTrigger`)."""
         trigger = self._trigger
         if trigger is None:
-            return FeedState(np.empty(0, np.int64), np.empty(0, np.int64), self._state == "starting", None, 0)
+            over = self._state in ("failed", "done")
+            return FeedState(np.empty(0, np.int64), np.empty(0, np.int64), not over, 0 if over else None, 0)
         index, t_us = trigger.records_since(since)
         emitted = self._pulses_of_take
         if emitted is None and self._state in ("failed", "done"):
@@ -342,6 +349,8 @@ class CaptureSession:
         self._threads.append(self._control.start_thread("acq-trigger", lambda: trigger.run(self._queue)))
         for ch in self._channels.values():
             ch.device.start()
+        if self._before_pulses is not None:
+            self._before_pulses()
         trigger.device.arm()
         self._t_start = time.monotonic()
         trigger.device.start(self.n_pulses)

@@ -25,11 +25,6 @@ log = logging.getLogger(__name__)
 REQUEST_TIMEOUT_S = 5.0
 
 
-def part_name(stem: str, host: str) -> str:
-    """The file a host's devices are recorded into, beside the joined `<stem>.h5`."""
-    return f"{stem}.{host}.part.h5"
-
-
 def this_host(config: RigConfig) -> str | None:
     """The daemon's host on a multi-host rig (`service.host`, `rigd serve --host`), else None."""
     if not config.hosts:

@@ -20,17 +20,16 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
 from rigd.app.capture import CaptureSession, SessionSnapshot
 from rigd.app.capture.remote_trigger import FeedState
 from rigd.app.capture.request import new_take_path
 from rigd.app.capture.results import CaptureResult
 from rigd.app.config import RigConfig
 from rigd.app.service.client import DaemonRequestError, DaemonUnavailableError
-from rigd.app.service.host_links import REQUEST_TIMEOUT_S, HostLink, part_name
+from rigd.app.service.host_links import REQUEST_TIMEOUT_S, HostLink
 from rigd.app.service.protocol import HostTelemetry
 from rigd.core.errors import RigdError, TakeError
+from rigd.take.parts import part_name
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +40,8 @@ HOST_LOST_S = 10.0
 #: How often the coordinator asks each host how it is (status, and whether its part is sealed).
 POLL_S = 0.5
 
-Gather = Callable[[HostLink, str, Path], Path]
-"""Copies a host's part (by file name) into a directory and returns where it is."""
+Gather = Callable[[str, str, Path], Path]
+"""Copies a host's part (host, file name) into a directory and returns where it is."""
 Join = Callable[[Path, Path, dict[str, tuple[Path | None, tuple[str, ...]]], dict[str, str]], None]
 """Writes the joined take: (out, coordinator's part, host -> (part or None, devices), host -> why missing)."""
 
@@ -95,6 +94,7 @@ class MultiHostSession:
         self._error: BaseException | None = None
         self._state = "new"
         self._thread: threading.Thread | None = None
+        self._armed: list[str] = []
 
     # -- the surface the rig slot uses -----------------------------------------------------
     @property
@@ -131,40 +131,36 @@ class MultiHostSession:
         return self._result
 
     def pulse_feed(self, since: int) -> FeedState:
-        if self._state == "failed" and self.local.state == "new":  # the box never started
-            return FeedState(np.empty(0, np.int64), np.empty(0, np.int64), False, 0, 0)
         return self.local.pulse_feed(since)
 
     def start(self) -> Path:
-        """Arm every host (in parallel), then open this host's devices and start the box."""
+        """Open this host's devices, arm every other host (in parallel), then start the box: a
+        host that cannot be armed fails the start before any pulse."""
         self._state = "starting"
-        armed: list[str] = []
-        failures: list[str] = []
-        with ThreadPoolExecutor(max(1, len(self.followers))) as pool:
-            futures = {h: pool.submit(self._arm, h) for h in self.followers}
-            for h, fut in futures.items():
-                try:
-                    fut.result()
-                    armed.append(h)
-                except (DaemonUnavailableError, DaemonRequestError, RigdError) as exc:
-                    failures.append(f"{self._links[h].name} did not arm: {exc}")
-        if failures:
-            err = TakeError("; ".join(failures) + "; no pulse was sent")
-            self._failed(err)
-            self._disarm(armed, "the take did not start: " + failures[0])
-            self._end()
-            raise err
         try:
-            self.local.start()
+            self.local.start(before_pulses=self._arm_all)
         except BaseException as exc:
             self._failed(exc)
-            self._disarm(armed, "the coordinator could not start its devices or the box")
+            self._disarm(self._armed, f"the take did not start: {exc}")
             self._end()
             raise
         self._state = "capturing"
         self._thread = threading.Thread(target=self._run, name="multihost", daemon=True)
         self._thread.start()
         return self.path
+
+    def _arm_all(self) -> None:
+        failures: list[str] = []
+        with ThreadPoolExecutor(max(1, len(self.followers))) as pool:
+            futures = {h: pool.submit(self._arm, h) for h in self.followers}
+            for h, fut in futures.items():
+                try:
+                    fut.result()
+                    self._armed.append(h)
+                except (DaemonUnavailableError, DaemonRequestError, RigdError) as exc:
+                    failures.append(f"{self._links[h].name} did not arm: {exc}")
+        if failures:
+            raise TakeError("; ".join(failures) + "; no pulse was sent")
 
     # -- internals -------------------------------------------------------------------------
     def _failed(self, exc: BaseException) -> None:
@@ -264,7 +260,7 @@ class MultiHostSession:
                 out[h] = (None, why)
                 continue
             try:
-                out[h] = (self._gather(self._links[h], name, self._take_dir), None)
+                out[h] = (self._gather(h, name, self._take_dir), None)
             except (DaemonUnavailableError, DaemonRequestError, RigdError, OSError) as exc:
                 out[h] = (None, f"its part {name} could not be copied: {exc}")
         return out
@@ -302,7 +298,10 @@ class MultiHostSession:
             local_error = exc
         if local_error is not None and not self.local.path.exists():
             raise local_error
-        hosts = {h: (p, tuple(self.config.devices_on(h))) for h, (p, _) in parts.items()}
+        hosts: dict[str, tuple[Path | None, tuple[str, ...]]] = {
+            self.host: (self.local.path, tuple(self.config.devices_on(self.host)))
+        }
+        hosts.update({h: (p, tuple(self.config.devices_on(h))) for h, (p, _) in parts.items()})
         missing = {h: why for h, (_, why) in parts.items() if why is not None}
         self._join(self.path, self.local.path, hosts, missing)
         self._result = joined_result(self.path, self.local.result, time.monotonic())

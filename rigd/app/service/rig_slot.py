@@ -8,6 +8,7 @@ completed, the faults that outlive a take (a full disk), and what recovery seale
 from __future__ import annotations
 
 import ctypes
+import functools
 import gc
 import logging
 import threading
@@ -148,13 +149,14 @@ class RigSlot:
             duration_s=args.duration_s,
             label=args.label,
             reconnect_interval_s=svc.reconnect_interval_s,
-            gather=gather_part,
-            join=join_parts(self.config),
+            gather=functools.partial(gather_part, self.config),
+            join=join_parts,
         )
 
     def _new_part(self, args: CapturePartArgs) -> Run:
         from rigd.app.capture.remote_trigger import RemoteTrigger
-        from rigd.app.service.host_links import CoordinatorFeed, HostLink, part_name
+        from rigd.app.service.host_links import CoordinatorFeed, HostLink
+        from rigd.take.parts import part_name
 
         svc = self.config.service
         assert self.host is not None

@@ -74,7 +74,8 @@ def read_all(trig: RemoteTrigger, n: int) -> tuple[list[int], list[int]]:
 def test_records_arrive_in_order_across_replies_and_stop_returns_the_box_count() -> None:
     feed = FakeCoordinator(per_reply=3)
     trig = opened(feed)
-    assert trig.follows and trig.is_running()
+    assert trig.follows
+    assert trig.is_running()
     feed.emit(10)
     index, t_us = read_all(trig, 10)
     assert index == list(range(10))
@@ -102,7 +103,7 @@ def test_a_reply_out_of_order_is_an_error_naming_the_coordinator() -> None:
     feed.emit(6)
     read_all(trig, 3)
     feed.answer_from = 5  # skips 3 and 4
-    with pytest.raises(DeviceError, match="host A .*records from 5 answered a request from 3"):
+    with pytest.raises(DeviceError, match=r"host A .*records from 5 answered a request from 3"):
         trig.read_pulses(0.0)
 
 
@@ -117,7 +118,9 @@ def test_a_failing_feed_is_counted_then_lost(monkeypatch: pytest.MonkeyPatch) ->
     monkeypatch.setattr(remote_trigger, "FEED_LOST_S", -1.0)
     assert len(trig.read_pulses(0.0)) == 0
     lost = trig.link_lost()
-    assert lost is not None and "host A (test) has not answered" in lost and "no reply" in lost
+    assert lost is not None
+    assert "host A (test) has not answered" in lost
+    assert "no reply" in lost
     assert read_all(trig, 2)[0] == [0, 1]  # records that come after all: nothing was skipped
     assert trig.stop() == 2  # lost: no wait for the box's count
 

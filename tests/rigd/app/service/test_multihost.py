@@ -96,7 +96,12 @@ def test_a_host_that_does_not_answer_fails_the_start_before_any_pulse(
         assert configs["A"].hosts["C"].control in message
         assert "no pulse was sent" in message
         assert client.call("status")["state"] == "idle"
-    assert not list(dirs["A"].takes.glob("*.h5"))  # nothing opened on the coordinator
+    # No joined take; the coordinator's part says why it failed, before any pulse.
+    parts = list(dirs["A"].takes.glob("*.h5"))
+    assert [p.name.endswith(".A.part.h5") for p in parts] == [True]
+    with Take(parts[0]) as take:
+        assert take.status == "failed"
+        assert len(take.pulses()) == 0
     with client_for(configs["B"]) as b:
         t = wait_idle(b)  # B was armed, then disarmed: its part ends with no pulse
     assert t["last_take"]["path"].endswith(".B.part.h5")
