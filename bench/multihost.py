@@ -63,10 +63,8 @@ def run(args: argparse.Namespace) -> int:
     followers = len(split) - 1
     cable = root / "cable" / "wire.sock"
     cable.parent.mkdir(mode=0o700)
-    tails = {
-        host: cable_params(cable, "lead" if host == "A" else "follow", followers if host == "A" else 0)
-        for host in split
-    }
+    tails = {host: cable_params(cable, "follow") for host in split}
+    tails["A"] = cable_params(cable, "lead", followers)
     base = default_sim_rig(world="bench-multihost", resolution=(w, h), clock=clock)
     data = base.model_dump(mode="json")
     data["writer"]["disk_reserve_mb"] = 0
