@@ -157,6 +157,9 @@ def run(args: argparse.Namespace) -> int:
             f"{name:<8} {last.get('verdict')!s:<10} {n_ev:>12,} {sum(fr.values()):>7} {wall:>7.1f} "
             f"{n_ev / args.duration / 1e6:>7.2f}  {cpus}"
         )
+    for name, last in (("split", split_last), ("single", single_last)):
+        for why in (last.get("verdict_reasons") or [])[:6]:
+            print(f"  {name}: {why}")
     print()
     diffs = compare_takes(out / "split.h5", out / "single.h5")
     print(f"{'split.h5 vs single.h5':<24} equal  detail")

@@ -134,8 +134,9 @@ class TriggerChannel:
             batches = list(self._batches)
         return pulse_log(batches, emitted)
 
-    def records_since(self, since: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """Index and box time of the kept records with index >= `since` (a follower host's feed)."""
+    def records_since(self, since: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """Index, box time and host arrival time of the kept records with index >= `since`
+        (a follower host's feed)."""
         with self._lock:
             batches = list(self._batches)
         tail: list[PulseBatch] = []
@@ -146,11 +147,12 @@ class TriggerChannel:
             if int(b.index[0]) <= since:
                 break
         if not tail:
-            return np.empty(0, np.int64), np.empty(0, np.int64)
+            return np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int64)
         index = np.concatenate([b.index for b in reversed(tail)])
         t_us = np.concatenate([b.t_us for b in reversed(tail)])
+        host = np.concatenate([b.host_time_ns for b in reversed(tail)])
         keep = index >= since
-        return index[keep], t_us[keep]
+        return index[keep], t_us[keep], host[keep]
 
     def last_pulse_host_ns(self) -> int | None:
         """When the newest pulse record reached the host (monotonic ns)."""

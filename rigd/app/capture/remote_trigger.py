@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 STOP_WAIT_S = 30.0
 #: A feed that fails for this long (wall seconds) is a lost coordinator: reads raise.
 FEED_LOST_S = 10.0
+#: How long the best (shortest round trip) clock offset sample stays the one used: host clocks
+#: drift apart by up to ~100 ppm, 3 ms in 30 s.
+OFFSET_REFRESH_S = 30.0
 #: Pause between two fetches that brought nothing (the box pulses at tens of Hz).
 _POLL_S = 0.05
 
@@ -51,6 +54,10 @@ class FeedState:
     """Pulses the box emitted, once it has stopped; None while it runs."""
     clock_us: int
     """The box clock when the coordinator answered (its last record's time if it cannot ask)."""
+    host_ns: NDArray[np.int64] | None = None
+    """When each record reached the coordinator, on its monotonic clock."""
+    now_ns: int | None = None
+    """The coordinator's monotonic clock when it answered."""
 
 
 class PulseFeed(Protocol):
@@ -87,6 +94,9 @@ class RemoteTrigger(Trigger):
         self._stats = {"lines": 0, "records": 0, "feed_errors": 0}
         self._failing_since: float | None = None
         self._lost: str | None = None
+        self._offset_ns: int | None = None
+        self._offset_rtt = 0
+        self._offset_at = 0
 
     # -- what the session calls ------------------------------------------------------------
     def _do_configure(self, settings: TriggerSettings) -> None:
@@ -152,8 +162,7 @@ class RemoteTrigger(Trigger):
                     log.error("%s: %s", self.label, self._lost)
                 state = None
             if state is not None and len(state.index):
-                now = time.time_ns()  # this host's wall clock labels when the record arrived here
-                return PulseBatch(state.index, state.t_us, np.full(len(state.index), now, np.int64))
+                return PulseBatch(state.index, state.t_us, self._host_times(state))
             if time.monotonic() >= deadline:
                 return PulseBatch.empty()
             time.sleep(min(_POLL_S, max(0.0, deadline - time.monotonic())))
@@ -182,12 +191,38 @@ class RemoteTrigger(Trigger):
             return dict(self._stats)
 
     # -- the feed ----------------------------------------------------------------------------
+    def _host_times(self, state: FeedState) -> NDArray[np.int64]:
+        """When each record would have reached this host had the box been cabled here: the
+        coordinator's arrival times on this host's monotonic clock. The sync engine's coarse
+        map (host time -> rig time) needs them as a local box would give them; an arrival time
+        here would lag by the network and the polling."""
+        with self._lock:
+            offset = self._offset_ns
+        if state.host_ns is None or offset is None:
+            return np.full(len(state.index), time.monotonic_ns(), np.int64)
+        return state.host_ns - np.int64(offset)
+
+    def _note_offset(self, t0: int, t1: int, state: FeedState) -> None:
+        """Cristian's estimate of (coordinator clock - this clock) from one request: the one
+        with the shortest round trip in the last `OFFSET_REFRESH_S` wins (error <= rtt / 2)."""
+        if state.now_ns is None:
+            return
+        rtt = t1 - t0
+        offset = state.now_ns - (t0 + t1) // 2
+        with self._lock:
+            stale = t1 - self._offset_at > OFFSET_REFRESH_S * 1e9
+            if self._offset_ns is None or stale or rtt <= self._offset_rtt:
+                self._offset_ns, self._offset_rtt, self._offset_at = offset, rtt, t1
+                self._stats["clock_rtt_us"] = rtt // 1000
+
     def _fetch(self, *, consume: bool = False) -> FeedState:
         """Ask the coordinator; only a consuming fetch (the reading thread's) moves on."""
         with self._lock:
             since = self._next
         try:
+            t0 = time.monotonic_ns()
             state = self._feed.fetch(since)
+            self._note_offset(t0, time.monotonic_ns(), state)
         except DeviceError as exc:
             with self._lock:
                 self._stats["feed_errors"] += 1

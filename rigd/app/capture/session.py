@@ -203,14 +203,16 @@ class CaptureSession:
         trigger = self._trigger
         if trigger is None:
             over = self._state in ("failed", "done")
-            return FeedState(np.empty(0, np.int64), np.empty(0, np.int64), not over, 0 if over else None, 0)
-        index, t_us = trigger.records_since(since)
+            empty = np.empty(0, np.int64)
+            return FeedState(empty, empty, not over, 0 if over else None, 0, empty, time.monotonic_ns())
+        now = time.monotonic_ns()
+        index, t_us, host_ns = trigger.records_since(since)
         emitted = self._pulses_of_take
         if emitted is None and self._state in ("failed", "done"):
             emitted = trigger.n_pulses
         last = trigger.records_since(max(0, trigger.n_pulses - 1))[1]
         clock = int(last[-1]) if len(last) else 0
-        return FeedState(index, t_us, emitted is None, emitted, clock)
+        return FeedState(index, t_us, emitted is None, emitted, clock, host_ns, now)
 
     @property
     def done(self) -> bool:

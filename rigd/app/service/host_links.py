@@ -92,11 +92,18 @@ class CoordinatorFeed:
                 bool(res["running"]),
                 None if emitted is None else int(str(emitted)),
                 int(str(res["clock_us"])),
+                np.asarray(res["host_ns"], np.int64),
+                int(str(res["now_ns"])),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise DeviceError(f"pulse records from {self.name}: malformed reply ({exc})") from exc
-        if index.shape != t_us.shape or index.ndim != 1:
-            raise DeviceError(f"pulse records from {self.name}: index and t_us differ in length")
+        if (
+            index.ndim != 1
+            or t_us.shape != index.shape
+            or state.host_ns is None
+            or state.host_ns.shape != index.shape
+        ):
+            raise DeviceError(f"pulse records from {self.name}: index, t_us and host_ns differ in length")
         return state
 
 
@@ -108,4 +115,6 @@ def feed_reply(state: FeedState, limit: int) -> dict[str, object]:
         "running": state.running,
         "emitted": state.emitted,
         "clock_us": state.clock_us,
+        "host_ns": [] if state.host_ns is None else state.host_ns[:limit].tolist(),
+        "now_ns": state.now_ns,
     }

@@ -183,8 +183,10 @@ class RigSlot:
         if session is not None and Path(session.path).stem == args.stem:
             state = session.pulse_feed(args.since)
         elif last is not None and last[0] == args.stem:  # it ended: a follower fetches the tail
-            keep = last[1].index >= args.since
-            state = replace(last[1], index=last[1].index[keep], t_us=last[1].t_us[keep])
+            final = last[1]
+            keep = final.index >= args.since
+            host_ns = None if final.host_ns is None else final.host_ns[keep]
+            state = replace(final, index=final.index[keep], t_us=final.t_us[keep], host_ns=host_ns)
         else:
             raise RequestError("not_capturing", f"take {args.stem} is not this daemon's running take")
         return feed_reply(state, PULSES_PER_REPLY)

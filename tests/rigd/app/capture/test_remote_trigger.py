@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -28,6 +29,7 @@ class FakeCoordinator:
         self.calls = 0
         self.lock = threading.Lock()
         self.answer_from: int | None = None
+        self.skew_ns = 5_000_000_000
 
     def emit(self, n: int) -> None:
         with self.lock:
@@ -48,7 +50,13 @@ class FakeCoordinator:
             t = self.t_us[start : start + self.per_reply]
             index = np.arange(start, start + len(t), dtype=np.int64)
             clock = self.t_us[-1] if self.t_us else 0
-            return FeedState(index, np.asarray(t, np.int64), self.emitted is None, self.emitted, clock)
+            # The coordinator's monotonic clock runs 5 s ahead of this one; each record reached
+            # it 2 ms after its box time.
+            host = np.asarray(t, np.int64) * 1000 + 2_000_000 + self.skew_ns
+            now = time.monotonic_ns() + self.skew_ns
+            return FeedState(
+                index, np.asarray(t, np.int64), self.emitted is None, self.emitted, clock, host, now
+            )
 
 
 def opened(feed: FakeCoordinator) -> RemoteTrigger:
@@ -85,6 +93,18 @@ def test_records_arrive_in_order_across_replies_and_stop_returns_the_box_count()
     assert not trig.is_running()
     assert len(trig.read_pulses(0.0)) == 0
     assert trig.link_stats()["records"] == 10
+
+
+def test_arrival_times_come_on_this_hosts_clock() -> None:
+    """The coordinator's arrival times, moved onto this host's monotonic clock by the offset
+    its answers imply (a coordinator clock 5 s ahead here): within the round trip."""
+    feed = FakeCoordinator(per_reply=100)
+    trig = opened(feed)
+    feed.emit(3)
+    b = trig.read_pulses(0.5)
+    expected = b.t_us * 1000 + 2_000_000  # the arrival on the coordinator, without its skew
+    rtt_ns = trig.link_stats()["clock_rtt_us"] * 1000
+    assert np.all(np.abs(b.host_time_ns - expected) <= rtt_ns // 2 + 1000)
 
 
 def test_probes_and_stop_look_without_taking_records() -> None:
