@@ -145,10 +145,13 @@ def spawn_serve(
     *,
     host: str | None = None,
     env: dict[str, str] | None = None,
+    wall_clock_s: float = 0.0,
 ) -> subprocess.Popen[bytes]:
-    """`rigd serve` for `config` in a process of its own, returned once it answers a ping."""
+    """`rigd serve` for `config` in a process of its own, returned once it answers a ping;
+    `wall_clock_s`: its wall clock moved by that much (`rigd.app.testing.wall_clock`)."""
     config_file(config, cfg_path)
-    cmd = [sys.executable, "-m", "rigd.app.cli", "serve", "--config", str(cfg_path), "--no-http"]
+    cli = ["rigd.app.testing.wall_clock", f"{wall_clock_s:g}"] if wall_clock_s else ["rigd.app.cli"]
+    cmd = [sys.executable, "-m", *cli, "serve", "--config", str(cfg_path), "--no-http"]
     cmd += ["--metrics-port", "-1"]
     if host is not None:
         cmd += ["--host", host]
