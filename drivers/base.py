@@ -479,6 +479,9 @@ class Trigger(Device):
     """
 
     kind = "trigger"
+    follows: ClassVar[bool] = False
+    """A trigger that follows a box another host drives (a multi-host rig's follower): its stop
+    only learns how many pulses the box emitted, and the take's last pulse is that box's."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -548,6 +551,11 @@ class Trigger(Device):
         """Counters of the link to the trigger source (corrupt lines, retries, recovered
         pulses); written into the take so a noisy cable is visible afterwards."""
         return {}
+
+    def link_lost(self) -> str | None:
+        """Why the pulse records can no longer come (a multi-host follower that lost its
+        coordinator), or None: the take then stops cleanly, keeping what it has, naming it."""
+        return None
 
     def diag(self) -> dict[str, int]:
         """The box's own counters (records it could not send live, input it lost, edges it

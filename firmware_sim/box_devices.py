@@ -49,7 +49,13 @@ class BoxSlot:
         self.box: OneBoxPerWorld | None = None
 
     def check_free(self, spec: DeviceSpec, world: SimWorld) -> None:
-        """Refuse a second open box (call with the lock held)."""
+        """Refuse a second open box, or a box in a cable follower's world (call with the lock
+        held): the trigger belongs to the lead world, whose wire the cable carries."""
+        if world.cable_params is not None and world.cable_params.role == "follow":
+            raise ConfigError(
+                f"device spec {spec.raw!r}: world {world.name!r} follows trigger cable "
+                f"{world.cable_params.path}; its trigger box belongs to the lead world (cable_role=lead)"
+            )
         if self.box is not None and not self.box.closed:
             raise ConfigError(
                 f"device spec {spec.raw!r}: world {world.name!r} already has an open trigger box "

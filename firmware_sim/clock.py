@@ -15,6 +15,11 @@ starts at the same instant, whatever the host's timing.
 A `Hold` is how a device thread takes part: while held, time does not move; `Hold.sleep_until`
 lets go while asleep and takes the hold again, atomically, at the instant it is woken.
 Sleeping without a hold (`SimClock.sleep_until`) waits for time to get there without stopping it.
+
+A virtual clock may be shared with other processes over the simulated trigger cable
+(`firmware_sim.cable`, a `ClockLink`): the lead's clock advances only when its followers are
+idle too, to the earliest deadline of them all; a follower's clock never advances on its own,
+it moves where the lead sends it and reports when nothing holds it there.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -64,6 +70,36 @@ class SimClock(Protocol):
     def wait(self, cond: threading.Condition, predicate: Callable[[], bool], timeout_s: float) -> bool: ...
 
 
+class ClockLink(Protocol):
+    """A virtual clock's share with other processes (`firmware_sim.cable`); every method is
+    called with the clock's lock held, so it must only look at its own state and queue sends."""
+
+    @property
+    def leads(self) -> bool:
+        """True on the lead (it advances the shared clock), False on a follower."""
+        ...
+
+    def others_idle(self) -> bool:
+        """Lead: every follower has taken in all it was sent and holds nothing."""
+        ...
+
+    def others_deadline(self) -> float:
+        """Lead: the earliest deadline some follower sleeps until (inf: none)."""
+        ...
+
+    def advanced(self, now_us: float) -> None:
+        """Lead: the clock stands at `now_us`; send it to the followers that need it."""
+        ...
+
+    def settled(self, idle: bool, deadline_us: float) -> None:
+        """Follower: report whether anything holds time here, and the earliest deadline."""
+        ...
+
+    def before_start(self) -> None:
+        """Lead: wait (bounded) for the followers the clock must not start without."""
+        ...
+
+
 class _NoHold:
     def __init__(self, clock: RealClock) -> None:
         self._clock = clock
@@ -82,6 +118,16 @@ class RealClock:
 
     def __init__(self) -> None:
         self._epoch_ns = time.monotonic_ns()
+
+    @property
+    def epoch_ns(self) -> int:
+        """The monotonic clock's reading at true time 0."""
+        return self._epoch_ns
+
+    def adopt_epoch(self, epoch_ns: int) -> None:
+        """Count true time from another process's epoch (one CLOCK_MONOTONIC per machine:
+        a cable follower takes its lead's, so their true times agree)."""
+        self._epoch_ns = int(epoch_ns)
 
     def now_us(self) -> float:
         return (time.monotonic_ns() - self._epoch_ns) / 1000.0
@@ -146,14 +192,43 @@ class VirtualClock:
         #: (deadline, seq, hold or None) of every sleeper; entries of woken sleepers are stale.
         self._sleepers: list[tuple[float, int, _VirtualHold | None]] = []
         self._waiting: set[int] = set()
+        self._link: ClockLink | None = None
         self.advances = 0
+
+    def attach(self, link: ClockLink) -> None:
+        """Share this clock with other processes (the simulated trigger cable); once only."""
+        with self._cond:
+            if self._link is not None:
+                raise RuntimeError("virtual clock: already shared over a cable")
+            self._link = link
+            self._advance_locked()
+
+    def update(self, change: Callable[[], None] | None = None, *, to_us: float | None = None) -> None:
+        """Under the clock's lock: apply a cable's `change` to its own state, move a follower's
+        time on to `to_us` (waking its sleepers due by then, holding), then advance or report."""
+        with self._cond:
+            if change is not None:
+                change()
+            if to_us is not None:
+                if to_us > self._now:
+                    self._now = to_us
+                    self.advances += 1
+                self._wake_due_locked()
+            self._advance_locked()
 
     def now_us(self) -> float:
         with self._cond:
             return self._now
 
     def start(self) -> None:
-        """Let time run (the trigger box started, or a free-running camera)."""
+        """Let time run (the trigger box started, or a free-running camera). A cable lead
+        first waits for its followers (raising if they do not come); on a follower this does
+        nothing: its time is the lead's."""
+        link = self._link
+        if link is not None:
+            if not link.leads:
+                return
+            link.before_start()
         with self._cond:
             if not self._started:
                 self._started = True
@@ -168,6 +243,8 @@ class VirtualClock:
     def hold(self) -> Hold:
         with self._cond:
             self._holds += 1
+            if self._link is not None and not self._link.leads:
+                self._advance_locked()  # a follower tells its lead it holds time now
         return _VirtualHold(self)
 
     def wait_sleepers(self, n: int, timeout_s: float = 10.0) -> bool:
@@ -236,19 +313,16 @@ class VirtualClock:
                 self._advance_locked()
             return True
 
-    def _advance_locked(self) -> None:
-        """Jump to the earliest deadline when nothing holds time; wake those due, holding."""
-        if not self._started or self._holds:
-            return
+    def _next_deadline_locked(self) -> float:
+        """The earliest deadline a sleeper still waits for (inf: none)."""
         heap = self._sleepers
         while heap and heap[0][1] not in self._waiting:
             heapq.heappop(heap)  # a sleeper that left on its stop event
-        if not heap:
-            return
-        t = heap[0][0]
-        if t > self._now:
-            self._now = t
-            self.advances += 1
+        return heap[0][0] if heap else math.inf
+
+    def _wake_due_locked(self) -> None:
+        """Wake every sleeper due by now; those with a hold hold time again."""
+        heap = self._sleepers
         while heap and (heap[0][0] <= self._now or heap[0][1] not in self._waiting):
             _, seq, hold = heapq.heappop(heap)
             if seq not in self._waiting:
@@ -258,6 +332,31 @@ class VirtualClock:
                 hold._held = True
                 self._holds += 1
         self._cond.notify_all()
+
+    def _advance_locked(self) -> None:
+        """Jump to the earliest deadline when nothing holds time; wake those due, holding.
+
+        Shared over a cable: a follower only reports (its lead moves it, `update`); the lead
+        also waits for every follower to be idle and takes the earliest deadline of them all."""
+        link = self._link
+        if link is not None and not link.leads:
+            link.settled(self._holds == 0, self._next_deadline_locked())
+            return
+        if not self._started or self._holds:
+            return
+        t = self._next_deadline_locked()
+        if link is not None:
+            if not link.others_idle():
+                return
+            t = min(t, link.others_deadline())
+        if math.isinf(t):
+            return
+        if t > self._now:
+            self._now = t
+            self.advances += 1
+        self._wake_due_locked()
+        if link is not None:
+            link.advanced(self._now)
 
 
 def make_clock(mode: ClockMode) -> RealClock | VirtualClock:

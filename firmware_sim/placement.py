@@ -9,13 +9,14 @@ from dataclasses import dataclass
 
 from drivers.registry import DeviceSpec
 from firmware_sim.board_scene import sim_scene
+from firmware_sim.cable import CABLE_PARAMS
 from firmware_sim.scene import Scene
 from firmware_sim.world import DeviceClock, SimWorld, UnplugParams, power_on_clock, spec_world, unplug_params
 from rigd.core.devices import GROUND_TRUTH_FACT, GroundTruth
 from rigd.core.errors import ConfigError
 
 #: Spec parameters every simulated camera and event sensor takes.
-PLACEMENT_PARAMS = frozenset(
+PLACEMENT_PARAMS = CABLE_PARAMS | frozenset(
     {
         "offset_us",
         "drift_ppm",

@@ -16,6 +16,7 @@ from annotated_types import Ge, Gt, Le, Lt
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.registry import DeviceSpec
+from firmware_sim.cable import MAX_FOLLOWERS, MAX_SOCKET_PATH, MAX_STALL_S, MAX_WAIT_S
 from rigd.core.errors import ConfigError
 
 #: Device clocks count microseconds from 0; an offset within +-2^45 us (about 1.1 years of
@@ -62,7 +63,17 @@ class SpecParams(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
-class _Placement(SpecParams):
+class CableSpecParams(SpecParams):
+    """The simulated trigger cable's end (`firmware_sim.cable`, which checks how they combine)."""
+
+    cable: Annotated[str, Field(min_length=1, max_length=MAX_SOCKET_PATH)] | None = None
+    cable_role: Literal["lead", "follow"] | None = None
+    cable_followers: Annotated[int, Field(ge=0, le=MAX_FOLLOWERS)] | None = None
+    cable_wait_s: Annotated[float, Field(ge=0, le=MAX_WAIT_S)] | None = None
+    cable_stall_s: Annotated[float, Field(ge=0, le=MAX_STALL_S)] | None = None
+
+
+class _Placement(CableSpecParams):
     """What every simulated camera and event sensor takes (`firmware_sim.placement`)."""
 
     offset_us: Offset | None = None
@@ -109,7 +120,7 @@ class SimEventSensorParams(_Placement):
     lowpass_hz: Annotated[float, Field(gt=0, le=1e6)] | None = None
 
 
-class _Box(SpecParams):
+class _Box(CableSpecParams):
     """A trigger box on a pty or fake HID device (sim and replay alike), and its host driver."""
 
     drop_pulses: IndexList | None = None
@@ -214,6 +225,7 @@ def check_params(spec: DeviceSpec, model: type[P], device: str) -> P:
 
 
 __all__ = [
+    "CableSpecParams",
     "ReplayCameraParams",
     "ReplaySensorParams",
     "ReplayTriggerParams",

@@ -40,6 +40,7 @@ from typing import Literal
 
 import numpy as np
 
+from firmware_sim.cable import CABLE_PARAMS
 from firmware_sim.clock import Hold
 from firmware_sim.trigger_commands import (
     FIRMWARE,
@@ -438,4 +439,5 @@ BOX_PARAMS = {
     "reply_timeout_s",
     "boot_timeout_s",
     "clock",
+    *CABLE_PARAMS,
 }

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rigd.core.errors import DeviceError
+
 if TYPE_CHECKING:
     from firmware_sim.world import SimWorld
 
@@ -31,6 +33,8 @@ MAX_RATE_HZ = 10_000.0
 MIN_RATE_HZ = 0.001
 MAX_WIDTH_US = 1_000_000
 MAX_PULSES = 2**31 - 1
+#: Longest text of ours an ERR line carries (a cable's socket path may be long).
+MAX_ERR_TEXT = 400
 
 _RATE_RE = re.compile(r"^\d{1,5}(\.\d{1,6})?$")
 _UINT_RE = re.compile(r"^\d{1,10}$")
@@ -189,6 +193,13 @@ class BoxCommands:
                     "BADARG", f"pulse count {_shown(args[0])!r} not an integer in 1..{MAX_PULSES}"
                 )
             target = int(args[0])
+        with self._lock:
+            if self._state != ARMED:
+                raise CommandError("STATE", f"START needs ARMED, box is {self._state}")
+        try:
+            self.world.await_cable()  # a cable lead's followers must hear the run from its start
+        except DeviceError as exc:
+            raise CommandError("STATE", _shown(str(exc), MAX_ERR_TEXT)) from None
         with self._lock:
             if self._state != ARMED:
                 raise CommandError("STATE", f"START needs ARMED, box is {self._state}")

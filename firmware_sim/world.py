@@ -9,8 +9,10 @@ can score the sync engine.
 
 Faults that must outlive one device object live here too: an unplugged device's window
 (`UnplugFault`) is kept per device name, because the host recovers by opening the same spec
-again. With `RIGD_SIM_TRUTH_LOG` set, what the devices hand to the host is also appended to
-a JSON-lines journal (`TruthJournal`) that survives a SIGKILL of the process (docs/sim-faults.md).
+again. A world may be one end of the simulated trigger cable (`firmware_sim.cable`): its wire
+and clock then reach the worlds of the same name in other processes. With `RIGD_SIM_TRUTH_LOG`
+set, what the devices hand to the host is also appended to a JSON-lines journal (`TruthJournal`)
+that survives a SIGKILL of the process (docs/sim-faults.md).
 """
 
 from __future__ import annotations
@@ -23,12 +25,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from firmware_sim.cable import CableParams, parse_cable
 from firmware_sim.clock import CLOCK_MODES, ClockMode, Hold, RealClock, VirtualClock, make_clock
 from rigd.core.errors import ConfigError, DeviceError
 
 if TYPE_CHECKING:
     from drivers.lifecycle import DeliveryQueue
     from drivers.registry import DeviceSpec
+    from firmware_sim.cable_link import CableFollower, CableLead
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +165,9 @@ class SimWorld:
         self._lock = threading.Lock()
         self._resources: dict[str, object] = {}
         self._unplugs: dict[str, UnplugFault] = {}
+        #: This world's end of the trigger cable, if its specs give one (`firmware_sim.cable`).
+        self.cable: CableLead | CableFollower | None = None
+        self.cable_params: CableParams | None = None
 
     @property
     def virtual(self) -> bool:
@@ -177,6 +184,23 @@ class SimWorld:
     def hold(self) -> Hold:
         """Hold true time still while a device works (a no-op in real time)."""
         return self.clock.hold()
+
+    def await_cable(self) -> None:
+        """Before the world's time starts (the box's START): a cable lead waits, bounded, for
+        its followers; DeviceError naming the cable if they do not come."""
+        if self.cable is not None:
+            self.cable.before_start()
+
+    def connect_cable(self, params: CableParams) -> None:
+        """Become the lead (listen) or a follower (connect, adopt the lead's time) of a cable."""
+        from firmware_sim.cable_link import CableFollower, CableLead
+
+        self.cable_params = params
+        self.cable = CableLead(self, params) if params.role == "lead" else CableFollower(self, params)
+
+    def close_cable(self) -> None:
+        if self.cable is not None:
+            self.cable.close()
 
     def register_clock(self, device: str, clock: DeviceClock) -> None:
         with self.truth.lock:
@@ -405,17 +429,27 @@ _worlds: dict[str, SimWorld] = {}
 _worlds_lock = threading.Lock()
 
 
-def get_world(name: str = "default", seed: int = 0, clock: str | None = None) -> SimWorld:
-    """The world of that name, created on first use (the seed and clock apply then; a spec
-    that asks for another clock than the world runs on is refused)."""
+def get_world(
+    name: str = "default", seed: int = 0, clock: str | None = None, cable: CableParams | None = None
+) -> SimWorld:
+    """The world of that name, created on first use (the seed, clock and cable end apply then;
+    a spec that asks for another clock than the world runs on is refused, `spec_world` checks
+    the cable). A follower world whose lead hung up is replaced by a fresh one."""
     if clock is not None and clock not in CLOCK_MODES:
         raise ConfigError(f"sim world {name!r}: clock={clock!r} (use {' or '.join(CLOCK_MODES)})")
     with _worlds_lock:
         world = _worlds.get(name)
+        if world is not None and _spent(world):
+            log.info("sim world %r: its cable's lead hung up; a fresh world connects again", name)
+            world = None
         if world is None:
             mode: ClockMode = "virtual" if clock == "virtual" else "real"
-            world = _worlds[name] = SimWorld(name, seed, mode)
-        elif clock is not None and clock != world.clock.mode:
+            world = SimWorld(name, seed, mode)
+            if cable is not None:
+                world.connect_cable(cable)  # raises before the world is kept
+            _worlds[name] = world
+            return world
+        if clock is not None and clock != world.clock.mode:
             raise ConfigError(
                 f"sim world {name!r} runs on the {world.clock.mode} clock; a device spec asks for "
                 f"clock={clock} (give every device of a world the same clock=)"
@@ -423,15 +457,49 @@ def get_world(name: str = "default", seed: int = 0, clock: str | None = None) ->
         return world
 
 
+def _spent(world: SimWorld) -> bool:
+    """A follower world whose lead hung up can never move again."""
+    return world.cable is not None and world.cable.dead
+
+
 def spec_world(spec: DeviceSpec) -> SimWorld:
-    """The world a sim spec names (`sim://WORLD/...?seed=&clock=real|virtual`)."""
-    return get_world(spec.location or "default", spec.int_param("seed", 0), spec.params.get("clock"))
+    """The world a sim spec names (`sim://WORLD/...?seed=&clock=real|virtual&cable=...`); every
+    spec of a world must give the same cable parameters (none, or the same end)."""
+    name = spec.location or "default"
+    cable = parse_cable(spec)
+    world = get_world(name, spec.int_param("seed", 0), spec.params.get("clock"), cable)
+    if world.cable_params != cable:
+        ours = world.cable_params
+        param = ours.disagreement(cable) if ours is not None else "cable"
+        theirs = world.cable_params
+        raise ConfigError(
+            f"device spec {spec.raw!r}: sim world {name!r} was opened with "
+            f"{_cable_text(theirs)}; this spec gives {_cable_text(cable)} (they differ in {param}; "
+            "give every device of a world the same cable parameters)"
+        )
+    return world
+
+
+def _cable_text(params: CableParams | None) -> str:
+    if params is None:
+        return "no cable"
+    text = f"cable={params.path} cable_role={params.role}"
+    if params.role == "lead":
+        text += f" cable_followers={params.followers}"
+    if params.wait_s is not None:
+        text += f" cable_wait_s={params.wait_s:g}"
+    if params.stall_s is not None:
+        text += f" cable_stall_s={params.stall_s:g}"
+    return text
 
 
 def reset_world(name: str = "default") -> None:
-    """Forget a world so the next `get_world` starts a fresh one (tests, repeated captures)."""
+    """Forget a world so the next `get_world` starts a fresh one (tests, repeated captures);
+    its cable end is closed."""
     with _worlds_lock:
-        _worlds.pop(name, None)
+        world = _worlds.pop(name, None)
+    if world is not None:
+        world.close_cable()
 
 
 class Unpluggable:

@@ -10,7 +10,7 @@ from pydantic import Field
 
 from firmware_sim.avr.box import AvrTriggerBox
 from firmware_sim.box_devices import box_slot, driver_on_pty
-from firmware_sim.spec_params import Clock, Seed, SpecParams, check_params
+from firmware_sim.spec_params import CableSpecParams, Clock, Seed, check_params
 from firmware_sim.world import SimWorld, spec_world
 from rigd.core.errors import ConfigError
 
@@ -23,7 +23,7 @@ FIRMWARE_BUILD = Path(__file__).resolve().parents[2] / "firmware" / "trigger_box
 MCUS = ("atmega328p", "atmega2560")
 
 
-class AvrTriggerParams(SpecParams):
+class AvrTriggerParams(CableSpecParams):
     elf: str | None = None
     mcu: Literal["atmega328p", "atmega2560"] | None = None
     seed: Seed | None = None

@@ -20,6 +20,7 @@ from rigd.app.commands.export import export
 from rigd.app.commands.guided import guided
 from rigd.app.commands.help import RigdTyper
 from rigd.app.commands.inspect import convert_cmd, inspect
+from rigd.app.commands.keys import keys
 from rigd.app.commands.reconstruct import reconstruct
 from rigd.app.commands.recover import recover_command
 from rigd.app.commands.service import (
@@ -28,7 +29,7 @@ from rigd.app.commands.service import (
     status,
     stop,
 )
-from rigd.app.commands.takes import takes
+from rigd.app.commands.takes import takes_app
 from rigd.app.commands.warmup import warmup
 from rigd.core.errors import ConfigError
 from rigd.core.extras import OPTIONAL, missing_extra
@@ -99,10 +100,11 @@ app.command("devices")(devices)
 app.command("doctor")(doctor)
 app.command("serve")(serve)
 app.command("recover")(recover_command)
-app.command("takes")(takes)
+app.add_typer(takes_app, name="takes")
 app.command("status")(status)
 app.command("console-url")(console_url)
 app.command("stop")(stop)
+app.command("keys")(keys)
 app.command("warmup")(warmup)
 
 

@@ -120,6 +120,9 @@ class ServiceConfig(BaseModel):
     reconnect_interval_s: float = Field(1.0, ge=0.0, le=60.0, description="0: a lost device is written off.")
     recover_on_start: bool = Field(True, description="Seal takes a crash left unfinished before serving.")
     curve: CurveConfig | None = None
+    host: str | None = Field(
+        None, pattern=_NAME, description="This daemon's host (a key of `hosts`) on a multi-host rig."
+    )
 
     @model_validator(mode="after")
     def _secure_endpoints(self) -> ServiceConfig:
@@ -201,9 +204,19 @@ class RigConfig(BaseModel):
         used = [self.trigger.host, *(c.host for c in self.cameras), *(s.host for s in self.event_sensors)]
         return list(dict.fromkeys(h for h in used if h is not None))
 
+    def for_host(self, host: str) -> RigConfig:
+        """The rig as `host`'s daemon runs it: only its cameras and event sensors (the trigger's
+        settings stay: every host's take fits its devices to the same pulses)."""
+        data = self.model_dump(mode="json")
+        data["cameras"] = [c for c in data["cameras"] if c["host"] == host]
+        data["event_sensors"] = [s for s in data["event_sensors"] if s["host"] == host]
+        return RigConfig.from_data(data, source=f"rig {self.name!r} on host {host}")
+
     def devices_on(self, host: str) -> list[str]:
         """Names of the cameras and event sensors that `host` runs."""
-        return [d.name for d in (*self.cameras, *self.event_sensors) if d.host == host]
+        return [c.name for c in self.cameras if c.host == host] + [
+            s.name for s in self.event_sensors if s.host == host
+        ]
 
     @model_validator(mode="after")
     def _unique_names(self) -> RigConfig:

@@ -71,6 +71,10 @@ class Root:
     #: JSON padded with NUL bytes. The newest slot that parses is current; the other survives a
     #: kill in the middle of a write.
     JOURNAL: Final = "journal_json"
+    #: A multi-host take joined from part files: JSON list, one entry per host's part (host,
+    #: file, devices, sha256, size, status, verdict). Its presence makes the take a joined one,
+    #: whose device groups may be external links into those files (docs/take-format.md).
+    PARTS: Final = "parts_json"
 
 
 class Status:

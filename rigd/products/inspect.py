@@ -176,6 +176,10 @@ def summary_renderables(summary: TakeSummary) -> list[RenderableType]:
         )
     if summary.failure_reason:
         parts.append(f"failed: {summary.failure_reason}")
+    for p in summary.parts or ():
+        role = ", coordinator" if p.coordinator else ""
+        why = f": {p.reason}" if p.reason else ""
+        parts.append(f"part {p.host} ({', '.join(p.devices)}{role}): {p.file or 'no file'} {p.status}{why}")
     if summary.cameras:
         cams = Table(
             "camera", "frames", "fps", "shape", "format", "dropped", "missing pulses", "sync rms µs", "max µs"

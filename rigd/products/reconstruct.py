@@ -58,7 +58,7 @@ from rigd.products.reconstruct_tasks import (
     scan_block,
     snapshot,
 )
-from rigd.take.h5file import open_checked
+from rigd.take.linked import open_take_h5
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -90,8 +90,8 @@ class _Plan:
 
 def _mid_exposures(path: Path, camera: str) -> NDArray[np.int64]:
     """Mid-exposure rig times of a camera's frames (exposure start + half the exposure)."""
-    with open_checked(path, "r") as f:
-        g = f[FRAMES_GROUP][camera]
+    with open_take_h5(path) as f:  # a joined take's camera lives in its host's part
+        g = f[f"{FRAMES_GROUP}/{camera}"]
         n = int(g[Frames.IMAGES].shape[0])
         start = np.asarray(g[Frames.T_EXPOSURE_START][:n], np.int64)
         exposure = np.asarray(g[Frames.EXPOSURE][:n], np.int64)

@@ -181,20 +181,21 @@ def open_h5(path: Path, mode: str, *, rdcc_nbytes: int | None = None) -> h5py.Fi
         raise TakeFormatError(describe_open_error(path, exc)) from exc
 
 
-def checked(path: Path, f: h5py.File, size: int | None = None) -> h5py.File:
+def checked(path: Path, f: h5py.File, size: int | None = None, *, part: bool = False) -> h5py.File:
     """`f` once its structure passed `check_structure` (rigd/take/structure.py); closed and a
-    TakeFormatError otherwise, before anything read a dataset of it. `size`: see there."""
+    TakeFormatError otherwise, before anything read a dataset of it. `size`, `part`: see there."""
     try:
-        check_structure(f, path, size)
+        check_structure(f, path, size, part=part)
     except BaseException:
         f.close()
         raise
     return f
 
 
-def open_checked(path: Path, mode: str = "r", **kwargs: Any) -> h5py.File:
+def open_checked(path: Path, mode: str = "r", *, part: bool = False, **kwargs: Any) -> h5py.File:
     """`h5py.File(path, mode)` for a take a reader is about to trust: a regular file whose
-    structure passed `check_structure`; any failure to open it is one TakeFormatError."""
+    structure passed `check_structure` (`part`: as a multi-host take's part file); any failure
+    to open it is one TakeFormatError."""
     check_regular_file(path)
     try:
         f = h5py.File(path, mode, **kwargs)
@@ -204,7 +205,7 @@ def open_checked(path: Path, mode: str = "r", **kwargs: Any) -> h5py.File:
                 f"{path}: in use: another process has it open for writing (HDF5 file lock)"
             ) from exc
         raise TakeFormatError(describe_open_error(path, exc)) from exc
-    return checked(path, f)
+    return checked(path, f, part=part)
 
 
 def open_extended(path: Path, exc: TakeTruncatedError) -> h5py.File:

@@ -51,7 +51,9 @@ from rigd.take.event_series import EventSeries
 from rigd.take.evt_read import is_evt_words
 from rigd.take.frame_series import FrameSeries
 from rigd.take.guard import DAMAGE_ERRORS, OpenTake, as_format_error, format_errors
-from rigd.take.h5file import attr_text, open_checked
+from rigd.take.h5file import attr_text
+from rigd.take.linked import TakeH5
+from rigd.take.manifest import PartEntry
 from rigd.take.summary import CameraSummary, EventSensorSummary, TakeSummary
 from rigd.take.verdict import take_verdict
 
@@ -95,18 +97,20 @@ class Take:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._f = open_checked(self.path, "r", rdcc_nbytes=_CHUNK_CACHE_BYTES, rdcc_nslots=10007)
+        # a joined multi-host take's device groups live in its part files: `_h` resolves them
+        self._h = TakeH5(self.path, "r", rdcc_nbytes=_CHUNK_CACHE_BYTES, rdcc_nslots=10007)
+        self._f = self._h.file
         try:
             self._check_header()
             self._check_layout()
         except TakeError:
-            self._f.close()
+            self._h.close()
             raise
         except DAMAGE_ERRORS as exc:
-            self._f.close()
+            self._h.close()
             raise as_format_error(self.path, "its layout", exc) from exc
         except BaseException:
-            self._f.close()
+            self._h.close()
             raise
         self._series: dict[str, EventSeries] = {}
 
@@ -129,7 +133,7 @@ class Take:
         rig = _attr_str(f, Root.TIME_DOMAIN) == TimeDomain.RIG
         for name in self.event_sensors:
             base = f"{EVENTS_GROUP}/{name}"
-            g = f.get(base)
+            g = self._h.get(base)
             if isinstance(g, h5py.Group) and is_evt_words(g):
                 yield from (f"{base}/evt_words", f"{base}/evt_index")
             else:
@@ -153,7 +157,7 @@ class Take:
                 raise TakeFormatError(f"{self.path}: /{name} is not a group")
         lengths: dict[str, dict[str, int]] = {}
         for hpath in self._required():
-            ds = self._f.get(hpath)
+            ds = self._h.get(hpath)
             if not isinstance(ds, h5py.Dataset):
                 raise TakeFormatError(f"{self.path}: /{hpath}: required dataset is missing (damaged take)")
             self._check_dataset(hpath, ds)
@@ -166,7 +170,7 @@ class Take:
                 raise TakeFormatError(f"{self.path}: /{parent}: datasets have unequal lengths ({desc})")
         for group, names in ((EVENTS_GROUP, self.event_sensors), (FRAMES_GROUP, self.cameras)):
             for name in names:
-                self._check_geometry(f"/{group}/{name}", self._f[f"{group}/{name}"])
+                self._check_geometry(f"/{group}/{name}", self._h[f"{group}/{name}"])
 
     def _check_dataset(self, hpath: str, ds: h5py.Dataset) -> None:
         """A required dataset's dtype and dimensions are the schema's (a float image or a 2-D
@@ -213,7 +217,7 @@ class Take:
     # -- lifecycle ---------------------------------------------------------------------
     def close(self) -> None:
         self._series.clear()
-        self._f.close()
+        self._h.close()
 
     def __enter__(self) -> Self:
         return self
@@ -271,6 +275,20 @@ class Take:
         if Root.RECOVERY_REPORT not in self._f.attrs:
             return None
         return self._json_object(_attr_str(self._f, Root.RECOVERY_REPORT), f"/ attr {Root.RECOVERY_REPORT}")
+
+    @property
+    def window_outside(self) -> dict[str, Any] | None:
+        """Per device, what arrived outside the take window and was not written (root attr
+        `window_outside_json`); None for a take without a window."""
+        if Root.WINDOW_OUTSIDE not in self._f.attrs:
+            return None
+        return self._json_object(_attr_str(self._f, Root.WINDOW_OUTSIDE), f"/ attr {Root.WINDOW_OUTSIDE}")
+
+    @property
+    def parts(self) -> list[PartEntry] | None:
+        """A multi-host take's parts manifest (host, file, devices, sha256, status of each part),
+        None for a take written on one host (docs/take-format.md, "Multi-host takes")."""
+        return self._h.manifest
 
     def _json_object(self, text: str, where: str) -> dict[str, Any]:
         try:
@@ -340,7 +358,7 @@ class Take:
     def camera(self, name: str, demosaic: bool = True) -> FrameSeries:
         """One camera's frames; a Bayer camera's demosaiced to RGB unless `demosaic=False`."""
         self._check_open()
-        g = self._f.get(f"{FRAMES_GROUP}/{name}")
+        g = self._h.get(f"{FRAMES_GROUP}/{name}")
         if not isinstance(g, h5py.Group):
             raise TakeError(f"{self.path}: no camera {name!r} (has {self.cameras})")
         return FrameSeries(self._open_take(), name, g, demosaic)
@@ -351,7 +369,7 @@ class Take:
         series = self._series.get(name)
         if series is None:
             self._check_open()
-            g = self._f.get(f"{EVENTS_GROUP}/{name}")
+            g = self._h.get(f"{EVENTS_GROUP}/{name}")
             if not isinstance(g, h5py.Group):
                 raise TakeError(f"{self.path}: no event sensor {name!r} (has {self.event_sensors})")
             series = self._series[name] = EventSeries(self._open_take(), name, g)
@@ -374,7 +392,7 @@ class Take:
                 frames=len(fs),
                 fps=fps,
                 shape=list(fs.stored_shape),
-                dtype=str(self._f[f"{FRAMES_GROUP}/{name}/images"].dtype),
+                dtype=str(self._h[f"{FRAMES_GROUP}/{name}/images"].dtype),
                 pixel_format=fs.pixel_format,
                 t_first_us=int(ts[0]) if ts.size else None,
                 t_last_us=int(ts[-1]) if ts.size else None,
@@ -386,7 +404,7 @@ class Take:
         sens: dict[str, EventSensorSummary] = {}
         for name in self.event_sensors:
             es = self.sensor(name)
-            g = self._f[f"{EVENTS_GROUP}/{name}"]
+            g = self._h[f"{EVENTS_GROUP}/{name}"]
             n, span = es.count, es.span
             span_us = span[1] - span[0] if span else 0
             d = devs.get(name)
@@ -432,6 +450,7 @@ class Take:
             pulses_seen_by_no_device=list(report.pulses_seen_by_no_device) if report else [],
             losses=list(report.losses) if report else [],
             warnings=list(report.warnings) if report else [],
+            parts=self.parts,
         )
 
 

@@ -10,10 +10,14 @@ gigabytes a few bytes of file stand for. Each of those reads something the take 
 bound, so the walk here refuses them before any dataset is read: only a regular file, only
 objects stored inside it, dtypes and extents that agree with the bytes on disk.
 
-rigd writes no external storage, external link or virtual dataset today. A multi-host take
-would keep each host's data in its own file beside the take; `EXTERNAL_LINKS_ALLOWED` is where
-such a layout names the HDF5 paths that may link out, and even those must name a regular file
-inside the take's own directory (`check_link_target`).
+rigd writes no external storage or virtual dataset. A multi-host take keeps each host's device
+groups in that host's part file beside the joined take (rigd/take/parts.py): only there, only
+directly under the groups `EXTERNAL_LINKS_ALLOWED` names, only to a part file the take's own
+manifest lists as linked, only to the same HDF5 path in it, and only when that name is a regular
+file inside the take's own directory (`check_link`). A part file itself holds no link at all.
+The walk never follows a link: readers open the part explicitly once it passed these checks
+(rigd/take/linked.py), so HDF5's own search path for link targets (HDF5_EXT_PREFIX, the working
+directory) never comes into play.
 """
 
 from __future__ import annotations
@@ -27,11 +31,13 @@ import h5py
 import numpy as np
 
 from rigd.core.errors import TakeFormatError
+from rigd.take.manifest import linked_files, read_manifest
 
 log = logging.getLogger(__name__)
 
-#: HDF5 paths that may hold an external link (none in this schema; see the module docstring).
-EXTERNAL_LINKS_ALLOWED: frozenset[str] = frozenset()
+#: Groups whose members may be external links, in a joined multi-host take only: a device's
+#: group kept in its host's part file (see the module docstring).
+EXTERNAL_LINKS_ALLOWED: frozenset[str] = frozenset({"/events", "/frames"})
 #: More objects than any rig writes (a few per device); bounds the walk of a hostile file.
 MAX_OBJECTS = 4096
 #: Deeper than any take's layout (/events/<sensor>/trigger/<series> is 4).
@@ -80,25 +86,57 @@ def check_regular_file(path: Path) -> os.stat_result:
     return st
 
 
-def check_link_target(path: Path, hpath: str, filename: str) -> None:
+def check_link_target(path: Path, hpath: str, filename: str) -> Path:
     """An external link's target must be a relative name inside the take's directory that is a
-    regular file (for the multi-host layout `EXTERNAL_LINKS_ALLOWED` would admit)."""
+    regular file other than the take itself; returns its path."""
     rel = PurePosixPath(filename)
     if rel.is_absolute() or ".." in rel.parts or not rel.parts:
         raise TakeFormatError(f"{path}: {hpath}: external link to {filename!r} leaves the take's directory")
     target = path.parent / rel
-    if target.resolve().parent != path.parent.resolve():
+    resolved = target.resolve()
+    if resolved.parent != path.parent.resolve():
         raise TakeFormatError(f"{path}: {hpath}: external link to {filename!r} leaves the take's directory")
+    if resolved == path.resolve():
+        raise TakeFormatError(f"{path}: {hpath}: external link to {filename!r} leads back to the take itself")
+    if not os.path.lexists(target):
+        raise TakeFormatError(
+            f"{path}: {hpath}: its part {filename} is not in the take's directory (a multi-host take moves "
+            "with its part files; `rigd takes gather` fetches a missing one)"
+        )
     check_regular_file(target)
+    return target
 
 
-def check_structure(f: h5py.File, path: Path, size: int | None = None) -> None:
+def check_link(path: Path, hpath: str, link: h5py.ExternalLink, files: frozenset[str]) -> Path:
+    """Whether the external link at `hpath` of the take at `path` is one the multi-host layout
+    allows (`files`: the part files its manifest lists as linked); returns the part's path."""
+    parent = hpath.rsplit("/", 1)[0]
+    if parent not in EXTERNAL_LINKS_ALLOWED or not files:
+        raise TakeFormatError(
+            f"{path}: {hpath}: is an external link (to {link.filename!r}:{link.path!r}); a take holds none "
+            "(only a joined take's /events/<sensor> and /frames/<camera> link to its parts)"
+        )
+    if link.filename not in files:
+        raise TakeFormatError(
+            f"{path}: {hpath}: external link to {link.filename!r}, which the take's parts manifest does "
+            "not list as a linked part"
+        )
+    if link.path != hpath:
+        raise TakeFormatError(
+            f"{path}: {hpath}: external link to {link.path!r} in its part; a device's group is linked "
+            "to the same path in its part"
+        )
+    return check_link_target(path, hpath, link.filename)
+
+
+def check_structure(f: h5py.File, path: Path, size: int | None = None, *, part: bool = False) -> None:
     """Walk every link and object of an open take without reading any dataset's data; raise
     TakeFormatError naming the file and HDF5 object at the first that breaks a rule. `size`:
-    the length HDF5 sees (a truncated take's zero-padded view), else the file's."""
+    the length HDF5 sees (a truncated take's zero-padded view), else the file's. `part`: the file
+    is a multi-host take's part, which holds no link and is no joined take itself."""
     file_size = size if size is not None else os.stat(path).st_size
     try:
-        _Walk(f, path, file_size).run()
+        _Walk(f, path, file_size, part).run()
     except (OSError, RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
         # HDF5 refusing an object header or link table is damage too, named like the rest
         why = describe(exc)
@@ -111,10 +149,12 @@ def check_structure(f: h5py.File, path: Path, size: int | None = None) -> None:
 
 
 class _Walk:
-    def __init__(self, f: h5py.File, path: Path, file_size: int | None) -> None:
+    def __init__(self, f: h5py.File, path: Path, file_size: int | None, part: bool = False) -> None:
         self.f = f
         self.path = path
         self.file_size = file_size
+        self.part = part
+        self.links: frozenset[str] = frozenset()
         self.seen: set[int] = set()
 
     def fail(self, hpath: str, msg: str) -> TakeFormatError:
@@ -122,6 +162,10 @@ class _Walk:
 
     def run(self) -> None:
         self.attrs(self.f, "/")
+        manifest = read_manifest(self.f, self.path)
+        if manifest is not None and self.part:
+            raise self.fail("/", "a part of a multi-host take is itself a joined take (attr parts_json)")
+        self.links = linked_files(manifest)
         self.group(self.f, "/", 0)
 
     def visit(self, obj: h5py.HLObject, hpath: str) -> bool:
@@ -143,11 +187,13 @@ class _Walk:
             if isinstance(link, h5py.SoftLink):
                 raise self.fail(child, f"is a soft link (to {link.path!r}); a take holds none")
             if isinstance(link, h5py.ExternalLink):
-                if child not in EXTERNAL_LINKS_ALLOWED:
+                if self.part:
                     raise self.fail(
-                        child, f"is an external link (to {link.filename!r}:{link.path!r}); a take holds none"
+                        child,
+                        f"is an external link (to {link.filename!r}:{link.path!r}); a part of a multi-host "
+                        "take holds none",
                     )
-                check_link_target(self.path, child, link.filename)
+                check_link(self.path, child, link, self.links)
                 continue
             if not isinstance(link, h5py.HardLink):
                 raise self.fail(child, f"is a link of unknown kind ({type(link).__name__})")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pydantic import BaseModel, ConfigDict, Field
 
 from rigd.core.schema import LossRecord
+from rigd.take.manifest import PartEntry
 from rigd.take.verdict import TakeVerdict, Verdict
 
 
@@ -73,6 +74,9 @@ class TakeSummary(BaseModel):
     warnings: list[str] = Field(default_factory=list)
     problems: list[str] = Field(
         default_factory=list, description="Validation problems (rigd.products.inspect)."
+    )
+    parts: list[PartEntry] | None = Field(
+        None, description="A multi-host take's parts (host, file, devices, status); None: one host."
     )
 
     def verdict_line(self) -> str:

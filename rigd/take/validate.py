@@ -41,7 +41,8 @@ from rigd.core.pixels import stored_pixel_format
 from rigd.core.schema import SCHEMA_NAME, SCHEMA_VERSION, SyncReport, decode_journal, has_item
 from rigd.take.evt_read import is_evt_words
 from rigd.take.evt_validate import check_evt_words
-from rigd.take.h5file import attr_text, open_checked
+from rigd.take.h5file import attr_text
+from rigd.take.linked import TakeH5
 
 log = logging.getLogger(__name__)
 
@@ -49,9 +50,10 @@ _BLOCK = 1 << 20
 
 
 class _Validator:
-    def __init__(self, path: Path, f: h5py.File) -> None:
+    def __init__(self, path: Path, h: TakeH5) -> None:
         self.path = path
-        self.f = f
+        self.h = h  # resolves a joined take's links into its part files
+        self.f = f = h.file
         self.problems: list[str] = []
         self.version = attr_text(f.attrs.get(Root.SCHEMA_VERSION, SCHEMA_VERSION))
 
@@ -63,11 +65,13 @@ class _Validator:
         """Turn a read failure (corrupt chunk, missing filter, odd types) into a problem."""
         try:
             yield
+        except TakeFormatError as exc:  # a joined take's part refused by the link checks
+            self.problems.append(str(exc))
         except (OSError, ValueError, TypeError, KeyError) as exc:
             self.add(hpath, f"cannot be read: {type(exc).__name__}: {exc}")
 
     def dataset(self, hpath: str, dtype: Any | None = None, ndim: int | None = 1) -> h5py.Dataset | None:
-        node = self.f.get(hpath)
+        node = self.h.get(hpath)
         if node is None:
             self.add(f"/{hpath}", "missing")
             return None
@@ -83,7 +87,7 @@ class _Validator:
         return node
 
     def group(self, hpath: str) -> h5py.Group | None:
-        node = self.f.get(hpath)
+        node = self.h.get(hpath)
         if not isinstance(node, h5py.Group):
             self.add(f"/{hpath}", "missing group" if node is None else "is not a group")
             return None
@@ -151,6 +155,9 @@ class _Validator:
         if status == "complete":
             with self.reading(f"/{SYNC_REPORT_PATH}"):
                 self.check_report()
+        if self.h.manifest is not None:
+            with self.reading(f"/ attr {Root.PARTS}"):
+                self.check_parts()
 
     def check_config(self) -> None:
         ds = self.dataset(Root.CONFIG, ndim=0)
@@ -327,6 +334,34 @@ class _Validator:
                 i = int(bad[0]) + 1
                 self.add(f"/{base}/{key}", f"decreases at frame {i} ({int(ts[i])} < {int(ts[i - 1])})")
 
+    def check_parts(self) -> None:
+        """A joined take: each linked part holds its devices, and every device group is in the
+        part the manifest gives it (the link checks themselves ran when the file was opened)."""
+        owner: dict[str, str] = {}
+        for entry in self.h.manifest or ():
+            for device in entry.devices:
+                if device in owner:
+                    self.add(
+                        f"/ attr {Root.PARTS}",
+                        f"device {device} is in the parts of {owner[device]} and {entry.host}",
+                    )
+                owner[device] = entry.host
+            if not entry.linked:
+                continue
+            for device in entry.devices:
+                hpath = next(
+                    (f"/{g}/{device}" for g in (EVENTS_GROUP, FRAMES_GROUP) if device in self.f.get(g, {})),
+                    None,
+                )
+                if hpath is None:
+                    self.add(
+                        f"/ attr {Root.PARTS}", f"host {entry.host}: device {device} has no group in the take"
+                    )
+                    continue
+                link = self.f[hpath.rsplit("/", 1)[0]].get(device, getlink=True)
+                if not isinstance(link, h5py.ExternalLink) or link.filename != entry.file:
+                    self.add(hpath, f"is not linked to its part {entry.file} (host {entry.host})")
+
     def check_pulses(self) -> None:
         base = PULSES_PATH
         if self.group(base) is None:
@@ -341,11 +376,11 @@ def validate_take(path: str | Path) -> list[str]:
     """Problems found in a take file, each naming the file and HDF5 path; [] if it is valid."""
     p = Path(path)
     try:
-        f = open_checked(p, "r")
+        h = TakeH5(p, "r")
     except TakeFormatError as exc:
         return [str(exc)]
-    with f:
-        v = _Validator(p, f)
+    with h:
+        v = _Validator(p, h)
         with v.reading("/"):
             v.run()
     if v.problems:

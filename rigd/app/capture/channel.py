@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Generic
 
 import numpy as np
+from numpy.typing import NDArray
 
 from drivers.base import Capability, Trigger
 from drivers.registry import open_device
@@ -77,8 +78,11 @@ class TriggerChannel:
         faults: FaultBoard,
         live: LiveStats,
         window: TakeWindow | None = None,
+        *,
+        device: Trigger | None = None,
     ) -> None:
-        self.device: Trigger = open_device("trigger", spec)
+        #: `device`: a trigger opened elsewhere (a follower host's `RemoteTrigger`) instead of `spec`'s.
+        self.device: Trigger = open_device("trigger", spec) if device is None else device
         self.window = window
         """The take's trigger window, told of every pulse record."""
         self.settings = settings
@@ -129,6 +133,26 @@ class TriggerChannel:
         with self._lock:
             batches = list(self._batches)
         return pulse_log(batches, emitted)
+
+    def records_since(self, since: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """Index, box time and host arrival time of the kept records with index >= `since`
+        (a follower host's feed)."""
+        with self._lock:
+            batches = list(self._batches)
+        tail: list[PulseBatch] = []
+        for b in reversed(batches):
+            if not len(b):
+                continue
+            tail.append(b)
+            if int(b.index[0]) <= since:
+                break
+        if not tail:
+            return np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int64)
+        index = np.concatenate([b.index for b in reversed(tail)])
+        t_us = np.concatenate([b.t_us for b in reversed(tail)])
+        host = np.concatenate([b.host_time_ns for b in reversed(tail)])
+        keep = index >= since
+        return index[keep], t_us[keep], host[keep]
 
     def last_pulse_host_ns(self) -> int | None:
         """When the newest pulse record reached the host (monotonic ns)."""

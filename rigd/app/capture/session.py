@@ -16,8 +16,12 @@ import logging
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
+from drivers.base import Trigger
 from rigd import __version__
 from rigd.app.capture.ballast import Ballast, remove_stale_ballast
 from rigd.app.capture.channel import ChannelContext, DeviceChannel, TriggerChannel
@@ -29,6 +33,7 @@ from rigd.app.capture.kinds import open_channels
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.app.capture.preflight import prepare_rig
+from rigd.app.capture.remote_trigger import FeedState
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.stop import CLOSE_BOUND_S, AcquisitionStop, StopWait
@@ -66,6 +71,7 @@ class CaptureSession:
         label: str | None = None,
         reconnect_interval_s: float | None = None,
         disk_usage: DiskUsage = shutil.disk_usage,
+        open_trigger: Callable[[], Trigger] | None = None,
     ) -> None:
         if duration_s is not None:
             check_duration(duration_s)
@@ -101,6 +107,11 @@ class CaptureSession:
         self._flush_watch = FlushWatch(config.writer.flush_interval_s, self._faults)
         self._trigger_live = LiveStats("trigger")
         self._trigger: TriggerChannel | None = None
+        self._pulses_of_take: int | None = None
+        """Pulses of the take, once the box has stopped (what a follower host's take ends at)."""
+        self._open_trigger = open_trigger
+        self._before_pulses: Callable[[], None] | None = None
+        """Opens the trigger instead of `config.trigger.spec` (a follower host's remote trigger)."""
         self._watchdog: TriggerWatchdog | None = None
         self._channels: dict[str, DeviceChannel] = {}
         self._take: TakeWriter | None = None
@@ -125,8 +136,13 @@ class CaptureSession:
     def state(self) -> SessionState:
         return self._state
 
-    def start(self) -> Path:
-        """Open the devices, create the take and start the trigger; errors raise here."""
+    def start(self, before_pulses: Callable[[], None] | None = None) -> Path:
+        """Open the devices, create the take and start the trigger; errors raise here.
+
+        `before_pulses` runs once everything here is open and recording, just before the
+        trigger starts (a multi-host coordinator arms the other hosts there); what it raises
+        fails the start, before any pulse."""
+        self._before_pulses = before_pulses
         if self._state != "new":
             raise RigdError("a capture session can only be started once")
         self._state = "starting"
@@ -180,6 +196,23 @@ class CaptureSession:
         if self._error is not None:
             raise self._error
         return self._result
+
+    def pulse_feed(self, since: int) -> FeedState:
+        """The pulse records from `since` on and where the box stands: what follower hosts of a
+        multi-host rig fetch (`RemoteTrigger`)."""
+        trigger = self._trigger
+        if trigger is None:
+            over = self._state in ("failed", "done")
+            empty = np.empty(0, np.int64)
+            return FeedState(empty, empty, not over, 0 if over else None, 0, empty, time.monotonic_ns())
+        now = time.monotonic_ns()
+        index, t_us, host_ns = trigger.records_since(since)
+        emitted = self._pulses_of_take
+        if emitted is None and self._state in ("failed", "done"):
+            emitted = trigger.n_pulses
+        last = trigger.records_since(max(0, trigger.n_pulses - 1))[1]
+        clock = int(last[-1]) if len(last) else 0
+        return FeedState(index, t_us, emitted is None, emitted, clock, host_ns, now)
 
     @property
     def done(self) -> bool:
@@ -284,6 +317,7 @@ class CaptureSession:
             self._faults,
             self._trigger_live,
             self._window,
+            device=None if self._open_trigger is None else self._open_trigger(),
         )
         ctx = ChannelContext(
             self._control,
@@ -317,6 +351,8 @@ class CaptureSession:
         self._threads.append(self._control.start_thread("acq-trigger", lambda: trigger.run(self._queue)))
         for ch in self._channels.values():
             ch.device.start()
+        if self._before_pulses is not None:
+            self._before_pulses()
         trigger.device.arm()
         self._t_start = time.monotonic()
         trigger.device.start(self.n_pulses)
@@ -380,7 +416,19 @@ class CaptureSession:
                 return
             if n_total is not None and trigger.n_pulses >= n_total:
                 return
+            if (lost := trigger.device.link_lost()) is not None:
+                log.error("stopping take %s: %s", self.path, lost)
+                control.request_stop(f"the pulse records stopped coming: {lost}", fault=True)
+                return
             now = time.monotonic()
+            if (
+                deadline is not None
+                and n_total is not None
+                and trigger.device.follows
+                and not trigger.n_pulses
+            ):
+                # Another host starts the box once every host is armed: the pace counts from its first pulse.
+                deadline = now + n_total / self.rate * 1.5 + 5.0
             watchdog.check()
             if now >= next_disk:
                 self._disk.check()
@@ -423,6 +471,7 @@ class CaptureSession:
             self._faults,
         )
         emitted = stop.stop_trigger()
+        self._pulses_of_take = emitted
         self._enter("waiting for devices")
         behind = stop.wait_for_window()
         self._enter("draining")

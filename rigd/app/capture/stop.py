@@ -108,6 +108,11 @@ class AcquisitionStop:
         pulses seen, so the devices' gates cut at a known end while the STOP round trip runs;
         the window then ends one period after the earlier of that pulse and the box's last."""
         window = self._window
+        if self._trigger.device.follows:  # the box is another host's: its count fixes the end
+            emitted = self._trigger.stop_box()
+            last = window.last_index
+            window.set_last_index(emitted - 1 if last is None else min(last, emitted - 1))
+            return emitted if window.last_index is None else min(emitted, window.last_index + 1)
         lead = max(1, math.ceil(STOP_LEAD_S * self._window.rate_hz))
         ahead = max(window.seen_index, self._trigger.n_pulses - 1) + lead
         last = window.last_index

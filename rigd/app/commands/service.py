@@ -106,6 +106,9 @@ def serve(
     http_token: Annotated[
         str | None, typer.Option("--http-token", hidden=True, help="Refused: use --http-token-file.")
     ] = None,
+    host: Annotated[
+        str | None, typer.Option("--host", help="This daemon's host on a multi-host rig (service.host).")
+    ] = None,
 ) -> None:
     """Run the capture daemon: control socket, telemetry, metrics, web console; Ctrl-C/SIGTERM to stop."""
     from rigd.app.service.daemon import Attachment, ControlPlaneError, run_daemon
@@ -127,6 +130,8 @@ def serve(
             overrides["telemetry"] = telemetry
         if metrics_port is not None:
             overrides["metrics_port"] = None if metrics_port < 0 else metrics_port
+        if host is not None:
+            overrides["host"] = host
         if overrides:
             data = rig.model_dump(mode="json")
             data["service"].update({k: str(v) if isinstance(v, Path) else v for k, v in overrides.items()})
@@ -287,6 +292,8 @@ def print_status(t: dict[str, Any], out: Console) -> None:
     for row in rows:
         table.add_row(*row)
     out.print(table)
+    for h in t.get("hosts", []):
+        out.print(host_line(h), soft_wrap=True, highlight=False)
     for f in t.get("faults", []):
         out.print(
             f"[bold red]fault[/] {f['code']} {f.get('device') or ''}: {f['message']} (since {f['since_utc']})"
@@ -300,6 +307,15 @@ def print_status(t: dict[str, Any], out: Console) -> None:
             soft_wrap=True,
         )
         out.print(f"  verdict: {verdict_text(last)}", soft_wrap=True, highlight=False, markup=False)
+
+
+def host_line(h: dict[str, Any]) -> str:
+    """Another host of a multi-host rig, as the coordinator last reached it."""
+    devices = ", ".join(h.get("devices", [])) or "no devices"
+    if not h.get("reachable"):
+        return f"[bold red]host {h['name']}[/] ({h['endpoint']}): unreachable, {devices}: {h.get('message')}"
+    line = f"host {h['name']} ({h['endpoint']}): {h.get('state')}, {devices}, pulses {h.get('pulses', 0)}"
+    return line + (f"  [bold red]{h['message']}[/]" if h.get("message") else "")
 
 
 def verdict_text(last: dict[str, Any]) -> str:

@@ -1,7 +1,9 @@
-"""`rigd takes [DIR]`: the takes in a directory, oldest first: name, verdict, length, devices, size.
+"""`rigd takes [DIR]`: the takes in a directory, oldest first: name, verdict, length, devices, size;
+`rigd takes gather TAKE.h5`: a multi-host take's parts copied from their hosts and joined again.
 
-Register with `app.command("takes")(takes)`. Exit code 0 (an empty directory is an answer), 2 when
-the directory cannot be listed. A file that is not a readable take is listed with why.
+Register with `app.add_typer(takes_app, name="takes")`. Listing exits 0 (an empty directory is an
+answer), 2 when the directory cannot be listed. A file that is not a readable take is listed
+with why.
 """
 
 from __future__ import annotations
@@ -15,9 +17,12 @@ from rich.markup import escape
 from rich.table import Table
 
 from rigd.app.commands.consoles import stderr_console, stdout_console
+from rigd.app.commands.help import RigdGroup, RigdTyper
 from rigd.core.errors import RigdError
 
 if TYPE_CHECKING:
+    from typer._click.core import Context
+
     from rigd.app.take_list import TakeRow
 
 _err = stderr_console()
@@ -85,3 +90,65 @@ def takes(
         length = "-" if r.duration_s is None else f"{r.duration_s:.1f} s"
         table.add_row(escape(r.name), text, length, escape(_devices(r)), _size(r.size_bytes))
     stdout_console().print(table)
+
+
+def gather(
+    take: Annotated[Path, typer.Argument(help="The joined multi-host take (<stem>.h5) to complete.")],
+    config: Annotated[
+        Path | None,
+        typer.Option(
+            "--config",
+            "-c",
+            help="Rig config whose `hosts` give each host's endpoint and keys (default: the take's).",
+        ),
+    ] = None,
+    json_out: Annotated[
+        bool, typer.Option("--json", help="What was done per host and the verdict, as JSON.")
+    ] = False,
+    timeout: Annotated[
+        float, typer.Option("--timeout", min=0.1, help="Seconds each request to a host may take.")
+    ] = 30.0,
+) -> None:
+    """Copy a multi-host take's missing or changed parts from their hosts (resumable, checked
+    by sha256), then join the take again. Exit 0 when every part is in, 1 when some are not."""
+    from rigd.app.config import RigConfig
+    from rigd.app.take_gather import gather_take, hosts_of_take
+
+    try:
+        hosts = RigConfig.load(config).hosts if config is not None else hosts_of_take(take)
+        result = gather_take(take, hosts, timeout_s=timeout)
+    except (RigdError, OSError) as exc:
+        _err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
+        raise typer.Exit(code=2) from exc
+    join = result.join
+    assert join is not None
+    if json_out:
+        body = {
+            "take": str(take),
+            "actions": result.actions,
+            "parts": [p.model_dump(mode="json") for p in join.parts],
+            "verdict": join.verdict.model_dump(mode="json"),
+        }
+        typer.echo(json.dumps(body, indent=2))
+    else:
+        out = stdout_console()
+        for host, action in result.actions.items():
+            out.print(f"{escape(host)}: {escape(action)}", soft_wrap=True, highlight=False)
+        out.print(f"{escape(str(take))}: {escape(join.verdict.line())}", soft_wrap=True, highlight=False)
+    if join.missing_devices:
+        raise typer.Exit(code=1)
+
+
+class TakesGroup(RigdGroup):
+    """`rigd takes [DIR]` lists a directory (the `list` command, the default); `rigd takes
+    gather TAKE.h5` completes a multi-host take."""
+
+    def parse_args(self, ctx: Context, args: list[str]) -> list[str]:
+        if not args or (args[0] not in self.commands and args[0] not in ("--help", "-h")):
+            args = ["list", *args]
+        return super().parse_args(ctx, args)
+
+
+takes_app = RigdTyper(cls=TakesGroup, help="The takes in a directory; `gather` completes a multi-host take.")
+takes_app.command("list")(takes)
+takes_app.command("gather")(gather)

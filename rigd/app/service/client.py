@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import json
 import logging
+import os
 import socket
 import uuid
 from pathlib import Path
@@ -126,6 +127,17 @@ class DaemonAccessError(RigdError):
     """The daemon's control socket exists but this user may not connect to it."""
 
 
+#: Key files a command line presents to a daemon behind CurveZMQ (`rigd keys` writes them).
+SERVER_KEY_ENV = "RIGD_SERVER_PUBLIC_KEY"
+CLIENT_KEY_ENV = "RIGD_CLIENT_SECRET_KEY"
+
+
+def curve_keys_from_env() -> tuple[Path | None, Path | None]:
+    """The daemon's public key and this side's secret key named by the environment (or None)."""
+    server, client = os.environ.get(SERVER_KEY_ENV), os.environ.get(CLIENT_KEY_ENV)
+    return (Path(server) if server else None), (Path(client) if client else None)
+
+
 def find_daemon(endpoint: str, timeout_s: float = 1.0, call_timeout_s: float = 5.0) -> DaemonClient | None:
     """A client for the daemon at `endpoint` if one answers a ping, else None. The client's
     later calls wait up to `call_timeout_s`: a daemon busy finalizing a take may take more than
@@ -140,7 +152,10 @@ def find_daemon(endpoint: str, timeout_s: float = 1.0, call_timeout_s: float = 5
         if not _ipc_listening(path):
             return None
         timeout_s = max(timeout_s, call_timeout_s)
-    client = DaemonClient(endpoint, timeout_s=timeout_s)
+    server_key, client_key = curve_keys_from_env() if path is None else (None, None)
+    client = DaemonClient(
+        endpoint, timeout_s=timeout_s, server_public_key=server_key, client_secret_key=client_key
+    )
     try:
         client.call("ping")
     except DaemonUnavailableError:

@@ -77,11 +77,11 @@ _WORKER_GRACE_S = 60.0
 
 #: Commands that can take seconds to minutes (opening devices, enumerating cameras, sealing
 #: big takes): run on a worker so the control loop answers and feeds the watchdog meanwhile.
-_SLOW_COMMANDS = frozenset({"capture", "devices", "recover"})
+_SLOW_COMMANDS = frozenset({"capture", "capture_part", "devices", "recover"})
 
 #: Of those, the ones that act on the rig: their claim (`_claim`) lets one run at a time, so
 #: each gets its own thread and is never refused for a queue full of other requests.
-_RIG_COMMANDS = frozenset({"capture", "recover"})
+_RIG_COMMANDS = frozenset({"capture", "capture_part", "recover"})
 
 #: Worker threads for the other slow commands (`devices`), and how many requests may wait
 #: for one; beyond that a request is answered `busy` at once. Without a bound, a client
@@ -402,18 +402,21 @@ class Daemon:
             takes_completed=completed,
             last_take=last,
             faults=idle_faults,
+            host=rig.host,
+            hosts=rig.hosts(),
         )
         if session is None or session.state in ("new", "starting"):
             # While the devices open, their live counters are still being set up.
             t.devices = self._idle_devices()
             return t
-        snap = session.snapshot()
-        return self._with_session(t, snap)
+        t = self._with_session(t, session.snapshot())
+        t.take = str(session.path)  # a multi-host take: the joined take, not this host's part
+        return t
 
     def _idle_devices(self) -> list[DeviceTelemetry]:
         kinds: list[tuple[str, DeviceKind]] = [("trigger", "trigger")]
-        kinds += [(c.name, "rgb_camera") for c in self.config.cameras]
-        kinds += [(s.name, "event_sensor") for s in self.config.event_sensors]
+        kinds += [(c.name, "rgb_camera") for c in self.config.cameras if c.host == self.rig.host]
+        kinds += [(s.name, "event_sensor") for s in self.config.event_sensors if s.host == self.rig.host]
         return [
             DeviceTelemetry(name=name, kind=kind, state="idle", total=0, rate_hz=0.0, lost=0)
             for name, kind in kinds

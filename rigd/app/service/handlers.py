@@ -19,9 +19,20 @@ from pydantic import BaseModel
 
 from rigd import __version__
 from rigd.app.config import RigConfig
-from rigd.app.service.protocol import PROTOCOL_VERSION, CaptureArgs, ShutdownArgs, StopArgs, Telemetry
+from rigd.app.service.protocol import (
+    PROTOCOL_VERSION,
+    CaptureArgs,
+    CapturePartArgs,
+    PulsesArgs,
+    ShutdownArgs,
+    StopArgs,
+    TakeReadArgs,
+    TakeStatArgs,
+    Telemetry,
+)
 from rigd.app.service.requests import RequestError
 from rigd.app.service.rig_slot import RigSlot
+from rigd.app.service.take_files import TakeHashes, read_take
 
 
 class Handlers:
@@ -39,6 +50,7 @@ class Handlers:
         self._slot = slot
         self._telemetry = telemetry
         self._stop = stop
+        self._hashes = TakeHashes()
 
     def run(self, cmd: str, args: BaseModel) -> dict[str, Any]:
         """Answer `cmd` (validated against the protocol: its handler exists, `args` is its model)."""
@@ -55,6 +67,10 @@ class Handlers:
 
     def claim_capture(self, args: CaptureArgs) -> Callable[[], dict[str, Any]]:
         session = self._slot.begin_capture(args)
+        return functools.partial(self._slot.start_capture, session, args)
+
+    def claim_capture_part(self, args: CapturePartArgs) -> Callable[[], dict[str, Any]]:
+        session = self._slot.begin_part(args)
         return functools.partial(self._slot.start_capture, session, args)
 
     def claim_recover(self, _: BaseModel) -> Callable[[], dict[str, Any]]:
@@ -78,6 +94,12 @@ class Handlers:
     def cmd_capture(self, args: CaptureArgs) -> dict[str, Any]:
         return self.claim_capture(args)()
 
+    def cmd_capture_part(self, args: CapturePartArgs) -> dict[str, Any]:
+        return self.claim_capture_part(args)()
+
+    def cmd_pulses(self, args: PulsesArgs) -> dict[str, Any]:
+        return self._slot.pulses(args)
+
     def cmd_stop(self, args: StopArgs) -> dict[str, Any]:
         return self._slot.stop(args.reason)
 
@@ -88,6 +110,15 @@ class Handlers:
 
     def cmd_recover(self, args: BaseModel) -> dict[str, Any]:
         return self.claim_recover(args)()
+
+    def cmd_take_read(self, args: TakeReadArgs) -> dict[str, Any]:
+        """Bytes of one of this daemon's take files (a multi-host take's part, gathered)."""
+        return read_take(self._config.service.take_dir, args.file, args.offset, args.length)
+
+    def cmd_take_stat(self, args: TakeStatArgs) -> dict[str, Any]:
+        """Size and sha256 of one of this daemon's take files (the sha256 is null while it is
+        being computed, in the background: ask again)."""
+        return self._hashes.stat(self._config.service.take_dir, args.file)
 
     def cmd_shutdown(self, args: ShutdownArgs) -> dict[str, Any]:
         if self._slot.running() and not args.force:

@@ -21,7 +21,20 @@ PROTOCOL_VERSION = 1
 #: Largest control message the daemon reads; bigger ones are refused by ZeroMQ itself.
 MAX_MESSAGE_BYTES = 64 * 1024
 
-Command = Literal["ping", "status", "capture", "stop", "devices", "config", "recover", "shutdown"]
+Command = Literal[
+    "ping",
+    "status",
+    "capture",
+    "stop",
+    "devices",
+    "config",
+    "recover",
+    "shutdown",
+    "capture_part",
+    "pulses",
+    "take_read",
+    "take_stat",
+]
 COMMANDS: tuple[str, ...] = Command.__args__  # type: ignore[attr-defined]
 
 ErrorCode = Literal[
@@ -76,12 +89,47 @@ class CaptureArgs(_StrictRequest):
     )
 
 
+_STEM = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
+
+
+class CapturePartArgs(_StrictRequest):
+    """The coordinator of a multi-host rig arms this host: its devices record into the part
+    `<stem>.<host>.part.h5`, on the coordinator's pulses (docs/multi-host.md)."""
+
+    stem: Annotated[str, Field(pattern=_STEM)] = Field(description="The joined take's name, without .h5.")
+    duration_s: float | None = Field(None, gt=0, le=7 * 86400)
+    label: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] | None = None
+
+
+class PulsesArgs(_StrictRequest):
+    """A follower host asks the coordinator for the take's pulse records from `since` on."""
+
+    stem: Annotated[str, Field(pattern=_STEM)]
+    since: int = Field(ge=0, le=1 << 40)
+
+
 class StopArgs(_StrictRequest):
     reason: Annotated[str, Field(max_length=200)] = "stop requested"
 
 
 class ShutdownArgs(_StrictRequest):
     force: bool = Field(False, description="Stop a running take first (it is finalized, not lost).")
+
+
+#: The most bytes one `take_read` returns (base64 in the reply: 4/3 of it).
+TAKE_READ_MAX_BYTES = 4 << 20
+_TAKE_FILE = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,250}\.h5$"
+
+
+class TakeStatArgs(_StrictRequest):
+    file: Annotated[str, Field(max_length=255, pattern=_TAKE_FILE)] = Field(
+        description="A take file's name in the daemon's take directory (no path)."
+    )
+
+
+class TakeReadArgs(TakeStatArgs):
+    offset: int = Field(ge=0, description="First byte to read.")
+    length: int = Field(gt=0, le=TAKE_READ_MAX_BYTES, description="Bytes to read (fewer at the end).")
 
 
 ARGS_MODELS: dict[str, type[BaseModel]] = {
@@ -93,6 +141,10 @@ ARGS_MODELS: dict[str, type[BaseModel]] = {
     "config": NoArgs,
     "recover": NoArgs,
     "shutdown": ShutdownArgs,
+    "capture_part": CapturePartArgs,
+    "pulses": PulsesArgs,
+    "take_read": TakeReadArgs,
+    "take_stat": TakeStatArgs,
 }
 
 
@@ -162,6 +214,19 @@ class TakeSummary(_Strict):
     error: str | None = None
 
 
+class HostTelemetry(_Strict):
+    """Another host of a multi-host rig, as the coordinator last reached it."""
+
+    name: str
+    endpoint: str
+    reachable: bool
+    state: DaemonState | None = None
+    take: str | None = None
+    devices: list[str] = Field(default_factory=list)
+    pulses: int = 0
+    message: str | None = Field(None, description="Why it is unreachable, or its first fault.")
+
+
 class Telemetry(_Strict):
     v: int = PROTOCOL_VERSION
     seq: int
@@ -193,6 +258,10 @@ class Telemetry(_Strict):
     faults: list[Fault] = Field(default_factory=list)
     takes_completed: int = 0
     last_take: TakeSummary | None = None
+    host: str | None = Field(None, description="This daemon's host on a multi-host rig.")
+    hosts: list[HostTelemetry] = Field(
+        default_factory=list, description="The coordinator's view of the other hosts (multi-host rigs)."
+    )
 
 
 class ThumbnailHeader(_Strict):

@@ -8,17 +8,30 @@ completed, the faults that outlive a take (a full disk), and what recovery seale
 from __future__ import annotations
 
 import ctypes
+import functools
 import gc
 import logging
 import threading
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from rigd.app.capture import CaptureSession, SessionSnapshot
+from rigd.app.capture.remote_trigger import FeedState
 from rigd.app.config import RigConfig
 from rigd.app.service import sdnotify
-from rigd.app.service.protocol import CaptureArgs, DaemonState, Fault, TakeSummary
+from rigd.app.service.host_links import this_host
+from rigd.app.service.multihost import MultiHostSession as MultiHostRun
+from rigd.app.service.protocol import (
+    CaptureArgs,
+    CapturePartArgs,
+    DaemonState,
+    Fault,
+    HostTelemetry,
+    PulsesArgs,
+    TakeSummary,
+)
 from rigd.app.service.requests import RequestError
 from rigd.core.errors import TakeError
 from rigd.core.kinds import DeviceKind
@@ -38,6 +51,12 @@ class _Coded(Protocol):
     message: str
     since_utc: str
 
+
+#: Pulse records per `pulses` reply (a follower asks again from where it is).
+PULSES_PER_REPLY = 4096
+
+Run = CaptureSession | MultiHostRun
+"""What the slot runs: a take of this host's devices, or a take across hosts it coordinates."""
 
 _D = TypeVar("_D", bound=_Device)
 _V = TypeVar("_V")
@@ -63,7 +82,9 @@ class RigSlot:
         self.config = config
         self.lock = threading.RLock()
         """Guards every attribute below; hold it to read several consistently."""
-        self.session: CaptureSession | None = None
+        self.host = this_host(config)
+        """This daemon's host on a multi-host rig (None: a one-host rig)."""
+        self.session: Run | None = None
         self.state: DaemonState = "idle"
         self.last_take: TakeSummary | None = None
         self.takes_completed = 0
@@ -73,13 +94,30 @@ class RigSlot:
         """What each recovery sealed or could not read, oldest first."""
         self.recovering = False
         self.holder: str | None = None
+        self.last_feed: tuple[str, FeedState] | None = None
+        """The last multi-host take's pulse records, for followers still fetching its tail."""
         """Who holds the devices outside a take (see `hold_devices`)."""
 
     # -- a take ------------------------------------------------------------------------
-    def begin_capture(self, args: CaptureArgs) -> CaptureSession:
+    def begin_capture(self, args: CaptureArgs) -> Run:
         """Claim the rig for a new take (quick; `busy` if one runs)."""
+        if self.host is not None and self.host != self.config.coordinator:
+            coord = self.config.coordinator
+            raise RequestError(
+                "config_error",
+                f"this daemon is host {self.host} of a multi-host rig; takes start on the coordinator, "
+                f"host {coord} ({self.config.hosts[coord].control if coord else '?'})",
+            )
+        return self._claim(lambda: self._new_run(args))
+
+    def begin_part(self, args: CapturePartArgs) -> Run:
+        """Claim the rig for this host's part of a multi-host take (the coordinator asks)."""
+        if self.host is None or self.host == self.config.coordinator:
+            raise RequestError("config_error", "capture_part is for the follower hosts of a multi-host rig")
+        return self._claim(lambda: self._new_part(args))
+
+    def _claim(self, make: Callable[[], Run]) -> Run:
         self.reap()
-        svc = self.config.service
         with self.lock:
             if self.session is not None:
                 raise RequestError("busy", f"a take is already running: {self.session.path}")
@@ -87,18 +125,73 @@ class RigSlot:
                 raise RequestError("busy", "unfinished takes are being recovered; try again when done")
             if self.holder is not None:
                 raise RequestError("busy", f"the devices are held by {self.holder}; try again when done")
-            session = CaptureSession(
+            session = make()
+            self.session = session
+            self.state = "starting"
+        return session
+
+    def _new_run(self, args: CaptureArgs) -> Run:
+        svc = self.config.service
+        if self.host is None:
+            return CaptureSession(
                 self.config,
                 svc.take_dir,
                 duration_s=args.duration_s,
                 label=args.label,
                 reconnect_interval_s=svc.reconnect_interval_s,
             )
-            self.session = session
-            self.state = "starting"
-        return session
+        from rigd.app.service.gathering import gather_part, join_parts
 
-    def start_capture(self, session: CaptureSession, args: CaptureArgs) -> dict[str, Any]:
+        return MultiHostRun(
+            self.config,
+            self.host,
+            svc.take_dir,
+            duration_s=args.duration_s,
+            label=args.label,
+            reconnect_interval_s=svc.reconnect_interval_s,
+            gather=functools.partial(gather_part, self.config),
+            join=join_parts,
+        )
+
+    def _new_part(self, args: CapturePartArgs) -> Run:
+        from rigd.app.capture.remote_trigger import RemoteTrigger
+        from rigd.app.service.host_links import CoordinatorFeed, HostLink
+        from rigd.take.parts import part_name
+
+        svc = self.config.service
+        assert self.host is not None
+        coord = self.config.coordinator
+        assert coord is not None
+        feed = CoordinatorFeed(HostLink(self.config, coord), args.stem)
+        return CaptureSession(
+            self.config.for_host(self.host),
+            svc.take_dir,
+            duration_s=args.duration_s,
+            path=svc.take_dir / part_name(args.stem, self.host),
+            label=args.label,
+            reconnect_interval_s=svc.reconnect_interval_s,
+            open_trigger=lambda: RemoteTrigger(feed, spec=f"rigd-host://{coord}/{args.stem}"),
+        )
+
+    def pulses(self, args: PulsesArgs) -> dict[str, Any]:
+        """The running take's pulse records for a follower host (`RemoteTrigger`)."""
+        from rigd.app.service.host_links import feed_reply
+
+        with self.lock:
+            session = self.session
+            last = self.last_feed
+        if session is not None and Path(session.path).stem == args.stem:
+            state = session.pulse_feed(args.since)
+        elif last is not None and last[0] == args.stem:  # it ended: a follower fetches the tail
+            final = last[1]
+            keep = final.index >= args.since
+            host_ns = None if final.host_ns is None else final.host_ns[keep]
+            state = replace(final, index=final.index[keep], t_us=final.t_us[keep], host_ns=host_ns)
+        else:
+            raise RequestError("not_capturing", f"take {args.stem} is not this daemon's running take")
+        return feed_reply(state, PULSES_PER_REPLY)
+
+    def start_capture(self, session: Run, args: CaptureArgs | CapturePartArgs) -> dict[str, Any]:
         """Open the devices and start the trigger (slow on real hardware)."""
         try:
             path = session.start()
@@ -128,7 +221,14 @@ class RigSlot:
 
     def current_session(self) -> CaptureSession | None:
         with self.lock:
-            return self.session
+            session = self.session
+        return session.local if isinstance(session, MultiHostRun) else session
+
+    def hosts(self) -> list[HostTelemetry]:
+        """The other hosts as the running multi-host take last reached them."""
+        with self.lock:
+            session = self.session
+        return session.hosts() if isinstance(session, MultiHostRun) else []
 
     def finish(self, reason: str) -> None:
         """Stop the running take in a hurry and wait until it is sealed (the daemon is going)."""
@@ -156,6 +256,8 @@ class RigSlot:
             self.session = None
             self.state = "idle"
             self.takes_completed += 1
+            if isinstance(session, MultiHostRun):
+                self.last_feed = (Path(session.path).stem, session.pulse_feed(0))
             snap = session.snapshot()
             self.last_take = _summary(session, snap)
             self.idle_faults = [fault(f) for f in snap.faults if f.code in ("disk_full", "disk_low")]
@@ -220,7 +322,7 @@ class RigSlot:
         self.recovered.extend(r.model_dump(mode="json") for r in results)
 
 
-def _summary(session: CaptureSession, snap: SessionSnapshot) -> TakeSummary:
+def _summary(session: Run, snap: SessionSnapshot) -> TakeSummary:
     """What the telemetry says about a take that ended."""
     res = session.result
     if res is not None:

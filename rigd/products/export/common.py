@@ -38,7 +38,7 @@ from rigd.core.errors import ConfigError, TakeError
 from rigd.core.layout import Frames, frame_group
 from rigd.core.progress import ProgressCallback, ProgressUpdate
 from rigd.products.export.outputs import write_image
-from rigd.take.h5file import open_checked
+from rigd.take.linked import open_take_h5
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -358,7 +358,7 @@ def _frame_series(
 ) -> dict[str, tuple[NDArray[np.int64], NDArray[np.int64]]]:
     """(pulse_index, exposure_us) per camera, each read whole with plain h5py (the documented
     `/frames/<cam>` series): indexing frames one by one would read every image too."""
-    with open_checked(path, "r") as f:
+    with open_take_h5(path) as f:  # a joined take's cameras live in their hosts' parts
         return {
             c: (
                 np.asarray(f[f"{frame_group(c)}/{Frames.PULSE_INDEX}"][()], np.int64),

@@ -17,8 +17,6 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-import h5py
-
 from rigd.core.errors import TakeError
 from rigd.core.extras import require
 from rigd.core.layout import Root
@@ -26,6 +24,7 @@ from rigd.core.progress import ProgressCallback, ProgressUpdate, no_progress
 from rigd.products.ros import msgdefs as m
 from rigd.products.ros.streams import Msg, TakeStreams
 from rigd.take.h5file import attr_text
+from rigd.take.linked import TakeH5, open_take_h5
 from rigd.take.reader import Take
 
 log = logging.getLogger(__name__)
@@ -47,7 +46,7 @@ class McapStats:
     bytes_by_topic: dict[str, int] = field(default_factory=dict)
 
 
-def epoch_of(h5: h5py.File, which: str) -> int:
+def epoch_of(h5: TakeH5, which: str) -> int:
     """`take`: the take's creation second (UTC, UNIX ns) is rig time 0; `rig`: stamps are rig time."""
     if which == "rig":
         return 0
@@ -122,7 +121,7 @@ def write_mcap(
     writer_mod = require("mcap.writer", "--format mcap")
     if take.time_domain != "rig":
         raise TakeError(f"{take.path}: not on the rig timebase (time domain {take.time_domain})")
-    with h5py.File(take.path, "r") as h5, out.open("wb") as f:
+    with open_take_h5(take.path) as h5, out.open("wb") as f:
         stats = McapStats(out, epoch_of(h5, epoch))
         streams = TakeStreams(take, h5, stats.epoch_ns, slice_us, compressed)
         if streams.stamp(streams.t_start_us) < 0:

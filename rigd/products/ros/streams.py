@@ -15,7 +15,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-import h5py
 import numpy as np
 from numpy.typing import NDArray
 
@@ -26,6 +25,7 @@ from rigd.evt import Evt3Encoder, StreamDecoder, decode_from_state
 from rigd.products.ros import msgdefs as m
 from rigd.take.evt_read import EvtWordsEvents, is_evt_words
 from rigd.take.h5file import attr_text
+from rigd.take.linked import TakeH5
 from rigd.take.reader import Take
 
 #: Slice of a columns-stored sensor encoded into one EVT 3.0 packet.
@@ -84,7 +84,7 @@ class TakeStreams:
     """The streams of one open take; `h5` is a second read-only handle on the same file for the
     stored EVT words (read block by block)."""
 
-    def __init__(self, take: Take, h5: h5py.File, epoch_ns: int, slice_us: int, compressed: bool) -> None:
+    def __init__(self, take: Take, h5: TakeH5, epoch_ns: int, slice_us: int, compressed: bool) -> None:
         self.take = take
         self.h5 = h5
         self.epoch_ns = epoch_ns

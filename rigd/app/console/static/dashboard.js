@@ -112,6 +112,12 @@ function render(doc) {
   faults.replaceChildren(...(doc.faults.length ? doc.faults.map((f) =>
     el("li", { text: `${f.device ? f.device + ": " : ""}${faultText(f)} (since ${f.since_utc})` }))
     : [el("li", { style: "color:var(--dim)", text: "none" })]));
+  const hosts = doc.hosts || [];
+  document.getElementById("hosts-section").hidden = !hosts.length;
+  document.getElementById("hosts").replaceChildren(...hosts.map((h) =>
+    el("li", { text: `host ${h.name} (${h.endpoint}): ${h.reachable ? h.state : "unreachable"} · ` +
+      `${h.devices.join(", ") || "no devices"} · ${h.pulses} pulses${h.message ? " · " + h.message : ""}`,
+      style: h.reachable && !h.message ? "" : "color:var(--bad)" })));
   for (const dev of doc.devices) {
     if (dev.kind === "trigger") continue;
     const t = tile(dev);
