@@ -85,3 +85,34 @@ def test_status_table_fits_an_80_column_terminal_whole() -> None:
     assert any(line.split()[:3] == ["ev0", "events", "capturing"] and "24.95 M" in line for line in lines)
     assert any(line.split()[:2] == ["trigger", "trigger"] for line in lines)
     assert "jitter µs" in text
+
+
+def test_status_names_every_other_host_of_a_multi_host_rig() -> None:
+    doc = _status("cam0")
+    doc["hosts"] = [
+        {
+            "name": "B",
+            "endpoint": "tcp://10.0.0.2:5601",
+            "reachable": True,
+            "state": "capturing",
+            "take": None,
+            "devices": ["ev0"],
+            "pulses": 370,
+            "message": None,
+        },
+        {
+            "name": "C",
+            "endpoint": "tcp://10.0.0.3:5601",
+            "reachable": False,
+            "state": None,
+            "take": None,
+            "devices": ["ev1"],
+            "pulses": 0,
+            "message": "no answer for 12 s",
+        },
+    ]
+    buf = io.StringIO()
+    print_status(doc, Console(file=buf, width=OFF_TERMINAL_WIDTH, soft_wrap=True, force_terminal=False))
+    lines = buf.getvalue().splitlines()
+    assert "host B (tcp://10.0.0.2:5601): capturing, ev0, pulses 370" in lines
+    assert "host C (tcp://10.0.0.3:5601): unreachable, ev1: no answer for 12 s" in lines
