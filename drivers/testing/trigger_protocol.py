@@ -253,7 +253,13 @@ class TriggerProtocolContract:
         deadline=None,
         suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.differing_executors],
     )
-    @given(garbage=st.binary(min_size=1, max_size=200).filter(lambda b: b"\n" not in b))
+    # Garbage, not a command: a leading word of capitals could be a real one (b"PING #0" was
+    # drawn once and answered PONG, rightly); the named bad lines above cover those.
+    @given(
+        garbage=st.binary(min_size=1, max_size=200).filter(
+            lambda b: b"\n" not in b and re.match(rb"[A-Z?]+([ #*\r]|$)", b) is None
+        )
+    )
     def test_random_garbage_gets_err_and_box_survives(self, port: RawPort, garbage: bytes) -> None:
         has_bad_byte = any(not 0x20 <= b <= 0x7E for b in garbage.rstrip(b"\r"))
         port.send(garbage + b"\n")
