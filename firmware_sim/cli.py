@@ -94,7 +94,7 @@ def simulate_events(
     from firmware_sim.frame_sources import open_source
     from firmware_sim.frames_to_events import FramesToEvents, simulate_to_raw, simulate_to_take
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)  # a path in a message stays whole off a terminal
     if substeps is not None and max_px_per_step is not None:
         raise typer.BadParameter("give --substeps or --max-px-per-step, not both")
     try:

@@ -18,7 +18,7 @@ from rich.markup import escape
 
 from rigd.app.commands.consoles import fail, stderr_console
 from rigd.app.commands.progress import StageProgress
-from rigd.core.errors import RigdError
+from rigd.core.errors import ConfigError, RigdError
 
 if TYPE_CHECKING:  # the pipeline (dask, numba, h5py) loads when the command runs
     from rigd.products.reconstruct_options import ReconstructOptions, TakeReconstruction
@@ -41,7 +41,7 @@ def _line(r: TakeReconstruction) -> str:
 
 
 def reconstruct(
-    takes: Annotated[list[Path], typer.Argument(help="Take files (.h5).", exists=True, dir_okay=False)],
+    takes: Annotated[list[Path], typer.Argument(help="Take files (.h5).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")],
     scheduler: Annotated[
         str,
@@ -108,6 +108,11 @@ def reconstruct(
     from rigd.products.reconstruct_options import ReconstructOptions
     from rigd.products.reconstruct_tasks import FilterKnobs
 
+    for take in takes:  # one line naming the path, whole (typer's own check wraps it in a box)
+        if not take.exists():
+            raise fail(ConfigError(f"{take}: no such take file"))
+        if take.is_dir():
+            raise fail(ConfigError(f"{take}: is a directory, not a take file"))
     try:
         filt = FilterKnobs(
             enabled=not no_filter,
