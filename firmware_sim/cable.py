@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Literal
 from urllib.parse import urlencode
 
 from rigd.core.errors import ConfigError
+from rigd.core.private_dir import check_private_dir as check_owner_only
 
 if TYPE_CHECKING:
     from drivers.registry import DeviceSpec
@@ -187,15 +188,7 @@ def check_private_dir(path: str, *, create: bool) -> None:
         raise ConfigError(f"trigger cable {path}: its directory {d} is not there: {exc}") from exc
     if not stat.S_ISDIR(st.st_mode):
         raise ConfigError(f"trigger cable {path}: {d} is not a directory")
-    if st.st_uid != os.getuid():
-        raise ConfigError(
-            f"trigger cable {path}: {d} belongs to uid {st.st_uid}, not to this user ({os.getuid()})"
-        )
-    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        raise ConfigError(
-            f"trigger cable {path}: {d} is writable by group or others (mode {stat.S_IMODE(st.st_mode):o}); "
-            "use a private directory or chmod 700 it"
-        )
+    check_owner_only(d, f"trigger cable {path}", "use a private directory or chmod 700 it")
 
 
 __all__ = [

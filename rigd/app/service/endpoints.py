@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import os
-import stat
 from pathlib import Path
 
 import zmq
@@ -13,6 +12,7 @@ from zmq.auth.thread import ThreadAuthenticator
 
 from rigd.app.config import CurveConfig
 from rigd.core.errors import ConfigError, RigdError
+from rigd.core.private_dir import check_private_dir
 
 log = logging.getLogger(__name__)
 
@@ -29,16 +29,7 @@ def prepare_ipc_dir(path: Path) -> None:
     """Create the socket's directory owner-only, or refuse one others can write into."""
     d = path.parent
     d.mkdir(mode=0o700, parents=True, exist_ok=True)
-    st = d.stat()
-    if st.st_uid != os.getuid():
-        raise ConfigError(
-            f"service.control: {d} belongs to uid {st.st_uid}, not to this user ({os.getuid()})"
-        )
-    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        raise ConfigError(
-            f"service.control: {d} is writable by group or others (mode {stat.S_IMODE(st.st_mode):o}); "
-            "use a private directory (RIGD_RUNTIME_DIR) or chmod 700 it"
-        )
+    check_private_dir(d, "service.control", "use a private directory (RIGD_RUNTIME_DIR) or chmod 700 it")
 
 
 def secure_ipc_socket(path: Path) -> None:
