@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 from rigd.app.capture.run import run_capture
+from rigd.app.commands.service import wait_for_take
 from rigd.app.config import RigConfig
 from rigd.app.service.client import DaemonRequestError
 from rigd.app.service.daemon import Daemon
@@ -160,12 +161,7 @@ def test_sigkill_of_a_host_costs_only_its_devices_and_recover_plus_gather_comple
                 time.sleep(0.1)
         os.kill(procs["C"].pid, signal.SIGKILL)
         procs["C"].wait()
-        while True:
-            t = client.call("status", timeout_s=30)
-            last = t.get("last_take")
-            if last and last["path"] == str(joined) and t.get("take") != str(joined):
-                break
-            time.sleep(0.2)
+        last = wait_for_take(client, str(joined))
         client.close()
         assert last["verdict"] == "degraded", last
         assert any("ev1" in r for r in last["verdict_reasons"]), last["verdict_reasons"]
@@ -216,12 +212,7 @@ def test_a_host_that_stalls_costs_only_its_devices_and_gather_completes_once_it_
                 time.sleep(0.1)
         os.kill(procs["C"].pid, signal.SIGSTOP)
         stopped = True
-        while True:
-            t = client.call("status", timeout_s=30)
-            last = t.get("last_take")
-            if last and last["path"] == str(joined) and t.get("take") != str(joined):
-                break
-            time.sleep(0.2)
+        last = wait_for_take(client, str(joined))
         client.close()
         assert last["verdict"] == "degraded", last
         assert any("ev1" in r for r in last["verdict_reasons"]), last["verdict_reasons"]
