@@ -304,12 +304,12 @@ class MultiHostSession:
         hosts.update({h: (p, tuple(self.config.devices_on(h))) for h, (p, _) in parts.items()})
         missing = {h: why for h, (_, why) in parts.items() if why is not None}
         self._join(self.path, self.local.path, hosts, missing)
-        self._result = joined_result(self.path, self.local.result, time.monotonic())
+        self._result = joined_result(self.path, self.local.result)
         if local_error is not None:
             raise local_error
 
 
-def joined_result(path: Path, local: CaptureResult | None, _now: float) -> CaptureResult:
+def joined_result(path: Path, local: CaptureResult | None) -> CaptureResult:
     """The summary of a joined take, read back from it (what the client and telemetry show)."""
     from rigd.take import Take
 
