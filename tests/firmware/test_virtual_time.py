@@ -20,8 +20,10 @@ def _start_cycle(elf: Path, chunks: list[bytes]) -> tuple[int, bytes]:
     try:
         out: list[Step] = []
         free = threading.Thread(target=lambda: out.append(harness.free()))
-        free.start()
+        # Opened before the AVR runs a cycle: pyserial's open flushes the input queue, so a port
+        # opened while the boot banner goes out would keep only its tail.
         with serial.Serial(harness.port_path, baudrate=1_000_000, timeout=5) as port:
+            free.start()
             for chunk in chunks:
                 port.write(chunk)
                 time.sleep(0.05)  # the host's own pace: it must not reach the firmware's clock
@@ -34,11 +36,9 @@ def _start_cycle(elf: Path, chunks: list[bytes]) -> tuple[int, bytes]:
                 chunk = port.read(256)
                 assert chunk, got
                 got += chunk
-        # The boot banner goes out before any host input, so whether the port was open in time
-        # to catch it is the host's timing; everything after it answers the commands.
-        if got.startswith(b"$READY"):
-            got = got.split(b"\n", 1)[1]
-        return out[0].cycle, got
+        banner, answers = got.split(b"\n", 1)
+        assert banner.startswith(b"$READY"), got
+        return out[0].cycle, answers
     finally:
         harness.close()
 
@@ -60,8 +60,10 @@ def test_free_stops_where_the_firmware_went_idle(firmware_build: Path, harness_b
     try:
         out: list[Step] = []
         free = threading.Thread(target=lambda: out.append(harness.free()))
-        free.start()
+        # Opened before the AVR runs a cycle: pyserial's open flushes the input queue, so a port
+        # opened after the banner went out would lose it.
         with serial.Serial(harness.port_path, baudrate=1_000_000, timeout=5) as port:
+            free.start()
             assert port.readline().startswith(b"$READY")
             harness.interrupt()
             free.join(60)
