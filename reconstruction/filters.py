@@ -25,9 +25,12 @@ and polarity, and the filter streams over chunks: filtering chunk by chunk gives
 result of filtering the concatenation.
 
 Speed (the cost is the map's memory traffic, not arithmetic): the times are int16 relative to a
-base that moves forward every ~33 ms of stream (int32 for windows over 32767 us), and the map
-interleaves 4 rows per group, so one masked 64-byte vector compare covers 8 columns x 4 rows and
-the 7 x 7 neighbourhood takes 2-3 of them (docs/reconstruction.md, "BAF definition").
+base that moves forward every ~65 ms of stream (int32 for windows over 32767 us), and the map
+interleaves 4 rows per group, so one 64-byte vector compare covers 8 columns x 4 rows and the
+7 x 7 neighbourhood takes 3 of them (docs/reconstruction.md, "BAF definition"). The input is
+checked block by block inside the kernel, so the events are read from memory once, and `filter()`
+has the scan list the kept events' indices instead of indexing every array with the mask
+(docs/benchmarks.md, "Background-activity filter").
 """
 
 from __future__ import annotations
@@ -89,28 +92,39 @@ def map_dtype(window_us: int) -> type[np.signedinteger[Any]]:
     return np.int16 if window_us <= INT16_MAX_WINDOW_US else np.int32
 
 
+#: What `_first_bad` returns for a usable chunk; otherwise 2 * index + kind of the first bad event.
+GOOD = -1
+BAD_ORDER = 0
+BAD_PLACE = 1
+
+
 @njit(nogil=True, cache=True)
-def _validate(  # pragma: no cover - numba
+def _first_bad(  # pragma: no cover - numba
     x: NDArray[np.uint16], y: NDArray[np.uint16], t: NDArray[np.int64], width: int, height: int, t_prev: int
 ) -> int:
-    """0 when the chunk is usable, 1 unsorted (or before t_prev), 2 coordinates off the sensor.
+    """GOOD, or 2 * i + BAD_ORDER / BAD_PLACE for the first event i that goes back in time (before
+    t_prev for i = 0) or lies off the sensor.
 
-    Integer or- and max-reductions without early exit, so LLVM vectorizes both passes (a bool
-    `|=` reduction did not vectorize and took twice as long)."""
+    Integer or- and max-reductions without early exit first, so LLVM vectorizes the usual case (a
+    bool `|=` reduction did not vectorize and took twice as long); the exact event only on failure."""
     n = t.shape[0]
     if n == 0:
-        return 0
+        return GOOD
     unsorted = np.int64(t_prev > t[0])
+    mx = np.uint16(x[0])
+    my = np.uint16(y[0])
     for i in range(1, n):
         unsorted |= np.int64(t[i - 1] > t[i])
-    if unsorted:
-        return 1
-    mx = np.uint16(0)
-    my = np.uint16(0)
-    for i in range(n):
         mx = max(mx, x[i])
         my = max(my, y[i])
-    return 2 if (mx >= width or my >= height) else 0
+    if unsorted == 0 and mx < width and my < height:
+        return GOOD
+    for i in range(n):
+        if t[i] < (t_prev if i == 0 else t[i - 1]):
+            return 2 * i + BAD_ORDER
+        if x[i] >= width or y[i] >= height:
+            return 2 * i + BAD_PLACE
+    return GOOD
 
 
 @njit(nogil=True, cache=True)
@@ -126,22 +140,40 @@ def _prepare(  # pragma: no cover - numba
     x: NDArray[np.uint16],
     y: NDArray[np.uint16],
     p: NDArray[np.int8],
+    t: NDArray[np.int64],
     s: NDArray[np.int64],
     plane: int,
     cols: int,
-) -> None:
-    """Per event of a block: the map index of its neighbourhood's first vector, or'ed with its row
-    phase (the index is a multiple of 4). A vectorized pass over a cache-sized block, so the serial
-    scan loads one int64 per event (and one for the event it prefetches) instead of x, y and p."""
-    for i in range(x.shape[0]):
+    width: int,
+    height: int,
+    t_prev: int,
+) -> int:
+    """For each event of a block: s[i] = the map index of its neighbourhood's first vector, or'ed with
+    its row phase (the index is a multiple of 4); returns the block's validation (`_first_bad`). One
+    pass over a cache-sized block, so the serial scan loads one int64 per event (and one for the
+    event it prefetches) and the events are read from memory once."""
+    n = t.shape[0]
+    unsorted = np.int64(t_prev > t[0])
+    for i in range(1, n):
+        unsorted |= np.int64(t[i - 1] > t[i])
+    mx = np.uint16(0)
+    my = np.uint16(0)
+    for i in range(n):
+        mx = max(mx, x[i])
+        my = max(my, y[i])
+    for i in range(n):
         yi = np.int64(y[i])
         s[i] = (np.int64(p[i] > 0) * plane + ((yi >> 2) * cols + np.int64(x[i])) * 4) | (yi & 3)
+    if unsorted == 0 and mx < width and my < height:
+        return GOOD
+    return _first_bad(x, y, t, width, height, t_prev)
 
 
 def _count_ge(typingctx: Any, arr: Any, start: Any, lim: Any, bits: Any) -> Any:
-    """popcount(bits & (flat[start:start + 32] >= lim)) as one masked <32 x int> load (lanes outside
-    `bits` are not read and read as "never"), one vector compare and one popcount: no gathers, no
-    branches (LLVM's vectorizers do not find this in the unrolled neighbourhood scan)."""
+    """popcount(bits & (flat[start:start + 32] >= lim)) as one <32 x int> load folded into one vector
+    compare, an and and one popcount: no gathers, no branches (LLVM's vectorizers do not find this
+    in the unrolled neighbourhood scan). Every lane is inside the padded map (MapLayout), so the
+    load needs no lane mask; lanes outside the neighbourhood are dropped by `bits` afterwards."""
     from llvmlite import ir as llir
     from numba import types as nbt
 
@@ -158,24 +190,16 @@ def _count_ge(typingctx: Any, arr: Any, start: Any, lim: Any, bits: Any) -> Any:
         mb = context.cast(builder, mb, signature.args[3], nbt.int64)
         ety = context.get_value_type(elem)
         vty = llir.VectorType(ety, _LANES)
-        mty = llir.VectorType(llir.IntType(1), _LANES)
         i32 = llir.IntType(32)
-        pty = vty.as_pointer()
-        suffix = "p0" if getattr(pty, "is_opaque", False) else f"p0v{_LANES}i{ety.width}"
-        name = f"llvm.masked.load.v{_LANES}i{ety.width}.{suffix}"
-        fn = builder.module.globals.get(name) or llir.Function(
-            builder.module, llir.FunctionType(vty, [pty, i32, mty, vty]), name
-        )
-        lane_mask = builder.bitcast(builder.trunc(mb, llir.IntType(_LANES)), mty)
-        never = llir.Constant(vty, [int(np.iinfo(np.dtype(str(elem))).min)] * _LANES)
-        ptr = builder.bitcast(builder.gep(ary.data, [st]), pty)
-        vec = builder.call(fn, [ptr, llir.Constant(i32, ety.width // 8), lane_mask, never])
+        ptr = builder.bitcast(builder.gep(ary.data, [st]), vty.as_pointer())
+        vec = builder.load(ptr, align=ety.width // 8)
         undef = llir.Constant(vty, llir.Undefined)
         splat = builder.insert_element(undef, lm, llir.Constant(i32, 0))
         splat = builder.shuffle_vector(
             splat, undef, llir.Constant(llir.VectorType(i32, _LANES), [0] * _LANES)
         )
         hit = builder.bitcast(builder.icmp_signed(">=", vec, splat), llir.IntType(_LANES))
+        hit = builder.and_(hit, builder.trunc(mb, llir.IntType(_LANES)))
         return builder.zext(builder.ctpop(hit), llir.IntType(64))
 
     return sig, codegen
@@ -221,6 +245,9 @@ def _prefetch_intrinsic() -> Callable[..., None]:
     return intrinsic(_prefetch)
 
 
+#: Bytes per event a separate validation pass reads (t, x, y): a chunk that reads more than twice
+#: the map is checked inside the kernel instead, against a copy of the map to restore on failure.
+CHECK_BYTES_PER_EVENT = 12
 #: Events per block of the kernel (its index work space: 32 KiB, so it stays in L1/L2).
 BLOCK_EVENTS = 4096
 #: Events ahead whose neighbourhood lines the kernel prefetches: on a map larger than L2 (a
@@ -262,23 +289,33 @@ class MapLayout:
             [((ph + radius) >> 2) * self.cols * 4 + radius * 4 + ((ph + radius) & 3) for ph in range(4)],
             np.int64,
         )
+        #: what the kernel looks up per event, one row per phase: the lane masks, then the own offset
+        self.table = np.concatenate([masks.reshape(ROWS_PER_GROUP, -1), self.own_offset[:, None]], axis=1)
 
 
 @functools.lru_cache(maxsize=32)
 def _make_kernel(
-    radius: int, groups: int, segments: int, update_on_drop: bool, dtype: str
-) -> Callable[..., int]:
-    """Kernel specialised to one neighbourhood size and update rule, generated as source: the scan is
-    groups x segments masked vector compares summed branch-free; no per-event branch on options.
-    `dtype` is the map's (int16 or int32); the kernel returns the time base, which it moves forward
-    (a rebase of the map, saturating old times to "never") when a time leaves the map's range."""
+    radius: int, groups: int, segments: int, update_on_drop: bool, dtype: str, indices: bool
+) -> Callable[..., tuple[int, int, int]]:
+    """Kernel specialised to one neighbourhood size, update rule and output, generated as source: the
+    scan is groups x segments vector compares summed branch-free; no per-event branch on options.
+    `dtype` is the map's (int16 or int32). The output is the keep mask, or with `indices` the kept
+    events' indices, appended branch-free. Returns (time base, kept indices written, GOOD or the
+    first bad event as `_first_bad` codes it, absolute).
+
+    Times are stored relative to a base. Between rebases the scan runs without a range check; when
+    the next time leaves the map's range, the map is rebased (old times saturate to "never") so that
+    this time lands at the lowest value whose window still lies above "never": the full range of
+    the type, minus the window, passes between rebases."""
     info = np.iinfo(dtype)
     terms = [
-        f"cnt(flat, start + {g * ROWS_PER_GROUP} * cols + {s * _LANES}, lim, masks[phase, {g}, {s}])"
+        f"cnt(flat, start + {g * ROWS_PER_GROUP} * cols + {s * _LANES}, lim, tab[phase, {g * segments + s}])"
         for g in range(groups)
         for s in range(segments)
     ]
-    store = "flat[own] = ti" if update_on_drop else "if ok:\n            flat[own] = ti"
+    own = f"np.uint64(start + tab[phase, {groups * segments}])"
+    store = f"flat[{own}] = ti" if update_on_drop else f"if ok:\n            flat[{own}] = ti"
+    out = "out[np.uint64(k)] = first + i\n        k += np.int64(ok)" if indices else "out[i] = ok"
     # every cache line of the vectors the event PREFETCH_AHEAD later will read
     step = 64 // np.dtype(dtype).itemsize
     offsets = sorted({*range(0, _LANES, step), _LANES - 1})
@@ -289,35 +326,46 @@ def _make_kernel(
         for o in offsets
     )
     src = f"""
-def scan(s, t, base, flat, masks, own_off, cols, window_us, min_support, keep):
-    n = t.shape[0]
-    for i in range(n):
-        ahead = s[min(i + {PREFETCH_AHEAD}, n - 1)] & -4
+def scan(s, t, base, flat, tab, cols, window_us, min_support, out, k, first):
+    for i in range(t.shape[0]):
+        ahead = s[i + {PREFETCH_AHEAD}] & -4
         {prefetches}
         rel = t[i] - base
-        if rel > {info.max}:
-            rebase(flat, min(rel, {2 * info.max + 2}), {info.min})
-            base = t[i]
-            rel = 0
         ti = np.{dtype}(rel)
         lim = np.{dtype}(rel - window_us)
         phase = s[i] & 3
         start = s[i] & -4
         ok = ({" + ".join(terms)}) >= min_support
-        keep[i] = ok
-        own = np.uint64(start + own_off[phase])
+        {out}
         {store}
-    return base
+    return k
 
 
-def kernel(x, y, p, t, base_us, flat, masks, own_off, cols, plane, window_us, min_support, keep, s):
-    base = base_us
+def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, window_us, min_support, out, s):
     n = t.shape[0]
-    for a in range(0, n, s.shape[0]):
-        e = min(n, a + s.shape[0])
-        prepare(x[a:e], y[a:e], p[a:e], s, plane, cols)
-        base = scan(s[: e - a], t[a:e], base, flat, masks, own_off, cols, window_us, min_support, keep[a:e])
-    return base
+    blk = s.shape[0] - {PREFETCH_AHEAD}
+    low = {info.min + 1} + window_us  # the lowest relative time whose window lies above "never"
+    k = 0
+    for a in range(0, n, blk):
+        e = min(n, a + blk)
+        pe = min(n, e + {PREFETCH_AHEAD})
+        before = t_prev if a == 0 else t[a - 1]
+        bad = prepare(x[a:pe], y[a:pe], p[a:pe], t[a:pe], s, plane, cols, width, height, before)
+        if bad != {GOOD}:
+            return base, k, bad + 2 * a
+        for j in range(pe - a, s.shape[0]):  # the last events prefetch the block's last
+            s[j] = s[pe - a - 1]
+        lo = a
+        while lo < e:
+            top = base + {info.max}
+            hi = e if t[e - 1] <= top else lo + np.searchsorted(t[lo:e], top, side="right")
+            part = out if {indices} else out[lo:hi]
+            k = scan(s[lo - a :], t[lo:hi], base, flat, tab, cols, window_us, min_support, part, k, lo)
+            if hi < e:
+                rebase(flat, min(t[hi] - base - low, {info.max - info.min + 1}), {info.min})
+                base = t[hi] - low
+            lo = hi
+    return base, k, {GOOD}
 """
     env: dict[str, Any] = {
         "np": np,
@@ -326,10 +374,34 @@ def kernel(x, y, p, t, base_us, flat, masks, own_off, cols, plane, window_us, mi
         "rebase": _rebase,
         "prepare": _prepare,
     }
-    exec(compile(src, f"<BAF kernel r={radius} update_on_drop={update_on_drop} {dtype}>", "exec"), env)
+    output = "indices" if indices else "mask"
+    name = f"<BAF kernel r={radius} update_on_drop={update_on_drop} {dtype} {output}>"
+    exec(compile(src, name, "exec"), env)
     env["scan"] = njit(nogil=True, boundscheck=False)(env["scan"])
-    kernel: Callable[..., int] = njit(nogil=True, boundscheck=False)(env["kernel"])
+    kernel: Callable[..., tuple[int, int, int]] = njit(nogil=True, boundscheck=False)(env["kernel"])
     return kernel
+
+
+@njit(nogil=True, cache=True)
+def _gather(  # pragma: no cover - numba
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    t: NDArray[np.int64],
+    idx: NDArray[np.integer[Any]],
+    ox: NDArray[np.uint16],
+    oy: NDArray[np.uint16],
+    op: NDArray[np.int8],
+    ot: NDArray[np.int64],
+) -> None:
+    """The events at idx into the o* arrays, in one pass. The caller allocates them with numpy: on
+    this project's VMs numba's own allocations of fresh memory took twice as long (page faults)."""
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        ox[j] = x[i]
+        oy[j] = y[i]
+        op[j] = p[i]
+        ot[j] = t[i]
 
 
 class BackgroundActivityFilter:
@@ -368,11 +440,12 @@ class BackgroundActivityFilter:
         self._layout = MapLayout(self.width, self.height, r, half)
         self._dtype = map_dtype(self.window_us)
         self._never = int(np.iinfo(self._dtype).min)
-        self._kernel = _make_kernel(
-            r, self._layout.groups, self._layout.segments, self.update_on_drop, np.dtype(self._dtype).name
-        )
+        lay = self._layout
+        kind = (r, lay.groups, lay.segments, self.update_on_drop, np.dtype(self._dtype).name)
+        self._kernels = {indices: _make_kernel(*kind, indices) for indices in (False, True)}
         self._last = np.full(2 * self._layout.plane, self._never, self._dtype)
-        self._index = np.empty(BLOCK_EVENTS, np.int64)  # the scan's per-block work space
+        # the scan's per-block work space, with the events it prefetches past the block's end
+        self._index = np.empty(BLOCK_EVENTS + PREFETCH_AHEAD, np.int64)
         self._base_us: int | None = None
         self._t_end: int | None = None
         self.n_in = 0
@@ -386,53 +459,94 @@ class BackgroundActivityFilter:
 
     def mask(self, events: EventArray) -> NDArray[np.bool_]:
         """Keep mask of one chunk, advancing the state."""
-        n = len(events)
-        keep = np.zeros(n, np.bool_)
-        if n == 0:
-            return keep
-        t = events.t
-        t_prev = np.iinfo(np.int64).min if self._t_end is None else self._t_end
-        code = _validate(events.x, events.y, t, self.width, self.height, t_prev)
-        if code == 1:
-            raise ValueError(
-                "BackgroundActivityFilter: events must be sorted by time, and a chunk must not start before "
-                f"the previous chunk's end ({self._t_end} us); give chunks in time order or call reset()"
-            )
-        if code == 2:
-            raise ValueError(
-                f"BackgroundActivityFilter: event coordinates outside the {self.width}x{self.height} sensor"
-            )
-        if self._base_us is None:
-            self._base_us = int(t[0])
-        lay = self._layout
-        self._base_us = int(
-            self._kernel(
-                events.x,
-                events.y,
-                events.p,
-                t,
-                self._base_us,
-                self._last,
-                lay.masks,
-                lay.own_offset,
-                lay.cols,
-                lay.plane,
-                self.window_us,
-                self.min_support,
-                keep,
-                self._index,
-            )
-        )
-        self._t_end = int(t[-1])
-        kept = int(np.count_nonzero(keep))
-        self.n_in += n
-        self.n_kept += kept
-        log.debug("BAF: kept %d of %d events", kept, n)
+        keep = np.zeros(len(events), np.bool_)
+        self._run(events, keep, indices=False)
         return keep
 
     def filter(self, events: EventArray) -> EventArray:
-        """The kept events of one chunk, advancing the state."""
-        return events[self.mask(events)]
+        """The kept events of one chunk, advancing the state (the scan lists them as it goes, so this
+        costs the mask and a gather of the kept events, not a boolean index of every array)."""
+        # pages past the kept count are never touched; int32 halves what the scan writes
+        idx: NDArray[np.integer[Any]] = np.empty(len(events), np.int32 if len(events) < 2**31 else np.int64)
+        kept = self._run(events, idx, indices=True)
+        if kept is None:
+            return EventArray.empty()
+        x, y, p, t = events.x, events.y, events.p, events.t
+        out = EventArray(
+            np.empty(kept, x.dtype), np.empty(kept, y.dtype), np.empty(kept, p.dtype), np.empty(kept, t.dtype)
+        )
+        _gather(x, y, p, t, idx[:kept], out.x, out.y, out.p, out.t)
+        return out
+
+    def _run(self, events: EventArray, out: NDArray[Any], *, indices: bool) -> int | None:
+        """Filter one chunk into `out`; the number kept (None for an empty chunk).
+
+        Bad input raises before any state changes: a chunk small next to the map is checked in a
+        pass of its own; a larger one is checked block by block inside the kernel (the events are
+        then read from memory once) and the map is put back from a copy if a block is bad."""
+        n = len(events)
+        if n == 0:
+            return None
+        x, y, p, t = events.x, events.y, events.p, events.t
+        t_prev = np.iinfo(np.int64).min if self._t_end is None else self._t_end
+        snapshot: NDArray[Any] | None = None
+        if n * CHECK_BYTES_PER_EVENT > 2 * self._last.nbytes:
+            snapshot = self._last.copy()
+        else:
+            self._raise_if_bad(events, _first_bad(x, y, t, self.width, self.height, t_prev))
+        low = int(np.iinfo(self._dtype).min) + 1 + self.window_us
+        base = int(t[0]) - low if self._base_us is None else self._base_us
+        lay = self._layout
+        base, kept, bad = self._kernels[indices](
+            x,
+            y,
+            p,
+            t,
+            t_prev,
+            base,
+            self._last,
+            lay.table,
+            lay.cols,
+            lay.plane,
+            self.width,
+            self.height,
+            self.window_us,
+            self.min_support,
+            out,
+            self._index,
+        )
+        if bad != GOOD:
+            if snapshot is None:  # checked above: the kernel disagrees with _first_bad
+                raise AssertionError(f"BAF kernel found bad event {bad // 2} in a chunk that was checked")
+            np.copyto(self._last, snapshot)
+            self._raise_if_bad(events, int(bad))
+        self._base_us = int(base)
+        self._t_end = int(t[-1])
+        kept = int(kept) if indices else int(np.count_nonzero(out))
+        self.n_in += n
+        self.n_kept += kept
+        log.debug("BAF: kept %d of %d events", kept, n)
+        return kept
+
+    def _raise_if_bad(self, events: EventArray, bad: int) -> None:
+        """ValueError naming the first event that is out of order or off the sensor (GOOD: none)."""
+        if bad == GOOD:
+            return
+        i, kind = divmod(bad, 2)
+        if kind == BAD_PLACE:
+            raise ValueError(
+                f"BackgroundActivityFilter: event {i} at (x={int(events.x[i])}, y={int(events.y[i])}) is "
+                f"outside the {self.width}x{self.height} sensor"
+            )
+        if i == 0:
+            raise ValueError(
+                f"BackgroundActivityFilter: the chunk's first event ({int(events.t[0])} us) is before the "
+                f"previous chunk's end ({self._t_end} us); give chunks in time order or call reset()"
+            )
+        raise ValueError(
+            f"BackgroundActivityFilter: events must be sorted by time: event {i} ({int(events.t[i])} us) "
+            f"comes before event {i - 1} ({int(events.t[i - 1])} us)"
+        )
 
 
 def background_activity_filter(

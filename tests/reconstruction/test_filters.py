@@ -184,3 +184,72 @@ def test_map_types_and_rebase_match_brute_force(
         want = brute_force(ev, 3, window, support, "chebyshev", True)
         assert 0 < got.sum() < n
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.slow
+@settings(max_examples=60, deadline=None)
+@given(data=event_streams(), cuts=st.lists(st.integers(0, 120), max_size=5), in_kernel=st.booleans())
+def test_filter_lists_exactly_the_masked_events(
+    data: tuple[EventArray, int, int], cuts: list[int], in_kernel: bool
+) -> None:
+    # filter() has the scan list the kept indices; it must give events[mask] chunk by chunk, with
+    # the input checked in its own pass or inside the kernel
+    ev, w, h = data
+    whole = BackgroundActivityFilter(w, h).mask(ev)
+    baf = BackgroundActivityFilter(w, h)
+    if in_kernel:
+        baf_check = filters.CHECK_BYTES_PER_EVENT
+        filters.CHECK_BYTES_PER_EVENT = 1 << 40
+    try:
+        bounds = [0, *sorted(min(c, len(ev)) for c in cuts), len(ev)]
+        parts = [baf.filter(ev[a:b]) for a, b in itertools.pairwise(bounds)]
+    finally:
+        if in_kernel:
+            filters.CHECK_BYTES_PER_EVENT = baf_check
+    got = EventArray.concatenate(parts)
+    want = ev[whole]
+    for name in ("x", "y", "p", "t"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+        assert getattr(got, name).dtype == getattr(ev, name).dtype
+
+
+def _burst(rng: np.random.Generator, n: int, w: int, h: int, t0: int) -> EventArray:
+    t = t0 + np.cumsum(rng.integers(0, 3, n))
+    return EventArray.from_arrays(rng.integers(0, w, n), rng.integers(0, h, n), rng.choice([-1, 1], n), t)
+
+
+@pytest.mark.parametrize("fault", ["place", "order"])
+@pytest.mark.parametrize("method", ["mask", "filter"])
+def test_a_bad_event_deep_in_a_large_chunk_names_itself_and_changes_nothing(fault: str, method: str) -> None:
+    # 40 000 events on a 64x64 sensor: far more bytes than the map, so the kernel checks them block by
+    # block; the bad event sits in the seventh block, after six blocks were already filtered. A 20 ms
+    # window reaches back from `after` into those blocks, so what they left in the map would change
+    # what comes after.
+    rng = np.random.default_rng(5)
+    w, h = 64, 64
+
+    def make() -> BackgroundActivityFilter:
+        return BackgroundActivityFilter(w, h, window_us=20_000)
+
+    history = _burst(rng, 5_000, w, h, 0)
+    bad = _burst(rng, 40_000, w, h, int(history.t[-1]))
+    assert len(bad) * filters.CHECK_BYTES_PER_EVENT > 2 * make()._last.nbytes
+    at = 6 * filters.BLOCK_EVENTS + 123
+    if fault == "place":
+        bad.x[at] = w
+        match = f"event {at} at \\(x=64, y={int(bad.y[at])}\\) is outside the 64x64 sensor"
+    else:
+        bad.t[at] = bad.t[at - 1] - 1
+        match = f"event {at} \\({int(bad.t[at])} us\\) comes before event {at - 1}"
+    after = _burst(rng, 20_000, w, h, int(bad.t[-1]) + 1)
+
+    baf = make()
+    getattr(baf, method)(history)
+    with pytest.raises(ValueError, match=match):
+        getattr(baf, method)(bad)
+    got = baf.mask(after)
+    clean = make()
+    clean.mask(history)
+    np.testing.assert_array_equal(got, clean.mask(after))
+    assert baf.n_in == clean.n_in
+    assert baf.n_kept == clean.n_kept
