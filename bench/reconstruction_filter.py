@@ -19,7 +19,9 @@ bench/dv_peer_worker.py), pinned to the same core as rigd; its store is built on
 The tonic-style baseline (per-event Python loop with numpy slices, as `tonic.functional.denoise`)
 implements the paper's rule and must keep exactly what rigd keeps. Every filter runs in
 interleaved rounds (round 0 untimed), median reported, next to the machine's limit measured in
-the same rounds: memcpy GB/s of the events' 13 bytes each (x, y, p, t) and the cores.
+the same rounds: memcpy GB/s of the events' 13 bytes each (x, y, p, t) and the cores. Before every
+timed call the bench reads `--flush-mb` (512) MB, so no row runs in the caches the row before it
+left (without it, rigd's first row ran right after dv-processing's and was the one that paid).
 
     python -m bench.reconstruction_filter [--data sim,gen41,gen3] [--repeats 7] [--peer-python PY]
 """
@@ -182,8 +184,11 @@ def bench_one(name: str, args: argparse.Namespace, cpu: int | None) -> dict[str,
     rows = [*timed, *peer_rows]
     times: dict[str, list[float]] = {k: [] for k in rows}
     kept_of: dict[str, float] = {}
+    flush = np.ones(args.flush_mb * 2**20 // 8) if args.flush_mb else None
     for rnd in range(args.repeats + 1):  # round 0 warms up (JIT, caches), not timed
         for row in rows:
+            if flush is not None:  # every row starts from the same cold caches, the peer's too
+                flush.sum()
             if row in peer_rows:
                 worker, d_us = peer_rows[row]
                 sec, kept_of[row] = worker.filter(d_us)
@@ -234,6 +239,13 @@ def main() -> None:
     ap.add_argument("--tonic-events", type=int, default=200_000, help="events given to the slow baseline")
     ap.add_argument("--repeats", type=int, default=7, help="timed rounds (median reported)")
     ap.add_argument(
+        "--flush-mb",
+        type=int,
+        default=512,
+        help="read this many MB before every timed call, so each starts from cold caches whatever ran "
+        "before it (0: off, each row then inherits the previous row's caches)",
+    )
+    ap.add_argument(
         "--peer-python",
         type=Path,
         default=Path(os.environ.get("RIGD_BENCH_PEER_PYTHON", str(DEFAULT_PEER))),
@@ -252,6 +264,8 @@ def main() -> None:
         f"machine: {os.cpu_count()} cores, every filter pinned to cpu {cpu}; python {sys.version.split()[0]}"
     )
     print(f"uptime at start: {uptime()}")
+    flushed = f"{args.flush_mb} MB read before every timed call" if args.flush_mb else "not flushed"
+    print(f"caches: {flushed}")
     summary = []
     for nm in names:
         mev = bench_one(nm, args, cpu)

@@ -3,17 +3,23 @@
 Each row comes from the take's metadata, the sync report and the frame times (`Take.summary`), not
 from its frames or events, so a directory of multi-gigabyte takes lists in a moment. A file that
 cannot be read is a row that says why, never the end of the listing.
+
+A multi-host take is one row: the part files its manifest names are folded into it (their bytes
+counted in its size). A part no take in the directory claims (on a host other than the
+coordinator, or before the join) is listed as that host's part of its take.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 from pydantic import BaseModel, Field
 
 from rigd.core.errors import RigdError, TakeError, TakeFormatError
 from rigd.take.isolated import READ_TIMEOUT_S, run_isolated
+from rigd.take.manifest import PART_NAME
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +41,14 @@ class TakeRow(BaseModel):
     size_bytes: int
     modified_utc: float = Field(description="File modification time, Unix seconds (the sort key).")
     error: str | None = None
+    parts: list[str] = Field(
+        default_factory=list, description="A multi-host take's part files (its manifest), by name."
+    )
+    parts_bytes: int = Field(0, description="The bytes of those parts found beside it (not in size_bytes).")
+    part_of: str | None = Field(
+        None, description="This file is a host's part <stem>.<host>.part.h5 no listed take claims: the stem."
+    )
+    part_host: str | None = Field(None, description="The host of that part.")
 
 
 def take_files(directory: Path) -> list[Path]:
@@ -57,6 +71,7 @@ def take_row(path: Path) -> TakeRow:
     try:
         with Take(path) as take:
             summary = take.summary()
+            parts = [p.file for p in take.parts or [] if p.file]
     except TakeFormatError as exc:  # breaks the format's rules: damaged, never read further
         log.debug("takes: %s damaged: %s", path, exc)
         return TakeRow(**base, verdict="damaged", reason=str(exc), error=str(exc))
@@ -76,6 +91,7 @@ def take_row(path: Path) -> TakeRow:
         duration_s=duration,
         cameras=list(summary.cameras),
         event_sensors=list(summary.event_sensors),
+        parts=parts,
     )
 
 
@@ -92,5 +108,18 @@ def isolated_row(path: Path, timeout_s: float = READ_TIMEOUT_S) -> TakeRow:
 
 
 def list_takes(directory: Path, timeout_s: float = READ_TIMEOUT_S) -> list[TakeRow]:
-    """Every take in `directory`, oldest first; each read in a worker with a deadline."""
-    return [isolated_row(p, timeout_s) for p in take_files(directory)]
+    """Every take in `directory`, oldest first; each read in a worker with a deadline. The parts of
+    a multi-host take are folded into its row."""
+    rows = [isolated_row(p, timeout_s) for p in take_files(directory)]
+    owner = {name: row for row in rows for name in row.parts}
+    listed = []
+    for row in rows:
+        name = Path(row.path).name
+        if name in owner and owner[name] is not row:
+            owner[name].parts_bytes += row.size_bytes
+            continue
+        stem, _, host = name.removesuffix(".part.h5").rpartition(".")
+        if re.fullmatch(PART_NAME, name) and stem:
+            row.part_of, row.part_host = stem, host
+        listed.append(row)
+    return listed

@@ -87,8 +87,12 @@ def takes(
         text = f"[{style}]{verdict}[/]" if style else verdict
         if r.reason:
             text += f": {escape(r.reason)}"
+        if r.part_of is not None:
+            text += f" [dim](host {escape(r.part_host or '?')}'s part of {escape(r.part_of)})[/]"
+        elif r.parts:
+            text += f" [dim]({len(r.parts)} host parts)[/]"
         length = "-" if r.duration_s is None else f"{r.duration_s:.1f} s"
-        table.add_row(escape(r.name), text, length, escape(_devices(r)), _size(r.size_bytes))
+        table.add_row(escape(r.name), text, length, escape(_devices(r)), _size(r.size_bytes + r.parts_bytes))
     stdout_console().print(table)
 
 

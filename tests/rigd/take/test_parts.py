@@ -315,3 +315,29 @@ def test_validation_names_a_manifest_that_does_not_match_the_links(joined: Path)
     problems = validate_take(joined)
     assert any("device ev0 is in the parts of A and B" in p for p in problems), problems
     assert any("/events/ev0: is not linked to its part" in p for p in problems), problems
+
+
+def test_takes_lists_a_joined_take_once_with_its_parts_and_a_lone_part_as_its_hosts(joined: Path) -> None:
+    d = joined.parent
+    r = CliRunner().invoke(app, ["takes", str(d), "--json"])
+    assert r.exit_code == 0, r.output
+    rows = json.loads(r.stdout)
+    assert [row["name"] for row in rows] == [STEM]
+    assert sorted(rows[0]["parts"]) == [part_name(STEM, "A"), part_name(STEM, "B")]
+    parts = [d / part_name(STEM, h) for h in "AB"]
+    assert rows[0]["parts_bytes"] == sum(p.stat().st_size for p in parts)
+    table = CliRunner().invoke(app, ["takes", str(d)], env={"COLUMNS": "200"})
+    assert "2 host parts" in table.stdout
+    # on a follower host only its part is there: listed as that host's part of the take
+    joined.unlink()
+    parts[0].unlink()
+    r = CliRunner().invoke(app, ["takes", str(d), "--json"])
+    (row,) = json.loads(r.stdout)
+    assert (row["name"], row["part_of"], row["part_host"], row["verdict"]) == (
+        f"{STEM}.B.part",
+        STEM,
+        "B",
+        "complete",
+    )
+    table = CliRunner().invoke(app, ["takes", str(d)], env={"COLUMNS": "200"})
+    assert f"host B's part of {STEM}" in table.stdout
