@@ -364,15 +364,26 @@ def take_summary_line(last: dict[str, Any]) -> str:
     return ", ".join(parts)
 
 
-def wait_for_take(client: DaemonClient, path: str, on_status: Any = None) -> dict[str, Any]:
-    """Poll until the daemon reports `path` as its last take; returns that summary."""
+def wait_for_take(
+    client: DaemonClient,
+    path: str,
+    on_status: Any = None,
+    timeout_s: float | None = None,
+    status_timeout_s: float | None = None,
+) -> dict[str, Any]:
+    """Poll until the daemon reports `path` as its last take; returns that summary. TimeoutError
+    when `timeout_s` passes first (None: wait as long as the take runs); each status request
+    waits `status_timeout_s` (None: the client's own deadline)."""
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
     while True:
-        t = client.call("status")
+        t = client.call("status", timeout_s=status_timeout_s)
         if on_status is not None:
             on_status(t)
         last = t.get("last_take")
         if last and last["path"] == path and t.get("take") != path:
             return dict(last)
+        if deadline is not None and time.monotonic() >= deadline:
+            raise TimeoutError(f"take {path} was not sealed within {timeout_s:g} s")
         time.sleep(0.2)
 
 

@@ -189,16 +189,10 @@ def stop_serve(proc: subprocess.Popen[bytes], timeout_s: float = 60.0) -> int:
 
 def capture_through(client: DaemonClient, duration_s: float, timeout_s: float = 600.0) -> dict[str, Any]:
     """Ask a daemon for a take and wait until it reports it as its last; that summary."""
+    from rigd.app.commands.service import wait_for_take
+
     res = client.call("capture", timeout_s=120.0, duration_s=duration_s)
-    path = res["take"]
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        t = client.call("status", timeout_s=30.0)
-        last = t.get("last_take")
-        if last and last["path"] == path and t.get("take") != path:
-            return dict(last)
-        time.sleep(0.2)
-    raise TimeoutError(f"take {path} was not sealed within {timeout_s:g} s")
+    return wait_for_take(client, res["take"], timeout_s=timeout_s, status_timeout_s=30.0)
 
 
 @dataclass(frozen=True)
