@@ -303,7 +303,7 @@ def test_unplug_mid_run_is_reported_not_a_crash(world_name: str, transport: str)
         trig.start()
         assert len(trig.read_pulses(0.5)) > 0
         box.close()  # the cable is pulled: the link goes away under the reader thread
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + 30.0  # ends at the error; the bound only stops a hang
         with pytest.raises(TransportError, match=rf"{re.escape(trig.port)} disconnected"):  # noqa: PT012
             while time.monotonic() < deadline:
                 trig.read_pulses(0.05)

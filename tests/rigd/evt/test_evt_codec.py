@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -262,11 +261,16 @@ def test_unknown_type_evt2() -> None:
         decode_bytes(data, "evt2", strict=True)
 
 
+#: Inputs each format's fuzz decodes (random bytes, and mutated and cut encodings).
+FUZZ_INPUTS = 300
+
+
 @pytest.mark.slow
-@pytest.mark.timeout(30)
+@pytest.mark.timeout(120)
 @pytest.mark.parametrize("fmt", ["evt3", "evt2", "evt21", "evt21_le"])
 def test_fuzz_random_and_mutated(fmt: str) -> None:
-    """Bounded-time fuzz: tolerant never raises, strict raises only EvtDecodeError, output sane."""
+    """Fuzz with a fixed number of inputs (not a time budget: on a cold numba cache the first decode
+    compiles): tolerant never raises, strict raises only EvtDecodeError, output sane."""
     rng = np.random.default_rng(11)
     ev, tr = _random_stream(rng, 3000, 20, 1 << 26)
     seed = encode(fmt, ev, TriggerEvents(tr.t, tr.p, tr.channel & 0xF))
@@ -275,10 +279,7 @@ def test_fuzz_random_and_mutated(fmt: str) -> None:
         bodies.append(
             real_body("evt3_gen41_sample.raw" if fmt == "evt3" else "evt2_gen3_sample.raw")[:40_000]
         )
-    deadline = time.monotonic() + 0.75
-    i = 0
-    while time.monotonic() < deadline:
-        i += 1
+    for i in range(1, FUZZ_INPUTS + 1):
         if i % 3 == 0:
             data = rng.integers(0, 256, int(rng.integers(0, 5000)), dtype=np.uint8).tobytes()
         else:
@@ -299,7 +300,6 @@ def test_fuzz_random_and_mutated(fmt: str) -> None:
         except EvtDecodeError as err:
             offset = err.offset
             assert 0 <= offset <= len(data)
-    assert i > 10
 
 
 def test_encoder_rejects_unsorted_and_backwards() -> None:
