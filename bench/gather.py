@@ -32,7 +32,7 @@ import numpy as np
 from rigd.app.config import HostConfig
 from rigd.app.service.client import DaemonClient
 from rigd.app.service.daemon import Daemon
-from rigd.app.take_gather import BLOCK, _fetch, default_client
+from rigd.app.take_gather import BLOCK, default_client, fetch_part
 from rigd.app.testing.daemon import endpoints, serve_in_thread, small_rig
 
 NAME = "bench.B.part.h5"
@@ -96,7 +96,7 @@ def main() -> int:
                 for p in here.iterdir():
                     p.unlink()
                 _new_version(host_dir / NAME)  # the host hashes it again
-                _fetch(default_client(host, 60.0), here / NAME)
+                fetch_part(default_client(host, 60.0), here / NAME)
 
             def reads_only() -> None:
                 with DaemonClient(host.control, timeout_s=60) as c, (here / "raw").open("wb") as f:
