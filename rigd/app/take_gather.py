@@ -12,11 +12,15 @@ into place only once its sha256 is the host's; then the take is joined again (`j
 from __future__ import annotations
 
 import base64
+import functools
 import json
 import logging
 import os
+import queue
 import time
-from collections.abc import Callable, Mapping
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +39,9 @@ log = logging.getLogger(__name__)
 
 #: Bytes asked for per `take_read` (the protocol's most).
 BLOCK = 4 << 20
+#: `take_read` requests in flight per part (one client each): while one block crosses the
+#: network and is decoded, the host reads and encodes the next.
+READS_IN_FLIGHT = 3
 #: How long a host may take to checksum its part (a few GB at disk speed).
 HASH_WAIT_S = 900.0
 
@@ -100,25 +107,30 @@ def gather_take(
     entries = read_parts(joined)
     result = GatherResult()
     missing: dict[str, str] = {}
-    for entry in entries:
-        name = entry.file or part_name(joined.stem, entry.host)
-        local = joined.parent / name
-        cfg = hosts.get(entry.host)
-        if cfg is None:
-            if entry.coordinator or local.exists():
-                result.actions[entry.host] = "kept (no endpoint for this host in the rig config)"
-            else:
-                missing[entry.host] = result.actions[entry.host] = (
-                    "no endpoint for this host in the rig config"
-                )
-            continue
-        try:
-            result.actions[entry.host] = fetch_part(client(cfg, timeout_s), local)
-        except (RigdError, OSError) as exc:
-            why = f"not gathered from {cfg.control}: {exc}"
-            result.actions[entry.host] = why
-            if not local.exists():
-                missing[entry.host] = why
+    fetches: dict[str, tuple[HostConfig, Path, Future[str]]] = {}
+    with ThreadPoolExecutor(max(1, len(entries)), thread_name_prefix="gather") as pool:
+        for entry in entries:  # every host's part at once: each comes from its own host's disk
+            name = entry.file or part_name(joined.stem, entry.host)
+            local = joined.parent / name
+            cfg = hosts.get(entry.host)
+            if cfg is None:
+                if entry.coordinator or local.exists():
+                    result.actions[entry.host] = "kept (no endpoint for this host in the rig config)"
+                else:
+                    missing[entry.host] = result.actions[entry.host] = (
+                        "no endpoint for this host in the rig config"
+                    )
+                continue
+            more = functools.partial(client, cfg, timeout_s)
+            fetches[entry.host] = (cfg, local, pool.submit(fetch_part, more(), local, more))
+        for host, (cfg, local, fut) in fetches.items():
+            try:
+                result.actions[host] = fut.result()
+            except (RigdError, OSError) as exc:
+                why = f"not gathered from {cfg.control}: {exc}"
+                result.actions[host] = why
+                if not local.exists():
+                    missing[host] = why
     coordinator = next((e for e in entries if e.coordinator), None)
     if coordinator is None:
         raise TakeError(f"{joined}: its parts manifest names no coordinator")
@@ -144,8 +156,9 @@ def _stat(c: DaemonClient, name: str) -> dict[str, Any]:
         time.sleep(0.2)
 
 
-def fetch_part(c: DaemonClient, local: Path) -> str:
-    """Make `local` the host's copy of its name; says what it did."""
+def fetch_part(c: DaemonClient, local: Path, more: Callable[[], DaemonClient] | None = None) -> str:
+    """Make `local` the host's copy of its name; says what it did. `more` makes further clients
+    of the same host, so READS_IN_FLIGHT reads overlap (None: one read at a time, through `c`)."""
     with c:
         try:
             st = _stat(c, local.name)
@@ -163,14 +176,13 @@ def fetch_part(c: DaemonClient, local: Path) -> str:
         with partial.open("r+b" if start else "wb") as f:
             f.truncate(start)
             f.seek(start)
-            offset = start
-            while offset < size:
-                part = c.call("take_read", file=local.name, offset=offset, length=min(BLOCK, size - offset))
-                data = base64.b64decode(part["data_b64"])
-                if not data:
-                    raise TakeError(f"{local.name}: the host's file ended at byte {offset} of {size}")
-                f.write(data)
-                offset += len(data)
+            clients = [c] + ([more() for _ in range(READS_IN_FLIGHT - 1)] if more is not None else [])
+            try:
+                for data in _read_blocks(clients, local.name, start, size):
+                    f.write(data)
+            finally:
+                for extra in clients[1:]:
+                    extra.close()
             f.flush()
             os.fsync(f.fileno())
         got = file_sha256(partial)
@@ -183,6 +195,39 @@ def fetch_part(c: DaemonClient, local: Path) -> str:
         resumed = f", resumed at byte {start:,}" if start else ""
         log.info("gathered %s (%d bytes%s)", local, size, resumed)
         return f"copied {size:,} bytes{resumed}"
+
+
+def _read_blocks(clients: list[DaemonClient], name: str, start: int, size: int) -> Iterator[bytes]:
+    """The host's bytes of `name` from `start` to `size`, in order, block by block, with one
+    request in flight per client (a REQ socket carries one at a time)."""
+    free: queue.SimpleQueue[DaemonClient] = queue.SimpleQueue()
+    for cl in clients:
+        free.put(cl)
+
+    def read(offset: int, length: int) -> bytes:
+        cl = free.get()
+        try:
+            return base64.b64decode(cl.call("take_read", file=name, offset=offset, length=length)["data_b64"])
+        finally:
+            free.put(cl)
+
+    with ThreadPoolExecutor(len(clients), thread_name_prefix="take_read") as pool:
+        pending: deque[tuple[int, int, Future[bytes]]] = deque()
+        offset = start
+        try:
+            while offset < size or pending:
+                while offset < size and len(pending) < len(clients):
+                    length = min(BLOCK, size - offset)
+                    pending.append((offset, length, pool.submit(read, offset, length)))
+                    offset += length
+                at, length, fut = pending.popleft()
+                data = fut.result()
+                if len(data) != length:
+                    raise TakeError(f"{name}: the host's file ended at byte {at + len(data)} of {size}")
+                yield data
+        finally:
+            for _, _, fut in pending:
+                fut.cancel()
 
 
 def _resume_from(c: DaemonClient, partial: Path, meta: Path, sha: str, size: int) -> int:

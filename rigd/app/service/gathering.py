@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 from rigd.app.config import RigConfig
@@ -15,7 +16,8 @@ GATHER_TIMEOUT_S = 30.0
 def gather_part(config: RigConfig, host: str, name: str, dest: Path) -> Path:
     """Copy `host`'s part `name` into `dest` (checked by size and sha256); where it is."""
     local = dest / name
-    fetch_part(default_client(config.hosts[host], GATHER_TIMEOUT_S), local)
+    more = functools.partial(default_client, config.hosts[host], GATHER_TIMEOUT_S)
+    fetch_part(more(), local, more)
     return local
 
 

@@ -251,19 +251,23 @@ class MultiHostSession:
                 )
 
     def _collect_parts(self) -> dict[str, tuple[Path | None, str | None]]:
-        """Each host's part here (copied), or why it is not: sealed where it was written first."""
-        out: dict[str, tuple[Path | None, str | None]] = {}
-        for h in self.followers:
-            name = part_name(self.stem, h)
-            why = self._wait_sealed(h, name)
-            if why is not None:
-                out[h] = (None, why)
-                continue
-            try:
-                out[h] = (self._gather(h, name, self._take_dir), None)
-            except (DaemonUnavailableError, DaemonRequestError, RigdError, OSError) as exc:
-                out[h] = (None, f"its part {name} could not be copied: {exc}")
-        return out
+        """Each host's part here (copied), or why it is not: sealed where it was written first.
+        The hosts at once: each part comes from its own host's disk and network link."""
+        if not self.followers:
+            return {}
+        with ThreadPoolExecutor(len(self.followers), thread_name_prefix="collect") as pool:
+            futures = {h: pool.submit(self._collect_part, h) for h in self.followers}
+            return {h: fut.result() for h, fut in futures.items()}
+
+    def _collect_part(self, h: str) -> tuple[Path | None, str | None]:
+        name = part_name(self.stem, h)
+        why = self._wait_sealed(h, name)
+        if why is not None:
+            return None, why
+        try:
+            return self._gather(h, name, self._take_dir), None
+        except (DaemonUnavailableError, DaemonRequestError, RigdError, OSError) as exc:
+            return None, f"its part {name} could not be copied: {exc}"
 
     def _wait_sealed(self, host: str, name: str) -> str | None:
         """Until `host` reports its part sealed; None then, else why it is missing."""

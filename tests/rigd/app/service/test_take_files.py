@@ -22,6 +22,7 @@ from rigd.app.service.client import DaemonClient, DaemonRequestError
 from rigd.app.service.daemon import Daemon
 from rigd.app.take_gather import gather_take
 from rigd.app.testing.daemon import endpoints, serve_in_thread, small_rig
+from rigd.core.errors import TakeError
 from rigd.take import Take
 from rigd.take.parts import file_sha256, join_take, part_name
 from tests.rigd.take.test_parts import STEM, make_parts
@@ -217,3 +218,32 @@ def test_gather_cli_json_reports_each_host_and_the_verdict(
     assert body["actions"]["B"].startswith("copied ")
     assert body["verdict"]["verdict"] == "complete"
     assert [p["status"] for p in body["parts"]] == ["complete", "complete"]
+
+
+class _FakeHost:
+    """take_read answers from bytes; `short_at` cuts the file there (it shrank on the host)."""
+
+    def __init__(self, data: bytes, short_at: int | None = None) -> None:
+        self.data = data if short_at is None else data[:short_at]
+        self.calls: list[int] = []
+
+    def call(self, cmd: str, *, file: str, offset: int, length: int) -> dict[str, str]:
+        assert cmd == "take_read"
+        self.calls.append(offset)
+        return {"data_b64": base64.b64encode(self.data[offset : offset + length]).decode()}
+
+
+def test_overlapping_reads_come_back_in_order_and_a_short_file_is_named(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rigd.app import take_gather
+
+    monkeypatch.setattr(take_gather, "BLOCK", 1000)
+    data = bytes(range(256)) * 40  # 10,240 bytes: 11 blocks, the last short
+    hosts = [_FakeHost(data) for _ in range(3)]
+    got = b"".join(take_gather._read_blocks(hosts, "p.part.h5", 2000, len(data)))  # type: ignore[arg-type]
+    assert got == data[2000:]
+    assert sorted(o for h in hosts for o in h.calls) == list(range(2000, len(data), 1000))
+    shrunk = [_FakeHost(data, short_at=5500) for _ in range(3)]
+    with pytest.raises(TakeError, match=r"p\.part\.h5: the host's file ended at byte 5500 of 10240"):
+        b"".join(take_gather._read_blocks(shrunk, "p.part.h5", 0, len(data)))  # type: ignore[arg-type]
