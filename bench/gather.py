@@ -4,7 +4,8 @@
 
 A daemon (the small sim rig, serving in this process's thread) holds a part-sized file of
 random bytes in its take directory; the copy runs through its control socket as gather does
-(`take_stat` until the host's sha256 is known, `take_read` 4 MiB at a time into `.partial`,
+(`take_stat` until the host's sha256 is known, `take_read` 4 MiB at a time, three in flight, each
+as a binary frame beside the reply, into `.partial`,
 sha256 of the copy, rename). Beside it, in the same run: the pieces on their own (the host's
 checksum, the reads without the checksums) and the machine's limits for the same bytes: a local
 `shutil.copyfile`, hashlib sha256 and a memcpy. The file sits in the page cache (just written):
@@ -32,7 +33,7 @@ import numpy as np
 from rigd.app.config import HostConfig
 from rigd.app.service.client import DaemonClient
 from rigd.app.service.daemon import Daemon
-from rigd.app.take_gather import BLOCK, default_client, fetch_part
+from rigd.app.take_gather import BLOCK, default_client, fetch_part, read_block
 from rigd.app.testing.daemon import endpoints, serve_in_thread, small_rig
 
 NAME = "bench.B.part.h5"
@@ -107,6 +108,11 @@ def main() -> int:
                             )
                         )
 
+            def reads_binary() -> None:
+                with DaemonClient(host.control, timeout_s=60) as c, (here / "raw").open("wb") as f:
+                    for off in range(0, size, BLOCK):
+                        f.write(read_block(c, NAME, off, BLOCK))
+
             def host_sha() -> None:
                 _new_version(host_dir / NAME)
                 with DaemonClient(host.control, timeout_s=60) as c:
@@ -130,7 +136,8 @@ def main() -> int:
 
             rows = [
                 ("rigd takes gather copy (stat + reads + sha256 + rename)", _median(gather, args.repeat)),
-                ("  take_read alone (4 MiB requests, base64)", _median(reads_only, args.repeat)),
+                ("  take_read alone (4 MiB requests, base64 in the JSON)", _median(reads_only, args.repeat)),
+                ("  take_read alone (4 MiB requests, binary frame)", _median(reads_binary, args.repeat)),
                 ("  take_stat alone (host sha256 in its thread)", _median(host_sha, args.repeat)),
                 ("machine: shutil.copyfile (page cache)", _median(local_copy, args.repeat)),
                 ("machine: hashlib sha256", _median(sha, args.repeat)),

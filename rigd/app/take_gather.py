@@ -197,6 +197,25 @@ def fetch_part(c: DaemonClient, local: Path, more: Callable[[], DaemonClient] | 
         return f"copied {size:,} bytes{resumed}"
 
 
+def read_block(c: DaemonClient, name: str, offset: int, length: int) -> bytes:
+    """One `take_read`: the bytes as the reply's second frame, or base64 in its JSON from a
+    daemon that predates binary replies (it refuses the `binary` argument)."""
+    try:
+        result, payload = c.call_with_payload(
+            "take_read", file=name, offset=offset, length=length, binary=True
+        )
+    except DaemonRequestError as exc:
+        if exc.error.field != "args.binary":
+            raise
+        return base64.b64decode(c.call("take_read", file=name, offset=offset, length=length)["data_b64"])
+    if payload is None or len(payload) != result.get("length"):
+        got = "no" if payload is None else f"{len(payload)}"
+        raise TakeError(
+            f"{name}: the host's reply at byte {offset} carried {got} bytes, not {result.get('length')}"
+        )
+    return payload
+
+
 def _read_blocks(clients: list[DaemonClient], name: str, start: int, size: int) -> Iterator[bytes]:
     """The host's bytes of `name` from `start` to `size`, in order, block by block, with one
     request in flight per client (a REQ socket carries one at a time)."""
@@ -207,7 +226,7 @@ def _read_blocks(clients: list[DaemonClient], name: str, start: int, size: int) 
     def read(offset: int, length: int) -> bytes:
         cl = free.get()
         try:
-            return base64.b64decode(cl.call("take_read", file=name, offset=offset, length=length)["data_b64"])
+            return read_block(cl, name, offset, length)
         finally:
             free.put(cl)
 
@@ -244,11 +263,7 @@ def _resume_from(c: DaemonClient, partial: Path, meta: Path, sha: str, size: int
         log.info("%s: the host's file changed since the partial copy; starting again", partial)
         return 0
     tail = min(BLOCK, have)
-    theirs = base64.b64decode(
-        c.call("take_read", file=partial.name.removesuffix(".partial"), offset=have - tail, length=tail)[
-            "data_b64"
-        ]
-    )
+    theirs = read_block(c, partial.name.removesuffix(".partial"), have - tail, tail)
     with partial.open("rb") as f:
         f.seek(have - tail)
         mine = f.read(tail)

@@ -78,13 +78,17 @@ class DaemonClient:
             self._sock.setsockopt(zmq.SNDTIMEO, int(timeout_s * 1000))
 
     def send_raw(self, payload: bytes, timeout_s: float | None = None) -> bytes:
-        """Send bytes as they are and return the reply bytes (for tests and fuzzing)."""
+        """Send bytes as they are and return the reply's JSON frame (for tests and fuzzing)."""
+        return self._exchange(payload, timeout_s)[0]
+
+    def _exchange(self, payload: bytes, timeout_s: float | None) -> list[bytes]:
+        """One request, and every frame of its reply (a binary take_read has two)."""
         sock = self._socket()
         wait_s = self.timeout_s if timeout_s is None else timeout_s
         try:
             sock.setsockopt(zmq.RCVTIMEO, int(wait_s * 1000))
             sock.send(payload)
-            return sock.recv()
+            return sock.recv_multipart()
         except zmq.Again:
             self._reset()
             raise DaemonUnavailableError(
@@ -97,16 +101,24 @@ class DaemonClient:
         `timeout_s` overrides the client's deadline for this call (`capture` replies once the
         devices are open, which takes seconds on real hardware).
         """
+        return self.call_with_payload(cmd, timeout_s=timeout_s, **args)[0]
+
+    def call_with_payload(
+        self, cmd: str, *, timeout_s: float | None = None, **args: Any
+    ) -> tuple[dict[str, Any], bytes | None]:
+        """`call`, and the bytes of the reply's second frame (None when it has none)."""
         req_id = uuid.uuid4().hex[:12]
         body = json.dumps({"v": PROTOCOL_VERSION, "id": req_id, "cmd": cmd, "args": args}).encode()
-        raw = self.send_raw(body, timeout_s)
-        reply = Reply.model_validate_json(raw)
+        frames = self._exchange(body, timeout_s)
+        reply = Reply.model_validate_json(frames[0])
         if reply.id != req_id:
             raise RigdError(f"daemon at {self.endpoint} answered request {reply.id!r}, expected {req_id!r}")
         if not reply.ok:
             assert reply.error is not None
             raise DaemonRequestError(reply.error)
-        return reply.result or {}
+        if len(frames) > 2:
+            raise RigdError(f"daemon at {self.endpoint} answered with {len(frames)} frames (at most 2)")
+        return reply.result or {}, frames[1] if len(frames) == 2 else None
 
     def _reset(self) -> None:
         if self._sock is not None:

@@ -44,6 +44,7 @@ from rigd.app.service.endpoints import DaemonRunningError, apply_server_curve, b
 from rigd.app.service.handlers import Handlers
 from rigd.app.service.metrics import MetricsExporter
 from rigd.app.service.protocol import (
+    PAYLOAD_KEY,
     DeviceTelemetry,
     Reply,
     Telemetry,
@@ -93,7 +94,7 @@ _POOL_THREAD = "control-worker"
 
 #: Takes a command and a job that returns reply bytes and sees that the reply gets sent
 #: (raises `RequestError` busy when it cannot take the job now).
-_Defer = Callable[[str, Callable[[], bytes]], None]
+_Defer = Callable[[str, Callable[[], list[bytes]]], None]
 
 #: Where workers hand finished replies back to the control loop, which owns the socket.
 _REPLIES_ENDPOINT = "inproc://rigd-deferred-replies"
@@ -273,9 +274,9 @@ class Daemon:
                     self._forward_replies(replies, sock)
                 if sock in ready:
                     envelope, body = split_envelope(sock.recv_multipart(copy=True))
-                    reply = self.handle(body, defer=functools.partial(self._defer, envelope))
+                    reply = self.handle_frames(body, defer=functools.partial(self._defer, envelope))
                     if reply is not None:
-                        sock.send_multipart([*envelope, reply])
+                        sock.send_multipart([*envelope, *reply])
             # A capture still opening its devices answers its client before the socket goes.
             for worker in self._workers:
                 worker.join(timeout=_WORKER_GRACE_S)
@@ -295,7 +296,7 @@ class Daemon:
             except zmq.Again:
                 return
 
-    def _defer(self, envelope: list[bytes], cmd: str, job: Callable[[], bytes]) -> None:
+    def _defer(self, envelope: list[bytes], cmd: str, job: Callable[[], list[bytes]]) -> None:
         """Run `job` on a worker; its reply goes back to the client through the control loop.
 
         capture/recover get a thread each (their claim lets one run at a time); the rest go to
@@ -311,7 +312,7 @@ class Daemon:
             try:
                 push.setsockopt(zmq.LINGER, 1000)
                 push.connect(_REPLIES_ENDPOINT)
-                push.send_multipart([*envelope, reply], zmq.NOBLOCK)
+                push.send_multipart([*envelope, *reply], zmq.NOBLOCK)
             except zmq.ZMQError as exc:
                 log.warning("deferred reply not sent: %s", exc)
             finally:
@@ -338,7 +339,13 @@ class Daemon:
         worker.start()
 
     def handle(self, frames: list[bytes], defer: _Defer | None = None) -> bytes | None:
-        """Answer one request message (all its frames); never raises.
+        """The JSON frame of `handle_frames`' reply (what every reply but a binary take_read is)."""
+        reply = self.handle_frames(frames, defer)
+        return None if reply is None else reply[0]
+
+    def handle_frames(self, frames: list[bytes], defer: _Defer | None = None) -> list[bytes] | None:
+        """Answer one request message (all its frames) with the reply's frames: the JSON, then
+        a binary payload when the command has one; never raises.
 
         With `defer`, a slow command (capture, devices, recover) hands its work to `defer` and
         returns None: the reply comes from that job. Without it, everything is answered here.
@@ -346,9 +353,9 @@ class Daemon:
         try:
             return self._handle(frames, defer)
         except Exception as exc:  # noqa: BLE001 - a bug here must not end the control loop
-            return reply_bytes(Reply(ok=False, error=error_info(exc)))
+            return [reply_bytes(Reply(ok=False, error=error_info(exc)))]
 
-    def _handle(self, frames: list[bytes], defer: _Defer | None) -> bytes | None:
+    def _handle(self, frames: list[bytes], defer: _Defer | None) -> list[bytes] | None:
         req_id: str | None = None
         try:
             data = decode_request(frames)
@@ -361,17 +368,22 @@ class Daemon:
                 defer(cmd, lambda: self._answer(deferred_id, job))  # capture/recover: never busy here
                 return None
         except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
-            return reply_bytes(Reply(id=req_id, ok=False, error=error_info(exc)))
+            return [reply_bytes(Reply(id=req_id, ok=False, error=error_info(exc)))]
         return self._answer(req_id, functools.partial(self._handlers.run, cmd, args))
 
     @staticmethod
-    def _answer(req_id: str | None, fn: Callable[[], dict[str, Any]]) -> bytes:
-        """Run a command and turn its result or its error into the reply bytes."""
+    def _answer(req_id: str | None, fn: Callable[[], dict[str, Any]]) -> list[bytes]:
+        """Run a command and turn its result or its error into the reply's frames: the JSON, and
+        the result's PAYLOAD_KEY bytes as a second frame when it has them."""
+        payload: bytes | None = None
         try:
-            out = Reply(id=req_id, ok=True, result=fn())
+            result = fn()
+            payload = result.pop(PAYLOAD_KEY, None)
+            out = Reply(id=req_id, ok=True, result=result)
         except Exception as exc:  # noqa: BLE001 - every failure is answered, the loop goes on
             out = Reply(id=req_id, ok=False, error=error_info(exc))
-        return reply_bytes(out)
+        frames = [reply_bytes(out)]
+        return frames if payload is None or not out.ok else [*frames, payload]
 
     # -- telemetry -------------------------------------------------------------------------
     def telemetry(self) -> Telemetry:

@@ -113,7 +113,7 @@ class Handlers:
 
     def cmd_take_read(self, args: TakeReadArgs) -> dict[str, Any]:
         """Bytes of one of this daemon's take files (a multi-host take's part, gathered)."""
-        return read_take(self._config.service.take_dir, args.file, args.offset, args.length)
+        return read_take(self._config.service.take_dir, args.file, args.offset, args.length, args.binary)
 
     def cmd_take_stat(self, args: TakeStatArgs) -> dict[str, Any]:
         """Size and sha256 of one of this daemon's take files (the sha256 is null while it is

@@ -130,6 +130,16 @@ class TakeStatArgs(_StrictRequest):
 class TakeReadArgs(TakeStatArgs):
     offset: int = Field(ge=0, description="First byte to read.")
     length: int = Field(gt=0, le=TAKE_READ_MAX_BYTES, description="Bytes to read (fewer at the end).")
+    binary: bool = Field(
+        False,
+        description="The bytes as a second frame of the reply (`length` in the result says how many), "
+        "not base64 in the JSON (`data_b64`).",
+    )
+
+
+#: A command's result may hold bytes under this key: they go out as the reply's second frame,
+#: not in its JSON (take_read with binary=true).
+PAYLOAD_KEY = "_payload"
 
 
 ARGS_MODELS: dict[str, type[BaseModel]] = {

@@ -22,7 +22,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from rigd.app.service.protocol import TAKE_READ_MAX_BYTES
+from rigd.app.service.protocol import PAYLOAD_KEY, TAKE_READ_MAX_BYTES
 from rigd.app.service.requests import RequestError
 
 log = logging.getLogger(__name__)
@@ -61,8 +61,9 @@ def _open(path: Path) -> tuple[int, os.stat_result]:
     return fd, st
 
 
-def read_take(take_dir: Path, name: str, offset: int, length: int) -> dict[str, Any]:
-    """`length` bytes of the take file from `offset` (fewer at its end) and its size now."""
+def read_take(take_dir: Path, name: str, offset: int, length: int, binary: bool = False) -> dict[str, Any]:
+    """`length` bytes of the take file from `offset` (fewer at its end) and its size now; with
+    `binary` the bytes go in the reply's second frame (PAYLOAD_KEY), else base64 in the JSON."""
     if length > MAX_READ_BYTES:
         raise RequestError("bad_request", f"length {length} is over {MAX_READ_BYTES}", "args.length")
     fd, st = _open(take_file(take_dir, name))
@@ -70,12 +71,13 @@ def read_take(take_dir: Path, name: str, offset: int, length: int) -> dict[str, 
         data = os.pread(fd, length, offset) if offset < st.st_size else b""
     finally:
         os.close(fd)
-    return {
-        "file": name,
-        "offset": offset,
-        "size": st.st_size,
-        "data_b64": base64.b64encode(data).decode("ascii"),
-    }
+    out: dict[str, Any] = {"file": name, "offset": offset, "size": st.st_size}
+    if binary:
+        out["length"] = len(data)
+        out[PAYLOAD_KEY] = data
+    else:
+        out["data_b64"] = base64.b64encode(data).decode("ascii")
+    return out
 
 
 class TakeHashes:

@@ -286,10 +286,10 @@ def test_a_dead_control_loop_finalizes_the_take_and_ends_serve(
     take = Path(rd.client.call("capture", timeout_s=120)["take"])
     _wait(lambda: rd.client.call("status")["state"] == "capturing", 120, "take did not start")
 
-    def broken(*_: object, **__: object) -> bytes:
+    def broken(*_: object, **__: object) -> list[bytes]:
         raise RuntimeError("a bug that escapes the loop")
 
-    monkeypatch.setattr(rd.daemon, "handle", broken)
+    monkeypatch.setattr(rd.daemon, "handle_frames", broken)  # what the control loop calls
     with pytest.raises(Exception, match="no reply"):
         rd.client.send_raw(b'{"v":1,"cmd":"ping"}', timeout_s=2)
     rd.thread.join(timeout=180)

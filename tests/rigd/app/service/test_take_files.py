@@ -20,6 +20,7 @@ from rigd.app.cli import app
 from rigd.app.config import HostConfig
 from rigd.app.service.client import DaemonClient, DaemonRequestError
 from rigd.app.service.daemon import Daemon
+from rigd.app.service.protocol import ErrorInfo
 from rigd.app.take_gather import gather_take
 from rigd.app.testing.daemon import endpoints, serve_in_thread, small_rig
 from rigd.core.errors import TakeError
@@ -92,6 +93,37 @@ def test_take_read_and_stat_serve_the_take_dirs_files(
     assert base64.b64decode(tail["data_b64"]) == data[-10:]
     st = _stat(client, B)
     assert (st["sha256"], st["size"]) == (file_sha256(part), len(data))
+    # binary: the bytes as the reply's second frame, `length` saying how many
+    res, payload = client.call_with_payload("take_read", file=B, offset=100, length=5000, binary=True)
+    assert (res["length"], res["size"], payload) == (5000, len(data), data[100:5100])
+    assert "data_b64" not in res
+    res, payload = client.call_with_payload("take_read", file=B, offset=len(data) + 5, length=10, binary=True)
+    assert (res["length"], payload) == (0, b"")
+    # the base64 form has no second frame; an error has none either
+    assert client.call_with_payload("take_read", file=B, offset=0, length=10)[1] is None
+    with pytest.raises(DaemonRequestError, match="no take file"):
+        client.call_with_payload("take_read", file="gone.h5", offset=0, length=10, binary=True)
+    assert client.call("ping") is not None  # the socket is in step after the error
+
+
+class _OldDaemon:
+    """A host whose daemon predates binary take_read: it refuses the argument."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def call_with_payload(self, cmd: str, **args: object) -> tuple[dict[str, object], bytes | None]:
+        raise DaemonRequestError(ErrorInfo(code="bad_request", message="extra field", field="args.binary"))
+
+    def call(self, cmd: str, *, file: str, offset: int, length: int) -> dict[str, str]:
+        return {"data_b64": base64.b64encode(self.data[offset : offset + length]).decode()}
+
+
+def test_a_daemon_without_binary_reads_is_read_through_base64() -> None:
+    from rigd.app.take_gather import read_block
+
+    data = bytes(range(256)) * 4
+    assert read_block(_OldDaemon(data), "p.part.h5", 10, 100) == data[10:110]  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(
@@ -227,10 +259,13 @@ class _FakeHost:
         self.data = data if short_at is None else data[:short_at]
         self.calls: list[int] = []
 
-    def call(self, cmd: str, *, file: str, offset: int, length: int) -> dict[str, str]:
-        assert cmd == "take_read"
+    def call_with_payload(
+        self, cmd: str, *, file: str, offset: int, length: int, binary: bool
+    ) -> tuple[dict[str, int], bytes]:
+        assert (cmd, binary) == ("take_read", True)
         self.calls.append(offset)
-        return {"data_b64": base64.b64encode(self.data[offset : offset + length]).decode()}
+        got = self.data[offset : offset + length]
+        return {"length": len(got)}, got
 
 
 def test_overlapping_reads_come_back_in_order_and_a_short_file_is_named(
