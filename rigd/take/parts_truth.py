@@ -32,7 +32,8 @@ def device_info(g: h5py.Group) -> DeviceInfo | None:
         return None
     try:
         return DeviceInfo.model_validate_json(attr_text(raw))
-    except ValidationError:
+    except ValidationError as exc:
+        log.warning("%s: info_json does not parse (%s); its ground truth is not rebased", g.name, exc)
         return None
 
 
@@ -44,7 +45,8 @@ def _source(g: h5py.Group) -> str | None:
         return None
     try:
         data = json.loads(attr_text(node[()]))
-    except (ValueError, TypeError):
+    except (ValueError, TypeError) as exc:
+        log.warning("%s: result_json is not JSON (%s); left as it is", node.name, exc)
         return None
     return data.get("source") if isinstance(data, dict) else None
 

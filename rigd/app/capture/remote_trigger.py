@@ -240,7 +240,6 @@ class RemoteTrigger(Trigger):
             self._stats["lines"] += 1
             if consume:
                 self._stats["records"] += n
-            if consume:
                 self._next = since + n
             self._box_us = max(self._box_us, state.clock_us)
             if state.emitted is not None:
