@@ -8,8 +8,9 @@ control on loopback TCP with CurveZMQ keys), the simulated trigger cable carryin
 from host A's world to the others, captures the split take through host A, then stops them and
 captures the same config through one daemon. Both land in DIR: `split.h5` with its part files
 beside it, `single.h5`. Prints what each take holds side by side (verdict, events, frames,
-the aggregate events/s over the take's duration, the wall time from the request to the sealed
-take, each daemon's CPU seconds, the machine's cores), and whether events, frames, pulses and
+the aggregate events/s and MB/s written over the take's duration, the wall time from the request
+to the sealed take, each daemon's CPU seconds; beside them the machine's cores and its disk's
+write MB/s measured in DIR), and whether events, frames, pulses and
 sync report are equal (on the virtual clock they must be; `--threshold` lowers the sensors'
 contrast threshold for more events per second).
 Every process it started is stopped (SIGTERM, then SIGKILL) however the run ends.
@@ -27,6 +28,7 @@ import time
 from pathlib import Path
 from typing import Literal
 
+from bench.capacity_device import disk_write_mbs
 from firmware_sim.cable import cable_params
 from rigd.app.config import default_sim_rig
 from rigd.app.testing.multihost import (
@@ -97,9 +99,12 @@ def run(args: argparse.Namespace) -> int:
             stop_serve(p)
         procs.clear()
         joined = Path(split_last["path"])
+        split_bytes = 0
         for part in joined.parent.glob(f"{joined.stem}.*.part.h5"):
             shutil.copy2(part, out / part.name)
+            split_bytes += part.stat().st_size
         shutil.copy2(joined, out / "split.h5")
+        split_bytes += joined.stat().st_size
 
         single_cfg = base.model_validate(
             {**data, "service": {**data["service"], "take_dir": str(root / "single" / "takes")}}
@@ -137,17 +142,19 @@ def run(args: argparse.Namespace) -> int:
         assert isinstance(ev, dict)
         return sum(int(v) for v in ev.values())
 
+    disk = disk_write_mbs(out, 256)
     print(
-        f"machine: {os.cpu_count()} cores; {args.hosts} host(s) on it; clock={clock}; {w}x{h}; "
-        f"{args.duration:g} s"
+        f"machine: {os.cpu_count()} cores, disk {disk:.0f} MB/s (256 MiB written and fsynced in DIR); "
+        f"{args.hosts} host(s) on it; clock={clock}; {w}x{h}; {args.duration:g} s"
     )
     print(
-        f"{'take':<8} {'verdict':<10} {'events':>12} {'frames':>7} {'wall s':>7} {'Mev/s':>7}  "
+        f"{'take':<8} {'verdict':<10} {'events':>12} {'frames':>7} {'wall s':>7} {'Mev/s':>7} {'MB/s':>7}  "
         "CPU s by daemon"
     )
-    for name, last, wall, cpu in (
-        ("split", split_last, split_wall, split_cpu),
-        ("single", single_last, single_wall, {"single": single_cpu}),
+    single_bytes = (out / "single.h5").stat().st_size
+    for name, last, wall, cpu, nbytes in (
+        ("split", split_last, split_wall, split_cpu, split_bytes),
+        ("single", single_last, single_wall, {"single": single_cpu}, single_bytes),
     ):
         fr = last.get("frames") or {}
         assert isinstance(fr, dict)
@@ -155,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
         cpus = ", ".join(f"{k} {v:.1f}" for k, v in cpu.items())
         print(
             f"{name:<8} {last.get('verdict')!s:<10} {n_ev:>12,} {sum(fr.values()):>7} {wall:>7.1f} "
-            f"{n_ev / args.duration / 1e6:>7.2f}  {cpus}"
+            f"{n_ev / args.duration / 1e6:>7.2f} {nbytes / args.duration / 1e6:>7.1f}  {cpus}"
         )
     for name, last in (("split", split_last), ("single", single_last)):
         for why in (last.get("verdict_reasons") or [])[:6]:
