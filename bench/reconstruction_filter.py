@@ -58,6 +58,9 @@ BYTES_PER_EVENT = 13  # x, y uint16; p int8; t int64
 FILTER_ROW = "rigd BAF filter() (r=3, 30 us, >= 2): kept events"
 #: what rigd's reconstruct calls: the keep mask only
 MASK_ROW = "rigd BAF mask(): keep mask (what reconstruct uses)"
+#: the same two with threads=2: the ON and the OFF events on the machine's first two cores
+FILTER2_ROW = "rigd BAF filter(), threads=2 (ON | OFF on 2 cores)"
+MASK2_ROW = "rigd BAF mask(), threads=2 (ON | OFF on 2 cores)"
 
 
 def tonic_style(
@@ -137,7 +140,23 @@ def uptime() -> str:
         return "load average: {:.2f}, {:.2f}, {:.2f}".format(*os.getloadavg())
 
 
-def bench_one(name: str, args: argparse.Namespace, cpu: int | None) -> dict[str, float]:
+def on_cores(cores: set[int] | None, fn: Callable[[], float]) -> Callable[[], float]:
+    """`fn` run with this thread (and the threads it starts) allowed on `cores`, then back."""
+    if cores is None:
+        return fn
+
+    def run() -> float:
+        pinned = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, cores)
+        try:
+            return fn()
+        finally:
+            os.sched_setaffinity(0, pinned)
+
+    return run
+
+
+def bench_one(name: str, args: argparse.Namespace, cpu: int | None, two: set[int] | None) -> dict[str, float]:
     """Print one data set's table; returns Mev/s per row name."""
     t0 = time.perf_counter()
     desc, ev, w, h = load(name, args)
@@ -148,6 +167,13 @@ def bench_one(name: str, args: argparse.Namespace, cpu: int | None) -> dict[str,
     timed: dict[str, Callable[[], float]] = {}
     timed[FILTER_ROW] = lambda: len(BackgroundActivityFilter(w, h).filter(ev)) / n
     timed[MASK_ROW] = lambda: np.count_nonzero(BackgroundActivityFilter(w, h).mask(ev)) / n
+    if two is not None:
+        timed[FILTER2_ROW] = on_cores(
+            two, lambda: len(BackgroundActivityFilter(w, h, threads=2).filter(ev)) / n
+        )
+        timed[MASK2_ROW] = on_cores(
+            two, lambda: np.count_nonzero(BackgroundActivityFilter(w, h, threads=2).mask(ev)) / n
+        )
 
     def chunked() -> float:
         baf = BackgroundActivityFilter(w, h)
@@ -208,6 +234,12 @@ def bench_one(name: str, args: argparse.Namespace, cpu: int | None) -> dict[str,
     keep_tonic = tonic_style(sub, w, h)
     dt_tonic = time.perf_counter() - t_start
     same = bool(np.array_equal(keep_tonic, BackgroundActivityFilter(w, h).mask(sub)))
+    # threads=2 on the whole set: the same kept events as one thread
+    same_split = two is None or bool(
+        np.array_equal(
+            BackgroundActivityFilter(w, h).mask(ev), BackgroundActivityFilter(w, h, threads=2).mask(ev)
+        )
+    )
 
     print(f"\n| {'filter':58s} | {'time s':>8s} | {'Mev/s':>7s} | {'GB/s':>6s} | {'kept':>6s} |")
     print(f"|{'-' * 60}|{'-' * 10}|{'-' * 9}|{'-' * 8}|{'-' * 8}|")
@@ -223,10 +255,18 @@ def bench_one(name: str, args: argparse.Namespace, cpu: int | None) -> dict[str,
     print(f"| {tonic_row:58s} | {dt_tonic:8.4f} | {tonic_mev:7.1f} | {'':6s} | {keep_tonic.mean():6.1%} |")
     for row in peer_rows:
         filt, mask = mev[FILTER_ROW] / mev[row], mev[MASK_ROW] / mev[row]
-        print(f"vs {row}: rigd filter() {filt:.2f}x, rigd mask() {mask:.2f}x")
+        line = f"vs {row}: rigd filter() {filt:.2f}x, rigd mask() {mask:.2f}x"
+        if two is not None:
+            f2, m2 = mev[FILTER2_ROW] / mev[row], mev[MASK2_ROW] / mev[row]
+            line += f"; threads=2: filter() {f2:.2f}x, mask() {m2:.2f}x"
+        print(line)
     print(f"tonic-style keeps exactly what rigd keeps: {same}")
+    if two is not None:
+        print(f"threads=2 keeps exactly what one thread keeps: {same_split}")
     if not same:
         raise SystemExit(f"{name}: rigd's kept set differs from the tonic-style reference")
+    if not same_split:
+        raise SystemExit(f"{name}: threads=2 kept other events than one thread")
     return mev
 
 
@@ -257,32 +297,40 @@ def main() -> None:
         if nm != "sim" and nm not in REAL:
             raise SystemExit(f"--data: unknown data set {nm!r} (sim, {', '.join(REAL)})")
     cpu = None
+    two: set[int] | None = None
     if hasattr(os, "sched_setaffinity"):  # one core for every filter, the peer's process included
-        cpu = sorted(os.sched_getaffinity(0))[0]
+        cores = sorted(os.sched_getaffinity(0))
+        cpu = cores[0]
+        two = set(cores[:2]) if len(cores) >= 2 else None
         os.sched_setaffinity(0, {cpu})
     print(
-        f"machine: {os.cpu_count()} cores, every filter pinned to cpu {cpu}; python {sys.version.split()[0]}"
+        f"machine: {os.cpu_count()} cores, every filter pinned to cpu {cpu} except the threads=2 rows "
+        f"(cpus {sorted(two) if two else '-'}); python {sys.version.split()[0]}"
     )
     print(f"uptime at start: {uptime()}")
     flushed = f"{args.flush_mb} MB read before every timed call" if args.flush_mb else "not flushed"
     print(f"caches: {flushed}")
     summary = []
     for nm in names:
-        mev = bench_one(nm, args, cpu)
+        mev = bench_one(nm, args, cpu, two)
         dv30 = mev.get(f"dv-processing BackgroundActivityNoiseFilter ({DV_DURATIONS_US[0]} us)")
         mem = next(v for k, v in mev.items() if k.startswith("memcpy"))
-        summary.append((nm, mev[FILTER_ROW], mev[MASK_ROW], dv30, mem))
+        summary.append((nm, mev[FILTER_ROW], mev[MASK_ROW], mev.get(FILTER2_ROW), dv30, mem))
     print(f"\nuptime at the end: {uptime()}")
     print(f"median of {args.repeats} interleaved rounds each\n")
     print(
-        "| data | rigd filter() Mev/s | rigd mask() Mev/s | dv-processing 30 us Mev/s | filter() / dv "
-        "| mask() / dv | memcpy of the events GB/s (limit) |"
+        "| data | rigd filter() Mev/s | rigd mask() Mev/s | filter() threads=2 Mev/s | dv-processing 30 us "
+        "Mev/s | filter() / dv | mask() / dv | filter() threads=2 / dv | memcpy of the events GB/s (limit) |"
     )
-    print("|---|---|---|---|---|---|---|")
-    for nm, filt, mask, dv30, mem in summary:
+    print("|---|---|---|---|---|---|---|---|---|")
+    for nm, filt, mask, filt2, dv30, mem in summary:
+        f2 = f"{filt2:.1f}" if filt2 else "-"
         ratios = f"{filt / dv30:.2f}x | {mask / dv30:.2f}x" if dv30 else "- | -"
+        ratios += f" | {filt2 / dv30:.2f}x" if dv30 and filt2 else " | -"
         dv = f"{dv30:.1f}" if dv30 else "-"
-        print(f"| {nm} | {filt:.1f} | {mask:.1f} | {dv} | {ratios} | {mem * BYTES_PER_EVENT / 1e3:.2f} |")
+        print(
+            f"| {nm} | {filt:.1f} | {mask:.1f} | {f2} | {dv} | {ratios} | {mem * BYTES_PER_EVENT / 1e3:.2f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -250,6 +251,9 @@ def _prefetch_intrinsic() -> Callable[..., None]:
 CHECK_BYTES_PER_EVENT = 12
 #: Events per block of the kernel (its index work space: 32 KiB, so it stays in L1/L2).
 BLOCK_EVENTS = 4096
+#: Smallest chunk `threads=2` splits by polarity: below it, starting the second thread costs more
+#: than half the chunk's scan.
+SPLIT_MIN_EVENTS = 1 << 16
 #: Events ahead whose neighbourhood lines the kernel prefetches: on a map larger than L2 (a
 #: 1280x720 sensor) the lines of scattered events otherwise arrive one miss at a time.
 PREFETCH_AHEAD = 32
@@ -295,7 +299,13 @@ class MapLayout:
 
 @functools.lru_cache(maxsize=32)
 def _make_kernel(
-    radius: int, groups: int, segments: int, update_on_drop: bool, dtype: str, indices: bool
+    radius: int,
+    groups: int,
+    segments: int,
+    update_on_drop: bool,
+    dtype: str,
+    indices: bool,
+    split: bool = False,
 ) -> Callable[..., tuple[int, int, int]]:
     """Kernel specialised to one neighbourhood size, update rule and output, generated as source: the
     scan is groups x segments vector compares summed branch-free; no per-event branch on options.
@@ -306,7 +316,15 @@ def _make_kernel(
     Times are stored relative to a base. Between rebases the scan runs without a range check; when
     the next time leaves the map's range, the map is rebased (old times saturate to "never") so that
     this time lands at the lowest value whose window still lies above "never": the full range of
-    the type, minus the window, passes between rebases."""
+    the type, minus the window, passes between rebases.
+
+    With `split` (indices only) the kernel filters the events of one polarity (its `pol` argument)
+    against that polarity's plane of the map: each block is validated and indexed whole, its events
+    of that polarity are packed, and the packed ones are scanned. The rebases fall where the whole
+    stream puts them, so two such kernels, one per polarity, leave the map and the base exactly as
+    one kernel over both would, and they touch disjoint halves of the map (one thread each)."""
+    if split and not indices:
+        raise ValueError("a polarity-split kernel lists indices")
     info = np.iinfo(dtype)
     terms = [
         f"cnt(flat, start + {g * ROWS_PER_GROUP} * cols + {s * _LANES}, lim, tab[phase, {g * segments + s}])"
@@ -315,7 +333,8 @@ def _make_kernel(
     ]
     own = f"np.uint64(start + tab[phase, {groups * segments}])"
     store = f"flat[{own}] = ti" if update_on_drop else f"if ok:\n            flat[{own}] = ti"
-    out = "out[np.uint64(k)] = first + i\n        k += np.int64(ok)" if indices else "out[i] = ok"
+    kept_index = "first[i]" if split else "first + i"  # split: `first` is the packed events' indices
+    out = f"out[np.uint64(k)] = {kept_index}\n        k += np.int64(ok)" if indices else "out[i] = ok"
     # every cache line of the vectors the event PREFETCH_AHEAD later will read
     step = 64 // np.dtype(dtype).itemsize
     offsets = sorted({*range(0, _LANES, step), _LANES - 1})
@@ -366,6 +385,47 @@ def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, wind
                 base = t[hi] - low
             lo = hi
     return base, k, {GOOD}
+
+
+def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, window_us, min_support, out,
+                 s, pol, sc, tc, ic):
+    n = t.shape[0]
+    blk = s.shape[0] - {PREFETCH_AHEAD}
+    low = {info.min + 1} + window_us
+    mine = flat[pol * plane : (pol + 1) * plane]
+    k = 0
+    for a in range(0, n, blk):
+        e = min(n, a + blk)
+        before = t_prev if a == 0 else t[a - 1]
+        bad = prepare(x[a:e], y[a:e], p[a:e], t[a:e], s, plane, cols, width, height, before)
+        if bad != {GOOD}:
+            return base, k, bad + 2 * a
+        m = 0
+        for j in range(e - a):  # pack this polarity's events, branch-free
+            sc[m] = s[j]
+            tc[m] = t[a + j]
+            ic[m] = a + j
+            m += np.int64((p[a + j] > 0) == (pol == 1))
+        pad = sc[m - 1] if m > 0 else 0
+        for j in range(m, m + {PREFETCH_AHEAD}):  # the last events prefetch the block's last
+            sc[j] = pad
+        lo = a
+        lc = 0
+        while lo < e:
+            top = base + {info.max}
+            if t[e - 1] <= top:
+                hi = e
+                hc = m
+            else:
+                hi = lo + np.searchsorted(t[lo:e], top, side="right")
+                hc = lc + np.searchsorted(tc[lc:m], top, side="right")
+            k = scan(sc[lc:], tc[lc:hc], base, flat, tab, cols, window_us, min_support, out, k, ic[lc:])
+            if hi < e:  # where the whole stream rebases; only this polarity's plane
+                rebase(mine, min(t[hi] - base - low, {info.max - info.min + 1}), {info.min})
+                base = t[hi] - low
+            lo = hi
+            lc = hc
+    return base, k, {GOOD}
 """
     env: dict[str, Any] = {
         "np": np,
@@ -374,11 +434,12 @@ def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, wind
         "rebase": _rebase,
         "prepare": _prepare,
     }
-    output = "indices" if indices else "mask"
+    output = ("split " if split else "") + ("indices" if indices else "mask")
     name = f"<BAF kernel r={radius} update_on_drop={update_on_drop} {dtype} {output}>"
     exec(compile(src, name, "exec"), env)
     env["scan"] = njit(nogil=True, boundscheck=False)(env["scan"])
-    kernel: Callable[..., tuple[int, int, int]] = njit(nogil=True, boundscheck=False)(env["kernel"])
+    entry = "split_kernel" if split else "kernel"
+    kernel: Callable[..., tuple[int, int, int]] = njit(nogil=True, boundscheck=False)(env[entry])
     return kernel
 
 
@@ -404,12 +465,47 @@ def _gather(  # pragma: no cover - numba
         ot[j] = t[i]
 
 
+@njit(nogil=True, cache=True)
+def _gather_merged(  # pragma: no cover - numba
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    t: NDArray[np.int64],
+    a: NDArray[np.int32],
+    b: NDArray[np.int32],
+    ox: NDArray[np.uint16],
+    oy: NDArray[np.uint16],
+    op: NDArray[np.int8],
+    ot: NDArray[np.int64],
+) -> None:
+    """The events at the union of two ascending index lists, in stream order, in one pass. Each list
+    ends with a sentinel above every index (not counted in the output's length), so the merge takes
+    the smaller head without a branch."""
+    i = np.int64(0)
+    j = np.int64(0)
+    for o in range(ox.shape[0]):
+        ia = a[i]
+        ib = b[j]
+        take_a = ia < ib
+        k = ia if take_a else ib
+        i += np.int64(take_a)
+        j += np.int64(not take_a)
+        ox[o] = x[k]
+        oy[o] = y[k]
+        op[o] = p[k]
+        ot[o] = t[k]
+
+
 class BackgroundActivityFilter:
     """Streaming BAF over time-sorted chunks of one sensor (state: last timestamp per pixel/polarity).
 
     `filter(events)` returns the kept events; `mask(events)` the boolean keep mask. Chunks must
     be given in time order (each chunk sorted, and not earlier than the previous chunk's end);
     the result is then independent of how the stream is cut. `reset()` forgets the past.
+
+    `threads=2` filters the ON and the OFF events of a chunk on two threads: the rule never
+    mixes polarities, so each thread owns one plane of the map and the result is identical.
+    Leave it at 1 where chunks already run in parallel (the reconstruct pipeline's workers).
     """
 
     def __init__(
@@ -422,7 +518,10 @@ class BackgroundActivityFilter:
         min_support: int = 2,
         metric: Metric = "chebyshev",
         update_on_drop: bool = True,
+        threads: int = 1,
     ) -> None:
+        if threads not in (1, 2):
+            raise ValueError(f"threads must be 1 or 2 (one per polarity), got {threads}")
         if not (0 < width <= 65536 and 0 < height <= 65536):
             raise ValueError(f"geometry {width}x{height} out of range (1..65536)")
         if not 0 <= window_us <= MAX_WINDOW_US:
@@ -435,6 +534,7 @@ class BackgroundActivityFilter:
         self.min_support = int(min_support)
         self.metric: Metric = metric
         self.update_on_drop = bool(update_on_drop)
+        self.threads = int(threads)
         r = self.radius_px
         half = tuple(int(h) for h in row_half_widths(r, metric))
         self._layout = MapLayout(self.width, self.height, r, half)
@@ -443,9 +543,15 @@ class BackgroundActivityFilter:
         lay = self._layout
         kind = (r, lay.groups, lay.segments, self.update_on_drop, np.dtype(self._dtype).name)
         self._kernels = {indices: _make_kernel(*kind, indices) for indices in (False, True)}
+        self._split_kernel = _make_kernel(*kind, True, True) if self.threads == 2 else None
         self._last = np.full(2 * self._layout.plane, self._never, self._dtype)
         # the scan's per-block work space, with the events it prefetches past the block's end
         self._index = np.empty(BLOCK_EVENTS + PREFETCH_AHEAD, np.int64)
+        # per polarity with threads=2: the block's indices, and its packed events' indices, times, positions
+        self._packed = [
+            tuple(np.empty(BLOCK_EVENTS + PREFETCH_AHEAD, np.int64) for _ in range(4))
+            for _ in range(2 if self.threads == 2 else 0)
+        ]
         self._base_us: int | None = None
         self._t_end: int | None = None
         self.n_in = 0
@@ -460,23 +566,119 @@ class BackgroundActivityFilter:
     def mask(self, events: EventArray) -> NDArray[np.bool_]:
         """Keep mask of one chunk, advancing the state."""
         keep = np.zeros(len(events), np.bool_)
-        self._run(events, keep, indices=False)
+        if self._splits(events):
+            on, off = self._run_split(events)
+            keep[on[:-1]] = True
+            keep[off[:-1]] = True
+        else:
+            self._run(events, keep, indices=False)
         return keep
 
     def filter(self, events: EventArray) -> EventArray:
         """The kept events of one chunk, advancing the state (the scan lists them as it goes, so this
         costs the mask and a gather of the kept events, not a boolean index of every array)."""
+        x, y, p, t = events.x, events.y, events.p, events.t
+        if self._splits(events):
+            on, off = self._run_split(events)
+            kept = len(on) + len(off) - 2
+            out = _empty_like(events, kept)
+            _gather_merged(x, y, p, t, on, off, out.x, out.y, out.p, out.t)
+            return out
         # pages past the kept count are never touched; int32 halves what the scan writes
         idx: NDArray[np.integer[Any]] = np.empty(len(events), np.int32 if len(events) < 2**31 else np.int64)
-        kept = self._run(events, idx, indices=True)
-        if kept is None:
+        kept_or_none = self._run(events, idx, indices=True)
+        if kept_or_none is None:
             return EventArray.empty()
-        x, y, p, t = events.x, events.y, events.p, events.t
-        out = EventArray(
-            np.empty(kept, x.dtype), np.empty(kept, y.dtype), np.empty(kept, p.dtype), np.empty(kept, t.dtype)
-        )
-        _gather(x, y, p, t, idx[:kept], out.x, out.y, out.p, out.t)
+        out = _empty_like(events, kept_or_none)
+        _gather(x, y, p, t, idx[:kept_or_none], out.x, out.y, out.p, out.t)
         return out
+
+    def _splits(self, events: EventArray) -> bool:
+        """Whether this chunk runs as two polarity threads (int32 indices: under 2**31 events)."""
+        return self.threads == 2 and max(1, SPLIT_MIN_EVENTS) <= len(events) < 2**31 - 1
+
+    def _check(self, events: EventArray, t_prev: int) -> NDArray[Any] | None:
+        """Validate a small chunk now (raising); for a large one, the map's copy to restore if the
+        kernel finds it bad (the kernel validates it block by block as it goes)."""
+        if len(events) * CHECK_BYTES_PER_EVENT > 2 * self._last.nbytes:
+            return self._last.copy()
+        x, y, t = events.x, events.y, events.t
+        self._raise_if_bad(events, _first_bad(x, y, t, self.width, self.height, t_prev))
+        return None
+
+    def _fail(self, events: EventArray, bad: int, snapshot: NDArray[Any] | None) -> None:
+        """Put the map back and raise for the bad event the kernel found."""
+        if snapshot is None:  # checked before the kernel: the kernel disagrees with _first_bad
+            raise AssertionError(f"BAF kernel found bad event {bad // 2} in a chunk that was checked")
+        np.copyto(self._last, snapshot)
+        self._raise_if_bad(events, int(bad))
+
+    def _advance(self, events: EventArray, base: int, kept: int) -> None:
+        self._base_us = int(base)
+        self._t_end = int(events.t[-1])
+        self.n_in += len(events)
+        self.n_kept += kept
+        log.debug("BAF: kept %d of %d events", kept, len(events))
+
+    def _start(self, events: EventArray) -> tuple[int, int]:
+        """(previous chunk's last time, or the lowest int64; the map's time base for this chunk)."""
+        t_prev = np.iinfo(np.int64).min if self._t_end is None else self._t_end
+        low = int(np.iinfo(self._dtype).min) + 1 + self.window_us
+        return int(t_prev), int(events.t[0]) - low if self._base_us is None else self._base_us
+
+    def _run_split(self, events: EventArray) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        """Filter one chunk as two polarity threads; the kept indices of each, ascending, each list
+        ending with a sentinel (len(events)) that `_gather_merged` stops on."""
+        n = len(events)
+        t_prev, base = self._start(events)
+        snapshot = self._check(events, t_prev)
+        lay = self._layout
+        kernel = self._split_kernel
+        assert kernel is not None
+        lists = [np.empty(n + 1, np.int32) for _ in range(2)]
+        results: list[tuple[int, int, int] | BaseException | None] = [None, None]
+
+        def run(pol: int) -> None:
+            try:
+                results[pol] = kernel(
+                    events.x,
+                    events.y,
+                    events.p,
+                    events.t,
+                    t_prev,
+                    base,
+                    self._last,
+                    lay.table,
+                    lay.cols,
+                    lay.plane,
+                    self.width,
+                    self.height,
+                    self.window_us,
+                    self.min_support,
+                    lists[pol],
+                    *self._packed[pol][:1],
+                    pol,
+                    *self._packed[pol][1:],
+                )
+            except BaseException as exc:  # noqa: BLE001 - handed to the calling thread, which raises it
+                results[pol] = exc
+
+        on_thread = threading.Thread(target=run, args=(1,), name="baf-on", daemon=True)
+        on_thread.start()
+        run(0)
+        on_thread.join()
+        for r in results:
+            if isinstance(r, BaseException):
+                raise r
+        (base_off, k_off, bad_off), (base_on, k_on, bad_on) = results  # type: ignore[misc]
+        if bad_off != GOOD or bad_on != GOOD:  # both stop at the same block
+            self._fail(events, min(b for b in (bad_off, bad_on) if b != GOOD), snapshot)
+        if base_off != base_on:
+            raise AssertionError(f"BAF polarity threads disagree on the time base ({base_off} != {base_on})")
+        off, on = lists[0][: k_off + 1], lists[1][: k_on + 1]
+        off[k_off] = on[k_on] = n
+        self._advance(events, base_off, k_off + k_on)
+        return on, off
 
     def _run(self, events: EventArray, out: NDArray[Any], *, indices: bool) -> int | None:
         """Filter one chunk into `out`; the number kept (None for an empty chunk).
@@ -484,18 +686,11 @@ class BackgroundActivityFilter:
         Bad input raises before any state changes: a chunk small next to the map is checked in a
         pass of its own; a larger one is checked block by block inside the kernel (the events are
         then read from memory once) and the map is put back from a copy if a block is bad."""
-        n = len(events)
-        if n == 0:
+        if len(events) == 0:
             return None
         x, y, p, t = events.x, events.y, events.p, events.t
-        t_prev = np.iinfo(np.int64).min if self._t_end is None else self._t_end
-        snapshot: NDArray[Any] | None = None
-        if n * CHECK_BYTES_PER_EVENT > 2 * self._last.nbytes:
-            snapshot = self._last.copy()
-        else:
-            self._raise_if_bad(events, _first_bad(x, y, t, self.width, self.height, t_prev))
-        low = int(np.iinfo(self._dtype).min) + 1 + self.window_us
-        base = int(t[0]) - low if self._base_us is None else self._base_us
+        t_prev, base = self._start(events)
+        snapshot = self._check(events, t_prev)
         lay = self._layout
         base, kept, bad = self._kernels[indices](
             x,
@@ -516,16 +711,9 @@ class BackgroundActivityFilter:
             self._index,
         )
         if bad != GOOD:
-            if snapshot is None:  # checked above: the kernel disagrees with _first_bad
-                raise AssertionError(f"BAF kernel found bad event {bad // 2} in a chunk that was checked")
-            np.copyto(self._last, snapshot)
-            self._raise_if_bad(events, int(bad))
-        self._base_us = int(base)
-        self._t_end = int(t[-1])
+            self._fail(events, int(bad), snapshot)
         kept = int(kept) if indices else int(np.count_nonzero(out))
-        self.n_in += n
-        self.n_kept += kept
-        log.debug("BAF: kept %d of %d events", kept, n)
+        self._advance(events, int(base), kept)
         return kept
 
     def _raise_if_bad(self, events: EventArray, bad: int) -> None:
@@ -549,6 +737,12 @@ class BackgroundActivityFilter:
         )
 
 
+def _empty_like(events: EventArray, n: int) -> EventArray:
+    """n uninitialised events of `events`' dtypes (numpy's allocation: see `_gather`)."""
+    x, y, p, t = events.x, events.y, events.p, events.t
+    return EventArray(np.empty(n, x.dtype), np.empty(n, y.dtype), np.empty(n, p.dtype), np.empty(n, t.dtype))
+
+
 def background_activity_filter(
     events: EventArray,
     width: int,
@@ -559,6 +753,7 @@ def background_activity_filter(
     min_support: int = 2,
     metric: Metric = "chebyshev",
     update_on_drop: bool = True,
+    threads: int = 1,
 ) -> EventArray:
     """One-shot BAF of a whole (time-sorted) event array with the paper's defaults."""
     baf = BackgroundActivityFilter(
@@ -569,5 +764,6 @@ def background_activity_filter(
         min_support=min_support,
         metric=metric,
         update_on_drop=update_on_drop,
+        threads=threads,
     )
     return baf.filter(events)

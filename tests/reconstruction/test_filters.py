@@ -167,20 +167,23 @@ def test_large_radius_matches_brute_force(radius: int, metric: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("window", [32_766, 32_767, 32_768, 1_000_000])
 @pytest.mark.parametrize("block", [filters.BLOCK_EVENTS, 7])
+@pytest.mark.parametrize("threads", [1, 2])
 def test_map_types_and_rebase_match_brute_force(
-    window: int, block: int, monkeypatch: pytest.MonkeyPatch
+    window: int, block: int, threads: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # windows up to 32767 us keep int16 times (rebased every ~33 ms of stream), longer ones int32;
+    # windows up to 32767 us keep int16 times (rebased every ~65 ms of stream), longer ones int32;
     # gaps around the int16 range and the window exercise the rebase and its saturation; blocks of
-    # 7 events put the kernel's block edges (and rebases) everywhere in the stream
+    # 7 events put the kernel's block edges (and rebases) everywhere in the stream; with two
+    # threads each polarity's kernel rebases its own plane where the whole stream does
     monkeypatch.setattr(filters, "BLOCK_EVENTS", block)
+    monkeypatch.setattr(filters, "SPLIT_MIN_EVENTS", 0)
     rng = np.random.default_rng(window)
     n, w, h = 600, 9, 7
     gaps = rng.choice([0, 1, 3, window // 2, window - 1, window, window + 1, 2**15, 2**16, 2**31], n)
     t = 7 + np.cumsum(gaps)
     ev = EventArray.from_arrays(rng.integers(0, w, n), rng.integers(0, h, n), rng.choice([-1, 1], n), t)
     for support in (1, 2):
-        got = BackgroundActivityFilter(w, h, window_us=window, min_support=support).mask(ev)
+        got = BackgroundActivityFilter(w, h, window_us=window, min_support=support, threads=threads).mask(ev)
         want = brute_force(ev, 3, window, support, "chebyshev", True)
         assert 0 < got.sum() < n
         np.testing.assert_array_equal(got, want)
@@ -218,9 +221,63 @@ def _burst(rng: np.random.Generator, n: int, w: int, h: int, t0: int) -> EventAr
     return EventArray.from_arrays(rng.integers(0, w, n), rng.integers(0, h, n), rng.choice([-1, 1], n), t)
 
 
+@pytest.mark.slow
+@settings(max_examples=80, deadline=None)
+@given(
+    data=event_streams(),
+    cuts=st.lists(st.integers(0, 120), max_size=5),
+    radius=st.integers(1, 3),
+    window=st.integers(0, 40) | st.sampled_from([32_767, 32_768, 70_000]),
+    support=st.integers(0, 3),
+    update_on_drop=st.booleans(),
+    in_kernel=st.booleans(),
+)
+def test_two_threads_keep_what_one_keeps(
+    data: tuple[EventArray, int, int],
+    cuts: list[int],
+    radius: int,
+    window: int,
+    support: int,
+    update_on_drop: bool,
+    in_kernel: bool,
+) -> None:
+    # threads=2 filters each polarity on its own thread against its own plane of the map; chunk by
+    # chunk, mask() and filter() must give exactly what one thread gives (which the brute force
+    # checks above), and leave the same state behind for the next chunk
+    ev, w, h = data
+    kw = {"radius_px": radius, "window_us": window, "min_support": support, "update_on_drop": update_on_drop}
+    one, two = BackgroundActivityFilter(w, h, **kw), BackgroundActivityFilter(w, h, threads=2, **kw)  # type: ignore[arg-type]
+    saved = filters.SPLIT_MIN_EVENTS, filters.CHECK_BYTES_PER_EVENT
+    filters.SPLIT_MIN_EVENTS = 0
+    if in_kernel:
+        filters.CHECK_BYTES_PER_EVENT = 1 << 40
+    try:
+        bounds = [0, *sorted(min(c, len(ev)) for c in cuts), len(ev)]
+        for k, (a, b) in enumerate(itertools.pairwise(bounds)):
+            if k % 2:
+                np.testing.assert_array_equal(two.mask(ev[a:b]), one.mask(ev[a:b]))
+            else:
+                got, want = two.filter(ev[a:b]), one.filter(ev[a:b])
+                for name in ("x", "y", "p", "t"):
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+                    assert getattr(got, name).dtype == getattr(ev, name).dtype
+    finally:
+        filters.SPLIT_MIN_EVENTS, filters.CHECK_BYTES_PER_EVENT = saved
+    assert (two.n_in, two.n_kept) == (one.n_in, one.n_kept)
+    np.testing.assert_array_equal(two._last, one._last)
+
+
+def test_threads_is_one_or_two() -> None:
+    with pytest.raises(ValueError, match="threads must be 1 or 2"):
+        BackgroundActivityFilter(8, 8, threads=3)
+
+
 @pytest.mark.parametrize("fault", ["place", "order"])
 @pytest.mark.parametrize("method", ["mask", "filter"])
-def test_a_bad_event_deep_in_a_large_chunk_names_itself_and_changes_nothing(fault: str, method: str) -> None:
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_bad_event_deep_in_a_large_chunk_names_itself_and_changes_nothing(
+    fault: str, method: str, threads: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # 40 000 events on a 64x64 sensor: far more bytes than the map, so the kernel checks them block by
     # block; the bad event sits in the seventh block, after six blocks were already filtered. A 20 ms
     # window reaches back from `after` into those blocks, so what they left in the map would change
@@ -228,8 +285,10 @@ def test_a_bad_event_deep_in_a_large_chunk_names_itself_and_changes_nothing(faul
     rng = np.random.default_rng(5)
     w, h = 64, 64
 
+    monkeypatch.setattr(filters, "SPLIT_MIN_EVENTS", 1000)
+
     def make() -> BackgroundActivityFilter:
-        return BackgroundActivityFilter(w, h, window_us=20_000)
+        return BackgroundActivityFilter(w, h, window_us=20_000, threads=threads)
 
     history = _burst(rng, 5_000, w, h, 0)
     bad = _burst(rng, 40_000, w, h, int(history.t[-1]))
