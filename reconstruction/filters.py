@@ -304,27 +304,30 @@ def _make_kernel(
     segments: int,
     update_on_drop: bool,
     dtype: str,
-    indices: bool,
+    gather: bool,
     split: bool = False,
 ) -> Callable[..., tuple[int, int, int]]:
     """Kernel specialised to one neighbourhood size, update rule and output, generated as source: the
     scan is groups x segments vector compares summed branch-free; no per-event branch on options.
-    `dtype` is the map's (int16 or int32). The output is the keep mask, or with `indices` the kept
-    events' indices, appended branch-free. Returns (time base, kept indices written, GOOD or the
-    first bad event as `_first_bad` codes it, absolute).
+    `dtype` is the map's (int16 or int32). The output is the keep mask, or with `gather` the kept
+    events themselves: the scan lists a block's kept indices branch-free and the block's kept events
+    are copied out while the block is still in cache (a gather after the whole chunk read the
+    events from memory a second time). Returns (time base, kept events written, GOOD or the first
+    bad event as `_first_bad` codes it, absolute).
 
     Times are stored relative to a base. Between rebases the scan runs without a range check; when
     the next time leaves the map's range, the map is rebased (old times saturate to "never") so that
     this time lands at the lowest value whose window still lies above "never": the full range of
     the type, minus the window, passes between rebases.
 
-    With `split` (indices only) the kernel filters the events of one polarity (its `pol` argument)
+    With `split` (gather only) the kernel filters the events of one polarity (its `pol` argument)
     against that polarity's plane of the map: each block is validated and indexed whole, its events
-    of that polarity are packed, and the packed ones are scanned. The rebases fall where the whole
-    stream puts them, so two such kernels, one per polarity, leave the map and the base exactly as
-    one kernel over both would, and they touch disjoint halves of the map (one thread each)."""
-    if split and not indices:
-        raise ValueError("a polarity-split kernel lists indices")
+    of that polarity are packed, and the packed ones are scanned; the kept events are written with
+    their indices, for the merge of the two polarities. The rebases fall where the whole stream puts
+    them, so two such kernels, one per polarity, leave the map and the base exactly as one kernel
+    over both would, and they touch disjoint halves of the map (one thread each)."""
+    if split and not gather:
+        raise ValueError("a polarity-split kernel gathers the kept events")
     info = np.iinfo(dtype)
     terms = [
         f"cnt(flat, start + {g * ROWS_PER_GROUP} * cols + {s * _LANES}, lim, tab[phase, {g * segments + s}])"
@@ -334,7 +337,7 @@ def _make_kernel(
     own = f"np.uint64(start + tab[phase, {groups * segments}])"
     store = f"flat[{own}] = ti" if update_on_drop else f"if ok:\n            flat[{own}] = ti"
     kept_index = "first[i]" if split else "first + i"  # split: `first` is the packed events' indices
-    out = f"out[np.uint64(k)] = {kept_index}\n        k += np.int64(ok)" if indices else "out[i] = ok"
+    out = f"out[np.uint64(k)] = {kept_index}\n        k += np.int64(ok)" if gather else "out[i] = ok"
     # every cache line of the vectors the event PREFETCH_AHEAD later will read
     step = 64 // np.dtype(dtype).itemsize
     offsets = sorted({*range(0, _LANES, step), _LANES - 1})
@@ -360,7 +363,8 @@ def scan(s, t, base, flat, tab, cols, window_us, min_support, out, k, first):
     return k
 
 
-def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, window_us, min_support, out, s):
+def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, window_us, min_support, out, s,
+           ox, oy, op, ot):
     n = t.shape[0]
     blk = s.shape[0] - {PREFETCH_AHEAD}
     low = {info.min + 1} + window_us  # the lowest relative time whose window lies above "never"
@@ -374,21 +378,24 @@ def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, wind
             return base, k, bad + 2 * a
         for j in range(pe - a, s.shape[0]):  # the last events prefetch the block's last
             s[j] = s[pe - a - 1]
+        kb = 0
         lo = a
         while lo < e:
             top = base + {info.max}
             hi = e if t[e - 1] <= top else lo + np.searchsorted(t[lo:e], top, side="right")
-            part = out if {indices} else out[lo:hi]
-            k = scan(s[lo - a :], t[lo:hi], base, flat, tab, cols, window_us, min_support, part, k, lo)
+            part = out if {gather} else out[lo:hi]
+            kb = scan(s[lo - a :], t[lo:hi], base, flat, tab, cols, window_us, min_support, part, kb, lo)
             if hi < e:
                 rebase(flat, min(t[hi] - base - low, {info.max - info.min + 1}), {info.min})
                 base = t[hi] - low
             lo = hi
+        if {gather}:
+            k = collect(x, y, p, t, out, kb, ox, oy, op, ot, out[:0], k)
     return base, k, {GOOD}
 
 
 def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, window_us, min_support, out,
-                 s, pol, sc, tc, ic):
+                 s, pol, sc, tc, ic, ox, oy, op, ot, oi):
     n = t.shape[0]
     blk = s.shape[0] - {PREFETCH_AHEAD}
     low = {info.min + 1} + window_us
@@ -402,13 +409,15 @@ def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height
             return base, k, bad + 2 * a
         m = 0
         for j in range(e - a):  # pack this polarity's events, branch-free
-            sc[m] = s[j]
-            tc[m] = t[a + j]
-            ic[m] = a + j
+            mu = np.uint64(m)
+            sc[mu] = s[j]
+            tc[mu] = t[a + j]
+            ic[mu] = a + j
             m += np.int64((p[a + j] > 0) == (pol == 1))
         pad = sc[m - 1] if m > 0 else 0
         for j in range(m, m + {PREFETCH_AHEAD}):  # the last events prefetch the block's last
             sc[j] = pad
+        kb = 0
         lo = a
         lc = 0
         while lo < e:
@@ -419,12 +428,13 @@ def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height
             else:
                 hi = lo + np.searchsorted(t[lo:e], top, side="right")
                 hc = lc + np.searchsorted(tc[lc:m], top, side="right")
-            k = scan(sc[lc:], tc[lc:hc], base, flat, tab, cols, window_us, min_support, out, k, ic[lc:])
+            kb = scan(sc[lc:], tc[lc:hc], base, flat, tab, cols, window_us, min_support, out, kb, ic[lc:])
             if hi < e:  # where the whole stream rebases; only this polarity's plane
                 rebase(mine, min(t[hi] - base - low, {info.max - info.min + 1}), {info.min})
                 base = t[hi] - low
             lo = hi
             lc = hc
+        k = collect(x, y, p, t, out, kb, ox, oy, op, ot, oi, k)
     return base, k, {GOOD}
 """
     env: dict[str, Any] = {
@@ -433,8 +443,9 @@ def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height
         "prefetch": _prefetch_intrinsic(),
         "rebase": _rebase,
         "prepare": _prepare,
+        "collect": _collect,
     }
-    output = ("split " if split else "") + ("indices" if indices else "mask")
+    output = ("split " if split else "") + ("events" if gather else "mask")
     name = f"<BAF kernel r={radius} update_on_drop={update_on_drop} {dtype} {output}>"
     exec(compile(src, name, "exec"), env)
     env["scan"] = njit(nogil=True, boundscheck=False)(env["scan"])
@@ -444,56 +455,71 @@ def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height
 
 
 @njit(nogil=True, cache=True)
-def _gather(  # pragma: no cover - numba
+def _collect(  # pragma: no cover - numba
     x: NDArray[np.uint16],
     y: NDArray[np.uint16],
     p: NDArray[np.int8],
     t: NDArray[np.int64],
-    idx: NDArray[np.integer[Any]],
+    idx: NDArray[np.int64],
+    n: int,
     ox: NDArray[np.uint16],
     oy: NDArray[np.uint16],
     op: NDArray[np.int8],
     ot: NDArray[np.int64],
-) -> None:
-    """The events at idx into the o* arrays, in one pass. The caller allocates them with numpy: on
-    this project's VMs numba's own allocations of fresh memory took twice as long (page faults)."""
-    for j in range(idx.shape[0]):
+    oi: NDArray[np.int64],
+    k: int,
+) -> int:
+    """Append the events at idx[:n] to the o* arrays from position k (and their indices to oi unless
+    it is empty); the new length. The caller allocates the outputs with numpy: on this project's
+    VMs numba's own allocations of fresh memory took twice as long (page faults)."""
+    for j in range(n):
         i = idx[j]
-        ox[j] = x[i]
-        oy[j] = y[i]
-        op[j] = p[i]
-        ot[j] = t[i]
+        ox[k + j] = x[i]
+        oy[k + j] = y[i]
+        op[k + j] = p[i]
+        ot[k + j] = t[i]
+    if oi.shape[0]:
+        for j in range(n):
+            oi[k + j] = idx[j]
+    return k + n
 
 
 @njit(nogil=True, cache=True)
-def _gather_merged(  # pragma: no cover - numba
-    x: NDArray[np.uint16],
-    y: NDArray[np.uint16],
-    p: NDArray[np.int8],
-    t: NDArray[np.int64],
-    a: NDArray[np.int32],
-    b: NDArray[np.int32],
+def _merge(  # pragma: no cover - numba
+    ax: NDArray[np.uint16],
+    ay: NDArray[np.uint16],
+    ap: NDArray[np.int8],
+    at: NDArray[np.int64],
+    ai: NDArray[np.int64],
+    bx: NDArray[np.uint16],
+    by: NDArray[np.uint16],
+    bp: NDArray[np.int8],
+    bt: NDArray[np.int64],
+    bi: NDArray[np.int64],
     ox: NDArray[np.uint16],
     oy: NDArray[np.uint16],
     op: NDArray[np.int8],
     ot: NDArray[np.int64],
 ) -> None:
-    """The events at the union of two ascending index lists, in stream order, in one pass. Each list
-    ends with a sentinel above every index (not counted in the output's length), so the merge takes
-    the smaller head without a branch."""
+    """Two polarities' kept events, each in stream order with its indices, into one stream. Each
+    index list ends with a sentinel above every index (its events' arrays have a slot there), so
+    the merge reads both heads and selects without a branch."""
     i = np.int64(0)
     j = np.int64(0)
     for o in range(ox.shape[0]):
-        ia = a[i]
-        ib = b[j]
-        take_a = ia < ib
-        k = ia if take_a else ib
+        take_a = ai[i] < bi[j]
+        ox[o] = ax[i] if take_a else bx[j]
+        oy[o] = ay[i] if take_a else by[j]
+        op[o] = ap[i] if take_a else bp[j]
+        ot[o] = at[i] if take_a else bt[j]
         i += np.int64(take_a)
         j += np.int64(not take_a)
-        ox[o] = x[k]
-        oy[o] = y[k]
-        op[o] = p[k]
-        ot[o] = t[k]
+
+
+#: Largest chunk `filter()` runs in one kernel call: it writes the kept events into arrays sized for
+#: the whole chunk (only the pages it fills are touched) and returns views of them, so a larger
+#: input is filtered in slices of this many events, which bounds the address space reserved.
+FILTER_SLICE_EVENTS = 1 << 24
 
 
 class BackgroundActivityFilter:
@@ -542,15 +568,15 @@ class BackgroundActivityFilter:
         self._never = int(np.iinfo(self._dtype).min)
         lay = self._layout
         kind = (r, lay.groups, lay.segments, self.update_on_drop, np.dtype(self._dtype).name)
-        self._kernels = {indices: _make_kernel(*kind, indices) for indices in (False, True)}
+        self._kernels = {gather: _make_kernel(*kind, gather) for gather in (False, True)}
         self._split_kernel = _make_kernel(*kind, True, True) if self.threads == 2 else None
         self._last = np.full(2 * self._layout.plane, self._never, self._dtype)
-        # the scan's per-block work space, with the events it prefetches past the block's end
-        self._index = np.empty(BLOCK_EVENTS + PREFETCH_AHEAD, np.int64)
-        # per polarity with threads=2: the block's indices, and its packed events' indices, times, positions
-        self._packed = [
-            tuple(np.empty(BLOCK_EVENTS + PREFETCH_AHEAD, np.int64) for _ in range(4))
-            for _ in range(2 if self.threads == 2 else 0)
+        # per thread: the block's map indices (with the events it prefetches past the block's end) and
+        # its kept indices; with threads=2 also the packed events' map indices, times and indices
+        words = BLOCK_EVENTS + PREFETCH_AHEAD
+        self._work = [
+            tuple(np.empty(words, np.int64) for _ in range(5 if self.threads == 2 else 2))
+            for _ in range(self.threads)
         ]
         self._base_us: int | None = None
         self._t_end: int | None = None
@@ -567,35 +593,34 @@ class BackgroundActivityFilter:
         """Keep mask of one chunk, advancing the state."""
         keep = np.zeros(len(events), np.bool_)
         if self._splits(events):
-            on, off = self._run_split(events)
-            keep[on[:-1]] = True
-            keep[off[:-1]] = True
-        else:
-            self._run(events, keep, indices=False)
+            for _, oi in self._run_split(events):
+                keep[oi[:-1]] = True
+        elif len(events):
+            self._run(events, keep, None)
         return keep
 
     def filter(self, events: EventArray) -> EventArray:
-        """The kept events of one chunk, advancing the state (the scan lists them as it goes, so this
-        costs the mask and a gather of the kept events, not a boolean index of every array)."""
-        x, y, p, t = events.x, events.y, events.p, events.t
-        if self._splits(events):
-            on, off = self._run_split(events)
-            kept = len(on) + len(off) - 2
-            out = _empty_like(events, kept)
-            _gather_merged(x, y, p, t, on, off, out.x, out.y, out.p, out.t)
-            return out
-        # pages past the kept count are never touched; int32 halves what the scan writes
-        idx: NDArray[np.integer[Any]] = np.empty(len(events), np.int32 if len(events) < 2**31 else np.int64)
-        kept_or_none = self._run(events, idx, indices=True)
-        if kept_or_none is None:
+        """The kept events of one chunk, advancing the state. The kernel copies each block's kept
+        events out while the block is in cache: no mask, and no second read of the chunk."""
+        n = len(events)
+        if n > FILTER_SLICE_EVENTS:
+            return EventArray.concatenate(
+                [self.filter(events[a : a + FILTER_SLICE_EVENTS]) for a in range(0, n, FILTER_SLICE_EVENTS)]
+            )
+        if n == 0:
             return EventArray.empty()
-        out = _empty_like(events, kept_or_none)
-        _gather(x, y, p, t, idx[:kept_or_none], out.x, out.y, out.p, out.t)
+        if not self._splits(events):
+            out = _empty_like(events, n)
+            kept = self._run(events, None, out)
+            return out[:kept]
+        (a, ai), (b, bi) = self._run_split(events)
+        out = _empty_like(events, len(ai) + len(bi) - 2)
+        _merge(a.x, a.y, a.p, a.t, ai, b.x, b.y, b.p, b.t, bi, out.x, out.y, out.p, out.t)
         return out
 
     def _splits(self, events: EventArray) -> bool:
-        """Whether this chunk runs as two polarity threads (int32 indices: under 2**31 events)."""
-        return self.threads == 2 and max(1, SPLIT_MIN_EVENTS) <= len(events) < 2**31 - 1
+        """Whether this chunk runs as two polarity threads."""
+        return self.threads == 2 and len(events) >= max(1, SPLIT_MIN_EVENTS)
 
     def _check(self, events: EventArray, t_prev: int) -> NDArray[Any] | None:
         """Validate a small chunk now (raising); for a large one, the map's copy to restore if the
@@ -613,6 +638,12 @@ class BackgroundActivityFilter:
         np.copyto(self._last, snapshot)
         self._raise_if_bad(events, int(bad))
 
+    def _start(self, events: EventArray) -> tuple[int, int]:
+        """(previous chunk's last time, or the lowest int64; the map's time base for this chunk)."""
+        t_prev = np.iinfo(np.int64).min if self._t_end is None else self._t_end
+        low = int(np.iinfo(self._dtype).min) + 1 + self.window_us
+        return int(t_prev), int(events.t[0]) - low if self._base_us is None else self._base_us
+
     def _advance(self, events: EventArray, base: int, kept: int) -> None:
         self._base_us = int(base)
         self._t_end = int(events.t[-1])
@@ -620,45 +651,76 @@ class BackgroundActivityFilter:
         self.n_kept += kept
         log.debug("BAF: kept %d of %d events", kept, len(events))
 
-    def _start(self, events: EventArray) -> tuple[int, int]:
-        """(previous chunk's last time, or the lowest int64; the map's time base for this chunk)."""
-        t_prev = np.iinfo(np.int64).min if self._t_end is None else self._t_end
-        low = int(np.iinfo(self._dtype).min) + 1 + self.window_us
-        return int(t_prev), int(events.t[0]) - low if self._base_us is None else self._base_us
+    def _args(self, events: EventArray, t_prev: int, base: int) -> tuple[Any, ...]:
+        """The kernels' leading arguments: the chunk, where the stream stands, the map and the rule."""
+        lay = self._layout
+        x, y, p, t = events.x, events.y, events.p, events.t
+        return (x, y, p, t, t_prev, base, self._last, lay.table, lay.cols, lay.plane, self.width, self.height)
 
-    def _run_split(self, events: EventArray) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-        """Filter one chunk as two polarity threads; the kept indices of each, ascending, each list
-        ending with a sentinel (len(events)) that `_gather_merged` stops on."""
+    def _run(self, events: EventArray, keep: NDArray[np.bool_] | None, out: EventArray | None) -> int:
+        """Filter one non-empty chunk into the keep mask or, without one, the kept events into `out`;
+        the number kept.
+
+        Bad input raises before any state changes: a chunk small next to the map is checked in a
+        pass of its own; a larger one is checked block by block inside the kernel (the events are
+        then read from memory once) and the map is put back from a copy if a block is bad."""
+        t_prev, base = self._start(events)
+        snapshot = self._check(events, t_prev)
+        s, listed = self._work[0][:2]
+        if keep is None:
+            assert out is not None
+        else:
+            out = EventArray.empty()  # unused by the mask kernel
+        dest: NDArray[Any] = listed if keep is None else keep
+        base, kept, bad = self._kernels[keep is None](
+            *self._args(events, t_prev, base),
+            self.window_us,
+            self.min_support,
+            dest,
+            s,
+            out.x,
+            out.y,
+            out.p,
+            out.t,
+        )
+        if bad != GOOD:
+            self._fail(events, int(bad), snapshot)
+        kept = int(kept) if keep is None else int(np.count_nonzero(keep))
+        self._advance(events, int(base), kept)
+        return kept
+
+    def _run_split(self, events: EventArray) -> list[tuple[EventArray, NDArray[np.int64]]]:
+        """Filter one chunk as two polarity threads: per polarity (OFF, ON), its kept events and
+        their indices, in stream order, the indices ending with a sentinel (len(events)) that
+        `_merge` stops on."""
         n = len(events)
         t_prev, base = self._start(events)
         snapshot = self._check(events, t_prev)
-        lay = self._layout
         kernel = self._split_kernel
         assert kernel is not None
-        lists = [np.empty(n + 1, np.int32) for _ in range(2)]
+        lead = self._args(events, t_prev, base)
+        outs = [(_empty_like(events, n + 1), np.empty(n + 1, np.int64)) for _ in range(2)]
         results: list[tuple[int, int, int] | BaseException | None] = [None, None]
 
         def run(pol: int) -> None:
+            s, listed, sc, tc, ic = self._work[pol]
+            ev, oi = outs[pol]
             try:
                 results[pol] = kernel(
-                    events.x,
-                    events.y,
-                    events.p,
-                    events.t,
-                    t_prev,
-                    base,
-                    self._last,
-                    lay.table,
-                    lay.cols,
-                    lay.plane,
-                    self.width,
-                    self.height,
+                    *lead,
                     self.window_us,
                     self.min_support,
-                    lists[pol],
-                    *self._packed[pol][:1],
+                    listed,
+                    s,
                     pol,
-                    *self._packed[pol][1:],
+                    sc,
+                    tc,
+                    ic,
+                    ev.x,
+                    ev.y,
+                    ev.p,
+                    ev.t,
+                    oi,
                 )
             except BaseException as exc:  # noqa: BLE001 - handed to the calling thread, which raises it
                 results[pol] = exc
@@ -675,45 +737,11 @@ class BackgroundActivityFilter:
             self._fail(events, min(b for b in (bad_off, bad_on) if b != GOOD), snapshot)
         if base_off != base_on:
             raise AssertionError(f"BAF polarity threads disagree on the time base ({base_off} != {base_on})")
-        off, on = lists[0][: k_off + 1], lists[1][: k_on + 1]
-        off[k_off] = on[k_on] = n
+        kept = []
+        for (ev, oi), k in zip(outs, (k_off, k_on), strict=True):
+            oi[k] = n
+            kept.append((ev[: k + 1], oi[: k + 1]))
         self._advance(events, base_off, k_off + k_on)
-        return on, off
-
-    def _run(self, events: EventArray, out: NDArray[Any], *, indices: bool) -> int | None:
-        """Filter one chunk into `out`; the number kept (None for an empty chunk).
-
-        Bad input raises before any state changes: a chunk small next to the map is checked in a
-        pass of its own; a larger one is checked block by block inside the kernel (the events are
-        then read from memory once) and the map is put back from a copy if a block is bad."""
-        if len(events) == 0:
-            return None
-        x, y, p, t = events.x, events.y, events.p, events.t
-        t_prev, base = self._start(events)
-        snapshot = self._check(events, t_prev)
-        lay = self._layout
-        base, kept, bad = self._kernels[indices](
-            x,
-            y,
-            p,
-            t,
-            t_prev,
-            base,
-            self._last,
-            lay.table,
-            lay.cols,
-            lay.plane,
-            self.width,
-            self.height,
-            self.window_us,
-            self.min_support,
-            out,
-            self._index,
-        )
-        if bad != GOOD:
-            self._fail(events, int(bad), snapshot)
-        kept = int(kept) if indices else int(np.count_nonzero(out))
-        self._advance(events, int(base), kept)
         return kept
 
     def _raise_if_bad(self, events: EventArray, bad: int) -> None:
@@ -738,7 +766,7 @@ class BackgroundActivityFilter:
 
 
 def _empty_like(events: EventArray, n: int) -> EventArray:
-    """n uninitialised events of `events`' dtypes (numpy's allocation: see `_gather`)."""
+    """n uninitialised events of `events`' dtypes (numpy's allocation: see `_collect`)."""
     x, y, p, t = events.x, events.y, events.p, events.t
     return EventArray(np.empty(n, x.dtype), np.empty(n, y.dtype), np.empty(n, p.dtype), np.empty(n, t.dtype))
 
