@@ -170,6 +170,46 @@ def _prepare(  # pragma: no cover - numba
     return _first_bad(x, y, t, width, height, t_prev)
 
 
+#: For each 8-bit pattern of "this polarity" over 8 events: the positions of its set bits, then
+#: zeros; and how many there are (`_pack` lists 8 events per step without a branch).
+_PACK_LANES = np.array(
+    [
+        [lane for lane in range(8) if bits >> lane & 1] + [0] * (8 - bin(bits).count("1"))
+        for bits in range(256)
+    ],
+    np.int16,
+)
+_PACK_COUNT = np.array([bin(bits).count("1") for bits in range(256)], np.int64)
+#: Gathers the low bit of each of a word's 8 bytes into its top byte (byte i -> bit 56 + i).
+_BYTE_BITS = np.uint64(0x0102040810204080)
+
+
+@njit(nogil=True, cache=True)
+def _pack(  # pragma: no cover - numba
+    p: NDArray[np.int8], pol: int, on: NDArray[np.uint8], ic: NDArray[np.int16]
+) -> int:
+    """ic[:m] = the positions in p (at most 2**15) of the events of polarity `pol` (1: p > 0, 0: p <= 0),
+    ascending; returns m. Eight events per step: one vectorized pass writes each event's 0/1 into
+    `on`; a multiply gathers 8 of them into a byte, which indexes a table of lane positions that is
+    stored whole (the lanes past the count are overwritten by the next step)."""
+    n = p.shape[0]
+    flip = np.uint8(pol != 1)
+    for j in range(n):
+        on[j] = np.uint8(p[j] > 0) ^ flip
+    words = on[: n - n % 8].view(np.uint64)
+    m = np.uint64(0)
+    for w in range(words.shape[0]):
+        bits = (words[w] * _BYTE_BITS) >> np.uint64(56)
+        g = np.int16(8 * w)
+        for lane in range(8):
+            ic[m + np.uint64(lane)] = g + _PACK_LANES[bits, lane]
+        m += np.uint64(_PACK_COUNT[bits])
+    for j in range(n - n % 8, n):
+        ic[m] = j
+        m += np.uint64(on[j])
+    return int(m)
+
+
 def _count_ge(typingctx: Any, arr: Any, start: Any, lim: Any, bits: Any) -> Any:
     """popcount(bits & (flat[start:start + 32] >= lim)) as one <32 x int> load folded into one vector
     compare, an and and one popcount: no gathers, no branches (LLVM's vectorizers do not find this
@@ -249,7 +289,8 @@ def _prefetch_intrinsic() -> Callable[..., None]:
 #: Bytes per event a separate validation pass reads (t, x, y): a chunk that reads more than twice
 #: the map is checked inside the kernel instead, against a copy of the map to restore on failure.
 CHECK_BYTES_PER_EVENT = 12
-#: Events per block of the kernel (its index work space: 32 KiB, so it stays in L1/L2).
+#: Events per block of the kernel (its index work space: 32 KiB, so it stays in L1/L2; threads=2
+#: lists a block's positions as int16, so at most 32767 with the prefetched events).
 BLOCK_EVENTS = 4096
 #: Smallest chunk `threads=2` splits by polarity: below it, starting the second thread costs more
 #: than half the chunk's scan.
@@ -322,8 +363,9 @@ def _make_kernel(
 
     With `split` (gather only) the kernel filters the events of one polarity (its `pol` argument)
     against that polarity's plane of the map: each block is validated and indexed whole, its events
-    of that polarity are packed, and the packed ones are scanned; the kept events are written with
-    their indices, for the merge of the two polarities. The rebases fall where the whole stream puts
+    of that polarity are listed (8 at a time, through a table of the 256 lane patterns), and the
+    listed ones are scanned; the kept events' indices are listed (int32), for the merge of the two
+    polarities. The rebases fall where the whole stream puts
     them, so two such kernels, one per polarity, leave the map and the base exactly as one kernel
     over both would, and they touch disjoint halves of the map (one thread each)."""
     if split and not gather:
@@ -336,8 +378,7 @@ def _make_kernel(
     ]
     own = f"np.uint64(start + tab[phase, {groups * segments}])"
     store = f"flat[{own}] = ti" if update_on_drop else f"if ok:\n            flat[{own}] = ti"
-    kept_index = "first[i]" if split else "first + i"  # split: `first` is the packed events' indices
-    out = f"out[np.uint64(k)] = {kept_index}\n        k += np.int64(ok)" if gather else "out[i] = ok"
+    out = "out[np.uint64(k)] = first + i\n        k += np.int64(ok)" if gather else "out[i] = ok"
     # every cache line of the vectors the event PREFETCH_AHEAD later will read
     step = 64 // np.dtype(dtype).itemsize
     offsets = sorted({*range(0, _LANES, step), _LANES - 1})
@@ -359,6 +400,23 @@ def scan(s, t, base, flat, tab, cols, window_us, min_support, out, k, first):
         start = s[i] & -4
         ok = ({" + ".join(terms)}) >= min_support
         {out}
+        {store}
+    return k
+
+
+def scan_packed(ic, n, s, t, base, flat, tab, cols, window_us, min_support, out, k, first):
+    for i in range(n):
+        ahead = s[ic[i + {PREFETCH_AHEAD}]] & -4
+        {prefetches}
+        j = ic[i]
+        rel = t[j] - base
+        ti = np.{dtype}(rel)
+        lim = np.{dtype}(rel - window_us)
+        phase = s[j] & 3
+        start = s[j] & -4
+        ok = ({" + ".join(terms)}) >= min_support
+        out[np.uint64(k)] = first + j
+        k += np.int64(ok)
         {store}
     return k
 
@@ -395,7 +453,7 @@ def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, wind
 
 
 def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, window_us, min_support, out,
-                 s, pol, sc, tc, ic, ox, oy, op, ot, oi):
+                 s, pol, on, ic):
     n = t.shape[0]
     blk = s.shape[0] - {PREFETCH_AHEAD}
     low = {info.min + 1} + window_us
@@ -407,17 +465,10 @@ def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height
         bad = prepare(x[a:e], y[a:e], p[a:e], t[a:e], s, plane, cols, width, height, before)
         if bad != {GOOD}:
             return base, k, bad + 2 * a
-        m = 0
-        for j in range(e - a):  # pack this polarity's events, branch-free
-            mu = np.uint64(m)
-            sc[mu] = s[j]
-            tc[mu] = t[a + j]
-            ic[mu] = a + j
-            m += np.int64((p[a + j] > 0) == (pol == 1))
-        pad = sc[m - 1] if m > 0 else 0
+        m = pack(p[a:e], pol, on, ic)
+        pad = ic[m - 1] if m > 0 else 0
         for j in range(m, m + {PREFETCH_AHEAD}):  # the last events prefetch the block's last
-            sc[j] = pad
-        kb = 0
+            ic[j] = pad
         lo = a
         lc = 0
         while lo < e:
@@ -427,14 +478,14 @@ def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height
                 hc = m
             else:
                 hi = lo + np.searchsorted(t[lo:e], top, side="right")
-                hc = lc + np.searchsorted(tc[lc:m], top, side="right")
-            kb = scan(sc[lc:], tc[lc:hc], base, flat, tab, cols, window_us, min_support, out, kb, ic[lc:])
+                hc = lc + np.searchsorted(ic[lc:m], hi - a)
+            tb = t[a:e]
+            k = scan_packed(ic[lc:], hc - lc, s, tb, base, flat, tab, cols, window_us, min_support, out, k, a)
             if hi < e:  # where the whole stream rebases; only this polarity's plane
                 rebase(mine, min(t[hi] - base - low, {info.max - info.min + 1}), {info.min})
                 base = t[hi] - low
             lo = hi
             lc = hc
-        k = collect(x, y, p, t, out, kb, ox, oy, op, ot, oi, k)
     return base, k, {GOOD}
 """
     env: dict[str, Any] = {
@@ -444,11 +495,13 @@ def split_kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height
         "rebase": _rebase,
         "prepare": _prepare,
         "collect": _collect,
+        "pack": _pack,
     }
     output = ("split " if split else "") + ("events" if gather else "mask")
     name = f"<BAF kernel r={radius} update_on_drop={update_on_drop} {dtype} {output}>"
     exec(compile(src, name, "exec"), env)
     env["scan"] = njit(nogil=True, boundscheck=False)(env["scan"])
+    env["scan_packed"] = njit(nogil=True, boundscheck=False)(env["scan_packed"])
     entry = "split_kernel" if split else "kernel"
     kernel: Callable[..., tuple[int, int, int]] = njit(nogil=True, boundscheck=False)(env[entry])
     return kernel
@@ -485,35 +538,34 @@ def _collect(  # pragma: no cover - numba
 
 
 @njit(nogil=True, cache=True)
-def _merge(  # pragma: no cover - numba
-    ax: NDArray[np.uint16],
-    ay: NDArray[np.uint16],
-    ap: NDArray[np.int8],
-    at: NDArray[np.int64],
-    ai: NDArray[np.int64],
-    bx: NDArray[np.uint16],
-    by: NDArray[np.uint16],
-    bp: NDArray[np.int8],
-    bt: NDArray[np.int64],
-    bi: NDArray[np.int64],
+def _gather_merged(  # pragma: no cover - numba
+    x: NDArray[np.uint16],
+    y: NDArray[np.uint16],
+    p: NDArray[np.int8],
+    t: NDArray[np.int64],
+    a: NDArray[np.int32],
+    b: NDArray[np.int32],
     ox: NDArray[np.uint16],
     oy: NDArray[np.uint16],
     op: NDArray[np.int8],
     ot: NDArray[np.int64],
 ) -> None:
-    """Two polarities' kept events, each in stream order with its indices, into one stream. Each
-    index list ends with a sentinel above every index (its events' arrays have a slot there), so
-    the merge reads both heads and selects without a branch."""
+    """The events at the union of two ascending index lists, in stream order, in one pass. Each list
+    ends with a sentinel above every index (not counted in the output's length), so the merge takes
+    the smaller head without a branch."""
     i = np.int64(0)
     j = np.int64(0)
     for o in range(ox.shape[0]):
-        take_a = ai[i] < bi[j]
-        ox[o] = ax[i] if take_a else bx[j]
-        oy[o] = ay[i] if take_a else by[j]
-        op[o] = ap[i] if take_a else bp[j]
-        ot[o] = at[i] if take_a else bt[j]
+        ia = a[i]
+        ib = b[j]
+        take_a = ia < ib
+        k = ia if take_a else ib
         i += np.int64(take_a)
         j += np.int64(not take_a)
+        ox[o] = x[k]
+        oy[o] = y[k]
+        op[o] = p[k]
+        ot[o] = t[k]
 
 
 #: Largest chunk `filter()` runs in one kernel call: it writes the kept events into arrays sized for
@@ -572,12 +624,10 @@ class BackgroundActivityFilter:
         self._split_kernel = _make_kernel(*kind, True, True) if self.threads == 2 else None
         self._last = np.full(2 * self._layout.plane, self._never, self._dtype)
         # per thread: the block's map indices (with the events it prefetches past the block's end) and
-        # its kept indices; with threads=2 also the packed events' map indices, times and indices
+        # its kept indices; with threads=2 also its events of the thread's polarity
         words = BLOCK_EVENTS + PREFETCH_AHEAD
-        self._work = [
-            tuple(np.empty(words, np.int64) for _ in range(5 if self.threads == 2 else 2))
-            for _ in range(self.threads)
-        ]
+        self._work = [(np.empty(words, np.int64), np.empty(words, np.int64)) for _ in range(self.threads)]
+        self._packs = [(np.empty(words, np.uint8), np.empty(words, np.int16)) for _ in range(self.threads)]
         self._base_us: int | None = None
         self._t_end: int | None = None
         self.n_in = 0
@@ -593,8 +643,8 @@ class BackgroundActivityFilter:
         """Keep mask of one chunk, advancing the state."""
         keep = np.zeros(len(events), np.bool_)
         if self._splits(events):
-            for _, oi in self._run_split(events):
-                keep[oi[:-1]] = True
+            for listed in self._run_split(events):
+                keep[listed[:-1]] = True
         elif len(events):
             self._run(events, keep, None)
         return keep
@@ -613,14 +663,14 @@ class BackgroundActivityFilter:
             out = _empty_like(events, n)
             kept = self._run(events, None, out)
             return out[:kept]
-        (a, ai), (b, bi) = self._run_split(events)
-        out = _empty_like(events, len(ai) + len(bi) - 2)
-        _merge(a.x, a.y, a.p, a.t, ai, b.x, b.y, b.p, b.t, bi, out.x, out.y, out.p, out.t)
+        off, on = self._run_split(events)
+        out = _empty_like(events, len(off) + len(on) - 2)
+        _gather_merged(events.x, events.y, events.p, events.t, off, on, out.x, out.y, out.p, out.t)
         return out
 
     def _splits(self, events: EventArray) -> bool:
-        """Whether this chunk runs as two polarity threads."""
-        return self.threads == 2 and len(events) >= max(1, SPLIT_MIN_EVENTS)
+        """Whether this chunk runs as two polarity threads (int32 indices: under 2**31 events)."""
+        return self.threads == 2 and max(1, SPLIT_MIN_EVENTS) <= len(events) < 2**31 - 1
 
     def _check(self, events: EventArray, t_prev: int) -> NDArray[Any] | None:
         """Validate a small chunk now (raising); for a large one, the map's copy to restore if the
@@ -689,38 +739,33 @@ class BackgroundActivityFilter:
         self._advance(events, int(base), kept)
         return kept
 
-    def _run_split(self, events: EventArray) -> list[tuple[EventArray, NDArray[np.int64]]]:
-        """Filter one chunk as two polarity threads: per polarity (OFF, ON), its kept events and
-        their indices, in stream order, the indices ending with a sentinel (len(events)) that
-        `_merge` stops on."""
+    def _run_split(self, events: EventArray) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        """Filter one chunk as two polarity threads: per polarity (OFF, ON), its kept events'
+        indices, ascending, ending with a sentinel (len(events)) that `_gather_merged` stops on."""
         n = len(events)
         t_prev, base = self._start(events)
         snapshot = self._check(events, t_prev)
         kernel = self._split_kernel
         assert kernel is not None
         lead = self._args(events, t_prev, base)
-        outs = [(_empty_like(events, n + 1), np.empty(n + 1, np.int64)) for _ in range(2)]
+        # int32 indices (chunks stay under FILTER_SLICE_EVENTS or a mask's length); pages past the kept
+        # count are never touched
+        lists = [np.empty(n + 1, np.int32) for _ in range(2)]
         results: list[tuple[int, int, int] | BaseException | None] = [None, None]
 
         def run(pol: int) -> None:
-            s, listed, sc, tc, ic = self._work[pol]
-            ev, oi = outs[pol]
+            s, _ = self._work[pol]
+            on, ic = self._packs[pol]
             try:
                 results[pol] = kernel(
                     *lead,
                     self.window_us,
                     self.min_support,
-                    listed,
+                    lists[pol],
                     s,
                     pol,
-                    sc,
-                    tc,
+                    on,
                     ic,
-                    ev.x,
-                    ev.y,
-                    ev.p,
-                    ev.t,
-                    oi,
                 )
             except BaseException as exc:  # noqa: BLE001 - handed to the calling thread, which raises it
                 results[pol] = exc
@@ -737,12 +782,10 @@ class BackgroundActivityFilter:
             self._fail(events, min(b for b in (bad_off, bad_on) if b != GOOD), snapshot)
         if base_off != base_on:
             raise AssertionError(f"BAF polarity threads disagree on the time base ({base_off} != {base_on})")
-        kept = []
-        for (ev, oi), k in zip(outs, (k_off, k_on), strict=True):
-            oi[k] = n
-            kept.append((ev[: k + 1], oi[: k + 1]))
+        off, on = lists[0][: k_off + 1], lists[1][: k_on + 1]
+        off[k_off] = on[k_on] = n
         self._advance(events, base_off, k_off + k_on)
-        return kept
+        return off, on
 
     def _raise_if_bad(self, events: EventArray, bad: int) -> None:
         """ValueError naming the first event that is out of order or off the sensor (GOOD: none)."""
