@@ -295,6 +295,10 @@ BLOCK_EVENTS = 4096
 #: Smallest chunk `threads=2` splits by polarity: below it, starting the second thread costs more
 #: than half the chunk's scan.
 SPLIT_MIN_EVENTS = 1 << 16
+#: Largest share of one polarity `threads=2` splits (estimated from every 64th event): the slower
+#: thread's half sets the time, and above ~60 % the split no longer pays for the merge (the real
+#: Gen3 recording, 68 % ON, was slower on two threads than on one).
+SPLIT_MAX_SHARE = 0.6
 #: Events ahead whose neighbourhood lines the kernel prefetches: on a map larger than L2 (a
 #: 1280x720 sensor) the lines of scattered events otherwise arrive one miss at a time.
 PREFETCH_AHEAD = 32
@@ -568,6 +572,39 @@ def _gather_merged(  # pragma: no cover - numba
         ot[o] = t[k]
 
 
+@njit(nogil=True, cache=True)
+def _scatter(keep: NDArray[np.bool_], idx: NDArray[np.int32]) -> None:  # pragma: no cover - numba
+    """keep[i] = True for every i in idx (numpy's fancy assignment took ~3x as long)."""
+    for j in range(idx.shape[0]):
+        keep[idx[j]] = True
+
+
+def _on_two_threads(first: Callable[[], None], second: Callable[[], None], name: str) -> None:
+    """Run `second` on a new thread and `first` here (both release the GIL in numba); re-raise
+    what either raised, once both are done."""
+    errors: list[BaseException] = []
+
+    def run(fn: Callable[[], None]) -> None:
+        try:
+            fn()
+        except BaseException as exc:  # noqa: BLE001 - re-raised on the calling thread below
+            errors.append(exc)
+
+    other = threading.Thread(target=run, args=(second,), name=name, daemon=True)
+    other.start()
+    run(first)
+    other.join()
+    if errors:
+        raise errors[0]
+
+
+def _halves(off: NDArray[np.int32], on: NDArray[np.int32], n: int) -> tuple[int, int]:
+    """Where each sentinel-ended index list crosses the chunk's middle: the merge splits there, so
+    two threads each write one half of the output (and of a mask) without sharing a line."""
+    mid = n // 2
+    return int(np.searchsorted(off[:-1], mid)), int(np.searchsorted(on[:-1], mid))
+
+
 #: Largest chunk `filter()` runs in one kernel call: it writes the kept events into arrays sized for
 #: the whole chunk (only the pages it fills are touched) and returns views of them, so a larger
 #: input is filtered in slices of this many events, which bounds the address space reserved.
@@ -643,8 +680,18 @@ class BackgroundActivityFilter:
         """Keep mask of one chunk, advancing the state."""
         keep = np.zeros(len(events), np.bool_)
         if self._splits(events):
-            for listed in self._run_split(events):
-                keep[listed[:-1]] = True
+            off, on = self._run_split(events)
+            i, j = _halves(off, on, len(events))
+
+            def low() -> None:
+                _scatter(keep, off[:i])
+                _scatter(keep, on[:j])
+
+            def high() -> None:
+                _scatter(keep, off[i:-1])
+                _scatter(keep, on[j:-1])
+
+            _on_two_threads(low, high, "baf-mask")
         elif len(events):
             self._run(events, keep, None)
         return keep
@@ -665,12 +712,24 @@ class BackgroundActivityFilter:
             return out[:kept]
         off, on = self._run_split(events)
         out = _empty_like(events, len(off) + len(on) - 2)
-        _gather_merged(events.x, events.y, events.p, events.t, off, on, out.x, out.y, out.p, out.t)
+        i, j = _halves(off, on, n)
+        x, y, p, t = events.x, events.y, events.p, events.t
+        # the first half's merge stops at its output's end, on heads >= the middle (its sentinels)
+        first, second = out[: i + j], out[i + j :]
+        _on_two_threads(
+            lambda: _gather_merged(x, y, p, t, off, on, first.x, first.y, first.p, first.t),
+            lambda: _gather_merged(x, y, p, t, off[i:], on[j:], second.x, second.y, second.p, second.t),
+            "baf-gather",
+        )
         return out
 
     def _splits(self, events: EventArray) -> bool:
-        """Whether this chunk runs as two polarity threads (int32 indices: under 2**31 events)."""
-        return self.threads == 2 and max(1, SPLIT_MIN_EVENTS) <= len(events) < 2**31 - 1
+        """Whether this chunk runs as two polarity threads: large enough (int32 indices: under
+        2**31 events) and with neither polarity much more than half of it."""
+        if not (self.threads == 2 and max(1, SPLIT_MIN_EVENTS) <= len(events) < 2**31 - 1):
+            return False
+        on = float(np.mean(events.p[::64] > 0))
+        return max(on, 1.0 - on) <= SPLIT_MAX_SHARE
 
     def _check(self, events: EventArray, t_prev: int) -> NDArray[Any] | None:
         """Validate a small chunk now (raising); for a large one, the map's copy to restore if the
@@ -751,33 +810,15 @@ class BackgroundActivityFilter:
         # int32 indices (chunks stay under FILTER_SLICE_EVENTS or a mask's length); pages past the kept
         # count are never touched
         lists = [np.empty(n + 1, np.int32) for _ in range(2)]
-        results: list[tuple[int, int, int] | BaseException | None] = [None, None]
+        results: list[tuple[int, int, int]] = [(0, 0, GOOD)] * 2
 
         def run(pol: int) -> None:
             s, _ = self._work[pol]
             on, ic = self._packs[pol]
-            try:
-                results[pol] = kernel(
-                    *lead,
-                    self.window_us,
-                    self.min_support,
-                    lists[pol],
-                    s,
-                    pol,
-                    on,
-                    ic,
-                )
-            except BaseException as exc:  # noqa: BLE001 - handed to the calling thread, which raises it
-                results[pol] = exc
+            results[pol] = kernel(*lead, self.window_us, self.min_support, lists[pol], s, pol, on, ic)
 
-        on_thread = threading.Thread(target=run, args=(1,), name="baf-on", daemon=True)
-        on_thread.start()
-        run(0)
-        on_thread.join()
-        for r in results:
-            if isinstance(r, BaseException):
-                raise r
-        (base_off, k_off, bad_off), (base_on, k_on, bad_on) = results  # type: ignore[misc]
+        _on_two_threads(lambda: run(0), lambda: run(1), "baf-on")
+        (base_off, k_off, bad_off), (base_on, k_on, bad_on) = results
         if bad_off != GOOD or bad_on != GOOD:  # both stop at the same block
             self._fail(events, min(b for b in (bad_off, bad_on) if b != GOOD), snapshot)
         if base_off != base_on:

@@ -177,6 +177,7 @@ def test_map_types_and_rebase_match_brute_force(
     # threads each polarity's kernel rebases its own plane where the whole stream does
     monkeypatch.setattr(filters, "BLOCK_EVENTS", block)
     monkeypatch.setattr(filters, "SPLIT_MIN_EVENTS", 0)
+    monkeypatch.setattr(filters, "SPLIT_MAX_SHARE", 1.0)
     rng = np.random.default_rng(window)
     n, w, h = 600, 9, 7
     gaps = rng.choice([0, 1, 3, window // 2, window - 1, window, window + 1, 2**15, 2**16, 2**31], n)
@@ -247,8 +248,8 @@ def test_two_threads_keep_what_one_keeps(
     ev, w, h = data
     kw = {"radius_px": radius, "window_us": window, "min_support": support, "update_on_drop": update_on_drop}
     one, two = BackgroundActivityFilter(w, h, **kw), BackgroundActivityFilter(w, h, threads=2, **kw)  # type: ignore[arg-type]
-    saved = filters.SPLIT_MIN_EVENTS, filters.CHECK_BYTES_PER_EVENT
-    filters.SPLIT_MIN_EVENTS = 0
+    saved = filters.SPLIT_MIN_EVENTS, filters.SPLIT_MAX_SHARE, filters.CHECK_BYTES_PER_EVENT
+    filters.SPLIT_MIN_EVENTS, filters.SPLIT_MAX_SHARE = 0, 1.0
     if in_kernel:
         filters.CHECK_BYTES_PER_EVENT = 1 << 40
     try:
@@ -262,7 +263,7 @@ def test_two_threads_keep_what_one_keeps(
                     np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
                     assert getattr(got, name).dtype == getattr(ev, name).dtype
     finally:
-        filters.SPLIT_MIN_EVENTS, filters.CHECK_BYTES_PER_EVENT = saved
+        filters.SPLIT_MIN_EVENTS, filters.SPLIT_MAX_SHARE, filters.CHECK_BYTES_PER_EVENT = saved
     assert (two.n_in, two.n_kept) == (one.n_in, one.n_kept)
     np.testing.assert_array_equal(two._last, one._last)
 
@@ -270,6 +271,27 @@ def test_two_threads_keep_what_one_keeps(
 def test_threads_is_one_or_two() -> None:
     with pytest.raises(ValueError, match="threads must be 1 or 2"):
         BackgroundActivityFilter(8, 8, threads=3)
+
+
+def test_two_threads_split_only_large_chunks_with_both_polarities(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the split pays for its merge only on a large chunk whose polarities are near half and half;
+    # otherwise the chunk runs on one thread (same result either way)
+    rng = np.random.default_rng(3)
+    n = filters.SPLIT_MIN_EVENTS
+    balanced = _burst(rng, n, 64, 64, 0)
+    skewed = EventArray(
+        balanced.x, balanced.y, np.where(rng.random(n) < 0.7, 1, -1).astype(np.int8), balanced.t
+    )
+    baf = BackgroundActivityFilter(64, 64, threads=2)
+    calls: list[int] = []
+    split = baf._run_split
+    monkeypatch.setattr(baf, "_run_split", lambda ev: calls.append(len(ev)) or split(ev))
+    for ev, splits in ((balanced, True), (skewed, False), (balanced[: n - 1], False)):
+        calls.clear()
+        one = BackgroundActivityFilter(64, 64).mask(ev)
+        baf.reset()
+        np.testing.assert_array_equal(baf.mask(ev), one)
+        assert bool(calls) == splits
 
 
 @pytest.mark.parametrize("fault", ["place", "order"])
@@ -286,6 +308,7 @@ def test_a_bad_event_deep_in_a_large_chunk_names_itself_and_changes_nothing(
     w, h = 64, 64
 
     monkeypatch.setattr(filters, "SPLIT_MIN_EVENTS", 1000)
+    monkeypatch.setattr(filters, "SPLIT_MAX_SHARE", 1.0)
 
     def make() -> BackgroundActivityFilter:
         return BackgroundActivityFilter(w, h, window_us=20_000, threads=threads)
