@@ -30,6 +30,7 @@ from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
+from rigd.core.host_clock import MONOTONIC, HostClock
 from rigd.core.kinds import DeviceKind
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
 
@@ -124,6 +125,7 @@ class Device(abc.ABC):
     _info: DeviceInfo
     _capabilities: frozenset[Capability] = frozenset()
     _label: str = ""
+    _host_clock: HostClock = MONOTONIC
 
     def __init__(self) -> None:
         self._closed = False
@@ -137,6 +139,13 @@ class Device(abc.ABC):
     @property
     def capabilities(self) -> frozenset[Capability]:
         return self._capabilities
+
+    @property
+    def host_clock(self) -> HostClock:
+        """The clock this device stamps `host_time_ns` with: the host's monotonic clock, or a
+        simulated world's (`rigd.core.host_clock`). A capture compares its items' host times
+        with "now" on this clock."""
+        return self._host_clock
 
     @property
     def label(self) -> str:

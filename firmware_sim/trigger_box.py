@@ -361,7 +361,7 @@ class SimTriggerBox(BoxCommands):
                         garbled = "true" if sent == "garbled" else "false"
                         self._journal.write(
                             f'{self._journal_head},"index":{k},"t_us":{b_k},'
-                            f'"host_time_ns":{time.monotonic_ns()},"garbled":{garbled}}}'
+                            f'"host_time_ns":{self.world.host_clock.now_ns()},"garbled":{garbled}}}'
                         )
                     self._link_faults_after_pulse()
                     if target and self._count >= target:
