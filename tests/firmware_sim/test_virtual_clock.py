@@ -4,16 +4,18 @@ on it that gives the same take twice."""
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from firmware_sim.clock import VirtualClock
-from firmware_sim.world import get_world, reset_world
+from firmware_sim.clock import VirtualClock, VirtualHostClock
+from firmware_sim.world import SimWorld, get_world, reset_world
 from rigd.app.capture import run_capture
 from rigd.app.config import default_sim_rig
 from rigd.core.errors import ConfigError
+from rigd.core.host_clock import MONOTONIC
 from rigd.take import Take
 
 
@@ -100,6 +102,32 @@ def test_a_sleeper_leaves_on_its_stop_event_without_moving_time() -> None:
     assert clock.now_us() == 0.0
 
 
+def test_a_real_world_stamps_host_time_with_the_monotonic_clock() -> None:
+    world = SimWorld("host-real")
+    assert world.host_clock is MONOTONIC
+
+
+def test_a_virtual_world_stamps_host_time_with_epoch_plus_virtual_time() -> None:
+    """Host time on the virtual clock moves with virtual time only, from an epoch that is the
+    monotonic clock's reading when the world was made (plausible magnitudes)."""
+    before = time.monotonic_ns()
+    world = SimWorld("host-virtual", clock="virtual")
+    after = time.monotonic_ns()
+    host = world.host_clock
+    assert isinstance(host, VirtualHostClock)
+    epoch = host.epoch_ns
+    assert before <= epoch <= after
+    assert host.now_ns() == epoch  # time has not started: host time stands at the epoch
+    assert isinstance(world.clock, VirtualClock)
+    world.clock.start()
+    world.clock.update(to_us=1234.5678)  # however long the machine took to get here
+    assert host.now_ns() == epoch + 1_234_568
+    world.clock.update(to_us=2_000_000.0)
+    assert host.now_ns() == epoch + 2_000_000_000
+    host.adopt_epoch(7)  # a cable follower counts from its lead's epoch
+    assert host.now_ns() == 7 + 2_000_000_000
+
+
 def test_a_world_refuses_specs_that_disagree_on_the_clock() -> None:
     reset_world("clock-clash")
     get_world("clock-clash", clock="virtual")
@@ -110,26 +138,41 @@ def test_a_world_refuses_specs_that_disagree_on_the_clock() -> None:
     reset_world("clock-clash")
 
 
-def _capture(tmp: Path, world: str) -> Take:
+def _capture(tmp: Path, world: str) -> tuple[Take, int, dict[str, dict[int, float]]]:
+    """A virtual take, its world's host epoch and each camera's true exposure starts by counter."""
     reset_world(world)
     config = default_sim_rig(world=world, seed=7, clock="virtual")
     result = run_capture(config, tmp, 0.5)
     assert result.frames == {"cam0": 15, "cam1": 15, "cam2": 15}
-    return Take(result.path)
+    host = get_world(world).host_clock
+    assert isinstance(host, VirtualHostClock)
+    truth = get_world(world).truth
+    exposed = {cam: {c: t for c, t, _ in rows} for cam, rows in truth.frames.items()}
+    return Take(result.path), host.epoch_ns, exposed
 
 
 @pytest.mark.slow
 def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -> None:
     """The whole pipeline (pty trigger, EVT decoding, window, sync, finalize) on virtual time:
-    frames (pixels and times) and events are the same twice."""
-    a = _capture(tmp_path / "a", "det-a")
-    b = _capture(tmp_path / "b", "det-b")
+    frames (pixels and times) and events are the same twice, and so are the frames' host times,
+    less their world's epoch: host time is the world's (epoch + virtual time of emission),
+    however differently loaded the machine was during the two takes. (An event packet's host
+    time is that of the newest device buffer the host read into it, so it depends on when the
+    host read: `test_sim_event_sensor` checks the buffers' stamps.)"""
+    a, epoch_a, exposed_a = _capture(tmp_path / "a", "det-a")
+    b, epoch_b, _ = _capture(tmp_path / "b", "det-b")
     for cam in ("cam0", "cam1", "cam2"):
         fa, fb = a.camera(cam), b.camera(cam)
         assert len(fa) == len(fb) == 15
         assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
         for i in (0, 7, 14):
             assert np.array_equal(fa[i].image, fb[i].image)
+        host_a = np.array([f.host_time_ns for f in fa[:]], np.int64) - epoch_a
+        host_b = np.array([f.host_time_ns for f in fb[:]], np.int64) - epoch_b
+        assert np.array_equal(host_a, host_b)
+        # A frame is handed over when its exposure ends, at that virtual instant.
+        ends = [exposed_a[cam][f.frame_counter] + f.exposure_us for f in fa[:]]
+        assert np.abs(host_a - np.round(np.array(ends) * 1000)).max() <= 1000
     for sensor in ("ev0", "ev1"):
         ea, eb = a.sensor(sensor).events(), b.sensor(sensor).events()
         assert len(ea) > 10_000
