@@ -27,11 +27,14 @@ argument and state validation) is `firmware_sim.trigger_commands.BoxCommands`.
 from __future__ import annotations
 
 import errno
+import fcntl
 import json
 import logging
 import os
 import select
 import socket
+import struct
+import termios
 import threading
 import time
 import tty
@@ -64,6 +67,10 @@ START_LEAD_US = 20_000
 _GARBAGE_BYTES = bytes(b for b in range(256) if b not in b"$*\n")
 _GARBAGE_ARRAY = np.frombuffer(_GARBAGE_BYTES, np.uint8)
 _CORRUPT_CHARS = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789#=-. "
+#: Virtual time: how long (wall s) a pulse holds the world for the host to read its record,
+#: and how often it looks (`SimTriggerBox._wait_host_read`).
+_HOST_READ_WAIT_S = 0.5
+_HOST_READ_POLL_S = 0.0002
 
 #: What became of a line the box meant to send.
 SendResult = Literal["sent", "garbled", "dropped", "silent"]
@@ -367,6 +374,8 @@ class SimTriggerBox(BoxCommands):
                     if target and self._count >= target:
                         self._state = IDLE
                         self._send_locked(f"END {self._count}")
+                if self.world.virtual and sent != "silent":
+                    self._wait_host_read(k)
                 k += 1
         except Exception:
             log.exception("trigger box %s: pulse scheduler failed at pulse %d", self.port_path, k)
@@ -375,6 +384,33 @@ class SimTriggerBox(BoxCommands):
             raise
         finally:
             hold.release()
+
+    def _wait_host_read(self, k: int) -> None:
+        """Virtual time: hold the world at the pulse until the host has read its record (at most
+        `_HOST_READ_WAIT_S` of wall time), so the host stamps it at about the pulse's virtual
+        instant, as a USB link delivers it within a millisecond. Left to run on, the world's
+        time would race ahead while the line sits unread on a loaded machine, and the records'
+        host times would lag the devices' (stamped at their own virtual instants) by however
+        long the host took: the coarse placement needs the fastest records prompt."""
+        deadline = time.monotonic() + _HOST_READ_WAIT_S
+        while (unread := self._host_unread()) > 0:
+            if time.monotonic() >= deadline:
+                log.debug(
+                    "trigger box %s: record %d still unread (%d bytes); time goes on",
+                    self.port_path,
+                    k,
+                    unread,
+                )
+                return
+            time.sleep(_HOST_READ_POLL_S)
+
+    def _host_unread(self) -> int:
+        """Bytes the box sent that the host has not read yet (0 once closed)."""
+        fd = self._slave if self.host_socket is None else self.host_socket.fileno()
+        try:
+            return int(struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0])
+        except OSError:
+            return 0  # closed under us: nobody will read it
 
     def _link_faults_after_pulse(self) -> None:
         """Count a fired pulse and switch the link faults on once due (caller holds the lock)."""
