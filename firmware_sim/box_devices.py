@@ -118,7 +118,13 @@ def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTrigg
         )
         slot.box = box
     if transport != "hid":
-        return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s, world=world)
+
+        def pty_link() -> Transport:
+            from firmware_sim.box_link import HandledPty
+
+            return HandledPty(box)
+
+        return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s, world=world, link=pty_link)
 
     def hid_link() -> Transport:
         from drivers.trigger_link import HidTransport
