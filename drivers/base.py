@@ -125,7 +125,9 @@ class Device(abc.ABC):
     _info: DeviceInfo
     _capabilities: frozenset[Capability] = frozenset()
     _label: str = ""
-    _host_clock: HostClock = MONOTONIC
+    host_clock: HostClock = MONOTONIC
+    """What this device stamps `host_time_ns` with (`rigd.core.host_clock`): a capture compares
+    its items' host times with "now" on this clock. A simulated world sets its own."""
 
     def __init__(self) -> None:
         self._closed = False
@@ -139,13 +141,6 @@ class Device(abc.ABC):
     @property
     def capabilities(self) -> frozenset[Capability]:
         return self._capabilities
-
-    @property
-    def host_clock(self) -> HostClock:
-        """The clock this device stamps `host_time_ns` with: the host's monotonic clock, or a
-        simulated world's (`rigd.core.host_clock`). A capture compares its items' host times
-        with "now" on this clock."""
-        return self._host_clock
 
     @property
     def label(self) -> str:

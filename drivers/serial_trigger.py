@@ -259,7 +259,7 @@ class SerialTrigger(BoxLines, Trigger):
                         "trigger box %s: readback of %d..%d failed: %s", self.port, first, first + count, exc
                     )
                     continue
-                now = self._host_clock.now_ns()
+                now = self.host_clock.now_ns()
                 for r in replies[:-1]:
                     k = self._int_field("TS?", r.fields, 1)
                     if first <= k < first + count and k not in got:

@@ -77,10 +77,10 @@ class BoxLines:
     _stats_lock: threading.Lock
     _stats: dict[str, int]
     _final_count: int | None
-    _host_clock: HostClock
+    host_clock: HostClock
 
     def _open_lines(self, transport: Transport, reply_timeout_s: float, host_clock: HostClock) -> None:
-        self._host_clock = host_clock
+        self.host_clock = host_clock
         self._transport = transport
         self.port = transport.name
         self.reply_timeout_s = reply_timeout_s
@@ -136,7 +136,7 @@ class BoxLines:
             self._corrupt_seen += 1
 
     def _handle_line(self, raw: bytes) -> None:
-        host_ns = self._host_clock.now_ns()
+        host_ns = self.host_clock.now_ns()
         if raw.endswith(b"\r"):
             raw = raw[:-1]
         if not raw:

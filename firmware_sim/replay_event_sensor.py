@@ -241,7 +241,7 @@ class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
             self._counts["inexact_times"] += inexact
         return _Packet(
             payload,
-            self._host_clock.now_ns(),
+            self.host_clock.now_ns(),
             n,
             b - a,
             int(t_dev[0]) if n else 0,

@@ -521,7 +521,7 @@ class Unpluggable:
     (through the `_check_present` hook of the device base classes)."""
 
     _fault: UnplugFault
-    _host_clock: HostClock
+    host_clock: HostClock
     _opened_us: float
     _world: SimWorld
     _lock: threading.Lock
@@ -534,7 +534,7 @@ class Unpluggable:
     def _plug_in(self, world: SimWorld, name: str, spec: str) -> None:
         """Take the device name's unplug fault (refusing to open while it is unplugged) and
         note when this object was opened: an unplug after that kills it for good."""
-        self._host_clock = world.host_clock  # what it stamps host times with (Device.host_clock)
+        self.host_clock = world.host_clock  # what it stamps host times with (Device.host_clock)
         self._fault = world.unplug_fault(name)
         self._fault.check_present(spec)
         self._opened_us = world.now_us()

@@ -80,7 +80,7 @@ class RemoteTrigger(Trigger):
     def __init__(self, feed: PulseFeed, *, spec: str, host_clock: HostClock = MONOTONIC) -> None:
         super().__init__()
         self._feed = feed
-        self._host_clock = host_clock
+        self.host_clock = host_clock
         self._info = DeviceInfo(
             kind="trigger", spec=spec, model="remote pulse feed", facts={"from": feed.name}
         )
@@ -196,7 +196,7 @@ class RemoteTrigger(Trigger):
         """Put the records on `clock`: this host's devices' (a simulated world's on virtual time),
         which the session learns only once they are open; before the first fetch."""
         with self._lock:
-            self._host_clock = clock
+            self.host_clock = clock
             self._offset_ns = None
 
     # -- the feed ----------------------------------------------------------------------------
@@ -209,7 +209,7 @@ class RemoteTrigger(Trigger):
         with self._lock:
             offset = self._offset_ns
         if state.host_ns is None or offset is None:
-            return np.full(len(state.index), self._host_clock.now_ns(), np.int64)
+            return np.full(len(state.index), self.host_clock.now_ns(), np.int64)
         return state.host_ns - np.int64(offset)
 
     def _note_offset(self, t0: int, t1: int, state: FeedState) -> None:
@@ -231,7 +231,7 @@ class RemoteTrigger(Trigger):
         with self._lock:
             since = self._next
         try:
-            clock = self._host_clock
+            clock = self.host_clock
             t0 = clock.now_ns()
             state = self._feed.fetch(since)
             self._note_offset(t0, clock.now_ns(), state)
