@@ -30,6 +30,7 @@ from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import ConfigError, DeviceError
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
+from rigd.core.host_clock import MONOTONIC, HostClock
 from rigd.core.kinds import DeviceKind
 from rigd.core.settings import CameraSettings, EventSensorSettings, TriggerSettings
 
@@ -124,6 +125,9 @@ class Device(abc.ABC):
     _info: DeviceInfo
     _capabilities: frozenset[Capability] = frozenset()
     _label: str = ""
+    host_clock: HostClock = MONOTONIC
+    """What this device stamps `host_time_ns` with (`rigd.core.host_clock`): a capture compares
+    its items' host times with "now" on this clock. A simulated world sets its own."""
 
     def __init__(self) -> None:
         self._closed = False

@@ -154,7 +154,7 @@ class DecodingEventSensor(EventSensor[B], Generic[B]):
         decoded, chunk = self._decoder.flush_chunk()
         if len(decoded.events) or len(decoded.triggers):
             raw = None if chunk is None else self._joined(chunk)
-            return EventPacket(decoded.events, decoded.triggers, time.monotonic_ns(), raw)
+            return EventPacket(decoded.events, decoded.triggers, self.host_clock.now_ns(), raw)
         return None
 
     def _counters(self) -> tuple[int, dict[str, int]]:

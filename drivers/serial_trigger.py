@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -34,6 +33,7 @@ from drivers.trigger_link import (
 )
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import ConfigError, DeviceTimeoutError, ProtocolError
+from rigd.core.host_clock import MONOTONIC, HostClock
 from rigd.core.settings import TriggerSettings
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,8 @@ class SerialTrigger(BoxLines, Trigger):
 
     `port` opens a serial port; pass `transport` instead for any other link (HID). The name
     says "serial" for the line protocol, which is the same whatever carries its bytes.
+    `host_clock` stamps the pulse records' arrival (`host_time_ns`): the monotonic clock on
+    hardware, a simulated world's own clock on a simulated box (`rigd.core.host_clock`).
     """
 
     _capabilities = frozenset({Capability.PULSE_TIMESTAMPS, Capability.PULSE_COUNT})
@@ -64,6 +66,7 @@ class SerialTrigger(BoxLines, Trigger):
         boot_timeout_s: float = 5.0,
         spec: str | None = None,
         on_close: Callable[[], None] | None = None,
+        host_clock: HostClock = MONOTONIC,
     ) -> None:
         if (port is None) == (transport is None):
             raise ValueError("SerialTrigger needs exactly one of port and transport")
@@ -71,7 +74,7 @@ class SerialTrigger(BoxLines, Trigger):
         if transport is None:
             assert port is not None
             transport = SerialTransport(port, baudrate=baudrate)
-        self._open_lines(transport, reply_timeout_s)
+        self._open_lines(transport, reply_timeout_s, host_clock)
         self._label = f"trigger box {self.port}"
         self._spec = spec or self.port
         self._on_close = on_close
@@ -256,7 +259,7 @@ class SerialTrigger(BoxLines, Trigger):
                         "trigger box %s: readback of %d..%d failed: %s", self.port, first, first + count, exc
                     )
                     continue
-                now = time.monotonic_ns()
+                now = self.host_clock.now_ns()
                 for r in replies[:-1]:
                     k = self._int_field("TS?", r.fields, 1)
                     if first <= k < first + count and k not in got:

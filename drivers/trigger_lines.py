@@ -3,9 +3,9 @@
 Framing (`$payload*HH`), checksums, tagged commands (`#n`) and their replies, retries of
 idempotent commands after line noise, and the PING / READY handshake. The receive side splits
 what the transport delivers into lines: pulse records (`P <index> <t_us>`) go to the device's
-pulse queue stamped with the host monotonic clock, `END` sets the run's final count, everything
-else goes to the reply queue a command waits on. `SerialTrigger` (drivers.serial_trigger) is
-a `BoxLines` with the trigger's run semantics on top.
+pulse queue stamped with its host clock (the monotonic clock, or a simulated world's), `END`
+sets the run's final count, everything else goes to the reply queue a command waits on.
+`SerialTrigger` (drivers.serial_trigger) is a `BoxLines` with the trigger's run semantics on top.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from drivers.lifecycle import END, Acquisition, Signal
 from drivers.trigger_link import Transport, TransportError
 from rigd.core.errors import DeviceTimeoutError, ProtocolError
+from rigd.core.host_clock import HostClock
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +77,10 @@ class BoxLines:
     _stats_lock: threading.Lock
     _stats: dict[str, int]
     _final_count: int | None
+    host_clock: HostClock
 
-    def _open_lines(self, transport: Transport, reply_timeout_s: float) -> None:
+    def _open_lines(self, transport: Transport, reply_timeout_s: float, host_clock: HostClock) -> None:
+        self.host_clock = host_clock
         self._transport = transport
         self.port = transport.name
         self.reply_timeout_s = reply_timeout_s
@@ -133,7 +136,7 @@ class BoxLines:
             self._corrupt_seen += 1
 
     def _handle_line(self, raw: bytes) -> None:
-        host_ns = time.monotonic_ns()
+        host_ns = self.host_clock.now_ns()
         if raw.endswith(b"\r"):
             raw = raw[:-1]
         if not raw:

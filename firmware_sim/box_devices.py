@@ -118,7 +118,13 @@ def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTrigg
         )
         slot.box = box
     if transport != "hid":
-        return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s)
+
+        def pty_link() -> Transport:
+            from firmware_sim.box_link import HandledPty
+
+            return HandledPty(box)
+
+        return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s, world=world, link=pty_link)
 
     def hid_link() -> Transport:
         from drivers.trigger_link import HidTransport
@@ -127,7 +133,7 @@ def open_box_trigger(spec: DeviceSpec, world: SimWorld, box_class: type[SimTrigg
         name = f"hid://{SIM_HID_VID:04x}:{SIM_HID_PID:04x}/{box_serial(box)}"
         return HidTransport(FakeHidDevice(box), name)
 
-    return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s, link=hid_link)
+    return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s, world=world, link=hid_link)
 
 
 def driver_on_pty(
@@ -136,10 +142,12 @@ def driver_on_pty(
     reply_timeout_s: float,
     boot_timeout_s: float,
     *,
+    world: SimWorld,
     link: Callable[[], Transport] | None = None,
 ) -> SerialTrigger:
     """The real host driver on a simulated box's pty (or on the transport `link` makes); the
-    box closes with it, or at once if the driver cannot open it."""
+    box closes with it, or at once if the driver cannot open it. The driver stamps the pulse
+    records with the world's host clock, as the world's cameras and sensors stamp their data."""
     from drivers.serial_trigger import SerialTrigger
 
     try:
@@ -149,6 +157,7 @@ def driver_on_pty(
             transport=transport,
             spec=spec.raw,
             on_close=box.close,
+            host_clock=world.host_clock,
             reply_timeout_s=reply_timeout_s,
             boot_timeout_s=boot_timeout_s,
         )

@@ -16,7 +16,9 @@ connect to it, and
   where the lead sends them, wake their due sleepers (holding), and report idle with their
   next deadline once nothing holds time there. Edges go before the advance that follows them
   (one ordered stream, and the lead waits for their acknowledgement), so a follower's sensor
-  makes exactly the events and trigger words it would make in a one-process world.
+  makes exactly the events and trigger words it would make in a one-process world. Followers
+  also adopt the lead's host epoch, so the host times their devices stamp (epoch + virtual
+  time, `firmware_sim.clock.VirtualHostClock`) agree with the lead's.
 
 The lead's clock does not start (box START) before `cable_followers` followers are connected
 (bounded: `cable_wait_s`). A follower that hangs up is dropped with a warning and time goes on

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
 
 from firmware_sim.cable import CableParams, check_private_dir
-from firmware_sim.clock import VirtualClock
+from firmware_sim.clock import VirtualClock, VirtualHostClock
 from firmware_sim.world import Edge
 from rigd.core.errors import ConfigError, DeviceError
 
@@ -325,6 +325,9 @@ class CableLead:
                 if self._clock is None:
                     welcome["epoch_ns"] = world.clock.epoch_ns  # type: ignore[union-attr]
                 else:
+                    # Virtual: the lead's host epoch, so the followers' host times agree with its own.
+                    assert isinstance(world.host_clock, VirtualHostClock)
+                    welcome["epoch_ns"] = world.host_clock.epoch_ns
                     welcome["now_us"] = self._clock.now_us()
                     welcome["started"] = self._clock.started
                     follower.time_sent = welcome["now_us"]
@@ -464,6 +467,8 @@ class CableFollower:
         if self._clock is None:
             world.clock.adopt_epoch(int(welcome["epoch_ns"]))  # type: ignore[union-attr]
         else:
+            assert isinstance(world.host_clock, VirtualHostClock)
+            world.host_clock.adopt_epoch(int(welcome["epoch_ns"]))
             self._clock.update(to_us=float(welcome["now_us"]))
             self._clock.attach(self)  # reports its first STATE
         self._reader = threading.Thread(

@@ -16,6 +16,10 @@ A `Hold` is how a device thread takes part: while held, time does not move; `Hol
 lets go while asleep and takes the hold again, atomically, at the instant it is woken.
 Sleeping without a hold (`SimClock.sleep_until`) waits for time to get there without stopping it.
 
+The world's host clock (`host_clock`, what its devices stamp `host_time_ns` with) is the host's
+monotonic clock on the real clock and `VirtualHostClock` on the virtual one: host and rig time
+then advance together, as they do on hardware, whatever the machine's load.
+
 A virtual clock may be shared with other processes over the simulated trigger cable
 (`firmware_sim.cable`, a `ClockLink`): the lead's clock advances only when its followers are
 idle too, to the earliest deadline of them all; a follower's clock never advances on its own,
@@ -32,6 +36,8 @@ import threading
 import time
 from collections.abc import Callable
 from typing import Literal, Protocol
+
+from rigd.core.host_clock import MONOTONIC, HostClock
 
 log = logging.getLogger(__name__)
 
@@ -361,3 +367,38 @@ class VirtualClock:
 
 def make_clock(mode: ClockMode) -> RealClock | VirtualClock:
     return VirtualClock() if mode == "virtual" else RealClock()
+
+
+class VirtualHostClock:
+    """Host time on a virtual world: `epoch_ns + round(virtual now_us * 1000)`.
+
+    The epoch is the monotonic clock's reading when the world was made, so host times keep
+    plausible magnitudes; past it they move only with virtual time. A device stamps data it
+    hands to the host at the virtual instant it does so, as a host on hardware reads its clock
+    when the data arrives, and the same take on a loaded or an idle machine gets the same host
+    times, less the epoch."""
+
+    def __init__(self, clock: VirtualClock, epoch_ns: int | None = None) -> None:
+        self._clock = clock
+        self._epoch_ns = time.monotonic_ns() if epoch_ns is None else int(epoch_ns)
+
+    @property
+    def epoch_ns(self) -> int:
+        """Host time at virtual time 0."""
+        return self._epoch_ns
+
+    def adopt_epoch(self, epoch_ns: int) -> None:
+        """Count from another process's epoch (a cable follower takes its lead's: their virtual
+        times are one, so their host times agree too)."""
+        self._epoch_ns = int(epoch_ns)
+
+    def now_ns(self) -> int:
+        return self._epoch_ns + round(self._clock.now_us() * 1000)
+
+    def __repr__(self) -> str:
+        return f"VirtualHostClock(epoch_ns={self._epoch_ns})"
+
+
+def make_host_clock(clock: RealClock | VirtualClock) -> HostClock:
+    """The host clock of a world on `clock` (see the module docstring)."""
+    return VirtualHostClock(clock) if isinstance(clock, VirtualClock) else MONOTONIC

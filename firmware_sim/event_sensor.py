@@ -279,7 +279,7 @@ class SimEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
         assert self._journal is not None
         self._journal.write(
             f'{self._journal_head},"n":{n},"n_triggers":{n_trig},"t_first_device_us":{first},'
-            f'"t_last_device_us":{last},"host_time_ns":{time.monotonic_ns()}}}'
+            f'"t_last_device_us":{last},"host_time_ns":{self.host_clock.now_ns()}}}'
         )
 
     def _counters(self) -> tuple[int, dict[str, int]]:
@@ -461,7 +461,7 @@ class SimEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
         mark = self._encoder.mark_time(self._clock.stamp(true_end_us) - 1)
         return _Packet(
             payload + mark,
-            time.monotonic_ns(),
+            self.host_clock.now_ns(),
             n,
             len(triggers),
             int(events.t.min()) if n else 0,

@@ -70,6 +70,7 @@ class FakeHidDevice:
         self._closed = False
         self.reports_in = 0
         self.reports_out = 0
+        self._returned = 0  # bytes its reads returned (the box learns they were handled)
         if box is not None:
             self._bind(box)
 
@@ -77,6 +78,7 @@ class FakeHidDevice:
         if box.host_socket is None:
             raise OSError(f"sim trigger box {box.port_path} has no socket link")
         self._box = box
+        box.host_handled(0)  # from now on the box waits for this device's reports
 
     # -- opening, as hidapi does it
     def open_path(self, path: bytes) -> None:
@@ -106,6 +108,9 @@ class FakeHidDevice:
     # -- I/O
     def read(self, max_length: int, timeout_ms: int = 0) -> list[int]:
         sock = self._socket()
+        box = self._box
+        if box is not None:  # the driver reads again only once it handled what it got
+            box.host_handled(self._returned)
         try:
             ready, _, _ = select.select([sock], [], [], max(timeout_ms, 0) / 1000.0)
             if not ready:
@@ -116,6 +121,7 @@ class FakeHidDevice:
         if not data:
             raise OSError("read error")
         self.reports_in += 1
+        self._returned += len(data)
         return [len(data), *data, *bytes(PAYLOAD - len(data))]
 
     def write(self, buff: bytes | list[int]) -> int:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from typing import Any
 
 import h5py
@@ -191,7 +190,7 @@ class ReplayCamera(Unpluggable, RgbCamera):
             t_exposure_start_us=int(track.device_us[j]) - self._base,
             exposure_us=int(track.exposure_us[j]),
             frame_counter=counter,
-            host_time_ns=time.monotonic_ns(),
+            host_time_ns=self.host_clock.now_ns(),
             pixel_format=self._track.pixel_format,
         )
 

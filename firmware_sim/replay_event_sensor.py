@@ -8,7 +8,6 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 
 import numpy as np
 
@@ -242,7 +241,7 @@ class ReplayEventSensor(Unpluggable, DecodingEventSensor[_Packet]):
             self._counts["inexact_times"] += inexact
         return _Packet(
             payload,
-            time.monotonic_ns(),
+            self.host_clock.now_ns(),
             n,
             b - a,
             int(t_dev[0]) if n else 0,

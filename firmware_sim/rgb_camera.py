@@ -212,7 +212,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
         if self._journal is not None:
             self._journal.write(
                 f'{self._journal_head},"counter":{frame.frame_counter},'
-                f'"t_device_us":{frame.t_exposure_start_us},"host_time_ns":{time.monotonic_ns()}}}'
+                f'"t_device_us":{frame.t_exposure_start_us},"host_time_ns":{self.host_clock.now_ns()}}}'
             )
         return frame
 
@@ -368,7 +368,7 @@ class SimRgbCamera(Unpluggable, RgbCamera):
             t_exposure_start_us=job.device_us,
             exposure_us=job.exposure_us,
             frame_counter=job.counter,
-            host_time_ns=time.monotonic_ns(),
+            host_time_ns=self.host_clock.now_ns(),
             pixel_format=self.pixel_format,
         )
         with self._lock:

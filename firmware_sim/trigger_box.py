@@ -27,11 +27,14 @@ argument and state validation) is `firmware_sim.trigger_commands.BoxCommands`.
 from __future__ import annotations
 
 import errno
+import fcntl
 import json
 import logging
 import os
 import select
 import socket
+import struct
+import termios
 import threading
 import time
 import tty
@@ -64,6 +67,10 @@ START_LEAD_US = 20_000
 _GARBAGE_BYTES = bytes(b for b in range(256) if b not in b"$*\n")
 _GARBAGE_ARRAY = np.frombuffer(_GARBAGE_BYTES, np.uint8)
 _CORRUPT_CHARS = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789#=-. "
+#: Virtual time: how long (wall s) a pulse holds the world for the host to read its record,
+#: and how often it looks (`SimTriggerBox._wait_host_read`).
+_HOST_READ_WAIT_S = 0.5
+_HOST_READ_POLL_S = 0.0002
 
 #: What became of a line the box meant to send.
 SendResult = Literal["sent", "garbled", "dropped", "silent"]
@@ -132,6 +139,10 @@ class SimTriggerBox(BoxCommands):
         self._t0 = -1
         self._ring = np.zeros(RING_SIZE, np.int64)
         self._lines_sent = 0
+        self._bytes_sent = 0
+        #: What the host's link reported handled (`host_handled`); None: it reports nothing.
+        self._handled: int | None = None
+        self._handled_cond = threading.Condition()
         self.tx_dropped = 0
         self.commands_received = 0
         #: ERR codes the box has replied with, in order (tests read it).
@@ -202,6 +213,7 @@ class SimTriggerBox(BoxCommands):
             try:
                 n = os.write(self._master, view)
                 view = view[n:]
+                self._bytes_sent += n
             except BlockingIOError:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -322,6 +334,7 @@ class SimTriggerBox(BoxCommands):
     def _halt_scheduler(self) -> None:
         sched = self._scheduler
         self._run_stop.set()
+        self._wake_waiter()
         if sched is not None and sched is not threading.current_thread():
             sched.join()
         self._scheduler = None
@@ -357,16 +370,19 @@ class SimTriggerBox(BoxCommands):
                     self._ring[k % RING_SIZE] = b_k
                     self._count = k + 1
                     sent = self._send_locked(f"P {k} {b_k}")
+                    sent_bytes = self._bytes_sent
                     if self._journal is not None and sent in ("sent", "garbled"):
                         garbled = "true" if sent == "garbled" else "false"
                         self._journal.write(
                             f'{self._journal_head},"index":{k},"t_us":{b_k},'
-                            f'"host_time_ns":{time.monotonic_ns()},"garbled":{garbled}}}'
+                            f'"host_time_ns":{self.world.host_clock.now_ns()},"garbled":{garbled}}}'
                         )
                     self._link_faults_after_pulse()
                     if target and self._count >= target:
                         self._state = IDLE
                         self._send_locked(f"END {self._count}")
+                if self.world.virtual and sent != "silent":
+                    self._wait_host_read(k, sent_bytes, stop)
                 k += 1
         except Exception:
             log.exception("trigger box %s: pulse scheduler failed at pulse %d", self.port_path, k)
@@ -375,6 +391,56 @@ class SimTriggerBox(BoxCommands):
             raise
         finally:
             hold.release()
+
+    def host_handled(self, n_bytes: int) -> None:
+        """The host's link (`firmware_sim.box_link`, the fake HID device): the first `n_bytes`
+        the box sent have been read and every line among them handled (stamped)."""
+        with self._handled_cond:
+            self._handled = max(n_bytes, self._handled or 0)
+            self._handled_cond.notify_all()
+
+    def _wait_host_read(self, k: int, sent_bytes: int, stop: threading.Event) -> None:
+        """Virtual time: hold the world at the pulse until the host has stamped its record (at
+        most `_HOST_READ_WAIT_S` of wall time), so the record's host time is the pulse's virtual
+        instant, as a USB link delivers it within a millisecond. Left to run on, the world's
+        time would race ahead while the line sits unread on a loaded machine, and the records'
+        host times would lag the devices' (stamped at their own virtual instants) by however
+        long the host took: the coarse placement needs the fastest records prompt. A host link
+        that reports what it handled is waited for exactly; any other reader until the line has
+        left the kernel's queue (it may stamp a moment later)."""
+        deadline = time.monotonic() + _HOST_READ_WAIT_S
+        with self._handled_cond:
+            if self._handled is not None:
+                if not self._handled_cond.wait_for(
+                    lambda: (self._handled or 0) >= sent_bytes or stop.is_set(), _HOST_READ_WAIT_S
+                ):
+                    log.debug(
+                        "trigger box %s: record %d not handled in time; time goes on", self.port_path, k
+                    )
+                return
+        while (unread := self._host_unread()) > 0 and not stop.is_set():
+            if time.monotonic() >= deadline:
+                log.debug(
+                    "trigger box %s: record %d still unread (%d bytes); time goes on",
+                    self.port_path,
+                    k,
+                    unread,
+                )
+                return
+            time.sleep(_HOST_READ_POLL_S)
+
+    def _wake_waiter(self) -> None:
+        """A pulse waiting for the host to read its record stops waiting (STOP, close)."""
+        with self._handled_cond:
+            self._handled_cond.notify_all()
+
+    def _host_unread(self) -> int:
+        """Bytes the box sent that the host has not read yet (0 once closed)."""
+        fd = self._slave if self.host_socket is None else self.host_socket.fileno()
+        try:
+            return int(struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0])
+        except OSError:
+            return 0  # closed under us: nobody will read it
 
     def _link_faults_after_pulse(self) -> None:
         """Count a fired pulse and switch the link faults on once due (caller holds the lock)."""
@@ -401,6 +467,7 @@ class SimTriggerBox(BoxCommands):
             return
         self._stop.set()
         self._run_stop.set()
+        self._wake_waiter()
         self._reader.join()
         sched = self._scheduler
         if sched is not None:

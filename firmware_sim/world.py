@@ -5,7 +5,8 @@ Every simulated device of one rig shares a `SimWorld`. True time is the world's 
 deadlines, or a virtual clock (`clock=virtual`) that runs as fast as the CPU allows and gives
 the same data twice; each device reads it through its own `DeviceClock`, with an offset and
 a drift, and the ground truth of everything the devices did is logged in true time so tests
-can score the sync engine.
+can score the sync engine. The world also owns the host clock its devices stamp what they hand
+to the host with (`host_clock`): on virtual time, host time is virtual too.
 
 Faults that must outlive one device object live here too: an unplugged device's window
 (`UnplugFault`) is kept per device name, because the host recovers by opening the same spec
@@ -26,8 +27,17 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from firmware_sim.cable import CableParams, parse_cable
-from firmware_sim.clock import CLOCK_MODES, ClockMode, Hold, RealClock, VirtualClock, make_clock
+from firmware_sim.clock import (
+    CLOCK_MODES,
+    ClockMode,
+    Hold,
+    RealClock,
+    VirtualClock,
+    make_clock,
+    make_host_clock,
+)
 from rigd.core.errors import ConfigError, DeviceError
+from rigd.core.host_clock import HostClock
 
 if TYPE_CHECKING:
     from drivers.lifecycle import DeliveryQueue
@@ -160,6 +170,9 @@ class SimWorld:
         self.name = name
         self.seed = seed
         self.clock: RealClock | VirtualClock = make_clock(clock)
+        self.host_clock: HostClock = make_host_clock(self.clock)
+        """What every device of this world stamps `host_time_ns` with: the host's monotonic
+        clock in real time, epoch + virtual time on the virtual clock (`firmware_sim.clock`)."""
         self.wire = TriggerWire()
         self.truth = GroundTruth()
         self._lock = threading.Lock()
@@ -508,6 +521,7 @@ class Unpluggable:
     (through the `_check_present` hook of the device base classes)."""
 
     _fault: UnplugFault
+    host_clock: HostClock
     _opened_us: float
     _world: SimWorld
     _lock: threading.Lock
@@ -520,6 +534,7 @@ class Unpluggable:
     def _plug_in(self, world: SimWorld, name: str, spec: str) -> None:
         """Take the device name's unplug fault (refusing to open while it is unplugged) and
         note when this object was opened: an unplug after that kills it for good."""
+        self.host_clock = world.host_clock  # what it stamps host times with (Device.host_clock)
         self._fault = world.unplug_fault(name)
         self._fault.check_present(spec)
         self._opened_us = world.now_us()

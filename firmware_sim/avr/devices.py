@@ -70,4 +70,4 @@ def open_avr_trigger(spec: DeviceSpec) -> SerialTrigger:
         slot.check_free(spec, world)
         box = AvrTriggerBox(world, elf, mcu=mcu)
         slot.box = box
-    return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s)
+    return driver_on_pty(spec, box, reply_timeout_s, boot_timeout_s, world=world)

@@ -34,6 +34,7 @@ from rigd.core.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
+from rigd.core.host_clock import MONOTONIC
 from rigd.core.settings import TriggerSettings
 
 
@@ -430,3 +431,45 @@ def test_handshake_flush_line_draws_no_error_reply(world_name: str) -> None:
         assert box.errors_sent == []  # the flush newline is ignored, never an empty command
     finally:
         box.close()
+
+
+class _StepClock:
+    """A host clock far from the monotonic one that moves 1 us per reading."""
+
+    def __init__(self) -> None:
+        self.readings: list[int] = []
+        self._next = 10**15
+
+    def now_ns(self) -> int:
+        self._next += 1000
+        self.readings.append(self._next)
+        return self._next
+
+
+def test_records_are_stamped_with_the_injected_host_clock(world_name: str, transport: str) -> None:
+    """The driver stamps every pulse record (read live or read back after line noise) with the
+    host clock it was given, here the world's (`box_devices` hands it over), never its own."""
+    world = get_world(world_name)
+    clock = _StepClock()
+    world.host_clock = clock
+    trig, _, _ = _open(world_name, "garbage_every=5&seed=4", transport)
+    try:
+        assert trig.host_clock is clock
+        _, batch = _run(trig, 60)
+        assert batch.index.tolist() == list(range(60))
+        assert trig.stats["recovered_pulses"] > 0  # some came by readback
+        assert set(batch.host_time_ns.tolist()) <= set(clock.readings)
+    finally:
+        trig.close()
+
+
+def test_a_serial_trigger_defaults_to_the_monotonic_clock(world_name: str) -> None:
+    trig, _, _ = _open(world_name)
+    try:
+        assert trig.host_clock is MONOTONIC
+        before = time.monotonic_ns()
+        _, batch = _run(trig, 5)
+        assert (batch.host_time_ns >= before).all()
+        assert (batch.host_time_ns <= time.monotonic_ns()).all()
+    finally:
+        trig.close()

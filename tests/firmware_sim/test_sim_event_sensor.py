@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from drivers.registry import DeviceSpec
+from firmware_sim.clock import VirtualHostClock
 from firmware_sim.event_kernels import EventBuffer, generate_events, generate_events_kernel
-from firmware_sim.event_sensor import SimEventSensor, open_sim_event_sensor
+from firmware_sim.event_sensor import GENERATION_LAG_US, SLICE_US, SimEventSensor, open_sim_event_sensor
 from firmware_sim.scene import Scene, lin_log
 from firmware_sim.testing.wire import fire_pulses
 from firmware_sim.world import DeviceClock, SimWorld, get_world, reset_world
@@ -167,6 +168,25 @@ def test_moving_scene_gives_sorted_in_range_events(world_name: str) -> None:
     st = sensor.stats()
     assert st.delivered == len(ev) == st.extra["events_generated"]
     assert st.device_dropped == 0
+
+
+def test_packets_on_virtual_time_carry_the_world_host_time_of_their_slice(world_name: str) -> None:
+    """On the virtual clock a sensor hands a slice over at the virtual instant it is made
+    (`GENERATION_LAG_US` past its end, on the slice grid), and stamps it with the world's host
+    clock there: epoch + that instant, nothing of the machine's own clock."""
+    world = get_world(world_name, clock="virtual")
+    host = world.host_clock
+    assert isinstance(host, VirtualHostClock)
+    with open_ev(world_name, VIRTUAL) as sensor:
+        assert sensor.host_clock is host
+        sensor.start()
+        packets = run_virtual(sensor, world, 0.3)
+    at_ns = np.array([p.host_time_ns for p in packets], np.int64) - host.epoch_ns
+    assert len(at_ns) > 3
+    assert (np.diff(at_ns) >= 0).all()
+    assert at_ns[0] >= (SLICE_US + GENERATION_LAG_US) * 1000
+    assert at_ns[-1] <= 300_000_000
+    assert (at_ns % (SLICE_US * 1000) == 0).all()  # GENERATION_LAG_US is whole slices
 
 
 def test_static_scene_gives_no_events(world_name: str) -> None:

@@ -4,16 +4,21 @@ on it that gives the same take twice."""
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from firmware_sim.clock import VirtualClock
-from firmware_sim.world import get_world, reset_world
+from drivers.registry import open_device
+from firmware_sim.clock import VirtualClock, VirtualHostClock
+from firmware_sim.world import SimWorld, get_world, reset_world
 from rigd.app.capture import run_capture
 from rigd.app.config import default_sim_rig
+from rigd.core.devices import PulseBatch
 from rigd.core.errors import ConfigError
+from rigd.core.host_clock import MONOTONIC
+from rigd.core.settings import TriggerSettings
 from rigd.take import Take
 
 
@@ -100,6 +105,66 @@ def test_a_sleeper_leaves_on_its_stop_event_without_moving_time() -> None:
     assert clock.now_us() == 0.0
 
 
+def test_a_real_world_stamps_host_time_with_the_monotonic_clock() -> None:
+    world = SimWorld("host-real")
+    assert world.host_clock is MONOTONIC
+
+
+def test_a_virtual_world_stamps_host_time_with_epoch_plus_virtual_time() -> None:
+    """Host time on the virtual clock moves with virtual time only, from an epoch that is the
+    monotonic clock's reading when the world was made (plausible magnitudes)."""
+    before = time.monotonic_ns()
+    world = SimWorld("host-virtual", clock="virtual")
+    after = time.monotonic_ns()
+    host = world.host_clock
+    assert isinstance(host, VirtualHostClock)
+    epoch = host.epoch_ns
+    assert before <= epoch <= after
+    assert host.now_ns() == epoch  # time has not started: host time stands at the epoch
+    assert isinstance(world.clock, VirtualClock)
+    world.clock.start()
+    world.clock.update(to_us=1234.5678)  # however long the machine took to get here
+    assert host.now_ns() == epoch + 1_234_568
+    world.clock.update(to_us=2_000_000.0)
+    assert host.now_ns() == epoch + 2_000_000_000
+    host.adopt_epoch(7)  # a cable follower counts from its lead's epoch
+    assert host.now_ns() == 7 + 2_000_000_000
+
+
+@pytest.mark.parametrize("transport", ["serial", "hid"])
+def test_a_virtual_box_holds_each_pulse_until_the_host_has_stamped_its_record(transport: str) -> None:
+    """Nothing else holds this world's time: without the box's wait for the host to handle
+    each record, time would jump from pulse to pulse while records sat unread and the driver
+    would stamp them late. With it, records carry the world's host time of their pulse."""
+    name = f"host-read-{transport}"
+    reset_world(name)
+    trig = open_device("trigger", f"sim://{name}/trigger?clock=virtual&transport={transport}")
+    try:
+        world = get_world(name)
+        host = world.host_clock
+        assert isinstance(host, VirtualHostClock)
+        assert trig.host_clock is host
+        trig.configure(TriggerSettings(rate_hz=1000.0, pulse_width_us=100))
+        trig.arm()
+        trig.start(40)
+        got: list[PulseBatch] = []
+        deadline = time.monotonic() + 60.0  # a state to wait for, not a delay
+        while sum(len(b) for b in got) < 40:
+            assert time.monotonic() < deadline, "the box never sent its 40 records"
+            got.append(trig.read_pulses(0.1))
+        index = np.concatenate([b.index for b in got])
+        host_ns = np.concatenate([b.host_time_ns for b in got]) - host.epoch_ns
+        true_ns = {k: round(t * 1000) for k, _, t, _ in world.truth.pulses}
+        late_ns = host_ns - np.array([true_ns[int(k)] for k in index])
+        assert (late_ns >= 0).all()
+        # Stamped before the world moved on (the box waits at most 0.5 s of wall time for the
+        # host, so a starved host may stamp a few late, never most of them).
+        assert np.median(late_ns) == 0, late_ns.tolist()
+    finally:
+        trig.close()
+        reset_world(name)
+
+
 def test_a_world_refuses_specs_that_disagree_on_the_clock() -> None:
     reset_world("clock-clash")
     get_world("clock-clash", clock="virtual")
@@ -110,26 +175,41 @@ def test_a_world_refuses_specs_that_disagree_on_the_clock() -> None:
     reset_world("clock-clash")
 
 
-def _capture(tmp: Path, world: str) -> Take:
+def _capture(tmp: Path, world: str) -> tuple[Take, int, dict[str, dict[int, float]]]:
+    """A virtual take, its world's host epoch and each camera's true exposure starts by counter."""
     reset_world(world)
     config = default_sim_rig(world=world, seed=7, clock="virtual")
     result = run_capture(config, tmp, 0.5)
     assert result.frames == {"cam0": 15, "cam1": 15, "cam2": 15}
-    return Take(result.path)
+    host = get_world(world).host_clock
+    assert isinstance(host, VirtualHostClock)
+    truth = get_world(world).truth
+    exposed = {cam: {c: t for c, t, _ in rows} for cam, rows in truth.frames.items()}
+    return Take(result.path), host.epoch_ns, exposed
 
 
 @pytest.mark.slow
 def test_two_virtual_captures_with_the_same_seed_are_identical(tmp_path: Path) -> None:
     """The whole pipeline (pty trigger, EVT decoding, window, sync, finalize) on virtual time:
-    frames (pixels and times) and events are the same twice."""
-    a = _capture(tmp_path / "a", "det-a")
-    b = _capture(tmp_path / "b", "det-b")
+    frames (pixels and times) and events are the same twice, and so are the frames' host times,
+    less their world's epoch: host time is the world's (epoch + virtual time of emission),
+    however differently loaded the machine was during the two takes. (An event packet's host
+    time is that of the newest device buffer the host read into it, so it depends on when the
+    host read: `test_sim_event_sensor` checks the buffers' stamps.)"""
+    a, epoch_a, exposed_a = _capture(tmp_path / "a", "det-a")
+    b, epoch_b, _ = _capture(tmp_path / "b", "det-b")
     for cam in ("cam0", "cam1", "cam2"):
         fa, fb = a.camera(cam), b.camera(cam)
         assert len(fa) == len(fb) == 15
         assert np.array_equal(fa.timestamps_us, fb.timestamps_us)
         for i in (0, 7, 14):
             assert np.array_equal(fa[i].image, fb[i].image)
+        host_a = np.array([f.host_time_ns for f in fa[:]], np.int64) - epoch_a
+        host_b = np.array([f.host_time_ns for f in fb[:]], np.int64) - epoch_b
+        assert np.array_equal(host_a, host_b)
+        # A frame is handed over when its exposure ends, at that virtual instant.
+        ends = [exposed_a[cam][f.frame_counter] + f.exposure_us for f in fa[:]]
+        assert np.abs(host_a - np.round(np.array(ends) * 1000)).max() <= 1000
     for sensor in ("ev0", "ev1"):
         ea, eb = a.sensor(sensor).events(), b.sensor(sensor).events()
         assert len(ea) > 10_000

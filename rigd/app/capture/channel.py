@@ -35,6 +35,7 @@ from rigd.app.capture.window import TakeWindow
 from rigd.core.devices import PulseBatch
 from rigd.core.errors import DeviceError, RigdError
 from rigd.core.events import EventArray
+from rigd.core.host_clock import HostClock
 from rigd.core.schema import LossKind
 from rigd.core.settings import TriggerSettings
 from rigd.sync import PulseLog
@@ -184,6 +185,13 @@ class ChannelContext:
     period_us: float
     reconnect_interval_s: float
 
+    @property
+    def host_clock(self) -> HostClock:
+        """The clock the take's host times are on: the trigger's (its pulse records'), which the
+        session checked the devices stamp with too. Comparing an item's host time with "now"
+        asks this clock; the daemon's own waits stay on wall time."""
+        return self.trigger.device.host_clock
+
 
 class DeviceChannel(Generic[DevT, ItemT]):
     """A camera or event sensor, from opening to the end of the take: one loop for every kind,
@@ -235,7 +243,7 @@ class DeviceChannel(Generic[DevT, ItemT]):
 
     def open_gate(self, window: TakeWindow, hold_s: float) -> None:
         """Place the device's data in the take window from here on."""
-        self.gate = self.reading.gate(self.device, window, hold_s)
+        self.gate = self.reading.gate(self.device, window, hold_s, self.ctx.host_clock)
 
     def add_to_take(self, take: TakeWriter) -> None:
         self.reading.add_to_take(take, self.device, self.settings_json)
@@ -549,7 +557,7 @@ class DeviceChannel(Generic[DevT, ItemT]):
 
     def _enqueue(self, item: ItemT) -> None:
         queue = self.ctx.queue
-        kept = self.shedding.admit(item, queue.fill(), time.monotonic_ns())
+        kept = self.shedding.admit(item, queue.fill(), self.ctx.host_clock.now_ns())
         if kept is not None:
             queue.put(self.reading.queue_item(kept), self.live)
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -23,6 +22,7 @@ from numpy.typing import NDArray
 from rigd.app.capture.window import TakeWindow
 from rigd.core.events import EventPacket
 from rigd.core.frames import Frame
+from rigd.core.host_clock import MONOTONIC
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,9 @@ class WindowGate(ABC, Generic[ItemT]):
     time is common to both.
 
     Called from the device's acquisition thread only; `closed`, `counts` and `reached_us`
-    are read by the control thread (plain attribute reads).
+    are read by the control thread (plain attribute reads). `clock_ns` reads the clock the
+    items' host times are on (the take's host clock): it times the hold for a first trigger
+    edge, so on virtual time the hold is `hold_s` of the world's time, not of the machine's.
     """
 
     def __init__(
@@ -71,7 +73,7 @@ class WindowGate(ABC, Generic[ItemT]):
         trigger_channel: int = 0,
         hold_s: float = 5.0,
         max_held: int = MAX_HELD_PACKETS,
-        clock_ns: Callable[[], int] = time.monotonic_ns,
+        clock_ns: Callable[[], int] = MONOTONIC.now_ns,
     ) -> None:
         self.name = name
         self.mode: GateMode = mode

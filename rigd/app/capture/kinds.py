@@ -28,6 +28,7 @@ from rigd.app.capture.window import TakeWindow
 from rigd.app.config import CameraConfig, EventSensorConfig, RigConfig
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
+from rigd.core.host_clock import HostClock
 from rigd.core.kinds import SensorKind
 from rigd.core.schema import LossKind
 from rigd.core.settings import CameraSettings, EventSensorSettings
@@ -76,10 +77,10 @@ class CameraReading(Reading[RgbCamera, Frame]):
         """No trigger input, or told to run free: its frames are matched to pulses by host time."""
         return Capability.HARDWARE_TRIGGER not in dev.capabilities or self.settings.trigger_mode != "hardware"
 
-    def gate(self, dev: RgbCamera, window: TakeWindow, hold_s: float) -> FrameGate:
+    def gate(self, dev: RgbCamera, window: TakeWindow, hold_s: float, clock: HostClock) -> FrameGate:
         timed = Capability.DEVICE_TIMESTAMPS in dev.capabilities and not self.software_synced(dev)
         mode: GateMode = "pulse_frames" if timed else "host"
-        return FrameGate(self.name, mode, window, hold_s=hold_s)
+        return FrameGate(self.name, mode, window, hold_s=hold_s, clock_ns=clock.now_ns)
 
     def add_to_take(self, take: TakeWriter, dev: RgbCamera, settings_json: str) -> None:
         # The take says how the camera was synchronized (recovery reads it back).
@@ -151,9 +152,11 @@ class EventReading(Reading[EventSensor, EventPacket]):
     ) -> tuple[EventArray, tuple[int, int]] | None:
         return (stream.recent_events(), dev.geometry) if stream.recent_packets else None
 
-    def gate(self, dev: EventSensor, window: TakeWindow, hold_s: float) -> EventGate:
+    def gate(self, dev: EventSensor, window: TakeWindow, hold_s: float, clock: HostClock) -> EventGate:
         mode: GateMode = "trigger_in" if self.settings.enable_trigger_in else "host"
-        return EventGate(self.name, mode, window, trigger_channel=self.trigger_in, hold_s=hold_s)
+        return EventGate(
+            self.name, mode, window, trigger_channel=self.trigger_in, hold_s=hold_s, clock_ns=clock.now_ns
+        )
 
     def add_to_take(self, take: TakeWriter, dev: EventSensor, settings_json: str) -> None:
         w, h = dev.geometry

@@ -23,6 +23,7 @@ from rigd.app.capture.streams import DeviceStream
 from rigd.app.capture.window import TakeWindow
 from rigd.core.events import EventArray, EventPacket
 from rigd.core.frames import Frame
+from rigd.core.host_clock import HostClock
 from rigd.core.kinds import SensorKind
 from rigd.core.schema import LossKind
 from rigd.take.writer import TakeWriter
@@ -96,8 +97,9 @@ class Reading(ABC, Generic[DevT, ItemT]):
         """`item` as the writer queue carries it."""
 
     @abstractmethod
-    def gate(self, dev: DevT, window: TakeWindow, hold_s: float) -> WindowGate[ItemT]:
-        """The gate that keeps what lies outside the take window out of the file."""
+    def gate(self, dev: DevT, window: TakeWindow, hold_s: float, clock: HostClock) -> WindowGate[ItemT]:
+        """The gate that keeps what lies outside the take window out of the file; `clock` is
+        the one the items' host times are on (it times the gate's hold)."""
 
     @abstractmethod
     def add_to_take(self, take: TakeWriter, dev: DevT, settings_json: str) -> None:

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from drivers.base import Capability, Trigger
 from rigd.core.devices import DeviceInfo, PulseBatch
 from rigd.core.errors import DeviceError
+from rigd.core.host_clock import MONOTONIC, HostClock
 from rigd.core.settings import TriggerSettings
 
 log = logging.getLogger(__name__)
@@ -55,9 +56,9 @@ class FeedState:
     clock_us: int
     """The box clock when the coordinator answered (its last record's time if it cannot ask)."""
     host_ns: NDArray[np.int64] | None = None
-    """When each record reached the coordinator, on its monotonic clock."""
+    """When each record reached the coordinator, on its host clock (its trigger's)."""
     now_ns: int | None = None
-    """The coordinator's monotonic clock when it answered."""
+    """The coordinator's host clock when it answered (None: no trigger open to read it from)."""
 
 
 class PulseFeed(Protocol):
@@ -76,9 +77,10 @@ class RemoteTrigger(Trigger):
 
     follows = True
 
-    def __init__(self, feed: PulseFeed, *, spec: str) -> None:
+    def __init__(self, feed: PulseFeed, *, spec: str, host_clock: HostClock = MONOTONIC) -> None:
         super().__init__()
         self._feed = feed
+        self.host_clock = host_clock
         self._info = DeviceInfo(
             kind="trigger", spec=spec, model="remote pulse feed", facts={"from": feed.name}
         )
@@ -190,21 +192,30 @@ class RemoteTrigger(Trigger):
         with self._lock:
             return dict(self._stats)
 
+    def use_host_clock(self, clock: HostClock) -> None:
+        """Put the records on `clock`: this host's devices' (a simulated world's on virtual time),
+        which the session learns only once they are open; before the first fetch."""
+        with self._lock:
+            self.host_clock = clock
+            self._offset_ns = None
+
     # -- the feed ----------------------------------------------------------------------------
     def _host_times(self, state: FeedState) -> NDArray[np.int64]:
         """When each record would have reached this host had the box been cabled here: the
-        coordinator's arrival times on this host's monotonic clock. The sync engine's coarse
-        map (host time -> rig time) needs them as a local box would give them; an arrival time
-        here would lag by the network and the polling."""
+        coordinator's arrival times on this host's clock (`host_clock`, the one this host's
+        devices stamp with). The sync engine's coarse map (host time -> rig time) needs them as
+        a local box would give them; an arrival time here would lag by the network and the
+        polling."""
         with self._lock:
             offset = self._offset_ns
         if state.host_ns is None or offset is None:
-            return np.full(len(state.index), time.monotonic_ns(), np.int64)
+            return np.full(len(state.index), self.host_clock.now_ns(), np.int64)
         return state.host_ns - np.int64(offset)
 
     def _note_offset(self, t0: int, t1: int, state: FeedState) -> None:
-        """Cristian's estimate of (coordinator clock - this clock) from one request: the one
-        with the shortest round trip in the last `OFFSET_REFRESH_S` wins (error <= rtt / 2)."""
+        """Cristian's estimate of (coordinator host clock - this host clock) from one request:
+        the one with the shortest round trip in the last `OFFSET_REFRESH_S` wins (error <=
+        rtt / 2). Both sides read the clock their records are stamped with."""
         if state.now_ns is None:
             return
         rtt = t1 - t0
@@ -220,9 +231,10 @@ class RemoteTrigger(Trigger):
         with self._lock:
             since = self._next
         try:
-            t0 = time.monotonic_ns()
+            clock = self.host_clock
+            t0 = clock.now_ns()
             state = self._feed.fetch(since)
-            self._note_offset(t0, time.monotonic_ns(), state)
+            self._note_offset(t0, clock.now_ns(), state)
         except DeviceError as exc:
             with self._lock:
                 self._stats["feed_errors"] += 1

@@ -33,7 +33,7 @@ from rigd.app.capture.kinds import open_channels
 from rigd.app.capture.ledger import LossLedger
 from rigd.app.capture.live import LiveStats
 from rigd.app.capture.preflight import prepare_rig
-from rigd.app.capture.remote_trigger import FeedState
+from rigd.app.capture.remote_trigger import FeedState, RemoteTrigger
 from rigd.app.capture.request import check_duration, check_out_dir, new_take_path
 from rigd.app.capture.results import CaptureResult, Phase, Progress, SessionSnapshot, SessionState
 from rigd.app.capture.stop import CLOSE_BOUND_S, AcquisitionStop, StopWait
@@ -201,11 +201,11 @@ class CaptureSession:
         """The pulse records from `since` on and where the box stands: what follower hosts of a
         multi-host rig fetch (`RemoteTrigger`)."""
         trigger = self._trigger
-        if trigger is None:
+        if trigger is None:  # no trigger yet to read the take's host clock from: no clock reading
             over = self._state in ("failed", "done")
             empty = np.empty(0, np.int64)
-            return FeedState(empty, empty, not over, 0 if over else None, 0, empty, time.monotonic_ns())
-        now = time.monotonic_ns()
+            return FeedState(empty, empty, not over, 0 if over else None, 0, empty, None)
+        now = trigger.device.host_clock.now_ns()  # the clock the records' host times are on
         index, t_us, host_ns = trigger.records_since(since)
         emitted = self._pulses_of_take
         if emitted is None and self._state in ("failed", "done"):
@@ -329,6 +329,7 @@ class CaptureSession:
             self._reconnect_interval_s,
         )
         open_channels(config, ctx, self._channels)  # an abort closes those that opened
+        self._agree_host_clock(trigger.device)
         prepare_rig(config, trigger, self._channels, self.n_pulses)
         for ch in self._channels.values():
             ch.open_gate(self._window, config.writer.window_hold_s)
@@ -359,6 +360,24 @@ class CaptureSession:
         self._watchdog = TriggerWatchdog(trigger.device, self.rate, self._faults, probe_always=self._virtual)
         for live in [self._trigger_live, *(ch.live for ch in self._channels.values())]:
             live.samples.clear()
+
+    def _agree_host_clock(self, trigger: Trigger) -> None:
+        """The take's host clock is the trigger's (`ChannelContext.host_clock`); a follower
+        host's remote trigger takes its devices' (a simulated world's on virtual time), as a
+        box cabled here would stamp with it. A device on another clock is named: its host times
+        cannot be compared with the pulse records'."""
+        clocks = {id(c): c for c in (ch.device.host_clock for ch in self._channels.values())}
+        if isinstance(trigger, RemoteTrigger) and len(clocks) == 1:
+            trigger.use_host_clock(next(iter(clocks.values())))
+        for name, ch in self._channels.items():
+            if ch.device.host_clock is not trigger.host_clock:
+                log.warning(
+                    "%s stamps host time on %r, the trigger on %r: its host-time placement "
+                    "(coarse sync, window by host time) compares two clocks",
+                    name,
+                    ch.device.host_clock,
+                    trigger.host_clock,
+                )
 
     def _create_take(self, trigger: TriggerChannel) -> TakeWriter:
         config = self.config

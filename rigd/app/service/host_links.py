@@ -85,7 +85,7 @@ class CoordinatorFeed:
         try:
             index = np.asarray(res["index"], np.int64)
             t_us = np.asarray(res["t_us"], np.int64)
-            emitted = res["emitted"]
+            emitted, now_ns = res["emitted"], res["now_ns"]
             state = FeedState(
                 index,
                 t_us,
@@ -93,7 +93,7 @@ class CoordinatorFeed:
                 None if emitted is None else int(str(emitted)),
                 int(str(res["clock_us"])),
                 np.asarray(res["host_ns"], np.int64),
-                int(str(res["now_ns"])),
+                None if now_ns is None else int(str(now_ns)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise DeviceError(f"pulse records from {self.name}: malformed reply ({exc})") from exc

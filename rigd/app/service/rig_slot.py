@@ -186,7 +186,11 @@ class RigSlot:
             final = last[1]
             keep = final.index >= args.since
             host_ns = None if final.host_ns is None else final.host_ns[keep]
-            state = replace(final, index=final.index[keep], t_us=final.t_us[keep], host_ns=host_ns)
+            # No clock reading: the take's host clock went with its trigger, and the one taken
+            # at its end is not "now" (a follower's clock offset must not learn from it).
+            state = replace(
+                final, index=final.index[keep], t_us=final.t_us[keep], host_ns=host_ns, now_ns=None
+            )
         else:
             raise RequestError("not_capturing", f"take {args.stem} is not this daemon's running take")
         return feed_reply(state, PULSES_PER_REPLY)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -11,6 +10,7 @@ import pytest
 from rigd.app.capture import remote_trigger
 from rigd.app.capture.remote_trigger import FeedState, RemoteTrigger
 from rigd.core.errors import DeviceError
+from rigd.core.host_clock import MONOTONIC, HostClock
 from rigd.core.settings import TriggerSettings
 
 PERIOD_US = 33_333
@@ -30,6 +30,8 @@ class FakeCoordinator:
         self.lock = threading.Lock()
         self.answer_from: int | None = None
         self.skew_ns = 5_000_000_000
+        self.clock: HostClock = MONOTONIC
+        """The clock this host reads (the coordinator's runs `skew_ns` ahead of it)."""
 
     def emit(self, n: int) -> None:
         with self.lock:
@@ -53,7 +55,7 @@ class FakeCoordinator:
             # The coordinator's monotonic clock runs 5 s ahead of this one; each record reached
             # it 2 ms after its box time.
             host = np.asarray(t, np.int64) * 1000 + 2_000_000 + self.skew_ns
-            now = time.monotonic_ns() + self.skew_ns
+            now = self.clock.now_ns() + self.skew_ns
             return FeedState(
                 index, np.asarray(t, np.int64), self.emitted is None, self.emitted, clock, host, now
             )
@@ -105,6 +107,47 @@ def test_arrival_times_come_on_this_hosts_clock() -> None:
     expected = b.t_us * 1000 + 2_000_000  # the arrival on the coordinator, without its skew
     rtt_ns = trig.link_stats()["clock_rtt_us"] * 1000
     assert np.all(np.abs(b.host_time_ns - expected) <= rtt_ns // 2 + 1000)
+
+
+class StandingClock:
+    """A virtual world's host clock while its time stands still: far from the monotonic one."""
+
+    def now_ns(self) -> int:
+        return 10**12
+
+
+def test_arrival_times_come_on_the_host_clock_of_this_hosts_devices() -> None:
+    """On a virtual world the session hands the remote trigger its devices' clock: the offset
+    is measured on it (both sides read their world's clock), so the records land on it exactly
+    when time stands still during the round trip."""
+    feed = FakeCoordinator(per_reply=100)
+    feed.clock = StandingClock()
+    trig = opened(feed)
+    assert trig.host_clock is MONOTONIC
+    trig.use_host_clock(feed.clock)
+    assert trig.host_clock is feed.clock
+    feed.emit(3)
+    b = trig.read_pulses(0.5)
+    assert b.host_time_ns.tolist() == (b.t_us * 1000 + 2_000_000).tolist()
+    assert trig.link_stats()["clock_rtt_us"] == 0
+
+
+def test_a_reply_without_a_clock_reading_is_taken_and_sets_no_offset() -> None:
+    """A coordinator whose trigger is not open yet has no host clock to read: `now_ns` None."""
+    from rigd.app.service.host_links import CoordinatorFeed, feed_reply
+
+    empty = np.empty(0, np.int64)
+    reply = feed_reply(FeedState(empty, empty, True, None, 0, empty, None), 100)
+
+    class Link:
+        name = "host A (test)"
+
+        def call(self, cmd: str, **args: object) -> dict[str, object]:
+            return reply
+
+    state = CoordinatorFeed(Link(), "take").fetch(0)  # type: ignore[arg-type]
+    assert state.now_ns is None
+    assert len(state.index) == 0
 
 
 def test_probes_and_stop_look_without_taking_records() -> None:
