@@ -33,6 +33,8 @@ from rigd.evt import StreamDecoder, decode_from_state
 
 #: Group attrs finalize writes on an evt_words sensor.
 _NHEAD = len(EVT_INDEX_COLUMNS)
+#: More events than any EVT format packs into a byte (EVT 3.0's 12-event vector word: 6).
+_MAX_EVENTS_PER_BYTE = 8
 #: Device us searched beyond a window's edges mapped back to the device clock (to_device
 #: rounds, and the rate is within a few hundred ppm of 1), before the exact search in rig time.
 _MAP_SLACK_US = 4
@@ -46,6 +48,19 @@ _HISTOGRAM_ROWS = 64
 #: The largest byte buffer a reader keeps for the next read (a 50 ms window of a 20 Mev/s
 #: sensor is ~2.5 MB); longer reads get their own.
 _KEEP_BUFFER = 16 << 20
+
+
+def consistent_rows(rows: NDArray[np.int64], available: int) -> int:
+    """Leading rows that follow on from each other (start = previous end, from byte 0, a
+    positive length) and end within `available` bytes."""
+    n = rows.shape[0]
+    if n == 0:
+        return 0
+    start, length = rows[:, 0], rows[:, 1]
+    expect = np.concatenate([[0], (start + length)[:-1]])
+    good = (start == expect) & (length > 0) & (start + length <= available)
+    bad = np.flatnonzero(~good)
+    return int(bad[0]) if bad.size else n
 
 
 @njit(nogil=True, cache=True)
@@ -253,11 +268,33 @@ class EvtWordsEvents:
         self._bytes = WordBytes(self.words, self.where, mapped=not with_tail)
         self.lo, self.hi = window
         self._tail = self._tail_bytes() if with_tail else None
+        self._check_index(idx)
         if Events.FIRST_IN_WINDOW in g.attrs and cmap is not None:
             self.i0 = int(g.attrs[Events.FIRST_IN_WINDOW])
             self.i1 = self.i0 + int(g.attrs[Events.EVENTS_IN_WINDOW])
         else:
             self.i0, self.i1 = self.window_range()
+
+    def _check_index(self, idx: NDArray[np.int64]) -> None:
+        """Refuse an index whose rows do not follow on within the stored bytes, or say more
+        events than their bytes can hold: every read sizes its buffers from these rows, so a
+        damaged or hostile row must not reach one (a length of 2**31 asked for 2 GB)."""
+        tail = self._tail
+        available = int(self.words.shape[0]) if tail is None else tail[0] + len(tail[1])
+        good = consistent_rows(idx, available)
+        if good < idx.shape[0]:
+            r = idx[good]
+            raise TakeFormatError(
+                f"{self.where}/{Events.EVT_INDEX}: row {good} (start {int(r[0])}, length {int(r[1])}) does "
+                f"not follow on from the row before or ends past the {available} stored bytes"
+            )
+        bad = np.flatnonzero((self.count < 0) | (self.count > _MAX_EVENTS_PER_BYTE * self.length))
+        if bad.size:
+            r = int(bad[0])
+            raise TakeFormatError(
+                f"{self.where}/{Events.EVT_INDEX}: row {r} says {int(self.count[r])} events in "
+                f"{int(self.length[r])} bytes (at most {_MAX_EVENTS_PER_BYTE} an EVT byte holds)"
+            )
 
     @property
     def stored(self) -> int:

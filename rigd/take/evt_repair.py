@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rigd.core.layout import Events
+from rigd.take.evt_read import consistent_rows
 from rigd.take.evt_sink import drop_words_tail, words_tail
 
 
@@ -34,19 +35,6 @@ class EvtCut:
     reasons: list[str]
     tail: NDArray[np.uint8]
     main: int
-
-
-def consistent_rows(rows: NDArray[np.int64], available: int) -> int:
-    """Leading rows that follow on from each other (start = previous end, from byte 0, a
-    positive length) and end within `available` bytes."""
-    n = rows.shape[0]
-    if n == 0:
-        return 0
-    start, length = rows[:, 0], rows[:, 1]
-    expect = np.concatenate([[0], (start + length)[:-1]])
-    good = (start == expect) & (length > 0) & (start + length <= available)
-    bad = np.flatnonzero(~good)
-    return int(bad[0]) if bad.size else n
 
 
 def plan_evt_cut(g: h5py.Group, main: int, index_stored: int, *, finalizing: bool) -> EvtCut:

@@ -8,8 +8,7 @@ import numpy as np
 
 from rigd.core.errors import TakeFormatError
 from rigd.core.layout import EVT_INDEX_COLUMNS, Device, Events
-from rigd.take.evt_read import EvtWordsEvents
-from rigd.take.evt_repair import consistent_rows
+from rigd.take.evt_read import EvtWordsEvents, consistent_rows
 
 #: Index rows decoded per step (bounded memory: about 128 KiB of words each).
 _ROWS_PER_STEP = 256

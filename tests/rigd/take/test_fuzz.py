@@ -9,6 +9,7 @@ arrays included). A fast budget runs in the normal suite; the long one is marked
 
 from __future__ import annotations
 
+import re
 import shutil
 import tempfile
 import tracemalloc
@@ -293,3 +294,28 @@ def test_damaged_evt_words_metadata_is_one_take_error(
     outcome, _ = _read_measured(p)
     assert outcome.startswith("TakeError TakeFormatError"), outcome
     assert str(p) in outcome
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "match"),
+    [
+        (1, 2**31, "row 0 \\(start 0, length 2147483648\\) does not follow on"),
+        (0, 2**62, "row 0 \\(start 4611686018427387904"),
+        (2, 2**62, "row 0 says 4611686018427387904 events in"),
+        (2, -1, "row 0 says -1 events in"),
+    ],
+)
+def test_an_evt_index_row_past_its_bytes_is_refused_before_any_read(
+    tmp_path: Path, column: int, value: int, match: str
+) -> None:
+    # found by the long fuzz: a row whose length said 2**31 made the reader ask for a 2 GB buffer;
+    # every row must follow on within the stored bytes, and say no more events than they can hold
+    p = tmp_path / "words.h5"
+    shutil.copy(_base("words"), p)
+    with h5py.File(p, "r+") as f:
+        [index] = [f[n] for n in _datasets(f) if n.endswith("/evt_index")]
+        index[0, column] = value
+    outcome, peak = run_isolated(_read_measured, p, timeout_s=DEADLINE_S, what="a damaged evt_index")
+    assert outcome.startswith("TakeError TakeFormatError"), outcome
+    assert re.search(match, outcome), outcome
+    assert peak < MEMORY_BOUND
