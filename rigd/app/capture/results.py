@@ -26,7 +26,9 @@ class Progress:
 
     `phase_done` / `phase_total` count the current phase in its own unit (pulses; devices
     that reached the window end; queued items written), None where it has none (finalizing).
-    `phases` lists every phase entered so far, so a reader polling now and then misses none."""
+    `phases` lists every phase entered so far, so a reader polling now and then misses none;
+    `entered_with` has the count each stop phase started from (queued items, devices), so a reader
+    that first sees a phase after it ended can still say what it counted."""
 
     pulses: int
     pulses_total: int
@@ -37,6 +39,7 @@ class Progress:
     phase_done: int | None = None
     phase_total: int | None = None
     phases: tuple[Phase, ...] = ("capturing",)
+    entered_with: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(slots=True)

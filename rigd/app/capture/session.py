@@ -121,6 +121,7 @@ class CaptureSession:
         self._writer_thread: threading.Thread | None = None
         self._state: SessionState = "new"
         self._phases: list[Phase] = ["capturing"]
+        self._entered_with: dict[str, int] = {}
         self._drain_peak = 0
         self._t_wall = 0.0
         self._t_start: float | None = None
@@ -252,12 +253,15 @@ class CaptureSession:
             done,
             total,
             phases,
+            dict(self._entered_with),
         )
 
     def _enter(self, phase: Phase) -> None:
         """The take moves on to the next stop phase (see `results.StopPhase`)."""
         if phase == "draining":
-            self._drain_peak = self._queue.qsize()
+            self._drain_peak = self._entered_with[phase] = self._queue.qsize()
+        elif phase == "waiting for devices":
+            self._entered_with[phase] = len(self._channels)
         self._phases.append(phase)
         log.debug("take %s: %s", self.path, phase)
 

@@ -204,7 +204,8 @@ def _capture_progress(bar: StageProgress) -> Callable[[CaptureProgress], None]:
         nonlocal shown
         for phase in p.phases[shown:]:
             unit, note = _CAPTURE_PHASES[phase]
-            bar.stage(phase, p.phase_total if phase == p.phase else None, unit, note)
+            # a phase already over when first seen shows the count it started from
+            bar.stage(phase, p.phase_total if phase == p.phase else p.entered_with.get(phase), unit, note)
         shown = len(p.phases)
         events = sum(p.events.values())
         note = _CAPTURE_PHASES[p.phase][1]

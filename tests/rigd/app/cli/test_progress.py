@@ -90,3 +90,23 @@ def test_convert_counts_events_against_the_take_total(tmp_path: Path) -> None:
     r = CliRunner().invoke(app, ["-v", "convert", str(tmp_path / "ev.raw"), str(tmp_path / "back.h5")])
     assert r.exit_code == 0, r.output
     assert "convert: converting: ev.raw -> back.h5" in r.stderr  # a recording is counted by decoding it
+
+
+def test_a_phase_first_seen_after_it_ended_still_shows_its_count() -> None:
+    # the CLI polls the capture's progress now and then; a short drain can be over (the take
+    # already finalizing) when it first hears of it: the line still says what the drain counted
+    from rigd.app.capture.results import Progress
+    from rigd.app.commands.capture import _capture_progress
+
+    buf = io.StringIO()
+    console = Console(file=buf, force_terminal=False, width=160, color_system=None)
+    with StageProgress(console, "capture", lines=True) as bar:
+        on_progress = _capture_progress(bar)
+        on_progress(Progress(30, 30, {}, {}, 0, "capturing", 30, 30))
+        phases = ("capturing", "waiting for devices", "draining", "finalizing")
+        entered = {"waiting for devices": 4, "draining": 17}
+        on_progress(Progress(30, 30, {}, {}, 0, "finalizing", None, None, phases, entered))
+    lines = [line for line in buf.getvalue().splitlines() if line.startswith("capture: ")]
+    assert lines[1].startswith("capture: waiting for devices (4 devices)"), lines
+    assert lines[2].startswith("capture: draining (17 queued items)"), lines
+    assert lines[3].startswith("capture: finalizing: fitting the device clocks"), lines
