@@ -194,8 +194,11 @@ class RemoteTrigger(Trigger):
 
     def use_host_clock(self, clock: HostClock) -> None:
         """Put the records on `clock`: this host's devices' (a simulated world's on virtual time),
-        which the session learns only once they are open; before the first fetch."""
+        which the session learns only once they are open; before the first fetch. The same clock
+        again keeps the offset already measured (the real clock: nothing changes)."""
         with self._lock:
+            if clock is self.host_clock:
+                return
             self.host_clock = clock
             self._offset_ns = None
 
