@@ -382,7 +382,7 @@ def kernel(x, y, p, t, t_prev, base, flat, tab, cols, plane, width, height, wind
                 base = t[hi] - low
             lo = hi
         if {gather}:
-            k = collect(x, y, p, t, out, kb, ox, oy, op, ot, out[:0], k)
+            k = collect(x, y, p, t, out, kb, ox, oy, op, ot, k)
     return base, k, {GOOD}
 
 
@@ -453,21 +453,17 @@ def _collect(  # pragma: no cover - numba
     oy: NDArray[np.uint16],
     op: NDArray[np.int8],
     ot: NDArray[np.int64],
-    oi: NDArray[np.int64],
     k: int,
 ) -> int:
-    """Append the events at idx[:n] to the o* arrays from position k (and their indices to oi unless
-    it is empty); the new length. The caller allocates the outputs with numpy: on this project's
-    VMs numba's own allocations of fresh memory took twice as long (page faults)."""
+    """Append the events at idx[:n] to the o* arrays from position k; the new length. The caller
+    allocates the outputs with numpy: on this project's VMs numba's own allocations of fresh memory
+    took twice as long (page faults)."""
     for j in range(n):
         i = idx[j]
         ox[k + j] = x[i]
         oy[k + j] = y[i]
         op[k + j] = p[i]
         ot[k + j] = t[i]
-    if oi.shape[0]:
-        for j in range(n):
-            oi[k + j] = idx[j]
     return k + n
 
 

@@ -29,8 +29,10 @@ base that moves forward every ~65 ms of stream (int32 for windows over 32767 us)
 interleaves 4 rows per group, so one 64-byte vector compare covers 8 columns x 4 rows and the
 7 x 7 neighbourhood takes 3 of them (docs/reconstruction.md, "BAF definition"). The input is
 checked block by block inside the kernel, so the events are read from memory once, and `filter()`
-has the scan list the kept events' indices instead of indexing every array with the mask
-(docs/benchmarks.md, "Background-activity filter").
+copies each block's kept events out while the block is in cache instead of indexing every array
+with the mask. `threads=2` filters the two polarities on two threads, each against its own half
+of the map (docs/benchmarks.md, "Background-activity filter"). The compiled parts are in
+`reconstruction.baf_kernels`.
 """
 
 from __future__ import annotations
@@ -152,10 +154,12 @@ class BackgroundActivityFilter:
         self._kernels = {gather: make_kernel(*kind, gather) for gather in (False, True)}
         self._split_kernel = make_kernel(*kind, True, True) if self.threads == 2 else None
         self._last = np.full(2 * self._layout.plane, self._never, self._dtype)
-        # per thread: the block's map indices (with the events it prefetches past the block's end) and
-        # its kept indices; with threads=2 also its events of the thread's polarity
+        # per thread: the block's map indices (with the events it prefetches past the block's end); one
+        # thread's list of a block's kept events (filter()); with threads=2 each thread's events of its
+        # polarity
         words = BLOCK_EVENTS + PREFETCH_AHEAD
-        self._work = [(np.empty(words, np.int64), np.empty(words, np.int64)) for _ in range(self.threads)]
+        self._index = [np.empty(words, np.int64) for _ in range(self.threads)]
+        self._listed = np.empty(words, np.int64)
         self._packs = [(np.empty(words, np.uint8), np.empty(words, np.int16)) for _ in range(self.threads)]
         self._base_us: int | None = None
         self._t_end: int | None = None
@@ -267,18 +271,17 @@ class BackgroundActivityFilter:
         then read from memory once) and the map is put back from a copy if a block is bad."""
         t_prev, base = self._start(events)
         snapshot = self._check(events, t_prev)
-        s, listed = self._work[0][:2]
         if keep is None:
             assert out is not None
         else:
             out = EventArray.empty()  # unused by the mask kernel
-        dest: NDArray[Any] = listed if keep is None else keep
+        dest: NDArray[Any] = self._listed if keep is None else keep
         base, kept, bad = self._kernels[keep is None](
             *self._args(events, t_prev, base),
             self.window_us,
             self.min_support,
             dest,
-            s,
+            self._index[0],
             out.x,
             out.y,
             out.p,
@@ -305,8 +308,8 @@ class BackgroundActivityFilter:
         results: list[tuple[int, int, int]] = [(0, 0, GOOD)] * 2
 
         def run(pol: int) -> None:
-            s, _ = self._work[pol]
             on, ic = self._packs[pol]
+            s = self._index[pol]
             results[pol] = kernel(*lead, self.window_us, self.min_support, lists[pol], s, pol, on, ic)
 
         on_two_threads(lambda: run(0), lambda: run(1), "baf-on")
@@ -342,7 +345,7 @@ class BackgroundActivityFilter:
 
 
 def _empty_like(events: EventArray, n: int) -> EventArray:
-    """n uninitialised events of `events`' dtypes (numpy's allocation: see `_collect`)."""
+    """n uninitialised events of `events`' dtypes (numpy's allocation: see `baf_kernels._collect`)."""
     x, y, p, t = events.x, events.y, events.p, events.t
     return EventArray(np.empty(n, x.dtype), np.empty(n, y.dtype), np.empty(n, p.dtype), np.empty(n, t.dtype))
 
